@@ -1,0 +1,381 @@
+"""BVH over a mesh's triangles, built to an exact node budget.
+
+Two stages, both vectorised with numpy (no Python loop over triangles):
+
+1. `build_full_tree`: a binned-SAH BVH down to `max_leaf_size` triangles per leaf, built level by level (all
+   nodes of one depth are split together). This is the tree a conventional ray tracer would hold resident.
+2. `cut_tree`: a cut through the full tree with exactly the requested number of nodes. Starting from the root,
+   the cut repeatedly expands the leaf with the highest SAH cost (box surface area x triangle count: the work a
+   ray tracer expects to spend there), so nodes go where the geometry is dense and large.
+
+The result, `BVH`, stores its nodes as one flat array of 32-byte records (`NODE_DTYPE`), the exact bytes the
+.nbvh file stores. Layout: the root is node 0, the two children of an internal node are `left` and `left + 1`;
+`left == 0` marks a leaf (the root is never a child). The 4 spare bytes of a leaf hold its leaf ordinal, of an
+internal node -1. For an even budget, node 1 is an unused padding node (empty box) so that the node count is
+exactly the budget and every sibling pair starts at an even index (one 64-byte cache line per pair).
+Leaf triangle ranges (`leaf_tri_start`, `leaf_tri_count` into `tri_order`) are for training only; they are
+never stored in the file.
+"""
+from __future__ import annotations
+
+import heapq
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+
+from .mesh import Mesh
+
+#: One node, 32 bytes: AABB min (3 x float32), AABB max (3 x float32), left child (int32), leaf ordinal or -1.
+NODE_DTYPE = np.dtype([("lo", "<f4", (3,)), ("hi", "<f4", (3,)), ("left", "<i4"), ("leaf", "<i4")])
+assert NODE_DTYPE.itemsize == 32
+
+MAX_NODES = 65535
+DEFAULT_NODES = 4096
+
+
+@dataclass
+class FullTree:
+    """Binned-SAH tree over all triangles (arrays indexed by node id; root = 0).
+
+    lo, hi: (M, 3) float32 node AABBs; left: (M,) int64 first child or -1 for leaves (right = left + 1);
+    start, count: (M,) int64 range of the node's triangles in `tri_order`; depth: (M,) int32.
+    tri_order: (F,) int64 permutation of triangle ids grouped by node.
+    """
+
+    lo: np.ndarray
+    hi: np.ndarray
+    left: np.ndarray
+    start: np.ndarray
+    count: np.ndarray
+    depth: np.ndarray
+    tri_order: np.ndarray
+
+    @property
+    def n_nodes(self) -> int:
+        return int(self.left.shape[0])
+
+    @property
+    def n_leaves(self) -> int:
+        return int((self.left < 0).sum())
+
+
+@dataclass
+class BVH:
+    """The BVH cut to a node budget (see module docstring for the layout).
+
+    nodes: (M,) NODE_DTYPE, M = `n_nodes` (== the budget whenever the mesh has enough triangles).
+    leaf_node: (L,) int64 node index of each leaf ordinal; leaf_tri_start, leaf_tri_count: (L,) int64 ranges in
+    `tri_order` (F,) int64; tri_leaf: (F,) int32 the leaf that owns each triangle. `max_depth`: root depth 0.
+    """
+
+    nodes: np.ndarray
+    leaf_node: np.ndarray
+    leaf_tri_start: np.ndarray
+    leaf_tri_count: np.ndarray
+    tri_order: np.ndarray
+    tri_leaf: np.ndarray
+    max_depth: int
+    budget: int
+
+    @property
+    def n_nodes(self) -> int:
+        return int(self.nodes.shape[0])
+
+    @property
+    def n_leaves(self) -> int:
+        return int(self.leaf_node.shape[0])
+
+    @property
+    def nbytes(self) -> int:
+        """Stored size: 32 bytes per node."""
+        return self.n_nodes * NODE_DTYPE.itemsize
+
+    def to_bytes(self) -> bytes:
+        return self.nodes.tobytes()
+
+    @staticmethod
+    def nodes_from_bytes(data: bytes) -> np.ndarray:
+        """Node array from stored bytes (length must be a multiple of 32)."""
+        if len(data) % NODE_DTYPE.itemsize:
+            raise ValueError(f"BVH node data is {len(data)} bytes, not a multiple of {NODE_DTYPE.itemsize}")
+        return np.frombuffer(data, dtype=NODE_DTYPE).copy()
+
+    def leaf_boxes(self) -> tuple[np.ndarray, np.ndarray]:
+        """(L, 3), (L, 3) float32 AABB min and max of every leaf, indexed by leaf ordinal."""
+        n = self.nodes[self.leaf_node]
+        return n["lo"].copy(), n["hi"].copy()
+
+    def leaf_triangles(self, leaf: int) -> np.ndarray:
+        """Triangle ids owned by one leaf."""
+        s = int(self.leaf_tri_start[leaf])
+        return self.tri_order[s:s + int(self.leaf_tri_count[leaf])]
+
+
+def _ranges(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """Concatenation of arange(s, s + c) for every (s, c), vectorised."""
+    offs = np.concatenate(([0], np.cumsum(counts)[:-1]))
+    return np.repeat(starts - offs, counts) + np.arange(int(counts.sum()))
+
+
+def _segment_reduce(values: np.ndarray, starts: np.ndarray, op) -> np.ndarray:
+    """op.reduceat over contiguous, non-empty segments beginning at `starts` (sorted)."""
+    return op.reduceat(values, starts, axis=0)
+
+
+def build_full_tree(mesh: Mesh, max_leaf_size: int = 1, n_bins: int = 16, median_below: int = 16) -> FullTree:
+    """Binned-SAH BVH over `mesh` down to at most `max_leaf_size` triangles per leaf.
+
+    All nodes of one depth are split at once: per node and axis, triangle centroids are binned into `n_bins`
+    bins, the SAH cost of the n_bins - 1 candidate planes is swept from both sides, the cheapest plane wins.
+    Nodes of at most `median_below` triangles, and nodes SAH cannot separate (all centroids in one bin), are
+    split at the median of their longest centroid axis.
+    """
+    tri = mesh.triangles()
+    tri_lo = tri.min(axis=1)
+    tri_hi = tri.max(axis=1)
+    centroid = ((tri_lo.astype(np.float64) + tri_hi) * 0.5)
+    n_tri = tri.shape[0]
+
+    lo_list = [tri_lo.min(axis=0, keepdims=True)]
+    hi_list = [tri_hi.max(axis=0, keepdims=True)]
+    left_list = [np.full(1, -1, np.int64)]
+    start_list = [np.zeros(1, np.int64)]
+    count_list = [np.full(1, n_tri, np.int64)]
+    depth_list = [np.zeros(1, np.int32)]
+    order = np.arange(n_tri, dtype=np.int64)
+
+    # Active nodes of the current level, as (global id, start, count); their triangles are contiguous in `order`.
+    active_id = np.zeros(1, np.int64)
+    active_start = np.zeros(1, np.int64)
+    active_count = np.full(1, n_tri, np.int64)
+    n_total = 1
+    depth = 0
+    while True:
+        split = active_count > max_leaf_size
+        active_id, active_start, active_count = active_id[split], active_start[split], active_count[split]
+        if active_id.size == 0:
+            break
+        depth += 1
+        n_act = active_id.size
+        # Triangles of all active nodes, node-major.
+        seg_lens = active_count
+        seg_node = np.repeat(np.arange(n_act), seg_lens)
+        offs = np.concatenate(([0], np.cumsum(seg_lens)[:-1]))
+        local = np.arange(seg_lens.sum()) - np.repeat(offs, seg_lens)
+        pos = np.repeat(active_start, seg_lens) + local
+        tids = order[pos]
+        c = centroid[tids]
+        c_lo = _segment_reduce(c, offs, np.minimum)
+        c_hi = _segment_reduce(c, offs, np.maximum)
+        extent = c_hi - c_lo
+        # Bin index per triangle and axis.
+        scale = np.where(extent > 0, n_bins / np.where(extent > 0, extent, 1), 0.0)
+        b = ((c - c_lo[seg_node]) * scale[seg_node]).astype(np.int64)
+        np.clip(b, 0, n_bins - 1, out=b)
+        t_lo, t_hi = tri_lo[tids], tri_hi[tids]
+        # SAH binning for nodes above `median_below` triangles; smaller nodes take the median split below
+        # (binning 16 bins for a handful of triangles costs more than it gains).
+        best_cost = np.full(n_act, np.inf)
+        best_axis = np.zeros(n_act, np.int64)
+        best_plane = np.zeros(n_act, np.int64)  # triangles with bin <= plane go left
+        big = np.flatnonzero(active_count > median_below)
+        if big.size:
+            big_of = np.full(n_act, -1, np.int64)
+            big_of[big] = np.arange(big.size)
+            tri_big = big_of[seg_node] >= 0
+            bnode = big_of[seg_node[tri_big]]
+            bb = b[tri_big]
+            blo_t, bhi_t = t_lo[tri_big].ravel(), t_hi[tri_big].ravel()
+            n_big = big.size
+            nb = n_big * n_bins
+            for axis in range(3):
+                key = bnode * n_bins + bb[:, axis]
+                cnt = np.bincount(key, minlength=nb).reshape(n_big, n_bins).astype(np.float64)
+                key3 = (key[:, None] * 3 + np.arange(3)).ravel()  # 1-D ufunc.at is ~3x faster than 2-D
+                blo = np.full(nb * 3, np.inf, np.float32)
+                bhi = np.full(nb * 3, -np.inf, np.float32)
+                np.minimum.at(blo, key3, blo_t)
+                np.maximum.at(bhi, key3, bhi_t)
+                blo = blo.reshape(n_big, n_bins, 3)
+                bhi = bhi.reshape(n_big, n_bins, 3)
+                # Sweep from the left and from the right: bounds and counts of bins [0..i] and [i+1..].
+                l_lo = np.minimum.accumulate(blo, axis=1)[:, :-1]
+                l_hi = np.maximum.accumulate(bhi, axis=1)[:, :-1]
+                r_lo = np.minimum.accumulate(blo[:, ::-1], axis=1)[:, ::-1][:, 1:]
+                r_hi = np.maximum.accumulate(bhi[:, ::-1], axis=1)[:, ::-1][:, 1:]
+                l_cnt = np.cumsum(cnt, axis=1)[:, :-1]
+                r_cnt = cnt.sum(axis=1, keepdims=True) - l_cnt
+                cost = _half_area(l_lo, l_hi) * l_cnt + _half_area(r_lo, r_hi) * r_cnt
+                cost = np.where((l_cnt > 0) & (r_cnt > 0), cost, np.inf)
+                plane = cost.argmin(axis=1)
+                pc = cost[np.arange(n_big), plane]
+                better = pc < best_cost[big]
+                best_cost[big] = np.where(better, pc, best_cost[big])
+                best_axis[big] = np.where(better, axis, best_axis[big])
+                best_plane[big] = np.where(better, plane, best_plane[big])
+
+        go_right = b[np.arange(b.shape[0]), best_axis[seg_node]] > best_plane[seg_node]
+        # Small nodes, and nodes SAH cannot split (coincident centroids): median split along the longest axis.
+        stuck = ~np.isfinite(best_cost)
+        if stuck.any():
+            tri_stuck = stuck[seg_node]
+            ax = extent.argmax(axis=1)
+            key_val = c[np.arange(c.shape[0]), ax[seg_node]]
+            # Rank within the node along the axis (stable lexsort: node, then coordinate, then position).
+            idx = np.flatnonzero(tri_stuck)
+            ordr = idx[np.lexsort((local[idx], key_val[idx], seg_node[idx]))]
+            rank = np.empty(ordr.size, np.int64)
+            node_of = seg_node[ordr]
+            first = np.concatenate(([0], np.flatnonzero(np.diff(node_of)) + 1))
+            grp_start = np.repeat(first, np.diff(np.concatenate((first, [ordr.size]))))
+            rank = np.arange(ordr.size) - grp_start
+            go_right[ordr] = rank >= (active_count[node_of] // 2)
+
+        # Stable partition inside every node: left triangles first.
+        perm = np.lexsort((go_right, seg_node))
+        order[pos] = tids[perm]
+        n_right = np.bincount(seg_node, weights=go_right, minlength=n_act).astype(np.int64)
+        n_left = active_count - n_right
+
+        child_lo_l = np.full((n_act, 3), np.inf, np.float32)
+        child_hi_l = np.full((n_act, 3), -np.inf, np.float32)
+        child_lo_r = child_lo_l.copy()
+        child_hi_r = child_hi_l.copy()
+        # Children's triangles are contiguous after the partition: bounds by segmented reduction.
+        child_key = seg_node[perm] * 2 + go_right[perm]
+        seg_starts = np.concatenate(([0], np.flatnonzero(np.diff(child_key)) + 1))
+        keys = child_key[seg_starts]
+        lo_sorted, hi_sorted = t_lo[perm], t_hi[perm]
+        red_lo = np.minimum.reduceat(lo_sorted, seg_starts, axis=0)
+        red_hi = np.maximum.reduceat(hi_sorted, seg_starts, axis=0)
+        is_r = keys % 2 == 1
+        child_lo_l[keys[~is_r] // 2], child_hi_l[keys[~is_r] // 2] = red_lo[~is_r], red_hi[~is_r]
+        child_lo_r[keys[is_r] // 2], child_hi_r[keys[is_r] // 2] = red_lo[is_r], red_hi[is_r]
+
+        child_ids = n_total + 2 * np.arange(n_act)
+        left_arr = np.concatenate(left_list)
+        left_list = [left_arr]
+        left_arr[active_id] = child_ids
+        c_lo = np.empty((2 * n_act, 3), np.float32)
+        c_hi = np.empty((2 * n_act, 3), np.float32)
+        c_lo[0::2], c_lo[1::2] = child_lo_l, child_lo_r
+        c_hi[0::2], c_hi[1::2] = child_hi_l, child_hi_r
+        c_start = np.empty(2 * n_act, np.int64)
+        c_count = np.empty(2 * n_act, np.int64)
+        c_start[0::2], c_start[1::2] = active_start, active_start + n_left
+        c_count[0::2], c_count[1::2] = n_left, n_right
+        lo_list.append(c_lo)
+        hi_list.append(c_hi)
+        left_list.append(np.full(2 * n_act, -1, np.int64))
+        start_list.append(c_start)
+        count_list.append(c_count)
+        depth_list.append(np.full(2 * n_act, depth, np.int32))
+        active_id = np.arange(n_total, n_total + 2 * n_act, dtype=np.int64)
+        active_start, active_count = c_start, c_count
+        n_total += 2 * n_act
+
+    return FullTree(lo=np.concatenate(lo_list), hi=np.concatenate(hi_list), left=np.concatenate(left_list),
+                    start=np.concatenate(start_list), count=np.concatenate(count_list),
+                    depth=np.concatenate(depth_list), tri_order=order)
+
+
+def _half_area(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Half the surface area of boxes (..., 3); empty boxes (inf bounds) give 0."""
+    d = np.maximum(hi.astype(np.float64) - lo, 0)
+    d = np.where(np.isfinite(d), d, 0)
+    return d[..., 0] * d[..., 1] + d[..., 1] * d[..., 2] + d[..., 2] * d[..., 0]
+
+
+def _sah_priority(tree: FullTree, node: int) -> float:
+    d = np.maximum(tree.hi[node].astype(np.float64) - tree.lo[node], 0)
+    return float((d[0] * d[1] + d[1] * d[2] + d[2] * d[0]) * tree.count[node])
+
+
+def cut_tree(tree: FullTree, budget: int = DEFAULT_NODES, priority=None, max_nodes: int | None = MAX_NODES) -> BVH:
+    """Cut `tree` to exactly `budget` nodes (1..max_nodes), or fewer when the full tree has fewer leaves to offer.
+
+    max_nodes=None lifts the file format's 65535 limit (for in-memory trees such as the exact fallback's).
+
+    priority(tree, node) -> float chooses which leaf of the cut to expand next (default: SAH cost, box surface
+    area x triangle count). The expansion is greedy, highest priority first.
+    """
+    if budget < 1 or (max_nodes is not None and budget > max_nodes):
+        raise ValueError(f"node budget must be in [1, {max_nodes}], got {budget}")
+    priority = priority or _sah_priority
+    # A binary tree has an odd node count; an even budget keeps one padding node (see module docstring).
+    target_leaves = (budget + 1) // 2
+    cut_leaves = {0}
+    heap: list[tuple[float, int]] = []
+    if tree.left[0] >= 0:
+        heap.append((-priority(tree, 0), 0))
+    while len(cut_leaves) < target_leaves and heap:
+        _, node = heapq.heappop(heap)
+        cut_leaves.remove(node)
+        for child in (int(tree.left[node]), int(tree.left[node]) + 1):
+            cut_leaves.add(child)
+            if tree.left[child] >= 0:
+                heapq.heappush(heap, (-priority(tree, child), child))
+    n_leaves = len(cut_leaves)
+    n_tree_nodes = 2 * n_leaves - 1
+    padded = budget % 2 == 0 and n_tree_nodes == budget - 1
+    if n_tree_nodes + padded < budget and max_nodes is not None:
+        warnings.warn(f"the mesh has too few triangles for {budget} BVH nodes; using {n_tree_nodes}", stacklevel=2)
+
+    # Lay out the cut in BFS order: root 0, (padding 1), then sibling pairs.
+    n_nodes = n_tree_nodes + int(padded)
+    nodes = np.zeros(n_nodes, dtype=NODE_DTYPE)
+    full_of = np.zeros(n_nodes, np.int64)  # full-tree node of every output node
+    depth_of = np.zeros(n_nodes, np.int32)
+    nodes["leaf"] = -1
+    next_free = 2 if padded else 1
+    queue = [0]
+    head = 0
+    leaf_node, leaf_full = [], []
+    while head < len(queue):
+        out = queue[head]
+        head += 1
+        src = int(full_of[out])
+        nodes["lo"][out] = tree.lo[src]
+        nodes["hi"][out] = tree.hi[src]
+        if src in cut_leaves:
+            nodes["left"][out] = 0
+            nodes["leaf"][out] = len(leaf_node)
+            leaf_node.append(out)
+            leaf_full.append(src)
+        else:
+            nodes["left"][out] = next_free
+            for k in range(2):
+                full_of[next_free + k] = tree.left[src] + k
+                depth_of[next_free + k] = depth_of[out] + 1
+                queue.append(next_free + k)
+            next_free += 2
+    if padded:  # empty, inverted box: no ray ever enters it
+        nodes["lo"][1] = np.inf
+        nodes["hi"][1] = -np.inf
+        nodes["left"][1] = 0
+        nodes["leaf"][1] = -1
+    leaf_full_arr = np.asarray(leaf_full, np.int64)
+    leaf_start = tree.start[leaf_full_arr]
+    leaf_count = tree.count[leaf_full_arr]
+    tri_leaf = np.empty(tree.tri_order.shape[0], np.int32)
+    tri_leaf[tree.tri_order[_ranges(leaf_start, leaf_count)]] = np.repeat(np.arange(n_leaves, dtype=np.int32),
+                                                                         leaf_count)
+    return BVH(nodes=nodes, leaf_node=np.asarray(leaf_node, np.int64), leaf_tri_start=leaf_start,
+               leaf_tri_count=leaf_count, tri_order=tree.tri_order, tri_leaf=tri_leaf,
+               max_depth=int(depth_of.max()), budget=budget)
+
+
+def build_bvh(mesh: Mesh, budget: int = DEFAULT_NODES, n_bins: int = 16) -> BVH:
+    """Binned-SAH BVH over `mesh` with exactly `budget` nodes (32 B each); see `build_full_tree`, `cut_tree`."""
+    return cut_tree(build_full_tree(mesh, max_leaf_size=1, n_bins=n_bins), budget)
+
+
+def resident_bvh_nodes(tree: FullTree, max_leaf_size: int = 4) -> int:
+    """Node count of a conventional ray-tracing BVH with at most `max_leaf_size` triangles per leaf.
+
+    Taken from the full tree: every node with more than `max_leaf_size` triangles is internal.
+    """
+    internal = tree.count > max_leaf_size
+    # A node is in the tree if its parent is internal; count = internal nodes * 2 + 1 (root).
+    return int(2 * (internal & (tree.left >= 0)).sum() + 1)

@@ -1,0 +1,205 @@
+"""Mesh input: load, validate and normalise a triangle mesh.
+
+Everything downstream (BVH, rays, model) works in *normalised* coordinates: the mesh is scaled uniformly so
+that its longest bounding-box side is 1 and centred at (0.5, 0.5, 0.5), i.e. it lies in the unit box [0, 1]^3.
+`Mesh.transform` keeps the mapping back to the original coordinates (`original = normalised * scale + offset`),
+so distances, points and images can be reported in the user's units.
+"""
+from __future__ import annotations
+
+import gzip
+import io
+import os
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+#: File extensions `load_mesh` reads (a trailing `.gz` is decompressed first).
+SUPPORTED_EXTENSIONS = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf")
+
+
+class MeshError(ValueError):
+    """A mesh that cannot be used: the message says what is wrong and with which input."""
+
+
+class MeshWarning(UserWarning):
+    """Something was repaired (e.g. degenerate triangles dropped); the message says what and how many."""
+
+
+@dataclass(frozen=True)
+class Transform:
+    """Uniform scale + offset: `original = normalised * scale + offset` (scale > 0, offset (3,) float64)."""
+
+    scale: float
+    offset: np.ndarray
+
+    def to_original(self, points: np.ndarray) -> np.ndarray:
+        """(N, 3) normalised points -> (N, 3) float64 original coordinates."""
+        return np.asarray(points, dtype=np.float64) * self.scale + self.offset
+
+    def to_normalised(self, points: np.ndarray) -> np.ndarray:
+        """(N, 3) original points -> (N, 3) float64 normalised coordinates."""
+        return (np.asarray(points, dtype=np.float64) - self.offset) / self.scale
+
+    def distance_to_original(self, distance: np.ndarray | float) -> np.ndarray | float:
+        """A length in normalised units -> the same length in original units."""
+        return distance * self.scale
+
+    def to_dict(self) -> dict:
+        return {"scale": float(self.scale), "offset": [float(v) for v in self.offset]}
+
+    @staticmethod
+    def from_dict(d: dict) -> "Transform":
+        return Transform(float(d["scale"]), np.asarray(d["offset"], dtype=np.float64))
+
+
+@dataclass(frozen=True)
+class Mesh:
+    """A validated triangle mesh in normalised coordinates.
+
+    vertices: (V, 3) float32 inside [0, 1]^3; faces: (F, 3) int32, every index in [0, V), no degenerate triangle.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    transform: Transform
+    name: str = "mesh"
+    #: Repairs made while loading, as readable sentences (also emitted as `MeshWarning`).
+    repairs: tuple[str, ...] = field(default=())
+
+    @property
+    def n_triangles(self) -> int:
+        return int(self.faces.shape[0])
+
+    @property
+    def n_vertices(self) -> int:
+        return int(self.vertices.shape[0])
+
+    def triangles(self) -> np.ndarray:
+        """(F, 3, 3) float32 corner positions."""
+        return self.vertices[self.faces]
+
+    def face_normals(self) -> np.ndarray:
+        """(F, 3) float32 unit geometric normals, right-handed winding (v1 - v0) x (v2 - v0)."""
+        tri = self.triangles().astype(np.float64)
+        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        return (n / np.linalg.norm(n, axis=1, keepdims=True)).astype(np.float32)
+
+    def surface_area(self) -> float:
+        """Total area in normalised units squared."""
+        tri = self.triangles().astype(np.float64)
+        return float(0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum())
+
+
+def mesh_from_arrays(vertices: np.ndarray, faces: np.ndarray, name: str = "mesh") -> Mesh:
+    """Validate raw arrays and normalise them into the unit box.
+
+    vertices: (V, 3) float, any units; faces: (F, 3) integer indices into vertices.
+    Raises `MeshError` for an empty mesh, NaN/inf coordinates, out-of-range indices or non-triangle faces.
+    Degenerate triangles (repeated index or zero area) are dropped with a `MeshWarning` that gives the count.
+    The input arrays are never modified.
+    """
+    try:
+        v = np.asarray(vertices, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise MeshError(f"{name}: vertices are not numeric: {exc}") from None
+    f = np.asarray(faces)
+    if v.size == 0 or f.size == 0:
+        raise MeshError(f"{name}: the mesh is empty ({v.reshape(-1, 3).shape[0] if v.size % 3 == 0 else v.size} "
+                        f"vertices, {0 if f.size == 0 else len(f)} faces); nothing to compress")
+    if v.ndim != 2 or v.shape[1] != 3:
+        raise MeshError(f"{name}: vertices must have shape (V, 3), got {v.shape}")
+    if f.ndim != 2 or f.shape[1] != 3:
+        shape = f.shape if f.dtype != object else f"{len(f)} ragged faces"
+        raise MeshError(f"{name}: faces must be triangles with shape (F, 3), got {shape}; "
+                        "triangulate polygons (e.g. Blender's Triangulate modifier) first")
+    if not np.issubdtype(f.dtype, np.integer):
+        if np.issubdtype(f.dtype, np.floating) and np.all(np.isfinite(f)) and np.all(f == np.round(f)):
+            f = f.astype(np.int64)
+        else:
+            raise MeshError(f"{name}: face indices must be integers, got dtype {f.dtype}")
+    bad = ~np.isfinite(v).all(axis=1)
+    if bad.any():
+        first = int(np.flatnonzero(bad)[0])
+        raise MeshError(f"{name}: {int(bad.sum())} of {len(v)} vertices have NaN or infinite coordinates "
+                        f"(first: vertex {first} = {v[first].tolist()})")
+    f = f.astype(np.int64)
+    lo, hi = int(f.min()), int(f.max())
+    if lo < 0 or hi >= len(v):
+        n_bad = int(((f < 0) | (f >= len(v))).any(axis=1).sum())
+        raise MeshError(f"{name}: {n_bad} faces index vertices out of range (indices span [{lo}, {hi}], "
+                        f"but there are {len(v)} vertices)")
+
+    repairs: list[str] = []
+    tri = v[f]
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    area2 = np.linalg.norm(cross, axis=1)
+    extent = float((v.max(axis=0) - v.min(axis=0)).max())
+    # Zero area relative to the mesh size: repeated indices, collinear or coincident corners.
+    degenerate = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2]) | (area2 <= (1e-12 * extent) ** 2)
+    n_degenerate = int(degenerate.sum())
+    if n_degenerate == len(f):
+        raise MeshError(f"{name}: all {len(f)} triangles are degenerate (zero area); nothing to compress")
+    if n_degenerate:
+        msg = f"{name}: dropped {n_degenerate} degenerate (zero-area) triangles of {len(f)}"
+        repairs.append(msg)
+        warnings.warn(msg, MeshWarning, stacklevel=2)
+        f = f[~degenerate]
+
+    used = v[np.unique(f)]
+    box_lo, box_hi = used.min(axis=0), used.max(axis=0)
+    scale = float((box_hi - box_lo).max())
+    if not scale > 0:
+        raise MeshError(f"{name}: the mesh has zero extent")
+    # Centre the box at 0.5 so the longest side spans exactly [0, 1].
+    offset = (box_lo + box_hi) / 2 - 0.5 * scale
+    transform = Transform(scale, offset)
+    vn = np.clip(transform.to_normalised(v), 0.0, 1.0).astype(np.float32)
+    return Mesh(vertices=vn, faces=f.astype(np.int32), transform=transform, name=name, repairs=tuple(repairs))
+
+
+def _read_bytes(path: Path) -> tuple[bytes, str]:
+    """File contents (decompressed if `.gz`) and the mesh extension (e.g. '.ply')."""
+    suffixes = [s.lower() for s in path.suffixes]
+    data = path.read_bytes()
+    if suffixes and suffixes[-1] == ".gz":
+        try:
+            data = gzip.decompress(data)
+        except (OSError, EOFError) as exc:
+            raise MeshError(f"{path}: damaged gzip file: {exc}") from None
+        suffixes = suffixes[:-1]
+    ext = suffixes[-1] if suffixes else ""
+    return data, ext
+
+
+def load_mesh(path: str | os.PathLike) -> Mesh:
+    """Load OBJ, PLY, STL, OFF or GLB/glTF (optionally gzip-compressed, `name.ply.gz`) and validate it.
+
+    Scenes (glTF with several nodes) are flattened with their node transforms applied. Polygons are
+    triangulated by the reader. Raises `MeshError` with the path and the reason on any failure.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise MeshError(f"{path}: no such file")
+    if path.is_dir():
+        raise MeshError(f"{path}: is a folder, not a mesh file")
+    data, ext = _read_bytes(path)
+    if ext not in SUPPORTED_EXTENSIONS:
+        raise MeshError(f"{path}: unsupported format {ext or '(no extension)'!r}; "
+                        f"supported: {', '.join(SUPPORTED_EXTENSIONS)} (optionally .gz)")
+    if len(data) == 0:
+        raise MeshError(f"{path}: the file is empty")
+    import trimesh  # local: trimesh import is slow and only loading needs it
+
+    try:
+        loaded = trimesh.load(io.BytesIO(data), file_type=ext[1:], force="mesh", process=False)
+    except Exception as exc:  # trimesh raises many types for broken files
+        raise MeshError(f"{path}: could not read as {ext[1:].upper()}: {type(exc).__name__}: {exc}") from None
+    vertices = getattr(loaded, "vertices", None)
+    faces = getattr(loaded, "faces", None)
+    if vertices is None or faces is None or len(faces) == 0:
+        raise MeshError(f"{path}: contains no triangles (a point cloud, lines or an empty scene?)")
+    name = path.name.split(".")[0]
+    return mesh_from_arrays(np.asarray(vertices), np.asarray(faces), name=name)
