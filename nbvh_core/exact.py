@@ -81,7 +81,7 @@ class ExactTracer:
         rays_o = np.ascontiguousarray(rays_o, dtype=np.float32)
         rays_d = np.ascontiguousarray(rays_d, dtype=np.float32)
         n = rays_o.shape[0]
-        t_max_arr = np.broadcast_to(np.asarray(t_max, np.float32), (n,))
+        t_max_arr = np.broadcast_to(np.asarray(t_max, np.float32), (n,)).copy()  # embreex needs writable
         if n == 0:
             return FirstHits(np.zeros(0, np.float32), np.zeros(0, np.int64), np.zeros((0, 3), np.float32))
         if self._scene is not None:

@@ -194,7 +194,9 @@ def load_mesh(path: str | os.PathLike) -> Mesh:
     import trimesh  # local: trimesh import is slow and only loading needs it
 
     try:
-        loaded = trimesh.load(io.BytesIO(data), file_type=ext[1:], force="mesh", process=False)
+        # Plain files load by path so that glTF finds its external buffers; .gz ones from memory.
+        source = io.BytesIO(data) if path.suffix.lower() == ".gz" else str(path)
+        loaded = trimesh.load(source, file_type=ext[1:], force="mesh", process=False)
     except Exception as exc:  # trimesh raises many types for broken files
         raise MeshError(f"{path}: could not read as {ext[1:].upper()}: {type(exc).__name__}: {exc}") from None
     vertices = getattr(loaded, "vertices", None)

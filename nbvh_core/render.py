@@ -1,0 +1,116 @@
+"""Cameras and the paper's shading; reference images of the mesh (Embree).
+
+Shading (the paper's metric): pixel = max(0, cos(normal, direction to one fixed white point light)); background
+and misses are 0. The normal is the geometric normal flipped to face the camera (a mesh's winding is not a
+property the metric should punish). The light sits at `LIGHT_OFFSET` from the asset's centre, in units of the
+camera orbit radius, fixed for all views.
+
+Cameras: pinhole, looking at the centre of the unit box from a point on an orbit sphere; `orbit_cameras`
+spreads views evenly over the sphere (Fibonacci lattice), deterministic.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: Light position relative to the box centre, in orbit radii (above, to the right, in front).
+LIGHT_OFFSET = np.array([0.6, 0.8, 1.0])
+
+
+@dataclass(frozen=True)
+class Camera:
+    """Pinhole camera. position, target, up: (3,) normalised coordinates; fov_deg: vertical field of view."""
+
+    position: np.ndarray
+    target: np.ndarray
+    up: np.ndarray
+    fov_deg: float = 40.0
+
+    def rays(self, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+        """Primary rays through pixel centres, row-major from the top-left pixel.
+
+        Returns rays_o (H*W, 3) float32, rays_d (H*W, 3) float32 unit directions.
+        """
+        fwd = self.target - self.position
+        fwd = fwd / np.linalg.norm(fwd)
+        right = np.cross(fwd, self.up)
+        if np.linalg.norm(right) < 1e-8:  # looking along `up`
+            right = np.cross(fwd, np.array([1.0, 0.0, 0.0]))
+        right /= np.linalg.norm(right)
+        true_up = np.cross(right, fwd)
+        tan = np.tan(np.radians(self.fov_deg) / 2)
+        xs = ((np.arange(width) + 0.5) / width * 2 - 1) * tan * width / height
+        ys = (1 - (np.arange(height) + 0.5) / height * 2) * tan
+        px, py = np.meshgrid(xs, ys)
+        d = fwd[None] + px.reshape(-1, 1) * right[None] + py.reshape(-1, 1) * true_up[None]
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        o = np.broadcast_to(self.position, d.shape)
+        return np.ascontiguousarray(o, np.float32), d.astype(np.float32)
+
+
+CENTRE = np.array([0.5, 0.5, 0.5])
+ORBIT_RADIUS = 1.9
+
+
+def orbit_cameras(n_views: int, radius: float = ORBIT_RADIUS, fov_deg: float = 40.0) -> list[Camera]:
+    """`n_views` cameras evenly spread on a sphere of `radius` around the box centre, looking at it."""
+    cams = []
+    golden = np.pi * (3 - np.sqrt(5))
+    for i in range(n_views):
+        z = 1 - 2 * (i + 0.5) / n_views
+        r = np.sqrt(max(0.0, 1 - z * z))
+        phi = golden * i
+        direction = np.array([r * np.cos(phi), z, r * np.sin(phi)])
+        cams.append(Camera(position=CENTRE + radius * direction, target=CENTRE.copy(),
+                           up=np.array([0.0, 1.0, 0.0]), fov_deg=fov_deg))
+    return cams
+
+
+def light_position(radius: float = ORBIT_RADIUS) -> np.ndarray:
+    return CENTRE + LIGHT_OFFSET * radius
+
+
+def shade(rays_o: np.ndarray, rays_d: np.ndarray, hit: np.ndarray, t: np.ndarray, normal: np.ndarray,
+          light: np.ndarray | None = None) -> np.ndarray:
+    """Paper shading per ray: max(0, cos(n, to_light)) with n flipped toward the viewer; 0 for misses.
+
+    All arrays per ray: rays_o, rays_d, normal (N, 3); hit (N,) bool; t (N,). Returns (N,) float32 in [0, 1].
+    """
+    light = light_position() if light is None else light
+    value = np.zeros(hit.shape[0], np.float32)
+    if not hit.any():
+        return value
+    p = rays_o[hit] + t[hit, None] * rays_d[hit]
+    n = normal[hit].astype(np.float64)
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    n = np.where((np.einsum("ij,ij->i", n, rays_d[hit]) > 0)[:, None], -n, n)
+    to_light = light[None] - p
+    to_light /= np.linalg.norm(to_light, axis=1, keepdims=True)
+    value[hit] = np.clip(np.einsum("ij,ij->i", n, to_light), 0.0, 1.0)
+    return value
+
+
+@dataclass
+class RenderResult:
+    """image: (H, W) float32 shading in [0, 1]; hit: (H, W) bool; depth: (H, W) float32 (inf where missed)."""
+
+    image: np.ndarray
+    hit: np.ndarray
+    depth: np.ndarray
+
+
+def render_reference(tracer, camera: Camera, width: int, height: int) -> RenderResult:
+    """Exact image of the mesh (an `exact.ExactTracer`) from `camera`."""
+    o, d = camera.rays(width, height)
+    fh = tracer.first_hit(o, d)
+    img = shade(o, d, fh.hit, fh.t, fh.normal)
+    return RenderResult(img.reshape(height, width), fh.hit.reshape(height, width), fh.t.reshape(height, width))
+
+
+def save_png(path, image: np.ndarray) -> None:
+    """Save a (H, W) or (H, W, 3) float image in [0, 1] as 8-bit PNG."""
+    from PIL import Image
+
+    arr = (np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8)
+    Image.fromarray(arr).save(path)

@@ -1,0 +1,213 @@
+"""Training rays and their per-leaf labels.
+
+Ray distribution (`sample_rays`), in normalised coordinates where the mesh's root box is inside [0, 1]^3:
+
+* a fraction `outside_fraction` of rays start on a sphere around the root box (radius = `outside_radius` x the
+  box's half diagonal, uniform on the sphere) and aim at a point drawn uniformly in the root box enlarged by
+  `box_scale` about its centre: these look like camera rays, from every side;
+* the rest start uniformly inside the root box enlarged by `box_scale` (N-BVH's reference uses 1.5) and go in a
+  direction uniform on the unit sphere: these cover rays that start near or between surfaces (secondary rays).
+
+Every direction is unit length, so t is a distance in normalised units. Rays that miss the root box are
+redrawn (a ray can still miss every leaf box; it then yields no sample).
+
+Labels (`label_samples`): for every ray and every leaf it enters up to and including its first hit (t_enter <= t
+of the ray's first hit; every entered leaf for a ray that hits nothing), one sample with the segment
+[t_enter, t_exit], a hit flag, the hit distance t_hit and the unit geometric normal. Two modes:
+
+* `ownership` (N-BVH baseline): only the leaf that owns the first-hit triangle is labelled hit, at the first hit.
+  Every other entered leaf is a miss, even where the first hit lies inside its (overlapping) box.
+* `consistent` (the paper's improvement): pass 1 finds all hits of the ray; pass 2 labels every entered leaf with
+  the nearest hit inside that leaf's box, i.e. with t in [t_enter, t_exit], whoever owns the triangle.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from .bvh import BVH
+from .exact import ExactTracer
+from .traversal import TorchBVH, leaves_along_rays
+
+LABEL_MODES = ("ownership", "consistent")
+
+#: Tolerance (normalised units) when testing whether a hit lies inside a leaf's [t_enter, t_exit]: Embree's hit
+#: distance and our slab test round differently, and a hit on a box face must count as inside.
+SEGMENT_EPS = 1e-5
+
+
+@dataclass
+class RayConfig:
+    """How training rays are drawn (see module docstring)."""
+
+    box_scale: float = 1.5
+    outside_fraction: float = 0.5
+    outside_radius: float = 1.5
+
+
+@dataclass
+class TrainingSamples:
+    """One row per (ray, entered leaf) sample, grouped by ray in front-to-back order.
+
+    rays_o, rays_d: (N, 3) float32 unit directions. ray: (S,) int64 index into rays; leaf: (S,) int64;
+    t_enter, t_exit: (S,) float32 segment in ray distance; hit: (S,) bool; t_hit: (S,) float32 (t_exit where
+    no hit); normal: (S, 3) float32 unit geometric normal (0 where no hit); rank: (S,) int64 position of the
+    leaf in its ray's front-to-back order. `mode` is the labelling mode, `stats` counts for reports.
+    """
+
+    rays_o: torch.Tensor
+    rays_d: torch.Tensor
+    ray: torch.Tensor
+    leaf: torch.Tensor
+    t_enter: torch.Tensor
+    t_exit: torch.Tensor
+    hit: torch.Tensor
+    t_hit: torch.Tensor
+    normal: torch.Tensor
+    rank: torch.Tensor
+    mode: str
+    stats: dict = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return int(self.ray.shape[0])
+
+    @property
+    def local_t(self) -> torch.Tensor:
+        """(S,) hit distance within the segment, (t_hit - t_enter) / (t_exit - t_enter) in [0, 1]."""
+        length = (self.t_exit - self.t_enter).clamp_min(1e-12)
+        return ((self.t_hit - self.t_enter) / length).clamp(0.0, 1.0)
+
+    def points(self) -> torch.Tensor:
+        """(S, 3) label points o + t_hit d (meaningful where `hit`)."""
+        return self.rays_o[self.ray] + self.t_hit[:, None] * self.rays_d[self.ray]
+
+
+def root_box(bvh: BVH) -> tuple[np.ndarray, np.ndarray]:
+    """(3,), (3,) float32 min and max of the BVH root."""
+    return bvh.nodes["lo"][0].copy(), bvh.nodes["hi"][0].copy()
+
+
+def _unit_vectors(rng: np.random.Generator, n: int) -> np.ndarray:
+    v = rng.normal(size=(n, 3))
+    norm = np.linalg.norm(v, axis=1, keepdims=True)
+    norm[norm == 0] = 1.0
+    return v / norm
+
+
+def sample_rays(lo: np.ndarray, hi: np.ndarray, n_rays: int, rng: np.random.Generator,
+                config: RayConfig = RayConfig()) -> tuple[np.ndarray, np.ndarray]:
+    """Draw `n_rays` rays that enter the box [lo, hi] (see module docstring for the distribution).
+
+    Returns rays_o (n_rays, 3) float32 and unit rays_d (n_rays, 3) float32.
+    """
+    lo = np.asarray(lo, np.float64)
+    hi = np.asarray(hi, np.float64)
+    centre = (lo + hi) / 2
+    half = np.maximum((hi - lo) / 2, 1e-6)
+    big_half = half * config.box_scale
+    out_o, out_d = [], []
+    have = 0
+    while have < n_rays:
+        m = max(1024, int((n_rays - have) * 1.3))
+        n_out = int(round(m * config.outside_fraction))
+        # Outside rays: start on a sphere, aim at a uniform point of the enlarged box.
+        radius = config.outside_radius * np.linalg.norm(half) * config.box_scale
+        o_out = centre + radius * _unit_vectors(rng, n_out)
+        target = centre + rng.uniform(-1, 1, size=(n_out, 3)) * big_half
+        d_out = target - o_out
+        d_out /= np.linalg.norm(d_out, axis=1, keepdims=True)
+        # Inside rays: uniform origin in the enlarged box, uniform direction.
+        o_in = centre + rng.uniform(-1, 1, size=(m - n_out, 3)) * big_half
+        d_in = _unit_vectors(rng, m - n_out)
+        o = np.concatenate((o_out, o_in)).astype(np.float32)
+        d = np.concatenate((d_out, d_in)).astype(np.float32)
+        # Keep rays that enter the (exact) root box.
+        with np.errstate(divide="ignore", invalid="ignore"):
+            inv = 1.0 / d
+            t0 = (lo - o) * inv
+            t1 = (hi - o) * inv
+        t_near = np.nanmax(np.fmin(t0, t1), axis=1)
+        t_far = np.nanmin(np.fmax(t0, t1), axis=1)
+        ok = np.maximum(t_near, 0) <= t_far
+        out_o.append(o[ok])
+        out_d.append(d[ok])
+        have += int(ok.sum())
+    o = np.concatenate(out_o)[:n_rays]
+    d = np.concatenate(out_d)[:n_rays]
+    perm = rng.permutation(n_rays)  # mix both kinds within every batch
+    return o[perm], d[perm]
+
+
+def label_samples(bvh: BVH, tracer: ExactTracer, rays_o: np.ndarray, rays_d: np.ndarray, mode: str,
+                  tree: TorchBVH | None = None) -> TrainingSamples:
+    """Label every (ray, entered leaf) pair up to and including the ray's first hit (see module docstring).
+
+    rays_o, rays_d: (N, 3) float32 unit directions, normalised coordinates. mode: 'ownership' | 'consistent'.
+    Computed on the CPU; move the result with `samples_to(device)`.
+    """
+    if mode not in LABEL_MODES:
+        raise ValueError(f"label mode must be one of {LABEL_MODES}, got {mode!r}")
+    tree = tree or TorchBVH.from_bvh(bvh)
+    if tree.device.type != "cpu":
+        tree = TorchBVH.from_nodes(bvh.nodes)
+    rays_o = np.ascontiguousarray(rays_o, np.float32)
+    rays_d = np.ascontiguousarray(rays_d, np.float32)
+    first = tracer.first_hit(rays_o, rays_d)
+    t_first = torch.from_numpy(first.t)
+    # Leaves entered up to and including the first hit: t_enter <= t_first (+eps for box-face hits).
+    lh = leaves_along_rays(tree, torch.from_numpy(rays_o), torch.from_numpy(rays_d), t_first + SEGMENT_EPS)
+    ray, leaf = lh.ray, lh.leaf
+    n_s = len(lh)
+    hit = torch.zeros(n_s, dtype=torch.bool)
+    t_hit = lh.t_exit.clone()
+    normal = torch.zeros((n_s, 3), dtype=torch.float32)
+    stats: dict = {"rays": int(rays_o.shape[0]), "rays_hit": int(first.hit.sum())}
+
+    if mode == "ownership":
+        tri = torch.from_numpy(first.tri)[ray]
+        has_hit = tri >= 0
+        owner = torch.full_like(tri, -1)
+        owner[has_hit] = torch.from_numpy(bvh.tri_leaf.astype(np.int64))[tri[has_hit]]
+        hit = has_hit & (owner == leaf)
+        t_hit[hit] = t_first[ray[hit]]
+        normal[hit] = torch.from_numpy(first.normal)[ray[hit]]
+        # A first hit whose owner leaf was not entered (possible only through rounding at a box face) is lost.
+        stats["first_hits_unlabelled"] = int(first.hit.sum()) - int(hit.sum())
+    else:
+        # Pass 1: all hits up to the farthest segment end any of the ray's samples needs.
+        t_need = torch.full((rays_o.shape[0],), -1.0)
+        t_need.scatter_reduce_(0, ray, lh.t_exit, reduce="amax")
+        allh = tracer.all_hits(rays_o, rays_d, t_max=np.maximum(t_need.numpy(), 0) + SEGMENT_EPS)
+        stats["rays_hits_truncated"] = allh.truncated
+        # Pass 2: for each sample, the first hit of its ray with t >= t_enter - eps (searchsorted on a combined
+        # (ray, t) key), accepted when t <= t_exit + eps.
+        span = float(max(np.max(allh.t, initial=0.0), float(lh.t_exit.max()) if n_s else 0.0)) + 1.0
+        key_hits = allh.ray.astype(np.float64) * span + allh.t
+        key_q = ray.numpy().astype(np.float64) * span + (lh.t_enter.numpy().astype(np.float64) - SEGMENT_EPS)
+        idx = np.searchsorted(key_hits, key_q, side="left")
+        idx_c = np.minimum(idx, max(len(key_hits) - 1, 0))
+        if len(key_hits):
+            same_ray = (idx < len(key_hits)) & (allh.ray[idx_c] == ray.numpy())
+            inside = same_ray & (allh.t[idx_c] <= lh.t_exit.numpy() + SEGMENT_EPS)
+        else:
+            inside = np.zeros(n_s, bool)
+        hit = torch.from_numpy(inside)
+        t_hit[hit] = torch.from_numpy(allh.t[idx_c[inside]])
+        normal[hit] = torch.from_numpy(tracer.normals[allh.tri[idx_c[inside]]])
+    # Clamp into the segment: the network predicts a position inside [t_enter, t_exit].
+    t_hit = torch.minimum(torch.maximum(t_hit, lh.t_enter), lh.t_exit)
+    stats.update(samples=n_s, samples_hit=int(hit.sum()))
+    return TrainingSamples(rays_o=torch.from_numpy(rays_o), rays_d=torch.from_numpy(rays_d), ray=ray, leaf=leaf,
+                           t_enter=lh.t_enter, t_exit=lh.t_exit, hit=hit, t_hit=t_hit, normal=normal,
+                           rank=lh.rank(), mode=mode, stats=stats)
+
+
+def generate_training_samples(bvh: BVH, tracer: ExactTracer, n_rays: int, mode: str, seed: int = 0,
+                              config: RayConfig = RayConfig()) -> TrainingSamples:
+    """Draw `n_rays` rays around the BVH root box and label them (see `sample_rays`, `label_samples`)."""
+    rng = np.random.default_rng(seed)
+    lo, hi = root_box(bvh)
+    rays_o, rays_d = sample_rays(lo, hi, n_rays, rng, config)
+    return label_samples(bvh, tracer, rays_o, rays_d, mode)

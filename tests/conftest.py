@@ -1,0 +1,28 @@
+import numpy as np
+import pytest
+
+from nbvh_core.bvh import build_bvh
+from nbvh_core.exact import ExactTracer
+from nbvh_core.mesh import load_mesh, mesh_from_arrays
+from nbvh_core.samples_dir import SAMPLE_NAMES, sample_path
+from meshes import icosphere
+
+
+@pytest.fixture(scope="session")
+def sample_meshes():
+    return {name: load_mesh(sample_path(name)) for name in SAMPLE_NAMES}
+
+
+@pytest.fixture(scope="session")
+def sample_bvhs(sample_meshes):
+    return {name: build_bvh(m, 4096) for name, m in sample_meshes.items()}
+
+
+@pytest.fixture(scope="session")
+def sample_tracers(sample_meshes):
+    return {name: ExactTracer(m) for name, m in sample_meshes.items()}
+
+
+@pytest.fixture
+def sphere_mesh():
+    return icosphere(3)

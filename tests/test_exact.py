@@ -1,0 +1,63 @@
+import numpy as np
+import pytest
+
+from nbvh_core.exact import ExactTracer
+from nbvh_core.samples import RayConfig, root_box, sample_rays
+
+from meshes import icosphere
+
+
+def test_sphere_distances_are_exact():
+    mesh = icosphere(5)
+    tracer = ExactTracer(mesh)
+    assert tracer.backend == "embree"
+    n = 2000
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    o = np.full((n, 3), 0.5) - 2 * d  # aimed at the centre from distance 2
+    fh = tracer.first_hit(o.astype(np.float32), d.astype(np.float32))
+    assert fh.hit.all()
+    # An icosphere's faces lie within (1 - cos(edge angle)) of the unit sphere; radius is 0.5 here.
+    assert np.allclose(fh.t, 1.5, atol=2e-3)
+    # Geometric normals of the hit faces point outward, against the ray.
+    assert (np.einsum("ij,ij->i", fh.normal, d) < -0.99).all()
+    allh = tracer.all_hits(o.astype(np.float32), d.astype(np.float32))
+    assert (np.diff(allh.offsets) == 2).all()
+    assert np.allclose(allh.t[1::2], 2.5, atol=2e-3)
+
+
+@pytest.mark.parametrize("name", ["blob", "gyroid", "terrain"])
+def test_numpy_fallback_agrees_with_embree(sample_meshes, sample_bvhs, name):
+    mesh = sample_meshes[name]
+    emb = ExactTracer(mesh, backend="embree")
+    ref = ExactTracer(mesh, backend="numpy")
+    lo, hi = root_box(sample_bvhs[name])
+    o, d = sample_rays(lo, hi, 3000, np.random.default_rng(1), RayConfig())
+    a, b = emb.first_hit(o, d), ref.first_hit(o, d)
+    assert np.array_equal(a.hit, b.hit)
+    assert np.allclose(a.t[a.hit], b.t[b.hit], atol=1e-5)
+    # Same triangle except at shared edges, where the normal may differ; compare the hit points instead.
+    assert (a.tri == b.tri).mean() > 0.995
+    A, B = emb.all_hits(o, d), ref.all_hits(o, d)
+    assert np.array_equal(A.offsets, B.offsets)
+    assert np.allclose(A.t, B.t, atol=1e-4)
+
+
+def test_t_max_respected(sample_meshes):
+    tracer = ExactTracer(sample_meshes["blob"])
+    o = np.array([[0.5, 0.5, -1.0]], np.float32)
+    d = np.array([[0, 0, 1.0]], np.float32)
+    full = tracer.first_hit(o, d)
+    assert full.hit[0]
+    short = tracer.first_hit(o, d, t_max=full.t[0] * 0.9)
+    assert not short.hit[0] and np.isinf(short.t[0]) and short.tri[0] == -1
+    allh = tracer.all_hits(o, d, t_max=full.t[0] * 1.0001)
+    assert len(allh.t) == 1
+
+
+def test_empty_batch(sample_meshes):
+    tracer = ExactTracer(sample_meshes["blob"])
+    z = np.zeros((0, 3), np.float32)
+    assert tracer.first_hit(z, z).t.shape == (0,)
+    assert tracer.all_hits(z, z).offsets.tolist() == [0]
