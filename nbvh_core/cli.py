@@ -1,10 +1,15 @@
 """Command line: `python -m nbvh_core COMMAND ...` (also installed as `nbvh`).
 
 Commands:
-  inspect MESH|SAMPLE --out DIR   build the BVH, generate labelled training rays (both modes), write
-                                  DIR/report.json, DIR/reference.png (paper shading) and DIR/leaves.png
-                                  (each pixel coloured by the BVH leaf that owns the visible triangle).
-  samples                         list the bundled sample meshes.
+  compress MESH -o OUT.nbvh     train a neural model (presets + every knob), write the file, preview and numbers
+  render OUT.nbvh -o IMG.png    render a model (orbit view or explicit camera)
+  info OUT.nbvh [--json]        bytes per component, settings, training and quality recorded in the file
+  eval MESH OUT.nbvh [--json]   the paper's metric against the mesh: MSE, silhouette IoU, depth error
+  inspect MESH --out DIR        BVH + labelled training rays of a mesh: report and images (no training)
+  samples                       list the bundled sample meshes
+
+MESH is a mesh file (OBJ/PLY/STL/OFF/GLB/glTF, optionally .gz) or a bundled sample name.
+Exit codes: 0 ok, 2 bad input (mesh, file, option), 3 training diverged, 130 cancelled (Ctrl-C / SIGTERM).
 """
 from __future__ import annotations
 
@@ -101,6 +106,173 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     return 0
 
 
+def _load_mesh_reporting(arg: str):
+    from .mesh import load_mesh
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        mesh = load_mesh(_resolve_mesh(arg))
+    for w in caught:
+        print(f"warning: {w.message}", file=sys.stderr)
+    return mesh
+
+
+def _fmt_bytes(n: int) -> str:
+    return f"{n / 1024:,.1f} KB" if n < 1024 ** 2 else f"{n / 1024 ** 2:,.2f} MB"
+
+
+def _install_cancel_handlers():
+    """SIGINT/SIGTERM set a flag the training loop polls (clean cancel, nothing half-written)."""
+    import signal
+    import threading
+
+    flag = threading.Event()
+
+    def handler(signum, frame):
+        flag.set()
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        try:
+            signal.signal(sig, handler)
+        except ValueError:  # not the main thread
+            pass
+    return flag.is_set
+
+
+def mesh_resident_bytes(mesh) -> dict:
+    """What a ray tracer holds for the mesh: float32 vertices + int32 indices + float32 vertex normals +
+    a BVH with <= 4 triangles per leaf (32 B nodes)."""
+    from .bvh import build_full_tree, resident_bvh_nodes
+
+    nodes = resident_bvh_nodes(build_full_tree(mesh), 4)
+    out = {"vertices": mesh.n_vertices * 12, "indices": mesh.n_triangles * 12, "normals": mesh.n_vertices * 12,
+           "bvh": nodes * 32}
+    out["total"] = sum(out.values())
+    return out
+
+
+def cmd_compress(args: argparse.Namespace) -> int:
+    from .events import json_lines, progress_bar
+    from .pipeline import compress_mesh, preset
+    from .render import Camera, orbit_cameras, render_neural, render_reference, save_png
+
+    settings = preset(args.preset).with_overrides(
+        nodes=args.nodes, encoding=args.encoding, log2_table=args.log2_table, network=args.network, k=args.k,
+        labels=args.labels, lr=args.lr, steps=args.steps, time_limit_s=args.time_limit, seed=args.seed,
+        device=args.device, float_bytes=2 if args.float16 else None, eval_views=args.views,
+        rays_per_step=args.rays_per_step)
+    if args.steps is not None and args.time_limit is None:
+        settings.time_limit_s = None
+    mesh = _load_mesh_reporting(args.mesh)
+    out = Path(args.output)
+    if out.is_dir():
+        raise ValueError(f"{out} is a folder; give the output file name, e.g. {out / (mesh.name + '.nbvh')}")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    sink = json_lines(sys.stdout) if args.events else progress_bar(sys.stderr)
+    result = compress_mesh(mesh, settings, out, events=sink, should_cancel=_install_cancel_handlers(),
+                           checkpoint_path=args.checkpoint)
+    summary = result.summary()
+    summary["mesh_resident_bytes"] = mesh_resident_bytes(mesh)
+    summary["source_file_bytes"] = _resolve_mesh(args.mesh).stat().st_size
+    stem = out.with_suffix("")
+    Path(f"{stem}.json").write_text(json.dumps(summary, indent=2))
+    cam = orbit_cameras(1)[0] if args.view is None else orbit_cameras(args.views or 16)[args.view]
+    from .exact import ExactTracer
+
+    ref = render_reference(ExactTracer(mesh), cam, args.size, args.size)
+    neu = render_neural(result.model, cam, args.size, args.size)
+    save_png(f"{stem}.preview.png", np.concatenate([ref.image, neu.image], axis=1))
+    if not args.events:
+        q = result.quality
+        print(f"\nwrote {out} ({_fmt_bytes(result.file_bytes)}), {stem}.json, {stem}.preview.png (left: mesh, right: neural)")
+        print("bytes: " + ", ".join(f"{k} {v:,}" for k, v in result.components.items()))
+        print(f"mesh as a ray tracer holds it: {summary['mesh_resident_bytes']['total']:,} B "
+              f"-> {summary['mesh_resident_bytes']['total'] / result.file_bytes:.1f}x smaller")
+        if q:
+            print(f"quality ({q.views} views, {q.resolution}px): MSE {q.mse:.5f}, silhouette IoU {q.silhouette_iou:.4f},"
+                  f" depth error {q.depth_error:.5f} (unit box)")
+        t = result.training
+        print(f"training: {t.steps} steps, {t.seconds:.1f} s, {t.samples_per_s:,.0f} samples/s on {t.device}")
+    return 0
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    from .fileformat import load_nbvh
+    from .render import Camera, orbit_cameras, render_neural, save_png
+
+    model = load_nbvh(args.model)
+    if args.position is not None:
+        cam = Camera(position=np.asarray(args.position, float), target=np.asarray(args.target, float),
+                     up=np.array([0.0, 1.0, 0.0]), fov_deg=args.fov)
+    else:
+        cam = orbit_cameras(max(args.views, args.view + 1), fov_deg=args.fov)[args.view]
+    t = time.perf_counter()
+    res = render_neural(model, cam, args.width, args.height or args.width)
+    dt = time.perf_counter() - t
+    save_png(args.output, res.image)
+    n = res.image.size
+    print(f"wrote {args.output} ({args.width}x{args.height or args.width}, {dt:.2f} s, {n / dt:,.0f} rays/s)")
+    return 0
+
+
+def cmd_info(args: argparse.Namespace) -> int:
+    from .fileformat import read_info
+
+    info = read_info(args.model)
+    meta = info.metadata
+    out = {"path": info.path, "bytes": info.total_bytes, "components": info.components,
+           "config": info.header["config"], "float_bytes": info.header["float_bytes"],
+           "source": meta.get("source"), "training": meta.get("training"), "quality": meta.get("quality")}
+    if args.mesh:
+        mesh = _load_mesh_reporting(args.mesh)
+        res = mesh_resident_bytes(mesh)
+        out["mesh_resident_bytes"] = res
+        out["ratio_resident_mesh_to_nbvh"] = res["total"] / info.total_bytes
+        out["source_file_bytes"] = _resolve_mesh(args.mesh).stat().st_size
+        out["ratio_source_file_to_nbvh"] = out["source_file_bytes"] / info.total_bytes
+    if args.json:
+        print(json.dumps(out, indent=2))
+        return 0
+    print(f"{info.path}: {_fmt_bytes(info.total_bytes)} ({info.total_bytes:,} B)")
+    for k, v in info.components.items():
+        print(f"  {k:10s} {v:>10,} B  {100 * v / info.total_bytes:5.1f}%")
+    c = info.header["config"]
+    print(f"  model: {c['encoding']['kind']} T=2^{c['encoding']['log2_table']}, {c['network']['kind']} k={c['network']['k']}")
+    if meta.get("source"):
+        s = meta["source"]
+        print(f"  source: {s['name']}, {s['triangles']:,} triangles")
+    if meta.get("quality"):
+        q = meta["quality"]
+        print(f"  quality: MSE {q['mse']:.5f}, IoU {q['silhouette_iou']:.4f}")
+    if "mesh_resident_bytes" in out:
+        print(f"  vs the mesh as a ray tracer holds it ({out['mesh_resident_bytes']['total']:,} B): "
+              f"{out['ratio_resident_mesh_to_nbvh']:.1f}x; vs its file ({out['source_file_bytes']:,} B): "
+              f"{out['ratio_source_file_to_nbvh']:.1f}x")
+    return 0
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    from .exact import ExactTracer
+    from .fileformat import load_nbvh
+    from .metrics import evaluate
+
+    model = load_nbvh(args.model)
+    mesh = _load_mesh_reporting(args.mesh)
+    src = model.metadata.get("source", {})
+    if src and src.get("triangles") not in (None, mesh.n_triangles):
+        print(f"warning: the model was trained on a mesh of {src['triangles']} triangles, this one has "
+              f"{mesh.n_triangles}", file=sys.stderr)
+    q, _ = evaluate(model, ExactTracer(mesh), args.views, args.resolution)
+    d = q.to_dict()
+    if args.json:
+        print(json.dumps(d, indent=2))
+    else:
+        print(f"MSE {q.mse:.6f}  silhouette IoU {q.silhouette_iou:.4f}  depth error {q.depth_error:.6f} (unit box), "
+              f"{q.depth_error_original_units:.6g} (mesh units)  over {q.views} views at {q.resolution}px; "
+              f"neural {q.neural_rays_per_s:,.0f} rays/s, Embree {q.reference_rays_per_s:,.0f} rays/s")
+    return 0
+
+
 def cmd_samples(args: argparse.Namespace) -> int:
     from .samples_dir import SAMPLE_NAMES, sample_path
 
@@ -121,20 +293,72 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--seed", type=int, default=0)
     q.add_argument("--size", type=int, default=384, help="image size in pixels")
     q.set_defaults(func=cmd_inspect)
+    from .pipeline import PRESETS
+
+    c = sub.add_parser("compress", help="train a neural model of a mesh and write OUT.nbvh")
+    c.add_argument("mesh")
+    c.add_argument("-o", "--output", required=True, help="output .nbvh file (+ .json report, .preview.png)")
+    c.add_argument("--preset", default="default", choices=list(PRESETS),
+                   help="named settings (default: default); the options below override single fields")
+    c.add_argument("--encoding", choices=["hashgrid", "hashvqad"])
+    c.add_argument("--network", choices=["mlp", "kmlp"])
+    c.add_argument("--labels", choices=["ownership", "consistent"])
+    c.add_argument("--nodes", type=int, help="BVH node budget (1..65535)")
+    c.add_argument("--log2-table", type=int, help="log2 of T, feature rows per level")
+    c.add_argument("--k", type=int, help="points per leaf segment")
+    c.add_argument("--lr", type=float)
+    c.add_argument("--steps", type=int, help="step budget (with no --time-limit: steps only)")
+    c.add_argument("--time-limit", type=float, help="training wall-clock budget in seconds")
+    c.add_argument("--rays-per-step", type=int)
+    c.add_argument("--seed", type=int)
+    c.add_argument("--device", choices=["auto", "cpu", "cuda"])
+    c.add_argument("--float16", action="store_true", help="store tables and weights as float16")
+    c.add_argument("--views", type=int, help="evaluation views (default from the preset)")
+    c.add_argument("--view", type=int, help="orbit view index of the preview image")
+    c.add_argument("--size", type=int, default=256, help="preview image size")
+    c.add_argument("--checkpoint", help="checkpoint file written during training")
+    c.add_argument("--events", action="store_true", help="print JSON-line events on stdout instead of a bar")
+    c.set_defaults(func=cmd_compress)
+    r = sub.add_parser("render", help="render a .nbvh model to PNG")
+    r.add_argument("model")
+    r.add_argument("-o", "--output", required=True)
+    r.add_argument("--width", type=int, default=512)
+    r.add_argument("--height", type=int)
+    r.add_argument("--view", type=int, default=0, help="orbit view index")
+    r.add_argument("--views", type=int, default=16, help="orbit views the index counts in")
+    r.add_argument("--position", type=float, nargs=3, help="camera position (unit-box coordinates)")
+    r.add_argument("--target", type=float, nargs=3, default=[0.5, 0.5, 0.5])
+    r.add_argument("--fov", type=float, default=40.0)
+    r.set_defaults(func=cmd_render)
+    i = sub.add_parser("info", help="bytes per component and recorded numbers of a .nbvh file")
+    i.add_argument("model")
+    i.add_argument("--mesh", help="source mesh: also report the ratio to it")
+    i.add_argument("--json", action="store_true")
+    i.set_defaults(func=cmd_info)
+    e = sub.add_parser("eval", help="the paper's metric of a .nbvh model against its mesh")
+    e.add_argument("mesh")
+    e.add_argument("model")
+    e.add_argument("--views", type=int, default=16)
+    e.add_argument("--resolution", type=int, default=256)
+    e.add_argument("--json", action="store_true")
+    e.set_defaults(func=cmd_eval)
     s = sub.add_parser("samples", help="list the bundled sample meshes")
     s.set_defaults(func=cmd_samples)
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
-    from .mesh import MeshError
+    from .train import Cancelled, TrainingDiverged
 
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except MeshError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    except ValueError as exc:
+    except Cancelled as exc:
+        print(f"\ncancelled: {exc}; nothing was written", file=sys.stderr)
+        return 130
+    except TrainingDiverged as exc:
+        print(f"\nerror: training diverged: {exc}; nothing was written", file=sys.stderr)
+        return 3
+    except (ValueError, OSError) as exc:  # MeshError and NBVHFileError are ValueErrors
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -114,3 +114,14 @@ def save_png(path, image: np.ndarray) -> None:
 
     arr = (np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8)
     Image.fromarray(arr).save(path)
+
+
+def render_neural(model, camera: Camera, width: int, height: int) -> RenderResult:
+    """Image of a `model.NeuralBVH` from `camera` (its first predicted hits, the same shading)."""
+    import torch
+
+    o, d = camera.rays(width, height)
+    q = model.query(torch.from_numpy(o), torch.from_numpy(d))
+    hit, t, normal = q.hit.cpu().numpy(), q.t.cpu().numpy(), q.normal.cpu().numpy()
+    img = shade(o, d, hit, t, normal)
+    return RenderResult(img.reshape(height, width), hit.reshape(height, width), t.reshape(height, width))

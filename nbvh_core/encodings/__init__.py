@@ -1,0 +1,18 @@
+"""Input encodings: one interface, `forward(points (N, 3) in [0, 1]^3) -> (N, out_dim)`, `stored_bytes()`.
+
+`make_encoding(cfg)` picks the class from `cfg.kind`, so an ablation is a config change.
+"""
+from .base import EncodingConfig
+from .hashgrid import HashGrid
+from .hashvqad import HashVQAD
+
+ENCODINGS = {"hashgrid": HashGrid, "hashvqad": HashVQAD}
+
+
+def make_encoding(cfg: EncodingConfig) -> HashGrid:
+    if cfg.kind not in ENCODINGS:
+        raise ValueError(f"unknown encoding {cfg.kind!r}; choose from {', '.join(ENCODINGS)}")
+    return ENCODINGS[cfg.kind](cfg)
+
+
+__all__ = ["EncodingConfig", "HashGrid", "HashVQAD", "ENCODINGS", "make_encoding"]

@@ -1,0 +1,52 @@
+"""HashGrid: Instant-NGP's multiresolution hash encoding (L levels, T rows of F floats each, trilinear)."""
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from .base import EncodingConfig, corner_indices, gather_weighted_sum, level_scales
+
+
+class HashGrid(nn.Module):
+    """points (N, 3) in [0, 1]^3 -> features (N, L * F), level-major.
+
+    Parameters: `table` (L, T, F). The 8 corner lookups and the trilinear sum of all levels run as one
+    `gather_weighted_sum` (gather + weighted sum; its backward scatters with index_add_, no sort).
+    """
+
+    def __init__(self, cfg: EncodingConfig):
+        super().__init__()
+        self.cfg = cfg
+        self.scales = level_scales(cfg)
+        t = cfg.table_size
+        self.table = nn.Parameter(torch.empty(cfg.levels, t, cfg.features).uniform_(-cfg.init_scale, cfg.init_scale))
+
+    @property
+    def out_dim(self) -> int:
+        return self.cfg.out_dim
+
+    def row_table(self) -> torch.Tensor:
+        """(L, T, F): the feature rows that vertices look up (for HashGrid, the table itself)."""
+        return self.table
+
+    def vertex_rows(self, idx: torch.Tensor) -> torch.Tensor:
+        """Map per-level vertex indices (N, L, 8) to rows of `row_table()` (identity for HashGrid)."""
+        return idx
+
+    def forward(self, points: torch.Tensor) -> torch.Tensor:
+        cfg = self.cfg
+        idx, w = corner_indices(points, self.scales, self._vertex_table_size())
+        rows = self.vertex_rows(idx)
+        table = self.row_table()
+        n_rows = table.shape[1]
+        flat_rows = rows + (torch.arange(cfg.levels, device=rows.device) * n_rows)[None, :, None]
+        out = gather_weighted_sum(table.reshape(-1, cfg.features), flat_rows.reshape(-1, 8),
+                                  w.reshape(-1, 8).to(table.dtype))
+        return out.reshape(points.shape[0], cfg.levels * cfg.features)
+
+    def _vertex_table_size(self) -> int:
+        return self.cfg.table_size
+
+    def stored_bytes(self, float_bytes: int = 4) -> dict[str, int]:
+        """Bytes of the stored tensors: {'features': L * T * F * float_bytes}."""
+        return {"features": self.table.numel() * float_bytes}

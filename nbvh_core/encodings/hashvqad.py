@@ -1,0 +1,99 @@
+"""HashVQAD: a hash grid whose vertices reach the feature rows through a learned index table.
+
+Per level: an index table I of H entries (the grid vertex hashes into I exactly as HashGrid's vertices hash
+into V) and the feature table V of T rows of F floats. Entry i may point at t candidate rows,
+candidate j being row hash2(i, j) mod T with hash2(i, j) = (i * 2654435761) xor (j * 805459861) on 32 bits.
+
+* Training (soft): entry i holds t logits; its feature is the softmax(logits / tau)-weighted sum of its t
+  candidate rows. Computed for all H entries at once as a "soft row table" S (H, F) (cost H * t * F per level
+  per step, independent of the batch size), after which vertex lookups are the same 8-corner weighted sum as
+  HashGrid's, into S. Because T is a power of two, hash2(i, j) mod T = (i * P1 mod T) xor (j * P2 mod T), and
+  i * P1 mod T depends only on i mod T: the H = M * T entries split into M groups of T that share their
+  candidate rows, so S is one dense batched matmul softmax (L, M, T, t) x rows (L, T, t, F), forward and
+  backward (no scatter over H * t candidates).
+* Annealing: `temperature` is lowered (geometrically, by the trainer) so the softmax approaches a one-hot.
+* Frozen (hard): `freeze()` stores argmax_j logits as one integer in [0, t) per entry (log2(t) bits each, bit
+  packed in the file); a vertex then looks up row hash2(i, I[i]) mod T directly.
+Stored size per level: V = T * F floats, I = H * log2(t) bits.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+from .base import MASK32, PRIMES, EncodingConfig
+from .hashgrid import HashGrid
+
+
+def candidate_rows(entries: torch.Tensor, candidates: torch.Tensor, table_size: int) -> torch.Tensor:
+    """hash2(i, j) mod T for broadcastable int64 tensors of entries i and candidates j."""
+    h = ((entries * PRIMES[1]) & MASK32) ^ ((candidates * PRIMES[2]) & MASK32)
+    return h % table_size
+
+
+class HashVQAD(HashGrid):
+    """points (N, 3) in [0, 1]^3 -> features (N, L * F); see module docstring.
+
+    Parameters: `table` (L, T, F) feature rows; `logits` (L, H, t) while soft. Buffer `codes` (L, H) uint8 after
+    `freeze()`.
+    """
+
+    def __init__(self, cfg: EncodingConfig):
+        super().__init__(cfg)
+        if cfg.candidates < 2 or cfg.candidates & (cfg.candidates - 1):
+            raise ValueError(f"HashVQAD candidates t must be a power of two >= 2, got {cfg.candidates}")
+        self.logits = nn.Parameter(torch.randn(cfg.levels, cfg.index_size, cfg.candidates) * 1e-2)
+        self.register_buffer("codes", torch.zeros(0, dtype=torch.uint8), persistent=True)
+        self.temperature = 1.0
+        self._cand_cache: torch.Tensor | None = None
+
+    @property
+    def frozen(self) -> bool:
+        return self.codes.numel() > 0
+
+    def _vertex_table_size(self) -> int:
+        return self.cfg.index_size
+
+    def _group_candidates(self) -> torch.Tensor:
+        """(T, t) int64: candidate rows of entries i = 0..T-1; entry m * T + a has the same rows as entry a."""
+        dev = self.table.device
+        if self._cand_cache is None or self._cand_cache.device != dev:
+            i = torch.arange(self.cfg.table_size, device=dev)[:, None]
+            j = torch.arange(self.cfg.candidates, device=dev)[None, :]
+            self._cand_cache = candidate_rows(i, j, self.cfg.table_size)
+        return self._cand_cache
+
+    def row_table(self) -> torch.Tensor:
+        if self.frozen:
+            return self.table
+        cfg = self.cfg
+        n_t, n_c = cfg.table_size, cfg.candidates
+        probs = torch.softmax(self.logits / self.temperature, dim=-1)  # (L, H, t)
+        probs = probs.view(cfg.levels, cfg.index_factor, n_t, n_c)  # entry i = m * T + a -> [m, a]
+        rows = self.table[:, self._group_candidates()]  # (L, T, t, F)
+        soft = torch.einsum("lmac,lacf->lmaf", probs, rows)
+        return soft.reshape(cfg.levels, cfg.index_size, cfg.features)
+
+    def vertex_rows(self, idx: torch.Tensor) -> torch.Tensor:
+        if not self.frozen:
+            return idx  # rows of the soft table S are the index entries themselves
+        code = self.codes.to(torch.int64)  # (L, H)
+        level = torch.arange(self.cfg.levels, device=idx.device)[None, :, None].expand_as(idx)
+        return candidate_rows(idx, code[level, idx], self.cfg.table_size)
+
+    @torch.no_grad()
+    def freeze(self) -> None:
+        """Replace the soft index table by argmax codes (irreversible); drops the logits."""
+        self.codes = self.logits.argmax(dim=-1).to(torch.uint8)
+        self.logits = None
+
+    def code_bits(self) -> int:
+        return int(math.log2(self.cfg.candidates))
+
+    def stored_bytes(self, float_bytes: int = 4) -> dict[str, int]:
+        """{'features': L*T*F*float_bytes, 'index': ceil(L*H*log2(t) / 8)}."""
+        cfg = self.cfg
+        return {"features": self.table.numel() * float_bytes,
+                "index": (cfg.levels * cfg.index_size * self.code_bits() + 7) // 8}

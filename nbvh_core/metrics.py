@@ -1,0 +1,67 @@
+"""The paper's quality metric and companions, over orbit views.
+
+* mse: mean over views of the per-image mean squared difference of the shaded reference (Embree on the mesh)
+  and neural images (pixel = max(0, cos(normal, to light)), misses 0): covers silhouette, depth (through the
+  light direction) and normal errors at once.
+* silhouette_iou: |hit_ref AND hit_neural| / |hit_ref OR hit_neural| over all pixels of all views.
+* depth_error: mean |t_ref - t_neural| over pixels both hit, in normalised units (unit box) and in the
+  original mesh's units.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from .render import orbit_cameras, render_neural, render_reference
+
+
+@dataclass
+class Quality:
+    mse: float
+    silhouette_iou: float
+    depth_error: float
+    depth_error_original_units: float
+    views: int
+    resolution: int
+    per_view_mse: list = field(default_factory=list)
+    neural_rays_per_s: float = 0.0
+    reference_rays_per_s: float = 0.0
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def evaluate(model, tracer, n_views: int = 16, resolution: int = 256, keep_images: int = 0):
+    """Score `model` (NeuralBVH) against `tracer` (ExactTracer of the same mesh) on `n_views` orbit views.
+
+    Returns (Quality, images): images is a list of (reference, neural) (H, W) arrays for the first
+    `keep_images` views.
+    """
+    inter = union = 0
+    depth_sum, depth_n = 0.0, 0
+    per_view, images = [], []
+    t_neural = t_ref = 0.0
+    for i, cam in enumerate(orbit_cameras(n_views)):
+        t = time.perf_counter()
+        ref = render_reference(tracer, cam, resolution, resolution)
+        t_ref += time.perf_counter() - t
+        t = time.perf_counter()
+        neu = render_neural(model, cam, resolution, resolution)
+        t_neural += time.perf_counter() - t
+        per_view.append(float(((ref.image - neu.image) ** 2).mean()))
+        inter += int((ref.hit & neu.hit).sum())
+        union += int((ref.hit | neu.hit).sum())
+        both = ref.hit & neu.hit
+        depth_sum += float(np.abs(ref.depth[both] - neu.depth[both]).sum())
+        depth_n += int(both.sum())
+        if i < keep_images:
+            images.append((ref.image, neu.image))
+    depth = depth_sum / max(depth_n, 1)
+    n_rays = n_views * resolution * resolution
+    q = Quality(mse=float(np.mean(per_view)), silhouette_iou=inter / max(union, 1), depth_error=depth,
+                depth_error_original_units=float(model.transform.distance_to_original(depth)), views=n_views,
+                resolution=resolution, per_view_mse=per_view, neural_rays_per_s=n_rays / max(t_neural, 1e-9),
+                reference_rays_per_s=n_rays / max(t_ref, 1e-9))
+    return q, images

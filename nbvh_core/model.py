@@ -1,0 +1,130 @@
+"""NeuralBVH: BVH nodes + encoding + network = a ray-queryable neural representation of the mesh.
+
+query(rays) -> hit, t, normal: front-to-back traversal with `traversal.LeafStream`; in every wave each live ray
+gets its next leaf, all (ray, leaf) segments of the wave go through the network in batches, and a ray stops at
+its first leaf whose prediction is a hit (the paper's inference). Rays and outputs are in normalised mesh
+coordinates (the unit box); `Transform` maps them back.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+import torch
+from torch import nn
+
+from .encodings import EncodingConfig, make_encoding
+from .mesh import Transform
+from .networks import NetworkConfig, make_network
+from .traversal import LeafStream, TorchBVH
+
+
+@dataclass
+class ModelConfig:
+    """Everything that defines a model's architecture (serialised into the .nbvh header)."""
+
+    encoding: EncodingConfig = field(default_factory=EncodingConfig)
+    network: NetworkConfig = field(default_factory=NetworkConfig)
+
+    def to_dict(self) -> dict:
+        return {"encoding": self.encoding.to_dict(), "network": self.network.to_dict()}
+
+    @staticmethod
+    def from_dict(d: dict) -> "ModelConfig":
+        return ModelConfig(EncodingConfig(**d["encoding"]), NetworkConfig(**d["network"]))
+
+
+@dataclass
+class QueryResult:
+    """hit: (N,) bool; t: (N,) float32 distance along the ray (inf on a miss); normal: (N, 3) float32 unit
+    (0 on a miss); leaves_evaluated: total (ray, leaf) segments the network evaluated."""
+
+    hit: torch.Tensor
+    t: torch.Tensor
+    normal: torch.Tensor
+    leaves_evaluated: int = 0
+
+
+class NeuralBVH(nn.Module):
+    """The neural model. nodes: (M,) NODE_DTYPE BVH array; cfg: ModelConfig; transform: to original units."""
+
+    def __init__(self, nodes: np.ndarray, cfg: ModelConfig, transform: Transform | None = None):
+        super().__init__()
+        self.nodes = nodes
+        self.cfg = cfg
+        self.transform = transform or Transform(1.0, np.zeros(3))
+        self.encoding = make_encoding(cfg.encoding)
+        self.network = make_network(self.encoding.out_dim, cfg.network)
+        self._tree: TorchBVH | None = None
+        self.metadata: dict = {}  # what the file's header carried (training, quality, source)
+
+    @property
+    def device(self) -> torch.device:
+        return self.encoding.table.device
+
+    def tree(self) -> TorchBVH:
+        if self._tree is None or self._tree.device != self.device:
+            self._tree = TorchBVH.from_nodes(self.nodes, self.device)
+        return self._tree
+
+    def segment_points(self, rays_o: torch.Tensor, rays_d: torch.Tensor, t_enter: torch.Tensor,
+                       t_exit: torch.Tensor) -> torch.Tensor:
+        """(B, k, 3) points t_i = t_enter + i / (k - 1) (t_exit - t_enter) of each segment (B rows)."""
+        k = self.cfg.network.k
+        frac = torch.linspace(0.0, 1.0, k, device=rays_o.device, dtype=rays_o.dtype)
+        t = t_enter[:, None] + frac[None] * (t_exit - t_enter)[:, None]
+        return rays_o[:, None, :] + t[..., None] * rays_d[:, None, :]
+
+    def forward(self, rays_o: torch.Tensor, rays_d: torch.Tensor, t_enter: torch.Tensor,
+                t_exit: torch.Tensor) -> torch.Tensor:
+        """Raw network outputs for B segments (rays_o, rays_d: (B, 3); t_enter, t_exit: (B,))."""
+        pts = self.segment_points(rays_o, rays_d, t_enter, t_exit)
+        b, k, _ = pts.shape
+        feats = self.encoding(pts.reshape(-1, 3)).reshape(b, k, -1)
+        return self.network(feats)
+
+    @torch.no_grad()
+    def query(self, rays_o: torch.Tensor, rays_d: torch.Tensor, batch: int = 65536) -> QueryResult:
+        """First predicted hit of every ray. rays_o, rays_d: (N, 3) float32 (unit directions), any device."""
+        dev = self.device
+        rays_o = rays_o.to(dev, torch.float32)
+        rays_d = rays_d.to(dev, torch.float32)
+        n = rays_o.shape[0]
+        hit = torch.zeros(n, dtype=torch.bool, device=dev)
+        t_out = torch.full((n,), torch.inf, device=dev)
+        normal = torch.zeros((n, 3), device=dev)
+        evaluated = 0
+        stream = LeafStream(self.tree(), rays_o, rays_d)
+        while True:
+            ray, _, te, tx = stream.next()
+            if ray.numel() == 0:
+                break
+            evaluated += ray.numel()
+            for s in range(0, ray.numel(), batch):
+                r, a, b = ray[s:s + batch], te[s:s + batch], tx[s:s + batch]
+                prob, local_t, nrm = self.network.decode(self.forward(rays_o[r], rays_d[r], a, b))
+                is_hit = prob > 0.5
+                rh = r[is_hit]
+                hit[rh] = True
+                t_out[rh] = a[is_hit] + local_t[is_hit] * (b[is_hit] - a[is_hit])
+                normal[rh] = nrm[is_hit]
+                stream.stop(rh)
+        return QueryResult(hit=hit, t=t_out, normal=normal, leaves_evaluated=evaluated)
+
+    def stored_bytes(self, float_bytes: int = 4) -> dict[str, int]:
+        """Bytes of the stored tensors by component (no header): bvh, features, [index], network."""
+        out = {"bvh": int(self.nodes.nbytes)}
+        out.update(self.encoding.stored_bytes(float_bytes))
+        out["network"] = sum(p.numel() for p in self.network.parameters()) * float_bytes
+        return out
+
+    def describe(self) -> dict:
+        return {"config": self.cfg.to_dict(), "nodes": int(len(self.nodes)),
+                "transform": self.transform.to_dict()}
+
+
+def config_from_dict(d: dict) -> ModelConfig:
+    return ModelConfig.from_dict(d)
+
+
+__all__ = ["ModelConfig", "NeuralBVH", "QueryResult", "asdict"]

@@ -1,0 +1,146 @@
+"""Networks that turn the encodings of k points on a leaf segment into the leaf's answer: hit, distance, normal.
+
+Both take `feats` (B, k, D): the encodings of the k points t_i = t_enter + i / (k - 1) * (t_exit - t_enter),
+i = 0..k-1 (both segment ends included), and share one interface:
+
+    raw = net(feats)                        # network-specific raw outputs
+    loss, parts = net.loss(raw, targets)    # targets: hit (B,) bool, local_t (B,) in [0, 1], normal (B, 3)
+    hit_prob, local_t, normal = net.decode(raw)   # (B,), (B,) in [0, 1] along the segment, (B, 3) unit
+
+**MLP** (N-BVH baseline): one MLP over the concatenated k encodings (k * D inputs), 4 hidden layers of 64,
+ReLU, 5 outputs: hit logit h, depth logit d, normal (3). hit_prob = sigmoid(h), local_t = sigmoid(d).
+Loss = BCE(h, hit) + w_t * |sigmoid(d) - local_t| + w_n * |normalize(n) - normal|_1, the last two only
+where the target is a hit (N-BVH's masked L1s).
+
+**KMLP**: one shared MLP over each of the k - 1 adjacent pairs (2 * D inputs), 5 outputs per pair j: hit logit
+h_j, depth logit d_j inside sub-segment j, normal n_j. Combination rule, front to back: with p_j = sigmoid(h_j),
+the probability that the first hit lies in sub-segment j is q_j = p_j * prod_{i<j} (1 - p_i), and the leaf's
+hit probability is P = sum_j q_j = 1 - prod_j (1 - p_i). The leaf reports a hit when P > 0.5, in the
+sub-segment j^ = argmax_j q_j, at local_t = (j^ + sigmoid(d_j^)) / (k - 1) with normal n_j^.
+Loss (log space, stable): BCE(P, hit) + for hits, the cross-entropy -log(q_j* / P) of the true sub-segment
+j* = min(floor(local_t * (k - 1)), k - 2), plus the masked L1s of depth (on the sub-segment scale) and normal
+of pair j*.
+Parameter count does not depend on k.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+
+@dataclass
+class NetworkConfig:
+    """kind: 'mlp' | 'kmlp'; k points per segment; `hidden` layers of `width`; loss weights w_t, w_n."""
+
+    kind: str = "kmlp"
+    k: int = 8
+    hidden: int = 4
+    width: int = 64
+    depth_weight: float = 1.0
+    normal_weight: float = 0.5
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def _mlp(n_in: int, cfg: NetworkConfig, n_out: int = 5) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    for i in range(cfg.hidden):
+        layers += [nn.Linear(n_in if i == 0 else cfg.width, cfg.width), nn.ReLU()]
+    layers.append(nn.Linear(cfg.width if cfg.hidden else n_in, n_out))
+    return nn.Sequential(*layers)
+
+
+def _masked_l1(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Mean over masked rows of the L1 distance (summed over the last dim when 2-D); 0 when nothing is masked."""
+    diff = (pred - target).abs()
+    if diff.dim() == 2:
+        diff = diff.sum(-1)
+    m = mask.to(diff.dtype)
+    return (diff * m).sum() / m.sum().clamp_min(1.0)
+
+
+class MLP(nn.Module):
+    """Baseline network (see module docstring). feats (B, k, D) -> raw (B, 5)."""
+
+    def __init__(self, in_dim: int, cfg: NetworkConfig):
+        super().__init__()
+        self.cfg = cfg
+        self.net = _mlp(in_dim * cfg.k, cfg)
+
+    def forward(self, feats: torch.Tensor) -> torch.Tensor:
+        return self.net(feats.reshape(feats.shape[0], -1))
+
+    def decode(self, raw: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        return torch.sigmoid(raw[:, 0]), torch.sigmoid(raw[:, 1]), F.normalize(raw[:, 2:5], dim=-1)
+
+    def loss(self, raw: torch.Tensor, hit: torch.Tensor, local_t: torch.Tensor, normal: torch.Tensor):
+        bce = F.binary_cross_entropy_with_logits(raw[:, 0], hit.to(raw.dtype))
+        l_t = _masked_l1(torch.sigmoid(raw[:, 1]), local_t, hit)
+        l_n = _masked_l1(F.normalize(raw[:, 2:5], dim=-1), normal, hit)
+        total = bce + self.cfg.depth_weight * l_t + self.cfg.normal_weight * l_n
+        return total, {"bce": bce.detach(), "depth_l1": l_t.detach(), "normal_l1": l_n.detach()}
+
+
+class KMLP(nn.Module):
+    """Shared pair network (see module docstring). feats (B, k, D) -> raw (B, k - 1, 5)."""
+
+    def __init__(self, in_dim: int, cfg: NetworkConfig):
+        super().__init__()
+        if cfg.k < 2:
+            raise ValueError("KMLP needs k >= 2 points per segment")
+        self.cfg = cfg
+        self.net = _mlp(2 * in_dim, cfg)
+
+    def forward(self, feats: torch.Tensor) -> torch.Tensor:
+        pairs = torch.cat((feats[:, :-1], feats[:, 1:]), dim=-1)  # (B, k-1, 2D)
+        return self.net(pairs)
+
+    @staticmethod
+    def _first_hit_log_probs(logit: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """logit (B, k-1) -> log q (B, k-1) and log(1 - P) (B,) (see module docstring)."""
+        log_miss = -F.softplus(logit)  # log(1 - p_j)
+        log_p = -F.softplus(-logit)  # log p_j
+        before = torch.cumsum(log_miss, dim=1) - log_miss  # sum_{i<j} log(1 - p_i)
+        return log_p + before, log_miss.sum(dim=1)
+
+    def decode(self, raw: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        log_q, log_none = self._first_hit_log_probs(raw[..., 0])
+        hit_prob = -torch.expm1(log_none)
+        n_sub = raw.shape[1]
+        j = log_q.argmax(dim=1)
+        rows = torch.arange(raw.shape[0], device=raw.device)
+        local_t = (j.to(raw.dtype) + torch.sigmoid(raw[rows, j, 1])) / n_sub
+        normal = F.normalize(raw[rows, j, 2:5], dim=-1)
+        return hit_prob, local_t, normal
+
+    def loss(self, raw: torch.Tensor, hit: torch.Tensor, local_t: torch.Tensor, normal: torch.Tensor):
+        n_sub = raw.shape[1]
+        log_q, log_none = self._first_hit_log_probs(raw[..., 0])
+        log_hit = torch.log((-torch.expm1(log_none)).clamp_min(1e-12))  # log P, stable as P -> 0
+        hit_f = hit.to(raw.dtype)
+        bce = -(hit_f * log_hit + (1 - hit_f) * log_none).mean()
+        pos = local_t * n_sub
+        j_star = pos.floor().clamp(0, n_sub - 1).long()
+        rows = torch.arange(raw.shape[0], device=raw.device)
+        where_ce = -(log_q[rows, j_star] - log_hit)  # -log(q_j* / P)
+        ce = _masked_l1(where_ce, torch.zeros_like(where_ce), hit)
+        sub_t = (pos - j_star.to(raw.dtype)).clamp(0, 1)
+        l_t = _masked_l1(torch.sigmoid(raw[rows, j_star, 1]), sub_t, hit)
+        l_n = _masked_l1(F.normalize(raw[rows, j_star, 2:5], dim=-1), normal, hit)
+        total = bce + ce + self.cfg.depth_weight * l_t + self.cfg.normal_weight * l_n
+        # Depth reported on the leaf scale (a sub-segment is 1/(k-1) of the leaf), comparable with the MLP's.
+        return total, {"bce": bce.detach(), "segment_ce": ce.detach(), "depth_l1": (l_t / n_sub).detach(),
+                       "normal_l1": l_n.detach()}
+
+
+NETWORKS = {"mlp": MLP, "kmlp": KMLP}
+
+
+def make_network(in_dim: int, cfg: NetworkConfig) -> nn.Module:
+    if cfg.kind not in NETWORKS:
+        raise ValueError(f"unknown network {cfg.kind!r}; choose from {', '.join(NETWORKS)}")
+    return NETWORKS[cfg.kind](in_dim, cfg)

@@ -1,0 +1,170 @@
+"""mesh -> BVH -> training -> quality check -> .nbvh file: the one function the CLI, the add-on's job and the
+benchmarks call (`compress_mesh`), and the named presets.
+
+Presets are complete settings; any field can be overridden (`Settings.with_overrides`). The method steps of
+the paper are presets too, so an ablation is a preset name:
+  base = HashGrid + MLP + ownership labels (N-BVH), I = base + KMLP, II = I + consistent labels,
+  III = II + HashVQAD (the paper's full method).
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import platform
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import torch
+
+from .bvh import build_bvh
+from .encodings import EncodingConfig
+from .events import EventSink, null_sink
+from .exact import ExactTracer
+from .fileformat import component_bytes, encode_nbvh, write_atomic
+from .mesh import Mesh
+from .metrics import Quality, evaluate
+from .model import ModelConfig, NeuralBVH
+from .networks import NetworkConfig
+from .train import TrainConfig, TrainResult, train
+
+
+@dataclass
+class Settings:
+    """Everything one compression run needs. Sizes: `nodes` BVH nodes, `log2_table` = log2 T."""
+
+    nodes: int = 2047
+    encoding: str = "hashvqad"
+    log2_table: int = 10
+    levels: int = 4
+    features: int = 16
+    network: str = "kmlp"
+    k: int = 8
+    labels: str = "consistent"
+    lr: float = 5e-3
+    steps: int | None = None
+    time_limit_s: float | None = 180.0
+    rays_per_step: int = 4096
+    seed: int = 0
+    device: str = "auto"
+    float_bytes: int = 4
+    eval_views: int = 16
+    eval_resolution: int = 256
+
+    def model_config(self) -> ModelConfig:
+        return ModelConfig(EncodingConfig(kind=self.encoding, log2_table=self.log2_table, levels=self.levels,
+                                          features=self.features),
+                           NetworkConfig(kind=self.network, k=self.k))
+
+    def train_config(self) -> TrainConfig:
+        return TrainConfig(labels=self.labels, lr=self.lr, steps=self.steps, time_limit_s=self.time_limit_s,
+                           rays_per_step=self.rays_per_step, seed=self.seed, device=self.device)
+
+    def with_overrides(self, **kw) -> "Settings":
+        unknown = set(kw) - {f.name for f in dataclasses.fields(self)}
+        if unknown:
+            raise ValueError(f"unknown settings: {', '.join(sorted(unknown))}")
+        return dataclasses.replace(self, **{k: v for k, v in kw.items() if v is not None})
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+PRESETS: dict[str, Settings] = {
+    # What users pick: the paper's full method (III) at three sizes/time budgets.
+    "preview": Settings(nodes=1023, log2_table=9, time_limit_s=60.0, eval_views=8, eval_resolution=128),
+    "default": Settings(),
+    "high": Settings(nodes=4095, log2_table=11, time_limit_s=600.0),
+    # The paper's method steps (same size knobs as `default`), for ablations.
+    "base": Settings(encoding="hashgrid", network="mlp", labels="ownership", log2_table=11),
+    "I": Settings(encoding="hashgrid", network="kmlp", labels="ownership", log2_table=11),
+    "II": Settings(encoding="hashgrid", network="kmlp", labels="consistent", log2_table=11),
+    "III": Settings(encoding="hashvqad", network="kmlp", labels="consistent", log2_table=10),
+    # For tests and smoke runs: tiny and fast, not a quality setting.
+    "tiny": Settings(nodes=63, log2_table=6, levels=2, features=4, k=4, time_limit_s=None, steps=20,
+                     rays_per_step=512, eval_views=2, eval_resolution=32),
+}
+
+
+def preset(name: str) -> Settings:
+    if name not in PRESETS:
+        raise ValueError(f"unknown preset {name!r}; choose from {', '.join(PRESETS)}")
+    return dataclasses.replace(PRESETS[name])
+
+
+@dataclass
+class CompressResult:
+    """What one run produced. `path` is None when nothing was written (no output path given)."""
+
+    path: str | None
+    file_bytes: int
+    components: dict
+    quality: Quality | None
+    training: TrainResult
+    settings: Settings
+    seconds: dict = field(default_factory=dict)
+    model: NeuralBVH | None = None
+
+    def summary(self) -> dict:
+        return {"path": self.path, "file_bytes": self.file_bytes, "components": self.components,
+                "quality": self.quality.to_dict() if self.quality else None,
+                "training": {k: v for k, v in dataclasses.asdict(self.training).items() if k != "history"},
+                "settings": self.settings.to_dict(), "seconds": self.seconds}
+
+
+def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = None,
+                  events: EventSink = null_sink, should_cancel: Callable[[], bool] = lambda: False,
+                  evaluate_quality: bool = True, checkpoint_path: str | Path | None = None) -> CompressResult:
+    """Compress `mesh` with `settings`; write `out_path` (atomically) when given. Raises `train.Cancelled`,
+    `train.TrainingDiverged` (nothing written in either case)."""
+    seconds = {}
+    t = time.perf_counter()
+    events({"event": "phase", "phase": "bvh", "message": f"{mesh.n_triangles} triangles -> {settings.nodes} nodes"})
+    bvh = build_bvh(mesh, settings.nodes)
+    tracer = ExactTracer(mesh)
+    seconds["bvh"] = time.perf_counter() - t
+    model = NeuralBVH(bvh.nodes, settings.model_config(), mesh.transform)
+    t = time.perf_counter()
+    tr = train(model, bvh, tracer, settings.train_config(), events=events, should_cancel=should_cancel,
+               checkpoint_path=checkpoint_path)
+    seconds["train"] = time.perf_counter() - t
+    model.eval()
+    quality = None
+    if evaluate_quality:
+        if should_cancel():
+            from .train import Cancelled
+
+            raise Cancelled("cancelled before evaluation")
+        events({"event": "phase", "phase": "eval",
+                "message": f"{settings.eval_views} views at {settings.eval_resolution}px"})
+        t = time.perf_counter()
+        quality, _ = evaluate(model, tracer, settings.eval_views, settings.eval_resolution)
+        seconds["eval"] = time.perf_counter() - t
+    metadata = {
+        "source": {"name": mesh.name, "triangles": mesh.n_triangles, "vertices": mesh.n_vertices},
+        "settings": settings.to_dict(),
+        "training": {"steps": tr.steps, "seconds": round(tr.seconds, 2), "samples": tr.samples,
+                     "samples_per_s": round(tr.samples_per_s), "final_loss": tr.final_loss, "device": tr.device,
+                     "soft_loss_before_freeze": tr.soft_loss_before_freeze, "frozen_loss": tr.frozen_loss},
+        "quality": quality.to_dict() if quality else None,
+        "created": time.strftime("%Y-%m-%dT%H:%M:%S"),
+        "torch": torch.__version__, "machine": platform.machine(),
+    }
+    if quality:
+        metadata["quality"].pop("per_view_mse", None)
+    data = encode_nbvh(model, metadata, settings.float_bytes)
+    size = len(data)
+    if out_path is not None:
+        if should_cancel():
+            from .train import Cancelled
+
+            raise Cancelled("cancelled before saving")
+        events({"event": "phase", "phase": "save", "message": str(out_path)})
+        size = write_atomic(out_path, data)
+    result = CompressResult(path=str(out_path) if out_path else None, file_bytes=size,
+                            components=component_bytes(data), quality=quality, training=tr, settings=settings,
+                            seconds={k: round(v, 2) for k, v in seconds.items()}, model=model)
+    events({"event": "result", "path": result.path, "bytes": size,
+            "quality": json.loads(json.dumps(metadata["quality"])), "train_seconds": round(tr.seconds, 2)})
+    return result

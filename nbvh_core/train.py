@@ -1,0 +1,223 @@
+"""Training loop: fresh labelled rays every step, Adam, a step or wall-clock budget, events, cancel, checkpoints.
+
+Phases: `train` (main phase), then for HashVQAD `anneal` (the last `anneal_fraction` of the budget: the softmax
+temperature falls geometrically from 1 to `tau_min`), then `freeze` (argmax codes). The learning rate decays
+exponentially to `lr_final_factor` x lr over the budget.
+
+Failure handling: a non-finite loss or parameter, or a loss above `divergence_factor` x its running mean after
+warm-up, raises `TrainingDiverged` (the caller saves nothing). `should_cancel()` is checked every step and
+raises `Cancelled`. Checkpoints (model, optimizer, step, elapsed time, RNG states) are written atomically every
+`checkpoint_every` steps and at cancel, and `resume_from` continues one.
+"""
+from __future__ import annotations
+
+import math
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+from .bvh import BVH
+from .events import EventSink, null_sink
+from .exact import ExactTracer
+from .model import NeuralBVH
+from .samples import RayConfig, TrainingSamples, label_samples, root_box, sample_rays
+
+
+class Cancelled(Exception):
+    """The job was cancelled; nothing was saved as a result."""
+
+
+class TrainingDiverged(RuntimeError):
+    """Loss or parameters became NaN/inf or exploded; the model is not usable and is never saved."""
+
+
+@dataclass
+class TrainConfig:
+    """labels: 'ownership' | 'consistent'. Budget: `steps`, or `time_limit_s` (whichever ends first; at least
+    one must be set). rays_per_step: rays drawn per step (each yields ~1-5 leaf samples)."""
+
+    labels: str = "consistent"
+    lr: float = 1e-3
+    lr_final_factor: float = 0.1
+    rays_per_step: int = 4096
+    steps: int | None = 2000
+    time_limit_s: float | None = None
+    anneal_fraction: float = 0.15
+    tau_min: float = 0.05
+    seed: int = 0
+    device: str = "auto"
+    divergence_factor: float = 50.0
+    checkpoint_every: int = 0
+    progress_every_s: float = 0.5
+    ray_config: RayConfig = field(default_factory=RayConfig)
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        return d
+
+
+@dataclass
+class TrainResult:
+    steps: int
+    seconds: float
+    samples: int
+    samples_per_s: float
+    final_loss: float
+    device: str
+    history: list = field(default_factory=list)  # (step, loss)
+    soft_loss_before_freeze: float | None = None
+    frozen_loss: float | None = None
+
+
+def pick_device(name: str = "auto") -> torch.device:
+    """'auto' -> CUDA when available, else CPU; 'cuda' without a GPU raises a clear error."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise RuntimeError("device 'cuda' requested but no CUDA GPU is available to PyTorch")
+    return torch.device(name)
+
+
+def samples_loss(model: NeuralBVH, s: TrainingSamples, device: torch.device):
+    """Loss of the model on labelled samples (moved to `device`)."""
+    r = s.ray.to(device)
+    o, d = s.rays_o.to(device)[r], s.rays_d.to(device)[r]
+    raw = model(o, d, s.t_enter.to(device), s.t_exit.to(device))
+    return model.network.loss(raw, s.hit.to(device), s.local_t.to(device), s.normal.to(device))
+
+
+class _Batches:
+    """Fresh labelled rays for every step, from one seeded generator."""
+
+    def __init__(self, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, rng: np.random.Generator):
+        self.bvh, self.tracer, self.cfg, self.rng = bvh, tracer, cfg, rng
+        self.lo, self.hi = root_box(bvh)
+        from .traversal import TorchBVH
+
+        self.tree = TorchBVH.from_bvh(bvh)
+
+    def next(self) -> TrainingSamples:
+        o, d = sample_rays(self.lo, self.hi, self.cfg.rays_per_step, self.rng, self.cfg.ray_config)
+        return label_samples(self.bvh, self.tracer, o, d, self.cfg.labels, tree=self.tree)
+
+
+def _atomic_save(obj, path: Path) -> None:
+    tmp = path.with_name(path.name + ".partial")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, events: EventSink = null_sink,
+          should_cancel: Callable[[], bool] = lambda: False, checkpoint_path: str | os.PathLike | None = None,
+          resume_from: str | os.PathLike | None = None) -> TrainResult:
+    """Train `model` in place on rays around `bvh`, labelled by `tracer`; freezes HashVQAD at the end."""
+    if cfg.steps is None and cfg.time_limit_s is None:
+        raise ValueError("set a step budget or a time limit")
+    device = pick_device(cfg.device)
+    torch.manual_seed(cfg.seed)
+    rng = np.random.default_rng(cfg.seed)
+    model.to(device)
+    params = [p for p in model.parameters() if p.requires_grad]
+    opt = torch.optim.Adam(params, lr=cfg.lr)
+    start_step, elapsed_before = 0, 0.0
+    history: list = []
+    if resume_from is not None:
+        ck = torch.load(resume_from, map_location=device, weights_only=False)
+        model.load_state_dict(ck["model"])
+        opt.load_state_dict(ck["optimizer"])
+        start_step, elapsed_before, history = ck["step"], ck["elapsed"], ck["history"]
+        rng.bit_generator.state = ck["numpy_rng"]
+        torch.set_rng_state(ck["torch_rng"])
+        events({"event": "phase", "phase": "train", "message": f"resumed at step {start_step}"})
+    batches = _Batches(bvh, tracer, cfg, rng)
+    is_vqad = hasattr(model.encoding, "freeze")
+
+    def save_checkpoint(step: int, elapsed: float) -> None:
+        if checkpoint_path is not None:
+            _atomic_save({"model": model.state_dict(), "optimizer": opt.state_dict(), "step": step,
+                          "elapsed": elapsed, "history": history, "numpy_rng": rng.bit_generator.state,
+                          "torch_rng": torch.get_rng_state(), "train_config": cfg.to_dict()}, Path(checkpoint_path))
+
+    events({"event": "phase", "phase": "train",
+            "message": f"{model.cfg.encoding.kind}+{model.cfg.network.kind}, {cfg.labels} labels, on {device}"})
+    t0 = time.perf_counter() - elapsed_before
+    last_emit = 0.0
+    n_samples = 0
+    ema = None
+    step = start_step
+    loss_val = float("nan")
+    phase = "train"
+    while True:
+        elapsed = time.perf_counter() - t0
+        frac = max(step / cfg.steps if cfg.steps else 0.0,
+                   elapsed / cfg.time_limit_s if cfg.time_limit_s else 0.0)
+        if frac >= 1.0:
+            break
+        if should_cancel():
+            save_checkpoint(step, elapsed)
+            raise Cancelled(f"cancelled at step {step}")
+        if is_vqad:
+            anneal_start = 1.0 - cfg.anneal_fraction
+            if frac >= anneal_start and cfg.anneal_fraction > 0:
+                a = (frac - anneal_start) / cfg.anneal_fraction
+                model.encoding.temperature = float(cfg.tau_min ** a)
+                if phase != "anneal":
+                    phase = "anneal"
+                    events({"event": "phase", "phase": "anneal",
+                            "message": f"softmax temperature 1 -> {cfg.tau_min}"})
+        for g in opt.param_groups:
+            g["lr"] = cfg.lr * cfg.lr_final_factor ** frac
+        batch = batches.next()
+        loss, parts = samples_loss(model, batch, device)
+        loss_val = float(loss.detach())
+        if not math.isfinite(loss_val):
+            raise TrainingDiverged(f"loss became {loss_val} at step {step}")
+        if ema is not None and step - start_step > 50 and loss_val > cfg.divergence_factor * ema:
+            raise TrainingDiverged(f"loss jumped to {loss_val:.4g} (running mean {ema:.4g}) at step {step}")
+        ema = loss_val if ema is None else 0.98 * ema + 0.02 * loss_val
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        step += 1
+        n_samples += len(batch)
+        history.append((step, loss_val))
+        if cfg.checkpoint_every and step % cfg.checkpoint_every == 0:
+            save_checkpoint(step, time.perf_counter() - t0)
+        now = time.perf_counter() - t0
+        if now - last_emit >= cfg.progress_every_s:
+            last_emit = now
+            run_time = now - elapsed_before
+            sps = n_samples / max(run_time, 1e-9)
+            eta = (now / frac - now) if frac > 0.01 else None
+            events({"event": "progress", "phase": phase, "step": step, "total": cfg.steps, "fraction": round(frac, 4),
+                    "loss": round(loss_val, 6), "samples_per_s": round(sps, 1), "elapsed_s": round(now, 2),
+                    "eta_s": None if eta is None else round(eta, 1)})
+    for p in model.parameters():
+        if not torch.isfinite(p).all():
+            raise TrainingDiverged("parameters contain NaN/inf after training")
+    seconds = time.perf_counter() - t0
+    run_time = seconds - elapsed_before
+    result = TrainResult(steps=step, seconds=seconds, samples=n_samples,
+                         samples_per_s=n_samples / max(run_time, 1e-9), final_loss=ema if ema is not None else loss_val,
+                         device=str(device), history=history)
+    events({"event": "progress", "phase": phase, "step": step, "total": cfg.steps, "fraction": 1.0,
+            "loss": round(result.final_loss, 6), "samples_per_s": round(result.samples_per_s, 1),
+            "elapsed_s": round(seconds, 2), "eta_s": 0.0})
+    if is_vqad and not model.encoding.frozen:
+        # Same held-out rays for both: how much the argmax freeze changes the loss.
+        held_out = label_samples(bvh, tracer, *sample_rays(batches.lo, batches.hi, 8192,
+                                                           np.random.default_rng(cfg.seed + 7919), cfg.ray_config),
+                                 cfg.labels, tree=batches.tree)
+        with torch.no_grad():
+            result.soft_loss_before_freeze = float(samples_loss(model, held_out, device)[0])
+            model.encoding.freeze()
+            result.frozen_loss = float(samples_loss(model, held_out, device)[0])
+        events({"event": "phase", "phase": "freeze",
+                "message": f"index codes frozen; held-out loss {result.soft_loss_before_freeze:.4f} -> "
+                           f"{result.frozen_loss:.4f}"})
+    return result

@@ -1,0 +1,194 @@
+import itertools
+import json
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from nbvh_core.bvh import build_bvh
+from nbvh_core.encodings import EncodingConfig, HashGrid, HashVQAD
+from nbvh_core.encodings.base import gather_weighted_sum
+from nbvh_core.encodings.hashvqad import candidate_rows
+from nbvh_core.exact import ExactTracer
+from nbvh_core.model import ModelConfig, NeuralBVH
+from nbvh_core.networks import KMLP, MLP, NetworkConfig
+from nbvh_core.pipeline import compress_mesh, preset
+from nbvh_core.render import orbit_cameras, render_neural
+from nbvh_core.train import Cancelled, TrainConfig, TrainingDiverged, train
+
+SMALL = dict(levels=2, n_min=4, n_max=8, features=2, log2_table=4, index_factor=4, candidates=4)
+
+
+def test_gather_weighted_sum_matches_embedding_bag():
+    table = torch.randn(50, 3, dtype=torch.float64, requires_grad=True)
+    idx = torch.randint(0, 50, (20, 8))
+    w = torch.rand(20, 8, dtype=torch.float64, requires_grad=True)
+    ref = F.embedding_bag(idx, table, per_sample_weights=w, mode="sum")
+    assert torch.allclose(gather_weighted_sum(table, idx, w), ref)
+    assert torch.autograd.gradcheck(lambda t, ww: gather_weighted_sum(t, idx, ww), (table, w))
+
+
+@pytest.mark.parametrize("kind", ["hashgrid", "hashvqad"])
+def test_encoding_gradients_match_finite_differences(kind):
+    torch.manual_seed(0)
+    enc = (HashGrid if kind == "hashgrid" else HashVQAD)(EncodingConfig(kind=kind, **SMALL)).double()
+    with torch.no_grad():
+        enc.table.normal_()
+    pts = torch.rand(12, 3, dtype=torch.float64)
+    params = [enc.table] + ([enc.logits] if kind == "hashvqad" else [])
+    if kind == "hashvqad":
+        enc.temperature = 0.7
+
+    def f(*ps):
+        saved = [p.data for p in params]
+        for p, new in zip(params, ps):
+            p.data = new
+        try:
+            return torch.func.functional_call(enc, {n: v for n, v in zip(
+                ["table", "logits"][:len(ps)], ps)}, (pts,))
+        finally:
+            for p, old in zip(params, saved):
+                p.data = old
+
+    inputs = tuple(p.detach().clone().requires_grad_(True) for p in params)
+    assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-5)
+
+
+def test_hashgrid_interpolates_and_is_continuous():
+    enc = HashGrid(EncodingConfig(kind="hashgrid", **SMALL))
+    with torch.no_grad():
+        enc.table.normal_()
+    p = torch.rand(100, 3)
+    a, b = enc(p), enc(p + 1e-5)
+    assert (a - b).abs().max() < 1e-2  # trilinear: continuous
+    assert enc(p).shape == (100, SMALL["levels"] * SMALL["features"])
+
+
+def test_hashvqad_soft_table_equals_direct_softmax_of_candidates():
+    cfg = EncodingConfig(kind="hashvqad", **SMALL)
+    enc = HashVQAD(cfg)
+    with torch.no_grad():
+        enc.logits.normal_()
+        enc.table.normal_()
+    soft = enc.row_table()
+    i = torch.arange(cfg.index_size)[:, None]
+    j = torch.arange(cfg.candidates)[None]
+    rows = candidate_rows(i, j, cfg.table_size)
+    p = torch.softmax(enc.logits, -1)
+    direct = torch.stack([(p[level][..., None] * enc.table[level][rows]).sum(1) for level in range(cfg.levels)])
+    assert torch.allclose(soft, direct, atol=1e-6)
+
+
+def test_hashvqad_freeze_equals_zero_temperature_limit():
+    cfg = EncodingConfig(kind="hashvqad", **SMALL)
+    enc = HashVQAD(cfg)
+    with torch.no_grad():
+        enc.logits.normal_()
+        enc.table.normal_()
+    pts = torch.rand(64, 3)
+    enc.temperature = 1e-4
+    cold = enc(pts)
+    enc.freeze()
+    assert enc.frozen and enc.codes.dtype == torch.uint8 and int(enc.codes.max()) < cfg.candidates
+    assert torch.allclose(enc(pts), cold, atol=1e-5)
+    sizes = enc.stored_bytes()
+    assert sizes["index"] == cfg.levels * cfg.index_size * 2 // 8  # log2(4) = 2 bits per entry
+
+
+def test_kmlp_parameter_count_does_not_depend_on_k():
+    count = lambda net: sum(p.numel() for p in net.parameters())
+    kmlp = {k: count(KMLP(64, NetworkConfig(kind="kmlp", k=k))) for k in (2, 4, 8, 16)}
+    mlp = {k: count(MLP(64, NetworkConfig(kind="mlp", k=k))) for k in (2, 4, 8, 16)}
+    assert len(set(kmlp.values())) == 1
+    assert mlp[16] > mlp[8] > mlp[4]
+    # Paper sizes at D = 64 (L = 4, F = 16), k = 8: MLP ~ 180 KB, KMLP ~ 83 KB in float32.
+    assert 170_000 < 4 * mlp[8] < 200_000 and 75_000 < 4 * kmlp[8] < 90_000
+
+
+def test_kmlp_decode_follows_front_to_back_rule():
+    net = KMLP(4, NetworkConfig(kind="kmlp", k=4))
+    raw = torch.zeros(2, 3, 5)
+    raw[:, :, 0] = torch.tensor([[-9.0, 9.0, 9.0], [-9.0, -9.0, -9.0]])  # hit in sub-segment 1 / miss
+    raw[:, :, 1] = 0.0  # middle of the sub-segment
+    raw[0, 1, 2:5] = torch.tensor([0.0, 0.0, 2.0])
+    prob, local_t, normal = net.decode(raw)
+    assert prob[0] > 0.99 and prob[1] < 0.01
+    assert local_t[0].item() == pytest.approx((1 + 0.5) / 3)
+    assert torch.allclose(normal[0], torch.tensor([0.0, 0.0, 1.0]))
+
+
+@pytest.fixture(scope="module")
+def blob_setup(sample_meshes):
+    mesh = sample_meshes["blob"]
+    return mesh, build_bvh(mesh, 63), ExactTracer(mesh)
+
+
+@pytest.mark.parametrize("encoding,network,labels",
+                         list(itertools.product(["hashgrid", "hashvqad"], ["mlp", "kmlp"], ["ownership", "consistent"])))
+def test_every_config_trains_and_renders(blob_setup, encoding, network, labels):
+    mesh, bvh, tracer = blob_setup
+    cfg = ModelConfig(EncodingConfig(kind=encoding, log2_table=6, levels=2, features=4),
+                      NetworkConfig(kind=network, k=4))
+    model = NeuralBVH(bvh.nodes, cfg, mesh.transform)
+    res = train(model, bvh, tracer, TrainConfig(labels=labels, steps=6, rays_per_step=256, lr=5e-3))
+    assert res.steps == 6 and all(np.isfinite(loss) for _, loss in res.history)
+    assert res.history[-1][1] < res.history[0][1]  # it learns something even in 6 steps
+    if encoding == "hashvqad":
+        assert model.encoding.frozen and res.frozen_loss is not None
+    img = render_neural(model, orbit_cameras(1)[0], 24, 24)
+    assert img.image.shape == (24, 24) and np.isfinite(img.image).all()
+
+
+def test_cancel_leaves_nothing_and_resume_continues_identically(blob_setup, tmp_path):
+    mesh, bvh, tracer = blob_setup
+    cfg = ModelConfig(EncodingConfig(kind="hashgrid", log2_table=6, levels=2, features=4), NetworkConfig(kind="mlp", k=4))
+    tc = TrainConfig(steps=8, rays_per_step=256, seed=3)
+
+    def fresh():
+        torch.manual_seed(11)  # same initial weights for every run
+        return NeuralBVH(bvh.nodes, cfg)
+
+    straight = fresh()
+    train(straight, bvh, tracer, tc)
+
+    ck = tmp_path / "run.ckpt"
+    first = fresh()
+    calls = iter(range(100))
+    with pytest.raises(Cancelled):
+        train(first, bvh, tracer, tc, should_cancel=lambda: next(calls) >= 4, checkpoint_path=ck)
+    assert ck.exists() and not list(tmp_path.glob("*.partial"))
+    resumed = fresh()
+    res = train(resumed, bvh, tracer, tc, resume_from=ck)
+    assert res.steps == 8
+    for a, b in zip(straight.parameters(), resumed.parameters()):
+        assert torch.allclose(a, b, atol=1e-6)
+
+
+def test_divergence_is_detected_and_nothing_saved(blob_setup, tmp_path, monkeypatch):
+    mesh, bvh, tracer = blob_setup
+    settings = preset("tiny").with_overrides(encoding="hashgrid", network="mlp")
+    import nbvh_core.networks as networks
+
+    real_loss = networks.MLP.loss
+
+    def poisoned(self, raw, *a):
+        total, parts = real_loss(self, raw, *a)
+        return total * float("nan"), parts
+
+    monkeypatch.setattr(networks.MLP, "loss", poisoned)
+    out = tmp_path / "model.nbvh"
+    with pytest.raises(TrainingDiverged, match="nan"):
+        compress_mesh(mesh, settings, out)
+    assert not out.exists() and not list(tmp_path.iterdir())
+
+
+def test_compress_mesh_writes_file_with_quality(blob_setup, tmp_path):
+    mesh, _, _ = blob_setup
+    events = []
+    res = compress_mesh(mesh, preset("tiny"), tmp_path / "blob.nbvh", events=events.append)
+    assert (tmp_path / "blob.nbvh").stat().st_size == res.file_bytes == sum(res.components.values())
+    assert 0 <= res.quality.silhouette_iou <= 1 and res.quality.mse >= 0
+    kinds = [e["event"] for e in events]
+    assert "progress" in kinds and kinds[-1] == "result"
+    json.dumps(events)  # every event is JSON-serialisable
