@@ -160,7 +160,7 @@ def cmd_compress(args: argparse.Namespace) -> int:
         nodes=args.nodes, encoding=args.encoding, log2_table=args.log2_table, network=args.network, k=args.k,
         labels=args.labels, lr=args.lr, steps=args.steps, time_limit_s=args.time_limit, seed=args.seed,
         device=args.device, float_bytes=2 if args.float16 else None, eval_views=args.views,
-        rays_per_step=args.rays_per_step)
+        rays_per_step=args.rays_per_step, budget_kb=args.budget_kb, target_mse=args.target_mse)
     if args.steps is not None and args.time_limit is None:
         settings.time_limit_s = None
     mesh = _load_mesh_reporting(args.mesh)
@@ -300,6 +300,9 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("-o", "--output", required=True, help="output .nbvh file (+ .json report, .preview.png)")
     c.add_argument("--preset", default="default", choices=list(PRESETS),
                    help="named settings (default: default); the options below override single fields")
+    size = c.add_mutually_exclusive_group()
+    size.add_argument("--budget-kb", type=float, help="size the model to fit this many KB")
+    size.add_argument("--target-mse", type=float, help="size the model for this image MSE (checked after training)")
     c.add_argument("--encoding", choices=["hashgrid", "hashvqad"])
     c.add_argument("--network", choices=["mlp", "kmlp"])
     c.add_argument("--labels", choices=["ownership", "consistent"])
@@ -350,6 +353,11 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     from .train import Cancelled, TrainingDiverged
 
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["job"]:  # the background job protocol (see job.py): JSON events on stdout
+        from .job import main as job_main
+
+        return job_main(argv[1:])
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)

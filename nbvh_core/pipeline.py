@@ -46,11 +46,15 @@ class Settings:
     steps: int | None = None
     time_limit_s: float | None = 180.0
     rays_per_step: int = 4096
+    anneal_fraction: float = 0.15
     seed: int = 0
     device: str = "auto"
     float_bytes: int = 4
     eval_views: int = 16
-    eval_resolution: int = 256
+    eval_resolution: int = 128
+    #: Ways to ask for a size instead of fixing it (see `resolve`): a byte budget, or a target image MSE.
+    budget_kb: float | None = None
+    target_mse: float | None = None
 
     def model_config(self) -> ModelConfig:
         return ModelConfig(EncodingConfig(kind=self.encoding, log2_table=self.log2_table, levels=self.levels,
@@ -59,7 +63,8 @@ class Settings:
 
     def train_config(self) -> TrainConfig:
         return TrainConfig(labels=self.labels, lr=self.lr, steps=self.steps, time_limit_s=self.time_limit_s,
-                           rays_per_step=self.rays_per_step, seed=self.seed, device=self.device)
+                           rays_per_step=self.rays_per_step, seed=self.seed, device=self.device,
+                           anneal_fraction=self.anneal_fraction)
 
     def with_overrides(self, **kw) -> "Settings":
         unknown = set(kw) - {f.name for f in dataclasses.fields(self)}
@@ -87,6 +92,53 @@ PRESETS: dict[str, Settings] = {
 }
 
 
+def estimate_file_bytes(s: Settings) -> int:
+    """Exact payload bytes of a model with these settings (BVH + tables + index + network + checksum) plus the
+    header's typical size; the real file differs by the header's few hundred bytes of metadata at most."""
+    import numpy as np
+
+    from .bvh import NODE_DTYPE
+
+    model = NeuralBVH(np.zeros(s.nodes, NODE_DTYPE), s.model_config())
+    comps = model.stored_bytes(s.float_bytes)
+    return sum(comps.values()) + 2600
+
+
+#: Image MSE each preset reached on the bundled samples (bench/results/samples_default.md), best first.
+_TARGET_LADDER = ("preview", "default", "high")
+
+
+def resolve(s: Settings) -> tuple[Settings, str]:
+    """Turn a byte budget or a quality target into concrete sizes; returns (settings, why).
+
+    Budget: the largest (T, nodes) of the grid T in 2^5..2^12, nodes in 255..8191 whose file fits the budget
+    (largest file first, ties to more nodes). Target: the smallest preset expected to reach it; the measured
+    quality is checked after training and reported (`target_met`).
+    """
+    if s.budget_kb is not None:
+        budget = s.budget_kb * 1024
+        best = None
+        for log2 in range(12, 4, -1):
+            for nodes in (8191, 4095, 2047, 1023, 511, 255):
+                cand = dataclasses.replace(s, log2_table=log2, nodes=nodes, budget_kb=None)
+                size = estimate_file_bytes(cand)
+                if size <= budget and (best is None or size > best[0]):
+                    best = (size, cand)
+        if best is None:
+            raise ValueError(f"a budget of {s.budget_kb:g} KB is too small for any model "
+                             f"(the smallest needs {estimate_file_bytes(dataclasses.replace(s, log2_table=5, nodes=255)) / 1024:.0f} KB)")
+        size, chosen = best
+        return chosen, (f"budget {s.budget_kb:g} KB: chose T=2^{chosen.log2_table}, {chosen.nodes} nodes "
+                        f"(estimated {size / 1024:.1f} KB), the largest grid point that fits")
+    if s.target_mse is not None:
+        thresholds = {"preview": 0.02, "default": 0.01, "high": 0.005}
+        name = next((n for n in _TARGET_LADDER if thresholds[n] <= s.target_mse), "high")
+        base = PRESETS[name]
+        chosen = dataclasses.replace(s, nodes=base.nodes, log2_table=base.log2_table, target_mse=s.target_mse)
+        return chosen, f"target MSE {s.target_mse:g}: preset {name!r} sizes (its nominal target {thresholds[name]:g})"
+    return s, "fixed settings"
+
+
 def preset(name: str) -> Settings:
     if name not in PRESETS:
         raise ValueError(f"unknown preset {name!r}; choose from {', '.join(PRESETS)}")
@@ -105,12 +157,15 @@ class CompressResult:
     settings: Settings
     seconds: dict = field(default_factory=dict)
     model: NeuralBVH | None = None
+    why: str = ""
+    target_met: bool | None = None
 
     def summary(self) -> dict:
         return {"path": self.path, "file_bytes": self.file_bytes, "components": self.components,
                 "quality": self.quality.to_dict() if self.quality else None,
                 "training": {k: v for k, v in dataclasses.asdict(self.training).items() if k != "history"},
-                "settings": self.settings.to_dict(), "seconds": self.seconds}
+                "settings": self.settings.to_dict(), "seconds": self.seconds, "why": self.why,
+                "target_met": self.target_met}
 
 
 def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = None,
@@ -118,8 +173,10 @@ def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = 
                   evaluate_quality: bool = True, checkpoint_path: str | Path | None = None) -> CompressResult:
     """Compress `mesh` with `settings`; write `out_path` (atomically) when given. Raises `train.Cancelled`,
     `train.TrainingDiverged` (nothing written in either case)."""
+    settings, why = resolve(settings)
     seconds = {}
     t = time.perf_counter()
+    events({"event": "phase", "phase": "plan", "message": why})
     events({"event": "phase", "phase": "bvh", "message": f"{mesh.n_triangles} triangles -> {settings.nodes} nodes"})
     bvh = build_bvh(mesh, settings.nodes)
     tracer = ExactTracer(mesh)
@@ -144,6 +201,8 @@ def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = 
     metadata = {
         "source": {"name": mesh.name, "triangles": mesh.n_triangles, "vertices": mesh.n_vertices},
         "settings": settings.to_dict(),
+        "why": why,
+        "target_met": (None if settings.target_mse is None or quality is None else quality.mse <= settings.target_mse),
         "training": {"steps": tr.steps, "seconds": round(tr.seconds, 2), "samples": tr.samples,
                      "samples_per_s": round(tr.samples_per_s), "final_loss": tr.final_loss, "device": tr.device,
                      "soft_loss_before_freeze": tr.soft_loss_before_freeze, "frozen_loss": tr.frozen_loss},
@@ -164,7 +223,8 @@ def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = 
         size = write_atomic(out_path, data)
     result = CompressResult(path=str(out_path) if out_path else None, file_bytes=size,
                             components=component_bytes(data), quality=quality, training=tr, settings=settings,
-                            seconds={k: round(v, 2) for k, v in seconds.items()}, model=model)
+                            seconds={k: round(v, 2) for k, v in seconds.items()}, model=model, why=why,
+                            target_met=metadata["target_met"])
     events({"event": "result", "path": result.path, "bytes": size,
             "quality": json.loads(json.dumps(metadata["quality"])), "train_seconds": round(tr.seconds, 2)})
     return result

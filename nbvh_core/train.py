@@ -49,6 +49,7 @@ class TrainConfig:
     time_limit_s: float | None = None
     anneal_fraction: float = 0.15
     tau_min: float = 0.05
+    logits_lr_factor: float = 10.0  # HashVQAD index logits learn this much faster (they must become decisive)
     seed: int = 0
     device: str = "auto"
     divergence_factor: float = 50.0
@@ -122,8 +123,12 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
     torch.manual_seed(cfg.seed)
     rng = np.random.default_rng(cfg.seed)
     model.to(device)
-    params = [p for p in model.parameters() if p.requires_grad]
-    opt = torch.optim.Adam(params, lr=cfg.lr)
+    logits = [p for n, p in model.named_parameters() if n.endswith("logits")]
+    others = [p for n, p in model.named_parameters() if not n.endswith("logits")]
+    groups = [{"params": others, "lr_factor": 1.0}]
+    if logits:
+        groups.append({"params": logits, "lr_factor": cfg.logits_lr_factor})
+    opt = torch.optim.Adam(groups, lr=cfg.lr)
     start_step, elapsed_before = 0, 0.0
     history: list = []
     if resume_from is not None:
@@ -171,7 +176,7 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
                     events({"event": "phase", "phase": "anneal",
                             "message": f"softmax temperature 1 -> {cfg.tau_min}"})
         for g in opt.param_groups:
-            g["lr"] = cfg.lr * cfg.lr_final_factor ** frac
+            g["lr"] = cfg.lr * g["lr_factor"] * cfg.lr_final_factor ** frac
         batch = batches.next()
         loss, parts = samples_loss(model, batch, device)
         loss_val = float(loss.detach())

@@ -1,0 +1,124 @@
+"""The add-on's one code path, shared by the panel's operators and the headless compress.py:
+selected objects -> exported arrays -> queued background jobs -> results loaded back -> report.
+
+bpy is used here (export, load back) but torch never is: the jobs run nbvh_core in another process.
+"""
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import bpy
+import numpy as np
+
+from . import export, previews, report
+from .job import Job, JobQueue, default_python
+
+#: Named quality targets (image MSE of the paper's metric) the panel offers besides the presets.
+QUALITY_TARGETS = {"preview": 0.02, "standard": 0.01, "high": 0.005}
+
+
+@dataclass
+class Request:
+    """What the user asked for. preset: nbvh_core preset name; overrides: nbvh_core Settings fields."""
+
+    preset: str = "default"
+    overrides: dict = field(default_factory=dict)
+    out_dir: str = ""
+    proxy_points: int = 20000
+    image_size: int = 256
+    load_model: str | None = None  # an existing .nbvh to load back instead of training (one object)
+
+
+@dataclass
+class Session:
+    """Jobs of one Compress click (or one compress.py run) and what they produced."""
+
+    queue: JobQueue
+    objects: dict = field(default_factory=dict)  # job id -> object name
+    blender_bytes: dict = field(default_factory=dict)  # object name -> export.mesh_data_bytes
+    loaded: dict = field(default_factory=dict)  # object name -> load_result dict
+    failures: dict = field(default_factory=dict)  # object name -> message
+    out_dir: str = ""
+
+
+def output_dir(requested: str) -> Path:
+    """The folder for results: the requested one, else beside the .blend (`//nbvh`), else a temp folder."""
+    if requested:
+        return Path(bpy.path.abspath(requested))
+    if bpy.data.filepath:
+        return Path(bpy.path.abspath("//nbvh"))
+    return Path(tempfile.gettempdir()) / "nbvh"
+
+
+def safe_name(name: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name) or "object"
+
+
+def start(context, objects, req: Request, python: str | None = None) -> tuple[Session, list[str]]:
+    """Export `objects` and queue one job each. Returns the session and the refusals (messages naming the
+    objects that cannot be compressed). Raises RuntimeError when no Python can run the jobs."""
+    python = python or default_python()
+    if not python:
+        raise RuntimeError("no Python with PyTorch and nbvh_core found: set one in the add-on preferences or "
+                           "press 'Install dependencies'")
+    out_dir = output_dir(req.out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    session = Session(queue=JobQueue(python), out_dir=str(out_dir))
+    refusals = []
+    depsgraph = context.evaluated_depsgraph_get()
+    for obj in objects:
+        try:
+            verts, tris = export.evaluated_triangles(obj, depsgraph)
+        except export.ExportError as exc:
+            refusals.append(str(exc))
+            continue
+        name = safe_name(obj.name)
+        # Size of the mesh as Blender stores it (the evaluated one, for modifiers count).
+        obj_eval = obj.evaluated_get(depsgraph)
+        mesh = obj_eval.to_mesh()
+        try:
+            session.blender_bytes[obj.name] = export.mesh_data_bytes(mesh)
+        finally:
+            obj_eval.to_mesh_clear()
+        job_request = {"name": name, "out_dir": str(out_dir), "proxy_points": req.proxy_points,
+                       "settings": {"preset": req.preset, **req.overrides},
+                       "camera": previews.camera_for(context, obj, req.image_size, req.image_size)}
+        if req.load_model:
+            job_request["model"] = str(Path(bpy.path.abspath(req.load_model)).resolve())
+        job = session.queue.submit(name, job_request)
+        mesh_path = job.workdir / "mesh.npz"
+        np.savez(mesh_path, vertices=verts, faces=tris)
+        job.request["mesh"] = str(mesh_path)
+        session.objects[job.id] = obj.name
+    return session, refusals
+
+
+def finish_done(session: Session, scene) -> None:
+    """Load previews of jobs that finished since the last call; record failures."""
+    for job in session.queue.jobs:
+        obj_name = session.objects.get(job.id)
+        if obj_name is None or obj_name in session.loaded or obj_name in session.failures:
+            continue
+        if job.state == "done":
+            obj = bpy.data.objects.get(obj_name)
+            if obj is None:
+                session.failures[obj_name] = "the object was deleted while it was being compressed"
+                continue
+            session.loaded[obj_name] = previews.load_result(obj, job.result, scene)
+            session.loaded[obj_name]["result"] = job.result
+        elif job.state in ("failed", "cancelled"):
+            session.failures[obj_name] = job.error or job.state
+
+
+def write_scene_report(session: Session) -> tuple[Path, Path] | None:
+    entries = []
+    for obj_name, loaded in session.loaded.items():
+        job_report = json.loads(Path(loaded["result"]["files"]["report"]).read_text())
+        entries.append(report.object_entry(obj_name, session.blender_bytes[obj_name], job_report))
+    if not entries:
+        return None
+    return report.write_report(report.build_report(entries), session.out_dir)

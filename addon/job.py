@@ -1,0 +1,261 @@
+"""Background jobs: one `python -m nbvh_core job REQUEST.json` process per object, run one at a time.
+
+No bpy and no torch here: the add-on's operators and `compress.py` drive a `JobQueue` (from a Blender timer,
+or by waiting on it under `blender -b`, where timers never fire while a script runs). Each job has an id,
+its own temporary folder and its own cancel path (terminating its process), and its events are read from
+the process's stdout by a reader thread into a queue, so polling never blocks.
+
+A job is finished only when its process exited 0 *and* sent a `result` event; anything else (error event,
+crash, non-zero exit, cancel) is a failure with a message, and its temporary folder is removed.
+"""
+from __future__ import annotations
+
+import json
+import os
+import queue
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import uuid
+from dataclasses import dataclass, field
+from pathlib import Path
+
+# The add-on ships nbvh_core beside this file (build_addon.py copies it in); in the repository it is one up.
+_HERE = Path(__file__).resolve().parent
+CORE_PARENT = _HERE if (_HERE / "nbvh_core").is_dir() else _HERE.parent
+
+
+def parse_event(line: str) -> dict | None:
+    """The event on one stdout line of a job, or None (same rules as nbvh_core.events.parse_line)."""
+    line = line.strip()
+    if not line.startswith("{"):
+        return None
+    try:
+        event = json.loads(line)
+    except json.JSONDecodeError:
+        return None
+    return event if isinstance(event, dict) and "event" in event else None
+
+
+def core_env() -> dict:
+    """Environment for the job process: nbvh_core importable, unbuffered output, no user site confusion."""
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(CORE_PARENT) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    env["PYTHONUNBUFFERED"] = "1"
+    env.pop("PYTHONHOME", None)  # Blender sets it for its own Python; the job's Python needs its own
+    return env
+
+
+def check_python(python: str, timeout: float = 60.0) -> tuple[bool, str]:
+    """Can `python` run the job (torch and nbvh_core importable)? Returns (ok, message)."""
+    if not python:
+        return False, "no Python interpreter configured"
+    code = "import torch, numpy, nbvh_core; print(torch.__version__, numpy.__version__)"
+    try:
+        out = subprocess.run([python, "-c", code], capture_output=True, text=True, timeout=timeout, env=core_env())
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        return False, f"cannot run {python}: {exc}"
+    if out.returncode != 0:
+        last = (out.stderr.strip().splitlines() or ["unknown error"])[-1]
+        return False, f"{python} cannot run nbvh_core: {last}"
+    return True, f"{python}: torch {out.stdout.split()[0]}"
+
+
+def default_python(candidates: list[str] | None = None) -> str:
+    """First interpreter that can run jobs: $NBVH_PYTHON, the add-on's own venv, the repository's .venv,
+    then python3 on PATH. Returns '' when none works."""
+    options = list(candidates or [])
+    if os.environ.get("NBVH_PYTHON"):
+        options.insert(0, os.environ["NBVH_PYTHON"])
+    options += [str(CORE_PARENT / ".venv" / "bin" / "python"), str(CORE_PARENT.parent / ".venv" / "bin" / "python"),
+                shutil.which("python3") or ""]
+    for p in options:
+        if p and Path(p).exists() and check_python(p)[0]:
+            return p
+    return ""
+
+
+def install_dependencies(venv_dir: str | Path, base_python: str | None = None) -> tuple[bool, str]:
+    """Create a virtual environment at `venv_dir` with nbvh_core's pinned dependencies (torch 2.13.0 CPU).
+
+    Returns (ok, report). Blocking: the operator runs it in a background job of its own.
+    """
+    venv_dir = Path(venv_dir)
+    base = base_python or shutil.which("python3") or sys.executable
+    steps = []
+    try:
+        if not (venv_dir / "bin" / "python").exists():
+            subprocess.run([base, "-m", "venv", str(venv_dir)], check=True, capture_output=True, text=True)
+            steps.append(f"created {venv_dir} from {base}")
+        py = str(venv_dir / "bin" / "python")
+        req = CORE_PARENT / "nbvh_core" / "requirements.txt"
+        cmd = [py, "-m", "pip", "install", "-q", "-r", str(req)]
+        out = subprocess.run(cmd, capture_output=True, text=True)
+        if out.returncode != 0:
+            return False, "\n".join(steps + [f"pip failed: {out.stderr.strip()[-2000:]}"])
+        steps.append(f"installed {req.read_text().split()}")
+        ok, msg = check_python(py)
+        steps.append(msg)
+        return ok, "\n".join(steps)
+    except (OSError, subprocess.CalledProcessError) as exc:
+        return False, "\n".join(steps + [f"failed: {exc}"])
+
+
+@dataclass
+class Job:
+    """One object's compression. state: queued -> running -> done | failed | cancelled."""
+
+    name: str
+    request: dict
+    workdir: Path
+    id: str = field(default_factory=lambda: uuid.uuid4().hex[:12])
+    state: str = "queued"
+    progress: dict = field(default_factory=dict)
+    result: dict | None = None
+    error: str | None = None
+    log: list = field(default_factory=list)
+    started: float | None = None
+    _proc: subprocess.Popen | None = None
+    _events: queue.Queue = field(default_factory=queue.Queue)
+    _stderr: list = field(default_factory=list)
+
+    def start(self, python: str) -> None:
+        req_path = self.workdir / "request.json"
+        req_path.write_text(json.dumps(self.request))
+        self._proc = subprocess.Popen([python, "-m", "nbvh_core", "job", str(req_path)], stdout=subprocess.PIPE,
+                                      stderr=subprocess.PIPE, text=True, env=core_env(), cwd=str(self.workdir))
+        self.state = "running"
+        self.started = time.monotonic()
+        threading.Thread(target=self._read, args=(self._proc.stdout, True), daemon=True).start()
+        threading.Thread(target=self._read, args=(self._proc.stderr, False), daemon=True).start()
+
+    def _read(self, stream, is_stdout: bool) -> None:
+        for line in stream:
+            if is_stdout:
+                event = parse_event(line)
+                if event is not None:
+                    self._events.put(event)
+            else:
+                self._stderr.append(line)
+                del self._stderr[:-200]
+
+    def poll(self) -> list[dict]:
+        """New events since the last poll; updates state when the process has ended."""
+        new = []
+        while True:
+            try:
+                new.append(self._events.get_nowait())
+            except queue.Empty:
+                break
+        for ev in new:
+            kind = ev.get("event")
+            if kind in ("progress", "phase"):
+                self.progress.update({k: v for k, v in ev.items() if k != "event"})
+            elif kind == "result":
+                self.result = ev
+            elif kind == "error":
+                self.error = ev.get("message", "unknown error")
+            elif kind == "warning":
+                self.log.append(ev.get("message", ""))
+        if self.state == "running" and self._proc is not None and self._proc.poll() is not None:
+            time.sleep(0.05)  # let the reader threads drain the pipes
+            more = self.poll() if not self._events.empty() else []
+            new += more
+            if self.state != "running":
+                return new
+            code = self._proc.returncode
+            if code == 0 and self.result is not None:
+                self.state = "done"
+            else:
+                self.state = "failed"
+                if not self.error:
+                    tail = "".join(self._stderr[-15:]).strip()
+                    self.error = f"job process exited with code {code}" + (f":\n{tail}" if tail else "")
+        return new
+
+    def cancel(self) -> None:
+        """Stop the job now; its temporary folder goes; a finished job's outputs are kept."""
+        if self._proc is not None and self._proc.poll() is None:
+            self._proc.terminate()
+            try:
+                self._proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                self._proc.kill()
+                self._proc.wait()
+        if self.state in ("queued", "running"):
+            self.state = "cancelled"
+            self.error = "cancelled"
+            self.cleanup(remove_outputs=True)
+
+    def cleanup(self, remove_outputs: bool = False) -> None:
+        """Remove the job's temporary folder (and, for a failed or cancelled job, its partial outputs)."""
+        shutil.rmtree(self.workdir, ignore_errors=True)
+        if remove_outputs:
+            out_dir = Path(self.request.get("out_dir", ""))
+            for suffix in (".nbvh", ".preview.png", ".reference.png", ".points.npy", ".report.json"):
+                p = out_dir / f"{self.name}{suffix}"
+                if p.exists() and self.result is None:
+                    p.unlink()
+            for p in out_dir.glob(f".{self.name}*.partial-*"):
+                p.unlink()
+
+    @property
+    def fraction(self) -> float:
+        return float(self.progress.get("fraction", 0.0)) if self.state == "running" else (
+            1.0 if self.state == "done" else 0.0)
+
+
+class JobQueue:
+    """Jobs run one after another (a 2-core machine cannot train two models at once usefully)."""
+
+    def __init__(self, python: str):
+        self.python = python
+        self.jobs: list[Job] = []
+
+    def submit(self, name: str, request: dict) -> Job:
+        workdir = Path(tempfile.mkdtemp(prefix=f"nbvh-{name[:20]}-"))
+        job = Job(name=name, request=request, workdir=workdir)
+        self.jobs.append(job)
+        return job
+
+    def active(self) -> Job | None:
+        return next((j for j in self.jobs if j.state == "running"), None)
+
+    def pending(self) -> list[Job]:
+        return [j for j in self.jobs if j.state in ("queued", "running")]
+
+    def step(self) -> list[tuple[Job, dict]]:
+        """Advance: poll the running job, start the next queued one. Returns (job, event) pairs."""
+        out = []
+        job = self.active()
+        if job is not None:
+            out += [(job, e) for e in job.poll()]
+            if job.state != "running":
+                job.cleanup(remove_outputs=job.state != "done")
+        if self.active() is None:
+            nxt = next((j for j in self.jobs if j.state == "queued"), None)
+            if nxt is not None:
+                nxt.start(self.python)
+        return out
+
+    def cancel_all(self) -> None:
+        for j in self.pending():
+            j.cancel()
+
+    def wait(self, on_event=None, poll_s: float = 0.2, timeout: float | None = None) -> None:
+        """Block until every job has ended (the headless path); `on_event(job, event)` sees every event."""
+        t0 = time.monotonic()
+        while self.pending():
+            for job, ev in self.step():
+                if on_event:
+                    on_event(job, ev)
+            if timeout is not None and time.monotonic() - t0 > timeout:
+                self.cancel_all()
+                raise TimeoutError(f"jobs did not finish within {timeout} s")
+            time.sleep(poll_s)
+        for job, ev in self.step():
+            if on_event:
+                on_event(job, ev)

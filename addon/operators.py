@@ -1,0 +1,222 @@
+"""Operators: Compress (starts jobs, watched by a timer so the UI never blocks), Cancel, previews, report,
+remove results, install dependencies."""
+from __future__ import annotations
+
+import json
+import webbrowser
+from pathlib import Path
+
+import bpy
+
+from . import engine, previews
+from .job import check_python, default_python, install_dependencies
+
+# The session of the current Compress click (one at a time per Blender instance).
+_state = {"session": None, "messages": []}
+
+
+def addon_prefs(context):
+    addon = context.preferences.addons.get(__package__)
+    return addon.preferences if addon else None
+
+
+def _python(context) -> str:
+    prefs = addon_prefs(context)
+    return (prefs.python_path if prefs and prefs.python_path else "") or default_python()
+
+
+def request_from_props(props) -> engine.Request:
+    """Panel settings -> engine.Request (preset, or target quality, or byte budget; time limit; device)."""
+    overrides = {"time_limit_s": float(props.time_limit), "device": props.device.lower(), "steps": None}
+    preset = props.preset
+    if props.mode == "TARGET":
+        overrides["target_mse"] = engine.QUALITY_TARGETS[props.target.lower()]
+    elif props.mode == "BUDGET":
+        overrides["budget_kb"] = float(props.budget_kb)
+    return engine.Request(preset=preset, overrides=overrides, out_dir=props.output_dir)
+
+
+def _store_results(scene, session) -> None:
+    for obj_name, loaded in session.loaded.items():
+        res = loaded["result"]
+        item = next((r for r in scene.nbvh_results if r.object_name == obj_name), None) or scene.nbvh_results.add()
+        item.object_name = obj_name
+        item.model_path = res["path"]
+        item.report_path = res["files"]["report"]
+        item.image_name = loaded["image"]
+        item.proxy_name = loaded["proxy"]
+        item.nbvh_bytes = res["bytes"]
+        q = res.get("quality") or {}
+        item.mse = q.get("mse") or 0.0
+        item.iou = q.get("silhouette_iou") or 0.0
+        item.train_seconds = res.get("train_seconds") or 0.0
+        item.blender_bytes = session.blender_bytes[obj_name]["total"]
+    paths = engine.write_scene_report(session)
+    if paths:
+        scene.nbvh_props.report_html = str(paths[1])
+
+
+def _tick():
+    """Timer: advance the job queue, mirror progress into the panel, load finished results."""
+    session = _state["session"]
+    if session is None:
+        return None
+    scene = bpy.context.scene
+    session.queue.step()
+    props = scene.nbvh_props
+    job = session.queue.active()
+    if job is not None:
+        props.progress = job.fraction
+        props.phase = f"{job.name}: {job.progress.get('phase', 'starting')}"
+        eta = job.progress.get("eta_s")
+        props.eta = "" if eta is None else f"{eta:.0f} s"
+    engine.finish_done(session, scene)
+    if not session.queue.pending():
+        _store_results(scene, session)
+        props.running = False
+        props.progress = 1.0
+        props.phase = "done" if not session.failures else "finished with errors"
+        props.last_error = "; ".join(f"{k}: {v}" for k, v in session.failures.items())
+        _state["session"] = None
+        for area in (bpy.context.screen.areas if bpy.context.screen else []):
+            area.tag_redraw()
+        return None
+    for area in (bpy.context.screen.areas if bpy.context.screen else []):
+        if area.type == "VIEW_3D":
+            area.tag_redraw()
+    return 0.25
+
+
+class NBVH_OT_compress(bpy.types.Operator):
+    """Compress the selected objects into neural geometry (.nbvh) in a background process"""
+
+    bl_idname = "nbvh.compress"
+    bl_label = "Compress to NBVH"
+    bl_options = {"REGISTER"}
+
+    @classmethod
+    def poll(cls, context):
+        return _state["session"] is None and bool(context.selected_objects)
+
+    def execute(self, context):
+        props = context.scene.nbvh_props
+        try:
+            session, refusals = engine.start(context, list(context.selected_objects), request_from_props(props),
+                                             _python(context))
+        except RuntimeError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        for msg in refusals:
+            self.report({"WARNING"}, msg)
+        if not session.objects:
+            props.last_error = "; ".join(refusals) or "nothing to compress"
+            self.report({"ERROR"}, "nothing to compress: " + props.last_error)
+            return {"CANCELLED"}
+        props.running, props.progress, props.phase, props.last_error = True, 0.0, "starting", ""
+        _state["session"] = session
+        bpy.app.timers.register(_tick, first_interval=0.1)
+        return {"FINISHED"}
+
+
+class NBVH_OT_cancel(bpy.types.Operator):
+    """Stop the running and queued compression jobs; their temporary files are removed"""
+
+    bl_idname = "nbvh.cancel"
+    bl_label = "Cancel"
+
+    def execute(self, context):
+        session = _state["session"]
+        if session is not None:
+            session.queue.cancel_all()
+        props = context.scene.nbvh_props
+        props.running, props.phase = False, "cancelled"
+        _state["session"] = None
+        return {"FINISHED"}
+
+
+class NBVH_OT_toggle_preview(bpy.types.Operator):
+    """Show or hide the neural point-cloud proxy of this result"""
+
+    bl_idname = "nbvh.toggle_preview"
+    bl_label = "Show/Hide Proxy"
+    object_name: bpy.props.StringProperty()
+
+    def execute(self, context):
+        proxy = previews.find_proxy(bpy.data.objects.get(self.object_name))
+        if proxy is None:
+            self.report({"WARNING"}, f"no proxy for '{self.object_name}'")
+            return {"CANCELLED"}
+        proxy.hide_viewport = not proxy.hide_viewport
+        proxy.hide_render = proxy.hide_viewport
+        return {"FINISHED"}
+
+
+class NBVH_OT_open_report(bpy.types.Operator):
+    """Open the asset memory report (HTML) in the web browser"""
+
+    bl_idname = "nbvh.open_report"
+    bl_label = "Open Report"
+
+    def execute(self, context):
+        path = context.scene.nbvh_props.report_html
+        if not path or not Path(path).exists():
+            self.report({"WARNING"}, "no report yet")
+            return {"CANCELLED"}
+        webbrowser.open(Path(path).as_uri())
+        return {"FINISHED"}
+
+
+class NBVH_OT_remove_result(bpy.types.Operator):
+    """Remove this result's previews and files (the original object is not touched)"""
+
+    bl_idname = "nbvh.remove_result"
+    bl_label = "Remove Result"
+    object_name: bpy.props.StringProperty()
+
+    def execute(self, context):
+        scene = context.scene
+        idx = next((i for i, r in enumerate(scene.nbvh_results) if r.object_name == self.object_name), None)
+        if idx is None:
+            return {"CANCELLED"}
+        item = scene.nbvh_results[idx]
+        previews.remove_all(self.object_name)
+        try:
+            files = json.loads(Path(item.report_path).read_text()).get("files", {})
+        except (OSError, ValueError):
+            files = {}
+        previews.delete_files({"files": files})
+        scene.nbvh_results.remove(idx)
+        return {"FINISHED"}
+
+
+class NBVH_OT_install_dependencies(bpy.types.Operator):
+    """Create a virtual environment with PyTorch (CPU) and nbvh_core's dependencies for the background jobs"""
+
+    bl_idname = "nbvh.install_dependencies"
+    bl_label = "Install Dependencies"
+
+    def execute(self, context):
+        prefs = addon_prefs(context)
+        venv = Path(bpy.utils.user_resource("SCRIPTS", path="nbvh_venv", create=True))
+        ok, msg = install_dependencies(venv)
+        for line in msg.splitlines():
+            self.report({"INFO" if ok else "ERROR"}, line)
+        if ok and prefs is not None:
+            prefs.python_path = str(venv / "bin" / "python")
+        return {"FINISHED"} if ok else {"CANCELLED"}
+
+
+class NBVH_OT_check_python(bpy.types.Operator):
+    """Check that the configured Python can run compression jobs"""
+
+    bl_idname = "nbvh.check_python"
+    bl_label = "Check Python"
+
+    def execute(self, context):
+        ok, msg = check_python(_python(context))
+        self.report({"INFO" if ok else "ERROR"}, msg)
+        return {"FINISHED"} if ok else {"CANCELLED"}
+
+
+CLASSES = (NBVH_OT_compress, NBVH_OT_cancel, NBVH_OT_toggle_preview, NBVH_OT_open_report, NBVH_OT_remove_result,
+           NBVH_OT_install_dependencies, NBVH_OT_check_python)

@@ -1,0 +1,127 @@
+"""Properties, preferences and the N-panel (3D viewport sidebar, tab "NBVH")."""
+from __future__ import annotations
+
+import bpy
+
+from . import operators
+
+PRESET_ITEMS = [("preview", "Preview", "Small and quick (about a minute)"),
+                ("default", "Default", "Balanced size and quality (a few minutes)"),
+                ("high", "High", "Larger model, longer training")]
+
+
+class NBVH_Result(bpy.types.PropertyGroup):
+    object_name: bpy.props.StringProperty()
+    model_path: bpy.props.StringProperty(subtype="FILE_PATH")
+    report_path: bpy.props.StringProperty(subtype="FILE_PATH")
+    image_name: bpy.props.StringProperty()
+    proxy_name: bpy.props.StringProperty()
+    nbvh_bytes: bpy.props.IntProperty()
+    blender_bytes: bpy.props.IntProperty()
+    mse: bpy.props.FloatProperty()
+    iou: bpy.props.FloatProperty()
+    train_seconds: bpy.props.FloatProperty()
+
+
+class NBVH_Props(bpy.types.PropertyGroup):
+    mode: bpy.props.EnumProperty(name="Size by", items=[
+        ("PRESET", "Preset", "A named quality preset"),
+        ("TARGET", "Target quality", "The smallest model that reaches a quality level"),
+        ("BUDGET", "Byte budget", "The best model that fits a size")], default="PRESET")
+    preset: bpy.props.EnumProperty(name="Preset", items=PRESET_ITEMS, default="default")
+    target: bpy.props.EnumProperty(name="Quality", items=[
+        ("PREVIEW", "Preview", "image MSE <= 0.02"), ("STANDARD", "Standard", "image MSE <= 0.01"),
+        ("HIGH", "High", "image MSE <= 0.005")], default="STANDARD")
+    budget_kb: bpy.props.IntProperty(name="Budget (KB)", default=400, min=16, max=100000)
+    time_limit: bpy.props.IntProperty(name="Time limit (s)", default=180, min=5, max=24 * 3600)
+    device: bpy.props.EnumProperty(name="Device", items=[("AUTO", "Auto", "CUDA when available"),
+                                                         ("CPU", "CPU", ""), ("CUDA", "CUDA", "")], default="AUTO")
+    output_dir: bpy.props.StringProperty(name="Folder", subtype="DIR_PATH",
+                                         description="Where .nbvh files go (empty: //nbvh beside the .blend)")
+    running: bpy.props.BoolProperty()
+    progress: bpy.props.FloatProperty(min=0.0, max=1.0, subtype="FACTOR")
+    phase: bpy.props.StringProperty()
+    eta: bpy.props.StringProperty()
+    last_error: bpy.props.StringProperty()
+    report_html: bpy.props.StringProperty(subtype="FILE_PATH")
+
+
+class NBVH_Preferences(bpy.types.AddonPreferences):
+    bl_idname = __package__
+
+    python_path: bpy.props.StringProperty(
+        name="Python for jobs", subtype="FILE_PATH",
+        description="A Python with PyTorch that runs nbvh_core (empty: found automatically)")
+
+    def draw(self, context):
+        col = self.layout.column()
+        col.prop(self, "python_path")
+        row = col.row()
+        row.operator("nbvh.check_python")
+        row.operator("nbvh.install_dependencies")
+
+
+class NBVH_PT_panel(bpy.types.Panel):
+    bl_label = "Compress to NBVH"
+    bl_idname = "NBVH_PT_panel"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "NBVH"
+
+    def draw(self, context):
+        layout = self.layout
+        props = context.scene.nbvh_props
+        col = layout.column()
+        col.prop(props, "mode")
+        if props.mode == "PRESET":
+            col.prop(props, "preset")
+        elif props.mode == "TARGET":
+            col.prop(props, "target")
+        else:
+            col.prop(props, "budget_kb")
+        col.prop(props, "time_limit")
+        col.prop(props, "device")
+        col.prop(props, "output_dir")
+        if props.running:
+            box = layout.box()
+            box.label(text=props.phase or "working")
+            if hasattr(box, "progress"):  # Blender 4.0+
+                box.progress(factor=props.progress, text=f"{props.progress * 100:.0f}%  ETA {props.eta or '?'}")
+            else:
+                box.prop(props, "progress", text=f"ETA {props.eta or '?'}", slider=True)
+            box.operator("nbvh.cancel", icon="CANCEL")
+        else:
+            n = len(context.selected_objects)
+            layout.operator("nbvh.compress", text=f"Compress {n} object{'s' if n != 1 else ''} to NBVH",
+                            icon="MOD_REMESH")
+        if props.last_error:
+            layout.label(text=props.last_error, icon="ERROR")
+        for r in context.scene.nbvh_results:
+            box = layout.box()
+            box.label(text=r.object_name, icon="OBJECT_DATA")
+            box.label(text=f".nbvh {r.nbvh_bytes / 1024:.1f} KB vs mesh {r.blender_bytes / 1024:.1f} KB "
+                           f"({r.blender_bytes / max(r.nbvh_bytes, 1):.1f}x)")
+            box.label(text=f"MSE {r.mse:.4f}  IoU {r.iou:.3f}  {r.train_seconds:.0f} s")
+            row = box.row()
+            op = row.operator("nbvh.toggle_preview", text="Proxy", icon="HIDE_OFF")
+            op.object_name = r.object_name
+            row.operator("nbvh.open_report", text="Report", icon="TEXT")
+            op = row.operator("nbvh.remove_result", text="", icon="TRASH")
+            op.object_name = r.object_name
+
+
+CLASSES = (NBVH_Result, NBVH_Props, NBVH_Preferences, NBVH_PT_panel)
+
+
+def register():
+    for cls in CLASSES + operators.CLASSES:
+        bpy.utils.register_class(cls)
+    bpy.types.Scene.nbvh_props = bpy.props.PointerProperty(type=NBVH_Props)
+    bpy.types.Scene.nbvh_results = bpy.props.CollectionProperty(type=NBVH_Result)
+
+
+def unregister():
+    del bpy.types.Scene.nbvh_results
+    del bpy.types.Scene.nbvh_props
+    for cls in reversed(CLASSES + operators.CLASSES):
+        bpy.utils.unregister_class(cls)

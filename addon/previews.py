@@ -1,0 +1,178 @@
+"""Load a finished job back into the scene, next to the original and never touching it.
+
+* the neural rendering as a Blender image (packed, so it survives saving the .blend);
+* a point-cloud proxy of the neural model's own ray hits, in a collection named after the object, with the
+  original's world transform shifted beside it: Blender's point cloud object where Python can create one
+  (`bpy.data.pointclouds.new`, Blender 4.x/5.x), otherwise a vertex-only mesh drawn as points by a Geometry
+  Nodes "Mesh to Points" modifier (Blender 3.x).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import bpy
+import numpy as np
+from mathutils import Matrix, Vector
+
+PROXY_SUFFIX = "_nbvh_proxy"
+COLLECTION_PREFIX = "NBVH "
+
+
+def load_image(path: str, name: str):
+    """A packed Blender image from a PNG file (replaces an earlier image of the same name)."""
+    old = bpy.data.images.get(name)
+    if old is not None:
+        bpy.data.images.remove(old)
+    img = bpy.data.images.load(str(path), check_existing=False)
+    img.name = name
+    img.pack()
+    return img
+
+
+def image_from_array(name: str, pixels: np.ndarray):
+    """Float image from (H, W) or (H, W, 3|4) values in [0, 1], rows top-down (numpy) -> bottom-up (Blender)."""
+    h, w = pixels.shape[:2]
+    rgba = np.ones((h, w, 4), np.float32)
+    if pixels.ndim == 2:
+        rgba[..., :3] = pixels[..., None]
+    else:
+        rgba[..., :pixels.shape[2]] = pixels
+    img = bpy.data.images.new(name, w, h, alpha=True, float_buffer=True)
+    img.pixels.foreach_set(np.ascontiguousarray(rgba[::-1]).ravel())
+    img.pack()
+    return img
+
+
+def _collection_for(obj, scene):
+    name = f"{COLLECTION_PREFIX}{obj.name}"
+    coll = bpy.data.collections.get(name)
+    if coll is None:
+        coll = bpy.data.collections.new(name)
+        scene.collection.children.link(coll)
+    return coll
+
+
+def beside_matrix(obj, gap: float = 0.1) -> Matrix:
+    """World matrix of the original moved along world X by its bounding-box width (+ gap): side by side."""
+    corners = [obj.matrix_world @ Vector(c) for c in obj.bound_box]
+    width = max(c.x for c in corners) - min(c.x for c in corners)
+    return Matrix.Translation(Vector((width * (1 + gap), 0, 0))) @ obj.matrix_world
+
+
+def _mesh_to_points_group():
+    """A Geometry Nodes group: Mesh to Points (radius 1% of a unit object), for Blender without point clouds."""
+    name = "NBVH Mesh to Points"
+    group = bpy.data.node_groups.get(name)
+    if group is not None:
+        return group
+    group = bpy.data.node_groups.new(name, "GeometryNodeTree")
+    if hasattr(group, "interface"):  # Blender 4.0+
+        group.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
+        group.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
+    else:  # Blender 3.x
+        group.inputs.new("NodeSocketGeometry", "Geometry")
+        group.outputs.new("NodeSocketGeometry", "Geometry")
+    n_in = group.nodes.new("NodeGroupInput")
+    n_out = group.nodes.new("NodeGroupOutput")
+    to_points = group.nodes.new("GeometryNodeMeshToPoints")
+    to_points.inputs["Radius"].default_value = 0.005
+    group.links.new(n_in.outputs[0], to_points.inputs["Mesh"])
+    group.links.new(to_points.outputs["Points"], n_out.inputs[0])
+    return group
+
+
+def make_proxy(obj, points: np.ndarray, scene, radius: float = 0.005):
+    """Point-cloud proxy from (P, 6) object-local points + normals; returns the new object."""
+    name = f"{obj.name}{PROXY_SUFFIX}"
+    remove_proxy(obj)
+    coll = _collection_for(obj, scene)
+    pos = np.ascontiguousarray(points[:, :3], np.float32)
+    data = None
+    if hasattr(bpy.data, "pointclouds"):
+        try:
+            data = bpy.data.pointclouds.new(name, len(pos))
+        except (TypeError, AttributeError, RuntimeError):
+            data = None
+    if data is not None:
+        data.points.foreach_set("co", pos.ravel())
+        if hasattr(data.points[0] if len(data.points) else None, "radius"):
+            data.points.foreach_set("radius", np.full(len(pos), radius, np.float32))
+        proxy = bpy.data.objects.new(name, data)
+    else:
+        mesh = bpy.data.meshes.new(name)
+        mesh.vertices.add(len(pos))
+        mesh.vertices.foreach_set("co", pos.ravel())
+        mesh.update()
+        proxy = bpy.data.objects.new(name, mesh)
+        mod = proxy.modifiers.new("NBVH points", "NODES")
+        mod.node_group = _mesh_to_points_group()
+    proxy.matrix_world = beside_matrix(obj)
+    proxy["nbvh_source"] = obj.name
+    coll.objects.link(proxy)
+    return proxy
+
+
+def find_proxy(obj):
+    return bpy.data.objects.get(f"{obj.name}{PROXY_SUFFIX}") if obj is not None else None
+
+
+def remove_proxy(obj) -> None:
+    proxy = bpy.data.objects.get(f"{obj.name}{PROXY_SUFFIX}")
+    if proxy is not None:
+        data = proxy.data
+        bpy.data.objects.remove(proxy)
+        if data is not None and data.users == 0:
+            (bpy.data.pointclouds if data.__class__.__name__ == "PointCloud" else bpy.data.meshes).remove(data)
+
+
+def remove_all(obj_name: str) -> None:
+    """Remove the previews of one object (its proxy, images, collection); never the original or its files."""
+    obj = bpy.data.objects.get(obj_name)
+    if obj is not None:
+        remove_proxy(obj)
+    for key in (f"{obj_name} (neural)", f"{obj_name} (mesh)"):
+        img = bpy.data.images.get(key)
+        if img is not None:
+            bpy.data.images.remove(img)
+    coll = bpy.data.collections.get(f"{COLLECTION_PREFIX}{obj_name}")
+    if coll is not None and len(coll.objects) == 0:
+        bpy.data.collections.remove(coll)
+
+
+def load_result(obj, result: dict, scene) -> dict:
+    """Images + proxy of a finished job (`result` event of nbvh_core.job). Returns the names it created."""
+    files = result["files"]
+    neural = load_image(files["preview"], f"{obj.name} (neural)")
+    reference = load_image(files["reference"], f"{obj.name} (mesh)")
+    points = np.load(files["points"])
+    proxy = make_proxy(obj, points, scene)
+    return {"image": neural.name, "reference_image": reference.name, "proxy": proxy.name,
+            "points": int(len(points))}
+
+
+def camera_for(context, obj, width: int = 256, height: int = 256) -> dict | None:
+    """The scene camera (or the viewport's view when there is none), in the object's local coordinates."""
+    inv = obj.matrix_world.inverted()
+    cam = context.scene.camera
+    if cam is not None:
+        m = inv @ cam.matrix_world
+        fov = getattr(cam.data, "angle_y", None) or cam.data.angle
+        import math
+
+        return {"position": list(m.translation), "target": list(m @ Vector((0, 0, -1))),
+                "up": list((m.to_3x3() @ Vector((0, 1, 0))).normalized()), "fov_deg": math.degrees(fov),
+                "width": width, "height": height}
+    area = next((a for a in (context.screen.areas if context.screen else []) if a.type == "VIEW_3D"), None)
+    if area is None:
+        return None
+    r3d = area.spaces.active.region_3d
+    view = inv @ r3d.view_matrix.inverted()
+    return {"position": list(view.translation), "target": list(view @ Vector((0, 0, -1))),
+            "up": list((view.to_3x3() @ Vector((0, 1, 0))).normalized()), "fov_deg": 50.0,
+            "width": width, "height": height}
+
+
+def delete_files(result: dict) -> None:
+    """Remove a result's files (the user's own files are never in this list)."""
+    for p in (result.get("files") or {}).values():
+        Path(p).unlink(missing_ok=True)

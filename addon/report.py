@@ -1,0 +1,90 @@
+"""Asset memory report: per object, the mesh's bytes (as Blender stores it and as a ray tracer holds it)
+against the .nbvh bytes by component, quality, training time and device; scene totals. JSON + HTML.
+
+Pure Python (no bpy): `build_report` takes plain dicts so the same code serves the panel and compress.py.
+"""
+from __future__ import annotations
+
+import base64
+import html
+import json
+import os
+from pathlib import Path
+
+
+def _kb(n: float) -> str:
+    return f"{n / 1024:,.1f} KB"
+
+
+def object_entry(name: str, blender_bytes: dict, job_report: dict) -> dict:
+    """One object's row: `blender_bytes` from export.mesh_data_bytes, `job_report` = NAME.report.json."""
+    nbvh = job_report["file_bytes"]
+    resident = job_report["mesh_resident_bytes"]
+    q = job_report.get("quality") or {}
+    t = job_report.get("training") or {}
+    return {
+        "name": name,
+        "blender_mesh_bytes": blender_bytes,
+        "ray_tracing_resident_bytes": resident,
+        "nbvh_bytes": nbvh,
+        "nbvh_components": job_report["components"],
+        "ratio_blender_mesh_to_nbvh": blender_bytes["total"] / nbvh,
+        "ratio_resident_to_nbvh": resident["total"] / nbvh,
+        "mse": q.get("mse"), "silhouette_iou": q.get("silhouette_iou"), "depth_error": q.get("depth_error"),
+        "eval_views": q.get("views"), "train_seconds": t.get("seconds"), "device": t.get("device"),
+        "settings": job_report.get("settings"), "files": job_report.get("files", {}),
+    }
+
+
+def build_report(entries: list[dict]) -> dict:
+    totals = {"blender_mesh_bytes": sum(e["blender_mesh_bytes"]["total"] for e in entries),
+              "ray_tracing_resident_bytes": sum(e["ray_tracing_resident_bytes"]["total"] for e in entries),
+              "nbvh_bytes": sum(e["nbvh_bytes"] for e in entries)}
+    if totals["nbvh_bytes"]:
+        totals["ratio_blender_mesh_to_nbvh"] = totals["blender_mesh_bytes"] / totals["nbvh_bytes"]
+        totals["ratio_resident_to_nbvh"] = totals["ray_tracing_resident_bytes"] / totals["nbvh_bytes"]
+    return {"objects": entries, "totals": totals}
+
+
+def _img_tag(path: str | None, alt: str) -> str:
+    if not path or not os.path.exists(path):
+        return f"<em>no {html.escape(alt)}</em>"
+    data = base64.b64encode(Path(path).read_bytes()).decode()
+    return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{data}">'
+
+
+def write_report(report: dict, out_dir: str | Path, stem: str = "nbvh_report") -> tuple[Path, Path]:
+    """Write STEM.json and STEM.html (images embedded, so the page is self-contained)."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    js = out_dir / f"{stem}.json"
+    js.write_text(json.dumps(report, indent=2))
+    rows = []
+    for e in report["objects"]:
+        comps = ", ".join(f"{k} {_kb(v)}" for k, v in e["nbvh_components"].items() if v)
+        mse = "n/a" if e["mse"] is None else f"{e['mse']:.5f}"
+        iou = "n/a" if e["silhouette_iou"] is None else f"{e['silhouette_iou']:.4f}"
+        rows.append(f"""
+<section><h2>{html.escape(e['name'])}</h2>
+<table>
+<tr><th>mesh as Blender stores it</th><td>{_kb(e['blender_mesh_bytes']['total'])}</td></tr>
+<tr><th>mesh as a ray tracer holds it (vertices, indices, normals, BVH)</th><td>{_kb(e['ray_tracing_resident_bytes']['total'])}</td></tr>
+<tr><th>.nbvh</th><td>{_kb(e['nbvh_bytes'])} ({html.escape(comps)})</td></tr>
+<tr><th>ratio (Blender mesh / .nbvh, resident / .nbvh)</th><td>{e['ratio_blender_mesh_to_nbvh']:.1f}x, {e['ratio_resident_to_nbvh']:.1f}x</td></tr>
+<tr><th>quality</th><td>image MSE {mse}, silhouette IoU {iou} over {e['eval_views']} views</td></tr>
+<tr><th>training</th><td>{e['train_seconds']} s on {html.escape(str(e['device']))}</td></tr>
+</table>
+<div class="pair"><figure>{_img_tag(e['files'].get('reference'), 'mesh')}<figcaption>mesh (Embree)</figcaption></figure>
+<figure>{_img_tag(e['files'].get('preview'), 'neural')}<figcaption>neural (.nbvh)</figcaption></figure></div>
+</section>""")
+    t = report["totals"]
+    page = f"""<!doctype html><meta charset="utf-8"><title>NBVH asset memory report</title>
+<style>body{{font-family:sans-serif;max-width:60em;margin:2em auto}}th{{text-align:left;padding-right:1em}}
+img{{width:256px;image-rendering:pixelated;background:#000}}.pair{{display:flex;gap:1em}}</style>
+<h1>NBVH asset memory report</h1>
+<p>Scene totals: Blender meshes {_kb(t['blender_mesh_bytes'])}, ray-tracing resident {_kb(t['ray_tracing_resident_bytes'])},
+.nbvh {_kb(t['nbvh_bytes'])}.</p>
+{''.join(rows)}"""
+    htm = out_dir / f"{stem}.html"
+    htm.write_text(page)
+    return js, htm

@@ -1,0 +1,114 @@
+"""Headless compression inside Blender (the same code path as the panel):
+
+    blender -b scene.blend -P compress.py -- --objects NAME [NAME ...] --out DIR
+            [--preset preview|default|high | --budget-kb N | --target-mse X] [--time-limit S] [--device auto|cpu|cuda]
+            [--python PATH] [--load MODEL.nbvh] [--save-blend FILE.blend]
+
+Under `blender -b`, timers never fire while this script runs, so it waits on the jobs itself and prints
+their events as progress. Exit code 0 only when every object was compressed (or loaded); otherwise the
+error is printed and the exit code is 1 (Blender needs --python-exit-code 1 to pass it on, or the script
+exits itself, as it does here). The user's objects are never modified; the .blend is saved only with
+--save-blend, to a new file.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+if str(HERE) not in sys.path:
+    sys.path.insert(0, str(HERE))
+
+
+def parse(argv: list[str]) -> argparse.Namespace:
+    ap = argparse.ArgumentParser(prog="blender -b FILE.blend -P compress.py --",
+                                 description="Compress Blender objects into neural geometry (.nbvh)")
+    ap.add_argument("--objects", nargs="+", required=True, help="object names")
+    ap.add_argument("--out", required=True, help="output folder for .nbvh files, previews and the report")
+    size = ap.add_mutually_exclusive_group()
+    size.add_argument("--preset", default="default")
+    size.add_argument("--budget-kb", type=float)
+    size.add_argument("--target-mse", type=float)
+    ap.add_argument("--time-limit", type=float, help="training seconds per object")
+    ap.add_argument("--steps", type=int, help="training steps per object (tests)")
+    ap.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"])
+    ap.add_argument("--python", help="Python with PyTorch for the jobs (default: found automatically)")
+    ap.add_argument("--load", help="load an existing .nbvh for the (single) object instead of training")
+    ap.add_argument("--save-blend", help="save the scene with the previews to this new .blend")
+    return ap.parse_args(argv)
+
+
+def run(argv: list[str]) -> int:
+    import bpy
+
+    from addon import engine
+    from addon.job import default_python
+
+    args = parse(argv)
+    missing = [n for n in args.objects if bpy.data.objects.get(n) is None]
+    if missing:
+        print(f"error: no object named {', '.join(repr(n) for n in missing)} in this file", file=sys.stderr)
+        return 1
+    objects = [bpy.data.objects[n] for n in args.objects]
+    overrides = {"device": args.device, "time_limit_s": args.time_limit, "steps": args.steps,
+                 "budget_kb": args.budget_kb, "target_mse": args.target_mse}
+    if args.steps is not None and args.time_limit is None:
+        overrides["time_limit_s"] = 0  # steps only (0 = no wall-clock limit, see job)
+    overrides = {k: v for k, v in overrides.items() if v is not None}
+    req = engine.Request(preset=args.preset or "default", overrides=overrides, out_dir=str(Path(args.out).resolve()),
+                         load_model=args.load)
+    python = args.python or default_python()
+    try:
+        session, refusals = engine.start(bpy.context, objects, req, python)
+    except RuntimeError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    for msg in refusals:
+        print(f"error: {msg}", file=sys.stderr)
+    if refusals:
+        session.queue.cancel_all()
+        for job in session.queue.jobs:
+            job.cleanup(remove_outputs=True)
+        return 1
+
+    def show(job, ev):
+        kind = ev.get("event")
+        if kind == "progress":
+            print(f"[{job.name}] {ev.get('phase')} {100 * ev.get('fraction', 0):5.1f}% step {ev.get('step')} "
+                  f"loss {ev.get('loss')} {ev.get('samples_per_s')} samples/s ETA {ev.get('eta_s')} s", flush=True)
+        elif kind in ("phase", "warning", "error"):
+            print(f"[{job.name}] {kind}: {ev.get('phase', '')} {ev.get('message', '')}", flush=True)
+        elif kind == "result":
+            print(f"[{job.name}] wrote {ev.get('path')} ({ev.get('bytes')} B)", flush=True)
+
+    session.queue.wait(on_event=show)
+    engine.finish_done(session, bpy.context.scene)
+    paths = engine.write_scene_report(session)
+    if paths:
+        print(f"report: {paths[0]} {paths[1]}")
+    if args.save_blend:
+        target = Path(args.save_blend).resolve()
+        if bpy.data.filepath and Path(bpy.data.filepath).resolve() == target:
+            print("error: --save-blend must name a new file, not the open .blend", file=sys.stderr)
+            return 1
+        bpy.ops.wm.save_as_mainfile(filepath=str(target), copy=True)
+    for name, msg in session.failures.items():
+        print(f"error: {name}: {msg}", file=sys.stderr)
+    return 1 if session.failures else 0
+
+
+def main() -> int:
+    argv = sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else []
+    try:
+        code = run(argv)
+    except SystemExit as exc:  # argparse (--help, bad options)
+        code = int(exc.code or 0)
+    return code
+
+
+if __name__ == "__main__":
+    code = main()
+    sys.stdout.flush()
+    if code:
+        sys.exit(code)

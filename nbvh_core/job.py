@@ -1,0 +1,194 @@
+"""A background compression job: the process the Blender add-on (or compress.py) starts and watches.
+
+    python -m nbvh_core job REQUEST.json
+
+REQUEST.json (written by the add-on):
+  {"name": str, "mesh": "mesh.npz" (arrays `vertices` (V, 3) float32 and `faces` (F, 3) int32, object-local
+   coordinates), "out_dir": str, "settings": {preset: str, overrides...},
+   "camera": {"position": [3], "target": [3], "up": [3], "fov_deg": float, "width": int, "height": int}
+             (object-local coordinates; optional), "proxy_points": int}
+
+Outputs in out_dir, each written atomically, and named in the final `result` event (the only marker of a
+finished job; a job that dies leaves no result event and the caller ignores whatever else is there):
+  NAME.nbvh            the model
+  NAME.preview.png     neural rendering from the camera (or an orbit view)
+  NAME.reference.png   the mesh from the same camera (Embree), for the side-by-side report
+  NAME.points.npy      (P, 6) float32 proxy points and normals from the model's own ray hits, object-local
+  NAME.report.json     sizes by component, the mesh's resident bytes, quality, training, settings
+Events are JSON lines on stdout (see `events.py`); errors end with an `error` event and exit code != 0.
+"""
+from __future__ import annotations
+
+import json
+import os
+import sys
+import traceback
+from pathlib import Path
+
+import numpy as np
+
+from .events import json_lines
+
+
+def _atomic_bytes(path: Path, data: bytes) -> None:
+    from .fileformat import write_atomic
+
+    write_atomic(path, data)
+
+
+def _png_bytes(image: np.ndarray) -> bytes:
+    import io
+
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray((np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8)).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+def proxy_points(model, n_points: int, seed: int = 0) -> np.ndarray:
+    """(P, 6) float32 points + unit normals on the model's surface, in the mesh's original coordinates.
+
+    Rays from a sphere around the asset toward random points of its box; every predicted hit is a point
+    (P <= n_points). Computed from the neural model only (the mesh is not used), so the proxy shows what
+    the model learned.
+    """
+    import torch
+
+    from .samples import RayConfig, sample_rays
+
+    rng = np.random.default_rng(seed)
+    lo, hi = model.nodes["lo"][0], model.nodes["hi"][0]
+    pts = []
+    have = 0
+    for _ in range(8):
+        o, d = sample_rays(lo, hi, max(2 * (n_points - have), 1024), rng, RayConfig(outside_fraction=1.0))
+        q = model.query(torch.from_numpy(o), torch.from_numpy(d))
+        hit = q.hit.cpu().numpy()
+        p = o[hit] + q.t.cpu().numpy()[hit, None] * d[hit]
+        n = q.normal.cpu().numpy()[hit]
+        pts.append(np.concatenate((model.transform.to_original(p), n), axis=1))
+        have += int(hit.sum())
+        if have >= n_points:
+            break
+    out = np.concatenate(pts)[:n_points] if pts else np.zeros((0, 6))
+    return out.astype(np.float32)
+
+
+class _LoadedResult:
+    """The parts of pipeline.CompressResult a loaded (not trained) model can offer."""
+
+    def __init__(self, model, info, path: str):
+        from .train import TrainResult
+
+        self.model = model
+        self.file_bytes = info.total_bytes
+        self.components = info.components
+        meta = info.metadata
+        tr = meta.get("training") or {}
+        self.training = TrainResult(steps=tr.get("steps", 0), seconds=tr.get("seconds", 0.0), samples=tr.get("samples", 0),
+                                    samples_per_s=tr.get("samples_per_s", 0.0), final_loss=tr.get("final_loss", 0.0),
+                                    device=tr.get("device", "?"))
+        self._summary = {"path": path, "file_bytes": info.total_bytes, "components": info.components,
+                         "quality": meta.get("quality"), "training": tr, "settings": meta.get("settings"),
+                         "seconds": {}, "why": "loaded from file", "target_met": meta.get("target_met")}
+
+    def summary(self) -> dict:
+        return dict(self._summary)
+
+
+def run_job(request: dict, events, should_cancel) -> dict:
+    """Run one request (see module docstring); returns the `result` event it emits."""
+    from .cli import mesh_resident_bytes
+    from .exact import ExactTracer
+    from .mesh import mesh_from_arrays
+    from .pipeline import compress_mesh, preset
+    from .render import Camera, orbit_cameras, render_neural, render_reference
+
+    name = request["name"]
+    out_dir = Path(request["out_dir"])
+    out_dir.mkdir(parents=True, exist_ok=True)
+    with np.load(request["mesh"]) as arrays:
+        mesh = mesh_from_arrays(arrays["vertices"], arrays["faces"], name=name)
+    for msg in mesh.repairs:
+        events({"event": "warning", "message": msg})
+    spec = dict(request.get("settings") or {})
+    steps_only = spec.get("time_limit_s") == 0  # 0 = no wall-clock limit (budget in steps)
+    settings = preset(spec.pop("preset", "default")).with_overrides(**spec)
+    if steps_only:
+        settings.time_limit_s = None
+    model_path = out_dir / f"{name}.nbvh"
+    if request.get("model"):
+        # Load an existing model instead of training (a damaged file fails here with NBVHFileError).
+        from .fileformat import load_nbvh, read_info
+
+        events({"event": "phase", "phase": "load", "message": request["model"]})
+        model = load_nbvh(request["model"])
+        info = read_info(request["model"])
+        result = _LoadedResult(model, info, str(request["model"]))
+        model_path = Path(request["model"])
+    else:
+        result = compress_mesh(mesh, settings, model_path, events=events, should_cancel=should_cancel)
+        model = result.model
+    cam_spec = request.get("camera")
+    if cam_spec:
+        tf = mesh.transform
+        pos = tf.to_normalised(np.asarray([cam_spec["position"]], float))[0]
+        tgt = tf.to_normalised(np.asarray([cam_spec["target"]], float))[0]
+        cam = Camera(position=pos, target=tgt, up=np.asarray(cam_spec.get("up", [0, 0, 1]), float),
+                     fov_deg=float(cam_spec.get("fov_deg", 40.0)))
+        w, h = int(cam_spec.get("width", 256)), int(cam_spec.get("height", 256))
+    else:
+        cam, w, h = orbit_cameras(1)[0], 256, 256
+    events({"event": "phase", "phase": "preview", "message": f"{w}x{h} image, proxy points"})
+    neural = render_neural(model, cam, w, h)
+    reference = render_reference(ExactTracer(mesh), cam, w, h)
+    files = {"model": str(model_path), "preview": str(out_dir / f"{name}.preview.png"),
+             "reference": str(out_dir / f"{name}.reference.png"), "points": str(out_dir / f"{name}.points.npy"),
+             "report": str(out_dir / f"{name}.report.json")}
+    _atomic_bytes(Path(files["preview"]), _png_bytes(neural.image))
+    _atomic_bytes(Path(files["reference"]), _png_bytes(reference.image))
+    import io
+
+    buf = io.BytesIO()
+    np.save(buf, proxy_points(model, int(request.get("proxy_points", 20000)), seed=settings.seed))
+    _atomic_bytes(Path(files["points"]), buf.getvalue())
+    report = result.summary()
+    report["name"] = name
+    report["mesh_resident_bytes"] = mesh_resident_bytes(mesh)
+    report["files"] = files
+    _atomic_bytes(Path(files["report"]), json.dumps(report, indent=2).encode())
+    event = {"event": "result", "name": name, "path": str(model_path), "bytes": result.file_bytes,
+             "files": files, "quality": report["quality"], "train_seconds": round(float(result.training.seconds), 2),
+             "device": result.training.device}
+    events(event)
+    return event
+
+
+def main(argv: list[str]) -> int:
+    """Entry of `python -m nbvh_core job REQUEST.json`."""
+    from .cli import _install_cancel_handlers
+    from .train import Cancelled, TrainingDiverged
+
+    events = json_lines(sys.stdout)
+    should_cancel = _install_cancel_handlers()
+    try:
+        request = json.loads(Path(argv[0]).read_text())
+        run_job(request, events, should_cancel)
+        return 0
+    except Cancelled as exc:
+        events({"event": "error", "kind": "cancelled", "message": str(exc)})
+        return 130
+    except TrainingDiverged as exc:
+        events({"event": "error", "kind": "diverged", "message": f"training diverged: {exc}"})
+        return 3
+    except (ValueError, OSError, KeyError) as exc:
+        events({"event": "error", "kind": "input", "message": f"{type(exc).__name__}: {exc}"})
+        return 2
+    except Exception as exc:  # a crash still reaches the panel, with its traceback
+        events({"event": "error", "kind": "crash", "message": f"{type(exc).__name__}: {exc}",
+                "traceback": traceback.format_exc()})
+        return 1
+    finally:
+        sys.stdout.flush()
+        os.environ.get("NBVH_JOB_DEBUG") and print("job finished", file=sys.stderr)

@@ -1,0 +1,56 @@
+import json
+import subprocess
+import sys
+
+import pytest
+
+from nbvh_core.cli import main
+
+
+def run_cli(*args):
+    return subprocess.run([sys.executable, "-m", "nbvh_core", *args], capture_output=True, text=True, timeout=600)
+
+
+@pytest.fixture(scope="module")
+def tiny_model(tmp_path_factory):
+    out = tmp_path_factory.mktemp("cli") / "blob.nbvh"
+    r = run_cli("compress", "blob", "-o", str(out), "--preset", "tiny", "--size", "32", "--events")
+    assert r.returncode == 0, r.stderr
+    events = [json.loads(line) for line in r.stdout.splitlines() if line.startswith("{")]
+    assert events[-1]["event"] == "result" and events[-1]["bytes"] == out.stat().st_size
+    return out
+
+
+def test_compress_writes_model_report_and_preview(tiny_model):
+    report = json.loads(tiny_model.with_suffix(".json").read_text())
+    assert report["file_bytes"] == tiny_model.stat().st_size
+    assert report["mesh_resident_bytes"]["total"] > 0 and report["quality"]["views"] == 2
+    assert tiny_model.with_suffix(".preview.png").exists()
+
+
+def test_info_eval_render(tiny_model, tmp_path):
+    r = run_cli("info", str(tiny_model), "--json", "--mesh", "blob")
+    assert r.returncode == 0, r.stderr
+    info = json.loads(r.stdout)
+    assert info["bytes"] == sum(info["components"].values()) == tiny_model.stat().st_size
+    assert info["ratio_resident_mesh_to_nbvh"] > 1
+    r = run_cli("eval", "blob", str(tiny_model), "--json", "--views", "2", "--resolution", "32")
+    assert r.returncode == 0, r.stderr
+    q = json.loads(r.stdout)
+    assert 0 <= q["silhouette_iou"] <= 1 and q["views"] == 2
+    png = tmp_path / "view.png"
+    assert main(["render", str(tiny_model), "-o", str(png), "--width", "48"]) == 0 and png.stat().st_size > 0
+
+
+def test_bad_inputs_exit_2_with_message(tmp_path, capsys):
+    bad = tmp_path / "bad.nbvh"
+    bad.write_bytes(b"not a model at all, just text")
+    assert main(["info", str(bad)]) == 2
+    assert "not an .nbvh file" in capsys.readouterr().err
+    assert main(["render", str(tmp_path / "missing.nbvh"), "-o", str(tmp_path / "x.png")]) == 2
+    assert "cannot read" in capsys.readouterr().err
+    nan = tmp_path / "nan.obj"
+    nan.write_text("v 0 0 0\nv 1 0 0\nv 0 nan 0\nf 1 2 3\n")
+    assert main(["compress", str(nan), "-o", str(tmp_path / "o.nbvh"), "--preset", "tiny"]) == 2
+    assert "NaN" in capsys.readouterr().err
+    assert not (tmp_path / "o.nbvh").exists()
