@@ -21,7 +21,9 @@ def evaluated_triangles(obj, depsgraph) -> tuple[np.ndarray, np.ndarray]:
     original). Raises ExportError for objects that have no surface.
     """
     if obj.type not in CONVERTIBLE:
-        raise ExportError(f"'{obj.name}' is a {obj.type.lower()}, which has no surface to compress "
+        kind = obj.type.lower()
+        article = "an" if kind[0] in "aeiou" else "a"
+        raise ExportError(f"'{obj.name}' is {article} {kind}, which has no surface to compress "
                           "(select meshes, curves, surfaces, text or metaballs)")
     obj_eval = obj.evaluated_get(depsgraph)
     try:

@@ -1,0 +1,272 @@
+"""Tests that run inside Blender: `blender -b --factory-startup --python-exit-code 1 --python THIS -- ARGS`
+or, with the bpy module, `python THIS ARGS`.
+
+ARGS: --zip ADDON.zip --mesh blob.npz --python JOB_PYTHON --work DIR
+
+Blender's Python has no pytest, so this file carries a small runner: every `test_*` function runs in order,
+failures are collected, and the last line is "N passed, N failed". Exit code 1 on any failure.
+"""
+from __future__ import annotations
+
+import argparse
+import hashlib
+import importlib
+import json
+import shutil
+import sys
+import time
+import traceback
+from pathlib import Path
+
+import bpy
+import numpy as np
+
+ARGS = None
+ADDON = {}  # module, engine, previews, operators, job
+
+
+def parse_args() -> argparse.Namespace:
+    argv = sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:]
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--zip", required=True)
+    ap.add_argument("--mesh", required=True)
+    ap.add_argument("--python", required=True)
+    ap.add_argument("--work", required=True)
+    return ap.parse_args(argv)
+
+
+def mesh_fingerprint(obj) -> str:
+    """Hash of the object's mesh data (positions, face corners, faces) and transform: must never change."""
+    me = obj.data
+    co = np.empty(len(me.vertices) * 3, np.float32)
+    me.vertices.foreach_get("co", co)
+    loops = np.empty(len(me.loops), np.int32)
+    me.loops.foreach_get("vertex_index", loops)
+    starts = np.empty(len(me.polygons), np.int32)
+    me.polygons.foreach_get("loop_start", starts)
+    h = hashlib.sha256()
+    for a in (co, loops, starts, np.array(obj.matrix_world, np.float32)):
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def make_mesh_object(name: str, verts: np.ndarray, faces: np.ndarray, location=(0.0, 0.0, 0.0)):
+    me = bpy.data.meshes.new(name)
+    me.vertices.add(len(verts))
+    me.vertices.foreach_set("co", verts.astype(np.float32).ravel())
+    me.loops.add(faces.size)
+    me.loops.foreach_set("vertex_index", faces.astype(np.int32).ravel())
+    me.polygons.add(len(faces))
+    me.polygons.foreach_set("loop_start", np.arange(0, faces.size, 3, dtype=np.int32))
+    if hasattr(me.polygons, "foreach_set") and hasattr(me.polygons[0], "loop_total") and bpy.app.version < (4, 0, 0):
+        me.polygons.foreach_set("loop_total", np.full(len(faces), 3, np.int32))
+    me.update(calc_edges=True)
+    me.validate()
+    obj = bpy.data.objects.new(name, me)
+    obj.location = location
+    bpy.context.scene.collection.objects.link(obj)
+    return obj
+
+
+def install_addon() -> str:
+    """Install the zip like a user would and enable it; returns the module name."""
+    zip_path = str(Path(ARGS.zip).resolve())
+    if bpy.app.version >= (4, 2, 0):
+        bpy.ops.extensions.package_install_files(filepath=zip_path, repo="user_default", enable_on_install=True)
+        name = "bl_ext.user_default.nbvh"
+    else:
+        bpy.ops.preferences.addon_install(filepath=zip_path, overwrite=True)
+        bpy.ops.preferences.addon_enable(module="nbvh")
+        name = "nbvh"
+    return name
+
+
+def setup_scene():
+    data = np.load(ARGS.mesh)
+    scene = bpy.context.scene
+    for obj in list(scene.objects):
+        bpy.data.objects.remove(obj)
+    blob = make_mesh_object("Blob", data["vertices"] * 2.0, data["faces"], location=(1.0, 2.0, 0.5))
+    blob.rotation_euler = (0.3, 0.0, 0.7)
+    blob.scale = (1.5, 1.5, 1.5)
+    cam_data = bpy.data.cameras.new("Cam")
+    cam = bpy.data.objects.new("Cam", cam_data)
+    cam.location = (7.0, -7.0, 5.0)
+    cam.rotation_euler = (1.1, 0.0, 0.8)
+    scene.collection.objects.link(cam)
+    scene.camera = cam
+    empty = bpy.data.objects.new("Empty", None)
+    scene.collection.objects.link(empty)
+    hollow = bpy.data.objects.new("Hollow", bpy.data.meshes.new("Hollow"))
+    scene.collection.objects.link(hollow)
+    curve = bpy.data.curves.new("Label", "FONT")
+    curve.body = "NBVH"
+    text = bpy.data.objects.new("Label", curve)
+    scene.collection.objects.link(text)
+    bpy.context.view_layer.update()
+    return blob
+
+
+def select(*names):
+    for obj in bpy.context.scene.objects:
+        obj.select_set(obj.name in names)
+
+
+def run_operator_until_done(timeout=300.0):
+    ops = ADDON["operators"]
+    t0 = time.monotonic()
+    while ops._state["session"] is not None:
+        ops._tick()  # bpy.app.timers do not fire in background mode: drive the same function by hand
+        if time.monotonic() - t0 > timeout:
+            raise AssertionError("job did not finish in time")
+        time.sleep(0.2)
+
+
+# ---------------------------------------------------------------------------------------------- tests
+def test_addon_installed_and_registered():
+    name = install_addon()
+    mod = importlib.import_module(name)
+    ADDON["module"] = mod
+    for sub in ("engine", "previews", "operators", "job", "export"):
+        ADDON[sub] = importlib.import_module(f"{name}.{sub}")
+    assert hasattr(bpy.types, "NBVH_PT_panel"), "panel not registered"
+    assert bpy.types.NBVH_PT_panel.bl_category == "NBVH"
+    assert hasattr(bpy.ops.nbvh, "compress") and hasattr(bpy.ops.nbvh, "cancel")
+    # The zip carries nbvh_core; the add-on itself never imported torch.
+    assert (Path(mod.__file__).parent / "nbvh_core" / "pipeline.py").exists()
+    assert "torch" not in sys.modules
+    prefs = bpy.context.preferences.addons[name].preferences
+    prefs.python_path = ARGS.python
+
+
+def test_compress_via_operator_loads_image_proxy_report():
+    blob = setup_scene()
+    before = mesh_fingerprint(blob)
+    props = bpy.context.scene.nbvh_props
+    props.preset = "preview"
+    props.output_dir = str(Path(ARGS.work) / "panel_out")
+    props.time_limit = 8
+    select("Blob")
+    bpy.context.view_layer.objects.active = blob
+    assert bpy.ops.nbvh.compress() == {"FINISHED"}
+    assert props.running
+    run_operator_until_done()
+    assert not props.running and props.phase == "done", (props.phase, props.last_error)
+    assert mesh_fingerprint(blob) == before, "the original mesh or transform changed"
+    results = list(bpy.context.scene.nbvh_results)
+    assert len(results) == 1 and results[0].object_name == "Blob"
+    r = results[0]
+    model_path = Path(r.model_path)  # read now: `r` is freed when the result is removed
+    assert Path(r.model_path).exists() and r.nbvh_bytes == Path(r.model_path).stat().st_size
+    img = bpy.data.images[r.image_name]
+    assert tuple(img.size) == (256, 256) and img.packed_file is not None
+    # The scene camera sees the object: the mesh's image from the same camera is not black (the neural one
+    # depends on how far a few seconds of training got on a busy machine).
+    ref = bpy.data.images[f"{blob.name} (mesh)"]
+    px = np.empty(256 * 256 * 4, np.float32)
+    ref.pixels.foreach_get(px)
+    lit = (px.reshape(-1, 4)[:, 0] > 0.05).mean()
+    assert 0.02 < lit < 0.9, f"the object fills {lit:.1%} of the camera's view"
+    proxy = bpy.data.objects[r.proxy_name]
+    assert proxy.users_collection[0].name == "NBVH Blob"
+    n_points = len(proxy.data.points) if proxy.type == "POINTCLOUD" else len(proxy.data.vertices)
+    assert 1000 <= n_points <= 20000, n_points
+    # Placement: the proxy is the original's transform shifted along world X by the original's width.
+    expected = ADDON["previews"].beside_matrix(blob)
+    assert np.allclose(np.array(proxy.matrix_world), np.array(expected), atol=1e-5)
+    # The proxy's points lie on the original's surface (object-local bounding box, small tolerance).
+    co = np.empty(n_points * 3, np.float32)
+    (proxy.data.points if proxy.type == "POINTCLOUD" else proxy.data.vertices).foreach_get("co", co)
+    co = co.reshape(-1, 3)
+    bb = np.array([list(c) for c in blob.bound_box])
+    size = bb.max(0) - bb.min(0)
+    assert (co >= bb.min(0) - 0.1 * size).all() and (co <= bb.max(0) + 0.1 * size).all()
+    report = json.loads(Path(r.report_path).read_text())
+    assert report["file_bytes"] == r.nbvh_bytes
+    html = Path(props.report_html)
+    assert html.exists() and "Blob" in html.read_text() and "data:image/png;base64" in html.read_text()
+    scene_json = json.loads(html.with_suffix(".json").read_text())
+    entry = scene_json["objects"][0]
+    assert entry["blender_mesh_bytes"]["positions"] == len(blob.data.vertices) * 12
+    assert entry["ratio_blender_mesh_to_nbvh"] > 0
+    # Toggle and remove: previews go, the original stays.
+    bpy.ops.nbvh.toggle_preview(object_name="Blob")
+    assert proxy.hide_viewport
+    bpy.ops.nbvh.remove_result(object_name="Blob")
+    assert bpy.data.objects.get("Blob_nbvh_proxy") is None and len(bpy.context.scene.nbvh_results) == 0
+    assert not model_path.exists()
+    assert mesh_fingerprint(bpy.data.objects["Blob"]) == before
+
+
+def test_cancel_stops_running_job_and_leaves_nothing():
+    out = Path(ARGS.work) / "cancel_out"
+    props = bpy.context.scene.nbvh_props
+    props.output_dir = str(out)
+    props.preset = "default"
+    props.time_limit = 600
+    select("Blob")
+    assert bpy.ops.nbvh.compress() == {"FINISHED"}
+    session = ADDON["operators"]._state["session"]
+    job = session.queue.jobs[0]
+    t0 = time.monotonic()
+    while job.progress.get("step", 0) < 1 and time.monotonic() - t0 < 180:
+        ADDON["operators"]._tick()
+        time.sleep(0.2)
+    assert job.state == "running" and job.progress.get("step", 0) >= 1, job.progress
+    proc = job._proc
+    assert bpy.ops.nbvh.cancel() == {"FINISHED"}
+    assert proc.poll() is not None, "the job process still runs"
+    assert job.state == "cancelled" and not job.workdir.exists()
+    assert not out.exists() or not any(out.iterdir()), list(out.iterdir())
+    assert not props.running and props.phase == "cancelled"
+    assert bpy.data.objects.get("Blob_nbvh_proxy") is None
+
+
+def test_bad_selections_refused_with_names():
+    engine = ADDON["engine"]
+    req = engine.Request(preset="tiny", out_dir=str(Path(ARGS.work) / "bad_out"))
+    objs = [bpy.data.objects[n] for n in ("Empty", "Cam", "Hollow")]
+    session, refusals = engine.start(bpy.context, objs, req, ARGS.python)
+    assert not session.objects
+    text = " ".join(refusals)
+    assert "'Empty'" in text and "'Cam'" in text and "'Hollow'" in text and "empty mesh" in text, text
+    select("Empty", "Cam")
+    try:  # an operator that reports an ERROR raises when called from a script
+        result = bpy.ops.nbvh.compress()
+    except RuntimeError as exc:
+        result = {"CANCELLED"}
+        assert "'Empty'" in str(exc)
+    assert result == {"CANCELLED"}
+    assert "'Empty'" in bpy.context.scene.nbvh_props.last_error
+
+
+def test_text_converts_to_mesh():
+    export = ADDON["export"]
+    verts, tris = export.evaluated_triangles(bpy.data.objects["Label"], bpy.context.evaluated_depsgraph_get())
+    assert len(verts) > 10 and tris.shape[1] == 3 and tris.max() < len(verts)
+
+
+def main() -> int:
+    global ARGS
+    ARGS = parse_args()
+    Path(ARGS.work).mkdir(parents=True, exist_ok=True)
+    tests = [(n, f) for n, f in globals().items() if n.startswith("test_") and callable(f)]
+    passed = failed = 0
+    print(f"Blender {bpy.app.version_string} ({'bpy module' if bpy.app.background and not bpy.app.binary_path else bpy.app.binary_path})")
+    for name, fn in tests:
+        t0 = time.monotonic()
+        try:
+            fn()
+            passed += 1
+            print(f"PASS {name} ({time.monotonic() - t0:.1f} s)", flush=True)
+        except Exception:
+            failed += 1
+            print(f"FAIL {name}\n{traceback.format_exc()}", flush=True)
+    print(f"{passed} passed, {failed} failed", flush=True)
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    code = main()
+    if code:
+        sys.exit(code)
