@@ -50,6 +50,7 @@ class TrainConfig:
     anneal_fraction: float = 0.15
     tau_min: float = 0.05
     logits_lr_factor: float = 10.0  # HashVQAD index logits learn this much faster (they must become decisive)
+    freeze: bool = True  # HashVQAD: argmax-freeze at the end (False keeps the soft model, e.g. to compare)
     seed: int = 0
     device: str = "auto"
     divergence_factor: float = 50.0
@@ -213,7 +214,7 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
     events({"event": "progress", "phase": phase, "step": step, "total": cfg.steps, "fraction": 1.0,
             "loss": round(result.final_loss, 6), "samples_per_s": round(result.samples_per_s, 1),
             "elapsed_s": round(seconds, 2), "eta_s": 0.0})
-    if is_vqad and not model.encoding.frozen:
+    if is_vqad and cfg.freeze and not model.encoding.frozen:
         # Same held-out rays for both: how much the argmax freeze changes the loss.
         held_out = label_samples(bvh, tracer, *sample_rays(batches.lo, batches.hi, 8192,
                                                            np.random.default_rng(cfg.seed + 7919), cfg.ray_config),

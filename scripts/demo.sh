@@ -1,8 +1,13 @@
 #!/usr/bin/env bash
-# The main job on a bundled sample: writes out/<sample>/report.json and preview images.
-# Usage: scripts/demo.sh [SAMPLE or MESH FILE] (default: bunny)
+# The main job on a bundled sample: compress it into neural geometry and write the model, its report and a
+# preview (mesh left, neural right) to out/<name>/.
+# Usage: scripts/demo.sh [SAMPLE or MESH FILE] [compress options, e.g. --preset preview]   (default: bunny)
 set -euo pipefail
 source "$(dirname "${BASH_SOURCE[0]}")/ensure_venv.sh"
 cd "$NBVH_ROOT"
 sample=${1:-bunny}
-"$NBVH_PY" -m nbvh_core inspect "$sample" --out "out/$(basename "${sample%%.*}")"
+shift || true
+name=$(basename "${sample%%.*}")
+mkdir -p "out/$name"
+"$NBVH_PY" -m nbvh_core compress "$sample" -o "out/$name/$name.nbvh" "$@"
+"$NBVH_PY" -m nbvh_core info "out/$name/$name.nbvh" --mesh "$sample"

@@ -1,0 +1,40 @@
+import pytest
+
+from nbvh_core.pipeline import PRESETS, estimate_file_bytes, preset, resolve, compress_mesh
+
+
+def test_presets_are_complete_and_distinct():
+    assert {"preview", "default", "high", "base", "I", "II", "III", "tiny"} <= set(PRESETS)
+    base, one, two, three = (preset(n) for n in ("base", "I", "II", "III"))
+    assert (base.encoding, base.network, base.labels) == ("hashgrid", "mlp", "ownership")
+    assert (one.network, two.labels, three.encoding) == ("kmlp", "consistent", "hashvqad")
+    with pytest.raises(ValueError, match="unknown preset"):
+        preset("ultra")
+    with pytest.raises(ValueError, match="unknown settings"):
+        preset("default").with_overrides(colour="red")
+
+
+def test_budget_picks_the_largest_model_that_fits():
+    for kb in (120, 400, 1500):
+        chosen, why = resolve(preset("default").with_overrides(budget_kb=kb))
+        size = estimate_file_bytes(chosen)
+        assert size <= kb * 1024 and "budget" in why
+        # Nothing on the grid that is bigger still fits (the next table size up does not).
+        bigger = chosen.with_overrides(log2_table=chosen.log2_table + 1)
+        assert estimate_file_bytes(bigger) > kb * 1024 or chosen.log2_table == 12
+    with pytest.raises(ValueError, match="too small"):
+        resolve(preset("default").with_overrides(budget_kb=1))
+
+
+def test_budget_is_honoured_by_the_real_file(sample_meshes, tmp_path):
+    s = preset("tiny").with_overrides(budget_kb=60)
+    res = compress_mesh(sample_meshes["blob"], s, tmp_path / "b.nbvh", evaluate_quality=False)
+    assert res.file_bytes <= 60 * 1024
+    assert abs(res.file_bytes - estimate_file_bytes(res.settings)) < 1024  # the estimate is the real size +- header
+
+
+def test_target_maps_to_a_preset_and_is_checked(sample_meshes, tmp_path):
+    chosen, why = resolve(preset("default").with_overrides(target_mse=0.02))
+    assert chosen.log2_table == PRESETS["preview"].log2_table and "target" in why
+    res = compress_mesh(sample_meshes["blob"], preset("tiny").with_overrides(target_mse=0.5), tmp_path / "t.nbvh")
+    assert res.target_met is (res.quality.mse <= 0.5)
