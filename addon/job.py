@@ -28,16 +28,10 @@ _HERE = Path(__file__).resolve().parent
 CORE_PARENT = _HERE if (_HERE / "nbvh_core").is_dir() else _HERE.parent
 
 
-def parse_event(line: str) -> dict | None:
-    """The event on one stdout line of a job, or None (same rules as nbvh_core.events.parse_line)."""
-    line = line.strip()
-    if not line.startswith("{"):
-        return None
-    try:
-        event = json.loads(line)
-    except json.JSONDecodeError:
-        return None
-    return event if isinstance(event, dict) and "event" in event else None
+try:  # the installed add-on carries nbvh_core inside it; in the repository it sits beside addon/
+    from .nbvh_core.events import parse_line as parse_event  # no torch: events.py is plain Python
+except ImportError:
+    from nbvh_core.events import parse_line as parse_event
 
 
 def core_env() -> dict:
