@@ -46,7 +46,7 @@ class Settings:
     steps: int | None = None
     time_limit_s: float | None = 180.0
     rays_per_step: int = 4096
-    anneal_fraction: float = 0.15
+    anneal_fraction: float = 0.3
     seed: int = 0
     device: str = "auto"
     float_bytes: int = 4
@@ -209,7 +209,8 @@ def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = 
         "target_met": (None if settings.target_mse is None or quality is None else quality.mse <= settings.target_mse),
         "training": {"steps": tr.steps, "seconds": round(tr.seconds, 2), "samples": tr.samples,
                      "samples_per_s": round(tr.samples_per_s), "final_loss": tr.final_loss, "device": tr.device,
-                     "soft_loss_before_freeze": tr.soft_loss_before_freeze, "frozen_loss": tr.frozen_loss},
+                     "soft_loss_before_freeze": tr.soft_loss_before_freeze, "frozen_loss": tr.frozen_loss,
+                     "finetuned_loss": tr.finetuned_loss},
         "quality": quality.to_dict() if quality else None,
         "created": time.strftime("%Y-%m-%dT%H:%M:%S"),
         "torch": torch.__version__, "machine": platform.machine(),

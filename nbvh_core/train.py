@@ -1,7 +1,9 @@
 """Training loop: fresh labelled rays every step, Adam, a step or wall-clock budget, events, cancel, checkpoints.
 
-Phases: `train` (main phase), then for HashVQAD `anneal` (the last `anneal_fraction` of the budget: the softmax
-temperature falls geometrically from 1 to `tau_min`), then `freeze` (argmax codes). The learning rate decays
+Phases: `train` (main phase), then for HashVQAD `anneal` (`anneal_fraction` of the budget: the softmax
+temperature falls geometrically from 1 to `tau_min`), `freeze` (argmax codes) and `finetune` (the last
+`finetune_fraction` of the budget: feature rows and network train on the frozen integer codes, so they adapt to
+the hard lookups the file stores). The learning rate decays
 exponentially to `lr_final_factor` x lr over the budget.
 
 Failure handling: a non-finite loss or parameter, or a loss above `divergence_factor` x its running mean after
@@ -47,10 +49,11 @@ class TrainConfig:
     rays_per_step: int = 4096
     steps: int | None = 2000
     time_limit_s: float | None = None
-    anneal_fraction: float = 0.15
-    tau_min: float = 0.05
+    anneal_fraction: float = 0.3
+    tau_min: float = 0.01
     logits_lr_factor: float = 10.0  # HashVQAD index logits learn this much faster (they must become decisive)
-    freeze: bool = True  # HashVQAD: argmax-freeze at the end (False keeps the soft model, e.g. to compare)
+    finetune_fraction: float = 0.1
+    freeze: bool = True  # HashVQAD: argmax-freeze (False keeps the soft model to the end, e.g. to compare)
     seed: int = 0
     device: str = "auto"
     divergence_factor: float = 50.0
@@ -73,7 +76,8 @@ class TrainResult:
     device: str
     history: list = field(default_factory=list)  # (step, loss)
     soft_loss_before_freeze: float | None = None
-    frozen_loss: float | None = None
+    frozen_loss: float | None = None  # right after the freeze
+    finetuned_loss: float | None = None  # at the end, after the hard fine-tune
 
 
 def pick_device(name: str = "auto") -> torch.device:
@@ -116,8 +120,12 @@ def _atomic_save(obj, path: Path) -> None:
 
 def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, events: EventSink = null_sink,
           should_cancel: Callable[[], bool] = lambda: False, checkpoint_path: str | os.PathLike | None = None,
-          resume_from: str | os.PathLike | None = None) -> TrainResult:
-    """Train `model` in place on rays around `bvh`, labelled by `tracer`; freezes HashVQAD at the end."""
+          resume_from: str | os.PathLike | None = None,
+          before_freeze: Callable[[NeuralBVH], None] | None = None) -> TrainResult:
+    """Train `model` in place on rays around `bvh`, labelled by `tracer`; freezes HashVQAD near the end.
+
+    before_freeze(model) is called once just before the HashVQAD freeze (e.g. to score the soft model).
+    """
     if cfg.steps is None and cfg.time_limit_s is None:
         raise ValueError("set a step budget or a time limit")
     device = pick_device(cfg.device)
@@ -134,6 +142,9 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
     history: list = []
     if resume_from is not None:
         ck = torch.load(resume_from, map_location=device, weights_only=False)
+        codes = ck["model"].get("encoding.codes")
+        if codes is not None and codes.numel() and hasattr(model.encoding, "freeze"):
+            model.encoding.freeze()  # the checkpoint is past the freeze: same structure before loading
         model.load_state_dict(ck["model"])
         opt.load_state_dict(ck["optimizer"])
         start_step, elapsed_before, history = ck["step"], ck["elapsed"], ck["history"]
@@ -142,6 +153,24 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
         events({"event": "phase", "phase": "train", "message": f"resumed at step {start_step}"})
     batches = _Batches(bvh, tracer, cfg, rng)
     is_vqad = hasattr(model.encoding, "freeze")
+    result_losses: dict = {}
+
+    def held_out_loss() -> float:
+        held_out = label_samples(bvh, tracer, *sample_rays(batches.lo, batches.hi, 8192,
+                                                           np.random.default_rng(cfg.seed + 7919), cfg.ray_config),
+                                 cfg.labels, tree=batches.tree)
+        with torch.no_grad():
+            return float(samples_loss(model, held_out, device)[0])
+
+    def freeze_now() -> None:
+        result_losses["soft"] = held_out_loss()
+        if before_freeze is not None:
+            before_freeze(model)
+        model.encoding.freeze()
+        result_losses["frozen"] = held_out_loss()
+        events({"event": "phase", "phase": "freeze",
+                "message": f"index codes frozen; held-out loss {result_losses['soft']:.4f} -> "
+                           f"{result_losses['frozen']:.4f}; fine-tuning on the frozen codes"})
 
     def save_checkpoint(step: int, elapsed: float) -> None:
         if checkpoint_path is not None:
@@ -167,10 +196,14 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
         if should_cancel():
             save_checkpoint(step, elapsed)
             raise Cancelled(f"cancelled at step {step}")
-        if is_vqad:
-            anneal_start = 1.0 - cfg.anneal_fraction
+        if is_vqad and cfg.freeze and not model.encoding.frozen and frac >= 1.0 - cfg.finetune_fraction:
+            freeze_now()
+            phase = "finetune"
+        if is_vqad and not model.encoding.frozen:
+            anneal_end = 1.0 - (cfg.finetune_fraction if cfg.freeze else 0.0)
+            anneal_start = anneal_end - cfg.anneal_fraction
             if frac >= anneal_start and cfg.anneal_fraction > 0:
-                a = (frac - anneal_start) / cfg.anneal_fraction
+                a = min(1.0, (frac - anneal_start) / cfg.anneal_fraction)
                 model.encoding.temperature = float(cfg.tau_min ** a)
                 if phase != "anneal":
                     phase = "anneal"
@@ -214,16 +247,10 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
     events({"event": "progress", "phase": phase, "step": step, "total": cfg.steps, "fraction": 1.0,
             "loss": round(result.final_loss, 6), "samples_per_s": round(result.samples_per_s, 1),
             "elapsed_s": round(seconds, 2), "eta_s": 0.0})
-    if is_vqad and cfg.freeze and not model.encoding.frozen:
-        # Same held-out rays for both: how much the argmax freeze changes the loss.
-        held_out = label_samples(bvh, tracer, *sample_rays(batches.lo, batches.hi, 8192,
-                                                           np.random.default_rng(cfg.seed + 7919), cfg.ray_config),
-                                 cfg.labels, tree=batches.tree)
-        with torch.no_grad():
-            result.soft_loss_before_freeze = float(samples_loss(model, held_out, device)[0])
-            model.encoding.freeze()
-            result.frozen_loss = float(samples_loss(model, held_out, device)[0])
-        events({"event": "phase", "phase": "freeze",
-                "message": f"index codes frozen; held-out loss {result.soft_loss_before_freeze:.4f} -> "
-                           f"{result.frozen_loss:.4f}"})
+    if is_vqad and cfg.freeze:
+        if not model.encoding.frozen:  # a budget too short to reach the fine-tune phase
+            freeze_now()
+        result.soft_loss_before_freeze = result_losses.get("soft")
+        result.frozen_loss = result_losses.get("frozen")
+        result.finetuned_loss = held_out_loss()
     return result
