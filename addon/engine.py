@@ -47,10 +47,11 @@ class Session:
 
 def output_dir(requested: str) -> Path:
     """The folder for results: the requested one, else beside the .blend (`//nbvh`), else a temp folder."""
+    # Absolute: the job process runs in its own temporary folder, where a relative path would point elsewhere.
     if requested:
-        return Path(bpy.path.abspath(requested))
+        return Path(bpy.path.abspath(requested)).resolve()
     if bpy.data.filepath:
-        return Path(bpy.path.abspath("//nbvh"))
+        return Path(bpy.path.abspath("//nbvh")).resolve()
     return Path(tempfile.gettempdir()) / "nbvh"
 
 

@@ -59,9 +59,9 @@ def beside_matrix(obj, gap: float = 0.1) -> Matrix:
     return Matrix.Translation(Vector((width * (1 + gap), 0, 0))) @ obj.matrix_world
 
 
-def _mesh_to_points_group():
-    """A Geometry Nodes group: Mesh to Points (radius 1% of a unit object), for Blender without point clouds."""
-    name = "NBVH Mesh to Points"
+def _mesh_to_points_group(radius: float):
+    """A Geometry Nodes group: Mesh to Points with `radius`, for Blender without Python point clouds."""
+    name = f"NBVH Mesh to Points {radius:.3g}"
     group = bpy.data.node_groups.get(name)
     if group is not None:
         return group
@@ -75,18 +75,23 @@ def _mesh_to_points_group():
     n_in = group.nodes.new("NodeGroupInput")
     n_out = group.nodes.new("NodeGroupOutput")
     to_points = group.nodes.new("GeometryNodeMeshToPoints")
-    to_points.inputs["Radius"].default_value = 0.005
+    to_points.inputs["Radius"].default_value = radius
     group.links.new(n_in.outputs[0], to_points.inputs["Mesh"])
     group.links.new(to_points.outputs["Points"], n_out.inputs[0])
     return group
 
 
-def make_proxy(obj, points: np.ndarray, scene, radius: float = 0.005):
-    """Point-cloud proxy from (P, 6) object-local points + normals; returns the new object."""
+def make_proxy(obj, points: np.ndarray, scene, radius: float | None = None):
+    """Point-cloud proxy from (P, 6) object-local points + normals; returns the new object.
+
+    radius: point radius in object-local units (default 0.4% of the points' bounding-box diagonal)."""
     name = f"{obj.name}{PROXY_SUFFIX}"
     remove_proxy(obj)
     coll = _collection_for(obj, scene)
     pos = np.ascontiguousarray(points[:, :3], np.float32)
+    if radius is None:
+        diag = float(np.linalg.norm(pos.max(0) - pos.min(0))) if len(pos) else 1.0
+        radius = 0.004 * diag
     data = None
     if hasattr(bpy.data, "pointclouds"):
         try:
@@ -105,7 +110,7 @@ def make_proxy(obj, points: np.ndarray, scene, radius: float = 0.005):
         mesh.update()
         proxy = bpy.data.objects.new(name, mesh)
         mod = proxy.modifiers.new("NBVH points", "NODES")
-        mod.node_group = _mesh_to_points_group()
+        mod.node_group = _mesh_to_points_group(radius)
     proxy.matrix_world = beside_matrix(obj)
     proxy["nbvh_source"] = obj.name
     coll.objects.link(proxy)
@@ -152,15 +157,26 @@ def load_result(obj, result: dict, scene) -> dict:
 
 def camera_for(context, obj, width: int = 256, height: int = 256) -> dict | None:
     """The scene camera (or the viewport's view when there is none), in the object's local coordinates."""
+    import math
+
     inv = obj.matrix_world.inverted()
     cam = context.scene.camera
-    if cam is not None:
+    if cam is not None and cam.type == "CAMERA" and cam.data.type == "PERSP":
         m = inv @ cam.matrix_world
-        fov = getattr(cam.data, "angle_y", None) or cam.data.angle
-        import math
-
+        r = context.scene.render
+        aspect = (r.resolution_x * r.pixel_aspect_x) / max(r.resolution_y * r.pixel_aspect_y, 1e-9)
+        height = max(1, round(width / aspect))
+        # Blender's `angle` spans the sensor width, which (sensor fit AUTO/HORIZONTAL) maps to the larger image
+        # side; our cameras take the vertical field of view.
+        fit = cam.data.sensor_fit
+        if fit == "VERTICAL":
+            fov_v = cam.data.angle_y
+        elif fit == "HORIZONTAL" or aspect >= 1:
+            fov_v = 2 * math.atan(math.tan(cam.data.angle_x / 2) / aspect)
+        else:
+            fov_v = cam.data.angle_x
         return {"position": list(m.translation), "target": list(m @ Vector((0, 0, -1))),
-                "up": list((m.to_3x3() @ Vector((0, 1, 0))).normalized()), "fov_deg": math.degrees(fov),
+                "up": list((m.to_3x3() @ Vector((0, 1, 0))).normalized()), "fov_deg": math.degrees(fov_v),
                 "width": width, "height": height}
     area = next((a for a in (context.screen.areas if context.screen else []) if a.type == "VIEW_3D"), None)
     if area is None:

@@ -1,5 +1,6 @@
-"""The README's picture: Blender (bpy 5.0, Workbench, headless) rendering an original object next to the
-point-cloud proxy the add-on loaded back from its .nbvh, plus the add-on's neural image from the same camera.
+"""The README's picture: top, Blender (bpy 5.0, Workbench, headless) rendering an original object next to the
+point-cloud proxy the add-on loaded back from its .nbvh; bottom, the add-on's neural image from the same scene
+camera (rendered by the model, not by Blender).
 
     .venv/bin/python blender_tests/make_readme_figure.py MODEL.nbvh SAMPLE_NAME docs/addon_preview.png
 
@@ -38,13 +39,15 @@ obj.location = tuple(-centre * scale)
 cam = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
 bpy.context.scene.collection.objects.link(cam)
 bpy.context.scene.camera = cam
-cam.location = (1.15, -4.6, 1.6)
-direction = Vector((1.15, 0, 0)) - cam.location
+scene0 = bpy.context.scene
+scene0.render.resolution_x, scene0.render.resolution_y = 640, 320
+cam.location = (0.95, -6.2, 1.7)
+direction = Vector((0.95, 0, 0.05)) - cam.location
 cam.rotation_euler = direction.to_track_quat("-Z", "Y").to_euler()
 bpy.context.view_layer.update()
 
 req = engine.Request(preset="default", out_dir=str(out_png.parent / "figure_out"), load_model=model_path,
-                     proxy_points=60000, image_size=320)
+                     proxy_points=60000, image_size=640)
 session, refusals = engine.start(bpy.context, [obj], req, default_python())
 assert not refusals, refusals
 session.queue.wait()
@@ -53,7 +56,6 @@ assert obj.name in session.loaded, session.failures
 
 scene = bpy.context.scene
 scene.render.engine = "BLENDER_WORKBENCH"
-scene.render.resolution_x, scene.render.resolution_y = 640, 320
 scene.display.shading.light = "STUDIO"
 scene.display.shading.color_type = "SINGLE"
 scene.render.filepath = str(out_png.with_suffix(".blender.png"))
@@ -62,11 +64,9 @@ bpy.ops.render.render(write_still=True)
 from PIL import Image  # noqa: E402
 
 render = Image.open(scene.render.filepath).convert("RGB")
-neural = Image.open(session.loaded[obj.name]["result"]["files"]["preview"]).convert("RGB").resize((320, 320))
-reference = Image.open(session.loaded[obj.name]["result"]["files"]["reference"]).convert("RGB").resize((320, 320))
-canvas = Image.new("RGB", (1280, 320))
+neural = Image.open(session.loaded[obj.name]["result"]["files"]["preview"]).convert("RGB")
+canvas = Image.new("RGB", (640, 640))
 canvas.paste(render, (0, 0))
-canvas.paste(reference, (640, 0))
-canvas.paste(neural, (960, 0))
+canvas.paste(neural, (0, 320))
 canvas.save(out_png)
 print(f"wrote {out_png}")
