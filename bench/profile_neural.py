@@ -1,0 +1,139 @@
+"""Where the time goes: one training step and one neural render, split by stage, for each config.
+
+    .venv/bin/python bench/profile_neural.py [--asset bunny] [--rays 4096] [--size 256]
+
+Training step stages: ray sampling + exact labelling (Embree, traversal), encoding forward, network forward +
+loss, backward (all of it), optimizer step. Render stages: traversal (LeafStream.next), segment points +
+encoding, network, bookkeeping (the rest). Medians of several repeats. Writes bench/results/profile.md.
+"""
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from nbvh_core.bvh import build_bvh  # noqa: E402
+from nbvh_core.exact import ExactTracer  # noqa: E402
+from nbvh_core.mesh import load_mesh  # noqa: E402
+from nbvh_core.model import NeuralBVH  # noqa: E402
+from nbvh_core.pipeline import preset  # noqa: E402
+from nbvh_core.render import orbit_cameras  # noqa: E402
+from nbvh_core.samples import RayConfig, label_samples, root_box, sample_rays  # noqa: E402
+from nbvh_core.samples_dir import sample_path  # noqa: E402
+from nbvh_core.traversal import LeafStream, TorchBVH  # noqa: E402
+
+CONFIGS = [("hashgrid", "mlp", 11), ("hashgrid", "kmlp", 11), ("hashvqad", "mlp", 10), ("hashvqad", "kmlp", 10)]
+
+
+def timed(fn):
+    t = time.perf_counter()
+    out = fn()
+    return out, time.perf_counter() - t
+
+
+def profile_train(model, bvh, tracer, tree, n_rays, repeat=5):
+    rng = np.random.default_rng(0)
+    lo, hi = root_box(bvh)
+    opt = torch.optim.Adam(model.parameters(), lr=1e-3)
+    stages = {k: [] for k in ("rays+labels", "encoding fwd", "network fwd+loss", "backward", "optimizer")}
+    n_samples = []
+    for _ in range(repeat):
+        s, dt = timed(lambda: label_samples(bvh, tracer, *sample_rays(lo, hi, n_rays, rng, RayConfig()),
+                                            "consistent", tree=tree))
+        stages["rays+labels"].append(dt)
+        n_samples.append(len(s))
+        r = s.ray
+        pts = model.segment_points(s.rays_o[r], s.rays_d[r], s.t_enter, s.t_exit)
+        b, k, _ = pts.shape
+        feats, dt = timed(lambda: model.encoding(pts.reshape(-1, 3)).reshape(b, k, -1))
+        stages["encoding fwd"].append(dt)
+        (loss, _), dt = timed(lambda: model.network.loss(model.network(feats), s.hit, s.local_t, s.normal))
+        stages["network fwd+loss"].append(dt)
+        opt.zero_grad()
+        _, dt = timed(loss.backward)
+        stages["backward"].append(dt)
+        _, dt = timed(opt.step)
+        stages["optimizer"].append(dt)
+    med = {k: statistics.median(v) for k, v in stages.items()}
+    return med, statistics.median(n_samples)
+
+
+def profile_render(model, size):
+    cam = orbit_cameras(1)[0]
+    o, d = (torch.from_numpy(a) for a in cam.rays(size, size))
+    stream = LeafStream(model.tree(), o, d)
+    t_trav = t_enc = t_net = 0.0
+    segments = 0
+    t0 = time.perf_counter()
+    with torch.no_grad():
+        while True:
+            (ray, _, te, tx), dt = timed(stream.next)
+            t_trav += dt
+            if ray.numel() == 0:
+                break
+            segments += ray.numel()
+            pts = model.segment_points(o[ray], d[ray], te, tx)
+            b, k, _ = pts.shape
+            feats, dt = timed(lambda: model.encoding(pts.reshape(-1, 3)).reshape(b, k, -1))
+            t_enc += dt
+            (prob, _, _), dt = timed(lambda: model.network.decode(model.network(feats)))
+            t_net += dt
+            stream.stop(ray[prob > 0.5])
+    total = time.perf_counter() - t0
+    return {"traversal": t_trav, "encoding": t_enc, "network": t_net,
+            "bookkeeping": total - t_trav - t_enc - t_net, "total": total}, segments
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--asset", default="bunny")
+    ap.add_argument("--rays", type=int, default=4096)
+    ap.add_argument("--size", type=int, default=256)
+    args = ap.parse_args()
+    mesh = load_mesh(sample_path(args.asset))
+    s = preset("default")
+    bvh = build_bvh(mesh, s.nodes)
+    tracer = ExactTracer(mesh)
+    tree = TorchBVH.from_bvh(bvh)
+    lines = [f"# Profile: one training step and one {args.size}x{args.size} render, by stage\n",
+             f"Asset `{args.asset}` ({mesh.n_triangles:,} triangles), {s.nodes} nodes, {args.rays} rays per step, "
+             f"2-core CPU, torch {torch.__version__} ({torch.get_num_threads()} threads), reference (pure torch) path. "
+             "Models are untrained (random weights), so which leaf stops a ray is arbitrary: the render rows show the "
+             "cost split per segment, not a trained model's rays/s (see samples_default.md for those). Command: "
+             f"`.venv/bin/python bench/profile_neural.py --asset {args.asset}`.\n",
+             "## Training step (median of 5)\n",
+             "| config | samples | rays+labels | encoding fwd | network fwd+loss | backward | optimizer | total | samples/s |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    render_lines = ["\n## Render\n", "| config | segments | traversal | encoding | network | bookkeeping | total | rays/s | segments/s |",
+                    "|---|---|---|---|---|---|---|---|---|"]
+    for enc, net, log2 in CONFIGS:
+        torch.manual_seed(0)
+        model = NeuralBVH(bvh.nodes, s.with_overrides(encoding=enc, network=net, log2_table=log2).model_config(),
+                          mesh.transform)
+        med, n = profile_train(model, bvh, tracer, tree, args.rays)
+        total = sum(med.values())
+        lines.append(f"| {enc}+{net} (T=2^{log2}) | {n:,.0f} | " + " | ".join(f"{1000 * v:.0f} ms" for v in med.values())
+                     + f" | {1000 * total:.0f} ms | {n / total:,.0f} |")
+        if enc == "hashvqad":
+            model.encoding.freeze()
+        model.eval()
+        rt, segs = profile_render(model, args.size)
+        render_lines.append(f"| {enc}+{net} | {segs:,} | " + " | ".join(f"{1000 * rt[k]:.0f} ms" for k in
+                                                                     ("traversal", "encoding", "network", "bookkeeping", "total"))
+                            + f" | {args.size ** 2 / rt['total']:,.0f} | {segs / rt['total']:,.0f} |")
+        print(lines[-1], render_lines[-1], flush=True)
+    out = ROOT / "bench" / "results" / "profile.md"
+    out.write_text("\n".join(lines + render_lines) + "\n")
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()
