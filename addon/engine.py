@@ -6,7 +6,6 @@ bpy is used here (export, load back) but torch never is: the jobs run nbvh_core 
 from __future__ import annotations
 
 import json
-import os
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -15,7 +14,7 @@ import bpy
 import numpy as np
 
 from . import export, previews, report
-from .job import Job, JobQueue, default_python
+from .job import JobQueue, default_python
 
 #: Named quality targets (image MSE of the paper's metric) the panel offers besides the presets.
 QUALITY_TARGETS = {"preview": 0.02, "standard": 0.01, "high": 0.005}

@@ -108,7 +108,7 @@ def main() -> None:
             "embree_random_rays_per_s", "embree_primary_rays_per_s", "traversal_vs_embree_random"]
     machine = (f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__} "
                f"({torch.get_num_threads()} threads), {n_rays} random training rays, {args.nodes} BVH nodes")
-    lines = [f"# Foundation benchmark\n", f"Machine: {machine}.\n",
+    lines = ["# Foundation benchmark\n", f"Machine: {machine}.\n",
              "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     for r in rows:
         lines.append("| " + " | ".join(f"{r[c]:,}" if isinstance(r[c], int) else str(r[c]) for c in cols) + " |")

@@ -12,7 +12,6 @@ import argparse
 import hashlib
 import importlib
 import json
-import shutil
 import sys
 import time
 import traceback
@@ -159,11 +158,13 @@ def test_compress_via_operator_loads_image_proxy_report():
     model_path = Path(r.model_path)  # read now: `r` is freed when the result is removed
     assert Path(r.model_path).exists() and r.nbvh_bytes == Path(r.model_path).stat().st_size
     img = bpy.data.images[r.image_name]
-    assert tuple(img.size) == (256, 256) and img.packed_file is not None
+    rs = bpy.context.scene.render
+    want = (256, round(256 * rs.resolution_y / rs.resolution_x))  # the scene camera's aspect
+    assert tuple(img.size) == want and img.packed_file is not None, (tuple(img.size), want)
     # The scene camera sees the object: the mesh's image from the same camera is not black (the neural one
     # depends on how far a few seconds of training got on a busy machine).
     ref = bpy.data.images[f"{blob.name} (mesh)"]
-    px = np.empty(256 * 256 * 4, np.float32)
+    px = np.empty(want[0] * want[1] * 4, np.float32)
     ref.pixels.foreach_get(px)
     lit = (px.reshape(-1, 4)[:, 0] > 0.05).mean()
     assert 0.02 < lit < 0.9, f"the object fills {lit:.1%} of the camera's view"

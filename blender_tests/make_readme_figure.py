@@ -10,7 +10,6 @@ import sys
 from pathlib import Path
 
 import bpy
-import numpy as np
 from mathutils import Vector
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -12,8 +12,6 @@ Prints "N passed, N failed" last; exit code 1 on any failure or when no Blender 
 from __future__ import annotations
 
 import argparse
-import gzip
-import io
 import os
 import shutil
 import subprocess

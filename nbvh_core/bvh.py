@@ -225,7 +225,6 @@ def build_full_tree(mesh: Mesh, max_leaf_size: int = 1, n_bins: int = 16, median
             # Rank within the node along the axis (stable lexsort: node, then coordinate, then position).
             idx = np.flatnonzero(tri_stuck)
             ordr = idx[np.lexsort((local[idx], key_val[idx], seg_node[idx]))]
-            rank = np.empty(ordr.size, np.int64)
             node_of = seg_node[ordr]
             first = np.concatenate(([0], np.flatnonzero(np.diff(node_of)) + 1))
             grp_start = np.repeat(first, np.diff(np.concatenate((first, [ordr.size]))))

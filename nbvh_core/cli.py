@@ -154,7 +154,7 @@ def mesh_resident_bytes(mesh) -> dict:
 def cmd_compress(args: argparse.Namespace) -> int:
     from .events import json_lines, progress_bar
     from .pipeline import compress_mesh, preset
-    from .render import Camera, orbit_cameras, render_neural, render_reference, save_png
+    from .render import orbit_cameras, render_neural, render_reference, save_png
 
     settings = preset(args.preset).with_overrides(
         nodes=args.nodes, encoding=args.encoding, log2_table=args.log2_table, network=args.network, k=args.k,

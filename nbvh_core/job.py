@@ -20,7 +20,6 @@ Events are JSON lines on stdout (see `events.py`); errors end with an `error` ev
 from __future__ import annotations
 
 import json
-import os
 import sys
 import traceback
 from pathlib import Path
@@ -191,4 +190,3 @@ def main(argv: list[str]) -> int:
         return 1
     finally:
         sys.stdout.flush()
-        os.environ.get("NBVH_JOB_DEBUG") and print("job finished", file=sys.stderr)

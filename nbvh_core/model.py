@@ -7,7 +7,7 @@ coordinates (the unit box); `Transform` maps them back.
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -122,9 +122,3 @@ class NeuralBVH(nn.Module):
         return {"config": self.cfg.to_dict(), "nodes": int(len(self.nodes)),
                 "transform": self.transform.to_dict()}
 
-
-def config_from_dict(d: dict) -> ModelConfig:
-    return ModelConfig.from_dict(d)
-
-
-__all__ = ["ModelConfig", "NeuralBVH", "QueryResult", "asdict"]

@@ -27,7 +27,7 @@ from .mesh import Mesh
 from .metrics import Quality, evaluate
 from .model import ModelConfig, NeuralBVH
 from .networks import NetworkConfig
-from .train import TrainConfig, TrainResult, train
+from .train import Cancelled, TrainConfig, TrainResult, train
 
 
 @dataclass
@@ -194,8 +194,6 @@ def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = 
     quality = None
     if evaluate_quality:
         if should_cancel():
-            from .train import Cancelled
-
             raise Cancelled("cancelled before evaluation")
         events({"event": "phase", "phase": "eval",
                 "message": f"{settings.eval_views} views at {settings.eval_resolution}px"})
@@ -221,8 +219,6 @@ def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = 
     size = len(data)
     if out_path is not None:
         if should_cancel():
-            from .train import Cancelled
-
             raise Cancelled("cancelled before saving")
         events({"event": "phase", "phase": "save", "message": str(out_path)})
         size = write_atomic(out_path, data)

@@ -62,8 +62,7 @@ class TrainConfig:
     ray_config: RayConfig = field(default_factory=RayConfig)
 
     def to_dict(self) -> dict:
-        d = asdict(self)
-        return d
+        return asdict(self)
 
 
 @dataclass

@@ -1,9 +1,8 @@
-import numpy as np
 import pytest
 
 from nbvh_core.bvh import build_bvh
 from nbvh_core.exact import ExactTracer
-from nbvh_core.mesh import load_mesh, mesh_from_arrays
+from nbvh_core.mesh import load_mesh
 from nbvh_core.samples_dir import SAMPLE_NAMES, sample_path
 from meshes import icosphere
 
