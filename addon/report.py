@@ -33,6 +33,9 @@ def object_entry(name: str, blender_bytes: dict, job_report: dict) -> dict:
         "mse": q.get("mse"), "silhouette_iou": q.get("silhouette_iou"), "depth_error": q.get("depth_error"),
         "eval_views": q.get("views"), "train_seconds": t.get("seconds"), "device": t.get("device"),
         "settings": job_report.get("settings"), "files": job_report.get("files", {}),
+        # Before training: was the model going to be smaller than the mesh a ray tracer holds? (sizing.assess)
+        "worth_compressing": (job_report.get("assessment") or {}).get("worth_compressing", resident["total"] > nbvh),
+        "assessment": (job_report.get("assessment") or {}).get("message", ""),
     }
 
 
@@ -73,6 +76,7 @@ def write_report(report: dict, out_dir: str | Path, stem: str = "nbvh_report") -
 <tr><th>ratio (Blender mesh / .nbvh, resident / .nbvh)</th><td>{e['ratio_blender_mesh_to_nbvh']:.1f}x, {e['ratio_resident_to_nbvh']:.1f}x</td></tr>
 <tr><th>quality</th><td>image MSE {mse}, silhouette IoU {iou} over {e['eval_views']} views</td></tr>
 <tr><th>training</th><td>{e['train_seconds']} s on {html.escape(str(e['device']))}</td></tr>
+<tr><th>verdict</th><td>{'worth compressing' if e['worth_compressing'] else '<strong>' + html.escape(e['assessment'] or 'not worth compressing') + '</strong>'}</td></tr>
 </table>
 <div class="pair"><figure>{_img_tag(e['files'].get('reference'), 'mesh')}<figcaption>mesh (Embree)</figcaption></figure>
 <figure>{_img_tag(e['files'].get('preview'), 'neural')}<figcaption>neural (.nbvh)</figcaption></figure></div>

@@ -139,18 +139,6 @@ def _install_cancel_handlers():
     return flag.is_set
 
 
-def mesh_resident_bytes(mesh) -> dict:
-    """What a ray tracer holds for the mesh: float32 vertices + int32 indices + float32 vertex normals +
-    a BVH with <= 4 triangles per leaf (32 B nodes)."""
-    from .bvh import build_full_tree, resident_bvh_nodes
-
-    nodes = resident_bvh_nodes(build_full_tree(mesh), 4)
-    out = {"vertices": mesh.n_vertices * 12, "indices": mesh.n_triangles * 12, "normals": mesh.n_vertices * 12,
-           "bvh": nodes * 32}
-    out["total"] = sum(out.values())
-    return out
-
-
 def cmd_compress(args: argparse.Namespace) -> int:
     from .events import json_lines, progress_bar
     from .pipeline import compress_mesh, preset
@@ -172,7 +160,7 @@ def cmd_compress(args: argparse.Namespace) -> int:
     result = compress_mesh(mesh, settings, out, events=sink, should_cancel=_install_cancel_handlers(),
                            checkpoint_path=args.checkpoint)
     summary = result.summary()
-    summary["mesh_resident_bytes"] = mesh_resident_bytes(mesh)
+    summary["mesh_resident_bytes"] = result.assessment["resident"]
     summary["source_file_bytes"] = _resolve_mesh(args.mesh).stat().st_size
     stem = out.with_suffix("")
     Path(f"{stem}.json").write_text(json.dumps(summary, indent=2))
@@ -193,6 +181,8 @@ def cmd_compress(args: argparse.Namespace) -> int:
                   f" depth error {q.depth_error:.5f} (unit box)")
         t = result.training
         print(f"training: {t.steps} steps, {t.seconds:.1f} s, {t.samples_per_s:,.0f} samples/s on {t.device}")
+        if not result.assessment["worth_compressing"]:
+            print(f"note: {result.assessment['message']}")
     return 0
 
 
@@ -217,6 +207,7 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 def cmd_info(args: argparse.Namespace) -> int:
     from .fileformat import read_info
+    from .sizing import mesh_resident_bytes
 
     info = read_info(args.model)
     meta = info.metadata

@@ -98,7 +98,7 @@ class _LoadedResult:
 
 def run_job(request: dict, events, should_cancel) -> dict:
     """Run one request (see module docstring); returns the `result` event it emits."""
-    from .cli import mesh_resident_bytes
+    from .sizing import mesh_resident_bytes
     from .exact import ExactTracer
     from .mesh import mesh_from_arrays
     from .pipeline import compress_mesh, preset
@@ -154,7 +154,8 @@ def run_job(request: dict, events, should_cancel) -> dict:
     _atomic_bytes(Path(files["points"]), buf.getvalue())
     report = result.summary()
     report["name"] = name
-    report["mesh_resident_bytes"] = mesh_resident_bytes(mesh)
+    report["mesh_resident_bytes"] = (result.assessment["resident"] if getattr(result, "assessment", None)
+                                     else mesh_resident_bytes(mesh))
     report["files"] = files
     _atomic_bytes(Path(files["report"]), json.dumps(report, indent=2).encode())
     event = {"event": "result", "name": name, "path": str(model_path), "bytes": result.file_bytes,

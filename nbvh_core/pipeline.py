@@ -163,13 +163,14 @@ class CompressResult:
     model: NeuralBVH | None = None
     why: str = ""
     target_met: bool | None = None
+    assessment: dict = field(default_factory=dict)  # sizing.Assessment: is the model smaller than the mesh?
 
     def summary(self) -> dict:
         return {"path": self.path, "file_bytes": self.file_bytes, "components": self.components,
                 "quality": self.quality.to_dict() if self.quality else None,
                 "training": {k: v for k, v in dataclasses.asdict(self.training).items() if k != "history"},
                 "settings": self.settings.to_dict(), "seconds": self.seconds, "why": self.why,
-                "target_met": self.target_met}
+                "target_met": self.target_met, "assessment": self.assessment}
 
 
 def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = None,
@@ -177,10 +178,15 @@ def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = 
                   evaluate_quality: bool = True, checkpoint_path: str | Path | None = None) -> CompressResult:
     """Compress `mesh` with `settings`; write `out_path` (atomically) when given. Raises `train.Cancelled`,
     `train.TrainingDiverged` (nothing written in either case)."""
+    from .sizing import assess
+
     settings, why = resolve(settings)
     seconds = {}
     t = time.perf_counter()
     events({"event": "phase", "phase": "plan", "message": why})
+    assessment = assess(mesh, settings)
+    if not assessment.worth_compressing:  # reported, not refused: the user asked for this model
+        events({"event": "warning", "message": assessment.message})
     events({"event": "phase", "phase": "bvh", "message": f"{mesh.n_triangles} triangles -> {settings.nodes} nodes"})
     bvh = build_bvh(mesh, settings.nodes)
     tracer = ExactTracer(mesh)
@@ -204,6 +210,7 @@ def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = 
         "source": {"name": mesh.name, "triangles": mesh.n_triangles, "vertices": mesh.n_vertices},
         "settings": settings.to_dict(),
         "why": why,
+        "assessment": assessment.to_dict(),
         "target_met": (None if settings.target_mse is None or quality is None else quality.mse <= settings.target_mse),
         "training": {"steps": tr.steps, "seconds": round(tr.seconds, 2), "samples": tr.samples,
                      "samples_per_s": round(tr.samples_per_s), "final_loss": tr.final_loss, "device": tr.device,
@@ -225,7 +232,7 @@ def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = 
     result = CompressResult(path=str(out_path) if out_path else None, file_bytes=size,
                             components=component_bytes(data), quality=quality, training=tr, settings=settings,
                             seconds={k: round(v, 2) for k, v in seconds.items()}, model=model, why=why,
-                            target_met=metadata["target_met"])
+                            target_met=metadata["target_met"], assessment=assessment.to_dict())
     events({"event": "result", "path": result.path, "bytes": size,
             "quality": json.loads(json.dumps(metadata["quality"])), "train_seconds": round(tr.seconds, 2)})
     return result

@@ -38,3 +38,27 @@ def test_target_maps_to_a_preset_and_is_checked(sample_meshes, tmp_path):
     assert chosen.log2_table == PRESETS["preview"].log2_table and "target" in why
     res = compress_mesh(sample_meshes["blob"], preset("tiny").with_overrides(target_mse=0.5), tmp_path / "t.nbvh")
     assert res.target_met is (res.quality.mse <= 0.5)
+
+
+def test_small_mesh_is_reported_not_worth_compressing(sample_meshes):
+    from nbvh_core.sizing import assess, mesh_resident_bytes
+
+    from meshes import icosphere
+
+    cube_like = icosphere(1)  # 80 triangles: a few KB as a mesh
+    verdict = assess(cube_like, preset("default"))
+    assert not verdict.worth_compressing and "not worth compressing" in verdict.message
+    assert verdict.resident == mesh_resident_bytes(cube_like) and verdict.resident["total"] < verdict.model_bytes
+    detailed = assess(sample_meshes["studs"], preset("default"))
+    assert detailed.worth_compressing and detailed.resident["total"] > 10 * detailed.model_bytes
+
+
+def test_verdict_reaches_the_result_and_events(tmp_path):
+    from meshes import icosphere
+
+    events = []
+    res = compress_mesh(icosphere(2), preset("tiny"), tmp_path / "s.nbvh", events=events.append,
+                        evaluate_quality=False)
+    assert res.assessment["worth_compressing"] is False
+    assert any(e["event"] == "warning" and "not worth compressing" in e["message"] for e in events)
+    assert (tmp_path / "s.nbvh").exists()  # reported, not refused
