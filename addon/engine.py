@@ -72,18 +72,12 @@ def start(context, objects, req: Request, python: str | None = None) -> tuple[Se
     depsgraph = context.evaluated_depsgraph_get()
     for obj in objects:
         try:
-            verts, tris = export.evaluated_triangles(obj, depsgraph)
+            # Bytes of the mesh as Blender stores it: the evaluated one, so modifiers count.
+            verts, tris, session.blender_bytes[obj.name] = export.evaluated_triangles(obj, depsgraph)
         except export.ExportError as exc:
             refusals.append(str(exc))
             continue
         name = safe_name(obj.name)
-        # Size of the mesh as Blender stores it (the evaluated one, for modifiers count).
-        obj_eval = obj.evaluated_get(depsgraph)
-        mesh = obj_eval.to_mesh()
-        try:
-            session.blender_bytes[obj.name] = export.mesh_data_bytes(mesh)
-        finally:
-            obj_eval.to_mesh_clear()
         job_request = {"name": name, "out_dir": str(out_dir), "proxy_points": req.proxy_points,
                        "settings": {"preset": req.preset, **req.overrides},
                        "camera": previews.camera_for(context, obj, req.image_size, req.image_size)}

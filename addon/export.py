@@ -14,8 +14,9 @@ class ExportError(ValueError):
     """The object cannot be compressed; the message names it and says why."""
 
 
-def evaluated_triangles(obj, depsgraph) -> tuple[np.ndarray, np.ndarray]:
-    """(V, 3) float32 vertices and (F, 3) int32 triangle indices of `obj` as evaluated in `depsgraph`.
+def evaluated_triangles(obj, depsgraph) -> tuple[np.ndarray, np.ndarray, dict]:
+    """(V, 3) float32 vertices, (F, 3) int32 triangle indices and `mesh_data_bytes` of `obj` as evaluated in
+    `depsgraph` (one evaluation serves both).
 
     Coordinates are object-local (the world matrix is applied by the previews, so the result sits on the
     original). Raises ExportError for objects that have no surface.
@@ -41,13 +42,14 @@ def evaluated_triangles(obj, depsgraph) -> tuple[np.ndarray, np.ndarray]:
         mesh.vertices.foreach_get("co", verts)
         tris = np.empty(n_t * 3, np.int32)
         mesh.loop_triangles.foreach_get("vertices", tris)
+        blender_bytes = mesh_data_bytes(mesh)
     finally:
         obj_eval.to_mesh_clear()
     verts = verts.reshape(-1, 3)
     if not np.isfinite(verts).all():
         raise ExportError(f"'{obj.name}' has {int((~np.isfinite(verts).all(1)).sum())} vertices with NaN or "
                           "infinite coordinates")
-    return verts, tris.reshape(-1, 3)
+    return verts, tris.reshape(-1, 3), blender_bytes
 
 
 def mesh_data_bytes(mesh) -> dict:

@@ -243,8 +243,9 @@ def test_bad_selections_refused_with_names():
 
 def test_text_converts_to_mesh():
     export = ADDON["export"]
-    verts, tris = export.evaluated_triangles(bpy.data.objects["Label"], bpy.context.evaluated_depsgraph_get())
+    verts, tris, nbytes = export.evaluated_triangles(bpy.data.objects["Label"], bpy.context.evaluated_depsgraph_get())
     assert len(verts) > 10 and tris.shape[1] == 3 and tris.max() < len(verts)
+    assert nbytes["positions"] == len(verts) * 12
 
 
 def main() -> int:

@@ -165,9 +165,7 @@ def cmd_compress(args: argparse.Namespace) -> int:
     stem = out.with_suffix("")
     Path(f"{stem}.json").write_text(json.dumps(summary, indent=2))
     cam = orbit_cameras(1)[0] if args.view is None else orbit_cameras(args.views or 16)[args.view]
-    from .exact import ExactTracer
-
-    ref = render_reference(ExactTracer(mesh), cam, args.size, args.size)
+    ref = render_reference(result.tracer, cam, args.size, args.size)
     neu = render_neural(result.model, cam, args.size, args.size)
     save_png(f"{stem}.preview.png", np.concatenate([ref.image, neu.image], axis=1))
     if not args.events:

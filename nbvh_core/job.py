@@ -81,6 +81,8 @@ class _LoadedResult:
         from .train import TrainResult
 
         self.model = model
+        self.tracer = None  # no mesh was traced for a loaded model
+        self.assessment = None
         self.file_bytes = info.total_bytes
         self.components = info.components
         meta = info.metadata
@@ -141,7 +143,7 @@ def run_job(request: dict, events, should_cancel) -> dict:
         cam, w, h = orbit_cameras(1)[0], 256, 256
     events({"event": "phase", "phase": "preview", "message": f"{w}x{h} image, proxy points"})
     neural = render_neural(model, cam, w, h)
-    reference = render_reference(ExactTracer(mesh), cam, w, h)
+    reference = render_reference(result.tracer or ExactTracer(mesh), cam, w, h)
     files = {"model": str(model_path), "preview": str(out_dir / f"{name}.preview.png"),
              "reference": str(out_dir / f"{name}.reference.png"), "points": str(out_dir / f"{name}.points.npy"),
              "report": str(out_dir / f"{name}.report.json")}
@@ -154,8 +156,7 @@ def run_job(request: dict, events, should_cancel) -> dict:
     _atomic_bytes(Path(files["points"]), buf.getvalue())
     report = result.summary()
     report["name"] = name
-    report["mesh_resident_bytes"] = (result.assessment["resident"] if getattr(result, "assessment", None)
-                                     else mesh_resident_bytes(mesh))
+    report["mesh_resident_bytes"] = result.assessment["resident"] if result.assessment else mesh_resident_bytes(mesh)
     report["files"] = files
     _atomic_bytes(Path(files["report"]), json.dumps(report, indent=2).encode())
     event = {"event": "result", "name": name, "path": str(model_path), "bytes": result.file_bytes,

@@ -161,6 +161,7 @@ class CompressResult:
     settings: Settings
     seconds: dict = field(default_factory=dict)
     model: NeuralBVH | None = None
+    tracer: ExactTracer | None = None  # the mesh's exact tracer, for callers that render the reference too
     why: str = ""
     target_met: bool | None = None
     assessment: dict = field(default_factory=dict)  # sizing.Assessment: is the model smaller than the mesh?
@@ -231,7 +232,7 @@ def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = 
         size = write_atomic(out_path, data)
     result = CompressResult(path=str(out_path) if out_path else None, file_bytes=size,
                             components=component_bytes(data), quality=quality, training=tr, settings=settings,
-                            seconds={k: round(v, 2) for k, v in seconds.items()}, model=model, why=why,
+                            seconds={k: round(v, 2) for k, v in seconds.items()}, model=model, tracer=tracer, why=why,
                             target_met=metadata["target_met"], assessment=assessment.to_dict())
     events({"event": "result", "path": result.path, "bytes": size,
             "quality": json.loads(json.dumps(metadata["quality"])), "train_seconds": round(tr.seconds, 2)})
