@@ -1,6 +1,6 @@
 """Where the time goes: one training step and one neural render, split by stage, for each config.
 
-    .venv/bin/python bench/profile_neural.py [--asset bunny] [--rays 4096] [--size 256]
+    .venv/bin/python bench/profile_neural.py [--asset bunny] [--rays 4096] [--size 256] [--paths reference,fast]
 
 Training step stages: ray sampling + exact labelling (Embree, traversal), encoding forward, network forward +
 loss, backward (all of it), optimizer step. Render stages: traversal (LeafStream.next), segment points +
@@ -20,6 +20,7 @@ import torch
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from nbvh_core import kernels  # noqa: E402
 from nbvh_core.bvh import build_bvh  # noqa: E402
 from nbvh_core.exact import ExactTracer  # noqa: E402
 from nbvh_core.mesh import load_mesh  # noqa: E402
@@ -97,7 +98,10 @@ def main() -> None:
     ap.add_argument("--asset", default="bunny")
     ap.add_argument("--rays", type=int, default=4096)
     ap.add_argument("--size", type=int, default=256)
+    ap.add_argument("--paths", default="reference,fast", help="comma-separated: reference, fast")
+    ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "profile.md"))
     args = ap.parse_args()
+    paths = args.paths.split(",")
     mesh = load_mesh(sample_path(args.asset))
     s = preset("default")
     bvh = build_bvh(mesh, s.nodes)
@@ -105,32 +109,34 @@ def main() -> None:
     tree = TorchBVH.from_bvh(bvh)
     lines = [f"# Profile: one training step and one {args.size}x{args.size} render, by stage\n",
              f"Asset `{args.asset}` ({mesh.n_triangles:,} triangles), {s.nodes} nodes, {args.rays} rays per step, "
-             f"2-core CPU, torch {torch.__version__} ({torch.get_num_threads()} threads), reference (pure torch) path. "
+             f"2-core CPU, torch {torch.__version__} ({torch.get_num_threads()} threads); paths: "
+             + "; ".join(f"{p} = {kernels.describe() if p == 'fast' else 'reference (pure torch)'}" for p in paths) + ". "
              "Models are untrained (random weights), so which leaf stops a ray is arbitrary: the render rows show the "
              "cost split per segment, not a trained model's rays/s (see samples_default.md for those). Command: "
              f"`.venv/bin/python bench/profile_neural.py --asset {args.asset}`.\n",
              "## Training step (median of 5)\n",
-             "| config | samples | rays+labels | encoding fwd | network fwd+loss | backward | optimizer | total | samples/s |",
-             "|---|---|---|---|---|---|---|---|---|"]
-    render_lines = ["\n## Render\n", "| config | segments | traversal | encoding | network | bookkeeping | total | rays/s | segments/s |",
-                    "|---|---|---|---|---|---|---|---|---|"]
-    for enc, net, log2 in CONFIGS:
-        torch.manual_seed(0)
-        model = NeuralBVH(bvh.nodes, s.with_overrides(encoding=enc, network=net, log2_table=log2).model_config(),
-                          mesh.transform)
-        med, n = profile_train(model, bvh, tracer, tree, args.rays)
-        total = sum(med.values())
-        lines.append(f"| {enc}+{net} (T=2^{log2}) | {n:,.0f} | " + " | ".join(f"{1000 * v:.0f} ms" for v in med.values())
-                     + f" | {1000 * total:.0f} ms | {n / total:,.0f} |")
-        if enc == "hashvqad":
-            model.encoding.freeze()
-        model.eval()
-        rt, segs = profile_render(model, args.size)
-        render_lines.append(f"| {enc}+{net} | {segs:,} | " + " | ".join(f"{1000 * rt[k]:.0f} ms" for k in
-                                                                     ("traversal", "encoding", "network", "bookkeeping", "total"))
-                            + f" | {args.size ** 2 / rt['total']:,.0f} | {segs / rt['total']:,.0f} |")
-        print(lines[-1], render_lines[-1], flush=True)
-    out = ROOT / "bench" / "results" / "profile.md"
+             "| config | path | samples | rays+labels | encoding fwd | network fwd+loss | backward | optimizer | total | samples/s |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    render_lines = ["\n## Render\n", "| config | path | segments | traversal | encoding | network | bookkeeping | total | rays/s | segments/s |",
+                    "|---|---|---|---|---|---|---|---|---|---|"]
+    for (enc, net, log2), path in ((c, p) for c in CONFIGS for p in paths):
+        with kernels.using_path(path):
+            torch.manual_seed(0)
+            model = NeuralBVH(bvh.nodes, s.with_overrides(encoding=enc, network=net, log2_table=log2).model_config(),
+                              mesh.transform)
+            med, n = profile_train(model, bvh, tracer, tree, args.rays)
+            total = sum(med.values())
+            lines.append(f"| {enc}+{net} (T=2^{log2}) | {path} | {n:,.0f} | " + " | ".join(f"{1000 * v:.0f} ms" for v in med.values())
+                         + f" | {1000 * total:.0f} ms | {n / total:,.0f} |")
+            if enc == "hashvqad":
+                model.encoding.freeze()
+            model.eval()
+            rt, segs = profile_render(model, args.size)
+            render_lines.append(f"| {enc}+{net} | {path} | {segs:,} | " + " | ".join(f"{1000 * rt[k]:.0f} ms" for k in
+                                                                         ("traversal", "encoding", "network", "bookkeeping", "total"))
+                                + f" | {args.size ** 2 / rt['total']:,.0f} | {segs / rt['total']:,.0f} |")
+            print(lines[-1], render_lines[-1], flush=True)
+    out = Path(args.out)
     out.write_text("\n".join(lines + render_lines) + "\n")
     print(f"wrote {out}")
 

@@ -273,6 +273,9 @@ def cmd_samples(args: argparse.Namespace) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="nbvh", description="Neural BVH geometry compression")
+    p.add_argument("--path", choices=["fast", "reference"],
+                   help="compute path: fused C++ kernels (fast, default) or pure torch (reference); "
+                        "also env NBVH_PATH")
     sub = p.add_subparsers(dest="command", required=True)
     q = sub.add_parser("inspect", help="BVH + training rays of a mesh: report and images")
     q.add_argument("mesh", help="mesh file (OBJ/PLY/STL/OFF/GLB/glTF, optionally .gz) or a bundled sample name")
@@ -348,6 +351,10 @@ def main(argv: list[str] | None = None) -> int:
 
         return job_main(argv[1:])
     args = build_parser().parse_args(argv)
+    if args.path:
+        from . import kernels
+
+        kernels.set_path(args.path)
     try:
         return args.func(args)
     except Cancelled as exc:

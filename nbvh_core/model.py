@@ -118,6 +118,16 @@ class NeuralBVH(nn.Module):
         out["network"] = sum(p.numel() for p in self.network.parameters()) * float_bytes
         return out
 
+    def flops_per_segment(self) -> dict[str, int]:
+        """Floating-point operations (a multiply-add = 2) to evaluate one (ray, leaf) segment, by part:
+        'encoding' (k points x L levels x 8 corners x F weighted adds; the integer hash arithmetic is not
+        counted) and 'network' (every Linear layer's multiply-adds and bias adds; KMLP runs k - 1 times)."""
+        enc, net = self.cfg.encoding, self.cfg.network
+        per_run = sum(2 * m.in_features * m.out_features + m.out_features
+                      for m in self.network.modules() if isinstance(m, nn.Linear))
+        runs = net.k - 1 if net.kind == "kmlp" else 1
+        return {"encoding": 2 * net.k * enc.levels * 8 * enc.features, "network": runs * per_run}
+
     def describe(self) -> dict:
         return {"config": self.cfg.to_dict(), "nodes": int(len(self.nodes)),
                 "transform": self.transform.to_dict()}

@@ -215,6 +215,7 @@ def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = 
         "target_met": (None if settings.target_mse is None or quality is None else quality.mse <= settings.target_mse),
         "training": {"steps": tr.steps, "seconds": round(tr.seconds, 2), "samples": tr.samples,
                      "samples_per_s": round(tr.samples_per_s), "final_loss": tr.final_loss, "device": tr.device,
+                     "compute_path": tr.compute_path,
                      "soft_loss_before_freeze": tr.soft_loss_before_freeze, "frozen_loss": tr.frozen_loss,
                      "finetuned_loss": tr.finetuned_loss},
         "quality": quality.to_dict() if quality else None,

@@ -23,6 +23,7 @@ from typing import Callable
 import numpy as np
 import torch
 
+from . import kernels
 from .bvh import BVH
 from .events import EventSink, null_sink
 from .exact import ExactTracer
@@ -77,6 +78,7 @@ class TrainResult:
     soft_loss_before_freeze: float | None = None
     frozen_loss: float | None = None  # right after the freeze
     finetuned_loss: float | None = None  # at the end, after the hard fine-tune
+    compute_path: str = ""  # kernels.describe(): fast (fused kernels) or reference (pure torch)
 
 
 def pick_device(name: str = "auto") -> torch.device:
@@ -178,7 +180,8 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
                           "torch_rng": torch.get_rng_state(), "train_config": cfg.to_dict()}, Path(checkpoint_path))
 
     events({"event": "phase", "phase": "train",
-            "message": f"{model.cfg.encoding.kind}+{model.cfg.network.kind}, {cfg.labels} labels, on {device}"})
+            "message": f"{model.cfg.encoding.kind}+{model.cfg.network.kind}, {cfg.labels} labels, on {device}, "
+                       f"{kernels.describe(device)}"})
     t0 = time.perf_counter() - elapsed_before
     last_emit = 0.0
     n_samples = 0
@@ -242,7 +245,7 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
     run_time = seconds - elapsed_before
     result = TrainResult(steps=step, seconds=seconds, samples=n_samples,
                          samples_per_s=n_samples / max(run_time, 1e-9), final_loss=ema if ema is not None else loss_val,
-                         device=str(device), history=history)
+                         device=str(device), history=history, compute_path=kernels.describe(device))
     events({"event": "progress", "phase": phase, "step": step, "total": cfg.steps, "fraction": 1.0,
             "loss": round(result.final_loss, 6), "samples_per_s": round(result.samples_per_s, 1),
             "elapsed_s": round(seconds, 2), "eta_s": 0.0})

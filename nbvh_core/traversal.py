@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from . import kernels
 from .bvh import BVH
 
 
@@ -35,6 +36,13 @@ class TorchBVH:
     left: torch.Tensor
     leaf: torch.Tensor
     max_depth: int
+    _int32: tuple | None = None
+
+    def int32_arrays(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(left, leaf) as contiguous int32 (what the C++ kernels read); cached."""
+        if self._int32 is None:
+            self._int32 = (self.left.to(torch.int32).contiguous(), self.leaf.to(torch.int32).contiguous())
+        return self._int32
 
     @staticmethod
     def from_nodes(nodes: np.ndarray, device: str | torch.device = "cpu") -> "TorchBVH":
@@ -116,6 +124,8 @@ def leaves_along_rays(tree: TorchBVH, rays_o: torch.Tensor, rays_d: torch.Tensor
     rays_o, rays_d: (N, 3) float32 on tree.device (directions need not be unit length; t is in units of
     |rays_d|); t_max: (N,) float32 or None. Leaves with t_enter > t_max are left out.
     """
+    if kernels.fast_enabled(rays_o.device):
+        return _leaves_along_rays_fast(tree, rays_o, rays_d, t_max)
     n = rays_o.shape[0]
     dev = rays_o.device
     inv_d = _inverse(rays_d)
@@ -153,6 +163,30 @@ def leaves_along_rays(tree: TorchBVH, rays_o: torch.Tensor, rays_d: torch.Tensor
     return LeafHits(ray=ray, leaf=tree.leaf[node], node=node, t_enter=t_enter, t_exit=t_exit, offsets=offsets)
 
 
+def _leaves_along_rays_fast(tree: TorchBVH, rays_o: torch.Tensor, rays_d: torch.Tensor,
+                            t_max: torch.Tensor | None) -> LeafHits:
+    """`leaves_along_rays` by the C++ kernel: a per-ray stack loop, counted, then filled in sorted order."""
+    lib, p = kernels.load(), kernels.ptr
+    n = rays_o.shape[0]
+    o = rays_o.to(torch.float32).contiguous()
+    inv = _inverse(rays_d.to(torch.float32)).contiguous()
+    tm = None if t_max is None else t_max.to(torch.float32).contiguous()
+    left, leaf = tree.int32_arrays()
+    lo, hi = tree.lo.contiguous(), tree.hi.contiguous()
+    counts = torch.zeros(n, dtype=torch.int64)
+    args = (p(o), p(inv), n, p(tm), p(lo), p(hi), p(left), p(leaf), tree.max_depth + 2)
+    lib.nbvh_leaves_along_rays(*args, p(counts), None, None, None, None, kernels.threads())
+    offsets = torch.zeros(n + 1, dtype=torch.int64)
+    offsets[1:] = torch.cumsum(counts, 0)
+    k = int(offsets[-1])
+    node = torch.empty(k, dtype=torch.int64)
+    t_enter = torch.empty(k, dtype=torch.float32)
+    t_exit = torch.empty(k, dtype=torch.float32)
+    lib.nbvh_leaves_along_rays(*args, p(counts), p(offsets), p(node), p(t_enter), p(t_exit), kernels.threads())
+    ray = torch.repeat_interleave(torch.arange(n), counts)
+    return LeafHits(ray=ray, leaf=tree.leaf[node], node=node, t_enter=t_enter, t_exit=t_exit, offsets=offsets)
+
+
 class LeafStream:
     """Front-to-back leaf stream for a batch of rays, with early termination (see module docstring).
 
@@ -172,9 +206,11 @@ class LeafStream:
         self.t_max = (torch.full((n,), torch.inf, device=dev) if t_max is None
                       else t_max.to(torch.float32).clone())
         depth = tree.max_depth + 2
-        self.stack_node = torch.zeros((n, depth), dtype=torch.int64, device=dev)
+        self.fast = kernels.fast_enabled(dev)
+        # The C++ stepper keeps int32 stacks (contiguous, one row per ray); the reference int64.
+        self.stack_node = torch.zeros((n, depth), dtype=torch.int32 if self.fast else torch.int64, device=dev)
         self.stack_t = torch.zeros((n, depth), dtype=torch.float32, device=dev)
-        self.sp = torch.zeros(n, dtype=torch.int64, device=dev)
+        self.sp = torch.zeros(n, dtype=torch.int32 if self.fast else torch.int64, device=dev)
         # Push the root for rays that enter it.
         entered, te, _ = ray_box(rays_o, self.inv_d, tree.lo[:1].expand(n, 3), tree.hi[:1].expand(n, 3),
                                  self.t_max)
@@ -199,6 +235,8 @@ class LeafStream:
 
         Rays whose stacks run empty without finding another leaf are absent (and `done`).
         """
+        if self.fast:
+            return self._next_fast()
         tree = self.tree
         dev = self.sp.device
         out_ray, out_leaf, out_te, out_tx = [], [], [], []
@@ -250,3 +288,23 @@ class LeafStream:
             return empty, empty, torch.empty(0, device=dev), torch.empty(0, device=dev)
         ray = torch.cat(out_ray)
         return ray, torch.cat(out_leaf), torch.cat(out_te), torch.cat(out_tx)
+
+    def _next_fast(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """`next()` by the C++ kernel: each live ray pops its own stack until its next leaf (same order)."""
+        lib, p = kernels.load(), kernels.ptr
+        tree = self.tree
+        n = self.sp.shape[0]
+        if not hasattr(self, "_o"):
+            self._o = self.rays_o.to(torch.float32).contiguous()
+            self._inv = self.inv_d.to(torch.float32).contiguous()
+            self._out_leaf = torch.empty(n, dtype=torch.int32)
+            self._out_te = torch.empty(n, dtype=torch.float32)
+            self._out_tx = torch.empty(n, dtype=torch.float32)
+        left, leaf = tree.int32_arrays()
+        self.t_max = self.t_max.contiguous()
+        lib.nbvh_stream_next(p(self._o), p(self._inv), n, p(tree.lo.contiguous()), p(tree.hi.contiguous()), p(left),
+                             p(leaf), p(self.stack_node), p(self.stack_t), p(self.sp), p(self.t_max),
+                             self.stack_node.shape[1], p(self._out_leaf), p(self._out_te), p(self._out_tx),
+                             kernels.threads())
+        ray = torch.nonzero(self._out_leaf >= 0).squeeze(1)
+        return ray, self._out_leaf[ray].to(torch.int64), self._out_te[ray], self._out_tx[ray]

@@ -17,4 +17,7 @@ if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
   "$VENV/bin/python" -m pip install -q -e "$NBVH_ROOT[dev]"
   echo "$want" > "$stamp"
 fi
+# The fused C++ kernels of the fast path (seconds; cached per source and CPU; a machine without g++ gets a
+# warning and the reference path).
+"$VENV/bin/python" -m nbvh_core.kernels build >/dev/null
 export NBVH_PY="$VENV/bin/python"

@@ -4,14 +4,17 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from .. import kernels
 from .base import EncodingConfig, corner_indices, gather_weighted_sum, level_scales
+from .fused import GridSpec, fused_encode
 
 
 class HashGrid(nn.Module):
     """points (N, 3) in [0, 1]^3 -> features (N, L * F), level-major.
 
     Parameters: `table` (L, T, F). The 8 corner lookups and the trilinear sum of all levels run as one
-    `gather_weighted_sum` (gather + weighted sum; its backward scatters with index_add_, no sort).
+    `gather_weighted_sum` (gather + weighted sum; its backward scatters with index_add_, no sort) on the reference
+    path, and as one fused C++ pass (`fused.fused_encode`) on the fast path (`nbvh_core.kernels`).
     """
 
     def __init__(self, cfg: EncodingConfig):
@@ -20,6 +23,7 @@ class HashGrid(nn.Module):
         self.scales = level_scales(cfg)
         t = cfg.table_size
         self.table = nn.Parameter(torch.empty(cfg.levels, t, cfg.features).uniform_(-cfg.init_scale, cfg.init_scale))
+        self._spec: GridSpec | None = None
 
     @property
     def out_dim(self) -> int:
@@ -34,6 +38,17 @@ class HashGrid(nn.Module):
         return idx
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
+        if kernels.fast_enabled(points.device) and self.table.dtype == torch.float32:
+            return self._fused_forward(points)
+        return self.reference_forward(points)
+
+    def _fused_forward(self, points: torch.Tensor) -> torch.Tensor:
+        if self._spec is None:
+            self._spec = GridSpec(self.cfg, self._vertex_table_size())
+        return fused_encode(points, self.row_table(), self._spec)
+
+    def reference_forward(self, points: torch.Tensor) -> torch.Tensor:
+        """The pure torch lookup (the reference the fused kernel is tested against)."""
         cfg = self.cfg
         idx, w = corner_indices(points, self.scales, self._vertex_table_size())
         rows = self.vertex_rows(idx)

@@ -24,6 +24,7 @@ import torch
 from torch import nn
 
 from .base import MASK32, PRIMES, EncodingConfig
+from .fused import GridSpec, fused_encode
 from .hashgrid import HashGrid
 
 
@@ -75,6 +76,13 @@ class HashVQAD(HashGrid):
         rows = self.table[:, self._group_candidates()]  # (L, T, t, F)
         soft = torch.einsum("lmac,lacf->lmaf", probs, rows)
         return soft.reshape(cfg.levels, cfg.index_size, cfg.features)
+
+    def _fused_forward(self, points: torch.Tensor) -> torch.Tensor:
+        if self._spec is None:
+            self._spec = GridSpec(self.cfg, self._vertex_table_size())
+        if self.frozen:  # vertex -> code -> candidate row, inside the kernel
+            return fused_encode(points, self.table, self._spec, self.codes, self.cfg.table_size)
+        return fused_encode(points, self.row_table(), self._spec)
 
     def vertex_rows(self, idx: torch.Tensor) -> torch.Tensor:
         if not self.frozen:

@@ -1,0 +1,237 @@
+"""Speed of the neural path: fast (fused kernels) against reference (pure torch) and Embree, in one run.
+
+    .venv/bin/python bench/bench_speed.py [--asset bunny] [--train-s 60] [--quick] [--device cpu|cuda]
+
+1. Trains one model with the preset (default: `default`) on the fast path for --train-s seconds, so that rays end at
+   realistic leaves (a random model stops rays arbitrarily).
+2. Training throughput: the same steps (same seed and rays) on each path, leaf samples/s (median step time).
+3. Rendering: 512x512 and 1000x1000 images from one orbit view on each path (same model): seconds, rays/s, leaf
+   segments/s, and Embree's first hits on the same primary rays (our embreex wrapper, normals included).
+4. Arithmetic limit: FLOPs per segment of the model (`NeuralBVH.flops_per_segment`) against the measured peak of
+   a large float32 matrix multiply (torch.mm 4096^3) in the same run: limit segments/s = peak / FLOPs per segment.
+
+Writes bench/results/speed.md, speed.csv, speed.png (or speed_quick.* with --quick).
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import platform
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from nbvh_core import kernels  # noqa: E402
+from nbvh_core.bvh import build_bvh  # noqa: E402
+from nbvh_core.exact import ExactTracer  # noqa: E402
+from nbvh_core.mesh import load_mesh  # noqa: E402
+from nbvh_core.model import NeuralBVH  # noqa: E402
+from nbvh_core.pipeline import preset  # noqa: E402
+from nbvh_core.render import orbit_cameras  # noqa: E402
+from nbvh_core.samples import label_samples, root_box, sample_rays  # noqa: E402
+from nbvh_core.samples_dir import sample_path  # noqa: E402
+from nbvh_core.train import TrainConfig, samples_loss, train  # noqa: E402
+
+
+def matmul_peak_gflops(device: torch.device, n: int = 4096, repeat: int = 5) -> float:
+    a, b = torch.randn(n, n, device=device), torch.randn(n, n, device=device)
+    for _ in range(2):
+        a @ b
+    sync(device)
+    t = time.perf_counter()
+    for _ in range(repeat):
+        a @ b
+    sync(device)
+    return 2 * n ** 3 * repeat / (time.perf_counter() - t) / 1e9
+
+
+def sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize()
+
+
+def train_step_times(model, bvh, tracer, cfg: TrainConfig, device, steps: int) -> tuple[float, float]:
+    """Median seconds per full training step (rays + labels + forward + backward + Adam) and samples per step."""
+    rng = np.random.default_rng(cfg.seed)
+    lo, hi = root_box(bvh)
+    opt = torch.optim.Adam(model.parameters(), lr=1e-4)
+    times, counts = [], []
+    from nbvh_core.traversal import TorchBVH
+
+    tree = TorchBVH.from_bvh(bvh)
+    for i in range(steps + 2):
+        sync(device)
+        t = time.perf_counter()
+        batch = label_samples(bvh, tracer, *sample_rays(lo, hi, cfg.rays_per_step, rng, cfg.ray_config), cfg.labels,
+                              tree=tree)
+        loss, _ = samples_loss(model, batch, device)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        sync(device)
+        if i >= 2:  # warm-up steps (allocator, first kernel calls) left out
+            times.append(time.perf_counter() - t)
+            counts.append(len(batch))
+    return statistics.median(times), statistics.median(counts)
+
+
+def render_time(model, o, d, device, repeat: int) -> tuple[float, int, int]:
+    """Best-of-`repeat` seconds to query all rays, hits, segments evaluated."""
+    best, q = float("inf"), None
+    for _ in range(repeat):
+        sync(device)
+        t = time.perf_counter()
+        q = model.query(o, d)
+        sync(device)
+        best = min(best, time.perf_counter() - t)
+    return best, int(q.hit.sum()), q.leaves_evaluated
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--asset", default="bunny")
+    ap.add_argument("--preset", default="default")
+    ap.add_argument("--train-s", type=float, default=60.0)
+    ap.add_argument("--steps", type=int, default=20, help="timed training steps per path")
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--quick", action="store_true", help="smoke run: tiny budgets, 128x128 renders")
+    args = ap.parse_args()
+    device = torch.device(args.device)
+    if args.quick:
+        args.train_s, args.steps = min(args.train_s, 5.0), 3
+    sizes = (128,) if args.quick else (512, 1000)
+    mesh = load_mesh(sample_path(args.asset))
+    s = preset(args.preset)
+    bvh = build_bvh(mesh, s.nodes)
+    tracer = ExactTracer(mesh)
+    peak = matmul_peak_gflops(device)
+    torch.manual_seed(0)
+    model = NeuralBVH(bvh.nodes, s.model_config(), mesh.transform)
+    tc = s.train_config()
+    tc.steps, tc.time_limit_s, tc.device = None, args.train_s, args.device
+    with kernels.using_path("fast"):
+        tr = train(model, bvh, tracer, tc)
+    model.eval()
+    flops = model.flops_per_segment()
+    per_seg = sum(flops.values())
+    rows = []
+    step_cfg = s.train_config()
+    step_cfg.device = args.device
+    for path in kernels.PATHS:
+        with kernels.using_path(path):
+            m = NeuralBVH(bvh.nodes, s.model_config(), mesh.transform).to(device)
+            m.load_state_dict(model.state_dict())
+            if hasattr(m.encoding, "freeze") and getattr(model.encoding, "frozen", False):
+                pass
+            step_s, n = train_step_times(m, bvh, tracer, step_cfg, device, args.steps)
+            rows.append({"what": "train step", "path": kernels.describe(device), "size": "", "seconds": step_s,
+                         "items": n, "per_s": n / step_s, "unit": "leaf samples/s"})
+            print(rows[-1], flush=True)
+    cam = orbit_cameras(4)[1]
+    for size in sizes:
+        o_np, d_np = cam.rays(size, size)
+        o, d = torch.from_numpy(o_np).to(device), torch.from_numpy(d_np).to(device)
+        for path in kernels.PATHS:
+            with kernels.using_path(path):
+                sec, hits, segs = render_time(model, o, d, device, 1 if (path == "reference" and size > 512) else 3)
+            rows.append({"what": "render", "path": kernels.describe(device), "size": size, "seconds": sec,
+                         "items": size * size, "per_s": size * size / sec, "unit": "rays/s", "segments": segs,
+                         "segments_per_s": segs / sec, "gflops": segs * per_seg / sec / 1e9, "hits": hits})
+            print(rows[-1], flush=True)
+        best = float("inf")
+        for _ in range(3):
+            t = time.perf_counter()
+            fh = tracer.first_hit(o_np, d_np)
+            best = min(best, time.perf_counter() - t)
+        rows.append({"what": "render", "path": "Embree (embreex, CPU)", "size": size, "seconds": best,
+                     "items": size * size, "per_s": size * size / best, "unit": "rays/s", "hits": int(fh.hit.sum())})
+        print(rows[-1], flush=True)
+    write(rows, args, mesh, s, tr, flops, peak, device)
+
+
+def write(rows, args, mesh, s, tr, flops, peak, device) -> None:
+    suffix = "_quick" if args.quick else ""
+    out = ROOT / "bench" / "results"
+    out.mkdir(parents=True, exist_ok=True)
+    keys = ["what", "path", "size", "seconds", "items", "per_s", "unit", "segments", "segments_per_s", "gflops", "hits"]
+    with open(out / f"speed{suffix}.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, keys)
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: r.get(k, "") for k in keys})
+    per_seg = sum(flops.values())
+    limit = peak * 1e9 / per_seg
+    fast_train = next(r for r in rows if r["what"] == "train step" and r["path"].startswith("fast"))
+    ref_train = next(r for r in rows if r["what"] == "train step" and r["path"].startswith("reference"))
+    dev_name = torch.cuda.get_device_name(device) if device.type == "cuda" else f"{platform.machine()} CPU, {torch.get_num_threads()} threads"
+    lines = [f"# Speed: fast path vs reference path vs Embree ({args.asset}, preset `{args.preset}`)\n",
+             f"Device: {dev_name}; torch {torch.__version__}. Command: `.venv/bin/python bench/bench_speed.py "
+             f"--asset {args.asset} --preset {args.preset} --train-s {args.train_s:g}"
+             + (" --quick" if args.quick else "") + (f" --device {args.device}" if args.device != "cpu" else "") + "`.",
+             f"Model: {mesh.n_triangles:,}-triangle mesh, {s.nodes} nodes, {s.encoding}+{s.network}, T=2^{s.log2_table}, "
+             f"trained {tr.seconds:.0f} s on the fast path ({tr.steps} steps, {tr.samples_per_s:,.0f} samples/s).\n",
+             "## Training (same steps and rays on both paths, median full step)\n",
+             "| path | leaf samples per step | seconds per step | leaf samples/s |", "|---|---|---|---|"]
+    for r in rows:
+        if r["what"] == "train step":
+            lines.append(f"| {r['path']} | {r['items']:,.0f} | {r['seconds'] * 1000:.1f} ms | {r['per_s']:,.0f} |")
+    lines.append(f"\n**Fast / reference training speed: {fast_train['per_s'] / ref_train['per_s']:.1f}x** (same run).\n")
+    lines += ["## Rendering (one orbit view, same model; best of 3, reference 1000x1000 once)\n",
+              "| size | path | seconds | rays/s | segments | segments/s | GFLOP/s | % of limit |", "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        if r["what"] == "render":
+            if "segments" in r:
+                lines.append(f"| {r['size']}x{r['size']} | {r['path']} | {r['seconds']:.3f} | {r['per_s']:,.0f} | "
+                             f"{r['segments']:,} | {r['segments_per_s']:,.0f} | {r['gflops']:.1f} | "
+                             f"{100 * r['segments_per_s'] / limit:.0f}% |")
+            else:
+                lines.append(f"| {r['size']}x{r['size']} | {r['path']} | {r['seconds']:.3f} | {r['per_s']:,.0f} | | | | |")
+    for size in sorted({r["size"] for r in rows if r["what"] == "render"}):
+        f_ = next(r for r in rows if r["what"] == "render" and r["size"] == size and r["path"].startswith("fast"))
+        r_ = next(r for r in rows if r["what"] == "render" and r["size"] == size and r["path"].startswith("reference"))
+        e_ = next(r for r in rows if r["what"] == "render" and r["size"] == size and r["path"].startswith("Embree"))
+        lines.append(f"\n{size}x{size}: fast / reference **{r_['seconds'] / f_['seconds']:.1f}x**; fast / Embree "
+                     f"{f_['per_s'] / e_['per_s']:.3f}x (Embree {e_['per_s'] / f_['per_s']:.0f}x faster).")
+    lines += ["\n## Arithmetic limit\n",
+              f"FLOPs per leaf segment: encoding {flops['encoding']:,} (k x L x 8 corners x F multiply-adds; hash "
+              f"arithmetic not counted) + network {flops['network']:,} (all Linear layers) = {per_seg:,}. Measured "
+              f"float32 matmul peak (torch.mm 4096^3, same run): {peak:.0f} GFLOP/s, so the limit is "
+              f"{limit:,.0f} segments/s; the % column above is segments/s over that limit (whole query: traversal, "
+              "encoding, network and bookkeeping included)."]
+    (out / f"speed{suffix}.md").write_text("\n".join(lines) + "\n")
+    chart(rows, out / f"speed{suffix}.png")
+    print("\n".join(lines))
+
+
+def chart(rows, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    renders = [r for r in rows if r["what"] == "render"]
+    sizes = sorted({r["size"] for r in renders})
+    fig, ax = plt.subplots(figsize=(7, 3.6))
+    names = ["reference", "fast", "Embree"]
+    for i, name in enumerate(names):
+        vals = [next(r["per_s"] for r in renders if r["size"] == s and r["path"].startswith(name)) for s in sizes]
+        ax.bar(np.arange(len(sizes)) + (i - 1) * 0.27, vals, 0.27, label=name)
+    ax.set_yscale("log")
+    ax.set_xticks(range(len(sizes)), [f"{s}x{s}" for s in sizes])
+    ax.set_ylabel("primary rays/s (log)")
+    ax.set_title("Neural render: reference vs fast path vs Embree (same run)")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+if __name__ == "__main__":
+    main()

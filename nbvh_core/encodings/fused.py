@@ -1,0 +1,75 @@
+"""Fused grid lookup (the fast path of `HashGrid.forward` / `HashVQAD.forward`): one C++ pass per point computes
+the cells, hashes, trilinear weights and the weighted row sums of all levels; see `nbvh_core.kernels`.
+
+Same answer as `corner_indices` + `gather_weighted_sum` (tested in tests/test_fastpath.py).
+"""
+from __future__ import annotations
+
+import ctypes
+import math
+
+import torch
+
+from .. import kernels
+from .base import EncodingConfig, level_scales
+
+
+class GridSpec:
+    """The constant per-level geometry the kernel needs, as contiguous CPU tensors.
+
+    vertex_table: the range of vertex indices (T for HashGrid, H for HashVQAD); levels whose (R)^3 vertices fit
+    it are indexed densely (as `corner_indices`).
+    """
+
+    def __init__(self, cfg: EncodingConfig, vertex_table: int):
+        scales = level_scales(cfg)
+        res = [int(math.ceil(s)) + 2 for s in scales]
+        self.cfg = cfg
+        self.vertex_table = vertex_table
+        self.scales = torch.tensor(scales, dtype=torch.float32)
+        self.res = torch.tensor(res, dtype=torch.int64)
+        self.dense = torch.tensor([r ** 3 <= vertex_table for r in res], dtype=torch.uint8)
+
+    def args(self, rows: int, codes: torch.Tensor | None, code_rows: int) -> tuple:
+        p = kernels.ptr
+        return (self.cfg.levels, self.cfg.features, p(self.scales), p(self.res), p(self.dense),
+                ctypes.c_int64(self.vertex_table), ctypes.c_int64(rows), p(codes), ctypes.c_int64(code_rows),
+                kernels.threads())
+
+
+class _FusedEncode(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, points, table, spec, codes, code_rows):
+        lib = kernels.load()
+        levels, rows, feats = table.shape
+        points = points.detach().contiguous()
+        table_c = table.detach().contiguous()
+        out = torch.empty((points.shape[0], levels * feats), dtype=torch.float32)
+        args = spec.args(rows, codes, code_rows)
+        lib.nbvh_encode_forward(points.data_ptr(), points.shape[0], table_c.data_ptr(), out.data_ptr(), *args)
+        ctx.save_for_backward(points)
+        ctx.spec, ctx.codes, ctx.code_rows, ctx.table_shape = spec, codes, code_rows, table.shape
+        return out
+
+    @staticmethod
+    def backward(ctx, grad):
+        if not ctx.needs_input_grad[1]:
+            return None, None, None, None, None
+        (points,) = ctx.saved_tensors
+        levels, rows, feats = ctx.table_shape
+        grad = grad.contiguous()
+        g_table = torch.zeros(ctx.table_shape, dtype=torch.float32)
+        args = ctx.spec.args(rows, ctx.codes, ctx.code_rows)
+        kernels.load().nbvh_encode_backward(points.data_ptr(), points.shape[0], grad.data_ptr(), g_table.data_ptr(),
+                                            *args)
+        return None, g_table, None, None, None
+
+
+def fused_encode(points: torch.Tensor, table: torch.Tensor, spec: GridSpec, codes: torch.Tensor | None = None,
+                 code_rows: int = 0) -> torch.Tensor:
+    """points (N, 3) float32 CPU in [0, 1]^3 (clamped); table (L, R, F) float32 rows; codes (L, H) uint8 frozen
+    HashVQAD codes (rows = hash2(vertex, code) mod code_rows) or None (rows = vertex indices).
+    Returns (N, L * F) float32, differentiable in `table`."""
+    if codes is not None:
+        codes = codes.contiguous()
+    return _FusedEncode.apply(points.to(torch.float32), table, spec, codes, code_rows)
