@@ -39,6 +39,14 @@ def evaluate(model, tracer, n_views: int = 16, resolution: int = 256, keep_image
     Returns (Quality, images): images is a list of (reference, neural) (H, W) arrays for the first
     `keep_images` views.
     """
+    return evaluate_renderer(lambda cam, w, h: render_neural(model, cam, w, h), tracer, model.transform, n_views,
+                             resolution, keep_images)
+
+
+def evaluate_renderer(render, tracer, transform, n_views: int = 16, resolution: int = 256, keep_images: int = 0):
+    """The same metric for any renderer: `render(camera, width, height) -> RenderResult` (a neural model, or
+    Embree on a decimated / Draco-decoded mesh for the baselines) against `tracer`'s exact images.
+    `transform` (mesh.Transform) converts the depth error to original units."""
     inter = union = 0
     depth_sum, depth_n = 0.0, 0
     per_view, images = [], []
@@ -48,7 +56,7 @@ def evaluate(model, tracer, n_views: int = 16, resolution: int = 256, keep_image
         ref = render_reference(tracer, cam, resolution, resolution)
         t_ref += time.perf_counter() - t
         t = time.perf_counter()
-        neu = render_neural(model, cam, resolution, resolution)
+        neu = render(cam, resolution, resolution)
         t_neural += time.perf_counter() - t
         per_view.append(float(((ref.image - neu.image) ** 2).mean()))
         inter += int((ref.hit & neu.hit).sum())
@@ -61,7 +69,7 @@ def evaluate(model, tracer, n_views: int = 16, resolution: int = 256, keep_image
     depth = depth_sum / max(depth_n, 1)
     n_rays = n_views * resolution * resolution
     q = Quality(mse=float(np.mean(per_view)), silhouette_iou=inter / max(union, 1), depth_error=depth,
-                depth_error_original_units=float(model.transform.distance_to_original(depth)), views=n_views,
+                depth_error_original_units=float(transform.distance_to_original(depth)), views=n_views,
                 resolution=resolution, per_view_mse=per_view, neural_rays_per_s=n_rays / max(t_neural, 1e-9),
                 reference_rays_per_s=n_rays / max(t_ref, 1e-9))
     return q, images

@@ -27,7 +27,10 @@ from .mesh import Mesh
 from .metrics import Quality, evaluate
 from .model import ModelConfig, NeuralBVH
 from .networks import NetworkConfig
-from .train import Cancelled, TrainConfig, TrainResult, train
+from .train import Cancelled, TrainConfig, TrainingDiverged, TrainResult, train
+
+#: A diverged training restarts from scratch at a 10x lower learning rate, at most this many times.
+DIVERGENCE_RETRIES = 2
 
 
 @dataclass
@@ -192,10 +195,21 @@ def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = 
     bvh = build_bvh(mesh, settings.nodes)
     tracer = ExactTracer(mesh)
     seconds["bvh"] = time.perf_counter() - t
-    model = NeuralBVH(bvh.nodes, settings.model_config(), mesh.transform)
     t = time.perf_counter()
-    tr = train(model, bvh, tracer, settings.train_config(), events=events, should_cancel=should_cancel,
-               checkpoint_path=checkpoint_path)
+    for attempt in range(DIVERGENCE_RETRIES + 1):
+        model = NeuralBVH(bvh.nodes, settings.model_config(), mesh.transform)
+        try:
+            tr = train(model, bvh, tracer, settings.train_config(), events=events, should_cancel=should_cancel,
+                       checkpoint_path=checkpoint_path)
+            break
+        except TrainingDiverged as exc:
+            if attempt == DIVERGENCE_RETRIES:
+                raise TrainingDiverged(f"{exc} (after {attempt} restarts at lower learning rates)") from None
+            lower = settings.lr * 0.1
+            why += f"; training diverged at lr {settings.lr:g} ({exc}), restarted at lr {lower:g}"
+            events({"event": "warning", "message": f"training diverged ({exc}); restarting from scratch with the "
+                                                   f"learning rate {settings.lr:g} -> {lower:g}"})
+            settings = dataclasses.replace(settings, lr=lower)
     seconds["train"] = time.perf_counter() - t
     model.eval()
     quality = None

@@ -6,7 +6,9 @@ temperature falls geometrically from 1 to `tau_min`), `freeze` (argmax codes) an
 the hard lookups the file stores). The learning rate decays
 exponentially to `lr_final_factor` x lr over the budget.
 
-Failure handling: a non-finite loss or parameter, or a loss above `divergence_factor` x its running mean after
+Failure handling: a non-finite loss or parameter, a loss whose running mean rises above `rise_factor` x the
+untrained model's loss, a loss that never fell below its starting value in 50+ steps (a learning rate so high it
+killed the network early: the running-mean test alone misses both), or a loss above `divergence_factor` x its running mean after
 warm-up, raises `TrainingDiverged` (the caller saves nothing). `should_cancel()` is checked every step and
 raises `Cancelled`. Checkpoints (model, optimizer, step, elapsed time, RNG states) are written atomically every
 `checkpoint_every` steps and at cancel, and `resume_from` continues one.
@@ -58,8 +60,13 @@ class TrainConfig:
     seed: int = 0
     device: str = "auto"
     divergence_factor: float = 50.0
+    rise_factor: float = 3.0
     checkpoint_every: int = 0
     progress_every_s: float = 0.5
+    # Label the next batches in a background thread while this step trains. None = only on CUDA (the CPU is idle
+    # while the GPU trains); on a 2-core CPU it was slower (bunny, default preset, 150 steps: 130k vs 149-154k
+    # samples/s without), since labelling and training compete for the same two cores.
+    prefetch: bool | None = None
     ray_config: RayConfig = field(default_factory=RayConfig)
 
     def to_dict(self) -> dict:
@@ -99,18 +106,68 @@ def samples_loss(model: NeuralBVH, s: TrainingSamples, device: torch.device):
 
 
 class _Batches:
-    """Fresh labelled rays for every step, from one seeded generator."""
+    """Fresh labelled rays for every step, from one seeded generator.
 
-    def __init__(self, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, rng: np.random.Generator):
+    With `prefetch`, a background thread draws and labels the next batches while the current step trains
+    (Embree, numpy and the kernels release the GIL), in the same order from the same generator, so the batches
+    are the ones a synchronous run would see. `rng_state()` is the generator's state right after the last batch
+    handed out (what a checkpoint must store to resume exactly).
+    """
+
+    def __init__(self, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, rng: np.random.Generator,
+                 prefetch: bool = False):
         self.bvh, self.tracer, self.cfg, self.rng = bvh, tracer, cfg, rng
         self.lo, self.hi = root_box(bvh)
         from .traversal import TorchBVH
 
         self.tree = TorchBVH.from_bvh(bvh)
+        self._state = rng.bit_generator.state
+        self._queue = None
+        if prefetch:
+            import queue
+            import threading
+
+            self._queue = queue.Queue(maxsize=2)
+            self._stop = threading.Event()
+            self._thread = threading.Thread(target=self._produce, daemon=True)
+            self._thread.start()
+
+    def _make(self):
+        o, d = sample_rays(self.lo, self.hi, self.cfg.rays_per_step, self.rng, self.cfg.ray_config)
+        batch = label_samples(self.bvh, self.tracer, o, d, self.cfg.labels, tree=self.tree)
+        return batch, self.rng.bit_generator.state
+
+    def _produce(self) -> None:
+        import queue
+
+        while not self._stop.is_set():
+            try:
+                item = self._make()
+            except Exception as exc:  # handed to the consumer, raised there
+                item = (exc, None)
+            while not self._stop.is_set():
+                try:
+                    self._queue.put(item, timeout=0.1)
+                    break
+                except queue.Full:
+                    continue
+            if isinstance(item[0], Exception):
+                return
 
     def next(self) -> TrainingSamples:
-        o, d = sample_rays(self.lo, self.hi, self.cfg.rays_per_step, self.rng, self.cfg.ray_config)
-        return label_samples(self.bvh, self.tracer, o, d, self.cfg.labels, tree=self.tree)
+        batch, state = self._queue.get() if self._queue is not None else self._make()
+        if isinstance(batch, Exception):
+            raise batch
+        self._state = state
+        return batch
+
+    def rng_state(self) -> dict:
+        return self._state
+
+    def close(self) -> None:
+        if self._queue is not None:
+            self._stop.set()
+            self._thread.join(timeout=5)
 
 
 def _atomic_save(obj, path: Path) -> None:
@@ -152,7 +209,9 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
         rng.bit_generator.state = ck["numpy_rng"]
         torch.set_rng_state(ck["torch_rng"])
         events({"event": "phase", "phase": "train", "message": f"resumed at step {start_step}"})
-    batches = _Batches(bvh, tracer, cfg, rng)
+    # Overlapping labels with training is part of the fast path; the reference path stays synchronous.
+    prefetch = device.type == "cuda" if cfg.prefetch is None else cfg.prefetch
+    batches = _Batches(bvh, tracer, cfg, rng, prefetch=prefetch and kernels.current_path() == "fast")
     is_vqad = hasattr(model.encoding, "freeze")
     result_losses: dict = {}
 
@@ -176,7 +235,7 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
     def save_checkpoint(step: int, elapsed: float) -> None:
         if checkpoint_path is not None:
             _atomic_save({"model": model.state_dict(), "optimizer": opt.state_dict(), "step": step,
-                          "elapsed": elapsed, "history": history, "numpy_rng": rng.bit_generator.state,
+                          "elapsed": elapsed, "history": history, "numpy_rng": batches.rng_state(),
                           "torch_rng": torch.get_rng_state(), "train_config": cfg.to_dict()}, Path(checkpoint_path))
 
     events({"event": "phase", "phase": "train",
@@ -186,61 +245,75 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
     last_emit = 0.0
     n_samples = 0
     ema = None
+    initial_loss = None
     step = start_step
     loss_val = float("nan")
     phase = "train"
-    while True:
-        elapsed = time.perf_counter() - t0
-        frac = max(step / cfg.steps if cfg.steps else 0.0,
-                   elapsed / cfg.time_limit_s if cfg.time_limit_s else 0.0)
-        if frac >= 1.0:
-            break
-        if should_cancel():
-            save_checkpoint(step, elapsed)
-            raise Cancelled(f"cancelled at step {step}")
-        if is_vqad and cfg.freeze and not model.encoding.frozen and frac >= 1.0 - cfg.finetune_fraction:
-            freeze_now()
-            phase = "finetune"
-        if is_vqad and not model.encoding.frozen:
-            anneal_end = 1.0 - (cfg.finetune_fraction if cfg.freeze else 0.0)
-            anneal_start = anneal_end - cfg.anneal_fraction
-            if frac >= anneal_start and cfg.anneal_fraction > 0:
-                a = min(1.0, (frac - anneal_start) / cfg.anneal_fraction)
-                model.encoding.temperature = float(cfg.tau_min ** a)
-                if phase != "anneal":
-                    phase = "anneal"
-                    events({"event": "phase", "phase": "anneal",
-                            "message": f"softmax temperature 1 -> {cfg.tau_min}"})
-        for g in opt.param_groups:
-            g["lr"] = cfg.lr * g["lr_factor"] * cfg.lr_final_factor ** frac
-        batch = batches.next()
-        loss, parts = samples_loss(model, batch, device)
-        loss_val = float(loss.detach())
-        if not math.isfinite(loss_val):
-            raise TrainingDiverged(f"loss became {loss_val} at step {step}")
-        if ema is not None and step - start_step > 50 and loss_val > cfg.divergence_factor * ema:
-            raise TrainingDiverged(f"loss jumped to {loss_val:.4g} (running mean {ema:.4g}) at step {step}")
-        ema = loss_val if ema is None else 0.98 * ema + 0.02 * loss_val
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        step += 1
-        n_samples += len(batch)
-        history.append((step, loss_val))
-        if cfg.checkpoint_every and step % cfg.checkpoint_every == 0:
-            save_checkpoint(step, time.perf_counter() - t0)
-        now = time.perf_counter() - t0
-        if now - last_emit >= cfg.progress_every_s:
-            last_emit = now
-            run_time = now - elapsed_before
-            sps = n_samples / max(run_time, 1e-9)
-            eta = (now / frac - now) if frac > 0.01 else None
-            events({"event": "progress", "phase": phase, "step": step, "total": cfg.steps, "fraction": round(frac, 4),
-                    "loss": round(loss_val, 6), "samples_per_s": round(sps, 1), "elapsed_s": round(now, 2),
-                    "eta_s": None if eta is None else round(eta, 1)})
+    try:
+        while True:
+            elapsed = time.perf_counter() - t0
+            frac = max(step / cfg.steps if cfg.steps else 0.0,
+                       elapsed / cfg.time_limit_s if cfg.time_limit_s else 0.0)
+            if frac >= 1.0:
+                break
+            if should_cancel():
+                save_checkpoint(step, elapsed)
+                raise Cancelled(f"cancelled at step {step}")
+            if is_vqad and cfg.freeze and not model.encoding.frozen and frac >= 1.0 - cfg.finetune_fraction:
+                freeze_now()
+                phase = "finetune"
+            if is_vqad and not model.encoding.frozen:
+                anneal_end = 1.0 - (cfg.finetune_fraction if cfg.freeze else 0.0)
+                anneal_start = anneal_end - cfg.anneal_fraction
+                if frac >= anneal_start and cfg.anneal_fraction > 0:
+                    a = min(1.0, (frac - anneal_start) / cfg.anneal_fraction)
+                    model.encoding.temperature = float(cfg.tau_min ** a)
+                    if phase != "anneal":
+                        phase = "anneal"
+                        events({"event": "phase", "phase": "anneal",
+                                "message": f"softmax temperature 1 -> {cfg.tau_min}"})
+            for g in opt.param_groups:
+                g["lr"] = cfg.lr * g["lr_factor"] * cfg.lr_final_factor ** frac
+            batch = batches.next()
+            loss, parts = samples_loss(model, batch, device)
+            loss_val = float(loss.detach())
+            if not math.isfinite(loss_val):
+                raise TrainingDiverged(f"loss became {loss_val} at step {step}")
+            if ema is not None and step - start_step > 50 and loss_val > cfg.divergence_factor * ema:
+                raise TrainingDiverged(f"loss jumped to {loss_val:.4g} (running mean {ema:.4g}) at step {step}")
+            ema = loss_val if ema is None else 0.98 * ema + 0.02 * loss_val
+            if initial_loss is None:
+                initial_loss = loss_val  # the untrained model's loss: what training must improve on
+            elif step - start_step >= 50 and ema > cfg.rise_factor * initial_loss:
+                raise TrainingDiverged(f"loss rose from {initial_loss:.4g} to {ema:.4g} (running mean) by step "
+                                       f"{step}: the learning rate {cfg.lr:g} is too high for this model")
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            step += 1
+            n_samples += len(batch)
+            history.append((step, loss_val))
+            if cfg.checkpoint_every and step % cfg.checkpoint_every == 0:
+                save_checkpoint(step, time.perf_counter() - t0)
+            now = time.perf_counter() - t0
+            if now - last_emit >= cfg.progress_every_s:
+                last_emit = now
+                run_time = now - elapsed_before
+                sps = n_samples / max(run_time, 1e-9)
+                eta = (now / frac - now) if frac > 0.01 else None
+                events({"event": "progress", "phase": phase, "step": step, "total": cfg.steps, "fraction": round(frac, 4),
+                        "loss": round(loss_val, 6), "samples_per_s": round(sps, 1), "elapsed_s": round(now, 2),
+                        "eta_s": None if eta is None else round(eta, 1)})
+    finally:
+        batches.close()
     for p in model.parameters():
         if not torch.isfinite(p).all():
             raise TrainingDiverged("parameters contain NaN/inf after training")
+    if initial_loss is not None and step - start_step >= 50 and ema >= 0.98 * initial_loss:
+        # A too-high learning rate can kill the network in the first steps (dead ReLUs): it then predicts the
+        # prior and the loss stays at its starting value. Such a model is useless; do not save it.
+        raise TrainingDiverged(f"the loss did not fall in {step - start_step} steps ({initial_loss:.4g} -> {ema:.4g}): "
+                               f"the learning rate {cfg.lr:g} is too high for this model, or it cannot learn")
     seconds = time.perf_counter() - t0
     run_time = seconds - elapsed_before
     result = TrainResult(steps=step, seconds=seconds, samples=n_samples,

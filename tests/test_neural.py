@@ -192,3 +192,15 @@ def test_compress_mesh_writes_file_with_quality(blob_setup, tmp_path):
     kinds = [e["event"] for e in events]
     assert "progress" in kinds and kinds[-1] == "result"
     json.dumps(events)  # every event is JSON-serialisable
+
+
+def test_too_high_learning_rate_is_detected_and_retried_lower(blob_setup, tmp_path):
+    mesh, _, _ = blob_setup
+    settings = preset("tiny").with_overrides(encoding="hashgrid", network="mlp", lr=2.0, steps=120)
+    events = []
+    res = compress_mesh(mesh, settings, tmp_path / "blob.nbvh", events=events.append)
+    warnings = [e["message"] for e in events if e["event"] == "warning" and "diverged" in e["message"]]
+    assert warnings and "restarting" in warnings[0]
+    assert res.settings.lr < 2.0 and "restarted at lr" in res.why
+    losses = [loss for _, loss in res.training.history]
+    assert np.mean(losses[-10:]) < np.mean(losses[:5])  # the run that was kept learned

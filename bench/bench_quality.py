@@ -1,0 +1,517 @@
+"""Accuracy against bytes, time and speed: the paper's method steps, the baselines users would pick instead, and
+stability where methods fail. One command regenerates everything:
+
+    .venv/bin/python bench/bench_quality.py            # full run (tens of minutes on the 2-core CPU)
+    .venv/bin/python bench/bench_quality.py --quick    # smoke run (a minute): 2 meshes, tiny budgets
+    .venv/bin/python bench/bench_quality.py --charts   # tables and charts again from the CSVs
+
+Parts (rows are appended to CSVs as they finish; a rerun skips rows already there, so a stopped run resumes):
+
+* sweep (quality.csv): every benchmark mesh (bench_meshes.py) x the paper's steps base / I / II / III at several
+  table sizes T (real .nbvh bytes from `compress_mesh`), trained for the same wall-clock budget on the fast path,
+  scored with the paper's metric (orbit views, Embree reference), plus render rays/s and Embree rays/s in the same
+  run, and failure-subset errors (below). Seeds 1 and 2 repeat the middle size on some meshes (stability).
+* budgets (quality.csv, part=time): the default preset at several training budgets (MSE against training time).
+* baselines (baselines.csv): Draco (DracoPy) of the original mesh at several quantisation bits, and quadric
+  decimation (fast-simplification) to several triangle counts followed by Draco at 11 bits; each decoded mesh is
+  ray traced with Embree and scored with the same metric. Two memory axes: storage bytes (the Draco file) and
+  resident bytes while ray tracing (float32 vertices + normals, int32 indices, a BVH with <= 4 triangles per
+  leaf: `sizing.mesh_resident_bytes`); the neural model is traced as stored, so its two axes are the same.
+* divergence (divergence.csv): each method at a learning rate 100x too high: is the divergence detected?
+
+Failure subsets (per trained model, on 40k rays from the training distribution and 20k rays that start near the
+surface): `late` - rays whose true first hit lies in the 4th or later leaf they enter (the paper's known weakness);
+`grazing` - true hit at |cos| < 0.2; `thin` - a second surface within 0.02 (unit box) behind the first hit;
+`near_start` - rays starting 0.003 from the surface; `all` - the whole training distribution. Errors: hit error
+(predicted hit != true hit, % of rays) and mean depth error where both hit. Open surfaces are the meshes terrain
+and sheet (rows by mesh).
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
+
+from bench_meshes import BENCH_MESHES, bench_mesh  # noqa: E402
+from nbvh_core import kernels  # noqa: E402
+from nbvh_core.bvh import build_bvh  # noqa: E402
+from nbvh_core.exact import ExactTracer  # noqa: E402
+from nbvh_core.mesh import Mesh  # noqa: E402
+from nbvh_core.metrics import evaluate_renderer  # noqa: E402
+from nbvh_core.pipeline import compress_mesh, preset  # noqa: E402
+from nbvh_core.render import render_reference  # noqa: E402
+from nbvh_core.samples import RayConfig, root_box, sample_rays  # noqa: E402
+from nbvh_core.sizing import mesh_resident_bytes  # noqa: E402
+from nbvh_core.train import TrainingDiverged  # noqa: E402
+from nbvh_core.traversal import TorchBVH, leaves_along_rays  # noqa: E402
+
+RESULTS = ROOT / "bench" / "results"
+METHODS = ("base", "I", "II", "III", "default")  # the paper's steps + the user preset (HashGrid + MLP + consistent)
+# Table sizes (log2 T) per encoding, chosen so the two encodings span the same bytes: HashGrid T rows of 16 floats
+# per level; HashVQAD T rows + an index of 128 T 4-bit codes per level (twice the bytes of its rows).
+SIZES = {"hashgrid": (8, 10, 12), "hashvqad": (7, 9, 11)}
+SUBSETS = ("all", "late", "grazing", "thin", "near_start")
+
+
+class Plan:
+    def __init__(self, quick: bool):
+        self.quick = quick
+        self.meshes = ("blob", "knot") if quick else BENCH_MESHES
+        self.train_s = 4.0 if quick else 15.0
+        self.views, self.res = (4, 48) if quick else (8, 128)
+        # All sizes for III and the user preset (rate-distortion curves); the middle size for base, I, II.
+        self.full_sizes_methods = ("III", "default") if not quick else ("default",)
+        self.seed_meshes = ("knot",) if quick else ("bunny", "knot")
+        self.seeds = (1,) if quick else (1, 2)
+        self.time_budgets = (2.0, 4.0) if quick else (5.0, 15.0, 45.0)
+        self.time_meshes = ("blob",) if quick else ("bunny",)
+        self.draco_bits = (8, 11) if quick else (7, 8, 9, 10, 11, 14)
+        self.decimate_to = (1000,) if quick else (500, 1000, 2500, 10000, 40000)
+        self.failure_rays = (4000, 2000) if quick else (40000, 20000)
+        self.suffix = "_quick" if quick else ""
+
+    def csv(self, name: str) -> Path:
+        return RESULTS / f"{name}{self.suffix}.csv"
+
+
+# ----------------------------------------------------------------------------------------------------------- utils
+def read_rows(path: Path) -> list[dict]:
+    if not path.exists():
+        return []
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def append_row(path: Path, row: dict) -> None:
+    new = not path.exists()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "a", newline="") as f:
+        w = csv.DictWriter(f, list(row))
+        if new:
+            w.writeheader()
+        w.writerow(row)
+
+
+def num(row: dict, key: str) -> float:
+    v = row.get(key, "")
+    return float(v) if v not in ("", None) else math.nan
+
+
+# ------------------------------------------------------------------------------------------------ failure subsets
+def failure_rays(mesh: Mesh, bvh, tracer: ExactTracer, n_dist: int, n_near: int, seed: int = 12345) -> dict:
+    """The evaluation rays and their subset masks (see module docstring); computed once per mesh."""
+    rng = np.random.default_rng(seed)
+    lo, hi = root_box(bvh)
+    o, d = sample_rays(lo, hi, n_dist, rng, RayConfig())
+    # Rays starting 0.003 off the surface (either side), uniform directions.
+    tri = mesh.triangles().astype(np.float64)
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    pick = rng.choice(len(tri), size=n_near, p=area / area.sum())
+    u, v = rng.random(n_near), rng.random(n_near)
+    flip = u + v > 1
+    u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
+    p = tri[pick, 0] + u[:, None] * (tri[pick, 1] - tri[pick, 0]) + v[:, None] * (tri[pick, 2] - tri[pick, 0])
+    side = np.where(rng.random(n_near) < 0.5, -1.0, 1.0)
+    o_near = p + 0.003 * side[:, None] * tracer.normals[pick]
+    d_near = rng.normal(size=(n_near, 3))
+    d_near /= np.linalg.norm(d_near, axis=1, keepdims=True)
+    o_all = np.concatenate([o, o_near]).astype(np.float32)
+    d_all = np.concatenate([d, d_near]).astype(np.float32)
+    fh = tracer.first_hit(o_all, d_all)
+    t_true = np.where(fh.hit, fh.t, np.inf).astype(np.float32)
+    # Leaves entered up to the true hit: the hit's leaf is the last of them.
+    tree = TorchBVH.from_bvh(bvh)
+    lh = leaves_along_rays(tree, torch.from_numpy(o_all), torch.from_numpy(d_all),
+                           torch.from_numpy(np.where(fh.hit, t_true, 0).astype(np.float32)))
+    entered = lh.counts().numpy()
+    cos = np.abs(np.einsum("ij,ij->i", fh.normal, d_all))
+    behind = tracer.all_hits(o_all, d_all, t_max=np.where(fh.hit, t_true + 0.02, 0).astype(np.float32))
+    n_behind = np.bincount(behind.ray, minlength=len(o_all))
+    is_dist = np.arange(len(o_all)) < n_dist
+    masks = {"all": is_dist, "late": is_dist & fh.hit & (entered >= 4), "grazing": is_dist & fh.hit & (cos < 0.2),
+             "thin": is_dist & fh.hit & (n_behind >= 2), "near_start": ~is_dist}
+    return {"o": torch.from_numpy(o_all), "d": torch.from_numpy(d_all), "hit": fh.hit, "t": t_true, "masks": masks}
+
+
+def failure_errors(model, fr: dict) -> dict:
+    q = model.query(fr["o"], fr["d"])
+    hit, t = q.hit.cpu().numpy(), q.t.cpu().numpy()
+    out = {}
+    for name, m in fr["masks"].items():
+        n = int(m.sum())
+        out[f"{name}_n"] = n
+        out[f"{name}_hit_err"] = float((hit[m] != fr["hit"][m]).mean() * 100) if n else math.nan
+        both = m & hit & fr["hit"]
+        out[f"{name}_depth_err"] = float(np.abs(t[both] - fr["t"][both]).mean()) if both.any() else math.nan
+    return out
+
+
+# ----------------------------------------------------------------------------------------------------------- parts
+class MeshCache:
+    def __init__(self, plan: Plan):
+        self.plan, self.cache = plan, {}
+
+    def get(self, name: str):
+        if name not in self.cache:
+            mesh = bench_mesh(name)
+            bvh = build_bvh(mesh, preset("default").nodes)
+            tracer = ExactTracer(mesh)
+            self.cache = {name: (mesh, tracer, failure_rays(mesh, bvh, tracer, *self.plan.failure_rays))}
+        return self.cache[name]
+
+
+def run_neural(plan: Plan, cache: MeshCache, part: str, mesh_name: str, method: str, log2: int, seed: int,
+               train_s: float, done: set) -> None:
+    key = (part, mesh_name, method, str(log2), str(seed), f"{train_s:g}")
+    if key in done:
+        return
+    mesh, tracer, fr = cache.get(mesh_name)
+    s = preset(method).with_overrides(log2_table=log2, seed=seed, time_limit_s=train_s, eval_views=plan.views,
+                                      eval_resolution=plan.res)
+    t0 = time.perf_counter()
+    row = {"part": part, "mesh": mesh_name, "method": method, "log2_table": log2, "seed": seed, "train_s": f"{train_s:g}",
+           "encoding": s.encoding, "network": s.network, "labels": s.labels, "nodes": s.nodes,
+           "triangles": mesh.n_triangles}
+    try:
+        res = compress_mesh(mesh, s)
+    except TrainingDiverged as exc:
+        row.update(diverged=str(exc))
+        append_row(plan.csv("quality"), row)
+        return
+    q = res.quality
+    row.update(diverged="", file_bytes=res.file_bytes, steps=res.training.steps,
+               samples_per_s=round(res.training.samples_per_s), mse=q.mse, iou=q.silhouette_iou,
+               depth_err=q.depth_error, neural_rays_per_s=round(q.neural_rays_per_s),
+               embree_rays_per_s=round(q.reference_rays_per_s), path=res.training.compute_path,
+               wall_s=round(time.perf_counter() - t0, 1))
+    row.update({k: (round(v, 6) if isinstance(v, float) else v) for k, v in failure_errors(res.model, fr).items()})
+    append_row(plan.csv("quality"), row)
+    print(f"{part} {mesh_name} {method} T=2^{log2} seed {seed}: {res.file_bytes:,} B mse {q.mse:.5f} "
+          f"iou {q.silhouette_iou:.3f} ({row['wall_s']} s)", flush=True)
+
+
+def run_sweep(plan: Plan) -> None:
+    done = {(r["part"], r["mesh"], r["method"], r["log2_table"], r["seed"], r["train_s"]) for r in read_rows(plan.csv("quality"))}
+    cache = MeshCache(plan)
+    for mesh_name in plan.meshes:
+        for method in METHODS:
+            sizes = SIZES[preset(method).encoding]
+            for log2 in (sizes if method in plan.full_sizes_methods else sizes[1:2]):
+                run_neural(plan, cache, "sweep", mesh_name, method, log2, 0, plan.train_s, done)
+            if mesh_name in plan.seed_meshes:
+                for seed in plan.seeds:
+                    run_neural(plan, cache, "sweep", mesh_name, method, sizes[1], seed, plan.train_s, done)
+        if mesh_name in plan.time_meshes:
+            for budget in plan.time_budgets:
+                run_neural(plan, cache, "time", mesh_name, "default", preset("default").log2_table, 0, budget, done)
+
+
+def _mesh_like(mesh: Mesh, vertices: np.ndarray, faces: np.ndarray) -> Mesh:
+    """A baseline's mesh in the original's normalised coordinates (no re-normalisation; degenerates kept out)."""
+    v = np.asarray(vertices, np.float32)
+    f = np.asarray(faces, np.int32).reshape(-1, 3)
+    ok = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])
+    return Mesh(vertices=v, faces=f[ok], transform=mesh.transform, name=mesh.name)
+
+
+def run_baselines(plan: Plan) -> None:
+    import DracoPy
+    import fast_simplification
+
+    done = {(r["mesh"], r["baseline"], r["param"]) for r in read_rows(plan.csv("baselines"))}
+    for mesh_name in plan.meshes:
+        mesh = None
+        for kind, params in (("draco", plan.draco_bits), ("decimate+draco11", plan.decimate_to)):
+            for param in params:
+                if (mesh_name, kind, str(param)) in done:
+                    continue
+                if mesh is None:
+                    mesh = bench_mesh(mesh_name)
+                    tracer = ExactTracer(mesh)
+                v, f = mesh.vertices.astype(np.float64), mesh.faces
+                if kind == "draco":
+                    bits = param
+                else:
+                    if param >= mesh.n_triangles:
+                        continue
+                    v, f = fast_simplification.simplify(v, f, target_reduction=1 - param / mesh.n_triangles)
+                    bits = 11
+                t0 = time.perf_counter()
+                blob = DracoPy.encode(v, f, quantization_bits=bits, compression_level=10)
+                enc_s = time.perf_counter() - t0
+                t0 = time.perf_counter()
+                dec = DracoPy.decode(blob)
+                dec_s = time.perf_counter() - t0
+                cand = _mesh_like(mesh, np.asarray(dec.points), np.asarray(dec.faces))
+                cand_tracer = ExactTracer(cand)
+                q, _ = evaluate_renderer(lambda cam, w, h: render_reference(cand_tracer, cam, w, h), tracer,
+                                         mesh.transform, plan.views, plan.res)
+                row = {"mesh": mesh_name, "baseline": kind, "param": param, "triangles": cand.n_triangles,
+                       "storage_bytes": len(blob), "resident_bytes": mesh_resident_bytes(cand)["total"],
+                       "original_resident_bytes": mesh_resident_bytes(mesh)["total"], "mse": q.mse,
+                       "iou": q.silhouette_iou, "depth_err": q.depth_error, "encode_s": round(enc_s, 3),
+                       "decode_s": round(dec_s, 3)}
+                append_row(plan.csv("baselines"), row)
+                print(f"baseline {mesh_name} {kind} {param}: {len(blob):,} B mse {q.mse:.5f}", flush=True)
+
+
+def run_divergence(plan: Plan) -> None:
+    done = {(r["mesh"], r["method"]) for r in read_rows(plan.csv("divergence"))}
+    mesh_name = "bunny" if not plan.quick else "blob"
+    for method in METHODS:
+        if (mesh_name, method) in done:
+            continue
+        mesh = bench_mesh(mesh_name)
+        s = preset(method)
+        s = s.with_overrides(lr=s.lr * 100, steps=60 if plan.quick else 200, time_limit_s=None,
+                             eval_views=plan.views, eval_resolution=plan.res)
+        row = {"mesh": mesh_name, "method": method, "lr": s.lr, "steps": s.steps}
+        try:
+            res = compress_mesh(mesh, s)
+            restarted = "restarted" in res.why
+            row.update(outcome=(f"divergence detected, restarted, trained at lr {res.settings.lr:g}" if restarted
+                                else "trained at that lr"), mse=res.quality.mse,
+                       detail=res.why.split("; ", 1)[1] if restarted else f"final loss {res.training.final_loss:.4g}")
+        except TrainingDiverged as exc:
+            row.update(outcome="divergence detected after every restart, nothing saved", mse="", detail=str(exc))
+        append_row(plan.csv("divergence"), row)
+        print(f"divergence {method}: {row['outcome']} {row['detail']}", flush=True)
+
+
+# ------------------------------------------------------------------------------------------------ tables, charts
+def interp_bytes_for_mse(points: list[tuple[float, float]], target: float) -> float | None:
+    """Bytes at which a (bytes, mse) curve reaches `target`, by log-log interpolation; None when it never does."""
+    pts = sorted(points)
+    for (b0, m0), (b1, m1) in zip(pts, pts[1:]):
+        if m0 >= target >= m1 and m0 > 0 and m1 > 0 and m0 != m1:
+            a = (math.log(target) - math.log(m0)) / (math.log(m1) - math.log(m0))
+            return math.exp(math.log(b0) + a * (math.log(b1) - math.log(b0)))
+    if pts and pts[0][1] <= target:
+        return pts[0][0]  # already at the smallest size (an upper bound on what it needs)
+    return None
+
+
+def report(plan: Plan) -> str:
+    rows = [r for r in read_rows(plan.csv("quality")) if not r.get("diverged")]
+    base = read_rows(plan.csv("baselines"))
+    div = read_rows(plan.csv("divergence"))
+    sweep = [r for r in rows if r["part"] == "sweep"]
+    L = [f"# Quality benchmark: method steps, baselines, stability{' (quick smoke run)' if plan.quick else ''}\n",
+         f"2-core CPU, torch {torch.__version__}, {kernels.describe()}. Every neural model trained {plan.train_s:g} s "
+         f"wall-clock (fast path), scored on {plan.views} orbit views at {plan.res} px (image MSE of the paper's "
+         "shading, silhouette IoU). Bytes are real .nbvh file sizes. Command: `.venv/bin/python bench/bench_quality.py"
+         + (" --quick" if plan.quick else "") + "`.\n"]
+    # Main table: seed 0, middle sizes.
+    L += ["## Method steps at the middle size (seed 0)\n",
+          "| mesh | triangles | method | T | .nbvh bytes | MSE | IoU | steps | train samples/s | neural rays/s | Embree rays/s |",
+          "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in sweep:
+        if r["seed"] == "0" and int(r["log2_table"]) == SIZES[r["encoding"]][1]:
+            L.append(f"| {r['mesh']} | {int(r['triangles']):,} | {r['method']} | 2^{r['log2_table']} | {int(r['file_bytes']):,} | "
+                     f"{num(r, 'mse'):.5f} | {num(r, 'iou'):.3f} | {r['steps']} | {int(r['samples_per_s']):,} | "
+                     f"{int(r['neural_rays_per_s']):,} | {int(r['embree_rays_per_s']):,} |")
+    # Paper ordering: bytes III needs to reach base's MSE at base's middle size.
+    L += ["\n## Does III reach base quality at a fraction of its bytes?\n",
+          "For each mesh: base's MSE at its middle size (T=2^10), and the bytes III needs for that MSE (log-log "
+          "interpolation along III's sizes; 'not reached' when even its largest size is worse).\n",
+          "| mesh | base bytes | base MSE | III bytes for that MSE | ratio III / base |", "|---|---|---|---|---|"]
+    ratios = []
+    for mesh_name in plan.meshes:
+        b = [r for r in sweep if r["mesh"] == mesh_name and r["method"] == "base" and r["seed"] == "0"
+             and int(r["log2_table"]) == SIZES["hashgrid"][1]]
+        c = [(num(r, "file_bytes"), num(r, "mse")) for r in sweep if r["mesh"] == mesh_name and r["method"] == "III"
+             and r["seed"] == "0"]
+        if not b or not c:
+            continue
+        target, bb = num(b[0], "mse"), num(b[0], "file_bytes")
+        need = interp_bytes_for_mse(c, target)
+        if need is None:
+            L.append(f"| {mesh_name} | {bb:,.0f} | {target:.5f} | not reached (best III: {min(m for _, m in c):.5f}) | - |")
+        else:
+            ratios.append(need / bb)
+            L.append(f"| {mesh_name} | {bb:,.0f} | {target:.5f} | {need:,.0f} | {need / bb:.2f} |")
+    n_mesh = len([m for m in plan.meshes if any(r["mesh"] == m for r in sweep)])
+    L.append(f"\nIII reached base's quality on {len(ratios)} of {n_mesh} meshes"
+             + (f", at {np.median(ratios):.2f}x base's bytes (median)." if ratios else "."))
+    # Baselines vs neural at matched bytes.
+    L += ["\n## Against the baselines (storage and resident bytes)\n",
+          "Neural: the best seed-0 model per mesh. Draco 11-bit: the original mesh's file. Decimation + Draco: the "
+          "smallest decimation whose MSE is at most the neural model's. Resident = what a ray tracer holds (the "
+          "neural model is traced as stored).\n",
+          "| mesh | neural bytes | neural MSE | Draco 11-bit bytes (MSE) | decimated+Draco for <= neural MSE: storage / resident bytes | original resident bytes | neural vs Draco storage | neural vs resident mesh |",
+          "|---|---|---|---|---|---|---|---|"]
+    for mesh_name in plan.meshes:
+        ns = [r for r in sweep if r["mesh"] == mesh_name and r["seed"] == "0"]
+        bs = [r for r in base if r["mesh"] == mesh_name]
+        if not ns or not bs:
+            continue
+        best = min(ns, key=lambda r: num(r, "mse"))
+        nb, nm = num(best, "file_bytes"), num(best, "mse")
+        d11 = [r for r in bs if r["baseline"] == "draco" and r["param"] == "11"]
+        dec = sorted((r for r in bs if r["baseline"] == "decimate+draco11" and num(r, "mse") <= nm),
+                     key=lambda r: num(r, "storage_bytes"))
+        orig = num(bs[0], "original_resident_bytes")
+        d11s = f"{int(d11[0]['storage_bytes']):,} ({num(d11[0], 'mse'):.5f})" if d11 else "-"
+        decs = (f"{int(dec[0]['triangles']):,} tris: {int(dec[0]['storage_bytes']):,} / {int(dec[0]['resident_bytes']):,}"
+                if dec else "none of the decimations is that bad")
+        vs_d = f"{nb / num(d11[0], 'storage_bytes'):.1f}x larger" if d11 else "-"
+        L.append(f"| {mesh_name} | {nb:,.0f} | {nm:.5f} ({best['method']}, T=2^{best['log2_table']}) | {d11s} | {decs} | "
+                 f"{orig:,.0f} | {vs_d} | {orig / nb:.1f}x smaller |")
+    # Stability over seeds.
+    L += ["\n## Stability: 3 seeds (middle size), mean +- std\n",
+          "| mesh | method | MSE | IoU | " + " | ".join(f"{s} hit err % / depth err" for s in SUBSETS) + " |",
+          "|---|---|---|---|" + "---|" * len(SUBSETS)]
+    for mesh_name in plan.seed_meshes:
+        for method in METHODS:
+            rs = [r for r in sweep if r["mesh"] == mesh_name and r["method"] == method
+                  and int(r["log2_table"]) == SIZES[r["encoding"]][1]]
+            if len(rs) < 2:
+                continue
+
+            def ms(key):
+                v = np.array([num(r, key) for r in rs])
+                return f"{np.nanmean(v):.4g} +- {np.nanstd(v):.2g}"
+
+            L.append(f"| {mesh_name} | {method} (n={len(rs)}) | {ms('mse')} | {ms('iou')} | "
+                     + " | ".join(f"{ms(s + '_hit_err')} / {ms(s + '_depth_err')}" for s in SUBSETS) + " |")
+    # Failure subsets by method over all meshes.
+    L += ["\n## Where methods fail: failure subsets, all meshes, seed 0, middle size (mean over meshes)\n",
+          "| method | " + " | ".join(f"{s} hit err %" for s in SUBSETS) + " | " + " | ".join(f"{s} depth err" for s in SUBSETS) + " |",
+          "|---|" + "---|" * (2 * len(SUBSETS))]
+    for method in METHODS:
+        rs = [r for r in sweep if r["method"] == method and r["seed"] == "0" and int(r["log2_table"]) == SIZES[r["encoding"]][1]]
+        if not rs:
+            continue
+        L.append(f"| {method} | " + " | ".join(f"{np.nanmean([num(r, s + '_hit_err') for r in rs]):.2f}" for s in SUBSETS)
+                 + " | " + " | ".join(f"{np.nanmean([num(r, s + '_depth_err') for r in rs]):.4f}" for s in SUBSETS) + " |")
+    L += ["\nOpen surfaces (terrain, sheet) against closed ones, same columns, by mesh:\n",
+          "| mesh | method | all hit err % | late hit err % | near_start hit err % | MSE |", "|---|---|---|---|---|---|"]
+    for r in sweep:
+        if r["seed"] == "0" and int(r["log2_table"]) == SIZES[r["encoding"]][1]:
+            L.append(f"| {r['mesh']} | {r['method']} | {num(r, 'all_hit_err'):.2f} | {num(r, 'late_hit_err'):.2f} | "
+                     f"{num(r, 'near_start_hit_err'):.2f} | {num(r, 'mse'):.5f} |")
+    if div:
+        L += ["\n## Divergence: learning rate 100x the preset's\n",
+              "Training raises `TrainingDiverged` on a NaN/inf loss or parameter, a loss that jumps 50x above its running "
+              "mean, rises 3x above the untrained model's, or never falls below it in 50+ steps; `compress_mesh` then "
+              "restarts from scratch at a 10x lower learning rate (twice at most) and records it in the result's `why`.\n",
+              "| mesh | method | lr | steps | outcome | MSE | detail |", "|---|---|---|---|---|---|---|"]
+        for r in div:
+            L.append(f"| {r['mesh']} | {r['method']} | {num(r, 'lr'):g} | {r['steps']} | {r['outcome']} | "
+                     f"{num(r, 'mse'):.5f} | {r['detail']} |")
+    diverged = [r for r in read_rows(plan.csv("quality")) if r.get("diverged")]
+    L.append(f"\nDiverged runs in the sweep itself: {len(diverged)}"
+             + ("" if not diverged else ": " + "; ".join(f"{r['mesh']} {r['method']} T=2^{r['log2_table']} seed "
+                                                       f"{r['seed']}: {r['diverged']}" for r in diverged)))
+    text = "\n".join(L) + "\n"
+    (RESULTS / f"quality{plan.suffix}.md").write_text(text)
+    return text
+
+
+def charts(plan: Plan) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = [r for r in read_rows(plan.csv("quality")) if not r.get("diverged")]
+    base = read_rows(plan.csv("baselines"))
+    sweep = [r for r in rows if r["part"] == "sweep" and r["seed"] == "0"]
+    meshes = [m for m in plan.meshes if any(r["mesh"] == m for r in sweep)]
+    colors = {"base": "tab:blue", "I": "tab:orange", "II": "tab:green", "III": "tab:red", "default": "tab:cyan",
+              "draco": "black",
+              "decimate+draco11": "tab:purple"}
+    for axis in ("storage", "resident"):
+        cols = min(4, len(meshes))
+        nrows = math.ceil(len(meshes) / cols)
+        fig, axes = plt.subplots(nrows, cols, figsize=(4 * cols, 3.3 * nrows), squeeze=False)
+        for ax, mesh_name in zip(axes.flat, meshes):
+            for method in METHODS:
+                pts = sorted((num(r, "file_bytes"), num(r, "mse")) for r in sweep if r["mesh"] == mesh_name and r["method"] == method)
+                if pts:
+                    ax.plot(*zip(*pts), "o-", color=colors[method], label=f"{method} (neural)")
+            for kind, label in (("draco", "Draco (bits)"), ("decimate+draco11", "decimate + Draco 11")):
+                pts = sorted((num(r, f"{axis}_bytes"), num(r, "mse")) for r in base if r["mesh"] == mesh_name
+                             and r["baseline"] == kind and num(r, "mse") > 0)
+                if pts:
+                    ax.plot(*zip(*pts), "s--" if kind == "draco" else "^--", color=colors[kind], label=label, ms=4)
+            if axis == "resident":
+                orig = [num(r, "original_resident_bytes") for r in base if r["mesh"] == mesh_name]
+                if orig:
+                    ax.axvline(orig[0], color="gray", ls=":", label="original mesh, resident")
+            ax.set_xscale("log")
+            ax.set_yscale("log")
+            ax.set_title(mesh_name)
+            ax.set_xlabel(f"{axis} bytes")
+            ax.set_ylabel("image MSE")
+            ax.grid(alpha=0.3, which="both")
+        for ax in list(axes.flat)[len(meshes):]:
+            ax.axis("off")
+        axes.flat[0].legend(fontsize=7)
+        fig.suptitle(f"Rate-distortion, {axis} bytes: neural steps (same {plan.train_s:g} s budget) vs Draco and "
+                     "decimation" + (" - Draco files must be decoded and a BVH built before tracing" if axis == "resident" else ""),
+                     fontsize=10)
+        fig.tight_layout()
+        fig.savefig(RESULTS / f"rd_{axis}{plan.suffix}.png", dpi=90)
+        plt.close(fig)
+    # MSE against training time; render speed against MSE.
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 3.8))
+    for mesh_name in plan.time_meshes:
+        pts = sorted((num(r, "train_s"), num(r, "mse")) for r in rows if r["part"] == "time" and r["mesh"] == mesh_name)
+        if pts:
+            a1.plot(*zip(*pts), "o-", label=f"{mesh_name} (default preset)")
+    a1.set_xscale("log")
+    a1.set_yscale("log")
+    a1.set_xlabel("training seconds (2-core CPU)")
+    a1.set_ylabel("image MSE")
+    a1.set_title("MSE against training time")
+    a1.legend(fontsize=8)
+    a1.grid(alpha=0.3, which="both")
+    for method in METHODS:
+        pts = [(num(r, "mse"), num(r, "neural_rays_per_s")) for r in sweep if r["method"] == method]
+        if pts:
+            a2.scatter(*zip(*pts), color=colors[method], label=method, s=14)
+    emb = [num(r, "embree_rays_per_s") for r in sweep]
+    if emb:
+        a2.axhline(np.median(emb), color="black", ls="--", label="Embree (median, same runs)")
+    a2.set_xscale("log")
+    a2.set_yscale("log")
+    a2.set_xlabel("image MSE")
+    a2.set_ylabel("render rays/s")
+    a2.set_title("Render speed against accuracy")
+    a2.legend(fontsize=8)
+    a2.grid(alpha=0.3, which="both")
+    fig.tight_layout()
+    fig.savefig(RESULTS / f"speed_accuracy{plan.suffix}.png", dpi=90)
+    plt.close(fig)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--quick", action="store_true", help="smoke run: 2 meshes, tiny budgets (about a minute)")
+    ap.add_argument("--charts", action="store_true", help="only rebuild tables and charts from the CSVs")
+    ap.add_argument("--parts", default="baselines,sweep,divergence", help="comma-separated parts to run")
+    args = ap.parse_args()
+    plan = Plan(args.quick)
+    t0 = time.perf_counter()
+    if not args.charts:
+        for part in args.parts.split(","):
+            {"baselines": run_baselines, "sweep": run_sweep, "divergence": run_divergence}[part](plan)
+    text = report(plan)
+    charts(plan)
+    print(text)
+    print(f"total {time.perf_counter() - t0:.0f} s")
+
+
+if __name__ == "__main__":
+    main()
