@@ -1,14 +1,17 @@
 """Headless compression inside Blender (the same code path as the panel):
 
     blender -b scene.blend -P compress.py -- --objects NAME [NAME ...] --out DIR
-            [--preset preview|default|high | --budget-kb N | --target-mse X] [--time-limit S] [--device auto|cpu|cuda]
+            [--preset preview|default|high | --budget-kb N | --target-mse X | --quality preview|standard|high]
+            [--time-limit S] [--device auto|cpu|cuda]
             [--python PATH] [--load MODEL.nbvh] [--save-blend FILE.blend]
 
 Under `blender -b`, timers never fire while this script runs, so it waits on the jobs itself and prints
 their events as progress. Exit code 0 only when every object was compressed (or loaded); otherwise the
 error is printed and the exit code is 1 (Blender needs --python-exit-code 1 to pass it on, or the script
 exits itself, as it does here). The user's objects are never modified; the .blend is saved only with
---save-blend, to a new file.
+--save-blend, to a new file. --budget-kb with several objects is one budget for all of them, shared by need
+(detail and size on the scene camera's screen); the report shows the split. --target-mse / --quality size each
+object for that image MSE, measure it and retrain one size larger when it was missed.
 """
 from __future__ import annotations
 
@@ -21,6 +24,12 @@ if str(HERE) not in sys.path:
     sys.path.insert(0, str(HERE))
 
 
+def engine_quality_levels() -> dict:
+    from addon.engine import QUALITY_TARGETS
+
+    return QUALITY_TARGETS
+
+
 def parse(argv: list[str]) -> argparse.Namespace:
     ap = argparse.ArgumentParser(prog="blender -b FILE.blend -P compress.py --",
                                  description="Compress Blender objects into neural geometry (.nbvh)")
@@ -30,6 +39,8 @@ def parse(argv: list[str]) -> argparse.Namespace:
     size.add_argument("--preset", default="default")
     size.add_argument("--budget-kb", type=float)
     size.add_argument("--target-mse", type=float)
+    size.add_argument("--quality", choices=list(engine_quality_levels()),
+                      help="named target: preview = MSE 0.02, standard = 0.01, high = 0.005")
     ap.add_argument("--time-limit", type=float, help="training seconds per object")
     ap.add_argument("--steps", type=int, help="training steps per object (tests)")
     ap.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"])
@@ -52,7 +63,8 @@ def run(argv: list[str]) -> int:
         return 1
     objects = [bpy.data.objects[n] for n in args.objects]
     overrides = {"device": args.device, "time_limit_s": args.time_limit, "steps": args.steps,
-                 "budget_kb": args.budget_kb, "target_mse": args.target_mse}
+                 "budget_kb": args.budget_kb,
+                 "target_mse": engine.QUALITY_TARGETS[args.quality] if args.quality else args.target_mse}
     if args.steps is not None and args.time_limit is None:
         overrides["time_limit_s"] = 0  # steps only (0 = no wall-clock limit, see job)
     overrides = {k: v for k, v in overrides.items() if v is not None}

@@ -88,7 +88,36 @@ def start(context, objects, req: Request, python: str | None = None) -> tuple[Se
         np.savez(mesh_path, vertices=verts, faces=tris)
         job.request["mesh"] = str(mesh_path)
         session.objects[job.id] = obj.name
+    scene_jobs = [j for j in session.queue.jobs if j.id in session.objects]
+    if "budget_kb" in req.overrides and len(scene_jobs) > 1 and not req.load_model:
+        # One budget for the whole selection, shared by need (detail, size on screen) inside every job
+        # (nbvh_core.sizing.split_budget, deterministic): the jobs have not started yet, so their requests can
+        # still carry the full list of exported meshes.
+        objs = [bpy.data.objects[session.objects[j.id]] for j in scene_jobs]
+        weights = screen_weights(context, objs)
+        for i, j in enumerate(scene_jobs):
+            j.request["settings"].pop("budget_kb", None)
+            j.request["scene"] = {"budget_kb": req.overrides["budget_kb"], "meshes": [x.request["mesh"] for x in scene_jobs],
+                                  "names": [x.name for x in scene_jobs], "weights": weights, "index": i}
     return session, refusals
+
+
+def screen_weights(context, objects) -> list[float]:
+    """Relative size on screen of each object: (world bounding-box diagonal / distance to the scene camera)^2,
+    normalised to mean 1 (without a camera: the diagonal squared)."""
+    from mathutils import Vector
+
+    cam = context.scene.camera
+    raw = []
+    for obj in objects:
+        corners = [obj.matrix_world @ Vector(c) for c in obj.bound_box]
+        lo = Vector([min(c[a] for c in corners) for a in range(3)])
+        hi = Vector([max(c[a] for c in corners) for a in range(3)])
+        diag = (hi - lo).length
+        dist = ((lo + hi) / 2 - cam.matrix_world.translation).length if cam else 1.0
+        raw.append((diag / max(dist, 1e-6)) ** 2)
+    mean = sum(raw) / len(raw) if raw and sum(raw) > 0 else 1.0
+    return [max(r / mean, 1e-3) for r in raw]
 
 
 def finish_done(session: Session, scene) -> None:

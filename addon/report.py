@@ -36,6 +36,11 @@ def object_entry(name: str, blender_bytes: dict, job_report: dict) -> dict:
         # Before training: was the model going to be smaller than the mesh a ray tracer holds? (sizing.assess)
         "worth_compressing": (job_report.get("assessment") or {}).get("worth_compressing", resident["total"] > nbvh),
         "assessment": (job_report.get("assessment") or {}).get("message", ""),
+        "recommendation": (job_report.get("assessment") or {}).get("recommendation", ""),
+        "alternatives": (job_report.get("assessment") or {}).get("alternatives", {}),
+        "why": job_report.get("why", ""),
+        "target_met": job_report.get("target_met"),
+        "scene_split": job_report.get("scene_split"),
     }
 
 
@@ -46,7 +51,8 @@ def build_report(entries: list[dict]) -> dict:
     if totals["nbvh_bytes"]:
         totals["ratio_blender_mesh_to_nbvh"] = totals["blender_mesh_bytes"] / totals["nbvh_bytes"]
         totals["ratio_resident_to_nbvh"] = totals["ray_tracing_resident_bytes"] / totals["nbvh_bytes"]
-    return {"objects": entries, "totals": totals}
+    split = next((e["scene_split"] for e in entries if e.get("scene_split")), None)
+    return {"objects": entries, "totals": totals, "scene_split": split}
 
 
 def _img_tag(path: str | None, alt: str) -> str:
@@ -54,6 +60,21 @@ def _img_tag(path: str | None, alt: str) -> str:
         return f"<em>no {html.escape(alt)}</em>"
     data = base64.b64encode(Path(path).read_bytes()).decode()
     return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{data}">'
+
+
+def _alternatives_text(alt: dict) -> str:
+    parts = []
+    if "draco11_bytes" in alt:
+        parts.append(f"Draco 11-bit file of the mesh {_kb(alt['draco11_bytes'])} (storage only: decoded before tracing)")
+    dec = alt.get("decimation")
+    if dec:
+        parts.append(f"decimation to {dec['triangles']:,} triangles meets the target (MSE {dec['mse']:.4g}): "
+                     f"{_kb(dec['resident_bytes'])} resident" + (f", {_kb(dec['draco11_bytes'])} as Draco" if "draco11_bytes" in dec else ""))
+    elif alt.get("decimations_tried"):
+        parts.append(f"no decimation up to {alt['decimations_tried'][-1]['triangles']:,} triangles meets the target")
+    if alt.get("note"):
+        parts.append(alt["note"])
+    return "; ".join(parts) or "not measured (no quality target)"
 
 
 def write_report(report: dict, out_dir: str | Path, stem: str = "nbvh_report") -> tuple[Path, Path]:
@@ -77,17 +98,30 @@ def write_report(report: dict, out_dir: str | Path, stem: str = "nbvh_report") -
 <tr><th>quality</th><td>image MSE {mse}, silhouette IoU {iou} over {e['eval_views']} views</td></tr>
 <tr><th>training</th><td>{e['train_seconds']} s on {html.escape(str(e['device']))}</td></tr>
 <tr><th>verdict</th><td>{'worth compressing' if e['worth_compressing'] else '<strong>' + html.escape(e['assessment'] or 'not worth compressing') + '</strong>'}</td></tr>
+<tr><th>alternatives (measured)</th><td>{html.escape(_alternatives_text(e.get('alternatives') or {}))}</td></tr>
+<tr><th>asked, chosen and why</th><td>{html.escape(e.get('why') or '')}{'' if e.get('target_met') is None else (' - target met' if e['target_met'] else ' - <strong>target missed</strong>')}</td></tr>
 </table>
 <div class="pair"><figure>{_img_tag(e['files'].get('reference'), 'mesh')}<figcaption>mesh (Embree)</figcaption></figure>
 <figure>{_img_tag(e['files'].get('preview'), 'neural')}<figcaption>neural (.nbvh)</figcaption></figure></div>
 </section>""")
     t = report["totals"]
+    split = report.get("scene_split")
+    split_html = ""
+    if split:
+        lines = "".join(f"<tr><td>{html.escape(o['name'])}</td><td>{o['triangles']:,}</td><td>{o['weight']:.2f}</td>"
+                        f"<td>2^{o['log2_table']}</td><td>{_kb(o['bytes'])}</td><td>{o['predicted_mse']:.4g}</td></tr>"
+                        for o in split["objects"])
+        split_html = (f"<h2>Scene budget split</h2><p>{split['budget_kb']:g} KB shared by need (detail from the size "
+                      f"predictor, weight = size on screen): common quality level MSE {split['level_mse']:.4g}, planned "
+                      f"total {_kb(split['total_bytes'])}.</p><table><tr><th>object</th><th>triangles</th><th>weight</th>"
+                      f"<th>T</th><th>planned</th><th>predicted MSE</th></tr>{lines}</table>")
     page = f"""<!doctype html><meta charset="utf-8"><title>NBVH asset memory report</title>
 <style>body{{font-family:sans-serif;max-width:60em;margin:2em auto}}th{{text-align:left;padding-right:1em}}
 img{{width:256px;image-rendering:pixelated;background:#000}}.pair{{display:flex;gap:1em}}</style>
 <h1>NBVH asset memory report</h1>
 <p>Scene totals: Blender meshes {_kb(t['blender_mesh_bytes'])}, ray-tracing resident {_kb(t['ray_tracing_resident_bytes'])},
 .nbvh {_kb(t['nbvh_bytes'])}.</p>
+{split_html}
 {''.join(rows)}"""
     htm = out_dir / f"{stem}.html"
     htm.write_text(page)

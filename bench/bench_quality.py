@@ -19,7 +19,7 @@ Parts (rows are appended to CSVs as they finish; a rerun skips rows already ther
   leaf: `sizing.mesh_resident_bytes`); the neural model is traced as stored, so its two axes are the same.
 * divergence (divergence.csv): each method at a learning rate 100x too high: is the divergence detected?
 
-Failure subsets (per trained model, on 40k rays from the training distribution and 20k rays that start near the
+Failure subsets (per trained model, on 20k rays from the training distribution and 8k rays that start near the
 surface): `late` - rays whose true first hit lies in the 4th or later leaf they enter (the paper's known weakness);
 `grazing` - true hit at |cos| < 0.2; `thin` - a second surface within 0.02 (unit box) behind the first hit;
 `near_start` - rays starting 0.003 from the surface; `all` - the whole training distribution. Errors: hit error
@@ -77,7 +77,7 @@ class Plan:
         self.time_meshes = ("blob",) if quick else ("bunny",)
         self.draco_bits = (8, 11) if quick else (7, 8, 9, 10, 11, 14)
         self.decimate_to = (1000,) if quick else (500, 1000, 2500, 10000, 40000)
-        self.failure_rays = (4000, 2000) if quick else (40000, 20000)
+        self.failure_rays = (4000, 2000) if quick else (20000, 8000)
         self.suffix = "_quick" if quick else ""
 
     def csv(self, name: str) -> Path:
@@ -305,7 +305,9 @@ def report(plan: Plan) -> str:
     rows = [r for r in read_rows(plan.csv("quality")) if not r.get("diverged")]
     base = read_rows(plan.csv("baselines"))
     div = read_rows(plan.csv("divergence"))
-    sweep = [r for r in rows if r["part"] == "sweep"]
+    order = {m: i for i, m in enumerate(BENCH_MESHES)}
+    sweep = sorted((r for r in rows if r["part"] == "sweep"),
+                   key=lambda r: (order.get(r["mesh"], 99), METHODS.index(r["method"]), int(r["log2_table"]), int(r["seed"])))
     L = [f"# Quality benchmark: method steps, baselines, stability{' (quick smoke run)' if plan.quick else ''}\n",
          f"2-core CPU, torch {torch.__version__}, {kernels.describe()}. Every neural model trained {plan.train_s:g} s "
          f"wall-clock (fast path), scored on {plan.views} orbit views at {plan.res} px (image MSE of the paper's "
@@ -348,8 +350,8 @@ def report(plan: Plan) -> str:
           "Neural: the best seed-0 model per mesh. Draco 11-bit: the original mesh's file. Decimation + Draco: the "
           "smallest decimation whose MSE is at most the neural model's. Resident = what a ray tracer holds (the "
           "neural model is traced as stored).\n",
-          "| mesh | neural bytes | neural MSE | Draco 11-bit bytes (MSE) | decimated+Draco for <= neural MSE: storage / resident bytes | original resident bytes | neural vs Draco storage | neural vs resident mesh |",
-          "|---|---|---|---|---|---|---|---|"]
+          "| mesh | neural bytes | neural MSE | Draco 11-bit bytes (MSE) | decimated+Draco for <= neural MSE: storage / resident bytes | original resident bytes | neural vs Draco storage | neural vs resident original mesh | neural vs resident decimation of equal MSE |",
+          "|---|---|---|---|---|---|---|---|---|"]
     for mesh_name in plan.meshes:
         ns = [r for r in sweep if r["mesh"] == mesh_name and r["seed"] == "0"]
         bs = [r for r in base if r["mesh"] == mesh_name]
@@ -365,8 +367,11 @@ def report(plan: Plan) -> str:
         decs = (f"{int(dec[0]['triangles']):,} tris: {int(dec[0]['storage_bytes']):,} / {int(dec[0]['resident_bytes']):,}"
                 if dec else "none of the decimations is that bad")
         vs_d = f"{nb / num(d11[0], 'storage_bytes'):.1f}x larger" if d11 else "-"
+        vs_r = f"{orig / nb:.1f}x smaller" if orig >= nb else f"{nb / orig:.1f}x LARGER"
+        vs_dec = (f"{nb / num(dec[0], 'resident_bytes'):.1f}x larger" if dec and nb > num(dec[0], "resident_bytes")
+                  else f"{num(dec[0], 'resident_bytes') / nb:.1f}x smaller" if dec else "-")
         L.append(f"| {mesh_name} | {nb:,.0f} | {nm:.5f} ({best['method']}, T=2^{best['log2_table']}) | {d11s} | {decs} | "
-                 f"{orig:,.0f} | {vs_d} | {orig / nb:.1f}x smaller |")
+                 f"{orig:,.0f} | {vs_d} | {vs_r} | {vs_dec} |")
     # Stability over seeds.
     L += ["\n## Stability: 3 seeds (middle size), mean +- std\n",
           "| mesh | method | MSE | IoU | " + " | ".join(f"{s} hit err % / depth err" for s in SUBSETS) + " |",
@@ -416,6 +421,16 @@ def report(plan: Plan) -> str:
     text = "\n".join(L) + "\n"
     (RESULTS / f"quality{plan.suffix}.md").write_text(text)
     return text
+
+
+def _log_axes(ax, xlabel: str, ylabel: str, title: str) -> None:
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3, which="both")
 
 
 def charts(plan: Plan) -> None:
@@ -470,13 +485,7 @@ def charts(plan: Plan) -> None:
         pts = sorted((num(r, "train_s"), num(r, "mse")) for r in rows if r["part"] == "time" and r["mesh"] == mesh_name)
         if pts:
             a1.plot(*zip(*pts), "o-", label=f"{mesh_name} (default preset)")
-    a1.set_xscale("log")
-    a1.set_yscale("log")
-    a1.set_xlabel("training seconds (2-core CPU)")
-    a1.set_ylabel("image MSE")
-    a1.set_title("MSE against training time")
-    a1.legend(fontsize=8)
-    a1.grid(alpha=0.3, which="both")
+    _log_axes(a1, "training seconds (2-core CPU)", "image MSE", "MSE against training time")
     for method in METHODS:
         pts = [(num(r, "mse"), num(r, "neural_rays_per_s")) for r in sweep if r["method"] == method]
         if pts:
@@ -484,13 +493,7 @@ def charts(plan: Plan) -> None:
     emb = [num(r, "embree_rays_per_s") for r in sweep]
     if emb:
         a2.axhline(np.median(emb), color="black", ls="--", label="Embree (median, same runs)")
-    a2.set_xscale("log")
-    a2.set_yscale("log")
-    a2.set_xlabel("image MSE")
-    a2.set_ylabel("render rays/s")
-    a2.set_title("Render speed against accuracy")
-    a2.legend(fontsize=8)
-    a2.grid(alpha=0.3, which="both")
+    _log_axes(a2, "image MSE", "render rays/s", "Render speed against accuracy")
     fig.tight_layout()
     fig.savefig(RESULTS / f"speed_accuracy{plan.suffix}.png", dpi=90)
     plt.close(fig)

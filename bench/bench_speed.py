@@ -125,6 +125,15 @@ def main() -> None:
                          "items": size * size, "per_s": size * size / sec, "unit": "rays/s", "segments": segs,
                          "segments_per_s": segs / sec, "gflops": segs * per_seg / sec / 1e9, "hits": hits})
             print(rows[-1], flush=True)
+        if device.type == "cpu":
+            model.half_tables = True
+            sec, hits, segs = render_time(model, o, d, device, 3)
+            model.half_tables = False
+            rows.append({"what": "render", "path": kernels.describe(device) + ", float16 tables", "size": size,
+                         "seconds": sec, "items": size * size, "per_s": size * size / sec, "unit": "rays/s",
+                         "segments": segs, "segments_per_s": segs / sec, "gflops": segs * per_seg / sec / 1e9,
+                         "hits": hits})
+            print(rows[-1], flush=True)
         best = float("inf")
         for _ in range(3):
             t = time.perf_counter()
@@ -133,10 +142,20 @@ def main() -> None:
         rows.append({"what": "render", "path": "Embree (embreex, CPU)", "size": size, "seconds": best,
                      "items": size * size, "per_s": size * size / best, "unit": "rays/s", "hits": int(fh.hit.sum())})
         print(rows[-1], flush=True)
-    write(rows, args, mesh, s, tr, flops, peak, device)
+    from nbvh_core.metrics import evaluate
+
+    q32, _ = evaluate(model, tracer, 16, 128)
+    model.half_tables = True
+    q16, _ = evaluate(model, tracer, 16, 128)
+    model.half_tables = False
+    half_note = (f"float16 feature rows (inference only, `NeuralBVH.half_tables`): image MSE {q16.mse:.6f} vs "
+                 f"{q32.mse:.6f} with float32 rows, silhouette IoU {q16.silhouette_iou:.4f} vs {q32.silhouette_iou:.4f} "
+                 "(16 orbit views at 128 px, same model).")
+    print(half_note)
+    write(rows, args, mesh, s, tr, flops, peak, device, half_note)
 
 
-def write(rows, args, mesh, s, tr, flops, peak, device) -> None:
+def write(rows, args, mesh, s, tr, flops, peak, device, half_note: str = "") -> None:
     suffix = "_quick" if args.quick else ""
     out = ROOT / "bench" / "results"
     out.mkdir(parents=True, exist_ok=True)
@@ -174,6 +193,7 @@ def write(rows, args, mesh, s, tr, flops, peak, device) -> None:
                              f"{100 * r['segments_per_s'] / limit:.0f}% |")
             else:
                 lines.append(f"| {r['size']}x{r['size']} | {r['path']} | {r['seconds']:.3f} | {r['per_s']:,.0f} | | | | |")
+    lines.append(f"\n{half_note}")
     for size in sorted({r["size"] for r in rows if r["what"] == "render"}):
         f_ = next(r for r in rows if r["what"] == "render" and r["size"] == size and r["path"].startswith("fast"))
         r_ = next(r for r in rows if r["what"] == "render" and r["size"] == size and r["path"].startswith("reference"))
@@ -200,10 +220,11 @@ def chart(rows, path: Path) -> None:
     renders = [r for r in rows if r["what"] == "render"]
     sizes = sorted({r["size"] for r in renders})
     fig, ax = plt.subplots(figsize=(7, 3.6))
-    names = ["reference", "fast", "Embree"]
+    names = ["reference", "fast", "float16", "Embree"]
     for i, name in enumerate(names):
-        vals = [next(r["per_s"] for r in renders if r["size"] == s and r["path"].startswith(name)) for s in sizes]
-        ax.bar(np.arange(len(sizes)) + (i - 1) * 0.27, vals, 0.27, label=name)
+        vals = [next((r["per_s"] for r in renders if r["size"] == s and (name in r["path"] if name == "float16" else
+                      r["path"].startswith(name) and "float16" not in r["path"])), 0) for s in sizes]
+        ax.bar(np.arange(len(sizes)) + (i - 1.5) * 0.2, vals, 0.2, label=name)
     ax.set_yscale("log")
     ax.set_xticks(range(len(sizes)), [f"{s}x{s}" for s in sizes])
     ax.set_ylabel("primary rays/s (log)")

@@ -241,6 +241,39 @@ def test_bad_selections_refused_with_names():
     assert "'Empty'" in bpy.context.scene.nbvh_props.last_error
 
 
+def _add_suzanne():
+    bpy.ops.mesh.primitive_monkey_add(location=(-4.0, 0.0, 0.0))
+    monkey = bpy.context.active_object
+    monkey.name = "Suzanne"
+    return monkey
+
+
+def test_scene_budget_is_split_by_need_and_suzanne_is_not_worth_it():
+    blob = setup_scene()
+    monkey = _add_suzanne()
+    before = (mesh_fingerprint(blob), mesh_fingerprint(monkey))
+    props = bpy.context.scene.nbvh_props
+    props.mode = "BUDGET"
+    props.budget_kb = 1500
+    props.time_limit = 5
+    props.output_dir = str(Path(ARGS.work) / "scene_out")
+    select("Blob", "Suzanne")
+    assert bpy.ops.nbvh.compress() == {"FINISHED"}
+    run_operator_until_done(timeout=600)
+    assert props.phase == "done", (props.phase, props.last_error)
+    scene_json = json.loads(Path(props.report_html).with_suffix(".json").read_text())
+    split = scene_json["scene_split"]
+    assert split and {o["name"] for o in split["objects"]} == {"Blob", "Suzanne"}
+    assert split["total_bytes"] <= 1500 * 1024
+    entries = {e["name"]: e for e in scene_json["objects"]}
+    # Suzanne (968 triangles) is far smaller as a mesh than any model: the report says so.
+    assert not entries["Suzanne"]["worth_compressing"]
+    assert "not worth compressing" in entries["Suzanne"]["assessment"]
+    assert "Scene budget split" in Path(props.report_html).read_text()
+    assert (mesh_fingerprint(blob), mesh_fingerprint(monkey)) == before
+    props.mode = "PRESET"
+
+
 def test_text_converts_to_mesh():
     export = ADDON["export"]
     verts, tris, nbytes = export.evaluated_triangles(bpy.data.objects["Label"], bpy.context.evaluated_depsgraph_get())

@@ -149,6 +149,8 @@ def compress_py_checks(name: str, prefix: list[str], work: Path, mesh: Path, env
     damaged.write_bytes(b"NBVH\0\r\n\x1a\x01\x00\x00\x00" + b"\x07" * 100)
     cases = [
         ("success", ["--objects", "Blob", "--out", str(out), "--preset", "tiny", "--steps", "20"], 0, "report:"),
+        ("quality target", ["--objects", "Blob", "--out", str(work / "quality_out"), "--quality", "preview",
+                            "--time-limit", "5"], 0, "report:"),
         ("help", ["--help"], 0, "--objects"),
         ("missing object", ["--objects", "Nope", "--out", str(out)], 1, "no object named 'Nope'"),
         ("non-mesh object", ["--objects", "Cam", "--out", str(out)], 1, "'Cam' is a camera"),

@@ -143,12 +143,14 @@ def cmd_compress(args: argparse.Namespace) -> int:
     from .events import json_lines, progress_bar
     from .pipeline import compress_mesh, preset
     from .render import orbit_cameras, render_neural, render_reference, save_png
+    from .sizing import QUALITY_LEVELS
 
     settings = preset(args.preset).with_overrides(
         nodes=args.nodes, encoding=args.encoding, log2_table=args.log2_table, network=args.network, k=args.k,
         labels=args.labels, lr=args.lr, steps=args.steps, time_limit_s=args.time_limit, seed=args.seed,
         device=args.device, float_bytes=2 if args.float16 else None, eval_views=args.views,
-        rays_per_step=args.rays_per_step, budget_kb=args.budget_kb, target_mse=args.target_mse)
+        rays_per_step=args.rays_per_step, budget_kb=args.budget_kb,
+        target_mse=QUALITY_LEVELS[args.quality] if args.quality else args.target_mse)
     if args.steps is not None and args.time_limit is None:
         settings.time_limit_s = None
     mesh = _load_mesh_reporting(args.mesh)
@@ -179,6 +181,9 @@ def cmd_compress(args: argparse.Namespace) -> int:
                   f" depth error {q.depth_error:.5f} (unit box)")
         t = result.training
         print(f"training: {t.steps} steps, {t.seconds:.1f} s, {t.samples_per_s:,.0f} samples/s on {t.device}")
+        print(f"why: {result.why}")
+        if result.target_met is not None:
+            print(f"target {'met' if result.target_met else 'MISSED'}: MSE {q.mse:.5f} vs {result.settings.target_mse:g}")
         if not result.assessment["worth_compressing"]:
             print(f"note: {result.assessment['message']}")
     return 0
@@ -189,6 +194,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     from .render import Camera, orbit_cameras, render_neural, save_png
 
     model = load_nbvh(args.model)
+    model.half_tables = args.half
     if args.position is not None:
         cam = Camera(position=np.asarray(args.position, float), target=np.asarray(args.target, float),
                      up=np.array([0.0, 1.0, 0.0]), fov_deg=args.fov)
@@ -271,6 +277,36 @@ def cmd_samples(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_plan(args: argparse.Namespace) -> int:
+    """Share one byte budget among several meshes by need (sizing.split_budget) and print the split."""
+    from .pipeline import estimate_file_bytes, preset
+    from .sizing import load_fit, mesh_features, split_budget
+
+    fit = load_fit()
+    if fit is None:
+        raise ValueError("no size predictor (nbvh_core/sizing_fit.json); run bench/fit_sizing.py")
+    meshes = [_load_mesh_reporting(m) for m in args.meshes]
+    weights = args.weights or [1.0] * len(meshes)
+    if len(weights) != len(meshes):
+        raise ValueError(f"{len(weights)} weights for {len(meshes)} meshes")
+    feats = [mesh_features(m) for m in meshes]
+    base = preset(fit.method)
+    plan = split_budget(feats, args.budget_kb * 1024, fit,
+                        lambda i, l2: estimate_file_bytes(base.with_overrides(log2_table=l2)), weights)
+    rows = [{"mesh": m.name, "triangles": m.n_triangles, "weight": w, "log2_table": l2, "bytes": b,
+             "predicted_mse": round(p, 6)} for m, w, l2, b, p in zip(meshes, weights, plan["log2"], plan["bytes"],
+                                                                    plan["predicted_mse"])]
+    if args.json:
+        print(json.dumps({**plan, "objects": rows}, indent=2))
+        return 0
+    print(f"budget {args.budget_kb:g} KB shared by need: common quality level MSE {plan['level']:.4g} "
+          f"(each mesh aims at level / weight), total {plan['total'] / 1024:.0f} KB")
+    for r in rows:
+        print(f"  {r['mesh']}: {r['triangles']:,} triangles, weight {r['weight']:g} -> T=2^{r['log2_table']}, "
+              f"{r['bytes'] / 1024:.0f} KB, predicted MSE {r['predicted_mse']:.4g}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="nbvh", description="Neural BVH geometry compression")
     p.add_argument("--path", choices=["fast", "reference"],
@@ -295,6 +331,8 @@ def build_parser() -> argparse.ArgumentParser:
     size = c.add_mutually_exclusive_group()
     size.add_argument("--budget-kb", type=float, help="size the model to fit this many KB")
     size.add_argument("--target-mse", type=float, help="size the model for this image MSE (checked after training)")
+    size.add_argument("--quality", choices=["preview", "standard", "high"],
+                      help="a named target: preview = MSE 0.02, standard = 0.01, high = 0.005")
     c.add_argument("--encoding", choices=["hashgrid", "hashvqad"])
     c.add_argument("--network", choices=["mlp", "kmlp"])
     c.add_argument("--labels", choices=["ownership", "consistent"])
@@ -324,6 +362,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--position", type=float, nargs=3, help="camera position (unit-box coordinates)")
     r.add_argument("--target", type=float, nargs=3, default=[0.5, 0.5, 0.5])
     r.add_argument("--fov", type=float, default=40.0)
+    r.add_argument("--half", action="store_true", help="float16 feature rows while rendering (faster on the CPU)")
     r.set_defaults(func=cmd_render)
     i = sub.add_parser("info", help="bytes per component and recorded numbers of a .nbvh file")
     i.add_argument("model")
@@ -337,6 +376,12 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--resolution", type=int, default=256)
     e.add_argument("--json", action="store_true")
     e.set_defaults(func=cmd_eval)
+    pl = sub.add_parser("plan", help="share one byte budget among several meshes by need")
+    pl.add_argument("meshes", nargs="+")
+    pl.add_argument("--budget-kb", type=float, required=True)
+    pl.add_argument("--weights", type=float, nargs="+", help="per mesh, e.g. its share of the screen (default 1)")
+    pl.add_argument("--json", action="store_true")
+    pl.set_defaults(func=cmd_plan)
     s = sub.add_parser("samples", help="list the bundled sample meshes")
     s.set_defaults(func=cmd_samples)
     return p

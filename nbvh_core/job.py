@@ -118,6 +118,9 @@ def run_job(request: dict, events, should_cancel) -> dict:
     settings = preset(spec.pop("preset", "default")).with_overrides(**spec)
     if steps_only:
         settings.time_limit_s = None
+    scene_split = None
+    if request.get("scene"):
+        settings, scene_split = _scene_share(request["scene"], settings, events)
     model_path = out_dir / f"{name}.nbvh"
     if request.get("model"):
         # Load an existing model instead of training (a damaged file fails here with NBVHFileError).
@@ -158,12 +161,50 @@ def run_job(request: dict, events, should_cancel) -> dict:
     report["name"] = name
     report["mesh_resident_bytes"] = result.assessment["resident"] if result.assessment else mesh_resident_bytes(mesh)
     report["files"] = files
+    if scene_split is not None:
+        report["scene_split"] = scene_split
     _atomic_bytes(Path(files["report"]), json.dumps(report, indent=2).encode())
     event = {"event": "result", "name": name, "path": str(model_path), "bytes": result.file_bytes,
              "files": files, "quality": report["quality"], "train_seconds": round(float(result.training.seconds), 2),
              "device": result.training.device}
     events(event)
     return event
+
+
+def _scene_share(scene: dict, settings, events):
+    """This object's share of a scene budget: {"budget_kb", "meshes": [npz paths, all objects, in order], "names",
+    "weights", "index"}. Every job computes the same split (sizing.split_budget, deterministic) and takes entry
+    `index`; returns (settings with that size, the split for the report)."""
+    import dataclasses
+
+    from .mesh import mesh_from_arrays
+    from .pipeline import PRESETS, estimate_file_bytes
+    from .sizing import load_fit, mesh_features, split_budget
+
+    fit = load_fit()
+    if fit is None:
+        raise ValueError("a scene budget needs the size predictor (nbvh_core/sizing_fit.json), which is missing")
+    feats = []
+    for path in scene["meshes"]:
+        with np.load(path) as arrays:
+            feats.append(mesh_features(mesh_from_arrays(arrays["vertices"], arrays["faces"])))
+    base = dataclasses.replace(settings, encoding=PRESETS[fit.method].encoding, network=PRESETS[fit.method].network,
+                               labels=PRESETS[fit.method].labels, nodes=PRESETS[fit.method].nodes, budget_kb=None,
+                               target_mse=None)
+    plan = split_budget(feats, float(scene["budget_kb"]) * 1024, fit,
+                        lambda i, l2: estimate_file_bytes(dataclasses.replace(base, log2_table=l2)),
+                        scene.get("weights"))
+    i = int(scene["index"])
+    names = scene.get("names") or [str(k) for k in range(len(feats))]
+    split = {"budget_kb": scene["budget_kb"], "level_mse": plan["level"], "total_bytes": plan["total"],
+             "objects": [{"name": n, "weight": w, "log2_table": l2, "bytes": b, "predicted_mse": p, "triangles": f.triangles}
+                         for n, w, l2, b, p, f in zip(names, plan["weights"], plan["log2"], plan["bytes"],
+                                                      plan["predicted_mse"], feats)]}
+    events({"event": "phase", "phase": "plan",
+            "message": f"scene budget {scene['budget_kb']:g} KB shared by need over {len(feats)} objects: this one "
+                       f"gets T=2^{plan['log2'][i]} (~{plan['bytes'][i] / 1024:.0f} KB, predicted MSE "
+                       f"{plan['predicted_mse'][i]:.4g})"})
+    return dataclasses.replace(base, log2_table=plan["log2"][i]), split
 
 
 def main(argv: list[str]) -> int:

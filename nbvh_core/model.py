@@ -59,6 +59,16 @@ class NeuralBVH(nn.Module):
         self.metadata: dict = {}  # what the file's header carried (training, quality, source)
 
     @property
+    def half_tables(self) -> bool:
+        """Query with float16 feature rows (fast path on the CPU, inference only); see bench/results/speed.md for
+        what it changes in the metric."""
+        return self.encoding.half_tables
+
+    @half_tables.setter
+    def half_tables(self, value: bool) -> None:
+        self.encoding.half_tables = bool(value)
+
+    @property
     def device(self) -> torch.device:
         return self.encoding.table.device
 

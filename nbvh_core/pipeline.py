@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import platform
 import time
 from dataclasses import dataclass, field
@@ -111,17 +112,20 @@ def estimate_file_bytes(s: Settings) -> int:
     return sum(comps.values()) + 2600
 
 
-#: Image MSE each preset reached on the bundled samples (bench/results/samples_default.md), best first.
-_TARGET_LADDER = ("preview", "default", "high")
+#: A missed quality target is retrained at most this many times, one table size (2x T) larger each time.
+TARGET_RETRIES = 1
 
 
-def resolve(s: Settings) -> tuple[Settings, str]:
+def resolve(s: Settings, mesh: Mesh | None = None) -> tuple[Settings, str]:
     """Turn a byte budget or a quality target into concrete sizes; returns (settings, why).
 
     Budget: the largest (T, nodes) of the grid T in 2^5..2^12, nodes in 255..8191 whose file fits the budget
-    (largest file first, ties to more nodes). Target: the smallest preset expected to reach it; the measured
-    quality is checked after training and reported (`target_met`).
+    (largest file first, ties to more nodes). Target (with the mesh): the method the size predictor was fitted
+    for (sizing_fit.json: HashGrid + MLP + consistent labels) at the smallest T whose predicted MSE meets the
+    target (`sizing.choose_size`); `compress_mesh` measures the result and steps T up if it was missed.
     """
+    from .sizing import choose_size, load_fit, mesh_features
+
     if s.budget_kb is not None:
         budget = s.budget_kb * 1024
         best = None
@@ -138,11 +142,26 @@ def resolve(s: Settings) -> tuple[Settings, str]:
         return chosen, (f"budget {s.budget_kb:g} KB: chose T=2^{chosen.log2_table}, {chosen.nodes} nodes "
                         f"(estimated {size / 1024:.1f} KB), the largest grid point that fits")
     if s.target_mse is not None:
-        thresholds = {"preview": 0.02, "default": 0.01, "high": 0.005}
-        name = next((n for n in _TARGET_LADDER if thresholds[n] <= s.target_mse), "high")
-        base = PRESETS[name]
-        chosen = dataclasses.replace(s, nodes=base.nodes, log2_table=base.log2_table, target_mse=s.target_mse)
-        return chosen, f"target MSE {s.target_mse:g}: preset {name!r} sizes (its nominal target {thresholds[name]:g})"
+        if s.target_mse <= 0:
+            raise ValueError(f"target MSE must be > 0, got {s.target_mse:g}")
+        fit = load_fit()
+        if fit is None or mesh is None:
+            base = PRESETS["high" if s.target_mse < 0.01 else "default" if s.target_mse < 0.02 else "preview"]
+            chosen = dataclasses.replace(s, nodes=base.nodes, log2_table=base.log2_table)
+            return chosen, (f"target MSE {s.target_mse:g}: no size predictor available, used preset sizes "
+                            f"(T=2^{base.log2_table}, {base.nodes} nodes)")
+        feats = mesh_features(mesh)
+        fitted = PRESETS[fit.method]
+        l2, pred, reachable = choose_size(fit, feats, s.target_mse)
+        chosen = dataclasses.replace(s, encoding=fitted.encoding, network=fitted.network, labels=fitted.labels,
+                                     nodes=fitted.nodes, log2_table=l2)
+        why = (f"target MSE {s.target_mse:g}: predicted MSE {pred:.4g} at T=2^{l2} ({fitted.encoding}+{fitted.network}, "
+               f"{fitted.nodes} nodes; mesh area {feats.area:.2f}, occupancy {feats.occupancy:.3f}, roughness "
+               f"{feats.roughness:.3f}, {feats.triangles:,} triangles), the smallest T predicted to meet it with a "
+               f"{math.exp(fit.margin * fit.residual_std):.2f}x safety factor")
+        if not reachable:
+            why += "; the target is beyond every size the predictor knows: using the largest"
+        return chosen, why
     return s, "fixed settings"
 
 
@@ -177,31 +196,15 @@ class CompressResult:
                 "target_met": self.target_met, "assessment": self.assessment}
 
 
-def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = None,
-                  events: EventSink = null_sink, should_cancel: Callable[[], bool] = lambda: False,
-                  evaluate_quality: bool = True, checkpoint_path: str | Path | None = None) -> CompressResult:
-    """Compress `mesh` with `settings`; write `out_path` (atomically) when given. Raises `train.Cancelled`,
-    `train.TrainingDiverged` (nothing written in either case)."""
-    from .sizing import assess
-
-    settings, why = resolve(settings)
-    seconds = {}
-    t = time.perf_counter()
-    events({"event": "phase", "phase": "plan", "message": why})
-    assessment = assess(mesh, settings)
-    if not assessment.worth_compressing:  # reported, not refused: the user asked for this model
-        events({"event": "warning", "message": assessment.message})
-    events({"event": "phase", "phase": "bvh", "message": f"{mesh.n_triangles} triangles -> {settings.nodes} nodes"})
-    bvh = build_bvh(mesh, settings.nodes)
-    tracer = ExactTracer(mesh)
-    seconds["bvh"] = time.perf_counter() - t
-    t = time.perf_counter()
+def _train_with_restarts(mesh, bvh, tracer, settings, why, events, should_cancel, checkpoint_path):
+    """Train a fresh model; on divergence restart from scratch at a 10x lower learning rate (at most
+    DIVERGENCE_RETRIES times). Returns (model, TrainResult, settings actually used, why)."""
     for attempt in range(DIVERGENCE_RETRIES + 1):
         model = NeuralBVH(bvh.nodes, settings.model_config(), mesh.transform)
         try:
             tr = train(model, bvh, tracer, settings.train_config(), events=events, should_cancel=should_cancel,
                        checkpoint_path=checkpoint_path)
-            break
+            return model, tr, settings, why
         except TrainingDiverged as exc:
             if attempt == DIVERGENCE_RETRIES:
                 raise TrainingDiverged(f"{exc} (after {attempt} restarts at lower learning rates)") from None
@@ -210,17 +213,58 @@ def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = 
             events({"event": "warning", "message": f"training diverged ({exc}); restarting from scratch with the "
                                                    f"learning rate {settings.lr:g} -> {lower:g}"})
             settings = dataclasses.replace(settings, lr=lower)
-    seconds["train"] = time.perf_counter() - t
-    model.eval()
-    quality = None
-    if evaluate_quality:
-        if should_cancel():
-            raise Cancelled("cancelled before evaluation")
-        events({"event": "phase", "phase": "eval",
-                "message": f"{settings.eval_views} views at {settings.eval_resolution}px"})
+    raise AssertionError("unreachable")
+
+
+def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = None,
+                  events: EventSink = null_sink, should_cancel: Callable[[], bool] = lambda: False,
+                  evaluate_quality: bool = True, checkpoint_path: str | Path | None = None) -> CompressResult:
+    """Compress `mesh` with `settings`; write `out_path` (atomically) when given. Raises `train.Cancelled`,
+    `train.TrainingDiverged` (nothing written in either case)."""
+    from .sizing import assess
+
+    settings, why = resolve(settings, mesh)
+    seconds = {}
+    t = time.perf_counter()
+    events({"event": "phase", "phase": "plan", "message": why})
+    assessment = assess(mesh, settings, measure_alternatives=settings.target_mse is not None)
+    seconds["plan"] = time.perf_counter() - t
+    if not assessment.worth_compressing:  # reported, not refused: the user asked for this model
+        events({"event": "warning", "message": assessment.message})
+    t = time.perf_counter()
+    tracer = ExactTracer(mesh)
+    seconds["bvh"] = 0.0
+    seconds["train"] = 0.0
+    seconds["eval"] = 0.0
+    target = settings.target_mse
+    for attempt in range(TARGET_RETRIES + 1):
         t = time.perf_counter()
-        quality, _ = evaluate(model, tracer, settings.eval_views, settings.eval_resolution)
-        seconds["eval"] = time.perf_counter() - t
+        events({"event": "phase", "phase": "bvh", "message": f"{mesh.n_triangles} triangles -> {settings.nodes} nodes"})
+        bvh = build_bvh(mesh, settings.nodes)
+        seconds["bvh"] += time.perf_counter() - t
+        t = time.perf_counter()
+        model, tr, settings, why = _train_with_restarts(mesh, bvh, tracer, settings, why, events, should_cancel,
+                                                        checkpoint_path)
+        seconds["train"] += time.perf_counter() - t
+        model.eval()
+        quality = None
+        if evaluate_quality:
+            if should_cancel():
+                raise Cancelled("cancelled before evaluation")
+            events({"event": "phase", "phase": "eval",
+                    "message": f"{settings.eval_views} views at {settings.eval_resolution}px"})
+            t = time.perf_counter()
+            quality, _ = evaluate(model, tracer, settings.eval_views, settings.eval_resolution)
+            seconds["eval"] += time.perf_counter() - t
+        missed = target is not None and quality is not None and quality.mse > target
+        if not missed or attempt == TARGET_RETRIES or settings.log2_table >= 14:
+            break
+        bigger = dataclasses.replace(settings, log2_table=settings.log2_table + 1)
+        why += (f"; measured MSE {quality.mse:.4g} missed the target {target:g} at T=2^{settings.log2_table}: "
+                f"retrained at T=2^{bigger.log2_table}")
+        events({"event": "warning", "message": f"MSE {quality.mse:.4g} misses the target {target:g}; retraining one "
+                                               f"size larger (T=2^{bigger.log2_table})"})
+        settings = bigger
     metadata = {
         "source": {"name": mesh.name, "triangles": mesh.n_triangles, "vertices": mesh.n_vertices},
         "settings": settings.to_dict(),

@@ -1,16 +1,41 @@
-"""Is neural compression worth it for this mesh? Sizes a ray tracer would hold, compared before training.
+"""Model no more than a mesh needs: what it replaces, what it will cost, and which size to train.
 
-A ray tracer keeps float32 vertices, int32 indices, float32 vertex normals and a BVH with <= 4 triangles per
-leaf (32-byte nodes) resident before it traces one ray; the .nbvh model is traced as stored. When the model
-that `settings` would build is not smaller than that, compressing gains nothing, and the result says so
-(`Assessment.worth_compressing`). Choosing sizes automatically is issue 6's work; this only compares.
+* **What it replaces** (`mesh_resident_bytes`): a ray tracer keeps float32 vertices, int32 indices, float32
+  vertex normals and a BVH with <= 4 triangles per leaf (32-byte nodes) resident before it traces one ray; the
+  .nbvh model is traced as stored. `alternatives` also measures the smallest quadric decimation that meets a
+  quality target (rendered with Embree, scored with the same metric) and the Draco size of the mesh (storage).
+* **Cheap predictor** (`mesh_features`, `predict_mse`): image MSE after training as a linear function in log
+  space of the table size log2 T and properties of the mesh (surface area, how much of the box the surface
+  fills, how much its normals vary locally, triangle count), fitted on the benchmark meshes by
+  bench/fit_sizing.py (data and leave-one-mesh-out errors in bench/results/sizing*.{csv,md}); coefficients in
+  sizing_fit.json. It is calibrated at the benchmark's training budget; longer training only lowers the MSE.
+* **Choice** (`choose_size`): the smallest T whose predicted MSE meets the target; the pipeline trains it,
+  measures, and steps T up once if the target was missed (`pipeline.compress_mesh`).
+* **Verdict** (`assess`): when the mesh as it is, or a decimation of it that meets the target, is smaller
+  resident than the model, compressing is not worth it; the result says so with all sizes (a user can still
+  force the model).
+* **Scenes** (`split_budget`): one byte budget over several meshes, shared by need: every mesh gets the
+  smallest T that meets a common quality level (scaled by its weight, e.g. its size on screen), with the level
+  set as strict as the budget allows.
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+import json
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
 
 from .bvh import build_full_tree, resident_bvh_nodes
 from .mesh import Mesh
+
+FIT_PATH = Path(__file__).with_name("sizing_fit.json")
+#: Table sizes the chooser considers (log2 T): the range the predictor was fitted on (bench/fit_sizing.py).
+LOG2_RANGE = range(8, 13)
+FEATURE_NAMES = ("log_area", "occupancy", "roughness", "log10_triangles")
+#: Named quality levels (image MSE of the paper's metric), shared by the CLI, the API and the add-on.
+QUALITY_LEVELS = {"preview": 0.02, "standard": 0.01, "high": 0.005}
 
 
 def mesh_resident_bytes(mesh: Mesh) -> dict:
@@ -22,31 +47,234 @@ def mesh_resident_bytes(mesh: Mesh) -> dict:
     return out
 
 
+# ------------------------------------------------------------------------------------------------ mesh features
 @dataclass
-class Assessment:
-    """model_bytes: the .nbvh size (exact payload + typical header); resident: `mesh_resident_bytes(mesh)`."""
+class MeshFeatures:
+    """Cheap shape measures (normalised unit box). area: surface area; occupancy: fraction of the 32^3 cells of the
+    box the surface passes through; roughness: area-weighted mean over occupied cells of 1 - |mean normal| (0 for
+    a flat patch per cell, near 1 for detail that turns within a cell); triangles: count."""
 
-    model_bytes: int
-    resident: dict
-    worth_compressing: bool
-    message: str
+    triangles: int
+    area: float
+    occupancy: float
+    roughness: float
+
+    def vector(self, names: tuple | list = FEATURE_NAMES) -> np.ndarray:
+        """The predictor's inputs besides log2 T, by name (FEATURE_NAMES)."""
+        values = {"log_area": math.log(max(self.area, 1e-6)), "occupancy": self.occupancy,
+                  "roughness": self.roughness, "log10_triangles": math.log10(max(self.triangles, 1))}
+        return np.array([values[n] for n in names])
 
     def to_dict(self) -> dict:
         return asdict(self)
 
 
-def assess(mesh: Mesh, settings) -> Assessment:
+def mesh_features(mesh: Mesh, cells: int = 32) -> MeshFeatures:
+    """Measure `mesh` (see MeshFeatures). Linear in the triangle count; ~0.1 s for 100k triangles."""
+    tri = mesh.triangles().astype(np.float64)
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    area = 0.5 * np.linalg.norm(cross, axis=1)
+    normal = cross / np.maximum(2 * area, 1e-30)[:, None]
+    cell = np.clip((tri.mean(axis=1) * cells).astype(np.int64), 0, cells - 1)
+    cid = (cell[:, 0] * cells + cell[:, 1]) * cells + cell[:, 2]
+    n_cells = cells ** 3
+    cell_area = np.bincount(cid, weights=area, minlength=n_cells)
+    summed = np.stack([np.bincount(cid, weights=area * normal[:, a], minlength=n_cells) for a in range(3)], 1)
+    occupied = cell_area > 0
+    coherence = np.linalg.norm(summed[occupied], axis=1) / cell_area[occupied]
+    roughness = float(np.sum((1 - coherence) * cell_area[occupied]) / max(cell_area.sum(), 1e-30))
+    return MeshFeatures(triangles=mesh.n_triangles, area=float(area.sum()), occupancy=float(occupied.mean()),
+                        roughness=roughness)
+
+
+# -------------------------------------------------------------------------------------------------- predictor
+@dataclass
+class SizeFit:
+    """log(MSE) = coef . [1, log2 T, *features] for one method at one training budget; `features` names the
+    mesh measures used (a subset of FEATURE_NAMES, chosen by leave-one-mesh-out error in bench/fit_sizing.py).
+    residual_std: spread of the fit in log space (leave-one-mesh-out); margin: how many residual_stds below the
+    target the chooser aims (a safety factor exp(margin * std))."""
+
+    method: str
+    train_s: float
+    coef: list
+    residual_std: float
+    features: list = field(default_factory=lambda: list(FEATURE_NAMES))
+    margin: float = 0.5
+    meshes: list = field(default_factory=list)
+
+    def predict_log_mse(self, log2_table: int, features: MeshFeatures) -> float:
+        x = np.concatenate([[1.0, float(log2_table)], features.vector(self.features)])
+        return float(np.dot(self.coef, x))
+
+
+def fit_size_model(rows: list[tuple[int, MeshFeatures, float]], method: str, train_s: float,
+                   ridge: float = 1e-3, features: tuple | list = FEATURE_NAMES) -> SizeFit:
+    """Least squares (slightly ridged) of log MSE on [1, log2 T, features] over (log2 T, features, mse) rows."""
+    x = np.array([np.concatenate([[1.0, float(l2)], f.vector(features)]) for l2, f, _ in rows])
+    y = np.log(np.array([m for _, _, m in rows]))
+    a = x.T @ x + ridge * np.eye(x.shape[1])
+    coef = np.linalg.solve(a, x.T @ y)
+    resid = y - x @ coef
+    return SizeFit(method=method, train_s=train_s, coef=coef.tolist(), residual_std=float(np.std(resid)),
+                   features=list(features))
+
+
+def load_fit(path: Path = FIT_PATH) -> SizeFit | None:
+    """The shipped fit (bench/fit_sizing.py writes it); None when missing or unreadable."""
+    try:
+        return SizeFit(**json.loads(Path(path).read_text()))
+    except (OSError, ValueError, TypeError):
+        return None
+
+
+def predict_mse(fit: SizeFit, log2_table: int, features: MeshFeatures) -> float:
+    return math.exp(fit.predict_log_mse(log2_table, features))
+
+
+def choose_size(fit: SizeFit, features: MeshFeatures, target_mse: float) -> tuple[int, float, bool]:
+    """Smallest log2 T in LOG2_RANGE whose predicted MSE x exp(margin x residual_std) <= target.
+    Returns (log2 T, predicted MSE, reachable); unreachable targets get the largest T."""
+    safety = math.exp(fit.margin * fit.residual_std)
+    for l2 in LOG2_RANGE:
+        pred = predict_mse(fit, l2, features)
+        if pred * safety <= target_mse:
+            return l2, pred, True
+    l2 = LOG2_RANGE[-1]
+    return l2, predict_mse(fit, l2, features), False
+
+
+# ----------------------------------------------------------------------------------------------- alternatives
+def alternatives(mesh: Mesh, target_mse: float | None, views: int = 8, resolution: int = 96) -> dict:
+    """What a user could ship instead, measured: Draco (11-bit, storage bytes) of the mesh, and the smallest
+    quadric decimation (fast-simplification) whose image MSE (same metric, Embree) meets `target_mse`, with its
+    resident and Draco bytes. Missing optional packages give a note instead of numbers."""
+    out: dict = {}
+    try:
+        import DracoPy
+    except ImportError:
+        DracoPy = None
+        out["note"] = "DracoPy not installed: no Draco sizes"
+    if DracoPy is not None:
+        out["draco11_bytes"] = len(DracoPy.encode(mesh.vertices, mesh.faces, quantization_bits=11, compression_level=7))
+    if target_mse is None:
+        return out
+    try:
+        import fast_simplification
+    except ImportError:
+        out["note"] = (out.get("note", "") + "; " if "note" in out else "") + "fast-simplification not installed"
+        return out
+    from .exact import ExactTracer
+    from .metrics import evaluate_renderer
+    from .render import render_reference
+
+    tracer = ExactTracer(mesh)
+    tried = []
+    for count in (250, 1000, 4000, 16000, 64000):
+        if count >= mesh.n_triangles * 0.7:
+            break
+        v, f = fast_simplification.simplify(mesh.vertices.astype(np.float64), mesh.faces,
+                                            target_reduction=1 - count / mesh.n_triangles)
+        f = np.asarray(f, np.int32)
+        keep = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])
+        dec = Mesh(vertices=np.asarray(v, np.float32), faces=f[keep], transform=mesh.transform, name=mesh.name)
+        if dec.n_triangles == 0:
+            continue
+        dec_tracer = ExactTracer(dec)
+        q, _ = evaluate_renderer(lambda cam, w, h: render_reference(dec_tracer, cam, w, h), tracer, mesh.transform,
+                                 views, resolution)
+        entry = {"triangles": dec.n_triangles, "mse": q.mse, "resident_bytes": mesh_resident_bytes(dec)["total"]}
+        if DracoPy is not None:
+            entry["draco11_bytes"] = len(DracoPy.encode(dec.vertices, dec.faces, quantization_bits=11,
+                                                        compression_level=7))
+        tried.append(entry)
+        if q.mse <= target_mse:
+            out["decimation"] = entry
+            break
+    out["decimations_tried"] = tried
+    return out
+
+
+# ---------------------------------------------------------------------------------------------------- verdict
+@dataclass
+class Assessment:
+    """model_bytes: the .nbvh size (exact payload + typical header); resident: `mesh_resident_bytes(mesh)`;
+    alternatives: `alternatives(...)` when measured; recommendation: what to use ('neural', 'mesh', 'decimate')."""
+
+    model_bytes: int
+    resident: dict
+    worth_compressing: bool
+    message: str
+    alternatives: dict = field(default_factory=dict)
+    recommendation: str = "neural"
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def assess(mesh: Mesh, settings, measure_alternatives: bool = False) -> Assessment:
     """Compare the model `settings` (a pipeline.Settings, already resolved) would write with the mesh's resident
-    bytes. worth_compressing is False when the model is not smaller."""
+    bytes and, with `measure_alternatives` and a target MSE, with a decimation that meets the target.
+    worth_compressing is False when either is not larger than the model."""
     from .pipeline import estimate_file_bytes
 
     model = estimate_file_bytes(settings)
     resident_bytes = mesh_resident_bytes(mesh)
     resident = resident_bytes["total"]
-    worth = model < resident
-    if worth:
-        msg = f"model ~{model:,} B vs the mesh as a ray tracer holds it {resident:,} B ({resident / model:.1f}x smaller)"
-    else:
+    alt = alternatives(mesh, settings.target_mse) if measure_alternatives else {}
+    dec = alt.get("decimation")
+    draco = f"; Draco 11-bit of the mesh: {alt['draco11_bytes']:,} B for storage" if "draco11_bytes" in alt else ""
+    if resident <= model:
+        rec = "mesh"
         msg = (f"not worth compressing: the mesh as a ray tracer holds it ({resident:,} B) is already smaller than "
-               f"this model (~{model:,} B); keep the mesh, or ask for a smaller model (--budget-kb)")
-    return Assessment(model_bytes=model, resident=resident_bytes, worth_compressing=worth, message=msg)
+               f"this model (~{model:,} B); keep the mesh, or ask for a smaller model (--budget-kb){draco}")
+    elif dec is not None and dec["resident_bytes"] <= model:
+        rec = "decimate"
+        msg = (f"not worth compressing: a decimation to {dec['triangles']:,} triangles meets the target (MSE "
+               f"{dec['mse']:.4g}) and holds {dec['resident_bytes']:,} B resident, less than this model (~{model:,} B; "
+               f"the full mesh: {resident:,} B){draco}")
+    else:
+        rec = "neural"
+        msg = f"model ~{model:,} B vs the mesh as a ray tracer holds it {resident:,} B ({resident / model:.1f}x smaller)"
+        if dec is not None:
+            msg += f"; the smallest decimation meeting the target holds {dec['resident_bytes']:,} B"
+        msg += draco
+    return Assessment(model_bytes=model, resident=resident_bytes, worth_compressing=rec == "neural", message=msg,
+                      alternatives=alt, recommendation=rec)
+
+
+# ------------------------------------------------------------------------------------------------------ scenes
+def split_budget(features: list[MeshFeatures], budget_bytes: float, fit: SizeFit, bytes_for_log2,
+                 weights: list[float] | None = None) -> dict:
+    """Share `budget_bytes` among meshes by need. Every mesh i gets the smallest log2 T whose predicted MSE meets
+    level / w_i (w_i: weight, e.g. share of the screen; bigger = needs to look better), with the common level as
+    strict as the budget allows (bisection in log space). bytes_for_log2(i, log2) -> file bytes of mesh i's model.
+    Returns {'level': MSE level, 'log2': [...], 'bytes': [...], 'predicted_mse': [...], 'total': bytes}."""
+    n = len(features)
+    weights = [1.0] * n if weights is None else [max(float(w), 1e-6) for w in weights]
+
+    def plan(level: float):
+        l2s, sizes, preds = [], [], []
+        for i, f in enumerate(features):
+            l2, pred, _ = choose_size(fit, f, level / weights[i])
+            l2s.append(l2)
+            sizes.append(bytes_for_log2(i, l2))
+            preds.append(pred)
+        return l2s, sizes, preds
+
+    lo, hi = math.log(1e-6), math.log(1.0)  # strict .. loose
+    best = None
+    for _ in range(40):
+        mid = (lo + hi) / 2
+        l2s, sizes, preds = plan(math.exp(mid))
+        if sum(sizes) <= budget_bytes:
+            best = (math.exp(mid), l2s, sizes, preds)
+            hi = mid  # fits: try stricter
+        else:
+            lo = mid
+    if best is None:
+        l2s, sizes, preds = plan(1.0)
+        best = (1.0, l2s, sizes, preds)
+    level, l2s, sizes, preds = best
+    return {"level": level, "log2": l2s, "bytes": sizes, "predicted_mse": preds, "total": int(sum(sizes)),
+            "weights": weights, "budget": budget_bytes}

@@ -195,7 +195,9 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
     groups = [{"params": others, "lr_factor": 1.0}]
     if logits:
         groups.append({"params": logits, "lr_factor": cfg.logits_lr_factor})
-    opt = torch.optim.Adam(groups, lr=cfg.lr)
+    # The fast path uses torch's fused Adam (one kernel over all parameters: 8 vs 84 ms per step for HashVQAD's
+    # 8.4M index logits on the 2-core CPU); the reference path keeps the default implementation.
+    opt = torch.optim.Adam(groups, lr=cfg.lr, fused=kernels.current_path() == "fast" or None)
     start_step, elapsed_before = 0, 0.0
     history: list = []
     if resume_from is not None:

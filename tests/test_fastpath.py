@@ -156,3 +156,27 @@ def test_without_kernels_everything_runs_on_the_reference_path(tmp_path):
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True).stdout
     assert out.startswith("reference (pure torch): fused kernels unavailable (disabled by NBVH_NO_KERNELS)")
     assert "torch.Size([10, 8])" in out
+
+
+def test_float16_tables_give_the_same_image_within_rounding(blob_model):
+    mesh, bvh, tracer, cfg = blob_model
+    torch.manual_seed(0)
+    model = NeuralBVH(bvh.nodes, cfg, mesh.transform)
+    train(model, bvh, tracer, TrainConfig(steps=30, rays_per_step=1024, lr=5e-3, seed=2))
+    model.eval()
+    from nbvh_core.render import orbit_cameras
+
+    o, d = (torch.from_numpy(a) for a in orbit_cameras(3)[2].rays(64, 64))
+    q32 = model.query(o, d)
+    model.half_tables = True
+    q16 = model.query(o, d)
+    model.half_tables = False
+    assert (q16.hit != q32.hit).float().mean() < 5e-3
+    both = q16.hit & q32.hit
+    assert torch.allclose(q16.t[both], q32.t[both], atol=2e-3)
+    # Training never uses the half copy (gradients need the float32 rows).
+    model.half_tables = True
+    model.train()
+    out = model.encoding(torch.rand(10, 3))
+    assert out.requires_grad
+    model.half_tables = False

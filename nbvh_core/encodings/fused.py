@@ -73,3 +73,15 @@ def fused_encode(points: torch.Tensor, table: torch.Tensor, spec: GridSpec, code
     if codes is not None:
         codes = codes.contiguous()
     return _FusedEncode.apply(points.to(torch.float32), table, spec, codes, code_rows)
+
+
+@torch.no_grad()
+def fused_encode_half(points: torch.Tensor, table_half: torch.Tensor, spec: GridSpec,
+                      codes: torch.Tensor | None = None, code_rows: int = 0) -> torch.Tensor:
+    """Inference only: as `fused_encode` with a float16 copy of the table (L, R, F); accumulates in float32."""
+    points = points.to(torch.float32).contiguous()
+    out = torch.empty((points.shape[0], table_half.shape[0] * table_half.shape[2]), dtype=torch.float32)
+    codes = None if codes is None else codes.contiguous()
+    kernels.load().nbvh_encode_forward_f16(points.data_ptr(), points.shape[0], table_half.data_ptr(), out.data_ptr(),
+                                           *spec.args(table_half.shape[1], codes, code_rows))
+    return out

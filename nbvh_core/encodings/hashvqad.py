@@ -24,7 +24,7 @@ import torch
 from torch import nn
 
 from .base import MASK32, PRIMES, EncodingConfig
-from .fused import GridSpec, fused_encode
+from .fused import GridSpec, fused_encode, fused_encode_half
 from .hashgrid import HashGrid
 
 
@@ -81,6 +81,8 @@ class HashVQAD(HashGrid):
         if self._spec is None:
             self._spec = GridSpec(self.cfg, self._vertex_table_size())
         if self.frozen:  # vertex -> code -> candidate row, inside the kernel
+            if self._use_half():
+                return fused_encode_half(points, self._half_table(), self._spec, self.codes, self.cfg.table_size)
             return fused_encode(points, self.table, self._spec, self.codes, self.cfg.table_size)
         return fused_encode(points, self.row_table(), self._spec)
 

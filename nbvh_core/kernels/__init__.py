@@ -34,7 +34,7 @@ import torch
 
 SOURCE = Path(__file__).with_name("nbvh_kernels.cpp")
 FLAGS = ["-O3", "-march=native", "-ffp-contract=off", "-fopenmp", "-shared", "-fPIC", "-std=c++17"]
-ABI_VERSION = 2
+ABI_VERSION = 3
 PATHS = ("fast", "reference")
 
 _path = os.environ.get("NBVH_PATH", "fast")
@@ -150,10 +150,11 @@ def load() -> ctypes.CDLL | None:
     enc = [P, I64, P, P, I32, I32, P, P, P, I64, I64, P, I64, I32]
     lib.nbvh_encode_forward.argtypes = enc
     lib.nbvh_encode_backward.argtypes = enc
+    lib.nbvh_encode_forward_f16.argtypes = enc
     lib.nbvh_segment_points.argtypes = [P, P, P, P, P, I64, I32, P, P, I32]
     lib.nbvh_stream_next.argtypes = [P, P, I64, P, P, P, P, P, P, P, P, I32, P, P, P, I32]
     lib.nbvh_leaves_along_rays.argtypes = [P, P, I64, P, P, P, P, P, I32, P, P, P, P, P, I32]
-    for fn in (lib.nbvh_encode_forward, lib.nbvh_encode_backward, lib.nbvh_segment_points, lib.nbvh_stream_next,
+    for fn in (lib.nbvh_encode_forward, lib.nbvh_encode_forward_f16, lib.nbvh_encode_backward, lib.nbvh_segment_points, lib.nbvh_stream_next,
                lib.nbvh_leaves_along_rays):
         fn.restype = None
     _lib = lib

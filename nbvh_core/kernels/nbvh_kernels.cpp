@@ -70,20 +70,22 @@ inline void corners(const Grid& g, int l, const float* x, int64_t* row, float* w
     }
 }
 
-template <int F>
-inline void accumulate(float* __restrict out, const float* __restrict tab, const int64_t* row, const float* w, int f_dyn) {
+// Table entries are float32, or float16 (`_Float16`, inference only: half the bytes to gather; the compiler turns
+// the conversion into vcvtph2ps).
+template <int F, typename T>
+inline void accumulate(float* __restrict out, const T* __restrict tab, const int64_t* row, const float* w, int f_dyn) {
     const int nf = F > 0 ? F : f_dyn;
     for (int f = 0; f < nf; ++f) out[f] = 0.f;
     for (int c = 0; c < 8; ++c) {
-        const float* __restrict src = tab + row[c] * nf;
+        const T* __restrict src = tab + row[c] * nf;
         const float wc = w[c];
 #pragma omp simd
-        for (int f = 0; f < nf; ++f) out[f] += wc * src[f];
+        for (int f = 0; f < nf; ++f) out[f] += wc * (float)src[f];
     }
 }
 
-template <int F>
-void encode_forward_t(const Grid& g, const float* points, int64_t n, const float* table, float* out, int threads) {
+template <int F, typename T = float>
+void encode_forward_t(const Grid& g, const float* points, int64_t n, const T* table, float* out, int threads) {
     const int L = g.levels;
     const int nf = F > 0 ? F : g.features;
 #pragma omp parallel for schedule(static) num_threads(threads)
@@ -145,7 +147,21 @@ inline bool ray_box(const float* o, const float* inv, const float* lo, const flo
 
 extern "C" {
 
-int nbvh_abi_version() { return 2; }
+int nbvh_abi_version() { return 3; }
+
+// Inference with a float16 copy of the table (same arguments as nbvh_encode_forward; table is (L, rows, F) half).
+void nbvh_encode_forward_f16(const float* points, int64_t n, const void* table, float* out, int levels, int features,
+                             const float* scales, const int64_t* res, const uint8_t* dense, int64_t vertex_table,
+                             int64_t rows, const uint8_t* codes, int64_t code_rows, int threads) {
+    Grid g{levels, features, scales, res, dense, vertex_table, rows, codes, code_rows};
+    g.init_masks();
+    const _Float16* t = static_cast<const _Float16*>(table);
+    switch (features) {
+        case 8: encode_forward_t<8, _Float16>(g, points, n, t, out, threads); break;
+        case 16: encode_forward_t<16, _Float16>(g, points, n, t, out, threads); break;
+        default: encode_forward_t<0, _Float16>(g, points, n, t, out, threads);
+    }
+}
 
 // points (n, 3) float32; table (L, rows, F) float32; out (n, L * F) float32.
 void nbvh_encode_forward(const float* points, int64_t n, const float* table, float* out, int levels, int features,

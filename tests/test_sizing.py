@@ -1,0 +1,132 @@
+"""Automatic sizing: features, the fitted predictor, the choice, the verdict, the scene split, the retry loop."""
+import dataclasses
+import json
+import math
+
+import numpy as np
+import pytest
+
+from meshes import icosphere
+from nbvh_core.cli import main as cli_main
+from nbvh_core.mesh import mesh_from_arrays
+from nbvh_core.pipeline import compress_mesh, estimate_file_bytes, preset, resolve
+from nbvh_core.sizing import (LOG2_RANGE, QUALITY_LEVELS, MeshFeatures, SizeFit, assess, choose_size,
+                              fit_size_model, load_fit, mesh_features, split_budget)
+
+
+def plane(n=40):
+    ax = np.linspace(0, 1, n)
+    x, y = np.meshgrid(ax, ax, indexing="ij")
+    v = np.stack([x.ravel(), y.ravel(), np.zeros(n * n)], 1)
+    i = np.arange(n - 1)
+    a = (i[:, None] * n + i[None, :]).ravel()
+    f = np.concatenate([np.stack([a, a + n, a + n + 1], 1), np.stack([a, a + n + 1, a + 1], 1)])
+    return mesh_from_arrays(v, f, name="plane")
+
+
+def cube():
+    v = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], float)
+    f = [[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1], [2, 3, 7], [2, 7, 6], [0, 2, 6],
+         [0, 6, 4], [1, 5, 7], [1, 7, 3]]
+    return mesh_from_arrays(v, np.array(f), name="cube")
+
+
+def test_features_separate_flat_smooth_and_detailed():
+    flat = mesh_features(plane())
+    smooth = mesh_features(icosphere(4))
+    rough = mesh_features(icosphere(4, noise=0.02))
+    assert flat.roughness < 1e-6 and smooth.roughness < rough.roughness
+    assert flat.occupancy < smooth.occupancy  # one layer of cells vs a shell
+    assert flat.area == pytest.approx(1.0, rel=1e-6)
+
+
+def test_fit_recovers_a_known_law_and_choice_is_monotone():
+    rng = np.random.default_rng(0)
+    true = np.array([-1.0, -0.6, 0.5, 2.0, 3.0, 0.1])
+    rows = []
+    for _ in range(40):
+        f = MeshFeatures(triangles=int(rng.integers(1000, 10 ** 6)), area=float(rng.uniform(0.5, 8)),
+                         occupancy=float(rng.uniform(0.01, 0.3)), roughness=float(rng.uniform(0, 0.5)))
+        for l2 in (8, 10, 12):
+            x = np.concatenate([[1.0, l2], f.vector()])
+            rows.append((l2, f, float(np.exp(x @ true))))
+    fit = fit_size_model(rows, "default", 15.0, ridge=1e-9)
+    assert np.allclose(fit.coef, true, atol=1e-3)
+    f = rows[0][1]
+    chosen = [choose_size(fit, f, t)[0] for t in (0.05, 0.01, 0.002, 0.0004)]
+    assert chosen == sorted(chosen)  # a stricter target never gets a smaller table
+
+
+def test_shipped_fit_and_target_resolution(sample_meshes):
+    fit = load_fit()
+    assert fit is not None and len(fit.coef) == 2 + len(fit.features) and fit.residual_std > 0
+    assert fit.coef[1] < 0  # a bigger table predicts a lower MSE
+    mesh = sample_meshes["bunny"]
+    s, why = resolve(preset("default").with_overrides(target_mse=QUALITY_LEVELS["standard"]), mesh)
+    assert s.log2_table in LOG2_RANGE and "predicted MSE" in why
+    loose, _ = resolve(preset("default").with_overrides(target_mse=0.05), mesh)
+    strict, _ = resolve(preset("default").with_overrides(target_mse=0.002), mesh)
+    assert loose.log2_table <= s.log2_table <= strict.log2_table
+
+
+def test_trivial_meshes_are_not_worth_compressing_and_detailed_ones_are(sample_meshes):
+    small = preset("default").with_overrides(log2_table=6, nodes=255)
+    for mesh in (cube(), icosphere(2)):  # 12 and 320 triangles
+        verdict = assess(mesh, small)
+        assert not verdict.worth_compressing and verdict.recommendation == "mesh"
+        assert "not worth compressing" in verdict.message
+    detailed = assess(sample_meshes["studs"], preset("default"))
+    assert detailed.worth_compressing and detailed.recommendation == "neural"
+
+
+def test_decimation_that_meets_the_target_is_recommended_when_smaller(sample_meshes):
+    # The blob is smooth: a few thousand triangles render it almost exactly, and they hold far fewer resident
+    # bytes than a default-size model.
+    s = preset("default").with_overrides(target_mse=0.01)
+    verdict = assess(sample_meshes["blob"], s, measure_alternatives=True)
+    dec = verdict.alternatives["decimation"]
+    assert dec["mse"] <= 0.01 and dec["triangles"] < sample_meshes["blob"].n_triangles
+    assert dec["resident_bytes"] < verdict.model_bytes
+    assert verdict.recommendation in ("mesh", "decimate") and not verdict.worth_compressing
+    assert verdict.alternatives["draco11_bytes"] > 0 and "Draco" in verdict.message
+
+
+def test_scene_budget_is_shared_by_need():
+    fit = SizeFit(method="default", train_s=15.0, coef=[-1.0, -0.6, 0.3, 2.0, 6.0, 0.1], residual_std=0.2)
+    smooth = MeshFeatures(triangles=20000, area=3.0, occupancy=0.05, roughness=0.02)
+    detailed = MeshFeatures(triangles=200000, area=6.0, occupancy=0.15, roughness=0.4)
+    size = lambda i, l2: estimate_file_bytes(preset("default").with_overrides(log2_table=l2))  # noqa: E731
+    budget = 1.6e6
+    plan = split_budget([smooth, detailed], budget, fit, size)
+    assert plan["total"] <= budget
+    assert plan["log2"][1] > plan["log2"][0]  # the detailed mesh gets the bigger table
+    assert plan["total"] > 0.5 * budget  # the budget is used, not left idle
+    # A bigger share of the screen earns a bigger model.
+    plan_w = split_budget([smooth, smooth], budget, fit, size, weights=[4.0, 0.25])
+    assert plan_w["log2"][0] > plan_w["log2"][1]
+
+
+def test_missed_target_retrains_one_size_larger(sample_meshes):
+    mesh = sample_meshes["blob"]
+    events = []
+    res = compress_mesh(mesh, preset("tiny").with_overrides(target_mse=1e-9), events=events.append)
+    assert res.target_met is False
+    assert "retrained at T=2^" in res.why
+    assert any(e["event"] == "warning" and "misses the target" in e["message"] for e in events)
+    first = int(res.why.split("T=2^")[1].split()[0].rstrip(":,("))
+    assert res.settings.log2_table == first + 1
+
+
+def test_cli_quality_level_and_plan(tmp_path, capsys):
+    out = tmp_path / "blob.nbvh"
+    rc = cli_main(["compress", "blob", "-o", str(out), "--preset", "tiny", "--quality", "preview"])
+    assert rc == 0 and out.exists()
+    summary = json.loads((tmp_path / "blob.json").read_text())
+    assert summary["settings"]["target_mse"] == QUALITY_LEVELS["preview"] and summary["target_met"] is not None
+    capsys.readouterr()
+    rc = cli_main(["plan", "blob", "studs", "--budget-kb", "1200", "--json"])
+    assert rc == 0
+    plan = json.loads(capsys.readouterr().out)
+    assert plan["total"] <= 1200 * 1024 and len(plan["objects"]) == 2
+    by = {o["mesh"]: o for o in plan["objects"]}
+    assert by["studs"]["log2_table"] >= by["blob"]["log2_table"]
