@@ -95,6 +95,7 @@ def run(argv: list[str]) -> int:
             print(f"[{job.name}] wrote {ev.get('path')} ({ev.get('bytes')} B)", flush=True)
 
     session.queue.wait(on_event=show)
+    engine.end_session(session)
     engine.finish_done(session, bpy.context.scene)
     paths = engine.write_scene_report(session)
     if paths:

@@ -6,6 +6,7 @@ bpy is used here (export, load back) but torch never is: the jobs run nbvh_core 
 from __future__ import annotations
 
 import json
+import shutil
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -42,6 +43,7 @@ class Session:
     loaded: dict = field(default_factory=dict)  # object name -> load_result dict
     failures: dict = field(default_factory=dict)  # object name -> message
     out_dir: str = ""
+    scene_dir: str = ""  # shared meshes of a scene budget (every job reads all of them); removed by end_session
 
 
 def output_dir(requested: str) -> Path:
@@ -93,13 +95,26 @@ def start(context, objects, req: Request, python: str | None = None) -> tuple[Se
         # One budget for the whole selection, shared by need (detail, size on screen) inside every job
         # (nbvh_core.sizing.split_budget, deterministic): the jobs have not started yet, so their requests can
         # still carry the full list of exported meshes.
+        # A job's own folder goes when it finishes, so the shared copies live in a session folder.
         objs = [bpy.data.objects[session.objects[j.id]] for j in scene_jobs]
         weights = screen_weights(context, objs)
+        session.scene_dir = tempfile.mkdtemp(prefix="nbvh-scene-")
+        shared = []
+        for i, j in enumerate(scene_jobs):
+            dst = Path(session.scene_dir) / f"{i}.npz"
+            shutil.copyfile(j.request["mesh"], dst)
+            shared.append(str(dst))
         for i, j in enumerate(scene_jobs):
             j.request["settings"].pop("budget_kb", None)
-            j.request["scene"] = {"budget_kb": req.overrides["budget_kb"], "meshes": [x.request["mesh"] for x in scene_jobs],
-                                  "names": [x.name for x in scene_jobs], "weights": weights, "index": i}
+            j.request["scene"] = {"budget_kb": req.overrides["budget_kb"], "meshes": shared,
+                                  "names": [session.objects[x.id] for x in scene_jobs], "weights": weights, "index": i}
     return session, refusals
+
+
+def end_session(session: Session) -> None:
+    """Remove what the session kept for all its jobs (the scene's shared meshes); results stay."""
+    if session.scene_dir:
+        shutil.rmtree(session.scene_dir, ignore_errors=True)
 
 
 def screen_weights(context, objects) -> list[float]:

@@ -73,6 +73,7 @@ def _tick():
     engine.finish_done(session, scene)
     if not session.queue.pending():
         _store_results(scene, session)
+        engine.end_session(session)
         props.running = False
         props.progress = 1.0
         props.phase = "done" if not session.failures else "finished with errors"
@@ -128,6 +129,7 @@ class NBVH_OT_cancel(bpy.types.Operator):
         session = _state["session"]
         if session is not None:
             session.queue.cancel_all()
+            engine.end_session(session)
         props = context.scene.nbvh_props
         props.running, props.phase = False, "cancelled"
         _state["session"] = None
