@@ -174,8 +174,13 @@ def cmd_compress(args: argparse.Namespace) -> int:
         q = result.quality
         print(f"\nwrote {out} ({_fmt_bytes(result.file_bytes)}), {stem}.json, {stem}.preview.png (left: mesh, right: neural)")
         print("bytes: " + ", ".join(f"{k} {v:,}" for k, v in result.components.items()))
-        print(f"mesh as a ray tracer holds it: {summary['mesh_resident_bytes']['total']:,} B "
-              f"-> {summary['mesh_resident_bytes']['total'] / result.file_bytes:.1f}x smaller")
+        resident = summary['mesh_resident_bytes']['total']
+        ratio = (f"{resident / result.file_bytes:.1f}x smaller" if resident >= result.file_bytes
+                 else f"{result.file_bytes / resident:.1f}x LARGER")
+        print(f"mesh as a ray tracer holds it: {resident:,} B -> the model is {ratio}")
+        draco = result.assessment.get("alternatives", {}).get("draco11_bytes")
+        if draco:
+            print(f"the mesh as a Draco 11-bit file (storage and transfer only; decoded before tracing): {draco:,} B")
         if q:
             print(f"quality ({q.views} views, {q.resolution}px): MSE {q.mse:.5f}, silhouette IoU {q.silhouette_iou:.4f},"
                   f" depth error {q.depth_error:.5f} (unit box)")

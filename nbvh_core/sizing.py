@@ -214,14 +214,15 @@ class Assessment:
 
 def assess(mesh: Mesh, settings, measure_alternatives: bool = False) -> Assessment:
     """Compare the model `settings` (a pipeline.Settings, already resolved) would write with the mesh's resident
-    bytes and, with `measure_alternatives` and a target MSE, with a decimation that meets the target.
+    bytes and its Draco size, and, with `measure_alternatives` and a target MSE, with a decimation that meets it.
     worth_compressing is False when either is not larger than the model."""
     from .pipeline import estimate_file_bytes
 
     model = estimate_file_bytes(settings)
     resident_bytes = mesh_resident_bytes(mesh)
     resident = resident_bytes["total"]
-    alt = alternatives(mesh, settings.target_mse) if measure_alternatives else {}
+    # The Draco size always (cheap: shows which tool wins for storage alone); decimations only with a target.
+    alt = alternatives(mesh, settings.target_mse if measure_alternatives else None)
     dec = alt.get("decimation")
     draco = f"; Draco 11-bit of the mesh: {alt['draco11_bytes']:,} B for storage" if "draco11_bytes" in alt else ""
     if resident <= model:
