@@ -171,13 +171,13 @@ class MeshCache:
 
 
 def run_neural(plan: Plan, cache: MeshCache, part: str, mesh_name: str, method: str, log2: int, seed: int,
-               train_s: float, done: set) -> None:
+               train_s: float, done: set, nodes: int | None = None) -> None:
     key = (part, mesh_name, method, str(log2), str(seed), f"{train_s:g}")
     if key in done:
         return
     mesh, tracer, fr = cache.get(mesh_name)
     s = preset(method).with_overrides(log2_table=log2, seed=seed, time_limit_s=train_s, eval_views=plan.views,
-                                      eval_resolution=plan.res)
+                                      eval_resolution=plan.res, nodes=nodes)
     t0 = time.perf_counter()
     row = {"part": part, "mesh": mesh_name, "method": method, "log2_table": log2, "seed": seed, "train_s": f"{train_s:g}",
            "encoding": s.encoding, "network": s.network, "labels": s.labels, "nodes": s.nodes,

@@ -32,10 +32,11 @@ sys.path.insert(0, str(ROOT / "bench"))
 import bench_quality as bq  # noqa: E402
 from bench_meshes import bench_mesh  # noqa: E402
 from nbvh_core.pipeline import estimate_file_bytes, preset  # noqa: E402
-from nbvh_core.sizing import (FEATURE_NAMES, FIT_PATH, LOG2_RANGE, QUALITY_LEVELS, choose_size, fit_size_model,  # noqa: E402
-                              mesh_features)
+from nbvh_core.sizing import (FEATURE_NAMES, FIT_PATH, LOG2_RANGE, QUALITY_LEVELS,  # noqa: E402
+                              choose_table_and_nodes, fit_size_model, mesh_features)
 
 GRID = (8, 9, 10, 11, 12)
+NODE_GRID = (1023, 2047, 4095)
 METHOD = "default"
 
 
@@ -64,6 +65,10 @@ def main() -> None:
             for l2 in GRID:
                 if (mesh_name, l2) not in have:
                     bq.run_neural(plan, cache, "grid", mesh_name, METHOD, l2, 0, plan.train_s, done)
+            for nodes in NODE_GRID:  # the node count, varied at the middle table size
+                if nodes != preset(METHOD).nodes:
+                    bq.run_neural(plan, cache, f"grid_n{nodes}", mesh_name, METHOD, GRID[2], 0, plan.train_s, done,
+                                  nodes=nodes)
     data = grid_rows(plan)
     meshes = [m for m in plan.meshes if any((m, l2) in data for l2 in GRID)]
     feats = {m: mesh_features(bench_mesh(m)) for m in meshes}
@@ -85,10 +90,53 @@ def main() -> None:
     fits, _ = loo(best_names)
     full = fit_size_model(rows, METHOD, plan.train_s, features=best_names)
     full.residual_std = best_err
-    table = []
     full.meshes = meshes
+    # The node count: measured at T = 2^10 with 1023 / 2047 / 4095 nodes; its effect is the mean slope of log MSE
+    # per doubling of the node count (one number; leave-one-mesh-out for the checks below).
+    ref = preset(METHOD).nodes
+    configs = {}  # (mesh, log2, nodes) -> (mse, bytes): every measured configuration
+    for (m, l2), v in data.items():
+        configs[(m, l2, ref)] = v
+    for r in bq.read_rows(plan.csv("quality")):
+        if r["part"].startswith("grid_n") and r["method"] == METHOD and not r.get("diverged") \
+                and float(r["train_s"]) == plan.train_s:
+            configs[(r["mesh"], int(r["log2_table"]), int(r["nodes"]))] = (float(r["mse"]), int(r["file_bytes"]))
+
+    def node_slopes(m):
+        out = []
+        for n in NODE_GRID:
+            if n != ref and (m, GRID[2], n) in configs and (m, GRID[2], ref) in configs:
+                out.append((math.log(configs[(m, GRID[2], n)][0]) - math.log(configs[(m, GRID[2], ref)][0]))
+                           / (math.log2(n + 1) - math.log2(ref + 1)))
+        return out
+
+    slopes = {m: node_slopes(m) for m in meshes}
+    all_slopes = [x for m in meshes for x in slopes[m]]
+    slope_mean = float(np.mean(all_slopes)) if all_slopes else 0.0
+    slope_se = float(np.std(all_slopes) / math.sqrt(len(all_slopes))) if len(all_slopes) > 1 else math.inf
+    # Only a node effect the data can tell from noise is used (|mean slope| > 2 standard errors); otherwise the
+    # chooser keeps the fitted node count rather than trading table rows for nodes on noise.
+    use_nodes = abs(slope_mean) > 2 * slope_se
+    full.nodes_coef = slope_mean if use_nodes else 0.0
+    full.nodes_ref = ref
+    for m in meshes:
+        other = [x for o in meshes if o != m for x in slopes[o]]
+        fits[m].nodes_coef = float(np.mean(other)) if (use_nodes and other) else 0.0
+        fits[m].nodes_ref = ref
     base = preset(METHOD)
-    size_of = {l2: estimate_file_bytes(dataclasses.replace(base, log2_table=l2)) for l2 in LOG2_RANGE}
+    size_cache: dict = {}
+
+    def size_of(l2, n):
+        if (l2, n) not in size_cache:
+            size_cache[(l2, n)] = estimate_file_bytes(dataclasses.replace(base, log2_table=l2, nodes=n))
+        return size_cache[(l2, n)]
+
+    def choose(f, m, target):
+        return choose_table_and_nodes(f, feats[m], target, size_of)
+
+    def grid_best(m, target):
+        meeting = [(v[1], l2, n) for (mm, l2, n), v in configs.items() if mm == m and v[0] <= target]
+        return min(meeting) if meeting else None
 
     def successes(margin: float) -> int:
         """Cases (mesh, target) where the leave-one-mesh-out choice meets the target within 25% of the grid's best."""
@@ -96,10 +144,10 @@ def main() -> None:
         for m in meshes:
             f = dataclasses.replace(fits[m], residual_std=full.residual_std, margin=margin)
             for target in QUALITY_LEVELS.values():
-                l2 = choose_size(f, feats[m], target)[0]
-                meeting = [l for l in GRID if (m, l) in data and data[(m, l)][0] <= target]
-                if meeting and (m, l2) in data and data[(m, l2)][0] <= target \
-                        and data[(m, l2)][1] <= 1.25 * data[(m, min(meeting))][1]:
+                l2, n, _, _ = choose(f, m, target)
+                best = grid_best(m, target)
+                got = configs.get((m, l2, n))
+                if best and got and got[0] <= target and got[1] <= 1.25 * best[0]:
                     ok += 1
         return ok
 
@@ -107,23 +155,22 @@ def main() -> None:
     margins = (0.0, 0.25, 0.5, 0.75, 1.0)
     margin_scores = {mg: successes(mg) for mg in margins}
     full.margin = max(margins, key=lambda mg: (margin_scores[mg], mg))
+    table = []
     for m in meshes:
         f = fits[m]
         f.residual_std, f.margin = full.residual_std, full.margin
         for level, target in QUALITY_LEVELS.items():
-            l2, pred, reachable = choose_size(f, feats[m], target)
-            meeting = [l for l in GRID if (m, l) in data and data[(m, l)][0] <= target]
-            opt = min(meeting) if meeting else None
-            measured = data.get((m, l2), (math.nan, 0))[0]
-            chosen_bytes = data.get((m, l2), (0, size_of[l2]))[1]
-            opt_bytes = data[(m, opt)][1] if opt is not None else None
-            table.append({"mesh": m, "target": level, "target_mse": target, "chosen_log2": l2,
+            l2, n, pred, reachable = choose(f, m, target)
+            best = grid_best(m, target)
+            got = configs.get((m, l2, n))
+            chosen_bytes = got[1] if got else size_of(l2, n)
+            table.append({"mesh": m, "target": level, "target_mse": target, "chosen_log2": l2, "chosen_nodes": n,
                           "chosen_bytes": chosen_bytes, "predicted_mse": round(pred, 6),
-                          "measured_mse_at_choice": measured if l2 in GRID else "",
-                          "grid_best_log2": opt if opt is not None else "", "grid_best_bytes": opt_bytes or "",
-                          "ratio": round(chosen_bytes / opt_bytes, 3) if opt_bytes else "",
-                          "within_25pct": (chosen_bytes <= 1.25 * opt_bytes) if opt_bytes else "",
-                          "target_met": (measured <= target) if l2 in GRID else ""})
+                          "measured_mse_at_choice": got[0] if got else "",
+                          "grid_best": f"2^{best[1]}, {best[2]} nodes" if best else "", "grid_best_bytes": best[0] if best else "",
+                          "ratio": round(chosen_bytes / best[0], 3) if best else "",
+                          "within_25pct": (chosen_bytes <= 1.25 * best[0]) if best else "",
+                          "target_met": (got[0] <= target) if got else ""})
     fit_out = FIT_PATH if not plan.quick else bq.RESULTS / "sizing_fit_quick.json"  # quick never replaces the fit
     fit_out.write_text(json.dumps(dataclasses.asdict(full), indent=2) + "\n")
     out = bq.RESULTS / f"sizing{plan.suffix}.csv"
@@ -150,24 +197,33 @@ def main() -> None:
     for m in meshes:
         f = feats[m]
         L.append(f"| {m} | {f.triangles:,} | {f.area:.2f} | {f.occupancy:.3f} | {f.roughness:.3f} |")
-    L += ["\n## Measured grid (image MSE by T)\n", "| mesh | " + " | ".join(f"2^{l}" for l in GRID) + " |",
-          "|---|" + "---|" * len(GRID)]
+    others = [n for n in NODE_GRID if n != ref]
+    L += [f"\n## Measured grid (image MSE by T at {ref} nodes; by node count at T=2^{GRID[2]})\n",
+          "| mesh | " + " | ".join(f"2^{l}" for l in GRID) + " | " + " | ".join(f"{n} nodes" for n in others) + " |",
+          "|---|" + "---|" * (len(GRID) + len(others))]
     for m in meshes:
-        L.append(f"| {m} | " + " | ".join(f"{data[(m, l)][0]:.5f}" if (m, l) in data else "-" for l in GRID) + " |")
+        L.append(f"| {m} | " + " | ".join(f"{data[(m, l)][0]:.5f}" if (m, l) in data else "-" for l in GRID) + " | "
+                 + " | ".join(f"{configs[(m, GRID[2], n)][0]:.5f}" if (m, GRID[2], n) in configs else "-" for n in others)
+                 + " |")
+    L.append(f"\nNode effect: log MSE changes by {slope_mean:+.3f} +- {slope_se:.3f} (standard error) per doubling of "
+             f"the node count (slopes over meshes at T=2^10). "
+             + ("The chooser trades nodes against table rows by predicted MSE per byte." if use_nodes else
+                f"That cannot be told from noise at this training budget, so the chooser keeps {ref} nodes and "
+                "chooses T (a node fit is used automatically when the data show an effect)."))
     L += ["\n## Choices for three targets\n",
-          "| mesh | target | chosen T | chosen bytes | predicted MSE | measured MSE at choice | grid's smallest meeting it | bytes | chosen / smallest | within 25% | target met |",
+          "| mesh | target | chosen T, nodes | chosen bytes | predicted MSE | measured MSE at choice | grid's smallest meeting it | bytes | chosen / smallest | within 25% | target met |",
           "|---|---|---|---|---|---|---|---|---|---|---|"]
     for t in table:
-        meas = f"{t['measured_mse_at_choice']:.5f}" if t["measured_mse_at_choice"] != "" else "(outside grid)"
-        best = f"2^{t['grid_best_log2']}" if t["grid_best_log2"] != "" else "none in grid"
-        L.append(f"| {t['mesh']} | {t['target']} ({t['target_mse']:g}) | 2^{t['chosen_log2']} | {t['chosen_bytes']:,} | "
-                 f"{t['predicted_mse']:.5f} | {meas} | {best} | {t['grid_best_bytes'] or '-'} | {t['ratio'] or '-'} | "
-                 f"{t['within_25pct']} | {t['target_met']} |")
+        meas = f"{t['measured_mse_at_choice']:.5f}" if t["measured_mse_at_choice"] != "" else "(not measured)"
+        L.append(f"| {t['mesh']} | {t['target']} ({t['target_mse']:g}) | 2^{t['chosen_log2']}, {t['chosen_nodes']} | "
+                 f"{t['chosen_bytes']:,} | {t['predicted_mse']:.5f} | {meas} | {t['grid_best'] or 'none in grid'} | "
+                 f"{t['grid_best_bytes'] or '-'} | {t['ratio'] or '-'} | {t['within_25pct']} | {t['target_met']} |")
     n_ok = sum(1 for t in within if t["within_25pct"])
-    n_met = sum(1 for t in within if t["target_met"])
-    n_both = sum(1 for t in within if t["target_met"] and t["within_25pct"])
+    n_met = sum(1 for t in within if t["target_met"] is True)
+    n_both = sum(1 for t in within if t["target_met"] is True and t["within_25pct"])
     L.append(f"\nOf the {len(within)} (mesh, target) cases where some grid size meets the target: the choice meets it in "
-             f"{n_met}, is within 25% of the grid's smallest in {n_ok}, both in {n_both}. In the other "
+             f"{n_met}, is within 25% of the grid's smallest in {n_ok}, both in {n_both} (a choice that was not "
+             f"measured counts as neither). In the other "
              f"{len(table) - len(within)} cases no size up to 2^{GRID[-1]} meets the target at this training budget; "
              "the chooser then takes the largest size and says the target is beyond what it knows. In use, "
              "compress_mesh measures every result and retrains one size larger when the target was missed "

@@ -124,7 +124,7 @@ def resolve(s: Settings, mesh: Mesh | None = None) -> tuple[Settings, str]:
     for (sizing_fit.json: HashGrid + MLP + consistent labels) at the smallest T whose predicted MSE meets the
     target (`sizing.choose_size`); `compress_mesh` measures the result and steps T up if it was missed.
     """
-    from .sizing import choose_size, load_fit, mesh_features
+    from .sizing import choose_table_and_nodes, load_fit, mesh_features
 
     if s.budget_kb is not None:
         budget = s.budget_kb * 1024
@@ -152,13 +152,15 @@ def resolve(s: Settings, mesh: Mesh | None = None) -> tuple[Settings, str]:
                             f"(T=2^{base.log2_table}, {base.nodes} nodes)")
         feats = mesh_features(mesh)
         fitted = PRESETS[fit.method]
-        l2, pred, reachable = choose_size(fit, feats, s.target_mse)
-        chosen = dataclasses.replace(s, encoding=fitted.encoding, network=fitted.network, labels=fitted.labels,
-                                     nodes=fitted.nodes, log2_table=l2)
-        why = (f"target MSE {s.target_mse:g}: predicted MSE {pred:.4g} at T=2^{l2} ({fitted.encoding}+{fitted.network}, "
-               f"{fitted.nodes} nodes; mesh area {feats.area:.2f}, occupancy {feats.occupancy:.3f}, roughness "
-               f"{feats.roughness:.3f}, {feats.triangles:,} triangles), the smallest T predicted to meet it with a "
-               f"{math.exp(fit.margin * fit.residual_std):.2f}x safety factor")
+        base = dataclasses.replace(s, encoding=fitted.encoding, network=fitted.network, labels=fitted.labels)
+        l2, nodes, pred, reachable = choose_table_and_nodes(
+            fit, feats, s.target_mse,
+            lambda lt, n: estimate_file_bytes(dataclasses.replace(base, log2_table=lt, nodes=n)))
+        chosen = dataclasses.replace(base, nodes=nodes, log2_table=l2)
+        why = (f"target MSE {s.target_mse:g}: predicted MSE {pred:.4g} at T=2^{l2}, {nodes} nodes "
+               f"({fitted.encoding}+{fitted.network}; mesh area {feats.area:.2f}, occupancy {feats.occupancy:.3f}, "
+               f"roughness {feats.roughness:.3f}, {feats.triangles:,} triangles), the smallest file predicted to "
+               f"meet it with a {math.exp(fit.margin * fit.residual_std):.2f}x safety factor")
         if not reachable:
             why += "; the target is beyond every size the predictor knows: using the largest"
         return chosen, why

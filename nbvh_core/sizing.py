@@ -9,8 +9,9 @@
   fills, how much its normals vary locally, triangle count), fitted on the benchmark meshes by
   bench/fit_sizing.py (data and leave-one-mesh-out errors in bench/results/sizing*.{csv,md}); coefficients in
   sizing_fit.json. It is calibrated at the benchmark's training budget; longer training only lowers the MSE.
-* **Choice** (`choose_size`): the smallest T whose predicted MSE meets the target; the pipeline trains it,
-  measures, and steps T up once if the target was missed (`pipeline.compress_mesh`).
+* **Choice** (`choose_table_and_nodes`): the (T, node count) of fewest file bytes whose predicted MSE meets the
+  target; the pipeline trains it, measures, and steps T up once if the target was missed
+  (`pipeline.compress_mesh`). `choose_size` is the same over T alone (scenes).
 * **Verdict** (`assess`): when the mesh as it is, or a decimation of it that meets the target, is smaller
   resident than the model, compressing is not worth it; the result says so with all sizes (a user can still
   force the model).
@@ -33,6 +34,8 @@ from .mesh import Mesh
 FIT_PATH = Path(__file__).with_name("sizing_fit.json")
 #: Table sizes the chooser considers (log2 T): the range the predictor was fitted on (bench/fit_sizing.py).
 LOG2_RANGE = range(8, 13)
+#: BVH node counts the chooser considers (the node effect is fitted at these counts).
+NODE_CHOICES = (1023, 2047, 4095)
 FEATURE_NAMES = ("log_area", "occupancy", "roughness", "log10_triangles")
 #: Named quality levels (image MSE of the paper's metric), shared by the CLI, the API and the add-on.
 QUALITY_LEVELS = {"preview": 0.02, "standard": 0.01, "high": 0.005}
@@ -102,10 +105,17 @@ class SizeFit:
     features: list = field(default_factory=lambda: list(FEATURE_NAMES))
     margin: float = 0.5
     meshes: list = field(default_factory=list)
+    #: Node count: log MSE changes by nodes_coef per doubling of the node count relative to nodes_ref (fitted at a
+    #: fixed T, see bench/fit_sizing.py); 0 = not fitted (the node count stays at nodes_ref).
+    nodes_coef: float = 0.0
+    nodes_ref: int = 2047
 
-    def predict_log_mse(self, log2_table: int, features: MeshFeatures) -> float:
+    def predict_log_mse(self, log2_table: int, features: MeshFeatures, nodes: int | None = None) -> float:
         x = np.concatenate([[1.0, float(log2_table)], features.vector(self.features)])
-        return float(np.dot(self.coef, x))
+        out = float(np.dot(self.coef, x))
+        if nodes is not None and self.nodes_coef:
+            out += self.nodes_coef * (math.log2(nodes + 1) - math.log2(self.nodes_ref + 1))
+        return out
 
 
 def fit_size_model(rows: list[tuple[int, MeshFeatures, float]], method: str, train_s: float,
@@ -128,8 +138,8 @@ def load_fit(path: Path = FIT_PATH) -> SizeFit | None:
         return None
 
 
-def predict_mse(fit: SizeFit, log2_table: int, features: MeshFeatures) -> float:
-    return math.exp(fit.predict_log_mse(log2_table, features))
+def predict_mse(fit: SizeFit, log2_table: int, features: MeshFeatures, nodes: int | None = None) -> float:
+    return math.exp(fit.predict_log_mse(log2_table, features, nodes))
 
 
 def choose_size(fit: SizeFit, features: MeshFeatures, target_mse: float) -> tuple[int, float, bool]:
@@ -142,6 +152,22 @@ def choose_size(fit: SizeFit, features: MeshFeatures, target_mse: float) -> tupl
             return l2, pred, True
     l2 = LOG2_RANGE[-1]
     return l2, predict_mse(fit, l2, features), False
+
+
+def choose_table_and_nodes(fit: SizeFit, features: MeshFeatures, target_mse: float,
+                           size_of) -> tuple[int, int, float, bool]:
+    """The (log2 T, node count) of smallest file bytes `size_of(log2, nodes)` whose predicted MSE (with the safety
+    factor) meets the target, over LOG2_RANGE x NODE_CHOICES (only the fitted node count without a node fit).
+    Returns (log2 T, nodes, predicted MSE, reachable); unreachable: the largest T and node count."""
+    safety = math.exp(fit.margin * fit.residual_std)
+    node_choices = NODE_CHOICES if fit.nodes_coef else (fit.nodes_ref,)
+    ok = [(size_of(l2, n), l2, n) for l2 in LOG2_RANGE for n in node_choices
+          if predict_mse(fit, l2, features, n) * safety <= target_mse]
+    if ok:
+        _, l2, n = min(ok)
+        return l2, n, predict_mse(fit, l2, features, n), True
+    l2, n = LOG2_RANGE[-1], max(node_choices)
+    return l2, n, predict_mse(fit, l2, features, n), False
 
 
 # ----------------------------------------------------------------------------------------------- alternatives

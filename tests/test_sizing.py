@@ -66,7 +66,8 @@ def test_shipped_fit_and_target_resolution(sample_meshes):
     assert s.log2_table in LOG2_RANGE and "predicted MSE" in why
     loose, _ = resolve(preset("default").with_overrides(target_mse=0.05), mesh)
     strict, _ = resolve(preset("default").with_overrides(target_mse=0.002), mesh)
-    assert loose.log2_table <= s.log2_table <= strict.log2_table
+    # A stricter target never gets a smaller file (T and the node count trade against each other).
+    assert estimate_file_bytes(loose) <= estimate_file_bytes(s) <= estimate_file_bytes(strict)
 
 
 def test_trivial_meshes_are_not_worth_compressing_and_detailed_ones_are(sample_meshes):
@@ -132,3 +133,23 @@ def test_cli_quality_level_and_plan(tmp_path, capsys):
     assert plan["total"] <= 1200 * 1024 and len(plan["objects"]) == 2
     by = {o["mesh"]: o for o in plan["objects"]}
     assert by["studs"]["log2_table"] >= by["blob"]["log2_table"]
+
+
+def test_table_and_node_choice_is_the_smallest_file_meeting_the_target():
+    from nbvh_core.sizing import NODE_CHOICES, choose_table_and_nodes, predict_mse
+
+    fit = SizeFit(method="default", train_s=15.0, coef=[-1.0, -0.4, 0.0, 0.0, 0.0, 0.0], residual_std=0.3,
+                  nodes_coef=-0.3, nodes_ref=2047, margin=0.5)
+    f = MeshFeatures(triangles=50000, area=2.0, occupancy=0.1, roughness=0.05)
+    size_of = lambda l2, n: (1 << l2) * 256 + n * 32 + 180_000  # noqa: E731
+    safety = math.exp(fit.margin * fit.residual_std)
+    for target in (0.02, 0.01, 0.005):
+        l2, n, pred, ok = choose_table_and_nodes(fit, f, target, size_of)
+        feasible = [(size_of(a, b), a, b) for a in LOG2_RANGE for b in NODE_CHOICES
+                    if predict_mse(fit, a, f, b) * safety <= target]
+        assert ok == bool(feasible)
+        if feasible:
+            assert (size_of(l2, n), l2, n) == min(feasible)
+    # Without a node fit the node count stays at the fitted one.
+    plain = dataclasses.replace(fit, nodes_coef=0.0)
+    assert choose_table_and_nodes(plain, f, 0.01, size_of)[1] == 2047
