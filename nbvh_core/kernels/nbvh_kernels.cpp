@@ -9,6 +9,7 @@
 #include <cstdint>
 #include <cstring>
 #include <omp.h>
+#include <type_traits>
 
 namespace {
 
@@ -123,6 +124,20 @@ void encode_backward_t(const Grid& g, const float* points, int64_t n, const floa
     }
 }
 
+// Calls fn(std::integral_constant<int, F>) with F = features for the common sizes (unrolled inner loops) and
+// F = 0 (runtime size) otherwise.
+template <typename Fn>
+void by_features(int features, Fn&& fn) {
+    switch (features) {
+        case 2: fn(std::integral_constant<int, 2>{}); break;
+        case 4: fn(std::integral_constant<int, 4>{}); break;
+        case 8: fn(std::integral_constant<int, 8>{}); break;
+        case 16: fn(std::integral_constant<int, 16>{}); break;
+        case 32: fn(std::integral_constant<int, 32>{}); break;
+        default: fn(std::integral_constant<int, 0>{});
+    }
+}
+
 // Slab test exactly as traversal.ray_box: returns entered; writes t_enter, t_exit.
 inline bool ray_box(const float* o, const float* inv, const float* lo, const float* hi, float t_max, float* te,
                     float* tx) {
@@ -169,14 +184,7 @@ void nbvh_encode_forward(const float* points, int64_t n, const float* table, flo
                          int64_t rows, const uint8_t* codes, int64_t code_rows, int threads) {
     Grid g{levels, features, scales, res, dense, vertex_table, rows, codes, code_rows};
     g.init_masks();
-    switch (features) {
-        case 2: encode_forward_t<2>(g, points, n, table, out, threads); break;
-        case 4: encode_forward_t<4>(g, points, n, table, out, threads); break;
-        case 8: encode_forward_t<8>(g, points, n, table, out, threads); break;
-        case 16: encode_forward_t<16>(g, points, n, table, out, threads); break;
-        case 32: encode_forward_t<32>(g, points, n, table, out, threads); break;
-        default: encode_forward_t<0>(g, points, n, table, out, threads);
-    }
+    by_features(features, [&](auto F) { encode_forward_t<decltype(F)::value>(g, points, n, table, out, threads); });
 }
 
 // grad_table (L, rows, F) float32 is accumulated into (zero it first).
@@ -185,14 +193,9 @@ void nbvh_encode_backward(const float* points, int64_t n, const float* grad_out,
                           int64_t vertex_table, int64_t rows, const uint8_t* codes, int64_t code_rows, int threads) {
     Grid g{levels, features, scales, res, dense, vertex_table, rows, codes, code_rows};
     g.init_masks();
-    switch (features) {
-        case 2: encode_backward_t<2>(g, points, n, grad_out, grad_table, threads); break;
-        case 4: encode_backward_t<4>(g, points, n, grad_out, grad_table, threads); break;
-        case 8: encode_backward_t<8>(g, points, n, grad_out, grad_table, threads); break;
-        case 16: encode_backward_t<16>(g, points, n, grad_out, grad_table, threads); break;
-        case 32: encode_backward_t<32>(g, points, n, grad_out, grad_table, threads); break;
-        default: encode_backward_t<0>(g, points, n, grad_out, grad_table, threads);
-    }
+    by_features(features, [&](auto F) {
+        encode_backward_t<decltype(F)::value>(g, points, n, grad_out, grad_table, threads);
+    });
 }
 
 // Segment points: out (B, k, 3) = o[ray] + (te + i/(k-1) (tx - te)) d[ray], as NeuralBVH.segment_points.
