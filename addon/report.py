@@ -22,6 +22,7 @@ def object_entry(name: str, blender_bytes: dict, job_report: dict) -> dict:
     resident = job_report["mesh_resident_bytes"]
     q = job_report.get("quality") or {}
     t = job_report.get("training") or {}
+    assessment = job_report.get("assessment") or {}
     return {
         "name": name,
         "blender_mesh_bytes": blender_bytes,
@@ -34,10 +35,10 @@ def object_entry(name: str, blender_bytes: dict, job_report: dict) -> dict:
         "eval_views": q.get("views"), "train_seconds": t.get("seconds"), "device": t.get("device"),
         "settings": job_report.get("settings"), "files": job_report.get("files", {}),
         # Before training: was the model going to be smaller than the mesh a ray tracer holds? (sizing.assess)
-        "worth_compressing": (job_report.get("assessment") or {}).get("worth_compressing", resident["total"] > nbvh),
-        "assessment": (job_report.get("assessment") or {}).get("message", ""),
-        "recommendation": (job_report.get("assessment") or {}).get("recommendation", ""),
-        "alternatives": (job_report.get("assessment") or {}).get("alternatives", {}),
+        "worth_compressing": assessment.get("worth_compressing", resident["total"] > nbvh),
+        "assessment": assessment.get("message", ""),
+        "recommendation": assessment.get("recommendation", ""),
+        "alternatives": assessment.get("alternatives", {}),
         "why": job_report.get("why", ""),
         "target_met": job_report.get("target_met"),
         "scene_split": job_report.get("scene_split"),

@@ -51,7 +51,7 @@ from nbvh_core.metrics import evaluate_renderer  # noqa: E402
 from nbvh_core.pipeline import compress_mesh, preset  # noqa: E402
 from nbvh_core.render import render_reference  # noqa: E402
 from nbvh_core.samples import RayConfig, root_box, sample_rays  # noqa: E402
-from nbvh_core.sizing import mesh_resident_bytes  # noqa: E402
+from nbvh_core.sizing import decimate, mesh_like, mesh_resident_bytes  # noqa: E402
 from nbvh_core.train import TrainingDiverged  # noqa: E402
 from nbvh_core.traversal import TorchBVH, leaves_along_rays  # noqa: E402
 
@@ -216,17 +216,8 @@ def run_sweep(plan: Plan) -> None:
                 run_neural(plan, cache, "time", mesh_name, "default", preset("default").log2_table, 0, budget, done)
 
 
-def _mesh_like(mesh: Mesh, vertices: np.ndarray, faces: np.ndarray) -> Mesh:
-    """A baseline's mesh in the original's normalised coordinates (no re-normalisation; degenerates kept out)."""
-    v = np.asarray(vertices, np.float32)
-    f = np.asarray(faces, np.int32).reshape(-1, 3)
-    ok = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])
-    return Mesh(vertices=v, faces=f[ok], transform=mesh.transform, name=mesh.name)
-
-
 def run_baselines(plan: Plan) -> None:
     import DracoPy
-    import fast_simplification
 
     done = {(r["mesh"], r["baseline"], r["param"]) for r in read_rows(plan.csv("baselines"))}
     for mesh_name in plan.meshes:
@@ -244,15 +235,15 @@ def run_baselines(plan: Plan) -> None:
                 else:
                     if param >= mesh.n_triangles:
                         continue
-                    v, f = fast_simplification.simplify(v, f, target_reduction=1 - param / mesh.n_triangles)
-                    bits = 11
+                    dec = decimate(mesh, param)
+                    v, f, bits = dec.vertices, dec.faces, 11
                 t0 = time.perf_counter()
                 blob = DracoPy.encode(v, f, quantization_bits=bits, compression_level=10)
                 enc_s = time.perf_counter() - t0
                 t0 = time.perf_counter()
-                dec = DracoPy.decode(blob)
+                decoded = DracoPy.decode(blob)
                 dec_s = time.perf_counter() - t0
-                cand = _mesh_like(mesh, np.asarray(dec.points), np.asarray(dec.faces))
+                cand = mesh_like(mesh, np.asarray(decoded.points), np.asarray(decoded.faces))
                 cand_tracer = ExactTracer(cand)
                 q, _ = evaluate_renderer(lambda cam, w, h: render_reference(cand_tracer, cam, w, h), tracer,
                                          mesh.transform, plan.views, plan.res)

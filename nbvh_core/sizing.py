@@ -21,6 +21,7 @@
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from dataclasses import asdict, dataclass, field
@@ -143,15 +144,11 @@ def predict_mse(fit: SizeFit, log2_table: int, features: MeshFeatures, nodes: in
 
 
 def choose_size(fit: SizeFit, features: MeshFeatures, target_mse: float) -> tuple[int, float, bool]:
-    """Smallest log2 T in LOG2_RANGE whose predicted MSE x exp(margin x residual_std) <= target.
-    Returns (log2 T, predicted MSE, reachable); unreachable targets get the largest T."""
-    safety = math.exp(fit.margin * fit.residual_std)
-    for l2 in LOG2_RANGE:
-        pred = predict_mse(fit, l2, features)
-        if pred * safety <= target_mse:
-            return l2, pred, True
-    l2 = LOG2_RANGE[-1]
-    return l2, predict_mse(fit, l2, features), False
+    """`choose_table_and_nodes` over T alone (the fitted node count): the smallest log2 T in LOG2_RANGE whose
+    predicted MSE x exp(margin x residual_std) <= target. Returns (log2 T, predicted MSE, reachable)."""
+    l2, _, pred, reachable = choose_table_and_nodes(dataclasses.replace(fit, nodes_coef=0.0), features, target_mse,
+                                                    lambda log2, nodes: log2)  # file bytes grow with T
+    return l2, pred, reachable
 
 
 def choose_table_and_nodes(fit: SizeFit, features: MeshFeatures, target_mse: float,
@@ -171,10 +168,29 @@ def choose_table_and_nodes(fit: SizeFit, features: MeshFeatures, target_mse: flo
 
 
 # ----------------------------------------------------------------------------------------------- alternatives
-def alternatives(mesh: Mesh, target_mse: float | None, views: int = 8, resolution: int = 96) -> dict:
+def mesh_like(mesh: Mesh, vertices: np.ndarray, faces: np.ndarray) -> Mesh:
+    """Another triangulation of `mesh` (a decimation, a Draco-decoded copy) in the same normalised coordinates:
+    no re-normalisation, triangles with a repeated index dropped."""
+    f = np.asarray(faces, np.int32).reshape(-1, 3)
+    keep = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])
+    return Mesh(vertices=np.asarray(vertices, np.float32), faces=f[keep], transform=mesh.transform, name=mesh.name)
+
+
+def decimate(mesh: Mesh, triangles: int) -> Mesh:
+    """Quadric decimation (fast-simplification) of `mesh` to about `triangles` triangles (< mesh.n_triangles)."""
+    import fast_simplification
+
+    v, f = fast_simplification.simplify(mesh.vertices.astype(np.float64), mesh.faces,
+                                        target_reduction=1 - triangles / mesh.n_triangles)
+    return mesh_like(mesh, v, f)
+
+
+def alternatives(mesh: Mesh, target_mse: float | None, views: int = 8, resolution: int = 96,
+                 tracer=None) -> dict:
     """What a user could ship instead, measured: Draco (11-bit, storage bytes) of the mesh, and the smallest
     quadric decimation (fast-simplification) whose image MSE (same metric, Embree) meets `target_mse`, with its
-    resident and Draco bytes. Missing optional packages give a note instead of numbers."""
+    resident and Draco bytes. Missing optional packages give a note instead of numbers. `tracer`: the mesh's
+    ExactTracer when the caller has one (else one is built)."""
     out: dict = {}
     try:
         import DracoPy
@@ -186,7 +202,7 @@ def alternatives(mesh: Mesh, target_mse: float | None, views: int = 8, resolutio
     if target_mse is None:
         return out
     try:
-        import fast_simplification
+        import fast_simplification  # noqa: F401  (decimate's dependency)
     except ImportError:
         out["note"] = (out.get("note", "") + "; " if "note" in out else "") + "fast-simplification not installed"
         return out
@@ -194,16 +210,12 @@ def alternatives(mesh: Mesh, target_mse: float | None, views: int = 8, resolutio
     from .metrics import evaluate_renderer
     from .render import render_reference
 
-    tracer = ExactTracer(mesh)
+    tracer = tracer or ExactTracer(mesh)
     tried = []
     for count in (250, 1000, 4000, 16000, 64000):
         if count >= mesh.n_triangles * 0.7:
             break
-        v, f = fast_simplification.simplify(mesh.vertices.astype(np.float64), mesh.faces,
-                                            target_reduction=1 - count / mesh.n_triangles)
-        f = np.asarray(f, np.int32)
-        keep = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])
-        dec = Mesh(vertices=np.asarray(v, np.float32), faces=f[keep], transform=mesh.transform, name=mesh.name)
+        dec = decimate(mesh, count)
         if dec.n_triangles == 0:
             continue
         dec_tracer = ExactTracer(dec)
@@ -238,7 +250,7 @@ class Assessment:
         return asdict(self)
 
 
-def assess(mesh: Mesh, settings, measure_alternatives: bool = False) -> Assessment:
+def assess(mesh: Mesh, settings, measure_alternatives: bool = False, tracer=None) -> Assessment:
     """Compare the model `settings` (a pipeline.Settings, already resolved) would write with the mesh's resident
     bytes and its Draco size, and, with `measure_alternatives` and a target MSE, with a decimation that meets it.
     worth_compressing is False when either is not larger than the model."""
@@ -248,7 +260,7 @@ def assess(mesh: Mesh, settings, measure_alternatives: bool = False) -> Assessme
     resident_bytes = mesh_resident_bytes(mesh)
     resident = resident_bytes["total"]
     # The Draco size always (cheap: shows which tool wins for storage alone); decimations only with a target.
-    alt = alternatives(mesh, settings.target_mse if measure_alternatives else None)
+    alt = alternatives(mesh, settings.target_mse if measure_alternatives else None, tracer=tracer)
     dec = alt.get("decimation")
     draco = f"; Draco 11-bit of the mesh: {alt['draco11_bytes']:,} B for storage" if "draco11_bytes" in alt else ""
     if resident <= model:

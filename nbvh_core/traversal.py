@@ -211,6 +211,12 @@ class LeafStream:
         self.stack_node = torch.zeros((n, depth), dtype=torch.int32 if self.fast else torch.int64, device=dev)
         self.stack_t = torch.zeros((n, depth), dtype=torch.float32, device=dev)
         self.sp = torch.zeros(n, dtype=torch.int32 if self.fast else torch.int64, device=dev)
+        if self.fast:  # what the kernel reads and writes, allocated once per stream
+            self._o = rays_o.to(torch.float32).contiguous()
+            self._inv = self.inv_d.to(torch.float32).contiguous()
+            self._out_leaf = torch.empty(n, dtype=torch.int32)
+            self._out_te = torch.empty(n, dtype=torch.float32)
+            self._out_tx = torch.empty(n, dtype=torch.float32)
         # Push the root for rays that enter it.
         entered, te, _ = ray_box(rays_o, self.inv_d, tree.lo[:1].expand(n, 3), tree.hi[:1].expand(n, 3),
                                  self.t_max)
@@ -294,12 +300,6 @@ class LeafStream:
         lib, p = kernels.load(), kernels.ptr
         tree = self.tree
         n = self.sp.shape[0]
-        if not hasattr(self, "_o"):
-            self._o = self.rays_o.to(torch.float32).contiguous()
-            self._inv = self.inv_d.to(torch.float32).contiguous()
-            self._out_leaf = torch.empty(n, dtype=torch.int32)
-            self._out_te = torch.empty(n, dtype=torch.float32)
-            self._out_tx = torch.empty(n, dtype=torch.float32)
         left, leaf = tree.int32_arrays()
         self.t_max = self.t_max.contiguous()
         lib.nbvh_stream_next(p(self._o), p(self._inv), n, p(tree.lo.contiguous()), p(tree.hi.contiguous()), p(left),

@@ -48,12 +48,15 @@ class HashGrid(nn.Module):
     def _fused_forward(self, points: torch.Tensor) -> torch.Tensor:
         if self._spec is None:
             self._spec = GridSpec(self.cfg, self._vertex_table_size())
-        if self._use_half():
-            return fused_encode_half(points, self._half_table(), self._spec)
-        return fused_encode(points, self.row_table(), self._spec)
+        rows, codes, code_rows = self._fused_rows()
+        # The float16 copy is of the stored rows only (a soft HashVQAD table is recomputed every step).
+        if self.half_tables and not torch.is_grad_enabled() and rows is self.table:
+            return fused_encode_half(points, self._half_table(), self._spec, codes, code_rows)
+        return fused_encode(points, rows, self._spec, codes, code_rows)
 
-    def _use_half(self) -> bool:
-        return self.half_tables and not torch.is_grad_enabled()
+    def _fused_rows(self) -> tuple[torch.Tensor, torch.Tensor | None, int]:
+        """What the kernel reads: the (L, R, F) rows, the frozen codes (or None) and the rows codes select from."""
+        return self.table, None, 0
 
     def _half_table(self) -> torch.Tensor:
         """float16 copy of `table`, refreshed whenever the table changes (its version counter)."""

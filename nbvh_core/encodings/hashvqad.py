@@ -24,7 +24,6 @@ import torch
 from torch import nn
 
 from .base import MASK32, PRIMES, EncodingConfig
-from .fused import GridSpec, fused_encode, fused_encode_half
 from .hashgrid import HashGrid
 
 
@@ -77,14 +76,10 @@ class HashVQAD(HashGrid):
         soft = torch.einsum("lmac,lacf->lmaf", probs, rows)
         return soft.reshape(cfg.levels, cfg.index_size, cfg.features)
 
-    def _fused_forward(self, points: torch.Tensor) -> torch.Tensor:
-        if self._spec is None:
-            self._spec = GridSpec(self.cfg, self._vertex_table_size())
+    def _fused_rows(self) -> tuple[torch.Tensor, torch.Tensor | None, int]:
         if self.frozen:  # vertex -> code -> candidate row, inside the kernel
-            if self._use_half():
-                return fused_encode_half(points, self._half_table(), self._spec, self.codes, self.cfg.table_size)
-            return fused_encode(points, self.table, self._spec, self.codes, self.cfg.table_size)
-        return fused_encode(points, self.row_table(), self._spec)
+            return self.table, self.codes, self.cfg.table_size
+        return self.row_table(), None, 0
 
     def vertex_rows(self, idx: torch.Tensor) -> torch.Tensor:
         if not self.frozen:
