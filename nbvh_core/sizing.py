@@ -288,7 +288,8 @@ def split_budget(features: list[MeshFeatures], budget_bytes: float, fit: SizeFit
     """Share `budget_bytes` among meshes by need. Every mesh i gets the smallest log2 T whose predicted MSE meets
     level / w_i (w_i: weight, e.g. share of the screen; bigger = needs to look better), with the common level as
     strict as the budget allows (bisection in log space). bytes_for_log2(i, log2) -> file bytes of mesh i's model.
-    Returns {'level': MSE level, 'log2': [...], 'bytes': [...], 'predicted_mse': [...], 'total': bytes}."""
+    Returns {'level': MSE level, 'log2': [...], 'bytes': [...], 'predicted_mse': [...], 'total': bytes}; raises
+    ValueError when even the smallest models do not fit the budget."""
     n = len(features)
     weights = [1.0] * n if weights is None else [max(float(w), 1e-6) for w in weights]
 
@@ -311,9 +312,10 @@ def split_budget(features: list[MeshFeatures], budget_bytes: float, fit: SizeFit
             hi = mid  # fits: try stricter
         else:
             lo = mid
-    if best is None:
-        l2s, sizes, preds = plan(1.0)
-        best = (1.0, l2s, sizes, preds)
+    if best is None:  # even the loosest level (every mesh at its smallest size) does not fit
+        smallest = sum(plan(1.0)[1])
+        raise ValueError(f"a budget of {budget_bytes / 1024:g} KB is too small for these {n} meshes: the smallest "
+                         f"models need {smallest / 1024:.0f} KB together")
     level, l2s, sizes, preds = best
     return {"level": level, "log2": l2s, "bytes": sizes, "predicted_mse": preds, "total": int(sum(sizes)),
             "weights": weights, "budget": budget_bytes}

@@ -107,6 +107,9 @@ def test_scene_budget_is_shared_by_need():
     # A bigger share of the screen earns a bigger model.
     plan_w = split_budget([smooth, smooth], budget, fit, size, weights=[4.0, 0.25])
     assert plan_w["log2"][0] > plan_w["log2"][1]
+    # A budget below the smallest models is refused with the size they need, not silently exceeded.
+    with pytest.raises(ValueError, match="too small for these 2 meshes"):
+        split_budget([smooth, detailed], 100e3, fit, size)
 
 
 def test_missed_target_retrains_one_size_larger(sample_meshes):
