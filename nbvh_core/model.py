@@ -13,9 +13,10 @@ import numpy as np
 import torch
 from torch import nn
 
+from . import kernels
 from .encodings import EncodingConfig, make_encoding
 from .mesh import Transform
-from .networks import NetworkConfig, make_network
+from .networks import MLP, NetworkConfig, make_network
 from .traversal import LeafStream, TorchBVH
 
 
@@ -94,15 +95,30 @@ class NeuralBVH(nn.Module):
         return self.network(feats)
 
     @torch.no_grad()
-    def query(self, rays_o: torch.Tensor, rays_d: torch.Tensor, batch: int = 65536) -> QueryResult:
-        """First predicted hit of every ray. rays_o, rays_d: (N, 3) float32 (unit directions), any device."""
+    def query(self, rays_o: torch.Tensor, rays_d: torch.Tensor, batch: int = 65536,
+              ray_chunk: int = 1 << 17) -> QueryResult:
+        """First predicted hit of every ray. rays_o, rays_d: (N, 3) float32 (unit directions), any device.
+
+        Rays go through in chunks of `ray_chunk` (each with its own leaf stream: the per-ray traversal stacks of a
+        1000x1000 image would otherwise take ~200 MB), the segments of a wave in batches of `batch`."""
         dev = self.device
-        rays_o = rays_o.to(dev, torch.float32)
-        rays_d = rays_d.to(dev, torch.float32)
+        rays_o = rays_o.to(dev, torch.float32).contiguous()
+        rays_d = rays_d.to(dev, torch.float32).contiguous()
         n = rays_o.shape[0]
         hit = torch.zeros(n, dtype=torch.bool, device=dev)
         t_out = torch.full((n,), torch.inf, device=dev)
         normal = torch.zeros((n, 3), device=dev)
+        evaluated = 0
+        fused = self._fused_network()
+        for c0 in range(0, n, ray_chunk):
+            c1 = min(n, c0 + ray_chunk)
+            evaluated += self._query_chunk(rays_o[c0:c1], rays_d[c0:c1], hit[c0:c1], t_out[c0:c1], normal[c0:c1],
+                                           fused, batch)
+        return QueryResult(hit=hit, t=t_out, normal=normal, leaves_evaluated=evaluated)
+
+    def _query_chunk(self, rays_o: torch.Tensor, rays_d: torch.Tensor, hit: torch.Tensor, t_out: torch.Tensor,
+                     normal: torch.Tensor, fused: tuple | None, batch: int) -> int:
+        """`query` for one chunk of rays, writing into the chunk's views of the outputs; returns segments."""
         evaluated = 0
         stream = LeafStream(self.tree(), rays_o, rays_d)
         while True:
@@ -112,14 +128,46 @@ class NeuralBVH(nn.Module):
             evaluated += ray.numel()
             for s in range(0, ray.numel(), batch):
                 r, a, b = ray[s:s + batch], te[s:s + batch], tx[s:s + batch]
-                prob, local_t, nrm = self.network.decode(self.forward(rays_o[r], rays_d[r], a, b))
+                if fused is not None:
+                    raw = self._fused_raw(fused, rays_o, rays_d, r, a, b)
+                else:
+                    raw = self.forward(rays_o[r], rays_d[r], a, b)
+                prob, local_t, nrm = self.network.decode(raw)
                 is_hit = prob > 0.5
                 rh = r[is_hit]
                 hit[rh] = True
                 t_out[rh] = a[is_hit] + local_t[is_hit] * (b[is_hit] - a[is_hit])
                 normal[rh] = nrm[is_hit]
                 stream.stop(rh)
-        return QueryResult(hit=hit, t=t_out, normal=normal, leaves_evaluated=evaluated)
+        return evaluated
+
+    def _fused_network(self) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """(dims (layers + 1,) int32, params: every Linear's weight transposed (in, out) then bias, packed float32)
+        for the fused inference kernel, or None where it does not apply (reference path, CUDA, KMLP)."""
+        if not (kernels.fast_enabled(self.device) and isinstance(self.network, MLP)
+                and self.encoding.table.dtype == torch.float32):
+            return None
+        linears = [m for m in self.network.modules() if isinstance(m, nn.Linear)]
+        dims = torch.tensor([linears[0].in_features] + [m.out_features for m in linears], dtype=torch.int32)
+        params = torch.cat([torch.cat((m.weight.detach().t().reshape(-1), m.bias.detach())) for m in linears])
+        return dims, params.to(torch.float32).contiguous()
+
+    def _fused_raw(self, fused: tuple[torch.Tensor, torch.Tensor], rays_o: torch.Tensor, rays_d: torch.Tensor,
+                   ray: torch.Tensor, t_enter: torch.Tensor, t_exit: torch.Tensor) -> torch.Tensor:
+        """What `forward(rays_o[ray], rays_d[ray], t_enter, t_exit)` returns, from one fused kernel call (the MLP's
+        Linear layers see the same inputs; sums run in another order, so outputs agree to float rounding)."""
+        dims, params = fused
+        table, half, spec, codes, code_rows = self.encoding.fused_lookup()
+        k = self.cfg.network.k
+        frac = torch.linspace(0.0, 1.0, k, dtype=torch.float32)
+        ray, t_enter, t_exit = ray.contiguous(), t_enter.contiguous(), t_exit.contiguous()
+        out = torch.empty((ray.numel(), int(dims[-1])), dtype=torch.float32)
+        p = kernels.ptr
+        kernels.load().nbvh_mlp_segments(
+            p(rays_o.contiguous()), p(rays_d.contiguous()), p(ray), p(t_enter), p(t_exit), ray.numel(), k, p(frac),
+            p(table), int(half), *spec.args(table.shape[1], codes, code_rows)[:-1], len(dims) - 1, p(dims),
+            p(params), p(out), kernels.threads())
+        return out
 
     def stored_bytes(self, float_bytes: int = 4) -> dict[str, int]:
         """Bytes of the stored tensors by component (no header): bvh, features, [index], network."""

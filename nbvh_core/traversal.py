@@ -207,9 +207,11 @@ class LeafStream:
                       else t_max.to(torch.float32).clone())
         depth = tree.max_depth + 2
         self.fast = kernels.fast_enabled(dev)
-        # The C++ stepper keeps int32 stacks (contiguous, one row per ray); the reference int64.
-        self.stack_node = torch.zeros((n, depth), dtype=torch.int32 if self.fast else torch.int64, device=dev)
-        self.stack_t = torch.zeros((n, depth), dtype=torch.float32, device=dev)
+        # The C++ stepper keeps int32 stacks (contiguous, one row per ray; it reads only entries below sp, so they
+        # are left uninitialised); the reference int64.
+        alloc = torch.empty if self.fast else torch.zeros
+        self.stack_node = alloc((n, depth), dtype=torch.int32 if self.fast else torch.int64, device=dev)
+        self.stack_t = alloc((n, depth), dtype=torch.float32, device=dev)
         self.sp = torch.zeros(n, dtype=torch.int32 if self.fast else torch.int64, device=dev)
         if self.fast:  # what the kernel reads and writes, allocated once per stream
             self._o = rays_o.to(torch.float32).contiguous()
@@ -220,6 +222,7 @@ class LeafStream:
         # Push the root for rays that enter it.
         entered, te, _ = ray_box(rays_o, self.inv_d, tree.lo[:1].expand(n, 3), tree.hi[:1].expand(n, 3),
                                  self.t_max)
+        self.stack_node[:, 0] = 0
         self.stack_t[:, 0] = te
         self.sp[entered] = 1
 

@@ -180,3 +180,56 @@ def test_float16_tables_give_the_same_image_within_rounding(blob_model):
     out = model.encoding(torch.rand(10, 3))
     assert out.requires_grad
     model.half_tables = False
+
+
+FUSED_MODELS = [
+    # (encoding, network): the AVX2 paths (F % 8 == 0, width % 16 == 0) and the generic ones (odd F, width 24,
+    # no hidden layer), a frozen HashVQAD (codes looked up in the kernel).
+    (dict(kind="hashgrid", log2_table=11, levels=4, features=16), dict(kind="mlp", k=8)),
+    (dict(kind="hashgrid", log2_table=5, levels=3, features=3, n_min=3, n_max=40), dict(kind="mlp", k=4, width=24)),
+    (dict(kind="hashgrid", log2_table=6, levels=2, features=8), dict(kind="mlp", k=3, hidden=0)),
+    (dict(kind="hashvqad", log2_table=8, levels=2, features=8, index_factor=8, candidates=4), dict(kind="mlp", k=6)),
+]
+
+
+@pytest.mark.parametrize("enc_kw,net_kw", FUSED_MODELS)
+def test_fused_inference_matches_the_layer_by_layer_network(enc_kw, net_kw, sample_meshes):
+    torch.manual_seed(0)
+    bvh_nodes = build_bvh(sample_meshes["blob"], 63).nodes
+    model = NeuralBVH(bvh_nodes, ModelConfig(EncodingConfig(**enc_kw), NetworkConfig(**net_kw))).eval()
+    with torch.no_grad():
+        model.encoding.table.normal_()
+    if enc_kw["kind"] == "hashvqad":
+        model.encoding.freeze()
+    n_rays, n_seg = 300, 1001  # not a multiple of the kernel's 48-segment tile
+    o = torch.rand(n_rays, 3)
+    d = torch.nn.functional.normalize(torch.randn(n_rays, 3), dim=1)
+    ray = torch.randint(0, n_rays, (n_seg,))
+    te = torch.rand(n_seg) * 0.5
+    tx = te + torch.rand(n_seg) * 0.5
+    fused = model._fused_network()
+    assert fused is not None
+    with torch.no_grad():
+        with kernels.using_path("reference"):
+            want = model.forward(o[ray], d[ray], te, tx)
+        got = model._fused_raw(fused, o, d, ray, te, tx)
+    assert got.shape == want.shape
+    assert torch.allclose(got, want, rtol=1e-4, atol=1e-5), (got - want).abs().max()
+    # Rays in chunks give the same image as one stream.
+    q_all = model.query(o, d)
+    q_chunks = model.query(o, d, ray_chunk=64)
+    assert q_all.leaves_evaluated > n_rays
+    assert torch.equal(q_all.hit, q_chunks.hit) and q_all.leaves_evaluated == q_chunks.leaves_evaluated
+    assert torch.equal(q_all.t, q_chunks.t)
+
+
+def test_fused_inference_is_not_used_where_it_does_not_apply(sample_meshes):
+    model = NeuralBVH(build_bvh(sample_meshes["blob"], 15).nodes,
+                      ModelConfig(EncodingConfig(kind="hashgrid", log2_table=6, levels=2, features=4),
+                                  NetworkConfig(kind="kmlp", k=4)))
+    assert model._fused_network() is None  # KMLP: torch layers
+    model2 = NeuralBVH(model.nodes, ModelConfig(model.cfg.encoding, NetworkConfig(kind="mlp", k=4)))
+    with kernels.using_path("reference"):
+        assert model2._fused_network() is None
+    assert model2._fused_network() is not None
+

@@ -12,6 +12,9 @@ caller asks `fast_enabled(device)`; results record `describe()` so a number says
 * `stream_next` - `traversal.LeafStream.next` per ray with a real per-ray stack loop (the reference advances all
   rays one pop at a time with tensor ops).
 * `leaves_along_rays` - the complete sorted leaf list per ray (training labels).
+* `mlp_segments` - inference of a whole MLP model per (ray, leaf) segment: points, encoding and every Linear layer
+  (AVX2 6x16 register-blocked micro-kernel, bias and ReLU fused) on a tile of 48 segments that stays in the cache;
+  the reference writes (B, k*L*F) features to memory and runs torch's layers over them.
 
 Built at install (`python -m nbvh_core.kernels build`, run by scripts/ensure_venv.sh) or on first use, with
 g++ -O3 -march=native -ffp-contract=off -fopenmp, into a cache folder keyed by the source, the compiler flags
@@ -34,7 +37,7 @@ import torch
 
 SOURCE = Path(__file__).with_name("nbvh_kernels.cpp")
 FLAGS = ["-O3", "-march=native", "-ffp-contract=off", "-fopenmp", "-shared", "-fPIC", "-std=c++17"]
-ABI_VERSION = 3
+ABI_VERSION = 4
 PATHS = ("fast", "reference")
 
 _path = os.environ.get("NBVH_PATH", "fast")
@@ -154,8 +157,9 @@ def load() -> ctypes.CDLL | None:
     lib.nbvh_segment_points.argtypes = [P, P, P, P, P, I64, I32, P, P, I32]
     lib.nbvh_stream_next.argtypes = [P, P, I64, P, P, P, P, P, P, P, P, I32, P, P, P, I32]
     lib.nbvh_leaves_along_rays.argtypes = [P, P, I64, P, P, P, P, P, I32, P, P, P, P, P, I32]
-    for fn in (lib.nbvh_encode_forward, lib.nbvh_encode_forward_f16, lib.nbvh_encode_backward, lib.nbvh_segment_points, lib.nbvh_stream_next,
-               lib.nbvh_leaves_along_rays):
+    lib.nbvh_mlp_segments.argtypes = [P, P, P, P, P, I64, I32, P, P, I32, *enc[4:13], I32, P, P, P, I32]
+    for fn in (lib.nbvh_encode_forward, lib.nbvh_encode_forward_f16, lib.nbvh_encode_backward, lib.nbvh_segment_points,
+               lib.nbvh_stream_next, lib.nbvh_leaves_along_rays, lib.nbvh_mlp_segments):
         fn.restype = None
     _lib = lib
     return lib
