@@ -55,6 +55,9 @@ def main() -> None:
     ap.add_argument("--no-run", action="store_true")
     ap.add_argument("--quick", action="store_true")
     args = ap.parse_args()
+    from nbvh_core import kernels as _kernels
+
+    _kernels.keep_freed_memory()  # as the CLI does: freed blocks stay in the heap (see the function)
     plan = bq.Plan(args.quick)
     if not args.no_run:
         done = {(r["part"], r["mesh"], r["method"], r["log2_table"], r["seed"], r["train_s"])

@@ -396,6 +396,9 @@ def main(argv: list[str] | None = None) -> int:
     from .train import Cancelled, TrainingDiverged
 
     argv = sys.argv[1:] if argv is None else argv
+    from . import kernels
+
+    kernels.keep_freed_memory()  # this process trains or renders: keep its freed blocks (see the function)
     if argv[:1] == ["job"]:  # the background job protocol (see job.py): JSON events on stdout
         from .job import main as job_main
 

@@ -13,10 +13,9 @@ import numpy as np
 import torch
 from torch import nn
 
-from . import kernels
 from .encodings import EncodingConfig, make_encoding
 from .mesh import Transform
-from .networks import MLP, NetworkConfig, make_network
+from .networks import NetworkConfig, make_network
 from .traversal import LeafStream, TorchBVH
 
 
@@ -142,32 +141,18 @@ class NeuralBVH(nn.Module):
         return evaluated
 
     def _fused_network(self) -> tuple[torch.Tensor, torch.Tensor] | None:
-        """(dims (layers + 1,) int32, params: every Linear's weight transposed (in, out) then bias, packed float32)
-        for the fused inference kernel, or None where it does not apply (reference path, CUDA, KMLP)."""
-        if not (kernels.fast_enabled(self.device) and isinstance(self.network, MLP)
-                and self.encoding.table.dtype == torch.float32):
-            return None
-        linears = [m for m in self.network.modules() if isinstance(m, nn.Linear)]
-        dims = torch.tensor([linears[0].in_features] + [m.out_features for m in linears], dtype=torch.int32)
-        params = torch.cat([torch.cat((m.weight.detach().t().reshape(-1), m.bias.detach())) for m in linears])
-        return dims, params.to(torch.float32).contiguous()
+        """The packed MLP for the fused inference kernel (`kernels.mlp.pack`), or None where it does not apply
+        (reference path, CUDA, KMLP)."""
+        from .kernels import mlp
+
+        return mlp.pack(self) if mlp.applies(self) else None
 
     def _fused_raw(self, fused: tuple[torch.Tensor, torch.Tensor], rays_o: torch.Tensor, rays_d: torch.Tensor,
                    ray: torch.Tensor, t_enter: torch.Tensor, t_exit: torch.Tensor) -> torch.Tensor:
-        """What `forward(rays_o[ray], rays_d[ray], t_enter, t_exit)` returns, from one fused kernel call (the MLP's
-        Linear layers see the same inputs; sums run in another order, so outputs agree to float rounding)."""
-        dims, params = fused
-        table, half, spec, codes, code_rows = self.encoding.fused_lookup()
-        k = self.cfg.network.k
-        frac = torch.linspace(0.0, 1.0, k, dtype=torch.float32)
-        ray, t_enter, t_exit = ray.contiguous(), t_enter.contiguous(), t_exit.contiguous()
-        out = torch.empty((ray.numel(), int(dims[-1])), dtype=torch.float32)
-        p = kernels.ptr
-        kernels.load().nbvh_mlp_segments(
-            p(rays_o.contiguous()), p(rays_d.contiguous()), p(ray), p(t_enter), p(t_exit), ray.numel(), k, p(frac),
-            p(table), int(half), *spec.args(table.shape[1], codes, code_rows)[:-1], len(dims) - 1, p(dims),
-            p(params), p(out), kernels.threads())
-        return out
+        """What `forward(rays_o[ray], rays_d[ray], t_enter, t_exit)` returns, from one fused kernel call."""
+        from .kernels import mlp
+
+        return mlp.segments_raw(self, fused, rays_o, rays_d, ray, t_enter, t_exit)
 
     def stored_bytes(self, float_bytes: int = 4) -> dict[str, int]:
         """Bytes of the stored tensors by component (no header): bvh, features, [index], network."""

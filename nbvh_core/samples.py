@@ -91,7 +91,7 @@ def root_box(bvh: BVH) -> tuple[np.ndarray, np.ndarray]:
 
 def _unit_vectors(rng: np.random.Generator, n: int) -> np.ndarray:
     v = rng.normal(size=(n, 3))
-    norm = np.linalg.norm(v, axis=1, keepdims=True)
+    norm = np.sqrt(np.einsum("ij,ij->i", v, v))[:, None]
     norm[norm == 0] = 1.0
     return v / norm
 
@@ -107,29 +107,35 @@ def sample_rays(lo: np.ndarray, hi: np.ndarray, n_rays: int, rng: np.random.Gene
     centre = (lo + hi) / 2
     half = np.maximum((hi - lo) / 2, 1e-6)
     big_half = half * config.box_scale
+    lo32, hi32 = lo.astype(np.float32), hi.astype(np.float32)
     out_o, out_d = [], []
-    have = 0
+    have = drawn = 0
     while have < n_rays:
-        m = max(1024, int((n_rays - have) * 1.3))
+        # Draw what the acceptance rate seen so far says is missing, plus 10% (one or two rounds, not eight).
+        rate = have / drawn if drawn and have else 0.7
+        m = max(1024, int((n_rays - have) / max(rate, 0.05) * 1.1))
+        drawn += m
         n_out = int(round(m * config.outside_fraction))
         # Outside rays: start on a sphere, aim at a uniform point of the enlarged box.
         radius = config.outside_radius * np.linalg.norm(half) * config.box_scale
         o_out = centre + radius * _unit_vectors(rng, n_out)
         target = centre + rng.uniform(-1, 1, size=(n_out, 3)) * big_half
         d_out = target - o_out
-        d_out /= np.linalg.norm(d_out, axis=1, keepdims=True)
+        d_out /= np.sqrt(np.einsum("ij,ij->i", d_out, d_out))[:, None]
         # Inside rays: uniform origin in the enlarged box, uniform direction.
         o_in = centre + rng.uniform(-1, 1, size=(m - n_out, 3)) * big_half
         d_in = _unit_vectors(rng, m - n_out)
         o = np.concatenate((o_out, o_in)).astype(np.float32)
         d = np.concatenate((d_out, d_in)).astype(np.float32)
-        # Keep rays that enter the (exact) root box.
+        # Keep rays that enter the (exact) root box: the float32 slab test of the traversal.
         with np.errstate(divide="ignore", invalid="ignore"):
-            inv = 1.0 / d
-            t0 = (lo - o) * inv
-            t1 = (hi - o) * inv
-        t_near = np.nanmax(np.fmin(t0, t1), axis=1)
-        t_far = np.nanmin(np.fmax(t0, t1), axis=1)
+            inv = np.float32(1.0) / d
+            t0 = (lo32 - o) * inv
+            t1 = (hi32 - o) * inv
+        # fmax/fmin skip NaN (0 * inf on a box face) as nanmax/nanmin do; per column, 10x faster than either.
+        near, far = np.fmin(t0, t1), np.fmax(t0, t1)
+        t_near = np.fmax(np.fmax(near[:, 0], near[:, 1]), near[:, 2])
+        t_far = np.fmin(np.fmin(far[:, 0], far[:, 1]), far[:, 2])
         ok = np.maximum(t_near, 0) <= t_far
         out_o.append(o[ok])
         out_d.append(d[ok])
@@ -202,6 +208,24 @@ def label_samples(bvh: BVH, tracer: ExactTracer, rays_o: np.ndarray, rays_d: np.
     return TrainingSamples(rays_o=torch.from_numpy(rays_o), rays_d=torch.from_numpy(rays_d), ray=ray, leaf=leaf,
                            t_enter=lh.t_enter, t_exit=lh.t_exit, hit=hit, t_hit=t_hit, normal=normal,
                            rank=lh.rank(), mode=mode, stats=stats)
+
+
+def split_samples(samples: TrainingSamples, rays_per_part: int) -> list[TrainingSamples]:
+    """Split labelled samples by ray into parts of `rays_per_part` consecutive rays (the last may be shorter);
+    each part is what `label_samples` returns for its rays alone (ray indices re-based, per-part counts)."""
+    n_rays = samples.rays_o.shape[0]
+    bounds = list(range(0, n_rays, rays_per_part)) + [n_rays]
+    cuts = torch.searchsorted(samples.ray, torch.tensor(bounds, dtype=samples.ray.dtype)).tolist()
+    parts = []
+    for (r0, r1), (s0, s1) in zip(zip(bounds[:-1], bounds[1:]), zip(cuts[:-1], cuts[1:])):
+        hit = samples.hit[s0:s1]
+        stats = {"rays": r1 - r0, "samples": s1 - s0, "samples_hit": int(hit.sum()), "chunk": dict(samples.stats)}
+        parts.append(TrainingSamples(
+            rays_o=samples.rays_o[r0:r1], rays_d=samples.rays_d[r0:r1], ray=samples.ray[s0:s1] - r0,
+            leaf=samples.leaf[s0:s1], t_enter=samples.t_enter[s0:s1], t_exit=samples.t_exit[s0:s1], hit=hit,
+            t_hit=samples.t_hit[s0:s1], normal=samples.normal[s0:s1], rank=samples.rank[s0:s1], mode=samples.mode,
+            stats=stats))
+    return parts
 
 
 def generate_training_samples(bvh: BVH, tracer: ExactTracer, n_rays: int, mode: str, seed: int = 0,

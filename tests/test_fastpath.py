@@ -130,7 +130,7 @@ def test_training_follows_the_same_loss_curve_and_renders_the_same(blob_model):
             runs[path] = (model.eval(), np.array([loss for _, loss in res.history]), res.compute_path)
     (m_r, loss_r, path_r), (m_f, loss_f, path_f) = runs["reference"], runs["fast"]
     assert path_r.startswith("reference") and path_f.startswith("fast")
-    assert loss_f[-5:].mean() < 0.85 * loss_f[0]  # it trained
+    assert loss_f[-5:].mean() < 0.9 * loss_f[0]  # it trained (40 small steps: ~15% lower)
     # Same data (same seed): only float rounding differs, so the curves stay together.
     assert np.max(np.abs(loss_f - loss_r) / loss_r) < 0.02, np.max(np.abs(loss_f - loss_r) / loss_r)
     # One model queried both ways: same hits, distances and normals.
@@ -233,3 +233,40 @@ def test_fused_inference_is_not_used_where_it_does_not_apply(sample_meshes):
         assert model2._fused_network() is None
     assert model2._fused_network() is not None
 
+
+
+@pytest.mark.parametrize("enc_kw,net_kw", FUSED_MODELS + [
+    (dict(kind="hashvqad", log2_table=8, levels=2, features=8, index_factor=8, candidates=4, init_scale=0.5),
+     dict(kind="mlp", k=4))])  # the last one soft (not frozen): gradients go on through the softmax
+def test_fused_training_step_gives_the_loss_and_gradients_of_autograd(enc_kw, net_kw, sample_meshes):
+    from nbvh_core.exact import ExactTracer
+    from nbvh_core.kernels import mlp
+    from nbvh_core.samples import label_samples
+    from nbvh_core.train import samples_loss
+
+    mesh = sample_meshes["blob"]
+    bvh = build_bvh(mesh, 63)
+    torch.manual_seed(0)
+    model = NeuralBVH(bvh.nodes, ModelConfig(EncodingConfig(**enc_kw), NetworkConfig(**net_kw)))
+    with torch.no_grad():
+        model.encoding.table.normal_()
+    if enc_kw["kind"] == "hashvqad" and "init_scale" not in enc_kw:
+        model.encoding.freeze()
+    o, d = sample_rays(*root_box(bvh), 700, np.random.default_rng(3))
+    batch = label_samples(bvh, ExactTracer(mesh), o, d, "consistent")
+    assert 0 < int(batch.hit.sum()) < len(batch)
+    with kernels.using_path("reference"):
+        model.zero_grad(set_to_none=True)
+        want_loss, want_parts = samples_loss(model, batch, torch.device("cpu"))
+        want_loss.backward()
+    want = {n: p.grad.clone() for n, p in model.named_parameters()}
+    assert mlp.applies(model)
+    model.zero_grad(set_to_none=True)
+    got_loss, got_parts = mlp.train_step(model, batch)
+    assert got_loss == pytest.approx(float(want_loss.detach()), rel=1e-4)
+    for key in ("bce", "depth_l1", "normal_l1"):
+        assert float(got_parts[key]) == pytest.approx(float(want_parts[key]), rel=1e-4, abs=1e-6), key
+    for name, p in model.named_parameters():
+        scale = want[name].abs().max().clamp_min(1e-6)
+        assert torch.allclose(p.grad, want[name], rtol=1e-3, atol=1e-4 * float(scale)), \
+            (name, float((p.grad - want[name]).abs().max()), float(scale))

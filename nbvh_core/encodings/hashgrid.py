@@ -54,14 +54,18 @@ class HashGrid(nn.Module):
     def fused_lookup(self) -> tuple[torch.Tensor, bool, GridSpec, torch.Tensor | None, int]:
         """What a fused kernel reads: (rows (L, R, F) float32 or float16, is_half, geometry, frozen codes or None,
         rows the codes select from)."""
-        if self._spec is None:
-            self._spec = GridSpec(self.cfg, self._vertex_table_size())
         rows, codes, code_rows = self._fused_rows()
         codes = None if codes is None else codes.contiguous()
         # The float16 copy is of the stored rows only (a soft HashVQAD table is recomputed every step).
         if self.half_tables and not torch.is_grad_enabled() and rows is self.table:
-            return self._half_table(), True, self._spec, codes, code_rows
-        return rows, False, self._spec, codes, code_rows
+            return self._half_table(), True, self.grid_spec(), codes, code_rows
+        return rows, False, self.grid_spec(), codes, code_rows
+
+    def grid_spec(self) -> GridSpec:
+        """The constant level geometry the fused kernels read (built once)."""
+        if self._spec is None:
+            self._spec = GridSpec(self.cfg, self._vertex_table_size())
+        return self._spec
 
     def _fused_rows(self) -> tuple[torch.Tensor, torch.Tensor | None, int]:
         """What the kernel reads: the (L, R, F) rows, the frozen codes (or None) and the rows codes select from."""

@@ -12,7 +12,7 @@ caller asks `fast_enabled(device)`; results record `describe()` so a number says
 * `stream_next` - `traversal.LeafStream.next` per ray with a real per-ray stack loop (the reference advances all
   rays one pop at a time with tensor ops).
 * `leaves_along_rays` - the complete sorted leaf list per ray (training labels).
-* `mlp_segments` - inference of a whole MLP model per (ray, leaf) segment: points, encoding and every Linear layer
+* `mlp_segments` / `mlp_train` (used through `kernels.mlp`) - inference / one training step of a whole MLP model per (ray, leaf) segment: points, encoding and every Linear layer
   (AVX2 6x16 register-blocked micro-kernel, bias and ReLU fused) on a tile of 48 segments that stays in the cache;
   the reference writes (B, k*L*F) features to memory and runs torch's layers over them.
 
@@ -37,7 +37,7 @@ import torch
 
 SOURCE = Path(__file__).with_name("nbvh_kernels.cpp")
 FLAGS = ["-O3", "-march=native", "-ffp-contract=off", "-fopenmp", "-shared", "-fPIC", "-std=c++17"]
-ABI_VERSION = 4
+ABI_VERSION = 5
 PATHS = ("fast", "reference")
 
 _path = os.environ.get("NBVH_PATH", "fast")
@@ -158,11 +158,26 @@ def load() -> ctypes.CDLL | None:
     lib.nbvh_stream_next.argtypes = [P, P, I64, P, P, P, P, P, P, P, P, I32, P, P, P, I32]
     lib.nbvh_leaves_along_rays.argtypes = [P, P, I64, P, P, P, P, P, I32, P, P, P, P, P, I32]
     lib.nbvh_mlp_segments.argtypes = [P, P, P, P, P, I64, I32, P, P, I32, *enc[4:13], I32, P, P, P, I32]
+    lib.nbvh_mlp_train.argtypes = [P, P, P, P, P, I64, I32, P, P, *enc[4:13], I32, P, P, P, P, P, P, I64,
+                                   ctypes.c_float, ctypes.c_float, P, P, P, P, P, I32]
     for fn in (lib.nbvh_encode_forward, lib.nbvh_encode_forward_f16, lib.nbvh_encode_backward, lib.nbvh_segment_points,
-               lib.nbvh_stream_next, lib.nbvh_leaves_along_rays, lib.nbvh_mlp_segments):
+               lib.nbvh_stream_next, lib.nbvh_leaves_along_rays, lib.nbvh_mlp_segments, lib.nbvh_mlp_train):
         fn.restype = None
     _lib = lib
     return lib
+
+
+def keep_freed_memory() -> bool:
+    """Ask glibc to serve blocks up to 32 MB from its heap and to keep freed memory (mallopt). By default every
+    temporary array above 128 KB is a fresh mmap that the kernel zero-fills page by page and unmaps on free: on
+    this 2-core VM that made a numpy temporary of 1 MB cost ~0.4 ms, and a training step's labels ~30% slower.
+    Called once by the processes that train or render (CLI, job worker, benchmarks); returns False off glibc."""
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+        m_trim_threshold, m_mmap_threshold = -1, -3
+        return bool(libc.mallopt(m_mmap_threshold, 32 << 20)) and bool(libc.mallopt(m_trim_threshold, 512 << 20))
+    except (OSError, AttributeError):
+        return False
 
 
 def ptr(t: torch.Tensor | None) -> int | None:

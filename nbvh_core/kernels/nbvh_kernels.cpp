@@ -377,11 +377,213 @@ void mlp_segments_t(const Grid& g, const float* rays_o, const float* rays_d, con
     }
 }
 
+
+// ---- Fused MLP training step: forward, the MLP loss (networks.MLP.loss) and its backward per tile of segments.
+// C (M, N) (+)= A (M, K) B (K, N); A(r, q) = A[r * a_row + q * a_k] (so A may be a transposed view); B row-major.
+
+#ifdef NBVH_AVX2
+template <int MR>
+inline void micro_16(const float* A, int64_t a_row, int64_t a_k, const float* B, int64_t ldb, int k_in, float* C,
+                     int64_t ldc, bool acc) {
+    __m256 c[MR][2];
+    for (int r = 0; r < MR; ++r) {
+        c[r][0] = acc ? _mm256_loadu_ps(C + r * ldc) : _mm256_setzero_ps();
+        c[r][1] = acc ? _mm256_loadu_ps(C + r * ldc + 8) : _mm256_setzero_ps();
+    }
+    for (int q = 0; q < k_in; ++q) {
+        const __m256 b0 = _mm256_loadu_ps(B + q * ldb), b1 = _mm256_loadu_ps(B + q * ldb + 8);
+        for (int r = 0; r < MR; ++r) {
+            const __m256 a = _mm256_broadcast_ss(A + r * a_row + q * a_k);
+            c[r][0] = _mm256_fmadd_ps(a, b0, c[r][0]);
+            c[r][1] = _mm256_fmadd_ps(a, b1, c[r][1]);
+        }
+    }
+    for (int r = 0; r < MR; ++r) {
+        _mm256_storeu_ps(C + r * ldc, c[r][0]);
+        _mm256_storeu_ps(C + r * ldc + 8, c[r][1]);
+    }
+}
+#endif
+
+void gemm(int m, int n, int k_in, const float* A, int64_t a_row, int64_t a_k, const float* B, int64_t ldb, float* C,
+          int64_t ldc, bool acc) {
+#ifdef NBVH_AVX2
+    if (n % 16 == 0) {
+        for (int j = 0; j < n; j += 16) {
+            int r = 0;
+            for (; r + 6 <= m; r += 6) micro_16<6>(A + r * a_row, a_row, a_k, B + j, ldb, k_in, C + r * ldc + j, ldc, acc);
+            const float* a = A + r * a_row;
+            float* cc = C + r * ldc + j;
+            switch (m - r) {
+                case 1: micro_16<1>(a, a_row, a_k, B + j, ldb, k_in, cc, ldc, acc); break;
+                case 2: micro_16<2>(a, a_row, a_k, B + j, ldb, k_in, cc, ldc, acc); break;
+                case 3: micro_16<3>(a, a_row, a_k, B + j, ldb, k_in, cc, ldc, acc); break;
+                case 4: micro_16<4>(a, a_row, a_k, B + j, ldb, k_in, cc, ldc, acc); break;
+                case 5: micro_16<5>(a, a_row, a_k, B + j, ldb, k_in, cc, ldc, acc); break;
+                default: break;
+            }
+        }
+        return;
+    }
+#endif
+    for (int r = 0; r < m; ++r) {
+        float* c = C + r * ldc;
+        if (!acc)
+            for (int j = 0; j < n; ++j) c[j] = 0.f;
+        for (int q = 0; q < k_in; ++q) {
+            const float av = A[r * a_row + q * a_k];
+            const float* b = B + q * ldb;
+#pragma omp simd
+            for (int j = 0; j < n; ++j) c[j] += av * b[j];
+        }
+    }
+}
+
+struct LossSums {
+    double bce = 0, depth = 0, normal = 0;
+};
+
+// Loss of networks.MLP (BCE on the hit logit; masked L1 of sigmoid depth and of the normalised normal, divided by
+// the batch's hit count) for rows [0, m) of raw (TILE, 5); writes d loss / d raw into d_raw (TILE, 5), zero rows
+// from m on. inv_b = 1 / batch size, inv_hits = 1 / max(hit count, 1).
+inline void mlp_loss_rows(const float* raw, int m, const uint8_t* hit, const float* local_t, const float* normal,
+                          float inv_b, float inv_hits, float w_t, float w_n, float* d_raw, LossSums& sums) {
+    for (int r = 0; r < TILE; ++r) {
+        float* g = d_raw + r * 5;
+        for (int c = 0; c < 5; ++c) g[c] = 0.f;
+        if (r >= m) continue;
+        const float* o = raw + r * 5;
+        const float x = o[0], y = hit[r] ? 1.f : 0.f;
+        sums.bce += std::fmax(x, 0.f) - x * y + std::log1p(std::exp(-std::fabs(x)));
+        const float p = 1.f / (1.f + std::exp(-x));
+        g[0] = (p - y) * inv_b;
+        if (!hit[r]) continue;
+        const float s = 1.f / (1.f + std::exp(-o[1]));
+        const float dt = s - local_t[r];
+        sums.depth += std::fabs(dt);
+        const float sgn_t = (dt > 0.f) - (dt < 0.f);
+        g[1] = w_t * inv_hits * sgn_t * s * (1.f - s);
+        const float vx = o[2], vy = o[3], vz = o[4];
+        const float norm = std::sqrt(vx * vx + vy * vy + vz * vz);
+        const float den = norm > 1e-12f ? norm : 1e-12f;
+        const float n[3] = {vx / den, vy / den, vz / den};
+        float gn[3];
+        for (int a = 0; a < 3; ++a) {
+            const float d = n[a] - normal[3 * r + a];
+            sums.normal += std::fabs(d);
+            gn[a] = w_n * inv_hits * (float)((d > 0.f) - (d < 0.f));
+        }
+        if (norm > 1e-12f) {  // d (v / |v|) = (g - n (n . g)) / |v|
+            const float dot = gn[0] * n[0] + gn[1] * n[1] + gn[2] * n[2];
+            for (int a = 0; a < 3; ++a) g[2 + a] = (gn[a] - n[a] * dot) / norm;
+        } else {  // the clamp: v / eps, constant denominator
+            for (int a = 0; a < 3; ++a) g[2 + a] = gn[a] / 1e-12f;
+        }
+    }
+}
+
+template <int F>
+void mlp_train_t(const Grid& g, const float* rays_o, const float* rays_d, const int64_t* ray, const float* te,
+                 const float* tx, int64_t b, int k, const float* frac, const float* table, int n_layers,
+                 const int32_t* dims, const float* params, const float* weights, const uint8_t* hit,
+                 const float* local_t, const float* normal, float inv_hits, float w_t, float w_n, double* loss_out,
+                 float* grad_params, float* points, float* dx, int threads) {
+    const int L = g.levels, nf = F > 0 ? F : g.features;
+    int64_t n_params = 0;
+    for (int j = 0; j < n_layers; ++j) n_params += (int64_t)dims[j] * dims[j + 1] + dims[j + 1];
+    std::vector<int64_t> p_off(n_layers + 1, 0), w_off(n_layers + 1, 0);
+    for (int j = 0; j < n_layers; ++j) {
+        p_off[j + 1] = p_off[j] + (int64_t)dims[j] * dims[j + 1] + dims[j + 1];
+        w_off[j + 1] = w_off[j] + (int64_t)dims[j] * dims[j + 1];
+    }
+    const int64_t tiles = (b + TILE - 1) / TILE;
+    const float inv_b = 1.f / (float)b;
+    const int n_threads = threads < 1 ? 1 : threads;
+    std::vector<std::vector<float>> grads(n_threads);
+    std::vector<LossSums> sums(n_threads);
+#pragma omp parallel num_threads(n_threads)
+    {
+        const int tid = omp_get_thread_num();
+        std::vector<float>& gp = grads[tid];
+        gp.assign(n_params, 0.f);
+        std::vector<std::vector<float>> act(n_layers + 1);  // act[j]: input of layer j (TILE, dims[j]); act[n]: raw
+        for (int j = 0; j <= n_layers; ++j) act[j].assign((size_t)TILE * dims[j], 0.f);
+        int widest = 0;
+        for (int j = 0; j <= n_layers; ++j) widest = dims[j] > widest ? dims[j] : widest;
+        std::vector<float> d_a((size_t)TILE * widest, 0.f), d_b((size_t)TILE * widest, 0.f);
+        int64_t row[8];
+        float w[8];
+        // Static schedule: each thread's tiles, and so every float sum, are the same from run to run.
+#pragma omp for schedule(static)
+        for (int64_t tile = 0; tile < tiles; ++tile) {
+            const int64_t s0 = tile * TILE;
+            const int m = (int)((b - s0) < TILE ? (b - s0) : TILE);
+            float* x = act[0].data();
+            for (int s = 0; s < m; ++s) {
+                const int64_t seg = s0 + s;
+                const float* o = rays_o + 3 * ray[seg];
+                const float* d = rays_d + 3 * ray[seg];
+                const float len = tx[seg] - te[seg];
+                for (int i = 0; i < k; ++i) {
+                    const float t = te[seg] + frac[i] * len;
+                    float* p = points + (seg * k + i) * 3;
+                    p[0] = o[0] + t * d[0];
+                    p[1] = o[1] + t * d[1];
+                    p[2] = o[2] + t * d[2];
+                    for (int l = 0; l < L; ++l) {
+                        corners_any(g, l, p, row, w, fits32(g, l));
+                        accumulate<F>(x + (int64_t)s * dims[0] + (i * L + l) * nf, table + (int64_t)l * g.rows * nf,
+                                      row, w, nf);
+                    }
+                }
+            }
+            for (int j = 0; j < n_layers; ++j) {
+                const float* W = params + p_off[j];
+                dense(act[j].data(), dims[j], W, W + (int64_t)dims[j] * dims[j + 1], dims[j + 1], act[j + 1].data(),
+                      j + 1 < n_layers);
+            }
+            float* d_cur = d_a.data();
+            float* d_prev = d_b.data();
+            mlp_loss_rows(act[n_layers].data(), m, hit + s0, local_t + s0, normal + 3 * s0, inv_b, inv_hits, w_t, w_n,
+                          d_cur, sums[tid]);
+            for (int j = n_layers - 1; j >= 0; --j) {
+                const int n_in = dims[j], n_out = dims[j + 1];
+                float* gw = gp.data() + p_off[j];
+                // dW^T (in, out) += act[j]^T d_cur; db += column sums of d_cur
+                gemm(n_in, n_out, TILE, act[j].data(), 1, n_in, d_cur, n_out, gw, n_out, true);
+                float* gb = gw + (int64_t)n_in * n_out;
+                for (int r = 0; r < m; ++r)
+                    for (int c = 0; c < n_out; ++c) gb[c] += d_cur[r * n_out + c];
+                // d input = d_cur W (torch layout (out, in)); through the previous layer's ReLU (act[j] > 0)
+                gemm(TILE, n_in, n_out, d_cur, n_out, 1, weights + w_off[j], n_in, d_prev, n_in, false);
+                if (j > 0) {
+                    const float* a = act[j].data();
+                    for (int64_t q = 0; q < (int64_t)TILE * n_in; ++q)
+                        if (!(a[q] > 0.f)) d_prev[q] = 0.f;
+                } else {
+                    std::memcpy(dx + s0 * n_in, d_prev, sizeof(float) * (size_t)m * n_in);
+                }
+                std::swap(d_cur, d_prev);
+            }
+        }
+    }
+    for (int64_t q = 0; q < n_params; ++q) {
+        float v = 0.f;
+        for (int t = 0; t < n_threads; ++t) v += grads[t].empty() ? 0.f : grads[t][q];
+        grad_params[q] = v;
+    }
+    LossSums total;
+    for (const auto& ls : sums) { total.bce += ls.bce; total.depth += ls.depth; total.normal += ls.normal; }
+    loss_out[0] = total.bce * inv_b;
+    loss_out[1] = total.depth * inv_hits;
+    loss_out[2] = total.normal * inv_hits;
+}
+
 }  // namespace
 
 extern "C" {
 
-int nbvh_abi_version() { return 4; }
+int nbvh_abi_version() { return 5; }
 
 // Fused MLP inference over B segments (see mlp_segments_t): rays_o/rays_d (n_rays, 3), ray (B,) int64 ray of each
 // segment, te/tx (B,) segment ends, frac (k,) point fractions; table (L, rows, F) float32, or float16 when
@@ -402,6 +604,28 @@ void nbvh_mlp_segments(const float* rays_o, const float* rays_d, const int64_t* 
         else
             mlp_segments_t<f, float>(g, rays_o, rays_d, ray, te, tx, b, k, frac, static_cast<const float*>(table),
                                      n_layers, dims, params, out, threads);
+    });
+}
+
+// One training step of an MLP model on B labelled segments (see mlp_train_t): loss parts (bce, depth_l1, normal_l1)
+// into loss_out (3,) float64; grad_params packed like params; grad_table (L, rows, F) accumulated (zero it first).
+// weights: every layer's weight in torch's (out, in) layout, packed; hit (B,) uint8, local_t (B,), normal (B, 3);
+// hit_count = number of hit rows. Scratch: points (B * k, 3), dx (B, dims[0]).
+void nbvh_mlp_train(const float* rays_o, const float* rays_d, const int64_t* ray, const float* te, const float* tx,
+                    int64_t b, int k, const float* frac, const float* table, int levels, int features,
+                    const float* scales, const int64_t* res, const uint8_t* dense, int64_t vertex_table, int64_t rows,
+                    const uint8_t* codes, int64_t code_rows, int n_layers, const int32_t* dims, const float* params,
+                    const float* weights, const uint8_t* hit, const float* local_t, const float* normal,
+                    int64_t hit_count, float w_t, float w_n, double* loss_out, float* grad_params, float* grad_table,
+                    float* points, float* dx, int threads) {
+    Grid g{levels, features, scales, res, dense, vertex_table, rows, codes, code_rows};
+    g.init_masks();
+    const float inv_hits = 1.f / (float)(hit_count > 0 ? hit_count : 1);
+    by_features(features, [&](auto F) {
+        constexpr int f = decltype(F)::value;
+        mlp_train_t<f>(g, rays_o, rays_d, ray, te, tx, b, k, frac, table, n_layers, dims, params, weights, hit,
+                       local_t, normal, inv_hits, w_t, w_n, loss_out, grad_params, points, dx, threads);
+        encode_backward_t<f>(g, points, b * k, dx, grad_table, threads);
     });
 }
 

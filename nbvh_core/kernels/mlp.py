@@ -1,0 +1,104 @@
+"""Fused MLP models on the fast path: one kernel call per wave of segments (inference) or per training step.
+
+`nbvh_mlp_segments` and `nbvh_mlp_train` (nbvh_kernels.cpp) compute, per tile of 48 segments kept in the cache,
+the segment points, the grid lookup and every Linear layer (bias and ReLU fused; AVX2 register-blocked
+micro-kernels); training adds `networks.MLP.loss` and its backward (the Linear layers' gradients, then the table's
+through the encoding backward kernel). The reference is the layer-by-layer torch model; tests/test_fastpath.py
+checks raw outputs, loss and every gradient against it.
+"""
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from . import fast_enabled, load, ptr, threads
+
+
+def applies(model) -> bool:
+    """True when a model's queries and training steps can run fused: fast path on this device, an MLP network,
+    a grid encoding with float32 rows."""
+    from ..networks import MLP
+
+    return (fast_enabled(model.device) and isinstance(model.network, MLP)
+            and hasattr(model.encoding, "fused_lookup") and model.encoding.table.dtype == torch.float32)
+
+
+def _linears(model) -> list[nn.Linear]:
+    return [m for m in model.network.modules() if isinstance(m, nn.Linear)]
+
+
+def pack(model) -> tuple[torch.Tensor, torch.Tensor]:
+    """dims (layers + 1,) int32 (dims[0] = k * L * F) and params: each Linear's weight transposed (in, out), then
+    its bias, packed float32: what both kernels read."""
+    linears = _linears(model)
+    dims = torch.tensor([linears[0].in_features] + [m.out_features for m in linears], dtype=torch.int32)
+    params = torch.cat([torch.cat((m.weight.detach().t().reshape(-1), m.bias.detach())) for m in linears])
+    return dims, params.to(torch.float32).contiguous()
+
+
+def _grid_args(spec, table, codes, code_rows) -> tuple:
+    return spec.args(table.shape[1], codes, code_rows)[:-1]  # without the thread count (passed last)
+
+
+def segments_raw(model, packed: tuple[torch.Tensor, torch.Tensor], rays_o: torch.Tensor, rays_d: torch.Tensor,
+                 ray: torch.Tensor, t_enter: torch.Tensor, t_exit: torch.Tensor) -> torch.Tensor:
+    """Raw network outputs (B, 5) of B segments: what `model.forward(rays_o[ray], rays_d[ray], t_enter, t_exit)`
+    returns, to float rounding (the sums run in another order). rays_o, rays_d: (N, 3); ray: (B,) int64."""
+    dims, params = packed
+    table, half, spec, codes, code_rows = model.encoding.fused_lookup()
+    k = model.cfg.network.k
+    frac = torch.linspace(0.0, 1.0, k, dtype=torch.float32)
+    ray, t_enter, t_exit = ray.contiguous(), t_enter.contiguous(), t_exit.contiguous()
+    out = torch.empty((ray.numel(), int(dims[-1])), dtype=torch.float32)
+    load().nbvh_mlp_segments(
+        ptr(rays_o.contiguous()), ptr(rays_d.contiguous()), ptr(ray), ptr(t_enter), ptr(t_exit), ray.numel(), k,
+        ptr(frac), ptr(table), int(half), *_grid_args(spec, table, codes, code_rows), len(dims) - 1, ptr(dims),
+        ptr(params), ptr(out), threads())
+    return out
+
+
+def train_step(model, samples) -> tuple[float, dict]:
+    """Loss of `model` on labelled `samples` (as `train.samples_loss` + `MLP.loss`) and its gradients, in one
+    kernel call; sets `.grad` of every parameter (call after `zero_grad(set_to_none=True)`). Returns the total
+    loss and its parts (bce, depth_l1, normal_l1)."""
+    lib = load()
+    net_cfg = model.cfg.network
+    dims, params = pack(model)
+    linears = _linears(model)
+    weights = torch.cat([m.weight.detach().reshape(-1) for m in linears]).to(torch.float32).contiguous()
+    rows, codes, code_rows = model.encoding._fused_rows()
+    spec = model.encoding.grid_spec()
+    codes = None if codes is None else codes.contiguous()
+    table = rows.detach().contiguous()
+    b, k = len(samples), net_cfg.k
+    frac = torch.linspace(0.0, 1.0, k, dtype=torch.float32)
+    hit = samples.hit.to(torch.uint8).contiguous()
+    local_t = samples.local_t.to(torch.float32).contiguous()
+    normal = samples.normal.to(torch.float32).contiguous()
+    loss_parts = torch.zeros(3, dtype=torch.float64)
+    grad_params = torch.empty_like(params)
+    grad_table = torch.zeros_like(table)
+    points = torch.empty((b * k, 3), dtype=torch.float32)
+    dx = torch.empty((b, int(dims[0])), dtype=torch.float32)
+    lib.nbvh_mlp_train(
+        ptr(samples.rays_o.contiguous()), ptr(samples.rays_d.contiguous()), ptr(samples.ray.contiguous()),
+        ptr(samples.t_enter.contiguous()), ptr(samples.t_exit.contiguous()), b, k, ptr(frac), ptr(table),
+        *_grid_args(spec, table, codes, code_rows), len(dims) - 1, ptr(dims), ptr(params), ptr(weights), ptr(hit),
+        ptr(local_t), ptr(normal), int(hit.sum()), float(net_cfg.depth_weight), float(net_cfg.normal_weight),
+        ptr(loss_parts), ptr(grad_params), ptr(grad_table), ptr(points), ptr(dx), threads())
+    # Unpack the Linear gradients (stored transposed, like the parameters).
+    pos = 0
+    for m in linears:
+        n_in, n_out = m.in_features, m.out_features
+        m.weight.grad = grad_params[pos:pos + n_in * n_out].view(n_in, n_out).t().contiguous()
+        pos += n_in * n_out
+        m.bias.grad = grad_params[pos:pos + n_out].clone()
+        pos += n_out
+    if rows is model.encoding.table:
+        model.encoding.table.grad = grad_table
+    else:  # a soft HashVQAD row table: on through its softmax to the table and the index logits
+        torch.autograd.backward(rows, grad_table)
+    bce, depth, nrm = (float(v) for v in loss_parts)
+    total = bce + net_cfg.depth_weight * depth + net_cfg.normal_weight * nrm
+    parts = {"bce": torch.tensor(bce), "depth_l1": torch.tensor(depth), "normal_l1": torch.tensor(nrm)}
+    return total, parts
