@@ -13,12 +13,24 @@ All inputs and outputs are in normalised mesh coordinates, float32; directions n
 """
 from __future__ import annotations
 
+import os
 import warnings
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 
 from .mesh import Mesh
+
+#: Embree queries of at least this many rays are split over threads (embreex releases the GIL: 2 threads trace
+#: 32k training rays in 3.7 instead of 7.5 ms on the 2-core CPU).
+PARALLEL_MIN_RAYS = 4096
+_pool: ThreadPoolExecutor | None = None
+
+
+def _threads() -> int:
+    return max(1, min(8, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1))
+
 
 #: After a hit, the next all-hits query starts this far (normalised units) beyond it; closer hits merge.
 ALL_HITS_EPS = 1e-5
@@ -75,6 +87,26 @@ class ExactTracer:
             self._init_fallback()
         self.backend = "embree" if self._scene is not None else "numpy"
 
+    def _intersect(self, rays_o: np.ndarray, rays_d: np.ndarray, t_max: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Embree nearest hits within t_max: (tfar (N,) float32, primID (N,) int32, -1 on a miss); split over
+        threads for large batches (the same per-ray answers: rays are independent)."""
+        global _pool
+        n = rays_o.shape[0]
+        parts = _threads() if n >= PARALLEL_MIN_RAYS else 1
+
+        def run(a: int, b: int):
+            res = self._scene.run(rays_o[a:b], rays_d[a:b], dists=np.ascontiguousarray(t_max[a:b], np.float32),
+                                  query="INTERSECT", output=1)
+            return res["tfar"], res["primID"]
+
+        if parts == 1:
+            return run(0, n)
+        if _pool is None:
+            _pool = ThreadPoolExecutor(max_workers=_threads(), thread_name_prefix="nbvh-embree")
+        cuts = [n * i // parts for i in range(parts + 1)]
+        out = list(_pool.map(lambda i: run(cuts[i], cuts[i + 1]), range(parts)))
+        return np.concatenate([t for t, _ in out]), np.concatenate([p for _, p in out])
+
     # -- first hit -----------------------------------------------------------------------------------------
     def first_hit(self, rays_o: np.ndarray, rays_d: np.ndarray, t_max: np.ndarray | float = np.inf) -> FirstHits:
         """Nearest hit with 0 <= t <= t_max. rays_o, rays_d: (N, 3) float32; t_max: scalar or (N,)."""
@@ -86,10 +118,9 @@ class ExactTracer:
             return FirstHits(np.zeros(0, np.float32), np.zeros(0, np.int64), np.zeros((0, 3), np.float32))
         if self._scene is not None:
             # embreex takes tfar as `dists`; inf is accepted.
-            res = self._scene.run(rays_o, rays_d, dists=np.ascontiguousarray(t_max_arr, np.float32),
-                                  query="INTERSECT", output=1)
-            tri = res["primID"].astype(np.int64)
-            t = np.where(tri >= 0, res["tfar"], np.inf).astype(np.float32)
+            tfar, prim = self._intersect(rays_o, rays_d, t_max_arr)
+            tri = prim.astype(np.int64)
+            t = np.where(tri >= 0, tfar, np.inf).astype(np.float32)
         else:
             t, tri = self._fallback_first(rays_o, rays_d, t_max_arr)
         normal = np.zeros((n, 3), np.float32)
@@ -99,8 +130,11 @@ class ExactTracer:
 
     # -- all hits ------------------------------------------------------------------------------------------
     def all_hits(self, rays_o: np.ndarray, rays_d: np.ndarray, t_max: np.ndarray | float = np.inf,
-                 max_hits: int = 256) -> AllHits:
-        """All hits with 0 <= t <= t_max, sorted by t per ray (hits closer than ALL_HITS_EPS apart merge)."""
+                 max_hits: int = 256, first: FirstHits | None = None) -> AllHits:
+        """All hits with 0 <= t <= t_max, sorted by t per ray (hits closer than ALL_HITS_EPS apart merge).
+
+        first: these rays' `first_hit` results, when the caller has them: they are the first round of the search
+        (the nearest hit within t_max is the nearest hit, if it lies within t_max), one Embree pass fewer."""
         rays_o = np.ascontiguousarray(rays_o, dtype=np.float32)
         rays_d = np.ascontiguousarray(rays_d, dtype=np.float32)
         n = rays_o.shape[0]
@@ -113,18 +147,25 @@ class ExactTracer:
         live = np.arange(n)
         t_base = np.zeros(n, np.float64)  # distance already travelled by each live ray
         truncated = 0
+        if first is not None and max_hits > 0:
+            live = live[(first.tri >= 0) & (first.t.astype(np.float64) <= t_max_arr)]
+            t_hit = first.t[live].astype(np.float64)
+            rays_.append(live)
+            ts.append(t_hit)
+            tris.append(first.tri[live])
+            t_base[live] = t_hit + ALL_HITS_EPS / np.linalg.norm(rays_d[live], axis=1)
+            max_hits -= 1
         for _ in range(max_hits):
             if live.size == 0:
                 break
             o = (rays_o[live] + rays_d[live] * t_base[live, None]).astype(np.float32)
-            res = self._scene.run(o, rays_d[live], dists=(t_max_arr[live] - t_base[live]).astype(np.float32),
-                                  query="INTERSECT", output=1)
-            hit = res["primID"] >= 0
+            tfar, prim = self._intersect(o, np.ascontiguousarray(rays_d[live]), t_max_arr[live] - t_base[live])
+            hit = prim >= 0
             live = live[hit]
-            t_hit = t_base[live] + res["tfar"][hit]
+            t_hit = t_base[live] + tfar[hit]
             rays_.append(live)
             ts.append(t_hit)
-            tris.append(res["primID"][hit].astype(np.int64))
+            tris.append(prim[hit].astype(np.int64))
             # Restart just beyond the hit; scale the step with |d| so it is ALL_HITS_EPS in space.
             t_base[live] = t_hit + ALL_HITS_EPS / np.linalg.norm(rays_d[live], axis=1)
         else:

@@ -185,7 +185,7 @@ def label_samples(bvh: BVH, tracer: ExactTracer, rays_o: np.ndarray, rays_d: np.
         # Pass 1: all hits up to the farthest segment end any of the ray's samples needs.
         t_need = torch.full((rays_o.shape[0],), -1.0)
         t_need.scatter_reduce_(0, ray, lh.t_exit, reduce="amax")
-        allh = tracer.all_hits(rays_o, rays_d, t_max=np.maximum(t_need.numpy(), 0) + SEGMENT_EPS)
+        allh = tracer.all_hits(rays_o, rays_d, t_max=np.maximum(t_need.numpy(), 0) + SEGMENT_EPS, first=first)
         stats["rays_hits_truncated"] = allh.truncated
         # Pass 2: for each sample, the first hit of its ray with t >= t_enter - eps (searchsorted on a combined
         # (ray, t) key), accepted when t <= t_exit + eps.

@@ -44,6 +44,18 @@ def test_numpy_fallback_agrees_with_embree(sample_meshes, sample_bvhs, name):
     assert np.allclose(A.t, B.t, atol=1e-4)
 
 
+@pytest.mark.parametrize("name", ["blob", "gyroid"])
+def test_all_hits_from_a_known_first_hit_are_the_same(sample_meshes, sample_bvhs, name):
+    tracer = ExactTracer(sample_meshes[name], backend="embree")
+    o, d = sample_rays(*root_box(sample_bvhs[name]), 3000, np.random.default_rng(2), RayConfig())
+    t_max = np.random.default_rng(3).uniform(0.0, 2.0, len(o))  # some first hits lie beyond t_max
+    plain = tracer.all_hits(o, d, t_max=t_max)
+    reused = tracer.all_hits(o, d, t_max=t_max, first=tracer.first_hit(o, d))
+    assert len(plain.t) > 500 and (np.diff(plain.offsets) > 1).any()  # rays with several hits
+    for field in ("ray", "t", "tri", "offsets"):
+        assert np.array_equal(getattr(plain, field), getattr(reused, field)), field
+
+
 def test_t_max_respected(sample_meshes):
     tracer = ExactTracer(sample_meshes["blob"])
     o = np.array([[0.5, 0.5, -1.0]], np.float32)

@@ -65,7 +65,7 @@ def train_step(model, samples) -> tuple[float, dict]:
     net_cfg = model.cfg.network
     dims, params = pack(model)
     linears = _linears(model)
-    weights = torch.cat([m.weight.detach().reshape(-1) for m in linears]).to(torch.float32).contiguous()
+    assert int(dims[-1]) == 5, "the fused loss is networks.MLP's (hit, depth, normal)"
     rows, codes, code_rows = model.encoding._fused_rows()
     spec = model.encoding.grid_spec()
     codes = None if codes is None else codes.contiguous()
@@ -83,7 +83,7 @@ def train_step(model, samples) -> tuple[float, dict]:
     lib.nbvh_mlp_train(
         ptr(samples.rays_o.contiguous()), ptr(samples.rays_d.contiguous()), ptr(samples.ray.contiguous()),
         ptr(samples.t_enter.contiguous()), ptr(samples.t_exit.contiguous()), b, k, ptr(frac), ptr(table),
-        *_grid_args(spec, table, codes, code_rows), len(dims) - 1, ptr(dims), ptr(params), ptr(weights), ptr(hit),
+        *_grid_args(spec, table, codes, code_rows), len(dims) - 1, ptr(dims), ptr(params), ptr(hit),
         ptr(local_t), ptr(normal), int(hit.sum()), float(net_cfg.depth_weight), float(net_cfg.normal_weight),
         ptr(loss_parts), ptr(grad_params), ptr(grad_table), ptr(points), ptr(dx), threads())
     # Unpack the Linear gradients (stored transposed, like the parameters).

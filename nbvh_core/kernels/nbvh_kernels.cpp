@@ -262,146 +262,49 @@ inline bool ray_box(const float* o, const float* inv, const float* lo, const flo
 }
 
 
-// ---- Fused inference of the MLP network: segment points -> encoding -> all Linear layers, per tile of segments.
-// The reference builds (B, k*L*F) features in memory (hundreds of MB per wave at 1000^2) and runs torch's Linear
-// layers over them; here a tile of TILE segments is encoded into a thread-local buffer that stays in the L2 cache
-// and goes through every layer there (bias and ReLU fused), so only 5 floats per segment leave the kernel.
+// ---- Fused MLP models: inference (mlp_segments_t) and one training step (mlp_train_t), per tile of TILE
+// segments whose points, features and activations stay in the cache. The reference builds (B, k*L*F) features in
+// memory (hundreds of MB per wave at 1000^2) and runs torch's Linear layers over them.
 
 constexpr int TILE = 48;  // segments per tile (a multiple of the micro-kernel's 6 rows)
 
-// C (TILE, n) = act(A (TILE, k_in) W (k_in, n) + bias), W row-major (in, out) = torch's weight transposed.
-inline void dense_generic(const float* A, int k_in, const float* W, const float* bias, int n, float* C, bool relu) {
-    for (int r = 0; r < TILE; ++r) {
-        float* c = C + (int64_t)r * n;
-        for (int j = 0; j < n; ++j) c[j] = 0.f;
-        const float* a = A + (int64_t)r * k_in;
-        for (int q = 0; q < k_in; ++q) {
-            const float av = a[q];
-            const float* w = W + (int64_t)q * n;
-#pragma omp simd
-            for (int j = 0; j < n; ++j) c[j] += av * w[j];
-        }
-        for (int j = 0; j < n; ++j) {
-            const float v = c[j] + bias[j];
-            c[j] = relu ? (v > 0.f ? v : 0.f) : v;
-        }
-    }
-}
+// Row stride of a width-d buffer: multiples of 16 floats get 16 more, so that rows are not 2 KB (or 256 B) apart;
+// power-of-two strides map a column's rows onto a few L1 sets and evict each other.
+inline int64_t padded(int d) { return d % 16 == 0 ? d + 16 : d; }
 
-#ifdef NBVH_AVX2
-// 6 rows x 16 columns register block (12 accumulators), the classic AVX2 GEMM micro-kernel shape.
-inline void micro_6x16(const float* A, int lda, const float* W, int ldw, int k_in, const float* bias, float* C,
-                       int ldc, bool relu) {
-    __m256 c[6][2];
-    for (int r = 0; r < 6; ++r) { c[r][0] = _mm256_setzero_ps(); c[r][1] = _mm256_setzero_ps(); }
-    for (int q = 0; q < k_in; ++q) {
-        const __m256 w0 = _mm256_loadu_ps(W + (int64_t)q * ldw), w1 = _mm256_loadu_ps(W + (int64_t)q * ldw + 8);
-        for (int r = 0; r < 6; ++r) {
-            const __m256 a = _mm256_broadcast_ss(A + (int64_t)r * lda + q);
-            c[r][0] = _mm256_fmadd_ps(a, w0, c[r][0]);
-            c[r][1] = _mm256_fmadd_ps(a, w1, c[r][1]);
-        }
-    }
-    const __m256 b0 = _mm256_loadu_ps(bias), b1 = _mm256_loadu_ps(bias + 8), zero = _mm256_setzero_ps();
-    for (int r = 0; r < 6; ++r) {
-        __m256 v0 = _mm256_add_ps(c[r][0], b0), v1 = _mm256_add_ps(c[r][1], b1);
-        if (relu) { v0 = _mm256_max_ps(v0, zero); v1 = _mm256_max_ps(v1, zero); }
-        _mm256_storeu_ps(C + (int64_t)r * ldc, v0);
-        _mm256_storeu_ps(C + (int64_t)r * ldc + 8, v1);
-    }
-}
-#endif
-
-inline void dense(const float* A, int k_in, const float* W, const float* bias, int n, float* C, bool relu) {
-#ifdef NBVH_AVX2
-    if (n % 16 == 0) {
-        for (int j = 0; j < n; j += 16)
-            for (int r = 0; r < TILE; r += 6)
-                micro_6x16(A + (int64_t)r * k_in, k_in, W + j, n, k_in, bias + j, C + (int64_t)r * n + j, n, relu);
-        return;
-    }
-#endif
-    dense_generic(A, k_in, W, bias, n, C, relu);
-}
-
-// params: for each layer j, W_j (dims[j], dims[j+1]) row-major then bias_j (dims[j+1]); hidden layers use ReLU.
-template <int F, typename T>
-void mlp_segments_t(const Grid& g, const float* rays_o, const float* rays_d, const int64_t* ray, const float* te,
-                    const float* tx, int64_t b, int k, const float* frac, const T* table, int n_layers,
-                    const int32_t* dims, const float* params, float* out, int threads) {
-    const int L = g.levels, nf = F > 0 ? F : g.features;
-    int widest = 0;
-    for (int j = 0; j <= n_layers; ++j) widest = dims[j] > widest ? dims[j] : widest;
-    const int n_out = dims[n_layers];
-    const int64_t tiles = (b + TILE - 1) / TILE;
-#pragma omp parallel num_threads(threads)
-    {
-        // Zeroed once: the rows past the last segment of a short tile are computed but never read.
-        std::vector<float> buf_a((size_t)TILE * widest, 0.f), buf_b((size_t)TILE * widest, 0.f);
-#pragma omp for schedule(dynamic, 4)
-        for (int64_t tile = 0; tile < tiles; ++tile) {
-            const int64_t s0 = tile * TILE;
-            const int m = (int)((b - s0) < TILE ? (b - s0) : TILE);
-            float* x = buf_a.data();
-            int64_t row[8];
-            float w[8];
-            for (int s = 0; s < m; ++s) {
-                const int64_t seg = s0 + s;
-                const float* o = rays_o + 3 * ray[seg];
-                const float* d = rays_d + 3 * ray[seg];
-                const float len = tx[seg] - te[seg];
-                for (int i = 0; i < k; ++i) {
-                    const float t = te[seg] + frac[i] * len;  // as NeuralBVH.segment_points
-                    const float p[3] = {o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]};
-                    for (int l = 0; l < L; ++l) {
-                        corners_any(g, l, p, row, w, fits32(g, l));
-                        accumulate<F>(x + (int64_t)s * dims[0] + (i * L + l) * nf, table + (int64_t)l * g.rows * nf,
-                                      row, w, nf);
-                    }
-                }
-            }
-            const float* in = buf_a.data();
-            float* res = buf_b.data();
-            const float* prm = params;
-            for (int j = 0; j < n_layers; ++j) {
-                const float* W = prm;
-                const float* bias = prm + (int64_t)dims[j] * dims[j + 1];
-                dense(in, dims[j], W, bias, dims[j + 1], res, j + 1 < n_layers);
-                prm = bias + dims[j + 1];
-                float* next_res = const_cast<float*>(in);
-                in = res;
-                res = next_res;
-            }
-            std::memcpy(out + s0 * n_out, in, sizeof(float) * (size_t)m * n_out);
-        }
-    }
-}
-
-
-// ---- Fused MLP training step: forward, the MLP loss (networks.MLP.loss) and its backward per tile of segments.
 // C (M, N) (+)= A (M, K) B (K, N); A(r, q) = A[r * a_row + q * a_k] (so A may be a transposed view); B row-major.
-
 #ifdef NBVH_AVX2
+// MR x 16 register block. Named accumulators: with an array, GCC stored every accumulator to the stack after each
+// FMA (half the speed); C is added at the end when accumulating.
 template <int MR>
 inline void micro_16(const float* A, int64_t a_row, int64_t a_k, const float* B, int64_t ldb, int k_in, float* C,
                      int64_t ldc, bool acc) {
-    __m256 c[MR][2];
-    for (int r = 0; r < MR; ++r) {
-        c[r][0] = acc ? _mm256_loadu_ps(C + r * ldc) : _mm256_setzero_ps();
-        c[r][1] = acc ? _mm256_loadu_ps(C + r * ldc + 8) : _mm256_setzero_ps();
-    }
-    for (int q = 0; q < k_in; ++q) {
+    static_assert(MR >= 1 && MR <= 6, "1 to 6 rows");
+    __m256 c00 = _mm256_setzero_ps(), c01 = c00, c10 = c00, c11 = c00, c20 = c00, c21 = c00, c30 = c00, c31 = c00,
+           c40 = c00, c41 = c00, c50 = c00, c51 = c00;
+    const float* a0 = A;
+    for (int q = 0; q < k_in; ++q, a0 += a_k) {
         const __m256 b0 = _mm256_loadu_ps(B + q * ldb), b1 = _mm256_loadu_ps(B + q * ldb + 8);
-        for (int r = 0; r < MR; ++r) {
-            const __m256 a = _mm256_broadcast_ss(A + r * a_row + q * a_k);
-            c[r][0] = _mm256_fmadd_ps(a, b0, c[r][0]);
-            c[r][1] = _mm256_fmadd_ps(a, b1, c[r][1]);
-        }
+        __m256 a = _mm256_broadcast_ss(a0);
+        c00 = _mm256_fmadd_ps(a, b0, c00); c01 = _mm256_fmadd_ps(a, b1, c01);
+        if constexpr (MR > 1) { a = _mm256_broadcast_ss(a0 + a_row); c10 = _mm256_fmadd_ps(a, b0, c10); c11 = _mm256_fmadd_ps(a, b1, c11); }
+        if constexpr (MR > 2) { a = _mm256_broadcast_ss(a0 + 2 * a_row); c20 = _mm256_fmadd_ps(a, b0, c20); c21 = _mm256_fmadd_ps(a, b1, c21); }
+        if constexpr (MR > 3) { a = _mm256_broadcast_ss(a0 + 3 * a_row); c30 = _mm256_fmadd_ps(a, b0, c30); c31 = _mm256_fmadd_ps(a, b1, c31); }
+        if constexpr (MR > 4) { a = _mm256_broadcast_ss(a0 + 4 * a_row); c40 = _mm256_fmadd_ps(a, b0, c40); c41 = _mm256_fmadd_ps(a, b1, c41); }
+        if constexpr (MR > 5) { a = _mm256_broadcast_ss(a0 + 5 * a_row); c50 = _mm256_fmadd_ps(a, b0, c50); c51 = _mm256_fmadd_ps(a, b1, c51); }
     }
-    for (int r = 0; r < MR; ++r) {
-        _mm256_storeu_ps(C + r * ldc, c[r][0]);
-        _mm256_storeu_ps(C + r * ldc + 8, c[r][1]);
-    }
+    auto put = [&](int r, __m256 lo, __m256 hi) {
+        float* cr = C + r * ldc;
+        if (acc) { lo = _mm256_add_ps(lo, _mm256_loadu_ps(cr)); hi = _mm256_add_ps(hi, _mm256_loadu_ps(cr + 8)); }
+        _mm256_storeu_ps(cr, lo);
+        _mm256_storeu_ps(cr + 8, hi);
+    };
+    put(0, c00, c01);
+    if constexpr (MR > 1) put(1, c10, c11);
+    if constexpr (MR > 2) put(2, c20, c21);
+    if constexpr (MR > 3) put(3, c30, c31);
+    if constexpr (MR > 4) put(4, c40, c41);
+    if constexpr (MR > 5) put(5, c50, c51);
 }
 #endif
 
@@ -435,6 +338,110 @@ void gemm(int m, int n, int k_in, const float* A, int64_t a_row, int64_t a_k, co
             const float* b = B + q * ldb;
 #pragma omp simd
             for (int j = 0; j < n; ++j) c[j] += av * b[j];
+        }
+    }
+}
+
+
+// The network's Linear layers in the layouts the kernels read, padded rows: wt[j] (in, out) = weight^T for the
+// forward pass, w[j] (out, in) = torch's layout for the backward pass. params: for each layer j, W_j^T
+// (dims[j], dims[j+1]) row-major then bias_j (dims[j+1]); hidden layers use ReLU, the last none.
+struct Layers {
+    int n;
+    const int32_t* dims;
+    std::vector<std::vector<float>> wt, w, bias;
+
+    Layers(int n_layers, const int32_t* dims_, const float* params, bool backward) : n(n_layers), dims(dims_) {
+        wt.resize(n); w.resize(n); bias.resize(n);
+        const float* p = params;
+        for (int j = 0; j < n; ++j) {
+            const int in = dims[j], out = dims[j + 1];
+            wt[j].assign((size_t)in * padded(out), 0.f);
+            for (int i = 0; i < in; ++i) std::memcpy(&wt[j][i * padded(out)], p + (int64_t)i * out, sizeof(float) * out);
+            if (backward) {
+                w[j].assign((size_t)out * padded(in), 0.f);
+                for (int i = 0; i < in; ++i)
+                    for (int o = 0; o < out; ++o) w[j][o * padded(in) + i] = p[(int64_t)i * out + o];
+            }
+            bias[j].assign(p + (int64_t)in * out, p + (int64_t)in * out + out);
+            p += (int64_t)in * out + out;
+        }
+    }
+    int widest() const {
+        int wd = 0;
+        for (int j = 0; j <= n; ++j) wd = dims[j] > wd ? dims[j] : wd;
+        return wd;
+    }
+    // act[j]: input of layer j, (TILE, padded(dims[j])); act[n]: the raw outputs.
+    std::vector<std::vector<float>> activations() const {
+        std::vector<std::vector<float>> act(n + 1);
+        for (int j = 0; j <= n; ++j) act[j].assign((size_t)TILE * padded(dims[j]), 0.f);
+        return act;
+    }
+    void forward(std::vector<std::vector<float>>& act) const {
+        for (int j = 0; j < n; ++j) {
+            const int in = dims[j], out = dims[j + 1];
+            float* y = act[j + 1].data();
+            gemm(TILE, out, in, act[j].data(), padded(in), 1, wt[j].data(), padded(out), y, padded(out), false);
+            const bool relu = j + 1 < n;
+            const float* bj = bias[j].data();
+            for (int r = 0; r < TILE; ++r) {
+                float* yr = y + r * padded(out);
+                for (int o = 0; o < out; ++o) {
+                    const float v = yr[o] + bj[o];
+                    yr[o] = relu ? (v > 0.f ? v : 0.f) : v;
+                }
+            }
+        }
+    }
+};
+
+// Features of the m segments from s0 (points t_i = t_enter + frac_i (t_exit - t_enter), as
+// NeuralBVH.segment_points) into rows of x (stride ldx); points (B * k, 3) written when not null.
+template <int F, typename T>
+inline void encode_tile(const Grid& g, const float* rays_o, const float* rays_d, const int64_t* ray, const float* te,
+                        const float* tx, int64_t s0, int m, int k, const float* frac, const T* table, float* x,
+                        int64_t ldx, float* points) {
+    const int L = g.levels, nf = F > 0 ? F : g.features;
+    int64_t row[8];
+    float w[8];
+    for (int s = 0; s < m; ++s) {
+        const int64_t seg = s0 + s;
+        const float* o = rays_o + 3 * ray[seg];
+        const float* d = rays_d + 3 * ray[seg];
+        const float len = tx[seg] - te[seg];
+        for (int i = 0; i < k; ++i) {
+            const float t = te[seg] + frac[i] * len;
+            const float p[3] = {o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]};
+            if (points) std::memcpy(points + (seg * k + i) * 3, p, sizeof p);
+            for (int l = 0; l < L; ++l) {
+                corners_any(g, l, p, row, w, fits32(g, l));
+                accumulate<F>(x + s * ldx + (i * L + l) * nf, table + (int64_t)l * g.rows * nf, row, w, nf);
+            }
+        }
+    }
+}
+
+template <int F, typename T>
+void mlp_segments_t(const Grid& g, const float* rays_o, const float* rays_d, const int64_t* ray, const float* te,
+                    const float* tx, int64_t b, int k, const float* frac, const T* table, int n_layers,
+                    const int32_t* dims, const float* params, float* out, int threads) {
+    const Layers net(n_layers, dims, params, false);
+    const int n_out = dims[n_layers];
+    const int64_t tiles = (b + TILE - 1) / TILE;
+#pragma omp parallel num_threads(threads)
+    {
+        // Zeroed once: the rows past the last segment of a short tile are computed but never read.
+        auto act = net.activations();
+#pragma omp for schedule(dynamic, 4)
+        for (int64_t tile = 0; tile < tiles; ++tile) {
+            const int64_t s0 = tile * TILE;
+            const int m = (int)((b - s0) < TILE ? (b - s0) : TILE);
+            encode_tile<F>(g, rays_o, rays_d, ray, te, tx, s0, m, k, frac, table, act[0].data(), padded(dims[0]),
+                           (float*)nullptr);
+            net.forward(act);
+            for (int r = 0; r < m; ++r)
+                std::memcpy(out + (s0 + r) * n_out, act[n_layers].data() + r * padded(n_out), sizeof(float) * n_out);
         }
     }
 }
@@ -485,17 +492,12 @@ inline void mlp_loss_rows(const float* raw, int m, const uint8_t* hit, const flo
 template <int F>
 void mlp_train_t(const Grid& g, const float* rays_o, const float* rays_d, const int64_t* ray, const float* te,
                  const float* tx, int64_t b, int k, const float* frac, const float* table, int n_layers,
-                 const int32_t* dims, const float* params, const float* weights, const uint8_t* hit,
-                 const float* local_t, const float* normal, float inv_hits, float w_t, float w_n, double* loss_out,
-                 float* grad_params, float* points, float* dx, int threads) {
-    const int L = g.levels, nf = F > 0 ? F : g.features;
-    int64_t n_params = 0;
-    for (int j = 0; j < n_layers; ++j) n_params += (int64_t)dims[j] * dims[j + 1] + dims[j + 1];
-    std::vector<int64_t> p_off(n_layers + 1, 0), w_off(n_layers + 1, 0);
-    for (int j = 0; j < n_layers; ++j) {
-        p_off[j + 1] = p_off[j] + (int64_t)dims[j] * dims[j + 1] + dims[j + 1];
-        w_off[j + 1] = w_off[j] + (int64_t)dims[j] * dims[j + 1];
-    }
+                 const int32_t* dims, const float* params, const uint8_t* hit, const float* local_t,
+                 const float* normal, float inv_hits, float w_t, float w_n, double* loss_out, float* grad_params,
+                 float* points, float* dx, int threads) {
+    const Layers net(n_layers, dims, params, true);
+    std::vector<int64_t> g_off(n_layers + 1, 0);  // per-thread gradients: W^T (in, padded(out)) then bias (out)
+    for (int j = 0; j < n_layers; ++j) g_off[j + 1] = g_off[j] + (int64_t)dims[j] * padded(dims[j + 1]) + dims[j + 1];
     const int64_t tiles = (b + TILE - 1) / TILE;
     const float inv_b = 1.f / (float)b;
     const int n_threads = threads < 1 ? 1 : threads;
@@ -505,72 +507,57 @@ void mlp_train_t(const Grid& g, const float* rays_o, const float* rays_d, const 
     {
         const int tid = omp_get_thread_num();
         std::vector<float>& gp = grads[tid];
-        gp.assign(n_params, 0.f);
-        std::vector<std::vector<float>> act(n_layers + 1);  // act[j]: input of layer j (TILE, dims[j]); act[n]: raw
-        for (int j = 0; j <= n_layers; ++j) act[j].assign((size_t)TILE * dims[j], 0.f);
-        int widest = 0;
-        for (int j = 0; j <= n_layers; ++j) widest = dims[j] > widest ? dims[j] : widest;
-        std::vector<float> d_a((size_t)TILE * widest, 0.f), d_b((size_t)TILE * widest, 0.f);
-        int64_t row[8];
-        float w[8];
+        gp.assign(g_off[n_layers], 0.f);
+        auto act = net.activations();
+        const int64_t ld_max = padded(net.widest());
+        std::vector<float> d_a((size_t)TILE * ld_max, 0.f), d_b((size_t)TILE * ld_max, 0.f);
         // Static schedule: each thread's tiles, and so every float sum, are the same from run to run.
 #pragma omp for schedule(static)
         for (int64_t tile = 0; tile < tiles; ++tile) {
             const int64_t s0 = tile * TILE;
             const int m = (int)((b - s0) < TILE ? (b - s0) : TILE);
-            float* x = act[0].data();
-            for (int s = 0; s < m; ++s) {
-                const int64_t seg = s0 + s;
-                const float* o = rays_o + 3 * ray[seg];
-                const float* d = rays_d + 3 * ray[seg];
-                const float len = tx[seg] - te[seg];
-                for (int i = 0; i < k; ++i) {
-                    const float t = te[seg] + frac[i] * len;
-                    float* p = points + (seg * k + i) * 3;
-                    p[0] = o[0] + t * d[0];
-                    p[1] = o[1] + t * d[1];
-                    p[2] = o[2] + t * d[2];
-                    for (int l = 0; l < L; ++l) {
-                        corners_any(g, l, p, row, w, fits32(g, l));
-                        accumulate<F>(x + (int64_t)s * dims[0] + (i * L + l) * nf, table + (int64_t)l * g.rows * nf,
-                                      row, w, nf);
-                    }
-                }
-            }
-            for (int j = 0; j < n_layers; ++j) {
-                const float* W = params + p_off[j];
-                dense(act[j].data(), dims[j], W, W + (int64_t)dims[j] * dims[j + 1], dims[j + 1], act[j + 1].data(),
-                      j + 1 < n_layers);
-            }
+            encode_tile<F>(g, rays_o, rays_d, ray, te, tx, s0, m, k, frac, table, act[0].data(), padded(dims[0]),
+                           points);
+            net.forward(act);
             float* d_cur = d_a.data();
             float* d_prev = d_b.data();
             mlp_loss_rows(act[n_layers].data(), m, hit + s0, local_t + s0, normal + 3 * s0, inv_b, inv_hits, w_t, w_n,
-                          d_cur, sums[tid]);
+                          d_cur, sums[tid]);  // (TILE, 5), zero rows from m on: they add nothing below
             for (int j = n_layers - 1; j >= 0; --j) {
                 const int n_in = dims[j], n_out = dims[j + 1];
-                float* gw = gp.data() + p_off[j];
+                const int64_t ld_in = padded(n_in), ld_out = padded(n_out);
+                float* gw = gp.data() + g_off[j];
                 // dW^T (in, out) += act[j]^T d_cur; db += column sums of d_cur
-                gemm(n_in, n_out, TILE, act[j].data(), 1, n_in, d_cur, n_out, gw, n_out, true);
-                float* gb = gw + (int64_t)n_in * n_out;
+                gemm(n_in, n_out, TILE, act[j].data(), 1, ld_in, d_cur, ld_out, gw, ld_out, true);
+                float* gb = gw + (int64_t)n_in * ld_out;
                 for (int r = 0; r < m; ++r)
-                    for (int c = 0; c < n_out; ++c) gb[c] += d_cur[r * n_out + c];
+                    for (int c = 0; c < n_out; ++c) gb[c] += d_cur[r * ld_out + c];
                 // d input = d_cur W (torch layout (out, in)); through the previous layer's ReLU (act[j] > 0)
-                gemm(TILE, n_in, n_out, d_cur, n_out, 1, weights + w_off[j], n_in, d_prev, n_in, false);
+                gemm(TILE, n_in, n_out, d_cur, ld_out, 1, net.w[j].data(), ld_in, d_prev, ld_in, false);
                 if (j > 0) {
                     const float* a = act[j].data();
-                    for (int64_t q = 0; q < (int64_t)TILE * n_in; ++q)
+                    for (int64_t q = 0; q < (int64_t)TILE * ld_in; ++q)
                         if (!(a[q] > 0.f)) d_prev[q] = 0.f;
                 } else {
-                    std::memcpy(dx + s0 * n_in, d_prev, sizeof(float) * (size_t)m * n_in);
+                    for (int r = 0; r < m; ++r)
+                        std::memcpy(dx + (s0 + r) * n_in, d_prev + r * ld_in, sizeof(float) * n_in);
                 }
                 std::swap(d_cur, d_prev);
             }
         }
     }
-    for (int64_t q = 0; q < n_params; ++q) {
-        float v = 0.f;
-        for (int t = 0; t < n_threads; ++t) v += grads[t].empty() ? 0.f : grads[t][q];
-        grad_params[q] = v;
+    // Sum the threads' gradients in thread order (deterministic) into the packed, unpadded layout of params.
+    int64_t q = 0;
+    for (int j = 0; j < n_layers; ++j) {
+        const int n_in = dims[j], n_out = dims[j + 1];
+        for (int i = 0; i <= n_in; ++i) {  // rows of W^T, then the bias as row n_in
+            for (int o = 0; o < n_out; ++o) {
+                float v = 0.f;
+                for (int t = 0; t < n_threads; ++t)
+                    if (!grads[t].empty()) v += grads[t][g_off[j] + (int64_t)i * padded(n_out) + o];
+                grad_params[q++] = v;
+            }
+        }
     }
     LossSums total;
     for (const auto& ls : sums) { total.bce += ls.bce; total.depth += ls.depth; total.normal += ls.normal; }
@@ -583,7 +570,7 @@ void mlp_train_t(const Grid& g, const float* rays_o, const float* rays_d, const 
 
 extern "C" {
 
-int nbvh_abi_version() { return 5; }
+int nbvh_abi_version() { return 6; }
 
 // Fused MLP inference over B segments (see mlp_segments_t): rays_o/rays_d (n_rays, 3), ray (B,) int64 ray of each
 // segment, te/tx (B,) segment ends, frac (k,) point fractions; table (L, rows, F) float32, or float16 when
@@ -609,13 +596,13 @@ void nbvh_mlp_segments(const float* rays_o, const float* rays_d, const int64_t* 
 
 // One training step of an MLP model on B labelled segments (see mlp_train_t): loss parts (bce, depth_l1, normal_l1)
 // into loss_out (3,) float64; grad_params packed like params; grad_table (L, rows, F) accumulated (zero it first).
-// weights: every layer's weight in torch's (out, in) layout, packed; hit (B,) uint8, local_t (B,), normal (B, 3);
+// hit (B,) uint8, local_t (B,), normal (B, 3);
 // hit_count = number of hit rows. Scratch: points (B * k, 3), dx (B, dims[0]).
 void nbvh_mlp_train(const float* rays_o, const float* rays_d, const int64_t* ray, const float* te, const float* tx,
                     int64_t b, int k, const float* frac, const float* table, int levels, int features,
                     const float* scales, const int64_t* res, const uint8_t* dense, int64_t vertex_table, int64_t rows,
                     const uint8_t* codes, int64_t code_rows, int n_layers, const int32_t* dims, const float* params,
-                    const float* weights, const uint8_t* hit, const float* local_t, const float* normal,
+                    const uint8_t* hit, const float* local_t, const float* normal,
                     int64_t hit_count, float w_t, float w_n, double* loss_out, float* grad_params, float* grad_table,
                     float* points, float* dx, int threads) {
     Grid g{levels, features, scales, res, dense, vertex_table, rows, codes, code_rows};
@@ -623,8 +610,8 @@ void nbvh_mlp_train(const float* rays_o, const float* rays_d, const int64_t* ray
     const float inv_hits = 1.f / (float)(hit_count > 0 ? hit_count : 1);
     by_features(features, [&](auto F) {
         constexpr int f = decltype(F)::value;
-        mlp_train_t<f>(g, rays_o, rays_d, ray, te, tx, b, k, frac, table, n_layers, dims, params, weights, hit,
-                       local_t, normal, inv_hits, w_t, w_n, loss_out, grad_params, points, dx, threads);
+        mlp_train_t<f>(g, rays_o, rays_d, ray, te, tx, b, k, frac, table, n_layers, dims, params, hit, local_t,
+                       normal, inv_hits, w_t, w_n, loss_out, grad_params, points, dx, threads);
         encode_backward_t<f>(g, points, b * k, dx, grad_table, threads);
     });
 }
