@@ -17,6 +17,8 @@ t_enter <= t_max. Rays that start inside a box get t_enter = 0. Division by a ze
 """
 from __future__ import annotations
 
+import ctypes
+
 from dataclasses import dataclass
 
 import numpy as np
@@ -165,7 +167,7 @@ def leaves_along_rays(tree: TorchBVH, rays_o: torch.Tensor, rays_d: torch.Tensor
 
 def _leaves_along_rays_fast(tree: TorchBVH, rays_o: torch.Tensor, rays_d: torch.Tensor,
                             t_max: torch.Tensor | None) -> LeafHits:
-    """`leaves_along_rays` by the C++ kernel: a per-ray stack loop, counted, then filled in sorted order."""
+    """`leaves_along_rays` by the C++ kernel: one per-ray stack loop into per-thread lists, then copied out."""
     lib, p = kernels.load(), kernels.ptr
     n = rays_o.shape[0]
     o = rays_o.to(torch.float32).contiguous()
@@ -173,16 +175,17 @@ def _leaves_along_rays_fast(tree: TorchBVH, rays_o: torch.Tensor, rays_d: torch.
     tm = None if t_max is None else t_max.to(torch.float32).contiguous()
     left, leaf = tree.int32_arrays()
     lo, hi = tree.lo.contiguous(), tree.hi.contiguous()
-    counts = torch.zeros(n, dtype=torch.int64)
-    args = (p(o), p(inv), n, p(tm), p(lo), p(hi), p(left), p(leaf), tree.max_depth + 2)
-    lib.nbvh_leaves_along_rays(*args, p(counts), None, None, None, None, kernels.threads())
-    offsets = torch.zeros(n + 1, dtype=torch.int64)
-    offsets[1:] = torch.cumsum(counts, 0)
-    k = int(offsets[-1])
+    counts = torch.empty(n, dtype=torch.int64)
+    total = ctypes.c_int64(0)
+    handle = lib.nbvh_leaves_traverse(p(o), p(inv), n, p(tm), p(lo), p(hi), p(left), p(leaf), tree.max_depth + 2,
+                                      p(counts), ctypes.byref(total), kernels.threads())
+    k = total.value
     node = torch.empty(k, dtype=torch.int64)
     t_enter = torch.empty(k, dtype=torch.float32)
     t_exit = torch.empty(k, dtype=torch.float32)
-    lib.nbvh_leaves_along_rays(*args, p(counts), p(offsets), p(node), p(t_enter), p(t_exit), kernels.threads())
+    lib.nbvh_leaves_collect(handle, p(node), p(t_enter), p(t_exit))
+    offsets = torch.zeros(n + 1, dtype=torch.int64)
+    offsets[1:] = torch.cumsum(counts, 0)
     ray = torch.repeat_interleave(torch.arange(n), counts)
     return LeafHits(ray=ray, leaf=tree.leaf[node], node=node, t_enter=t_enter, t_exit=t_exit, offsets=offsets)
 

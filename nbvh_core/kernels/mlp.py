@@ -57,6 +57,18 @@ def segments_raw(model, packed: tuple[torch.Tensor, torch.Tensor], rays_o: torch
     return out
 
 
+def _scratch(model, b: int, k: int, width: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Kernel scratch (points (b * k, 3), d features (b, width)), kept on the model between steps: the dx buffer of a
+    4096-ray step is ~8 MB, and a fresh one each step costs its page faults."""
+    have = getattr(model, "_fused_scratch", None)
+    if have is None or have[0] < b or have[1] != (k, width):
+        cap = int(b * 1.25) + 64
+        have = (cap, (k, width), torch.empty((cap * k, 3), dtype=torch.float32),
+                torch.empty((cap, width), dtype=torch.float32))
+        model._fused_scratch = have
+    return have[2][:b * k], have[3][:b]
+
+
 def train_step(model, samples) -> tuple[float, dict]:
     """Loss of `model` on labelled `samples` (as `train.samples_loss` + `MLP.loss`) and its gradients, in one
     kernel call; sets `.grad` of every parameter (call after `zero_grad(set_to_none=True)`). Returns the total
@@ -78,8 +90,7 @@ def train_step(model, samples) -> tuple[float, dict]:
     loss_parts = torch.zeros(3, dtype=torch.float64)
     grad_params = torch.empty_like(params)
     grad_table = torch.zeros_like(table)
-    points = torch.empty((b * k, 3), dtype=torch.float32)
-    dx = torch.empty((b, int(dims[0])), dtype=torch.float32)
+    points, dx = _scratch(model, b, k, int(dims[0]))
     lib.nbvh_mlp_train(
         ptr(samples.rays_o.contiguous()), ptr(samples.rays_d.contiguous()), ptr(samples.ray.contiguous()),
         ptr(samples.t_enter.contiguous()), ptr(samples.t_exit.contiguous()), b, k, ptr(frac), ptr(table),

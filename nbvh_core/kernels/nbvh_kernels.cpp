@@ -570,7 +570,7 @@ void mlp_train_t(const Grid& g, const float* rays_o, const float* rays_d, const 
 
 extern "C" {
 
-int nbvh_abi_version() { return 6; }
+int nbvh_abi_version() { return 7; }
 
 // Fused MLP inference over B segments (see mlp_segments_t): rays_o/rays_d (n_rays, 3), ray (B,) int64 ray of each
 // segment, te/tx (B,) segment ends, frac (k,) point fractions; table (L, rows, F) float32, or float16 when
@@ -706,23 +706,40 @@ void nbvh_stream_next(const float* rays_o, const float* inv_d, int64_t n, const 
     }
 }
 
-// Complete front-to-back leaf lists (traversal.leaves_along_rays) in two passes: count (out = null), then fill.
-// counts (n,) int64 out of the count pass; offsets (n + 1,) from its prefix sum. Entries per ray are sorted by
-// (t_enter, t_exit, node) like the reference. t_max (n,) or null.
-void nbvh_leaves_along_rays(const float* rays_o, const float* inv_d, int64_t n, const float* t_max_arr,
-                            const float* node_lo, const float* node_hi, const int32_t* node_left,
-                            const int32_t* node_leaf, int depth, int64_t* counts, const int64_t* offsets,
-                            int64_t* out_node, float* out_te, float* out_tx, int threads) {
-#pragma omp parallel num_threads(threads)
+// Complete front-to-back leaf lists (traversal.leaves_along_rays) in one traversal: each thread walks a contiguous
+// block of rays and appends its (node, t_enter, t_exit) runs to its own list, sorted per ray by (t_enter, t_exit,
+// node) like the reference; nbvh_leaves_collect then copies the lists, in thread order (= ray order), into the
+// caller's arrays and frees them. counts (n,) int64 and *total are written here.
+struct LeafLists {
+    std::vector<std::vector<int32_t>> node;
+    std::vector<std::vector<float>> te, tx;
+};
+
+void* nbvh_leaves_traverse(const float* rays_o, const float* inv_d, int64_t n, const float* t_max_arr,
+                           const float* node_lo, const float* node_hi, const int32_t* node_left,
+                           const int32_t* node_leaf, int depth, int64_t* counts, int64_t* total, int threads) {
+    const int n_threads = threads < 1 ? 1 : threads;
+    auto* lists = new LeafLists;
+    lists->node.resize(n_threads);
+    lists->te.resize(n_threads);
+    lists->tx.resize(n_threads);
+#pragma omp parallel num_threads(n_threads)
     {
-        int32_t* stack = new int32_t[depth + 2];
-#pragma omp for schedule(dynamic, 256)
-        for (int64_t r = 0; r < n; ++r) {
+        const int tid = omp_get_thread_num();
+        auto& out_node = lists->node[tid];
+        auto& out_te = lists->te[tid];
+        auto& out_tx = lists->tx[tid];
+        std::vector<int32_t> stack(depth + 2);
+        const int nt = omp_get_num_threads();
+        const int64_t r0 = n * tid / nt, r1 = n * (tid + 1) / nt;  // contiguous block: lists stay in ray order
+        out_node.reserve((size_t)(r1 - r0) * 4);
+        out_te.reserve((size_t)(r1 - r0) * 4);
+        out_tx.reserve((size_t)(r1 - r0) * 4);
+        for (int64_t r = r0; r < r1; ++r) {
             const float* o = rays_o + 3 * r;
             const float* inv = inv_d + 3 * r;
             const float t_max = t_max_arr ? t_max_arr[r] : INFINITY;
-            int64_t count = 0;
-            int64_t base = offsets ? offsets[r] : 0;
+            const size_t base = out_node.size();
             int sp = 0;
             float te, tx;
             if (ray_box(o, inv, node_lo, node_hi, t_max, &te, &tx)) stack[sp++] = 0;
@@ -731,20 +748,20 @@ void nbvh_leaves_along_rays(const float* rays_o, const float* inv_d, int64_t n, 
                 const int32_t left = node_left[node];
                 if (left == 0) {
                     if (node_leaf[node] < 0) continue;
-                    if (offsets) {
-                        ray_box(o, inv, node_lo + 3 * node, node_hi + 3 * node, t_max, &te, &tx);
-                        // Insertion into the sorted run (runs are short: a few leaves per ray).
-                        int64_t j = base + count;
-                        while (j > base) {
-                            const float pe = out_te[j - 1], px = out_tx[j - 1];
-                            const bool after = pe > te || (pe == te && (px > tx || (px == tx && out_node[j - 1] > node)));
-                            if (!after) break;
-                            out_te[j] = pe; out_tx[j] = px; out_node[j] = out_node[j - 1];
-                            --j;
-                        }
-                        out_te[j] = te; out_tx[j] = tx; out_node[j] = node;
+                    ray_box(o, inv, node_lo + 3 * node, node_hi + 3 * node, t_max, &te, &tx);
+                    out_node.push_back(node);
+                    out_te.push_back(te);
+                    out_tx.push_back(tx);
+                    // Insertion into the sorted run (runs are short: a few leaves per ray).
+                    size_t j = out_node.size() - 1;
+                    while (j > base) {
+                        const float pe = out_te[j - 1], px = out_tx[j - 1];
+                        const bool after = pe > te || (pe == te && (px > tx || (px == tx && out_node[j - 1] > node)));
+                        if (!after) break;
+                        out_te[j] = pe; out_tx[j] = px; out_node[j] = out_node[j - 1];
+                        --j;
                     }
-                    ++count;
+                    out_te[j] = te; out_tx[j] = tx; out_node[j] = node;
                     continue;
                 }
                 for (int c = 1; c >= 0; --c) {
@@ -752,10 +769,30 @@ void nbvh_leaves_along_rays(const float* rays_o, const float* inv_d, int64_t n, 
                         stack[sp++] = left + c;
                 }
             }
-            if (!offsets) counts[r] = count;
+            counts[r] = (int64_t)(out_node.size() - base);
         }
-        delete[] stack;
     }
+    int64_t sum = 0;
+    for (const auto& v : lists->node) sum += (int64_t)v.size();
+    *total = sum;
+    return lists;
+}
+
+// Copies the lists of nbvh_leaves_traverse into out_node (total,) int64, out_te, out_tx (total,) float32 (or only
+// frees them when out_node is null).
+void nbvh_leaves_collect(void* handle, int64_t* out_node, float* out_te, float* out_tx) {
+    auto* lists = static_cast<LeafLists*>(handle);
+    if (out_node) {
+        int64_t pos = 0;
+        for (size_t t = 0; t < lists->node.size(); ++t) {
+            const auto& nd = lists->node[t];
+            for (size_t i = 0; i < nd.size(); ++i) out_node[pos + (int64_t)i] = nd[i];
+            std::memcpy(out_te + pos, lists->te[t].data(), sizeof(float) * nd.size());
+            std::memcpy(out_tx + pos, lists->tx[t].data(), sizeof(float) * nd.size());
+            pos += (int64_t)nd.size();
+        }
+    }
+    delete lists;
 }
 
 }  // extern "C"
