@@ -112,8 +112,6 @@ def estimate_file_bytes(s: Settings) -> int:
     return sum(comps.values()) + 2600
 
 
-#: A missed quality target is retrained at most this many times, one table size (2x T) larger each time.
-TARGET_RETRIES = 1
 
 
 def resolve(s: Settings, mesh: Mesh | None = None) -> tuple[Settings, str]:
@@ -223,7 +221,7 @@ def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = 
                   evaluate_quality: bool = True, checkpoint_path: str | Path | None = None) -> CompressResult:
     """Compress `mesh` with `settings`; write `out_path` (atomically) when given. Raises `train.Cancelled`,
     `train.TrainingDiverged` (nothing written in either case)."""
-    from .sizing import assess
+    from .sizing import assess, load_fit, mesh_features, search_size
 
     settings, why = resolve(settings, mesh)
     seconds = {}
@@ -241,10 +239,14 @@ def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = 
     seconds["train"] = 0.0
     seconds["eval"] = 0.0
     target = settings.target_mse
-    for attempt in range(TARGET_RETRIES + 1):
+    trained: dict = {}  # log2 T -> (model, TrainResult, settings used, why, quality)
+
+    def train_and_measure(log2_table: int) -> float:
+        """One training at table size 2^log2_table, scored; its MSE (inf without an evaluation)."""
         t = time.perf_counter()
-        model, tr, settings, why = _train_with_restarts(mesh, bvh, tracer, settings, why, events, should_cancel,
-                                                        checkpoint_path)
+        s_try = dataclasses.replace(settings, log2_table=log2_table)
+        model, tr, s_used, why_used = _train_with_restarts(mesh, bvh, tracer, s_try, why, events, should_cancel,
+                                                           checkpoint_path)
         seconds["train"] += time.perf_counter() - t
         model.eval()
         quality = None
@@ -252,19 +254,39 @@ def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = 
             if should_cancel():
                 raise Cancelled("cancelled before evaluation")
             events({"event": "phase", "phase": "eval",
-                    "message": f"{settings.eval_views} views at {settings.eval_resolution}px"})
+                    "message": f"{s_used.eval_views} views at {s_used.eval_resolution}px"})
             t = time.perf_counter()
-            quality, _ = evaluate(model, tracer, settings.eval_views, settings.eval_resolution)
+            quality, _ = evaluate(model, tracer, s_used.eval_views, s_used.eval_resolution)
             seconds["eval"] += time.perf_counter() - t
-        missed = target is not None and quality is not None and quality.mse > target
-        if not missed or attempt == TARGET_RETRIES or settings.log2_table >= 14:
-            break
-        bigger = dataclasses.replace(settings, log2_table=settings.log2_table + 1)
-        why += (f"; measured MSE {quality.mse:.4g} missed the target {target:g} at T=2^{settings.log2_table}: "
-                f"retrained at T=2^{bigger.log2_table}")
-        events({"event": "warning", "message": f"MSE {quality.mse:.4g} misses the target {target:g}; retraining one "
-                                               f"size larger (T=2^{bigger.log2_table})"})
-        settings = bigger
+        trained[log2_table] = (model, tr, s_used, why_used[len(why):], quality)  # [3]: restart notes
+        return quality.mse if quality is not None else math.inf
+
+    if target is None or not evaluate_quality:
+        chosen_log2 = settings.log2_table
+        train_and_measure(chosen_log2)
+    else:
+        # Predict, train, measure, correct (sizing.next_size): a miss trains the size the measurement-calibrated
+        # predictor says meets the target; a comfortable hit tries one size smaller; at most TARGET_TRAININGS.
+        fit = load_fit()
+        feats = mesh_features(mesh) if fit is not None else None
+
+        def measure(log2_table: int) -> float:
+            if trained:
+                prev = list(trained)[-1]
+                mse_prev = trained[prev][4].mse
+                verdict = "missed" if mse_prev > target else "met"
+                step = "larger" if log2_table > prev else "smaller"
+                note = (f"measured MSE {mse_prev:.4g} {verdict} the target {target:g} at T=2^{prev}: trying T=2^"
+                        f"{log2_table} ({step})")
+                events({"event": "warning" if verdict == "missed" else "phase", "phase": "search", "message": note})
+            return train_and_measure(log2_table)
+
+        chosen_log2, measured = search_size(fit, feats, target, settings.log2_table, measure)
+        trail = ", ".join(f"T=2^{l2}: {mse:.4g}" for l2, mse in measured.items())
+        if len(measured) > 1:
+            why += f"; measured {trail} (target {target:g}): kept T=2^{chosen_log2}"
+    model, tr, settings, restart_notes, quality = trained[chosen_log2]
+    why += restart_notes
     metadata = {
         "source": {"name": mesh.name, "triangles": mesh.n_triangles, "vertices": mesh.n_vertices},
         "settings": settings.to_dict(),

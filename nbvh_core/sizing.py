@@ -167,6 +167,60 @@ def choose_table_and_nodes(fit: SizeFit, features: MeshFeatures, target_mse: flo
     return l2, n, predict_mse(fit, l2, features, n), False
 
 
+#: A quality target costs at most this many trainings: the predicted size, then corrections (see `next_size`).
+TARGET_TRAININGS = 3
+
+
+def next_size(fit: SizeFit | None, features: MeshFeatures | None, target_mse: float,
+              measured: dict[int, float], nodes: int | None = None) -> int | None:
+    """The next log2 T to train after measuring `measured` {log2 T: image MSE}, or None to stop.
+
+    The fit's error for this mesh is mostly an offset (its residuals are per-mesh), so each measurement calibrates
+    the prediction: calibrated(T) = predicted(T) x measured(T0) / predicted(T0), T0 the last size trained.
+    * Target missed everywhere so far: the smallest larger T whose calibrated MSE meets it (the largest in
+      LOG2_RANGE when none is predicted to); None at the top of the range.
+    * Target met: one step down (the largest smaller T, not yet trained) if its calibrated MSE meets it, else
+      None; a smaller size that then misses ends the search (the smallest size that met is kept).
+    Without a fit: one step up when missed, no step down.
+    """
+    last = list(measured)[-1]
+    met = [l2 for l2, mse in measured.items() if mse <= target_mse]
+    if fit is None or features is None:
+        return last + 1 if not met and last + 1 <= LOG2_RANGE[-1] else None
+    offset = math.log(measured[last]) - fit.predict_log_mse(last, features, nodes)
+
+    def calibrated_ok(l2: int) -> bool:
+        return fit.predict_log_mse(l2, features, nodes) + offset <= math.log(target_mse)
+
+    if not met:
+        larger = [l2 for l2 in LOG2_RANGE if l2 > max(measured)]
+        if not larger:
+            return None
+        # The smallest predicted to meet it; none predicted: the largest (the best chance there is).
+        return next((l2 for l2 in larger if calibrated_ok(l2)), larger[-1])
+    if measured[last] > target_mse:  # a step down missed: keep the smallest that met
+        return None
+    smaller = min(met) - 1
+    if smaller < LOG2_RANGE[0] or smaller in measured or not calibrated_ok(smaller):
+        return None
+    return smaller
+
+
+def search_size(fit: SizeFit | None, features: MeshFeatures | None, target_mse: float, first_log2: int,
+                measure, max_trainings: int = TARGET_TRAININGS, nodes: int | None = None) -> tuple[int, dict]:
+    """Train-and-measure search for the smallest log2 T meeting `target_mse`: `measure(log2) -> MSE` trains and
+    scores one size (the expensive part); starts at `first_log2` (the predictor's choice) and follows `next_size`
+    for at most `max_trainings` measurements. Returns (chosen log2 T, {log2 T: MSE} in the order measured): the
+    smallest measured size that met the target, else the largest measured."""
+    measured: dict[int, float] = {}
+    l2: int | None = first_log2
+    while l2 is not None and len(measured) < max_trainings:
+        measured[l2] = measure(l2)
+        l2 = next_size(fit, features, target_mse, measured, nodes)
+    met = [t for t, mse in measured.items() if mse <= target_mse]
+    return (min(met) if met else max(measured)), measured
+
+
 # ----------------------------------------------------------------------------------------------- alternatives
 def mesh_like(mesh: Mesh, vertices: np.ndarray, faces: np.ndarray) -> Mesh:
     """Another triangulation of `mesh` (a decimation, a Draco-decoded copy) in the same normalised coordinates:
