@@ -4,7 +4,9 @@
 
 Training step stages: ray sampling + exact labelling (Embree, traversal), encoding forward, network forward +
 loss, backward (all of it), optimizer step. Render stages: traversal (LeafStream.next), segment points +
-encoding, network, bookkeeping (the rest). Medians of several repeats. Writes bench/results/profile.md.
+encoding, network, bookkeeping (the rest). On the fast path an MLP model also gets a "fused" row: what training and
+`NeuralBVH.query` really run there (kernels/mlp.py: encoding, network, loss and backward in one kernel call, so
+those stages are one number). Medians of several repeats. Writes bench/results/profile.md.
 """
 from __future__ import annotations
 
@@ -65,6 +67,52 @@ def profile_train(model, bvh, tracer, tree, n_rays, repeat=5):
         stages["optimizer"].append(dt)
     med = {k: statistics.median(v) for k, v in stages.items()}
     return med, statistics.median(n_samples)
+
+
+def profile_train_fused(model, bvh, tracer, tree, n_rays, repeat=5):
+    """The fused training step (kernels.mlp.train_step): labels, one kernel call, optimizer."""
+    from nbvh_core.kernels import mlp
+
+    rng = np.random.default_rng(0)
+    lo, hi = root_box(bvh)
+    opt = torch.optim.Adam(model.parameters(), lr=1e-3, fused=True)
+    stages = {k: [] for k in ("rays+labels", "fused", "optimizer")}
+    n_samples = []
+    for _ in range(repeat):
+        s, dt = timed(lambda: label_samples(bvh, tracer, *sample_rays(lo, hi, n_rays, rng, RayConfig()),
+                                            "consistent", tree=tree))
+        stages["rays+labels"].append(dt)
+        n_samples.append(len(s))
+        opt.zero_grad(set_to_none=True)
+        _, dt = timed(lambda: mlp.train_step(model, s))
+        stages["fused"].append(dt)
+        _, dt = timed(opt.step)
+        stages["optimizer"].append(dt)
+    return {k: statistics.median(v) for k, v in stages.items()}, statistics.median(n_samples)
+
+
+def profile_render_fused(model, size):
+    """NeuralBVH.query's fast path for MLP models: traversal, then one fused kernel per wave (encoding + network)."""
+    cam = orbit_cameras(1)[0]
+    o, d = (torch.from_numpy(a) for a in cam.rays(size, size))
+    packed = model._fused_network()
+    stream = LeafStream(model.tree(), o, d)
+    t_trav = t_fused = 0.0
+    segments = 0
+    t0 = time.perf_counter()
+    with torch.no_grad():
+        while True:
+            (ray, _, te, tx), dt = timed(stream.next)
+            t_trav += dt
+            if ray.numel() == 0:
+                break
+            segments += ray.numel()
+            raw, dt = timed(lambda: model._fused_raw(packed, o, d, ray, te, tx))
+            t_fused += dt
+            prob = model.network.decode(raw)[0]
+            stream.stop(ray[prob > 0.5])
+    total = time.perf_counter() - t0
+    return {"traversal": t_trav, "fused": t_fused, "bookkeeping": total - t_trav - t_fused, "total": total}, segments
 
 
 def profile_render(model, size):
@@ -139,6 +187,23 @@ def main() -> None:
                                                                          ("traversal", "encoding", "network", "bookkeeping", "total"))
                                 + f" | {args.size ** 2 / rt['total']:,.0f} | {segs / rt['total']:,.0f} |")
             print(lines[-1], render_lines[-1], flush=True)
+            if path == "fast" and model._fused_network() is not None:
+                model.train()
+                torch.manual_seed(0)
+                model = NeuralBVH(bvh.nodes, s.with_overrides(encoding=enc, network=net, log2_table=log2).model_config(),
+                                  mesh.transform)
+                med, n = profile_train_fused(model, bvh, tracer, tree, args.rays)
+                total = sum(med.values())
+                lines.append(f"| {enc}+{net} (T=2^{log2}) | fast, fused step | {n:,.0f} | {1000 * med['rays+labels']:.0f} ms "
+                             f"| fused: {1000 * med['fused']:.0f} ms (encoding, network, loss, backward) | | | "
+                             f"{1000 * med['optimizer']:.0f} ms | {1000 * total:.0f} ms | {n / total:,.0f} |")
+                model.eval()
+                rt, segs = profile_render_fused(model, args.size)
+                render_lines.append(f"| {enc}+{net} | fast, fused query | {segs:,} | {1000 * rt['traversal']:.0f} ms | "
+                                    f"fused: {1000 * rt['fused']:.0f} ms (encoding + network) | | "
+                                    f"{1000 * rt['bookkeeping']:.0f} ms | {1000 * rt['total']:.0f} ms | "
+                                    f"{args.size ** 2 / rt['total']:,.0f} | {segs / rt['total']:,.0f} |")
+                print(lines[-1], render_lines[-1], flush=True)
     out = Path(args.out)
     out.write_text("\n".join(lines + render_lines) + "\n")
     print(f"wrote {out}")

@@ -51,6 +51,8 @@ class Settings:
     time_limit_s: float | None = 180.0
     rays_per_step: int = 4096
     anneal_fraction: float = 0.3
+    #: 'uniform' or 'loss' (N-BVH's loss-proportional resampling of leaves; see TrainConfig.leaf_sampling).
+    leaf_sampling: str = "uniform"
     seed: int = 0
     device: str = "auto"
     float_bytes: int = 4
@@ -68,7 +70,7 @@ class Settings:
     def train_config(self) -> TrainConfig:
         return TrainConfig(labels=self.labels, lr=self.lr, steps=self.steps, time_limit_s=self.time_limit_s,
                            rays_per_step=self.rays_per_step, seed=self.seed, device=self.device,
-                           anneal_fraction=self.anneal_fraction)
+                           anneal_fraction=self.anneal_fraction, leaf_sampling=self.leaf_sampling)
 
     def with_overrides(self, **kw) -> "Settings":
         unknown = set(kw) - {f.name for f in dataclasses.fields(self)}

@@ -9,7 +9,9 @@ Ray distribution (`sample_rays`), in normalised coordinates where the mesh's roo
   direction uniform on the unit sphere: these cover rays that start near or between surfaces (secondary rays).
 
 Every direction is unit length, so t is a distance in normalised units. Rays that miss the root box are
-redrawn (a ray can still miss every leaf box; it then yields no sample).
+redrawn (a ray can still miss every leaf box; it then yields no sample). With loss-proportional leaf sampling
+(`TrainConfig.leaf_sampling = "loss"`, N-BVH's node resampling) part of every batch instead starts inside leaf boxes
+drawn in proportion to the model's running error there (`sample_rays_in_leaves`).
 
 Labels (`label_samples`): for every ray and every leaf it enters up to and including its first hit (t_enter <= t
 of the ray's first hit; every entered leaf for a ray that hits nothing), one sample with the segment
@@ -154,6 +156,20 @@ def sample_rays(lo: np.ndarray, hi: np.ndarray, n_rays: int, rng: np.random.Gene
     d = np.concatenate(out_d)[:n_rays]
     perm = rng.permutation(n_rays)  # mix both kinds within every batch
     return o[perm], d[perm]
+
+
+def sample_rays_in_leaves(leaf_lo: np.ndarray, leaf_hi: np.ndarray, weights: np.ndarray, n_rays: int,
+                          rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Rays that start where the model is worst (N-BVH's loss-proportional node resampling): a leaf drawn with
+    probability proportional to `weights` (L,), an origin uniform in its box, a direction uniform on the sphere.
+
+    leaf_lo, leaf_hi: (L, 3) leaf boxes. Returns rays_o (n_rays, 3), unit rays_d (n_rays, 3), float32."""
+    p = np.asarray(weights, np.float64)
+    p = p / p.sum()
+    leaf = rng.choice(len(p), size=n_rays, p=p)
+    lo = np.asarray(leaf_lo, np.float32)[leaf]
+    o = lo + rng.random((n_rays, 3), dtype=np.float32) * (np.asarray(leaf_hi, np.float32)[leaf] - lo)
+    return o, _unit_vectors(rng, n_rays)
 
 
 def label_samples(bvh: BVH, tracer: ExactTracer, rays_o: np.ndarray, rays_d: np.ndarray, mode: str,

@@ -30,7 +30,8 @@ from .bvh import BVH
 from .events import EventSink, null_sink
 from .exact import ExactTracer
 from .model import NeuralBVH
-from .samples import RayConfig, TrainingSamples, label_samples, root_box, sample_rays, split_samples
+from .samples import (RayConfig, TrainingSamples, label_samples, root_box, sample_rays, sample_rays_in_leaves,
+                      split_samples)
 
 
 class Cancelled(Exception):
@@ -71,6 +72,12 @@ class TrainConfig:
     # distribution; per-call work is amortised: bunny, 4096 rays/step, 5.3 / 4.1 / 3.4 ms per step at 8 / 16 / 32,
     # 11.0 ms one step at a time before this and the label kernels' other changes).
     label_steps: int = 32
+    # 'uniform': every ray from `sample_rays`. 'loss': `leaf_ray_fraction` of each batch starts inside leaf boxes
+    # drawn in proportion to the running per-leaf error (N-BVH's loss-proportional node resampling; the floor keeps
+    # every leaf at >= leaf_floor x the mean weight). See bench/results/leaf_sampling.md for what it changes.
+    leaf_sampling: str = "uniform"
+    leaf_ray_fraction: float = 0.5
+    leaf_floor: float = 0.05
     ray_config: RayConfig = field(default_factory=RayConfig)
 
     def to_dict(self) -> dict:
@@ -101,12 +108,47 @@ def pick_device(name: str = "auto") -> torch.device:
     return torch.device(name)
 
 
-def samples_loss(model: NeuralBVH, s: TrainingSamples, device: torch.device):
-    """Loss of the model on labelled samples (moved to `device`)."""
+def samples_loss(model: NeuralBVH, s: TrainingSamples, device: torch.device, want_raw: bool = False):
+    """Loss of the model on labelled samples (moved to `device`): (loss, parts); with want_raw, parts['raw'] holds
+    the network's raw outputs (detached)."""
     r = s.ray.to(device)
     o, d = s.rays_o.to(device)[r], s.rays_d.to(device)[r]
     raw = model(o, d, s.t_enter.to(device), s.t_exit.to(device))
-    return model.network.loss(raw, s.hit.to(device), s.local_t.to(device), s.normal.to(device))
+    loss, parts = model.network.loss(raw, s.hit.to(device), s.local_t.to(device), s.normal.to(device))
+    if want_raw:
+        parts["raw"] = raw.detach()
+    return loss, parts
+
+
+def sample_errors(network, raw: torch.Tensor, s: TrainingSamples) -> torch.Tensor:
+    """(S,) per-sample error of decoded predictions: BCE of the hit probability, plus for hits the weighted depth
+    and normal L1s (the loss's terms, per sample; for loss-proportional leaf sampling)."""
+    prob, local_t, normal = network.decode(raw.detach().cpu())
+    hit = s.hit.to(prob.dtype)
+    bce = torch.nn.functional.binary_cross_entropy(prob.clamp(1e-6, 1 - 1e-6), hit, reduction="none")
+    cfg = network.cfg
+    return bce + hit * (cfg.depth_weight * (local_t - s.local_t).abs()
+                        + cfg.normal_weight * (normal - s.normal).abs().sum(-1))
+
+
+class LeafErrors:
+    """Running mean error per leaf (exponential, per batch) and the sampling weights drawn from it."""
+
+    def __init__(self, n_leaves: int, floor: float, decay: float = 0.9):
+        self.error = torch.ones(n_leaves, dtype=torch.float64)  # untrained: every leaf alike
+        self.floor, self.decay = floor, decay
+
+    def update(self, leaf: torch.Tensor, errors: torch.Tensor) -> None:
+        """leaf (S,) leaf ordinals, errors (S,) per-sample errors of one batch."""
+        n = self.error.shape[0]
+        total = torch.zeros(n, dtype=torch.float64).index_add_(0, leaf, errors.to(torch.float64))
+        count = torch.bincount(leaf, minlength=n).to(torch.float64)
+        seen = count > 0
+        self.error[seen] = self.decay * self.error[seen] + (1 - self.decay) * total[seen] / count[seen]
+
+    def weights(self) -> np.ndarray:
+        e = self.error.numpy()
+        return np.maximum(e, self.floor * e.mean())
 
 
 class _Batches:
@@ -120,7 +162,7 @@ class _Batches:
     """
 
     def __init__(self, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, rng: np.random.Generator,
-                 prefetch: bool = False, resume: dict | None = None):
+                 prefetch: bool = False, resume: dict | None = None, leaf_errors: "LeafErrors | None" = None):
         self.bvh, self.tracer, self.cfg, self.rng = bvh, tracer, cfg, rng
         self.lo, self.hi = root_box(bvh)
         from .traversal import TorchBVH
@@ -128,11 +170,15 @@ class _Batches:
         self.tree = TorchBVH.from_bvh(bvh)
         self._pending: list = []  # batches of the current chunk not yet handed out
         self._pool = None  # ray-drawing threads, made on first use
+        self.leaf_errors = leaf_errors  # loss-proportional leaf sampling: the running per-leaf errors
+        self._leaf_boxes = bvh.leaf_boxes() if cfg.leaf_sampling == "loss" else None
         self._state = {"chunk_state": rng.bit_generator.state, "index": -1}
         skip = 0
+        self._weights_override = None  # the leaf weights the resumed chunk was drawn with
         if resume is not None:
             rng.bit_generator.state = resume["chunk_state"]
             skip = resume["index"] + 1
+            self._weights_override = resume.get("leaf_weights")
         self._queue = None
         if prefetch:
             import queue
@@ -150,14 +196,29 @@ class _Batches:
         chunk_state = self.rng.bit_generator.state
         n_steps = max(1, self.cfg.label_steps)
         per = self.cfg.rays_per_step
-        o, d = self._draw(per * n_steps)
+        weights = None
+        if self.leaf_errors is not None:
+            weights = self._weights_override if self._weights_override is not None else self.leaf_errors.weights()
+            self._weights_override = None
+        o, d = self._draw(per * n_steps, weights)
         chunk = label_samples(self.bvh, self.tracer, o, d, self.cfg.labels, tree=self.tree)
-        return [(part, {"chunk_state": chunk_state, "index": i})
+        return [(part, {"chunk_state": chunk_state, "index": i, "leaf_weights": weights})
                 for i, part in enumerate(split_samples(chunk, per))]
 
-    def _draw(self, n: int) -> tuple[np.ndarray, np.ndarray]:
-        """n rays in two halves drawn by two threads (numpy's generators and ufuncs release the GIL), each from a
-        generator seeded by the main one: deterministic, and resumable from the main generator's state."""
+    def _draw(self, n: int, leaf_weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """n rays: all from `sample_rays`, or with leaf weights `leaf_ray_fraction` of them from
+        `sample_rays_in_leaves` (mixed by a permutation)."""
+        if leaf_weights is not None:  # loss-proportional: part of the rays start in the worst leaves
+            n_leaf = int(round(n * self.cfg.leaf_ray_fraction))
+            o_u, d_u = self._draw_uniform(n - n_leaf)
+            o_l, d_l = sample_rays_in_leaves(*self._leaf_boxes, leaf_weights, n_leaf, self.rng)
+            perm = self.rng.permutation(n)
+            return np.concatenate((o_u, o_l))[perm], np.concatenate((d_u, d_l))[perm]
+        return self._draw_uniform(n)
+
+    def _draw_uniform(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """n rays of `sample_rays` in two halves drawn by two threads (numpy's generators and ufuncs release the
+        GIL), each from a generator seeded by the main one: deterministic, and resumable from its state."""
         seeds = self.rng.integers(0, 2 ** 63, size=2)
         sizes = (n // 2, n - n // 2)
         if self._pool is None:
@@ -237,6 +298,7 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
     start_step, elapsed_before = 0, 0.0
     history: list = []
     resume_batches = None
+    resume_leaf_errors = None
     if resume_from is not None:
         ck = torch.load(resume_from, map_location=device, weights_only=False)
         codes = ck["model"].get("encoding.codes")
@@ -246,12 +308,18 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
         opt.load_state_dict(ck["optimizer"])
         start_step, elapsed_before, history = ck["step"], ck["elapsed"], ck["history"]
         resume_batches = ck["numpy_rng"]
+        resume_leaf_errors = ck.get("leaf_errors")
         torch.set_rng_state(ck["torch_rng"])
         events({"event": "phase", "phase": "train", "message": f"resumed at step {start_step}"})
     # Overlapping labels with training is part of the fast path; the reference path stays synchronous.
     prefetch = device.type == "cuda" if cfg.prefetch is None else cfg.prefetch
+    if cfg.leaf_sampling not in ("uniform", "loss"):
+        raise ValueError(f"leaf_sampling must be 'uniform' or 'loss', got {cfg.leaf_sampling!r}")
+    leaf_errors = LeafErrors(bvh.n_leaves, cfg.leaf_floor) if cfg.leaf_sampling == "loss" else None
+    if leaf_errors is not None and resume_leaf_errors is not None:
+        leaf_errors.error = resume_leaf_errors.clone()
     batches = _Batches(bvh, tracer, cfg, rng, prefetch=prefetch and kernels.current_path() == "fast",
-                       resume=resume_batches)
+                       resume=resume_batches, leaf_errors=leaf_errors)
     is_vqad = hasattr(model.encoding, "freeze")
     result_losses: dict = {}
     from .kernels import mlp as fused_mlp
@@ -280,7 +348,9 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
         if checkpoint_path is not None:
             _atomic_save({"model": model.state_dict(), "optimizer": opt.state_dict(), "step": step,
                           "elapsed": elapsed, "history": history, "numpy_rng": batches.rng_state(),
-                          "torch_rng": torch.get_rng_state(), "train_config": cfg.to_dict()}, Path(checkpoint_path))
+                          "torch_rng": torch.get_rng_state(), "train_config": cfg.to_dict(),
+                          "leaf_errors": None if leaf_errors is None else leaf_errors.error.clone()},
+                         Path(checkpoint_path))
 
     events({"event": "phase", "phase": "train",
             "message": f"{model.cfg.encoding.kind}+{model.cfg.network.kind}, {cfg.labels} labels, on {device}, "
@@ -320,12 +390,15 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
             for g in opt.param_groups:
                 g["lr"] = cfg.lr * g["lr_factor"] * cfg.lr_final_factor ** frac
             batch = batches.next()
+            want_raw = leaf_errors is not None
             if fused_step:  # forward, loss and backward in one kernel call: the gradients are set already
                 opt.zero_grad(set_to_none=True)
-                loss_val, parts = fused_mlp.train_step(model, batch)
+                loss_val, parts = fused_mlp.train_step(model, batch, want_raw=want_raw)
             else:
-                loss, parts = samples_loss(model, batch, device)
+                loss, parts = samples_loss(model, batch, device, want_raw=want_raw)
                 loss_val = float(loss.detach())
+            if want_raw:
+                leaf_errors.update(batch.leaf, sample_errors(model.network, parts["raw"], batch))
             if not math.isfinite(loss_val):
                 raise TrainingDiverged(f"loss became {loss_val} at step {step}")
             if ema is not None and step - start_step > 50 and loss_val > cfg.divergence_factor * ema:

@@ -149,10 +149,14 @@ def test_every_config_trains_and_renders(blob_setup, encoding, network, labels):
     assert img.image.shape == (24, 24) and np.isfinite(img.image).all()
 
 
-def test_cancel_leaves_nothing_and_resume_continues_identically(blob_setup, tmp_path):
+@pytest.mark.parametrize("leaf_sampling,label_steps,cancel_at", [("uniform", 32, 4), ("loss", 2, 5)])
+def test_cancel_leaves_nothing_and_resume_continues_identically(blob_setup, tmp_path, leaf_sampling, label_steps,
+                                                                cancel_at):
+    # ('loss', 2 steps per labelling pass, cancelled mid-pass: the resumed pass is redrawn with the leaf weights it
+    # was first drawn with, later passes with the restored running errors.)
     mesh, bvh, tracer = blob_setup
     cfg = ModelConfig(EncodingConfig(kind="hashgrid", log2_table=6, levels=2, features=4), NetworkConfig(kind="mlp", k=4))
-    tc = TrainConfig(steps=8, rays_per_step=256, seed=3)
+    tc = TrainConfig(steps=8, rays_per_step=256, seed=3, leaf_sampling=leaf_sampling, label_steps=label_steps)
 
     def fresh():
         torch.manual_seed(11)  # same initial weights for every run
@@ -165,7 +169,7 @@ def test_cancel_leaves_nothing_and_resume_continues_identically(blob_setup, tmp_
     first = fresh()
     calls = iter(range(100))
     with pytest.raises(Cancelled):
-        train(first, bvh, tracer, tc, should_cancel=lambda: next(calls) >= 4, checkpoint_path=ck)
+        train(first, bvh, tracer, tc, should_cancel=lambda: next(calls) >= cancel_at, checkpoint_path=ck)
     assert ck.exists() and not list(tmp_path.glob("*.partial"))
     resumed = fresh()
     res = train(resumed, bvh, tracer, tc, resume_from=ck)
@@ -189,7 +193,8 @@ def test_divergence_is_detected_and_nothing_saved(blob_setup, tmp_path, monkeypa
     import nbvh_core.kernels.mlp as fused_mlp  # the fast path's fused step computes the same loss itself
 
     real_step = fused_mlp.train_step
-    monkeypatch.setattr(fused_mlp, "train_step", lambda model, batch: (float("nan"), real_step(model, batch)[1]))
+    monkeypatch.setattr(fused_mlp, "train_step",
+                        lambda model, batch, **kw: (float("nan"), real_step(model, batch, **kw)[1]))
     out = tmp_path / "model.nbvh"
     with pytest.raises(TrainingDiverged, match="nan"):
         compress_mesh(mesh, settings, out)

@@ -110,3 +110,35 @@ def test_bad_mode():
     mesh, bvh, o, d = overlapping_siblings_case()
     with pytest.raises(ValueError, match="label mode"):
         label_samples(bvh, ExactTracer(mesh), o, d, "nearest")
+
+
+def test_rays_in_leaves_start_in_the_leaves_drawn_by_weight(sample_bvhs):
+    from nbvh_core.samples import sample_rays_in_leaves
+
+    bvh = sample_bvhs["blob"]
+    lo, hi = bvh.leaf_boxes()
+    weights = np.full(len(lo), 1e-9)
+    weights[7] = 1.0  # (almost) all the weight on leaf 7
+    o, d = sample_rays_in_leaves(lo, hi, weights, 2000, np.random.default_rng(0))
+    assert o.shape == d.shape == (2000, 3) and o.dtype == np.float32
+    inside = np.all((o >= lo[7] - 1e-6) & (o <= hi[7] + 1e-6), axis=1)
+    assert inside.mean() > 0.99
+    assert np.allclose(np.linalg.norm(d, axis=1), 1, atol=1e-5)
+    assert np.abs(d.mean(0)).max() < 0.1  # directions uniform on the sphere
+
+
+def test_leaf_errors_follow_the_batches_and_keep_a_floor():
+    import torch
+
+    from nbvh_core.train import LeafErrors
+
+    le = LeafErrors(4, floor=0.1)
+    leaf = torch.tensor([0, 0, 1, 3])
+    err = torch.tensor([2.0, 4.0, 0.0, 1.0])
+    le.update(leaf, err)
+    e = le.error.numpy()
+    assert np.allclose(e, [0.9 + 0.1 * 3.0, 0.9, 1.0, 1.0])  # leaf 2 unseen: unchanged
+    for _ in range(200):
+        le.update(torch.tensor([1]), torch.tensor([0.0]))
+    w = le.weights()
+    assert w[1] == pytest.approx(0.1 * le.error.numpy().mean())  # a solved leaf keeps the floor

@@ -69,10 +69,10 @@ def _scratch(model, b: int, k: int, width: int) -> tuple[torch.Tensor, torch.Ten
     return have[2][:b * k], have[3][:b]
 
 
-def train_step(model, samples) -> tuple[float, dict]:
+def train_step(model, samples, want_raw: bool = False) -> tuple[float, dict]:
     """Loss of `model` on labelled `samples` (as `train.samples_loss` + `MLP.loss`) and its gradients, in one
     kernel call; sets `.grad` of every parameter (call after `zero_grad(set_to_none=True)`). Returns the total
-    loss and its parts (bce, depth_l1, normal_l1)."""
+    loss and its parts (bce, depth_l1, normal_l1; with want_raw also 'raw': the (B, 5) network outputs)."""
     lib = load()
     net_cfg = model.cfg.network
     dims, params = pack(model)
@@ -91,12 +91,13 @@ def train_step(model, samples) -> tuple[float, dict]:
     grad_params = torch.empty_like(params)
     grad_table = torch.zeros_like(table)
     points, dx = _scratch(model, b, k, int(dims[0]))
+    raw = torch.empty((b, 5), dtype=torch.float32) if want_raw else None
     lib.nbvh_mlp_train(
         ptr(samples.rays_o.contiguous()), ptr(samples.rays_d.contiguous()), ptr(samples.ray.contiguous()),
         ptr(samples.t_enter.contiguous()), ptr(samples.t_exit.contiguous()), b, k, ptr(frac), ptr(table),
         *_grid_args(spec, table, codes, code_rows), len(dims) - 1, ptr(dims), ptr(params), ptr(hit),
         ptr(local_t), ptr(normal), int(hit.sum()), float(net_cfg.depth_weight), float(net_cfg.normal_weight),
-        ptr(loss_parts), ptr(grad_params), ptr(grad_table), ptr(points), ptr(dx), threads())
+        ptr(loss_parts), ptr(grad_params), ptr(grad_table), ptr(points), ptr(dx), ptr(raw), threads())
     # Unpack the Linear gradients (stored transposed, like the parameters).
     pos = 0
     for m in linears:
@@ -112,4 +113,6 @@ def train_step(model, samples) -> tuple[float, dict]:
     bce, depth, nrm = (float(v) for v in loss_parts)
     total = bce + net_cfg.depth_weight * depth + net_cfg.normal_weight * nrm
     parts = {"bce": torch.tensor(bce), "depth_l1": torch.tensor(depth), "normal_l1": torch.tensor(nrm)}
+    if want_raw:
+        parts["raw"] = raw
     return total, parts

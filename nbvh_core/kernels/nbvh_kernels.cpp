@@ -494,7 +494,7 @@ void mlp_train_t(const Grid& g, const float* rays_o, const float* rays_d, const 
                  const float* tx, int64_t b, int k, const float* frac, const float* table, int n_layers,
                  const int32_t* dims, const float* params, const uint8_t* hit, const float* local_t,
                  const float* normal, float inv_hits, float w_t, float w_n, double* loss_out, float* grad_params,
-                 float* points, float* dx, int threads) {
+                 float* points, float* dx, float* out_raw, int threads) {
     const Layers net(n_layers, dims, params, true);
     std::vector<int64_t> g_off(n_layers + 1, 0);  // per-thread gradients: W^T (in, padded(out)) then bias (out)
     for (int j = 0; j < n_layers; ++j) g_off[j + 1] = g_off[j] + (int64_t)dims[j] * padded(dims[j + 1]) + dims[j + 1];
@@ -519,6 +519,10 @@ void mlp_train_t(const Grid& g, const float* rays_o, const float* rays_d, const 
             encode_tile<F>(g, rays_o, rays_d, ray, te, tx, s0, m, k, frac, table, act[0].data(), padded(dims[0]),
                            points);
             net.forward(act);
+            if (out_raw)  // the raw outputs, for per-sample errors (loss-proportional leaf sampling)
+                for (int r = 0; r < m; ++r)
+                    std::memcpy(out_raw + (s0 + r) * dims[n_layers], act[n_layers].data() + r * padded(dims[n_layers]),
+                                sizeof(float) * dims[n_layers]);
             float* d_cur = d_a.data();
             float* d_prev = d_b.data();
             mlp_loss_rows(act[n_layers].data(), m, hit + s0, local_t + s0, normal + 3 * s0, inv_b, inv_hits, w_t, w_n,
@@ -570,7 +574,7 @@ void mlp_train_t(const Grid& g, const float* rays_o, const float* rays_d, const 
 
 extern "C" {
 
-int nbvh_abi_version() { return 7; }
+int nbvh_abi_version() { return 8; }
 
 // Fused MLP inference over B segments (see mlp_segments_t): rays_o/rays_d (n_rays, 3), ray (B,) int64 ray of each
 // segment, te/tx (B,) segment ends, frac (k,) point fractions; table (L, rows, F) float32, or float16 when
@@ -597,21 +601,21 @@ void nbvh_mlp_segments(const float* rays_o, const float* rays_d, const int64_t* 
 // One training step of an MLP model on B labelled segments (see mlp_train_t): loss parts (bce, depth_l1, normal_l1)
 // into loss_out (3,) float64; grad_params packed like params; grad_table (L, rows, F) accumulated (zero it first).
 // hit (B,) uint8, local_t (B,), normal (B, 3);
-// hit_count = number of hit rows. Scratch: points (B * k, 3), dx (B, dims[0]).
+// hit_count = number of hit rows. Scratch: points (B * k, 3), dx (B, dims[0]). out_raw (B, 5) or null: raw outputs.
 void nbvh_mlp_train(const float* rays_o, const float* rays_d, const int64_t* ray, const float* te, const float* tx,
                     int64_t b, int k, const float* frac, const float* table, int levels, int features,
                     const float* scales, const int64_t* res, const uint8_t* dense, int64_t vertex_table, int64_t rows,
                     const uint8_t* codes, int64_t code_rows, int n_layers, const int32_t* dims, const float* params,
                     const uint8_t* hit, const float* local_t, const float* normal,
                     int64_t hit_count, float w_t, float w_n, double* loss_out, float* grad_params, float* grad_table,
-                    float* points, float* dx, int threads) {
+                    float* points, float* dx, float* out_raw, int threads) {
     Grid g{levels, features, scales, res, dense, vertex_table, rows, codes, code_rows};
     g.init_masks();
     const float inv_hits = 1.f / (float)(hit_count > 0 ? hit_count : 1);
     by_features(features, [&](auto F) {
         constexpr int f = decltype(F)::value;
         mlp_train_t<f>(g, rays_o, rays_d, ray, te, tx, b, k, frac, table, n_layers, dims, params, hit, local_t,
-                       normal, inv_hits, w_t, w_n, loss_out, grad_params, points, dx, threads);
+                       normal, inv_hits, w_t, w_n, loss_out, grad_params, points, dx, out_raw, threads);
         encode_backward_t<f>(g, points, b * k, dx, grad_table, threads);
     });
 }
