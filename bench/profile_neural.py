@@ -188,7 +188,6 @@ def main() -> None:
                                 + f" | {args.size ** 2 / rt['total']:,.0f} | {segs / rt['total']:,.0f} |")
             print(lines[-1], render_lines[-1], flush=True)
             if path == "fast" and model._fused_network() is not None:
-                model.train()
                 torch.manual_seed(0)
                 model = NeuralBVH(bvh.nodes, s.with_overrides(encoding=enc, network=net, log2_table=log2).model_config(),
                                   mesh.transform)
@@ -197,6 +196,8 @@ def main() -> None:
                 lines.append(f"| {enc}+{net} (T=2^{log2}) | fast, fused step | {n:,.0f} | {1000 * med['rays+labels']:.0f} ms "
                              f"| fused: {1000 * med['fused']:.0f} ms (encoding, network, loss, backward) | | | "
                              f"{1000 * med['optimizer']:.0f} ms | {1000 * total:.0f} ms | {n / total:,.0f} |")
+                if enc == "hashvqad":
+                    model.encoding.freeze()  # as the other render rows (and every saved model)
                 model.eval()
                 rt, segs = profile_render_fused(model, args.size)
                 render_lines.append(f"| {enc}+{net} | fast, fused query | {segs:,} | {1000 * rt['traversal']:.0f} ms | "
