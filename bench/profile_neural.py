@@ -42,103 +42,77 @@ def timed(fn):
     return out, time.perf_counter() - t
 
 
-def profile_train(model, bvh, tracer, tree, n_rays, repeat=5):
+def profile_train(model, bvh, tracer, tree, n_rays, repeat=5, fused=False):
+    """Median seconds per stage of a training step. fused: the fused step (kernels.mlp.train_step: encoding,
+    network, loss and backward in one call; torch's fused Adam as train() uses there)."""
+    from nbvh_core.kernels import mlp
+
     rng = np.random.default_rng(0)
     lo, hi = root_box(bvh)
-    opt = torch.optim.Adam(model.parameters(), lr=1e-3)
-    stages = {k: [] for k in ("rays+labels", "encoding fwd", "network fwd+loss", "backward", "optimizer")}
+    opt = torch.optim.Adam(model.parameters(), lr=1e-3, fused=fused or None)
+    names = ("rays+labels", "fused", "optimizer") if fused else \
+        ("rays+labels", "encoding fwd", "network fwd+loss", "backward", "optimizer")
+    stages = {k: [] for k in names}
     n_samples = []
     for _ in range(repeat):
         s, dt = timed(lambda: label_samples(bvh, tracer, *sample_rays(lo, hi, n_rays, rng, RayConfig()),
                                             "consistent", tree=tree))
         stages["rays+labels"].append(dt)
         n_samples.append(len(s))
-        r = s.ray
-        pts = model.segment_points(s.rays_o[r], s.rays_d[r], s.t_enter, s.t_exit)
-        b, k, _ = pts.shape
-        feats, dt = timed(lambda: model.encoding(pts.reshape(-1, 3)).reshape(b, k, -1))
-        stages["encoding fwd"].append(dt)
-        (loss, _), dt = timed(lambda: model.network.loss(model.network(feats), s.hit, s.local_t, s.normal))
-        stages["network fwd+loss"].append(dt)
-        opt.zero_grad()
-        _, dt = timed(loss.backward)
-        stages["backward"].append(dt)
+        if fused:
+            opt.zero_grad(set_to_none=True)
+            _, dt = timed(lambda: mlp.train_step(model, s))
+            stages["fused"].append(dt)
+        else:
+            r = s.ray
+            pts = model.segment_points(s.rays_o[r], s.rays_d[r], s.t_enter, s.t_exit)
+            b, k, _ = pts.shape
+            feats, dt = timed(lambda: model.encoding(pts.reshape(-1, 3)).reshape(b, k, -1))
+            stages["encoding fwd"].append(dt)
+            (loss, _), dt = timed(lambda: model.network.loss(model.network(feats), s.hit, s.local_t, s.normal))
+            stages["network fwd+loss"].append(dt)
+            opt.zero_grad()
+            _, dt = timed(loss.backward)
+            stages["backward"].append(dt)
         _, dt = timed(opt.step)
         stages["optimizer"].append(dt)
     med = {k: statistics.median(v) for k, v in stages.items()}
     return med, statistics.median(n_samples)
 
 
-def profile_train_fused(model, bvh, tracer, tree, n_rays, repeat=5):
-    """The fused training step (kernels.mlp.train_step): labels, one kernel call, optimizer."""
-    from nbvh_core.kernels import mlp
-
-    rng = np.random.default_rng(0)
-    lo, hi = root_box(bvh)
-    opt = torch.optim.Adam(model.parameters(), lr=1e-3, fused=True)
-    stages = {k: [] for k in ("rays+labels", "fused", "optimizer")}
-    n_samples = []
-    for _ in range(repeat):
-        s, dt = timed(lambda: label_samples(bvh, tracer, *sample_rays(lo, hi, n_rays, rng, RayConfig()),
-                                            "consistent", tree=tree))
-        stages["rays+labels"].append(dt)
-        n_samples.append(len(s))
-        opt.zero_grad(set_to_none=True)
-        _, dt = timed(lambda: mlp.train_step(model, s))
-        stages["fused"].append(dt)
-        _, dt = timed(opt.step)
-        stages["optimizer"].append(dt)
-    return {k: statistics.median(v) for k, v in stages.items()}, statistics.median(n_samples)
-
-
-def profile_render_fused(model, size):
-    """NeuralBVH.query's fast path for MLP models: traversal, then one fused kernel per wave (encoding + network)."""
+def profile_render(model, size, fused=False):
+    """Seconds per stage of one render. fused: NeuralBVH.query's fast path for MLP models (one kernel call per
+    wave: encoding + network, reported as 'fused')."""
     cam = orbit_cameras(1)[0]
     o, d = (torch.from_numpy(a) for a in cam.rays(size, size))
-    packed = model._fused_network()
+    packed = model._fused_network() if fused else None
     stream = LeafStream(model.tree(), o, d)
-    t_trav = t_fused = 0.0
+    t = {"traversal": 0.0, "encoding": 0.0, "network": 0.0, "fused": 0.0}
     segments = 0
     t0 = time.perf_counter()
     with torch.no_grad():
         while True:
             (ray, _, te, tx), dt = timed(stream.next)
-            t_trav += dt
+            t["traversal"] += dt
             if ray.numel() == 0:
                 break
             segments += ray.numel()
-            raw, dt = timed(lambda: model._fused_raw(packed, o, d, ray, te, tx))
-            t_fused += dt
-            prob = model.network.decode(raw)[0]
+            if fused:
+                raw, dt = timed(lambda: model._fused_raw(packed, o, d, ray, te, tx))
+                t["fused"] += dt
+                prob = model.network.decode(raw)[0]
+            else:
+                pts = model.segment_points(o[ray], d[ray], te, tx)
+                b, k, _ = pts.shape
+                feats, dt = timed(lambda: model.encoding(pts.reshape(-1, 3)).reshape(b, k, -1))
+                t["encoding"] += dt
+                (prob, _, _), dt = timed(lambda: model.network.decode(model.network(feats)))
+                t["network"] += dt
             stream.stop(ray[prob > 0.5])
     total = time.perf_counter() - t0
-    return {"traversal": t_trav, "fused": t_fused, "bookkeeping": total - t_trav - t_fused, "total": total}, segments
-
-
-def profile_render(model, size):
-    cam = orbit_cameras(1)[0]
-    o, d = (torch.from_numpy(a) for a in cam.rays(size, size))
-    stream = LeafStream(model.tree(), o, d)
-    t_trav = t_enc = t_net = 0.0
-    segments = 0
-    t0 = time.perf_counter()
-    with torch.no_grad():
-        while True:
-            (ray, _, te, tx), dt = timed(stream.next)
-            t_trav += dt
-            if ray.numel() == 0:
-                break
-            segments += ray.numel()
-            pts = model.segment_points(o[ray], d[ray], te, tx)
-            b, k, _ = pts.shape
-            feats, dt = timed(lambda: model.encoding(pts.reshape(-1, 3)).reshape(b, k, -1))
-            t_enc += dt
-            (prob, _, _), dt = timed(lambda: model.network.decode(model.network(feats)))
-            t_net += dt
-            stream.stop(ray[prob > 0.5])
-    total = time.perf_counter() - t0
-    return {"traversal": t_trav, "encoding": t_enc, "network": t_net,
-            "bookkeeping": total - t_trav - t_enc - t_net, "total": total}, segments
+    t["bookkeeping"] = total - sum(t.values())
+    t["total"] = total
+    return t, segments
 
 
 def main() -> None:
@@ -191,7 +165,7 @@ def main() -> None:
                 torch.manual_seed(0)
                 model = NeuralBVH(bvh.nodes, s.with_overrides(encoding=enc, network=net, log2_table=log2).model_config(),
                                   mesh.transform)
-                med, n = profile_train_fused(model, bvh, tracer, tree, args.rays)
+                med, n = profile_train(model, bvh, tracer, tree, args.rays, fused=True)
                 total = sum(med.values())
                 lines.append(f"| {enc}+{net} (T=2^{log2}) | fast, fused step | {n:,.0f} | {1000 * med['rays+labels']:.0f} ms "
                              f"| fused: {1000 * med['fused']:.0f} ms (encoding, network, loss, backward) | | | "
@@ -199,7 +173,7 @@ def main() -> None:
                 if enc == "hashvqad":
                     model.encoding.freeze()  # as the other render rows (and every saved model)
                 model.eval()
-                rt, segs = profile_render_fused(model, args.size)
+                rt, segs = profile_render(model, args.size, fused=True)
                 render_lines.append(f"| {enc}+{net} | fast, fused query | {segs:,} | {1000 * rt['traversal']:.0f} ms | "
                                     f"fused: {1000 * rt['fused']:.0f} ms (encoding + network) | | "
                                     f"{1000 * rt['bookkeeping']:.0f} ms | {1000 * rt['total']:.0f} ms | "

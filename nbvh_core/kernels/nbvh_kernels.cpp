@@ -40,19 +40,33 @@ struct Grid {
     }
 };
 
-// Row of `table` (within level l) and trilinear weight of the 8 corners of point x at level l.
-inline void corners(const Grid& g, int l, const float* x, int64_t* row, float* w) {
+// Cell of point x (clamped to the unit box) at level l: corner 0 (`base`) and the position inside it (`frac`).
+template <typename I>
+inline void cell(const Grid& g, int l, const float* x, float* frac, I* base) {
     const float s = g.scales[l];
-    float frac[3];
-    int64_t base[3];
     for (int a = 0; a < 3; ++a) {
         float xa = x[a];
         xa = xa < 0.f ? 0.f : (xa > 1.f ? 1.f : xa);
         const float p = xa * s + 0.5f;
         const float b = std::floor(p);
         frac[a] = p - b;
-        base[a] = (int64_t)b;
+        base[a] = (I)b;
     }
+}
+
+// Row a frozen HashVQAD code selects for vertex index idx at level l (identity without codes).
+inline int64_t code_row(const Grid& g, int l, int64_t idx) {
+    if (!g.codes) return idx;
+    const uint32_t code = g.codes[(int64_t)l * g.vertex_table + idx];
+    const uint32_t h = ((uint32_t)idx * P1) ^ (code * P2);
+    return g.code_mask ? (int64_t)(h & g.code_mask) : (int64_t)(h % (uint64_t)g.code_rows);
+}
+
+// Row of `table` (within level l) and trilinear weight of the 8 corners of point x at level l.
+inline void corners(const Grid& g, int l, const float* x, int64_t* row, float* w) {
+    float frac[3];
+    int64_t base[3];
+    cell(g, l, x, frac, base);
     const int64_t r = g.res[l];
     for (int c = 0; c < 8; ++c) {
         const int bx = c & 1, by = (c >> 1) & 1, bz = (c >> 2) & 1;
@@ -67,12 +81,7 @@ inline void corners(const Grid& g, int l, const float* x, int64_t* row, float* w
             // Table sizes are powers of two in practice: a mask instead of a 64-bit division (~30 cycles).
             idx = g.vertex_mask ? (int64_t)(h & g.vertex_mask) : (int64_t)(h % (uint64_t)g.vertex_table);
         }
-        if (g.codes) {
-            const uint32_t code = g.codes[(int64_t)l * g.vertex_table + idx];
-            const uint32_t h = ((uint32_t)idx * P1) ^ (code * P2);
-            idx = g.code_mask ? (int64_t)(h & g.code_mask) : (int64_t)(h % (uint64_t)g.code_rows);
-        }
-        row[c] = idx;
+        row[c] = code_row(g, l, idx);
     }
 }
 
@@ -80,17 +89,9 @@ inline void corners(const Grid& g, int l, const float* x, int64_t* row, float* w
 // `corners` for the 8 corners at once in AVX2 lanes (lane c = corner c): the same cells, weights (same product
 // order) and rows, bit for bit; int32 lanes, so only for levels whose index arithmetic fits 32 bits (see fits32).
 inline void corners8(const Grid& g, int l, const float* x, int64_t* row, float* w) {
-    const float s = g.scales[l];
     float frac[3];
     int32_t base[3];
-    for (int a = 0; a < 3; ++a) {
-        float xa = x[a];
-        xa = xa < 0.f ? 0.f : (xa > 1.f ? 1.f : xa);
-        const float p = xa * s + 0.5f;
-        const float b = std::floor(p);
-        frac[a] = p - b;
-        base[a] = (int32_t)b;
-    }
+    cell(g, l, x, frac, base);
     const __m256 one = _mm256_set1_ps(1.f);
     const __m256 fx = _mm256_set1_ps(frac[0]), fy = _mm256_set1_ps(frac[1]), fz = _mm256_set1_ps(frac[2]);
     const __m256 wx = _mm256_blend_ps(_mm256_sub_ps(one, fx), fx, 0xAA);  // lanes with bit 0 set take frac
@@ -112,15 +113,7 @@ inline void corners8(const Grid& g, int l, const float* x, int64_t* row, float* 
     }
     alignas(32) uint32_t v[8];
     _mm256_store_si256(reinterpret_cast<__m256i*>(v), idx);
-    for (int c = 0; c < 8; ++c) {
-        int64_t i = v[c];
-        if (g.codes) {
-            const uint32_t code = g.codes[(int64_t)l * g.vertex_table + i];
-            const uint32_t h = ((uint32_t)i * P1) ^ (code * P2);
-            i = g.code_mask ? (int64_t)(h & g.code_mask) : (int64_t)(h % (uint64_t)g.code_rows);
-        }
-        row[c] = i;
-    }
+    for (int c = 0; c < 8; ++c) row[c] = code_row(g, l, (int64_t)v[c]);
 }
 #endif
 
