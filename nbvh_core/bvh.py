@@ -77,6 +77,9 @@ class BVH:
     tri_leaf: np.ndarray
     max_depth: int
     budget: int
+    #: The full tree this BVH was cut from and the full-tree node of each leaf (for refining the cut; not stored).
+    full: "FullTree | None" = None
+    leaf_full: np.ndarray | None = None
 
     @property
     def n_nodes(self) -> int:
@@ -315,10 +318,48 @@ def cut_tree(tree: FullTree, budget: int = DEFAULT_NODES, priority=None, max_nod
             cut_leaves.add(child)
             if tree.left[child] >= 0:
                 heapq.heappush(heap, (-priority(tree, child), child))
+    return layout_cut(tree, cut_leaves, budget, max_nodes)
+
+
+def refine_cut(bvh: BVH, leaf_scores: np.ndarray, new_leaves: int) -> tuple[BVH, np.ndarray]:
+    """N-BVH's tree-cut splitting: replace the `new_leaves` highest-scoring splittable leaves of `bvh` by their two
+    children in the full tree (each split adds one leaf, two nodes), never beyond bvh.budget.
+
+    leaf_scores: (L,) per leaf ordinal (e.g. the running error). Returns (the refined BVH, parent (L',) int64: the
+    old leaf ordinal each new leaf comes from), so per-leaf statistics can follow the split.
+    """
+    tree, leaf_full = bvh.full, bvh.leaf_full
+    if tree is None or leaf_full is None:
+        raise ValueError("this BVH does not carry its full tree; build it with build_bvh")
+    room = (bvh.budget + 1) // 2 - len(leaf_full)
+    order = np.argsort(-np.asarray(leaf_scores, np.float64), kind="stable")
+    split = [int(i) for i in order if tree.left[leaf_full[i]] >= 0][:max(0, min(new_leaves, room))]
+    cut = {int(n) for n in leaf_full}
+    origin = {int(n): i for i, n in enumerate(leaf_full)}
+    for i in split:
+        node = int(leaf_full[i])
+        cut.remove(node)
+        for child in (int(tree.left[node]), int(tree.left[node]) + 1):
+            cut.add(child)
+            origin[child] = i
+    out = layout_cut(tree, cut, bvh.budget, final=False)
+    return out, np.array([origin[int(n)] for n in out.leaf_full], np.int64)
+
+
+def coarse_cut(bvh: BVH, leaves: int) -> BVH:
+    """The SAH cut of bvh's full tree with `leaves` leaves, to be refined up to bvh.budget (`refine_cut`)."""
+    small = cut_tree(bvh.full, 2 * leaves - 1)
+    return layout_cut(bvh.full, {int(n) for n in small.leaf_full}, bvh.budget, final=False)
+
+
+def layout_cut(tree: FullTree, cut_leaves: set, budget: int, max_nodes: int | None = MAX_NODES,
+               final: bool = True) -> BVH:
+    """The BVH whose leaves are the full-tree nodes `cut_leaves` (a valid cut), laid out in BFS order; `budget` is
+    what the cut may grow to (final=False: a cut still being refined, smaller by design, no warning)."""
     n_leaves = len(cut_leaves)
     n_tree_nodes = 2 * n_leaves - 1
     padded = budget % 2 == 0 and n_tree_nodes == budget - 1
-    if n_tree_nodes + padded < budget and max_nodes is not None:
+    if final and n_tree_nodes + padded < budget and max_nodes is not None:
         warnings.warn(f"the mesh has too few triangles for {budget} BVH nodes; using {n_tree_nodes}", stacklevel=2)
 
     # Lay out the cut in BFS order: root 0, (padding 1), then sibling pairs.
@@ -362,7 +403,7 @@ def cut_tree(tree: FullTree, budget: int = DEFAULT_NODES, priority=None, max_nod
                                                                          leaf_count)
     return BVH(nodes=nodes, leaf_node=np.asarray(leaf_node, np.int64), leaf_tri_start=leaf_start,
                leaf_tri_count=leaf_count, tri_order=tree.tri_order, tri_leaf=tri_leaf,
-               max_depth=int(depth_of.max()), budget=budget)
+               max_depth=int(depth_of.max()), budget=budget, full=tree, leaf_full=leaf_full_arr)
 
 
 def build_bvh(mesh: Mesh, budget: int = DEFAULT_NODES, n_bins: int = 16) -> BVH:

@@ -150,6 +150,7 @@ def cmd_compress(args: argparse.Namespace) -> int:
         labels=args.labels, lr=args.lr, steps=args.steps, time_limit_s=args.time_limit, seed=args.seed,
         device=args.device, float_bytes=2 if args.float16 else None, eval_views=args.views,
         rays_per_step=args.rays_per_step, budget_kb=args.budget_kb, leaf_sampling=args.leaf_sampling,
+        tree_cut=True if args.tree_cut else None,
         target_mse=QUALITY_LEVELS[args.quality] if args.quality else args.target_mse)
     if args.steps is not None and args.time_limit is None:
         settings.time_limit_s = None
@@ -350,6 +351,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--rays-per-step", type=int)
     c.add_argument("--leaf-sampling", choices=["uniform", "loss"],
                    help="'loss': half of each batch starts in leaves drawn by their running error (N-BVH's resampling)")
+    c.add_argument("--tree-cut", action="store_true",
+                   help="start from half the BVH leaves and split the worst ones during training (N-BVH's tree cut)")
     c.add_argument("--seed", type=int)
     c.add_argument("--device", choices=["auto", "cpu", "cuda"])
     c.add_argument("--float16", action="store_true", help="store tables and weights as float16")

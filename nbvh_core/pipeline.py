@@ -53,6 +53,8 @@ class Settings:
     anneal_fraction: float = 0.3
     #: 'uniform' or 'loss' (N-BVH's loss-proportional resampling of leaves; see TrainConfig.leaf_sampling).
     leaf_sampling: str = "uniform"
+    #: N-BVH's tree-cut splitting during training (see TrainConfig.tree_cut).
+    tree_cut: bool = False
     seed: int = 0
     device: str = "auto"
     float_bytes: int = 4
@@ -70,7 +72,8 @@ class Settings:
     def train_config(self) -> TrainConfig:
         return TrainConfig(labels=self.labels, lr=self.lr, steps=self.steps, time_limit_s=self.time_limit_s,
                            rays_per_step=self.rays_per_step, seed=self.seed, device=self.device,
-                           anneal_fraction=self.anneal_fraction, leaf_sampling=self.leaf_sampling)
+                           anneal_fraction=self.anneal_fraction, leaf_sampling=self.leaf_sampling,
+                           tree_cut=self.tree_cut)
 
     def with_overrides(self, **kw) -> "Settings":
         unknown = set(kw) - {f.name for f in dataclasses.fields(self)}

@@ -114,3 +114,25 @@ def test_build_is_fast_on_large_mesh(sample_meshes):
     t = time.perf_counter()
     build_bvh(sample_meshes["studs"], 4096)
     assert time.perf_counter() - t < 60
+
+
+def test_tree_cut_refinement_splits_the_worst_leaves_up_to_the_budget(sample_meshes):
+    from nbvh_core.bvh import coarse_cut, refine_cut
+
+    full = build_bvh(sample_meshes["blob"], 255)
+    coarse = coarse_cut(full, 64)
+    assert coarse.n_leaves == 64 and coarse.n_nodes == 127 and coarse.budget == 255
+    scores = np.zeros(64)
+    scores[[5, 9]] = [2.0, 1.0]  # the two worst leaves
+    refined, parent = refine_cut(coarse, scores, 2)
+    assert refined.n_leaves == 66 and refined.n_nodes == 131
+    # The two new pairs come from leaves 5 and 9; every other leaf is carried over once.
+    assert sorted(np.bincount(parent, minlength=64)[[5, 9]]) == [2, 2]
+    assert np.bincount(parent, minlength=64).sum() == 66
+    split_nodes = {int(coarse.leaf_full[5]), int(coarse.leaf_full[9])}
+    assert not split_nodes & {int(n) for n in refined.leaf_full}
+    # Every triangle still has exactly one owner, inside its leaf's box.
+    assert np.bincount(refined.tri_leaf, minlength=refined.n_leaves).sum() == sample_meshes["blob"].n_triangles
+    # Never beyond the budget: asking for 1000 splits stops at 128 leaves (255 nodes).
+    full_cut, _ = refine_cut(refined, np.ones(refined.n_leaves), 1000)
+    assert full_cut.n_leaves == 128 and full_cut.n_nodes == 255

@@ -149,14 +149,17 @@ def test_every_config_trains_and_renders(blob_setup, encoding, network, labels):
     assert img.image.shape == (24, 24) and np.isfinite(img.image).all()
 
 
-@pytest.mark.parametrize("leaf_sampling,label_steps,cancel_at", [("uniform", 32, 4), ("loss", 2, 5)])
+@pytest.mark.parametrize("leaf_sampling,label_steps,cancel_at,tree_cut",
+                         [("uniform", 32, 4, False), ("loss", 2, 5, False), ("uniform", 4, 5, True)])
 def test_cancel_leaves_nothing_and_resume_continues_identically(blob_setup, tmp_path, leaf_sampling, label_steps,
-                                                                cancel_at):
+                                                                cancel_at, tree_cut):
     # ('loss', 2 steps per labelling pass, cancelled mid-pass: the resumed pass is redrawn with the leaf weights it
-    # was first drawn with, later passes with the restored running errors.)
+    # was first drawn with, later passes with the restored running errors. tree_cut: the cut refined so far, its
+    # leaf errors and rounds come back; a refinement drops the rest of a labelling pass in both runs.)
     mesh, bvh, tracer = blob_setup
     cfg = ModelConfig(EncodingConfig(kind="hashgrid", log2_table=6, levels=2, features=4), NetworkConfig(kind="mlp", k=4))
-    tc = TrainConfig(steps=8, rays_per_step=256, seed=3, leaf_sampling=leaf_sampling, label_steps=label_steps)
+    tc = TrainConfig(steps=8, rays_per_step=256, seed=3, leaf_sampling=leaf_sampling, label_steps=label_steps,
+                     tree_cut=tree_cut, tree_cut_rounds=4, tree_cut_until=0.8)
 
     def fresh():
         torch.manual_seed(11)  # same initial weights for every run
@@ -176,6 +179,9 @@ def test_cancel_leaves_nothing_and_resume_continues_identically(blob_setup, tmp_
     assert res.steps == 8
     for a, b in zip(straight.parameters(), resumed.parameters()):
         assert torch.allclose(a, b, atol=1e-6)
+    assert np.array_equal(straight.nodes, resumed.nodes)
+    if tree_cut:  # refined from 32 to the full 63-node budget within the 8 steps
+        assert straight.nodes.shape[0] == bvh.n_nodes
 
 
 def test_divergence_is_detected_and_nothing_saved(blob_setup, tmp_path, monkeypatch):
