@@ -12,9 +12,10 @@ caller asks `fast_enabled(device)`; results record `describe()` so a number says
 * `stream_next` - `traversal.LeafStream.next` per ray with a real per-ray stack loop (the reference advances all
   rays one pop at a time with tensor ops).
 * `leaves_traverse` / `leaves_collect` - the complete sorted leaf list per ray (training labels), one traversal.
-* `mlp_segments` / `mlp_train` (used through `kernels.mlp`) - inference / one training step of a whole MLP model per (ray, leaf) segment: points, encoding and every Linear layer
-  (AVX2 6x16 register-blocked micro-kernel, bias and ReLU fused) on a tile of 48 segments that stays in the cache;
-  the reference writes (B, k*L*F) features to memory and runs torch's layers over them.
+* `mlp_segments` / `mlp_train` (used through `kernels.mlp`) - inference / one training step of a whole MLP model
+  per (ray, leaf) segment: points, encoding and every Linear layer (AVX2 6x16 register-blocked micro-kernel, bias
+  and ReLU fused) on a tile of 48 segments that stays in the cache; the reference writes (B, k*L*F) features to
+  memory and runs torch's layers over them.
 
 Built at install (`python -m nbvh_core.kernels build`, run by scripts/ensure_venv.sh) or on first use, with
 g++ -O3 -march=native -ffp-contract=off -fopenmp, into a cache folder keyed by the source, the compiler flags
@@ -154,7 +155,6 @@ def load() -> ctypes.CDLL | None:
     lib.nbvh_encode_forward.argtypes = enc
     lib.nbvh_encode_backward.argtypes = enc
     lib.nbvh_encode_forward_f16.argtypes = enc
-    lib.nbvh_segment_points.argtypes = [P, P, P, P, P, I64, I32, P, P, I32]
     lib.nbvh_stream_next.argtypes = [P, P, I64, P, P, P, P, P, P, P, P, I32, P, P, P, I32]
     lib.nbvh_leaves_traverse.argtypes = [P, P, I64, P, P, P, P, P, I32, P, P, I32]
     lib.nbvh_leaves_traverse.restype = P
@@ -163,8 +163,8 @@ def load() -> ctypes.CDLL | None:
     lib.nbvh_mlp_segments.argtypes = [P, P, P, P, P, I64, I32, P, P, I32, *enc[4:13], I32, P, P, P, I32]
     lib.nbvh_mlp_train.argtypes = [P, P, P, P, P, I64, I32, P, P, *enc[4:13], I32, P, P, P, P, P, I64,
                                    ctypes.c_float, ctypes.c_float, P, P, P, P, P, P, I32]
-    for fn in (lib.nbvh_encode_forward, lib.nbvh_encode_forward_f16, lib.nbvh_encode_backward, lib.nbvh_segment_points,
-               lib.nbvh_stream_next, lib.nbvh_mlp_segments, lib.nbvh_mlp_train):
+    for fn in (lib.nbvh_encode_forward, lib.nbvh_encode_forward_f16, lib.nbvh_encode_backward, lib.nbvh_stream_next,
+               lib.nbvh_mlp_segments, lib.nbvh_mlp_train):
         fn.restype = None
     _lib = lib
     return lib

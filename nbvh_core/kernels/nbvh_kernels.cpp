@@ -168,19 +168,23 @@ inline void accumulate(float* __restrict out, const T* __restrict tab, const int
     }
 }
 
+// The L * F features of one point p (3,) into out: every level's 8-corner weighted row sum.
+template <int F, typename T>
+inline void encode_point(const Grid& g, const float* p, const T* table, float* out) {
+    const int nf = F > 0 ? F : g.features;
+    int64_t row[8];
+    float w[8];
+    for (int l = 0; l < g.levels; ++l) {
+        corners_any(g, l, p, row, w, fits32(g, l));
+        accumulate<F>(out + l * nf, table + (int64_t)l * g.rows * nf, row, w, nf);
+    }
+}
+
 template <int F, typename T = float>
 void encode_forward_t(const Grid& g, const float* points, int64_t n, const T* table, float* out, int threads) {
-    const int L = g.levels;
-    const int nf = F > 0 ? F : g.features;
+    const int width = g.levels * (F > 0 ? F : g.features);
 #pragma omp parallel for schedule(static) num_threads(threads)
-    for (int64_t i = 0; i < n; ++i) {
-        int64_t row[8];
-        float w[8];
-        for (int l = 0; l < L; ++l) {
-            corners_any(g, l, points + 3 * i, row, w, fits32(g, l));
-            accumulate<F>(out + (i * L + l) * nf, table + (int64_t)l * g.rows * nf, row, w, nf);
-        }
-    }
+    for (int64_t i = 0; i < n; ++i) encode_point<F>(g, points + 3 * i, table, out + i * width);
 }
 
 template <int F>
@@ -395,9 +399,7 @@ template <int F, typename T>
 inline void encode_tile(const Grid& g, const float* rays_o, const float* rays_d, const int64_t* ray, const float* te,
                         const float* tx, int64_t s0, int m, int k, const float* frac, const T* table, float* x,
                         int64_t ldx, float* points) {
-    const int L = g.levels, nf = F > 0 ? F : g.features;
-    int64_t row[8];
-    float w[8];
+    const int width = g.levels * (F > 0 ? F : g.features);
     for (int s = 0; s < m; ++s) {
         const int64_t seg = s0 + s;
         const float* o = rays_o + 3 * ray[seg];
@@ -407,10 +409,7 @@ inline void encode_tile(const Grid& g, const float* rays_o, const float* rays_d,
             const float t = te[seg] + frac[i] * len;
             const float p[3] = {o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]};
             if (points) std::memcpy(points + (seg * k + i) * 3, p, sizeof p);
-            for (int l = 0; l < L; ++l) {
-                corners_any(g, l, p, row, w, fits32(g, l));
-                accumulate<F>(x + s * ldx + (i * L + l) * nf, table + (int64_t)l * g.rows * nf, row, w, nf);
-            }
+            encode_point<F>(g, p, table, x + s * ldx + i * width);
         }
     }
 }
@@ -641,21 +640,6 @@ void nbvh_encode_backward(const float* points, int64_t n, const float* grad_out,
     by_features(features, [&](auto F) {
         encode_backward_t<decltype(F)::value>(g, points, n, grad_out, grad_table, threads);
     });
-}
-
-// Segment points: out (B, k, 3) = o[ray] + (te + i/(k-1) (tx - te)) d[ray], as NeuralBVH.segment_points.
-void nbvh_segment_points(const float* rays_o, const float* rays_d, const int64_t* ray, const float* te,
-                         const float* tx, int64_t b, int k, const float* frac, float* out, int threads) {
-#pragma omp parallel for schedule(static) num_threads(threads)
-    for (int64_t s = 0; s < b; ++s) {
-        const float* o = rays_o + 3 * ray[s];
-        const float* d = rays_d + 3 * ray[s];
-        const float len = tx[s] - te[s];
-        for (int i = 0; i < k; ++i) {
-            const float t = te[s] + frac[i] * len;
-            for (int a = 0; a < 3; ++a) out[(s * k + i) * 3 + a] = o[a] + t * d[a];
-        }
-    }
 }
 
 // One step of traversal.LeafStream.next for every ray with sp > 0: pop (nearer child first) until a leaf is
