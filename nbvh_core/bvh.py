@@ -304,9 +304,13 @@ def cut_tree(tree: FullTree, budget: int = DEFAULT_NODES, priority=None, max_nod
     """
     if budget < 1 or (max_nodes is not None and budget > max_nodes):
         raise ValueError(f"node budget must be in [1, {max_nodes}], got {budget}")
-    priority = priority or _sah_priority
     # A binary tree has an odd node count; an even budget keeps one padding node (see module docstring).
-    target_leaves = (budget + 1) // 2
+    return layout_cut(tree, _greedy_cut(tree, (budget + 1) // 2, priority or _sah_priority), budget, max_nodes)
+
+
+def _greedy_cut(tree: FullTree, target_leaves: int, priority) -> set:
+    """Full-tree nodes of the cut with `target_leaves` leaves (fewer when the tree runs out): from the root, the
+    leaf of highest priority is expanded first."""
     cut_leaves = {0}
     heap: list[tuple[float, int]] = []
     if tree.left[0] >= 0:
@@ -318,7 +322,7 @@ def cut_tree(tree: FullTree, budget: int = DEFAULT_NODES, priority=None, max_nod
             cut_leaves.add(child)
             if tree.left[child] >= 0:
                 heapq.heappush(heap, (-priority(tree, child), child))
-    return layout_cut(tree, cut_leaves, budget, max_nodes)
+    return cut_leaves
 
 
 def refine_cut(bvh: BVH, leaf_scores: np.ndarray, new_leaves: int) -> tuple[BVH, np.ndarray]:
@@ -348,8 +352,7 @@ def refine_cut(bvh: BVH, leaf_scores: np.ndarray, new_leaves: int) -> tuple[BVH,
 
 def coarse_cut(bvh: BVH, leaves: int) -> BVH:
     """The SAH cut of bvh's full tree with `leaves` leaves, to be refined up to bvh.budget (`refine_cut`)."""
-    small = cut_tree(bvh.full, 2 * leaves - 1)
-    return layout_cut(bvh.full, {int(n) for n in small.leaf_full}, bvh.budget, final=False)
+    return layout_cut(bvh.full, _greedy_cut(bvh.full, leaves, _sah_priority), bvh.budget, final=False)
 
 
 def layout_cut(tree: FullTree, cut_leaves: set, budget: int, max_nodes: int | None = MAX_NODES,

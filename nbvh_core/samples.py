@@ -91,13 +91,17 @@ def root_box(bvh: BVH) -> tuple[np.ndarray, np.ndarray]:
     return bvh.nodes["lo"][0].copy(), bvh.nodes["hi"][0].copy()
 
 
-def _unit_vectors(rng: np.random.Generator, n: int) -> np.ndarray:
-    """(n, 3) float32 directions uniform on the unit sphere (normalised Gaussian triples)."""
-    v = rng.standard_normal((n, 3), dtype=np.float32)
+def _normalise_rows(v: np.ndarray) -> np.ndarray:
+    """Scale the rows of v (n, 3) to unit length in place (zero rows stay zero); returns v."""
     norm = np.sqrt(np.einsum("ij,ij->i", v, v))[:, None]
     norm[norm == 0] = 1.0
     v /= norm
     return v
+
+
+def _unit_vectors(rng: np.random.Generator, n: int) -> np.ndarray:
+    """(n, 3) float32 directions uniform on the unit sphere (normalised Gaussian triples)."""
+    return _normalise_rows(rng.standard_normal((n, 3), dtype=np.float32))
 
 
 def _uniform_in(rng: np.random.Generator, n: int, centre: np.ndarray, half: np.ndarray) -> np.ndarray:
@@ -135,7 +139,7 @@ def sample_rays(lo: np.ndarray, hi: np.ndarray, n_rays: int, rng: np.random.Gene
         np.multiply(_unit_vectors(rng, n_out), radius, out=o[:n_out])
         o[:n_out] += centre
         np.subtract(_uniform_in(rng, n_out, centre, big_half), o[:n_out], out=d[:n_out])
-        d[:n_out] /= np.sqrt(np.einsum("ij,ij->i", d[:n_out], d[:n_out]))[:, None]
+        _normalise_rows(d[:n_out])
         # Inside rays: uniform origin in the enlarged box, uniform direction.
         o[n_out:] = _uniform_in(rng, m - n_out, centre, big_half)
         d[n_out:] = _unit_vectors(rng, m - n_out)
