@@ -180,7 +180,7 @@ class _Batches:
         self._pending: list = []  # batches of the current chunk not yet handed out
         self._pool = None  # ray-drawing threads, made on first use
         self.leaf_errors = leaf_errors  # loss-proportional leaf sampling: the running per-leaf errors
-        self._leaf_boxes = bvh.leaf_boxes() if cfg.leaf_sampling == "loss" else None
+        self._leaf_boxes = bvh.leaf_boxes() if leaf_errors is not None else None
         self._state = {"chunk_state": rng.bit_generator.state, "index": -1}
         skip = 0
         self._weights_override = None  # the leaf weights the resumed chunk was drawn with
@@ -287,6 +287,40 @@ class _Batches:
             self._thread.join(timeout=5)
 
 
+class _TreeCut:
+    """N-BVH's tree-cut splitting during training (TrainConfig.tree_cut): `start` is the coarse cut training begins
+    on (or the cut a checkpoint stopped at); `refine` splits the leaves with the highest running error in
+    cfg.tree_cut_rounds rounds spread over the first cfg.tree_cut_until of the budget, up to bvh's node budget."""
+
+    def __init__(self, bvh: BVH, cfg: TrainConfig, resumed_cut: list | None = None, rounds_done: int = 0):
+        from .bvh import coarse_cut, layout_cut
+
+        self.cfg = cfg
+        self.final_leaves = bvh.n_leaves
+        self.rounds_done = rounds_done
+        self.start = (layout_cut(bvh.full, {int(n) for n in resumed_cut}, bvh.budget, final=False)
+                      if resumed_cut is not None else
+                      coarse_cut(bvh, max(2, int(self.final_leaves * cfg.tree_cut_start))))
+
+    def refine(self, frac: float, current: BVH, leaf_errors: LeafErrors) -> BVH | None:
+        """The refined cut when a round is due at training fraction `frac` (leaf_errors follow the split: children
+        inherit their parent's error), else None."""
+        cfg = self.cfg
+        due = min(cfg.tree_cut_rounds, int(frac / cfg.tree_cut_until * cfg.tree_cut_rounds)) \
+            if cfg.tree_cut_until > 0 else 0
+        if current.n_leaves >= self.final_leaves or self.rounds_done >= due:
+            return None
+        self.rounds_done = due
+        # Leaves still to add, shared over the rounds left (the last round reaches the budget).
+        per_round = -(-(self.final_leaves - current.n_leaves) // max(1, cfg.tree_cut_rounds - due + 1))
+        refined, parent = refine_cut(current, leaf_errors.error.numpy(), per_round)
+        if refined.n_leaves == current.n_leaves:  # nothing left to split
+            self.final_leaves = refined.n_leaves
+            return None
+        leaf_errors.error = leaf_errors.error[torch.from_numpy(parent)]
+        return refined
+
+
 def _atomic_save(obj, path: Path) -> None:
     tmp = path.with_name(path.name + ".partial")
     torch.save(obj, tmp)
@@ -317,10 +351,7 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
     opt = torch.optim.Adam(groups, lr=cfg.lr, fused=kernels.current_path() == "fast" or None)
     start_step, elapsed_before = 0, 0.0
     history: list = []
-    resume_batches = None
-    resume_leaf_errors = None
-    resume_cut = None
-    resume_rounds = 0
+    ck: dict = {}  # the checkpoint resumed from (empty for a fresh run)
     if resume_from is not None:
         ck = torch.load(resume_from, map_location=device, weights_only=False)
         codes = ck["model"].get("encoding.codes")
@@ -329,33 +360,23 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
         model.load_state_dict(ck["model"])
         opt.load_state_dict(ck["optimizer"])
         start_step, elapsed_before, history = ck["step"], ck["elapsed"], ck["history"]
-        resume_batches = ck["numpy_rng"]
-        resume_leaf_errors = ck.get("leaf_errors")
-        resume_cut = ck.get("cut")
-        resume_rounds = ck.get("tree_cut_rounds_done", 0)
         torch.set_rng_state(ck["torch_rng"])
         events({"event": "phase", "phase": "train", "message": f"resumed at step {start_step}"})
     # Overlapping labels with training is part of the fast path; the reference path stays synchronous.
     prefetch = device.type == "cuda" if cfg.prefetch is None else cfg.prefetch
     if cfg.leaf_sampling not in ("uniform", "loss"):
         raise ValueError(f"leaf_sampling must be 'uniform' or 'loss', got {cfg.leaf_sampling!r}")
-    final_leaves = bvh.n_leaves
-    if cfg.tree_cut:  # train on a coarser cut first and split where the error is high (see TrainConfig)
-        from .bvh import coarse_cut, layout_cut
-
-        if resume_cut is not None:
-            bvh = layout_cut(bvh.full, {int(n) for n in resume_cut}, bvh.budget, final=False)
-        else:
-            bvh = coarse_cut(bvh, max(2, int(final_leaves * cfg.tree_cut_start)))
+    tree_cut = _TreeCut(bvh, cfg, ck.get("cut"), ck.get("tree_cut_rounds_done", 0)) if cfg.tree_cut else None
+    if tree_cut is not None:  # train on a coarser cut first and split where the error is high (see TrainConfig)
+        bvh = tree_cut.start
         model.nodes, model._tree = bvh.nodes, None
         prefetch = False  # a refinement drops the labelled batches of the old cut: none may be in flight
-    rounds_done = resume_rounds
     leaf_errors = (LeafErrors(bvh.n_leaves, cfg.leaf_floor)
-                   if cfg.leaf_sampling == "loss" or cfg.tree_cut else None)
-    if leaf_errors is not None and resume_leaf_errors is not None:
-        leaf_errors.error = resume_leaf_errors.clone()
+                   if cfg.leaf_sampling == "loss" or tree_cut is not None else None)
+    if leaf_errors is not None and ck.get("leaf_errors") is not None:
+        leaf_errors.error = ck["leaf_errors"].clone()
     batches = _Batches(bvh, tracer, cfg, rng, prefetch=prefetch and kernels.current_path() == "fast",
-                       resume=resume_batches, leaf_errors=leaf_errors if cfg.leaf_sampling == "loss" else None)
+                       resume=ck.get("numpy_rng"), leaf_errors=leaf_errors if cfg.leaf_sampling == "loss" else None)
     is_vqad = hasattr(model.encoding, "freeze")
     result_losses: dict = {}
     from .kernels import mlp as fused_mlp
@@ -386,8 +407,8 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
                           "elapsed": elapsed, "history": history, "numpy_rng": batches.rng_state(),
                           "torch_rng": torch.get_rng_state(), "train_config": cfg.to_dict(),
                           "leaf_errors": None if leaf_errors is None else leaf_errors.error.clone(),
-                          "cut": None if not cfg.tree_cut else batches.bvh.leaf_full.tolist(),
-                          "tree_cut_rounds_done": rounds_done},
+                          "cut": None if tree_cut is None else batches.bvh.leaf_full.tolist(),
+                          "tree_cut_rounds_done": 0 if tree_cut is None else tree_cut.rounds_done},
                          Path(checkpoint_path))
 
     events({"event": "phase", "phase": "train",
@@ -397,8 +418,7 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
     last_emit = 0.0
     n_samples = 0
     ema = None
-    initial_loss = None
-    first_losses: list[float] = []
+    first_losses: list[float] = []  # the first 5 batches; [0] is the untrained model's loss
     step = start_step
     loss_val = float("nan")
     phase = "train"
@@ -442,34 +462,23 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
             if ema is not None and step - start_step > 50 and loss_val > cfg.divergence_factor * ema:
                 raise TrainingDiverged(f"loss jumped to {loss_val:.4g} (running mean {ema:.4g}) at step {step}")
             ema = loss_val if ema is None else 0.98 * ema + 0.02 * loss_val
-            if initial_loss is None:
-                initial_loss = loss_val  # the untrained model's loss: what training must improve on
             if len(first_losses) < 5:
-                first_losses.append(loss_val)  # the first 5 batches: what "did not fall" compares with (below)
-            elif step - start_step >= 50 and ema > cfg.rise_factor * initial_loss:
-                raise TrainingDiverged(f"loss rose from {initial_loss:.4g} to {ema:.4g} (running mean) by step "
+                first_losses.append(loss_val)  # what "rose" and "did not fall" compare with
+            elif step - start_step >= 50 and ema > cfg.rise_factor * first_losses[0]:
+                raise TrainingDiverged(f"loss rose from {first_losses[0]:.4g} to {ema:.4g} (running mean) by step "
                                        f"{step}: the learning rate {cfg.lr:g} is too high for this model")
             if not fused_step:
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
             opt.step()
             step += 1
-            rounds_due = min(cfg.tree_cut_rounds, int(frac / cfg.tree_cut_until * cfg.tree_cut_rounds)) \
-                if cfg.tree_cut and cfg.tree_cut_until > 0 else 0
-            if cfg.tree_cut and batches.bvh.n_leaves < final_leaves and rounds_done < rounds_due:
-                rounds_done = rounds_due
-                # Leaves still to add, shared over the rounds left (the last round reaches the budget).
-                per_round = -(-(final_leaves - batches.bvh.n_leaves) // max(1, cfg.tree_cut_rounds - rounds_due + 1))
-                refined, parent = refine_cut(batches.bvh, leaf_errors.error.numpy(), per_round)
-                if refined.n_leaves == batches.bvh.n_leaves:  # nothing left to split
-                    final_leaves = refined.n_leaves
-                else:
-                    leaf_errors.error = leaf_errors.error[torch.from_numpy(parent)]  # children inherit the error
-                    model.nodes, model._tree = refined.nodes, None
-                    batches.set_bvh(refined)
-                    if refined.n_leaves >= final_leaves:
-                        events({"event": "phase", "phase": phase, "message": f"tree cut refined to "
-                                f"{refined.n_nodes} nodes by splitting the leaves with the highest error"})
+            refined = tree_cut.refine(frac, batches.bvh, leaf_errors) if tree_cut is not None else None
+            if refined is not None:
+                model.nodes, model._tree = refined.nodes, None
+                batches.set_bvh(refined)
+                if refined.n_leaves >= tree_cut.final_leaves:
+                    events({"event": "phase", "phase": phase, "message": f"tree cut refined to {refined.n_nodes} "
+                            "nodes by splitting the leaves with the highest error"})
             n_samples += len(batch)
             history.append((step, loss_val))
             if cfg.checkpoint_every and step % cfg.checkpoint_every == 0:
@@ -490,8 +499,8 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
             raise TrainingDiverged("parameters contain NaN/inf after training")
     # One small batch is noisy enough to fake or hide a 2% fall: compare with the mean of the first 5 (a rate so high
     # that the loss explodes within them is caught by the rise check above).
-    start_loss = max(float(np.mean(first_losses)), initial_loss) if first_losses else initial_loss
-    if initial_loss is not None and step - start_step >= 50 and ema >= 0.98 * start_loss:
+    start_loss = max(float(np.mean(first_losses)), first_losses[0]) if first_losses else None
+    if start_loss is not None and step - start_step >= 50 and ema >= 0.98 * start_loss:
         # A too-high learning rate can kill the network in the first steps (dead ReLUs): it then predicts the
         # prior and the loss stays at its starting value. Such a model is useless; do not save it.
         raise TrainingDiverged(f"the loss did not fall in {step - start_step} steps ({start_loss:.4g} -> {ema:.4g}): "
