@@ -15,7 +15,7 @@ import platform
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import torch
 
@@ -117,15 +117,13 @@ def estimate_file_bytes(s: Settings) -> int:
     return sum(comps.values()) + 2600
 
 
-
-
 def resolve(s: Settings, mesh: Mesh | None = None) -> tuple[Settings, str]:
     """Turn a byte budget or a quality target into concrete sizes; returns (settings, why).
 
     Budget: the largest (T, nodes) of the grid T in 2^5..2^12, nodes in 255..8191 whose file fits the budget
     (largest file first, ties to more nodes). Target (with the mesh): the method the size predictor was fitted
     for (sizing_fit.json: HashGrid + MLP + consistent labels) at the smallest T whose predicted MSE meets the
-    target (`sizing.choose_size`); `compress_mesh` measures the result and steps T up if it was missed.
+    target (`sizing.choose_table_and_nodes`); `compress_mesh` then measures and corrects (`sizing.search_size`).
     """
     from .sizing import choose_table_and_nodes, load_fit, mesh_features
 
@@ -201,6 +199,16 @@ class CompressResult:
                 "target_met": self.target_met, "assessment": self.assessment}
 
 
+class _Trained(NamedTuple):
+    """One training of compress_mesh's size search."""
+
+    model: NeuralBVH
+    result: TrainResult
+    settings: Settings  # as used (a divergence restart lowers lr)
+    restart_notes: str  # what the restarts add to `why`
+    quality: Quality | None
+
+
 def _train_with_restarts(mesh, bvh, tracer, settings, why, events, should_cancel, checkpoint_path):
     """Train a fresh model; on divergence restart from scratch at a 10x lower learning rate (at most
     DIVERGENCE_RETRIES times). Returns (model, TrainResult, settings actually used, why)."""
@@ -244,7 +252,7 @@ def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = 
     seconds["train"] = 0.0
     seconds["eval"] = 0.0
     target = settings.target_mse
-    trained: dict = {}  # log2 T -> (model, TrainResult, settings used, why, quality)
+    trained: dict[int, _Trained] = {}
 
     def train_and_measure(log2_table: int) -> float:
         """One training at table size 2^log2_table, scored; its MSE (inf without an evaluation)."""
@@ -263,7 +271,7 @@ def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = 
             t = time.perf_counter()
             quality, _ = evaluate(model, tracer, s_used.eval_views, s_used.eval_resolution)
             seconds["eval"] += time.perf_counter() - t
-        trained[log2_table] = (model, tr, s_used, why_used[len(why):], quality)  # [3]: restart notes
+        trained[log2_table] = _Trained(model, tr, s_used, why_used[len(why):], quality)
         return quality.mse if quality is not None else math.inf
 
     if target is None or not evaluate_quality:
@@ -278,7 +286,7 @@ def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = 
         def measure(log2_table: int) -> float:
             if trained:
                 prev = list(trained)[-1]
-                mse_prev = trained[prev][4].mse
+                mse_prev = trained[prev].quality.mse
                 verdict = "missed" if mse_prev > target else "met"
                 step = "larger" if log2_table > prev else "smaller"
                 note = (f"measured MSE {mse_prev:.4g} {verdict} the target {target:g} at T=2^{prev}: trying T=2^"
@@ -291,7 +299,7 @@ def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = 
         if len(measured) > 1:
             why += f"; measured {trail} (target {target:g}): kept T=2^{chosen_log2}"
     model, tr, settings, restart_notes, quality = trained[chosen_log2]
-    why += restart_notes
+    why += restart_notes  # a restart at a lower learning rate, in the training kept
     metadata = {
         "source": {"name": mesh.name, "triangles": mesh.n_triangles, "vertices": mesh.n_vertices},
         "settings": settings.to_dict(),
