@@ -496,9 +496,7 @@ def main() -> None:
     ap.add_argument("--charts", action="store_true", help="only rebuild tables and charts from the CSVs")
     ap.add_argument("--parts", default="baselines,sweep,divergence", help="comma-separated parts to run")
     args = ap.parse_args()
-    from nbvh_core import kernels as _kernels
-
-    _kernels.keep_freed_memory()  # as the CLI does: freed blocks stay in the heap (see the function)
+    kernels.keep_freed_memory()  # as the CLI does: freed blocks stay in the heap (see the function)
     plan = Plan(args.quick)
     t0 = time.perf_counter()
     if not args.charts:

@@ -88,9 +88,7 @@ def main() -> None:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--quick", action="store_true", help="smoke run: tiny budgets, 128x128 renders")
     args = ap.parse_args()
-    from nbvh_core import kernels as _kernels
-
-    _kernels.keep_freed_memory()  # as the CLI does: freed blocks stay in the heap (see the function)
+    kernels.keep_freed_memory()  # as the CLI does: freed blocks stay in the heap (see the function)
     device = torch.device(args.device)
     if args.quick:
         args.train_s, args.steps = min(args.train_s, 5.0), 10

@@ -34,6 +34,7 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 import bench_quality as bq  # noqa: E402
 from bench_meshes import bench_mesh  # noqa: E402
+from nbvh_core import kernels  # noqa: E402
 from nbvh_core.pipeline import estimate_file_bytes, preset  # noqa: E402
 from nbvh_core.sizing import (FEATURE_NAMES, FIT_PATH, LOG2_RANGE, QUALITY_LEVELS,  # noqa: E402
                               TARGET_TRAININGS, choose_table_and_nodes, fit_size_model, mesh_features, search_size)
@@ -60,9 +61,7 @@ def main() -> None:
     ap.add_argument("--no-run", action="store_true")
     ap.add_argument("--quick", action="store_true")
     args = ap.parse_args()
-    from nbvh_core import kernels as _kernels
-
-    _kernels.keep_freed_memory()  # as the CLI does: freed blocks stay in the heap (see the function)
+    kernels.keep_freed_memory()  # as the CLI does: freed blocks stay in the heap (see the function)
     plan = bq.Plan(args.quick)
     if not args.no_run:
         done = {(r["part"], r["mesh"], r["method"], r["log2_table"], r["seed"], r["train_s"])

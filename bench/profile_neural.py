@@ -123,9 +123,7 @@ def main() -> None:
     ap.add_argument("--paths", default="reference,fast", help="comma-separated: reference, fast")
     ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "profile.md"))
     args = ap.parse_args()
-    from nbvh_core import kernels as _kernels
-
-    _kernels.keep_freed_memory()  # as the CLI does: freed blocks stay in the heap (see the function)
+    kernels.keep_freed_memory()  # as the CLI does: freed blocks stay in the heap (see the function)
     paths = args.paths.split(",")
     mesh = load_mesh(sample_path(args.asset))
     s = preset("default")
