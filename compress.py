@@ -3,7 +3,7 @@
     blender -b scene.blend -P compress.py -- --objects NAME [NAME ...] --out DIR
             [--preset preview|default|high | --budget-kb N | --target-mse X | --quality preview|standard|high]
             [--time-limit S] [--device auto|cpu|cuda]
-            [--python PATH] [--load MODEL.nbvh] [--save-blend FILE.blend]
+            [--python PATH] [--load MODEL.nbvh] [--save-blend FILE.blend] [--force] [--resume]
 
 Under `blender -b`, timers never fire while this script runs, so it waits on the jobs itself and prints
 their events as progress. Exit code 0 only when every object was compressed (or loaded); otherwise the
@@ -11,7 +11,9 @@ error is printed and the exit code is 1 (Blender needs --python-exit-code 1 to p
 exits itself, as it does here). The user's objects are never modified; the .blend is saved only with
 --save-blend, to a new file. --budget-kb with several objects is one budget for all of them, shared by need
 (detail and size on the scene camera's screen); the report shows the split. --target-mse / --quality size each
-object for that image MSE, measure it and retrain one size larger when it was missed.
+object for that image MSE, measure it and retrain at the size the measurement calls for (at most 3 trainings).
+An object that is not worth compressing gets its verdict in seconds and no training unless --force; --resume
+continues the checkpoint a killed run left in --out. A failed or cancelled re-run keeps the previous results.
 """
 from __future__ import annotations
 
@@ -47,6 +49,8 @@ def parse(argv: list[str]) -> argparse.Namespace:
     ap.add_argument("--python", help="Python with PyTorch for the jobs (default: found automatically)")
     ap.add_argument("--load", help="load an existing .nbvh for the (single) object instead of training")
     ap.add_argument("--save-blend", help="save the scene with the previews to this new .blend")
+    ap.add_argument("--force", action="store_true", help="train even objects that are not worth compressing")
+    ap.add_argument("--resume", action="store_true", help="continue the training a killed run left in --out")
     return ap.parse_args(argv)
 
 
@@ -63,13 +67,13 @@ def run(argv: list[str]) -> int:
         return 1
     objects = [bpy.data.objects[n] for n in args.objects]
     overrides = {"device": args.device, "time_limit_s": args.time_limit, "steps": args.steps,
-                 "budget_kb": args.budget_kb,
+                 "budget_kb": args.budget_kb, "force": True if args.force else None,
                  "target_mse": engine.QUALITY_TARGETS[args.quality] if args.quality else args.target_mse}
     if args.steps is not None and args.time_limit is None:
         overrides["time_limit_s"] = 0  # steps only (0 = no wall-clock limit, see job)
     overrides = {k: v for k, v in overrides.items() if v is not None}
     req = engine.Request(preset=args.preset or "default", overrides=overrides, out_dir=str(Path(args.out).resolve()),
-                         load_model=args.load)
+                         load_model=args.load, resume=args.resume)
     python = args.python or default_python()
     try:
         session, refusals = engine.start(bpy.context, objects, req, python)
@@ -81,7 +85,7 @@ def run(argv: list[str]) -> int:
     if refusals:
         session.queue.cancel_all()
         for job in session.queue.jobs:
-            job.cleanup(remove_outputs=True)
+            job.cleanup()
         return 1
 
     def show(job, ev):

@@ -31,6 +31,7 @@ class Request:
     proxy_points: int = 20000
     image_size: int = 256
     load_model: str | None = None  # an existing .nbvh to load back instead of training (one object)
+    resume: bool = False  # continue each object's checkpoint (left by a job that died) instead of starting anew
 
 
 @dataclass
@@ -60,6 +61,12 @@ def safe_name(name: str) -> str:
     return "".join(c if c.isalnum() or c in "-_." else "_" for c in name) or "object"
 
 
+def checkpoint_path(out_dir: str | Path, obj_name: str) -> Path | None:
+    """The checkpoint a job that died while training `obj_name` left in out_dir, or None."""
+    p = Path(out_dir) / f".{safe_name(obj_name)}.nbvh.checkpoint"
+    return p if p.exists() else None
+
+
 def start(context, objects, req: Request, python: str | None = None) -> tuple[Session, list[str]]:
     """Export `objects` and queue one job each. Returns the session and the refusals (messages naming the
     objects that cannot be compressed). Raises RuntimeError when no Python can run the jobs."""
@@ -85,6 +92,12 @@ def start(context, objects, req: Request, python: str | None = None) -> tuple[Se
                        "camera": previews.camera_for(context, obj, req.image_size, req.image_size)}
         if req.load_model:
             job_request["model"] = str(Path(bpy.path.abspath(req.load_model)).resolve())
+        if req.resume:
+            checkpoint = checkpoint_path(out_dir, obj.name)
+            if checkpoint is None:
+                refusals.append(f"{obj.name!r} has no training to resume in {out_dir}")
+                continue
+            job_request["resume"] = str(checkpoint)
         job = session.queue.submit(name, job_request)
         mesh_path = job.workdir / "mesh.npz"
         np.savez(mesh_path, vertices=verts, faces=tris)

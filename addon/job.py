@@ -6,7 +6,10 @@ its own temporary folder and its own cancel path (terminating its process), and 
 the process's stdout by a reader thread into a queue, so polling never blocks.
 
 A job is finished only when its process exited 0 *and* sent a `result` event; anything else (error event,
-crash, non-zero exit, cancel) is a failure with a message, and its temporary folder is removed.
+crash, non-zero exit, cancel) is a failure with a message, and its temporary folder is removed. The job process
+writes its results as one unit at its very end, so a failed, cancelled or killed re-run never touches the object's
+previous result: cleanup removes only that process's own partial files and lock, never a finished output. A job
+that dies in training leaves its checkpoint (`resume_checkpoint`), which a new job can continue.
 """
 from __future__ import annotations
 
@@ -182,19 +185,30 @@ class Job:
         if self.state in ("queued", "running"):
             self.state = "cancelled"
             self.error = "cancelled"
-            self.cleanup(remove_outputs=True)
+            self.cleanup()
 
-    def cleanup(self, remove_outputs: bool = False) -> None:
-        """Remove the job's temporary folder (and, for a failed or cancelled job, its partial outputs)."""
+    def cleanup(self) -> None:
+        """Remove the job's temporary folder and what its own process left half-written (staged files, its lock);
+        finished outputs, earlier results and the training checkpoint are never removed."""
         shutil.rmtree(self.workdir, ignore_errors=True)
-        if remove_outputs:
-            out_dir = Path(self.request.get("out_dir", ""))
-            for suffix in (".nbvh", ".preview.png", ".reference.png", ".points.npy", ".report.json"):
-                p = out_dir / f"{self.name}{suffix}"
-                if p.exists() and self.result is None:
-                    p.unlink()
-            for p in out_dir.glob(f".{self.name}*.partial-*"):
-                p.unlink()
+        if self._proc is None:
+            return
+        pid = self._proc.pid
+        out_dir = Path(self.request.get("out_dir", ""))
+        for p in out_dir.glob(f".{self.name}.*.partial-{pid}"):
+            p.unlink(missing_ok=True)
+        lock = out_dir / f".{self.name}.nbvh.lock"
+        try:
+            if lock.read_text().strip() == str(pid):
+                lock.unlink()
+        except OSError:
+            pass
+
+    @property
+    def resume_checkpoint(self) -> str | None:
+        """The checkpoint a failed training left (continue it with a request {"resume": path}), or None."""
+        p = Path(self.request.get("out_dir", "")) / f".{self.name}.nbvh.checkpoint"
+        return str(p) if self.state in ("failed", "cancelled") and p.exists() else None
 
     @property
     def fraction(self) -> float:
@@ -228,7 +242,7 @@ class JobQueue:
         if job is not None:
             out += [(job, e) for e in job.poll()]
             if job.state != "running":
-                job.cleanup(remove_outputs=job.state != "done")
+                job.cleanup()
         if self.active() is None:
             nxt = next((j for j in self.jobs if j.state == "queued"), None)
             if nxt is not None:

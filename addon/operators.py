@@ -28,6 +28,8 @@ def _python(context) -> str:
 def request_from_props(props) -> engine.Request:
     """Panel settings -> engine.Request (preset, or target quality, or byte budget; time limit; device)."""
     overrides = {"time_limit_s": float(props.time_limit), "device": props.device.lower(), "steps": None}
+    if props.force:
+        overrides["force"] = True
     preset = props.preset
     if props.mode == "TARGET":
         overrides["target_mse"] = engine.QUALITY_TARGETS[props.target.lower()]
@@ -99,11 +101,14 @@ class NBVH_OT_compress(bpy.types.Operator):
     def poll(cls, context):
         return _state["session"] is None and bool(context.selected_objects)
 
+    resume: bpy.props.BoolProperty(default=False, options={"HIDDEN"})
+
     def execute(self, context):
         props = context.scene.nbvh_props
+        req = request_from_props(props)
+        req.resume = self.resume
         try:
-            session, refusals = engine.start(context, list(context.selected_objects), request_from_props(props),
-                                             _python(context))
+            session, refusals = engine.start(context, list(context.selected_objects), req, _python(context))
         except RuntimeError as exc:
             self.report({"ERROR"}, str(exc))
             return {"CANCELLED"}

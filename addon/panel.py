@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import bpy
 
-from . import operators
+from . import engine, operators
 
 PRESET_ITEMS = [("preview", "Preview", "Small and quick (about a minute)"),
                 ("default", "Default", "Balanced size and quality (a few minutes)"),
@@ -38,6 +38,10 @@ class NBVH_Props(bpy.types.PropertyGroup):
                                                          ("CPU", "CPU", ""), ("CUDA", "CUDA", "")], default="AUTO")
     output_dir: bpy.props.StringProperty(name="Folder", subtype="DIR_PATH",
                                          description="Where .nbvh files go (empty: //nbvh beside the .blend)")
+    force: bpy.props.BoolProperty(
+        name="Train even if not worth it",
+        description="Without this, an object whose mesh (or a decimation of it) is already smaller than the model "
+                    "would be gets its verdict in seconds and no training")
     running: bpy.props.BoolProperty()
     progress: bpy.props.FloatProperty(min=0.0, max=1.0, subtype="FACTOR")
     phase: bpy.props.StringProperty()
@@ -82,6 +86,7 @@ class NBVH_PT_panel(bpy.types.Panel):
         col.prop(props, "time_limit")
         col.prop(props, "device")
         col.prop(props, "output_dir")
+        col.prop(props, "force")
         if props.running:
             box = layout.box()
             box.label(text=props.phase or "working")
@@ -94,6 +99,12 @@ class NBVH_PT_panel(bpy.types.Panel):
             n = len(context.selected_objects)
             layout.operator("nbvh.compress", text=f"Compress {n} object{'s' if n != 1 else ''} to NBVH",
                             icon="MOD_REMESH")
+            resumable = [o.name for o in context.selected_objects
+                         if engine.checkpoint_path(engine.output_dir(props.output_dir), o.name) is not None]
+            if resumable:  # a job died in training: continue it instead of starting over
+                op = layout.operator("nbvh.compress", text=f"Resume training ({', '.join(resumable)[:40]})",
+                                     icon="RECOVER_LAST")
+                op.resume = True
         if props.last_error:
             layout.label(text=props.last_error, icon="ERROR")
         for r in context.scene.nbvh_results:

@@ -9,7 +9,8 @@ Commands:
   samples                       list the bundled sample meshes
 
 MESH is a mesh file (OBJ/PLY/STL/OFF/GLB/glTF, optionally .gz) or a bundled sample name.
-Exit codes: 0 ok, 2 bad input (mesh, file, option), 3 training diverged, 130 cancelled (Ctrl-C / SIGTERM).
+Exit codes: 0 ok, 2 bad input (mesh, file, option, output location), 3 training diverged, 4 not worth compressing
+(nothing trained; --force trains anyway), 130 cancelled (Ctrl-C / SIGTERM).
 """
 from __future__ import annotations
 
@@ -140,38 +141,81 @@ def _install_cancel_handlers():
 
 
 def cmd_compress(args: argparse.Namespace) -> int:
+    """Train, then write the model, its JSON report and its preview as one unit (outputs.OutputSet): checked before
+    training (never over the input, never over a finished result without --overwrite, writable), one run per
+    output (outputs.OutputLock), checkpoints every --checkpoint-every seconds (resume with --resume)."""
     from .events import json_lines, progress_bar
-    from .pipeline import compress_mesh, preset
+    from .outputs import OutputLock, OutputSet, check_outputs, resolve_output
+
+    sink = json_lines(sys.stdout) if args.events else progress_bar(sys.stderr)
+    try:
+        mesh_path = _resolve_mesh(args.mesh)
+        mesh = _load_mesh_reporting(args.mesh)
+        out = resolve_output(args.output, mesh.name)
+        stem = out.with_suffix("")
+        outputs = [out, Path(f"{stem}.json"), Path(f"{stem}.preview.png")]
+        inputs = [mesh_path] + ([Path(args.resume)] if args.resume else [])
+        check_outputs(outputs, inputs, overwrite=args.overwrite)
+        with OutputLock(out):
+            return _compress_locked(args, mesh, mesh_path, out, stem, outputs, sink, OutputSet())
+    except BaseException as exc:  # the event stream says how the run ended, whatever ended it
+        if args.events:
+            kind = {"Cancelled": "cancelled", "TrainingDiverged": "diverged", "KeyboardInterrupt": "cancelled",
+                    "NotWorthCompressing": "not_worth"}.get(type(exc).__name__, "input")
+            sink({"event": "error", "kind": kind, "message": str(exc)})
+        raise
+
+
+def _compress_locked(args, mesh, mesh_path, out, stem, outputs, sink, staged) -> int:
+    from .pipeline import compress_mesh, preset, resume_settings
     from .render import orbit_cameras, render_neural, render_reference, save_png
     from .sizing import QUALITY_LEVELS
 
-    settings = preset(args.preset).with_overrides(
-        nodes=args.nodes, encoding=args.encoding, log2_table=args.log2_table, network=args.network, k=args.k,
-        labels=args.labels, lr=args.lr, steps=args.steps, time_limit_s=args.time_limit, seed=args.seed,
-        device=args.device, float_bytes=2 if args.float16 else None, eval_views=args.views,
-        rays_per_step=args.rays_per_step, budget_kb=args.budget_kb, leaf_sampling=args.leaf_sampling,
-        tree_cut=True if args.tree_cut else None,
-        target_mse=QUALITY_LEVELS[args.quality] if args.quality else args.target_mse)
-    if args.steps is not None and args.time_limit is None:
-        settings.time_limit_s = None
-    mesh = _load_mesh_reporting(args.mesh)
-    out = Path(args.output)
-    if out.is_dir():
-        raise ValueError(f"{out} is a folder; give the output file name, e.g. {out / (mesh.name + '.nbvh')}")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    sink = json_lines(sys.stdout) if args.events else progress_bar(sys.stderr)
-    result = compress_mesh(mesh, settings, out, events=sink, should_cancel=_install_cancel_handlers(),
-                           checkpoint_path=args.checkpoint)
+    if args.resume:
+        settings = resume_settings(args.resume, mesh)
+        print(f"resuming {args.resume}: T=2^{settings.log2_table}, {settings.nodes} nodes, "
+              f"{settings.encoding}+{settings.network}", file=sys.stderr)
+    else:
+        settings = preset(args.preset).with_overrides(
+            nodes=args.nodes, encoding=args.encoding, log2_table=args.log2_table, network=args.network, k=args.k,
+            labels=args.labels, lr=args.lr, steps=args.steps, time_limit_s=args.time_limit, seed=args.seed,
+            device=args.device, eval_views=args.views,
+            table_bits=16 if args.float16 else args.table_bits, network_bits=16 if args.float16 else args.network_bits,
+            node_bits=args.node_bits, rays_per_step=args.rays_per_step, budget_kb=args.budget_kb,
+            leaf_sampling=args.leaf_sampling, tree_cut=True if args.tree_cut else None,
+            target_mse=QUALITY_LEVELS[args.quality] if args.quality else args.target_mse)
+        if args.steps is not None and args.time_limit is None:
+            settings.time_limit_s = None
+    settings = settings.with_overrides(force=True if args.force else None, checkpoint_every_s=args.checkpoint_every)
+    default_ck = out.with_name(f".{out.name}.checkpoint")
+    checkpoint = Path(args.checkpoint) if args.checkpoint else default_ck
+    try:
+        result = compress_mesh(mesh, settings, None, events=sink, should_cancel=_install_cancel_handlers(),
+                               checkpoint_path=checkpoint, resume_from=args.resume)
+    except BaseException as exc:
+        if checkpoint.exists() and type(exc).__name__ != "NotWorthCompressing":
+            print(f"\ntraining state kept in {checkpoint}: continue with "
+                  f"`nbvh compress {args.mesh} -o {out} --resume {checkpoint}`", file=sys.stderr)
+        raise
     summary = result.summary()
     summary["mesh_resident_bytes"] = result.assessment["resident"]
-    summary["source_file_bytes"] = _resolve_mesh(args.mesh).stat().st_size
-    stem = out.with_suffix("")
-    Path(f"{stem}.json").write_text(json.dumps(summary, indent=2))
+    summary["source_file_bytes"] = mesh_path.stat().st_size
     cam = orbit_cameras(1)[0] if args.view is None else orbit_cameras(args.views or 16)[args.view]
     ref = render_reference(result.tracer, cam, args.size, args.size)
     neu = render_neural(result.model, cam, args.size, args.size)
-    save_png(f"{stem}.preview.png", np.concatenate([ref.image, neu.image], axis=1))
-    if not args.events:
+    import io
+
+    png = io.BytesIO()
+    save_png(png, np.concatenate([ref.image, neu.image], axis=1))
+    staged.stage(out, result.data)
+    staged.stage(outputs[1], json.dumps(summary, indent=2).encode())
+    staged.stage(outputs[2], png.getvalue())
+    staged.commit()  # the model, its report and its preview appear together, or the previous ones stay
+    if checkpoint == default_ck or args.resume == str(checkpoint):
+        checkpoint.unlink(missing_ok=True)
+    if args.events:
+        sink({"event": "written", "files": [str(p) for p in outputs]})
+    else:
         q = result.quality
         print(f"\nwrote {out} ({_fmt_bytes(result.file_bytes)}), {stem}.json, {stem}.preview.png (left: mesh, right: neural)")
         print("bytes: " + ", ".join(f"{k} {v:,}" for k, v in result.components.items()))
@@ -222,7 +266,7 @@ def cmd_info(args: argparse.Namespace) -> int:
     info = read_info(args.model)
     meta = info.metadata
     out = {"path": info.path, "bytes": info.total_bytes, "components": info.components,
-           "config": info.header["config"], "float_bytes": info.header["float_bytes"],
+           "config": info.header["config"], "storage": info.storage.to_dict(),
            "source": meta.get("source"), "training": meta.get("training"), "quality": meta.get("quality")}
     if args.mesh:
         mesh = _load_mesh_reporting(args.mesh)
@@ -238,7 +282,9 @@ def cmd_info(args: argparse.Namespace) -> int:
     for k, v in info.components.items():
         print(f"  {k:10s} {v:>10,} B  {100 * v / info.total_bytes:5.1f}%")
     c = info.header["config"]
-    print(f"  model: {c['encoding']['kind']} T=2^{c['encoding']['log2_table']}, {c['network']['kind']} k={c['network']['k']}")
+    st = info.storage
+    print(f"  model: {c['encoding']['kind']} T=2^{c['encoding']['log2_table']}, {c['network']['kind']} k={c['network']['k']}; "
+          f"stored with {st.table_bits}-bit features, {st.network_bits}-bit weights, {st.node_bits}-bit boxes")
     if meta.get("source"):
         s = meta["source"]
         print(f"  source: {s['name']}, {s['triangles']:,} triangles")
@@ -355,11 +401,22 @@ def build_parser() -> argparse.ArgumentParser:
                    help="start from half the BVH leaves and split the worst ones during training (N-BVH's tree cut)")
     c.add_argument("--seed", type=int)
     c.add_argument("--device", choices=["auto", "cpu", "cuda"])
-    c.add_argument("--float16", action="store_true", help="store tables and weights as float16")
+    c.add_argument("--float16", action="store_true", help="store tables and weights as float16 (= --table-bits 16)")
+    c.add_argument("--table-bits", type=int, choices=[32, 16, 8],
+                   help="bits per stored feature value (default 8: per level/feature affine codes)")
+    c.add_argument("--network-bits", type=int, choices=[32, 16], help="bits per stored network weight (default 16)")
+    c.add_argument("--node-bits", type=int, choices=[32, 8],
+                   help="bits per BVH box coordinate (default 8: relative to the parent box, conservative)")
     c.add_argument("--views", type=int, help="evaluation views (default from the preset)")
     c.add_argument("--view", type=int, help="orbit view index of the preview image")
     c.add_argument("--size", type=int, default=256, help="preview image size")
-    c.add_argument("--checkpoint", help="checkpoint file written during training")
+    c.add_argument("--checkpoint", help="checkpoint file written during training (default: .OUT.nbvh.checkpoint "
+                                        "beside the output, removed when the run finishes)")
+    c.add_argument("--checkpoint-every", type=float, help="seconds between checkpoints (default 60)")
+    c.add_argument("--resume", metavar="CHECKPOINT", help="continue the training a checkpoint holds (same mesh; its "
+                                                         "settings are used)")
+    c.add_argument("--overwrite", action="store_true", help="replace an existing result at -o")
+    c.add_argument("--force", action="store_true", help="train even when the verdict is 'not worth compressing'")
     c.add_argument("--events", action="store_true", help="print JSON-line events on stdout instead of a bar")
     c.set_defaults(func=cmd_compress)
     r = sub.add_parser("render", help="render a .nbvh model to PNG")
@@ -398,6 +455,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from .pipeline import NotWorthCompressing
     from .train import Cancelled, TrainingDiverged
 
     argv = sys.argv[1:] if argv is None else argv
@@ -415,9 +473,12 @@ def main(argv: list[str] | None = None) -> int:
         kernels.set_path(args.path)
     try:
         return args.func(args)
-    except Cancelled as exc:
+    except (Cancelled, KeyboardInterrupt) as exc:
         print(f"\ncancelled: {exc}; nothing was written", file=sys.stderr)
         return 130
+    except NotWorthCompressing as exc:
+        print(f"{exc}\nnothing was trained or written; --force trains anyway", file=sys.stderr)
+        return 4
     except TrainingDiverged as exc:
         print(f"\nerror: training diverged: {exc}; nothing was written", file=sys.stderr)
         return 3

@@ -4,43 +4,64 @@ Layout (little endian):
 
     offset  size  field
     0       8     magic b"NBVH\\x00\\r\\n\\x1a" (catches text-mode transfers and truncation at the first bytes)
-    8       2     format major version (readers refuse other majors)
+    8       2     format major version (this reader reads 1 and 2; writes 2)
     10      2     format minor version (additions a reader may ignore)
     12      4     header length H (bytes of UTF-8 JSON)
-    16      H     header JSON: model config, transform, float width, the tensor table (name, dtype, shape,
-                  offset, nbytes) and free-form metadata (training, quality, source mesh)
+    16      H     header JSON: model config, transform, storage (bits per component), the tensor table (name,
+                  component, shape, offset, nbytes) and free-form metadata (training, quality, source mesh)
     16+H    ...   payload: the tensors back to back in table order, each 8-byte aligned (zero padding)
     end-4   4     CRC-32 of every byte before it
 
-Tensors: `bvh` (M x 32-byte nodes, the bytes `bvh.NODE_DTYPE` describes), `features` (L x T x F float32 or
-float16), `index` (HashVQAD only: L x H codes of log2(t) bits, packed little-endian within each byte: code
-2n in the low nibble at t = 16), then the network's parameters in `state_dict` order (float32 or float16).
+Tensors of format 2 (`storage` in the header says which form each component takes, see `quantize.py`):
+* bvh, 32-bit nodes: `bvh` (M x 32-byte nodes, the bytes `bvh.NODE_DTYPE` describes); 8-bit nodes: `bvh.root`
+  (6 float32), `bvh.boxes` (M x 6 uint8, relative to the parent's decoded box), `bvh.left`, `bvh.leaf` (M uint16).
+* features (L x T x F): float32 or float16 `features`; 8 bits: `features` uint8 codes + `features.offset`,
+  `features.scale` (L x F float32).
+* `index` (HashVQAD only: L x H codes of log2(t) bits, packed little-endian within each byte).
+* the network's parameters in `state_dict` order (`network.NAME`, float32 or float16).
+Format 1 files (float32/float16 everywhere, `float_bytes` in the header) still load.
+
+The reader trusts nothing: `_check_header` validates every header field's type and range, derives the exact
+shape and size of every tensor from the config *before anything is allocated*, and refuses a table that
+disagrees; `_check_nodes` refuses a BVH whose child links are out of range or do not point forward (so traversal
+cannot loop), whose leaf ordinals are out of range or repeated, or whose boxes are not finite. Every refusal is an
+`NBVHFileError` (a ValueError) with one line saying which file and why. Allocations are bounded by the file's own
+size (the tensors must be in it) and by the config limits below.
 
 `save_nbvh` writes to a temporary file beside the target and renames it into place only when complete, so a
-crash or a full disk never leaves a partial file under the final name. `load_nbvh` checks magic, version,
-length and checksum and raises `NBVHFileError` with a clear message for foreign, truncated or damaged files.
+crash or a full disk never leaves a partial file under the final name.
 """
 from __future__ import annotations
 
 import json
+import math
 import os
 import struct
 import zlib
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from .bvh import NODE_DTYPE
+from .bvh import MAX_NODES, NODE_DTYPE
+from .encodings import ENCODINGS, EncodingConfig
 from .mesh import Transform
 from .model import ModelConfig, NeuralBVH
+from .networks import NETWORKS, NetworkConfig
+from .quantize import NONE16, StorageConfig, decode_nodes, encode_nodes
 
 MAGIC = b"NBVH\x00\r\n\x1a"
-VERSION_MAJOR = 1
+VERSION_MAJOR = 2
 VERSION_MINOR = 0
+READABLE_MAJORS = (1, 2)
 _PREFIX = struct.Struct("<8sHHI")
 _ALIGN = 8
+#: The reader's limits on header fields (far above any real model; they bound what a crafted header can ask).
+LIMITS = {"levels": (1, 16), "n_min": (1, 1 << 16), "n_max": (1, 1 << 16), "features": (1, 64),
+          "log2_table": (1, 24), "index_factor": (1, 1024), "candidates": (2, 256), "k": (2, 64),
+          "hidden": (0, 16), "width": (1, 1024)}
+MAX_HEADER_BYTES = 1 << 20
 
 
 class NBVHFileError(ValueError):
@@ -81,37 +102,65 @@ class FileInfo:
     def metadata(self) -> dict:
         return self.header.get("metadata", {})
 
+    @property
+    def storage(self) -> StorageConfig:
+        return self.header["_storage"]
 
-def _tensors(model: NeuralBVH, float_bytes: int) -> list[tuple[str, str, bytes, list[int]]]:
+
+# ------------------------------------------------------------------------------------------------ writing
+def _float_dtype(bits: int):
+    return np.float16 if bits == 16 else np.float32
+
+
+def _tensors(model: NeuralBVH, storage: StorageConfig) -> list[tuple[str, str, bytes, list[int]]]:
     """(name, component, bytes, shape) of every stored tensor, in file order."""
-    if float_bytes not in (2, 4):
-        raise ValueError("float width must be 4 (float32) or 2 (float16) bytes")
-    fdt = np.float16 if float_bytes == 2 else np.float32
     enc = model.encoding
-    out = [("bvh", "bvh", np.ascontiguousarray(model.nodes, NODE_DTYPE).tobytes(), [len(model.nodes)])]
-    table = enc.table.detach().cpu().numpy()
-    out.append(("features", "features", table.astype(fdt).tobytes(), list(table.shape)))
+    nodes = np.ascontiguousarray(model.nodes, NODE_DTYPE)
+    out = []
+    packed = encode_nodes(nodes) if storage.node_bits == 8 else None
+    if storage.node_bits == 8 and packed is None:
+        raise ValueError("the BVH's boxes cannot be quantized relative to their parents (a child outside its "
+                         "parent box); save with node_bits=32")
+    if packed is None:
+        out.append(("bvh", "bvh", nodes.tobytes(), [len(nodes)]))
+    else:
+        for part in ("root", "boxes", "left", "leaf"):
+            arr = packed[part]
+            out.append((f"bvh.{part}", "bvh", arr.tobytes(), list(arr.shape)))
+    if storage.table_bits == 8:
+        if not enc.quantized:
+            raise ValueError("an 8-bit table must be quantized first (model.finalize_storage)")
+        out.append(("features", "features", enc.qcodes.cpu().numpy().tobytes(), list(enc.qcodes.shape)))
+        for part, t in (("offset", enc.qoffset), ("scale", enc.qscale)):
+            arr = t.detach().cpu().numpy().astype(np.float32)
+            out.append((f"features.{part}", "features", arr.tobytes(), list(arr.shape)))
+    else:
+        table = enc.float_rows().detach().cpu().numpy()
+        out.append(("features", "features", table.astype(_float_dtype(storage.table_bits)).tobytes(),
+                    list(table.shape)))
     if model.cfg.encoding.kind == "hashvqad":
         if not enc.frozen:
             raise ValueError("HashVQAD must be frozen (argmax codes) before saving")
         codes = enc.codes.cpu().numpy()
         out.append(("index", "index", pack_codes(codes, enc.code_bits()), list(codes.shape)))
+    fdt = _float_dtype(storage.network_bits)
     for name, p in model.network.state_dict().items():
         arr = p.detach().cpu().numpy()
         out.append((f"network.{name}", "network", arr.astype(fdt).tobytes(), list(arr.shape)))
     return out
 
 
-def encode_nbvh(model: NeuralBVH, metadata: dict | None = None, float_bytes: int = 4) -> bytes:
-    """The complete file contents for `model` (see module docstring)."""
-    tensors = _tensors(model, float_bytes)
+def encode_nbvh(model: NeuralBVH, metadata: dict | None = None, storage: StorageConfig | None = None) -> bytes:
+    """The complete file contents for `model` (see module docstring); storage defaults to float32 everywhere."""
+    storage = storage or StorageConfig.float32()
+    tensors = _tensors(model, storage)
     table, offset = [], 0
     for name, comp, data, shape in tensors:
         table.append({"name": name, "component": comp, "shape": shape, "offset": offset, "nbytes": len(data)})
         offset += len(data) + (-len(data)) % _ALIGN
     header = {"format": "nbvh", "config": model.cfg.to_dict(), "transform": model.transform.to_dict(),
-              "float_bytes": float_bytes, "tensors": table, "metadata": metadata or {}}
-    hdr = json.dumps(header, separators=(",", ":"), sort_keys=True).encode()
+              "storage": storage.to_dict(), "tensors": table, "metadata": metadata or {}}
+    hdr = json.dumps(header, separators=(",", ":"), sort_keys=True, allow_nan=False).encode()
     hdr += b" " * ((-(_PREFIX.size + len(hdr))) % _ALIGN)  # align the payload
     parts = [_PREFIX.pack(MAGIC, VERSION_MAJOR, VERSION_MINOR, len(hdr)), hdr]
     for _, _, data, _ in tensors:
@@ -132,72 +181,319 @@ def component_bytes(data: bytes) -> dict[str, int]:
     return comps
 
 
+# ------------------------------------------------------------------------------------------------ checking
+def _int_field(d: dict, key: str, where: str, lo: int, hi: int) -> int:
+    v = d.get(key)
+    if not isinstance(v, int) or isinstance(v, bool) or not lo <= v <= hi:
+        raise NBVHFileError(f"{where}: header field {key!r} must be an integer in [{lo}, {hi}], got {v!r:.40}")
+    return v
+
+
+def _config_from(d, cls, where: str, what: str):
+    """A dataclass config from a header dict: known fields only, each of its default's type, ints in LIMITS."""
+    if not isinstance(d, dict):
+        raise NBVHFileError(f"{where}: header field {what!r} must be an object")
+    known = {f.name: f for f in fields(cls)}
+    unknown = set(d) - set(known)
+    if unknown:
+        raise NBVHFileError(f"{where}: unknown {what} field(s) {', '.join(sorted(map(str, unknown)))[:80]}")
+    kw = {}
+    default = cls()
+    for name, v in d.items():
+        want = type(getattr(default, name))
+        if want is int:
+            lo, hi = LIMITS.get(name, (-(1 << 31), 1 << 31))
+            kw[name] = _int_field(d, name, where, lo, hi)
+        elif want is float:
+            if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v):
+                raise NBVHFileError(f"{where}: {what} field {name!r} must be a finite number, got {v!r:.40}")
+            kw[name] = float(v)
+        elif not isinstance(v, want):
+            raise NBVHFileError(f"{where}: {what} field {name!r} must be a {want.__name__}, got {v!r:.40}")
+        else:
+            kw[name] = v
+    return cls(**kw)
+
+
+def _model_config(header: dict, where: str) -> ModelConfig:
+    cfg = header.get("config")
+    if not isinstance(cfg, dict):
+        raise NBVHFileError(f"{where}: header field 'config' must be an object")
+    enc = _config_from(cfg.get("encoding"), EncodingConfig, where, "encoding")
+    net = _config_from(cfg.get("network"), NetworkConfig, where, "network")
+    if enc.kind not in ENCODINGS or net.kind not in NETWORKS:
+        raise NBVHFileError(f"{where}: unknown encoding {enc.kind!r:.20} or network {net.kind!r:.20}")
+    if enc.kind == "hashvqad" and enc.candidates & (enc.candidates - 1):
+        raise NBVHFileError(f"{where}: HashVQAD candidates must be a power of two, got {enc.candidates}")
+    if enc.n_max < enc.n_min:
+        raise NBVHFileError(f"{where}: n_max {enc.n_max} < n_min {enc.n_min}")
+    return ModelConfig(enc, net)
+
+
+def _storage(header: dict, major: int, where: str) -> StorageConfig:
+    if major == 1:
+        fb = header.get("float_bytes")
+        if fb not in (2, 4) or isinstance(fb, bool):
+            raise NBVHFileError(f"{where}: header field 'float_bytes' must be 2 or 4, got {fb!r:.40}")
+        bits = 8 * fb
+        return StorageConfig(table_bits=bits, network_bits=bits, node_bits=32)
+    st = header.get("storage")
+    if not isinstance(st, dict) or set(st) != {"table_bits", "network_bits", "node_bits"}:
+        raise NBVHFileError(f"{where}: header field 'storage' must name table_bits, network_bits and node_bits")
+    try:
+        return StorageConfig(**st)
+    except (TypeError, ValueError) as exc:
+        raise NBVHFileError(f"{where}: bad storage: {exc}") from None
+
+
+def _network_shapes(cfg: ModelConfig) -> dict[str, tuple[int, ...]]:
+    """state_dict shapes of the network `cfg` describes, computed on the meta device (nothing allocated)."""
+    from .networks import make_network
+
+    with torch.device("meta"):
+        net = make_network(cfg.encoding.out_dim, cfg.network)
+    return {name: tuple(p.shape) for name, p in net.state_dict().items()}
+
+
+def _expected_tensors(cfg: ModelConfig, storage: StorageConfig, n_nodes: int) -> dict[str, tuple[tuple, str]]:
+    """name -> (shape, numpy dtype or 'packed<bits>') of every tensor a file with this config must hold."""
+    enc = cfg.encoding
+    L, T, F = enc.levels, enc.table_size, enc.features
+    out: dict[str, tuple[tuple, str]] = {}
+    if storage.node_bits == 8:
+        out.update({"bvh.root": ((6,), "<f4"), "bvh.boxes": ((n_nodes, 6), "u1"), "bvh.left": ((n_nodes,), "<u2"),
+                    "bvh.leaf": ((n_nodes,), "<u2")})
+    else:
+        out["bvh"] = ((n_nodes,), "node")
+    if storage.table_bits == 8:
+        out.update({"features": ((L, T, F), "u1"), "features.offset": ((L, F), "<f4"),
+                    "features.scale": ((L, F), "<f4")})
+    else:
+        out["features"] = ((L, T, F), "<f2" if storage.table_bits == 16 else "<f4")
+    if enc.kind == "hashvqad":
+        out["index"] = ((L, enc.index_size), f"packed{int(math.log2(enc.candidates))}")
+    fdt = "<f2" if storage.network_bits == 16 else "<f4"
+    for name, shape in _network_shapes(cfg).items():
+        out[f"network.{name}"] = (shape, fdt)
+    return out
+
+
+def _nbytes(shape: tuple, kind: str) -> int:
+    count = int(np.prod(shape, dtype=np.int64)) if shape else 1
+    if kind == "node":
+        return count * NODE_DTYPE.itemsize
+    if kind.startswith("packed"):
+        return (count * int(kind[6:]) + 7) // 8
+    return count * np.dtype(kind).itemsize
+
+
 def _parse(data: bytes, where: str) -> dict:
+    """Prefix, checksum, header JSON and the tensor table, all validated; nothing allocated beyond the header."""
     if len(data) < _PREFIX.size + 4:
         raise NBVHFileError(f"{where}: too short to be an .nbvh file ({len(data)} bytes)")
     magic, major, minor, hlen = _PREFIX.unpack_from(data, 0)
     if magic != MAGIC:
         raise NBVHFileError(f"{where}: not an .nbvh file (wrong magic bytes {magic[:8]!r})")
-    if major != VERSION_MAJOR:
+    if major not in READABLE_MAJORS:
         raise NBVHFileError(f"{where}: .nbvh format version {major}.{minor} is not supported "
-                            f"(this reader reads {VERSION_MAJOR}.x)")
+                            f"(this reader reads {', '.join(f'{m}.x' for m in READABLE_MAJORS)})")
+    if hlen > min(MAX_HEADER_BYTES, len(data) - _PREFIX.size - 4):
+        raise NBVHFileError(f"{where}: header length {hlen} does not fit the file ({len(data)} bytes)")
     stored_crc = struct.unpack_from("<I", data, len(data) - 4)[0]
-    if zlib.crc32(data[:-4]) != stored_crc:
+    if zlib.crc32(memoryview(data)[:-4]) != stored_crc:
         raise NBVHFileError(f"{where}: damaged or truncated file (checksum mismatch)")
     try:
-        header = json.loads(data[_PREFIX.size:_PREFIX.size + hlen])
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise NBVHFileError(f"{where}: unreadable header: {exc}") from None
-    payload = len(data) - 4 - _PREFIX.size - hlen
-    for t in header.get("tensors", []):
-        if t["offset"] + t["nbytes"] > payload:
-            raise NBVHFileError(f"{where}: tensor {t['name']} extends past the end of the file")
+        header = json.loads(bytes(data[_PREFIX.size:_PREFIX.size + hlen]))
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+        raise NBVHFileError(f"{where}: unreadable header: {str(exc)[:80]}") from None
+    if not isinstance(header, dict):
+        raise NBVHFileError(f"{where}: the header must be a JSON object, not {type(header).__name__}")
     header["_header_len"] = hlen
     header["_payload_start"] = _PREFIX.size + hlen
+    header["_major"] = major
+    _check_header(header, len(data) - 4 - _PREFIX.size - hlen, where)
     return header
 
 
+def _check_header(header: dict, payload: int, where: str) -> None:
+    """Every field the reader uses: types, ranges, and a tensor table that matches the config exactly."""
+    cfg = _model_config(header, where)
+    storage = _storage(header, header["_major"], where)
+    tf = header.get("transform")
+    if (not isinstance(tf, dict) or not isinstance(tf.get("scale"), (int, float)) or isinstance(tf.get("scale"), bool)
+            or not (math.isfinite(tf["scale"]) and tf["scale"] > 0) or not isinstance(tf.get("offset"), list)
+            or len(tf["offset"]) != 3
+            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+                       for v in tf["offset"])):
+        raise NBVHFileError(f"{where}: header field 'transform' must be {{scale > 0, offset: 3 finite numbers}}")
+    meta = header.get("metadata", {})
+    if not isinstance(meta, dict):
+        raise NBVHFileError(f"{where}: header field 'metadata' must be an object")
+    _check_metadata(meta, where)
+    tensors = header.get("tensors")
+    if not isinstance(tensors, list):
+        raise NBVHFileError(f"{where}: header field 'tensors' must be a list")
+    by_name = {}
+    for t in tensors:
+        if not isinstance(t, dict) or not isinstance(t.get("name"), str) or not isinstance(t.get("component"), str):
+            raise NBVHFileError(f"{where}: every tensor entry needs a name and a component")
+        for key in ("offset", "nbytes"):
+            _int_field(t, key, where, 0, payload)
+        if not isinstance(t.get("shape"), list) or not all(isinstance(v, int) and not isinstance(v, bool) and
+                                                          0 <= v <= payload for v in t["shape"]):
+            raise NBVHFileError(f"{where}: tensor {t['name'][:40]!r} has a bad shape")
+        if t["offset"] % _ALIGN or t["offset"] + t["nbytes"] > payload:
+            raise NBVHFileError(f"{where}: tensor {t['name'][:40]!r} extends past the end of the file or is "
+                                "misaligned")
+        if t["name"] in by_name:
+            raise NBVHFileError(f"{where}: tensor {t['name'][:40]!r} appears twice")
+        by_name[t["name"]] = t
+    node_tensor = by_name.get("bvh" if storage.node_bits == 32 else "bvh.left")
+    if node_tensor is None or len(node_tensor["shape"]) != 1 or not 1 <= node_tensor["shape"][0] <= MAX_NODES:
+        raise NBVHFileError(f"{where}: the BVH tensor is missing or its node count is not in [1, {MAX_NODES}]")
+    expected = _expected_tensors(cfg, storage, node_tensor["shape"][0])
+    if set(expected) != set(by_name):
+        missing, extra = sorted(set(expected) - set(by_name)), sorted(set(by_name) - set(expected))
+        raise NBVHFileError(f"{where}: tensors do not match the config (missing {missing[:3]}, unexpected "
+                            f"{[e[:40] for e in extra[:3]]})")
+    end = 0
+    for t in tensors:  # in file order, non-overlapping
+        shape, kind = expected[t["name"]]
+        if tuple(t["shape"]) != shape or t["nbytes"] != _nbytes(shape, kind):
+            raise NBVHFileError(f"{where}: tensor {t['name']!r} is {t['shape']} / {t['nbytes']} B; the config "
+                                f"says {list(shape)} / {_nbytes(shape, kind)} B")
+        if t["offset"] < end:
+            raise NBVHFileError(f"{where}: tensor {t['name']!r} overlaps the one before it")
+        end = t["offset"] + t["nbytes"]
+    header["_config"], header["_storage"], header["_expected"] = cfg, storage, expected
+
+
+def _check_metadata(meta: dict, where: str) -> None:
+    """The metadata fields tools print must have the types they print."""
+    def number(v):
+        return v is None or (isinstance(v, (int, float)) and not isinstance(v, bool))
+
+    for key in ("source", "quality", "training", "settings", "assessment"):
+        if key in meta and meta[key] is not None and not isinstance(meta[key], dict):
+            raise NBVHFileError(f"{where}: metadata field {key!r} must be an object")
+    q = meta.get("quality") or {}
+    for key in ("mse", "silhouette_iou", "depth_error"):
+        if key in q and not number(q[key]):
+            raise NBVHFileError(f"{where}: metadata quality.{key} must be a number")
+    s = meta.get("source") or {}
+    if "triangles" in s and not (isinstance(s["triangles"], int) and not isinstance(s["triangles"], bool)):
+        raise NBVHFileError(f"{where}: metadata source.triangles must be an integer")
+    if "name" in s and not isinstance(s["name"], str):
+        raise NBVHFileError(f"{where}: metadata source.name must be a string")
+    tr = meta.get("training") or {}
+    for key in ("steps", "seconds", "samples", "samples_per_s", "final_loss"):
+        if key in tr and not number(tr[key]):
+            raise NBVHFileError(f"{where}: metadata training.{key} must be a number")
+
+
+def _check_nodes(nodes: np.ndarray, where: str) -> None:
+    """Links in range and pointing forward (no cycle), leaf ordinals 0..n-1 each once, boxes finite or empty."""
+    _check_nodes_links(nodes, where)
+    left = nodes["left"].astype(np.int64)
+    leaf = nodes["leaf"].astype(np.int64)
+    internal = left != 0
+    if (leaf[internal] != -1).any():
+        raise NBVHFileError(f"{where}: BVH internal node with a leaf ordinal")
+    leaves = leaf[~internal]
+    real = leaves[leaves >= 0]
+    if (leaves < -1).any() or real.size == 0 or (np.sort(real) != np.arange(real.size)).any():
+        raise NBVHFileError(f"{where}: BVH leaf ordinals must be 0..{max(real.size - 1, 0)} once each")
+    lo, hi = nodes["lo"], nodes["hi"]
+    empty = (lo > hi).any(axis=1)
+    if np.isnan(lo).any() or np.isnan(hi).any() or not (np.isfinite(lo[~empty]).all() and
+                                                         np.isfinite(hi[~empty]).all()):
+        raise NBVHFileError(f"{where}: BVH boxes must be finite (or empty)")
+    if (~internal & (leaf == -1) & ~empty).any():
+        raise NBVHFileError(f"{where}: BVH node marked unused has a non-empty box")
+
+
+def _finite(arr: np.ndarray, what: str, where: str) -> np.ndarray:
+    if arr.dtype.kind == "f" and not np.isfinite(arr).all():
+        raise NBVHFileError(f"{where}: {what} holds NaN or infinite values")
+    return arr
+
+
+# ------------------------------------------------------------------------------------------------ reading
 def decode_nbvh(data: bytes, where: str = "<bytes>", device: str | torch.device = "cpu") -> NeuralBVH:
-    """Build the model stored in `data` (inference-ready: HashVQAD frozen)."""
+    """Build the model stored in `data` (inference-ready: HashVQAD frozen, 8-bit tables kept as codes)."""
     header = _parse(data, where)
+    cfg, storage, expected = header["_config"], header["_storage"], header["_expected"]
+    start = header["_payload_start"]
+
+    def array(name: str) -> np.ndarray:
+        t = next(t for t in header["tensors"] if t["name"] == name)
+        shape, kind = expected[name]
+        raw = data[start + t["offset"]:start + t["offset"] + t["nbytes"]]
+        if kind == "node":
+            return np.frombuffer(raw, NODE_DTYPE).copy()
+        if kind.startswith("packed"):
+            return unpack_codes(raw, int(kind[6:]), int(np.prod(shape))).reshape(shape)
+        return _finite(np.frombuffer(raw, kind).reshape(shape).copy(), name, where)
+
+    if storage.node_bits == 8:
+        root, left, leaf = array("bvh.root"), array("bvh.left"), array("bvh.leaf")
+        pre = np.zeros(len(left), NODE_DTYPE)
+        pre["left"], pre["leaf"] = left, np.where(leaf == NONE16, -1, leaf.astype(np.int64))
+        pre["lo"], pre["hi"] = root[:3], root[3:]  # structure check first (decode walks the links)
+        _check_nodes_links(pre, where)
+        if (root[:3] > root[3:]).any():
+            raise NBVHFileError(f"{where}: BVH root box is empty")
+        nodes = decode_nodes(root, array("bvh.boxes"), left, leaf)
+    else:
+        nodes = array("bvh")
+    _check_nodes(nodes, where)
     try:
-        cfg = ModelConfig.from_dict(header["config"])
         transform = Transform.from_dict(header["transform"])
-        fdt = np.float16 if header["float_bytes"] == 2 else np.float32
-        start = header["_payload_start"]
-        blobs = {t["name"]: (data[start + t["offset"]:start + t["offset"] + t["nbytes"]], t["shape"])
-                 for t in header["tensors"]}
-        nodes = np.frombuffer(blobs["bvh"][0], NODE_DTYPE).copy()
-        model = NeuralBVH(nodes, cfg, transform)
-        enc = model.encoding
-        table = np.frombuffer(blobs["features"][0], fdt).reshape(blobs["features"][1]).astype(np.float32)
-        with torch.no_grad():
-            enc.table.copy_(torch.from_numpy(table))
-            if cfg.encoding.kind == "hashvqad":
-                shape = blobs["index"][1]
-                codes = unpack_codes(blobs["index"][0], enc.code_bits(), int(np.prod(shape))).reshape(shape)
-                enc.codes = torch.from_numpy(codes.copy())
-                enc.logits = None
-            state = {}
-            for name, p in model.network.state_dict().items():
-                raw, shape = blobs[f"network.{name}"]
-                state[name] = torch.from_numpy(np.frombuffer(raw, fdt).reshape(shape).astype(np.float32))
-            model.network.load_state_dict(state)
-    except NBVHFileError:
-        raise
-    except (KeyError, ValueError, TypeError) as exc:
-        raise NBVHFileError(f"{where}: inconsistent .nbvh contents: {type(exc).__name__}: {exc}") from None
+        model = NeuralBVH(nodes, cfg, transform, inference=True)
+    except (ValueError, TypeError) as exc:
+        raise NBVHFileError(f"{where}: inconsistent .nbvh contents: {exc}") from None
+    enc = model.encoding
+    with torch.no_grad():
+        if storage.table_bits == 8:
+            scale = array("features.scale")
+            if (scale <= 0).any():
+                raise NBVHFileError(f"{where}: feature scales must be > 0")
+            enc.set_quantized(torch.from_numpy(array("features")), torch.from_numpy(array("features.offset")),
+                              torch.from_numpy(scale))
+        else:
+            enc.table = torch.nn.Parameter(torch.from_numpy(array("features").astype(np.float32)),
+                                           requires_grad=False)
+        if cfg.encoding.kind == "hashvqad":
+            codes = array("index")
+            if (codes >= cfg.encoding.candidates).any():
+                raise NBVHFileError(f"{where}: HashVQAD codes out of range")
+            enc.codes = torch.from_numpy(codes.copy())
+            enc.logits = None
+        state = {name[len("network."):]: torch.from_numpy(array(name).astype(np.float32))
+                 for name in expected if name.startswith("network.")}
+        model.network.load_state_dict(state)
     model.metadata = header.get("metadata", {})
+    model.storage = storage
     return model.to(device).eval()
 
 
+def _check_nodes_links(nodes: np.ndarray, where: str) -> None:
+    """The link part of `_check_nodes` (before quantized boxes are decoded along the links)."""
+    m = len(nodes)
+    left = nodes["left"].astype(np.int64)
+    internal = left != 0
+    if (left < 0).any() or (internal & ((left <= np.arange(m)) | (left + 1 >= m))).any():
+        raise NBVHFileError(f"{where}: BVH child links out of range or not after their parent (a cycle or a "
+                            "dangling node)")
+
+
 def save_nbvh(model: NeuralBVH, path: str | os.PathLike, metadata: dict | None = None,
-              float_bytes: int = 4) -> int:
+              storage: StorageConfig | None = None) -> int:
     """Write `model` to `path` atomically (temporary file + rename); returns the file size in bytes.
 
     On any error (e.g. disk full) the temporary file is removed and an existing file at `path` is untouched.
     """
-    return write_atomic(path, encode_nbvh(model, metadata, float_bytes))
+    return write_atomic(path, encode_nbvh(model, metadata, storage))
 
 
 def write_atomic(path: str | os.PathLike, data: bytes) -> int:
@@ -219,22 +515,24 @@ def write_atomic(path: str | os.PathLike, data: bytes) -> int:
     return len(data)
 
 
+def _read(path: Path) -> bytes:
+    try:
+        if path.is_dir():
+            raise NBVHFileError(f"{path}: is a folder, not an .nbvh file")
+        return path.read_bytes()
+    except OSError as exc:
+        raise NBVHFileError(f"{path}: cannot read: {exc.strerror or exc}") from None
+
+
 def load_nbvh(path: str | os.PathLike, device: str | torch.device = "cpu") -> NeuralBVH:
     """Read a .nbvh file (see `decode_nbvh`); raises `NBVHFileError` for anything that is not a valid model."""
     path = Path(path)
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        raise NBVHFileError(f"{path}: cannot read: {exc.strerror or exc}") from None
-    return decode_nbvh(data, str(path), device)
+    return decode_nbvh(_read(path), str(path), device)
 
 
 def read_info(path: str | os.PathLike) -> FileInfo:
     """Header, metadata and bytes by component of a .nbvh file, without building the model."""
     path = Path(path)
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        raise NBVHFileError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    data = _read(path)
     header = _parse(data, str(path))
     return FileInfo(path=str(path), total_bytes=len(data), components=component_bytes(data), header=header)

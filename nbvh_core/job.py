@@ -8,13 +8,17 @@ REQUEST.json (written by the add-on):
    "camera": {"position": [3], "target": [3], "up": [3], "fov_deg": float, "width": int, "height": int}
              (object-local coordinates; optional), "proxy_points": int}
 
-Outputs in out_dir, each written atomically, and named in the final `result` event (the only marker of a
-finished job; a job that dies leaves no result event and the caller ignores whatever else is there):
+Outputs in out_dir, staged and renamed into place together at the very end (`outputs.OutputSet`: a failed,
+cancelled or killed re-run leaves the previous result of the object exactly as it was), and named in the final
+`result` event (the only marker of a finished job):
   NAME.nbvh            the model
   NAME.preview.png     neural rendering from the camera (or an orbit view)
   NAME.reference.png   the mesh from the same camera (Embree), for the side-by-side report
   NAME.points.npy      (P, 6) float32 proxy points and normals from the model's own ray hits, object-local
   NAME.report.json     sizes by component, the mesh's resident bytes, quality, training, settings
+Training writes `.NAME.nbvh.checkpoint` in out_dir every 60 s; a request with "resume": PATH continues it (the
+add-on offers this after a crash). "force": true trains even when the verdict is "not worth compressing"
+(otherwise the job ends in seconds with a `verdict` event and an `error` event of kind "not_worth", exit 4).
 Events are JSON lines on stdout (see `events.py`); errors end with an `error` event and exit code != 0.
 """
 from __future__ import annotations
@@ -27,12 +31,6 @@ from pathlib import Path
 import numpy as np
 
 from .events import json_lines
-
-
-def _atomic_bytes(path: Path, data: bytes) -> None:
-    from .fileformat import write_atomic
-
-    write_atomic(path, data)
 
 
 def _png_bytes(image: np.ndarray) -> bytes:
@@ -100,11 +98,9 @@ class _LoadedResult:
 
 def run_job(request: dict, events, should_cancel) -> dict:
     """Run one request (see module docstring); returns the `result` event it emits."""
-    from .sizing import mesh_resident_bytes
-    from .exact import ExactTracer
     from .mesh import mesh_from_arrays
-    from .pipeline import compress_mesh, preset
-    from .render import Camera, orbit_cameras, render_neural, render_reference
+    from .outputs import OutputLock, OutputSet, check_outputs
+    from .pipeline import preset, resume_settings
 
     name = request["name"]
     out_dir = Path(request["out_dir"])
@@ -121,7 +117,32 @@ def run_job(request: dict, events, should_cancel) -> dict:
     scene_split = None
     if request.get("scene"):
         settings, scene_split = _scene_share(request["scene"], settings, events)
+    if request.get("resume"):
+        settings = resume_settings(request["resume"], mesh)
+    if request.get("force"):
+        settings = settings.with_overrides(force=True)
     model_path = out_dir / f"{name}.nbvh"
+    files = {"model": str(model_path), "preview": str(out_dir / f"{name}.preview.png"),
+             "reference": str(out_dir / f"{name}.reference.png"), "points": str(out_dir / f"{name}.points.npy"),
+             "report": str(out_dir / f"{name}.report.json")}
+    if request.get("model"):
+        files["model"] = str(request["model"])  # loaded, never rewritten
+    # A re-run replaces the object's previous result (only once the new one is complete); an input never.
+    inputs = [Path(request["mesh"])] + ([Path(request["model"])] if request.get("model") else [])
+    check_outputs([Path(p) for k, p in files.items() if not (k == "model" and request.get("model"))], inputs,
+                  overwrite=True)
+    with OutputLock(model_path):
+        return _run_locked(request, events, should_cancel, mesh, settings, scene_split, files, out_dir, name,
+                           OutputSet())
+
+
+def _run_locked(request, events, should_cancel, mesh, settings, scene_split, files, out_dir, name, staged) -> dict:
+    from .exact import ExactTracer
+    from .pipeline import compress_mesh
+    from .render import Camera, orbit_cameras, render_neural, render_reference
+    from .sizing import mesh_resident_bytes
+
+    model_path = Path(files["model"])
     if request.get("model"):
         # Load an existing model instead of training (a damaged file fails here with NBVHFileError).
         from .fileformat import load_nbvh, read_info
@@ -130,10 +151,12 @@ def run_job(request: dict, events, should_cancel) -> dict:
         model = load_nbvh(request["model"])
         info = read_info(request["model"])
         result = _LoadedResult(model, info, str(request["model"]))
-        model_path = Path(request["model"])
     else:
-        result = compress_mesh(mesh, settings, model_path, events=events, should_cancel=should_cancel)
+        checkpoint = out_dir / f".{name}.nbvh.checkpoint"
+        result = compress_mesh(mesh, settings, None, events=events, should_cancel=should_cancel,
+                               checkpoint_path=checkpoint, resume_from=request.get("resume"))
         model = result.model
+        staged.stage(model_path, result.data)
     cam_spec = request.get("camera")
     if cam_spec:
         tf = mesh.transform
@@ -147,23 +170,28 @@ def run_job(request: dict, events, should_cancel) -> dict:
     events({"event": "phase", "phase": "preview", "message": f"{w}x{h} image, proxy points"})
     neural = render_neural(model, cam, w, h)
     reference = render_reference(result.tracer or ExactTracer(mesh), cam, w, h)
-    files = {"model": str(model_path), "preview": str(out_dir / f"{name}.preview.png"),
-             "reference": str(out_dir / f"{name}.reference.png"), "points": str(out_dir / f"{name}.points.npy"),
-             "report": str(out_dir / f"{name}.report.json")}
-    _atomic_bytes(Path(files["preview"]), _png_bytes(neural.image))
-    _atomic_bytes(Path(files["reference"]), _png_bytes(reference.image))
+    staged.stage(Path(files["preview"]), _png_bytes(neural.image))
+    staged.stage(Path(files["reference"]), _png_bytes(reference.image))
     import io
 
     buf = io.BytesIO()
     np.save(buf, proxy_points(model, int(request.get("proxy_points", 20000)), seed=settings.seed))
-    _atomic_bytes(Path(files["points"]), buf.getvalue())
+    staged.stage(Path(files["points"]), buf.getvalue())
     report = result.summary()
     report["name"] = name
     report["mesh_resident_bytes"] = result.assessment["resident"] if result.assessment else mesh_resident_bytes(mesh)
     report["files"] = files
     if scene_split is not None:
         report["scene_split"] = scene_split
-    _atomic_bytes(Path(files["report"]), json.dumps(report, indent=2).encode())
+    staged.stage(Path(files["report"]), json.dumps(report, indent=2).encode())
+    if should_cancel():
+        staged.discard()
+        from .train import Cancelled
+
+        raise Cancelled("cancelled before the results were written")
+    staged.commit()  # everything appears together (or the previous result stays)
+    if not request.get("model"):
+        (out_dir / f".{name}.nbvh.checkpoint").unlink(missing_ok=True)
     event = {"event": "result", "name": name, "path": str(model_path), "bytes": result.file_bytes,
              "files": files, "quality": report["quality"], "train_seconds": round(float(result.training.seconds), 2),
              "device": result.training.device}
@@ -210,6 +238,7 @@ def _scene_share(scene: dict, settings, events):
 def main(argv: list[str]) -> int:
     """Entry of `python -m nbvh_core job REQUEST.json`."""
     from .cli import _install_cancel_handlers
+    from .pipeline import NotWorthCompressing
     from .train import Cancelled, TrainingDiverged
 
     events = json_lines(sys.stdout)
@@ -224,6 +253,9 @@ def main(argv: list[str]) -> int:
     except TrainingDiverged as exc:
         events({"event": "error", "kind": "diverged", "message": f"training diverged: {exc}"})
         return 3
+    except NotWorthCompressing as exc:
+        events({"event": "error", "kind": "not_worth", "message": str(exc)})
+        return 4
     except (ValueError, OSError, KeyError) as exc:
         events({"event": "error", "kind": "input", "message": f"{type(exc).__name__}: {exc}"})
         return 2

@@ -13,9 +13,11 @@ import numpy as np
 import torch
 from torch import nn
 
+from .bvh import NODE_DTYPE
 from .encodings import EncodingConfig, make_encoding
 from .mesh import Transform
 from .networks import NetworkConfig, make_network
+from .quantize import StorageConfig
 from .traversal import LeafStream, TorchBVH
 
 
@@ -48,12 +50,14 @@ class QueryResult:
 class NeuralBVH(nn.Module):
     """The neural model. nodes: (M,) NODE_DTYPE BVH array; cfg: ModelConfig; transform: to original units."""
 
-    def __init__(self, nodes: np.ndarray, cfg: ModelConfig, transform: Transform | None = None):
+    def __init__(self, nodes: np.ndarray, cfg: ModelConfig, transform: Transform | None = None,
+                 inference: bool = False):
+        """inference=True: built to be filled by the file reader (no trainable encoding state is allocated)."""
         super().__init__()
         self.nodes = nodes
         self.cfg = cfg
         self.transform = transform or Transform(1.0, np.zeros(3))
-        self.encoding = make_encoding(cfg.encoding)
+        self.encoding = make_encoding(cfg.encoding, inference)
         self.network = make_network(self.encoding.out_dim, cfg.network)
         self._tree: TorchBVH | None = None
         self.metadata: dict = {}  # what the file's header carried (training, quality, source)
@@ -154,12 +158,42 @@ class NeuralBVH(nn.Module):
 
         return mlp.segments_raw(self, fused, rays_o, rays_d, ray, t_enter, t_exit)
 
-    def stored_bytes(self, float_bytes: int = 4) -> dict[str, int]:
-        """Bytes of the stored tensors by component (no header): bvh, features, [index], network."""
-        out = {"bvh": int(self.nodes.nbytes)}
-        out.update(self.encoding.stored_bytes(float_bytes))
-        out["network"] = sum(p.numel() for p in self.network.parameters()) * float_bytes
+    def stored_bytes(self, storage: StorageConfig | None = None) -> dict[str, int]:
+        """Bytes of the stored tensors by component (no header) at `storage` (default float32 everywhere): bvh,
+        features, [index], network."""
+        st = storage or StorageConfig.float32()
+        m = len(self.nodes)
+        out = {"bvh": m * NODE_DTYPE.itemsize if st.node_bits == 32 else 24 + m * 10}
+        out.update(self.encoding.stored_bytes(st.table_bits))
+        out["network"] = sum(p.numel() for p in self.network.parameters()) * st.network_bits // 8
         return out
+
+    def resident_bytes(self) -> dict[str, int]:
+        """Bytes this model holds to answer rays, by component: the traversal's decoded nodes (32 B each), the
+        feature rows as held (uint8 codes + affine, or floats), HashVQAD's codes (one byte each), the network's
+        float32 weights (the kernels read float32)."""
+        enc = self.encoding
+        rows = (enc.qcodes.numel() + 4 * (enc.qoffset.numel() + enc.qscale.numel()) if enc.quantized
+                else enc.table.numel() * enc.table.element_size())
+        out = {"bvh": len(self.nodes) * NODE_DTYPE.itemsize, "features": int(rows)}
+        codes = getattr(enc, "codes", None)
+        if codes is not None and codes.numel():
+            out["index"] = int(codes.numel())
+        out["network"] = sum(p.numel() * p.element_size() for p in self.network.parameters())
+        return out
+
+    @torch.no_grad()
+    def finalize_storage(self, storage: StorageConfig) -> None:
+        """Make this in-memory model exactly the one a file at `storage` loads back: the table as uint8 codes
+        (8 bits) or rounded to float16, the network's weights rounded to float16 (16 bits). Nodes are snapped by
+        the pipeline before training (`quantize.snap_nodes`). Irreversible; inference only afterwards."""
+        if storage.table_bits == 8:
+            self.encoding.quantize_(8)
+        elif storage.table_bits == 16 and not self.encoding.quantized:
+            self.encoding.table.copy_(self.encoding.table.half().float())
+        if storage.network_bits == 16:
+            for p in self.network.parameters():
+                p.copy_(p.half().float())
 
     def flops_per_segment(self) -> dict[str, int]:
         """Floating-point operations (a multiply-add = 2) to evaluate one (ray, leaf) segment, by part:

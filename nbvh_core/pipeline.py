@@ -28,6 +28,7 @@ from .mesh import Mesh
 from .metrics import Quality, evaluate
 from .model import ModelConfig, NeuralBVH
 from .networks import NetworkConfig
+from .quantize import StorageConfig, snap_nodes
 from .train import Cancelled, TrainConfig, TrainingDiverged, TrainResult, train
 
 #: A diverged training restarts from scratch at a 10x lower learning rate, at most this many times.
@@ -57,23 +58,36 @@ class Settings:
     tree_cut: bool = False
     seed: int = 0
     device: str = "auto"
-    float_bytes: int = 4
+    #: Storage (quantize.py): bits per feature value (32/16/8), per network weight (32/16), per node (32/8).
+    table_bits: int = 8
+    network_bits: int = 16
+    node_bits: int = 8
+    #: The last fraction of training during which the quantized table is fixed and the network adapts to it.
+    qat_fraction: float = 0.05
     eval_views: int = 16
     eval_resolution: int = 128
     #: Ways to ask for a size instead of fixing it (see `resolve`): a byte budget, or a target image MSE.
     budget_kb: float | None = None
     target_mse: float | None = None
+    #: Train even when the verdict is "not worth compressing" (otherwise the run ends with the verdict).
+    force: bool = False
+    #: Seconds between checkpoints when a checkpoint path is given (a kill loses at most this much training).
+    checkpoint_every_s: float = 60.0
 
     def model_config(self) -> ModelConfig:
         return ModelConfig(EncodingConfig(kind=self.encoding, log2_table=self.log2_table, levels=self.levels,
                                           features=self.features),
                            NetworkConfig(kind=self.network, k=self.k))
 
+    def storage(self) -> StorageConfig:
+        return StorageConfig(self.table_bits, self.network_bits, self.node_bits)
+
     def train_config(self) -> TrainConfig:
         return TrainConfig(labels=self.labels, lr=self.lr, steps=self.steps, time_limit_s=self.time_limit_s,
                            rays_per_step=self.rays_per_step, seed=self.seed, device=self.device,
                            anneal_fraction=self.anneal_fraction, leaf_sampling=self.leaf_sampling,
-                           tree_cut=self.tree_cut)
+                           tree_cut=self.tree_cut, checkpoint_every_s=self.checkpoint_every_s, qat_bits=self.table_bits if self.table_bits == 8 else None,
+                           qat_fraction=self.qat_fraction)
 
     def with_overrides(self, **kw) -> "Settings":
         unknown = set(kw) - {f.name for f in dataclasses.fields(self)}
@@ -112,8 +126,9 @@ def estimate_file_bytes(s: Settings) -> int:
 
     from .bvh import NODE_DTYPE
 
-    model = NeuralBVH(np.zeros(s.nodes, NODE_DTYPE), s.model_config())
-    comps = model.stored_bytes(s.float_bytes)
+    with torch.device("meta"):  # shapes only
+        model = NeuralBVH(np.zeros(s.nodes, NODE_DTYPE), s.model_config())
+    comps = model.stored_bytes(s.storage())
     return sum(comps.values()) + 2600
 
 
@@ -190,6 +205,7 @@ class CompressResult:
     why: str = ""
     target_met: bool | None = None
     assessment: dict = field(default_factory=dict)  # sizing.Assessment: is the model smaller than the mesh?
+    data: bytes = b""  # the complete .nbvh file contents (written to `path` when one was given)
 
     def summary(self) -> dict:
         return {"path": self.path, "file_bytes": self.file_bytes, "components": self.components,
@@ -197,6 +213,15 @@ class CompressResult:
                 "training": {k: v for k, v in dataclasses.asdict(self.training).items() if k != "history"},
                 "settings": self.settings.to_dict(), "seconds": self.seconds, "why": self.why,
                 "target_met": self.target_met, "assessment": self.assessment}
+
+
+class NotWorthCompressing(Exception):
+    """The verdict before training: the mesh (or a decimation meeting the target) is smaller than the model would
+    be. Nothing was trained or written; `assessment` (sizing.Assessment) has the sizes and the alternatives."""
+
+    def __init__(self, assessment):
+        super().__init__(assessment.message)
+        self.assessment = assessment
 
 
 class _Trained(NamedTuple):
@@ -209,14 +234,43 @@ class _Trained(NamedTuple):
     quality: Quality | None
 
 
-def _train_with_restarts(mesh, bvh, tracer, settings, why, events, should_cancel, checkpoint_path):
-    """Train a fresh model; on divergence restart from scratch at a 10x lower learning rate (at most
-    DIVERGENCE_RETRIES times). Returns (model, TrainResult, settings actually used, why)."""
+def mesh_identity(mesh: Mesh) -> dict:
+    """What a checkpoint records of its mesh, to refuse resuming on another one: counts and a content hash."""
+    import hashlib
+
+    h = hashlib.sha256(mesh.vertices.tobytes())
+    h.update(mesh.faces.tobytes())
+    return {"triangles": mesh.n_triangles, "vertices": mesh.n_vertices, "sha256": h.hexdigest()}
+
+
+def resume_settings(checkpoint_path: str | Path, mesh: Mesh) -> Settings:
+    """The settings a checkpoint was training with (a fixed size: the resumed run trains that one model), after
+    checking it belongs to `mesh`. Raises ValueError for a foreign, damaged or mismatched checkpoint."""
+    try:
+        ck = torch.load(checkpoint_path, map_location="cpu", weights_only=False)
+        extra = ck["extra"]
+        fields = {f.name for f in dataclasses.fields(Settings)}
+        settings = Settings(**{k: v for k, v in extra["settings"].items() if k in fields})
+    except FileNotFoundError:
+        raise ValueError(f"{checkpoint_path}: no such checkpoint") from None
+    except Exception as exc:  # torch.load raises many kinds for a foreign file
+        raise ValueError(f"{checkpoint_path}: not a checkpoint of this tool ({type(exc).__name__})") from None
+    if extra.get("mesh") != mesh_identity(mesh):
+        raise ValueError(f"{checkpoint_path}: the checkpoint was made for another mesh "
+                         f"({extra.get('mesh', {}).get('triangles')} triangles; this one has {mesh.n_triangles})")
+    return dataclasses.replace(settings, target_mse=None, budget_kb=None)
+
+
+def _train_with_restarts(mesh, bvh, tracer, settings, why, events, should_cancel, checkpoint_path, resume_from=None):
+    """Train a fresh model (or resume `resume_from`); on divergence restart from scratch at a 10x lower learning rate
+    (at most DIVERGENCE_RETRIES times). Returns (model, TrainResult, settings actually used, why)."""
     for attempt in range(DIVERGENCE_RETRIES + 1):
         model = NeuralBVH(bvh.nodes, settings.model_config(), mesh.transform)
         try:
+            extra = {"settings": settings.to_dict(), "mesh": mesh_identity(mesh)}
             tr = train(model, bvh, tracer, settings.train_config(), events=events, should_cancel=should_cancel,
-                       checkpoint_path=checkpoint_path)
+                       checkpoint_path=checkpoint_path, resume_from=resume_from if attempt == 0 else None,
+                       checkpoint_extra=extra)
             return model, tr, settings, why
         except TrainingDiverged as exc:
             if attempt == DIVERGENCE_RETRIES:
@@ -231,23 +285,35 @@ def _train_with_restarts(mesh, bvh, tracer, settings, why, events, should_cancel
 
 def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = None,
                   events: EventSink = null_sink, should_cancel: Callable[[], bool] = lambda: False,
-                  evaluate_quality: bool = True, checkpoint_path: str | Path | None = None) -> CompressResult:
+                  evaluate_quality: bool = True, checkpoint_path: str | Path | None = None,
+                  compare_float32: bool = False, resume_from: str | Path | None = None) -> CompressResult:
     """Compress `mesh` with `settings`; write `out_path` (atomically) when given. Raises `train.Cancelled`,
-    `train.TrainingDiverged` (nothing written in either case)."""
+    `train.TrainingDiverged` (nothing written in either case). compare_float32: also score each training before its
+    storage is quantized (`seconds['mse_float32']`, for benchmarks). resume_from: a checkpoint of this mesh
+    (`resume_settings` gives the settings it was made with; pass those). Raises NotWorthCompressing (in seconds,
+    before any training) when the verdict says so and `settings.force` is off."""
     from .sizing import assess, load_fit, mesh_features, search_size
 
     settings, why = resolve(settings, mesh)
+    if resume_from is not None:
+        why += f"; resumed from the checkpoint {resume_from}"
     seconds = {}
     tracer = ExactTracer(mesh)  # one Embree scene for the alternatives, the labels and the evaluation
     t = time.perf_counter()
     events({"event": "phase", "phase": "plan", "message": why})
     assessment = assess(mesh, settings, measure_alternatives=settings.target_mse is not None, tracer=tracer)
     seconds["plan"] = time.perf_counter() - t
-    if not assessment.worth_compressing:  # reported, not refused: the user asked for this model
-        events({"event": "warning", "message": assessment.message})
+    if not assessment.worth_compressing:
+        if not settings.force:
+            events({"event": "verdict", "worth_compressing": False, "message": assessment.message,
+                    "assessment": assessment.to_dict()})
+            raise NotWorthCompressing(assessment)
+        events({"event": "warning", "message": assessment.message + " (training anyway: forced)"})
     t = time.perf_counter()
     events({"event": "phase", "phase": "bvh", "message": f"{mesh.n_triangles} triangles -> {settings.nodes} nodes"})
     bvh = build_bvh(mesh, settings.nodes)  # a retry changes T only, never the node count
+    if settings.node_bits == 8:  # train on the boxes the file stores (each contains its exact box)
+        bvh = dataclasses.replace(bvh, nodes=snap_nodes(bvh.nodes))
     seconds["bvh"] = time.perf_counter() - t
     seconds["train"] = 0.0
     seconds["eval"] = 0.0
@@ -259,9 +325,13 @@ def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = 
         t = time.perf_counter()
         s_try = dataclasses.replace(settings, log2_table=log2_table)
         model, tr, s_used, why_used = _train_with_restarts(mesh, bvh, tracer, s_try, why, events, should_cancel,
-                                                           checkpoint_path)
+                                                           checkpoint_path, resume_from)
         seconds["train"] += time.perf_counter() - t
         model.eval()
+        if compare_float32 and evaluate_quality:  # the same training before its storage is quantized
+            q32, _ = evaluate(model, tracer, s_used.eval_views, s_used.eval_resolution)
+            seconds["mse_float32"] = q32.mse
+        model.finalize_storage(s_used.storage())  # measure the model the file stores, not its float32 original
         quality = None
         if evaluate_quality:
             if should_cancel():
@@ -317,7 +387,7 @@ def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = 
     }
     if quality:
         metadata["quality"].pop("per_view_mse", None)
-    data = encode_nbvh(model, metadata, settings.float_bytes)
+    data = encode_nbvh(model, metadata, settings.storage())
     size = len(data)
     if out_path is not None:
         if should_cancel():
@@ -326,8 +396,9 @@ def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = 
         size = write_atomic(out_path, data)
     result = CompressResult(path=str(out_path) if out_path else None, file_bytes=size,
                             components=component_bytes(data), quality=quality, training=tr, settings=settings,
-                            seconds={k: round(v, 2) for k, v in seconds.items()}, model=model, tracer=tracer, why=why,
-                            target_met=metadata["target_met"], assessment=assessment.to_dict())
+                            seconds={k: (v if k.startswith("mse") else round(v, 2)) for k, v in seconds.items()},
+                            model=model, tracer=tracer, why=why,
+                            target_met=metadata["target_met"], assessment=assessment.to_dict(), data=data)
     events({"event": "result", "path": result.path, "bytes": size,
             "quality": json.loads(json.dumps(metadata["quality"])), "train_seconds": round(tr.seconds, 2)})
     return result

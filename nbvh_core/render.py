@@ -113,7 +113,7 @@ def save_png(path, image: np.ndarray) -> None:
     from PIL import Image
 
     arr = (np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8)
-    Image.fromarray(arr).save(path)
+    Image.fromarray(arr).save(path, format="PNG")
 
 
 def render_neural(model, camera: Camera, width: int, height: int) -> RenderResult:

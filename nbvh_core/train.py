@@ -63,6 +63,8 @@ class TrainConfig:
     divergence_factor: float = 50.0
     rise_factor: float = 3.0
     checkpoint_every: int = 0
+    #: Also write a checkpoint every this many seconds of training (0 = off); a kill loses at most one period.
+    checkpoint_every_s: float = 0.0
     progress_every_s: float = 0.5
     # Label the next batches in a background thread while this step trains. None = only on CUDA (the CPU is idle
     # while the GPU trains); on a 2-core CPU it was slower (bunny, default preset, 150 steps: 130k vs 149-154k
@@ -87,6 +89,11 @@ class TrainConfig:
     tree_cut_start: float = 0.5
     tree_cut_rounds: int = 10
     tree_cut_until: float = 0.3
+    # Quantization-aware end of training: for the last qat_fraction of the budget the feature table is snapped to its
+    # qat_bits-bit grid (per level and feature, `quantize.table_affine`) and held there while the network adapts to
+    # the quantized rows; the affine map is kept (`encoding.qat_affine`) so the file's codes reproduce them exactly.
+    qat_bits: int | None = None
+    qat_fraction: float = 0.05
     ray_config: RayConfig = field(default_factory=RayConfig)
 
     def to_dict(self) -> dict:
@@ -321,19 +328,43 @@ class _TreeCut:
         return refined
 
 
+@torch.no_grad()
+def _snap_table(model: NeuralBVH, bits: int) -> bool:
+    """Snap the feature table onto its `bits`-bit grid (see TrainConfig.qat_bits); records the affine map."""
+    from .quantize import dequantize_table, quantize_table, table_affine
+
+    table = model.encoding.table
+    arr = table.detach().cpu().numpy()
+    offset, scale = table_affine(arr, bits)
+    snapped = dequantize_table(quantize_table(arr, offset, scale, bits), offset, scale)
+    table.copy_(torch.from_numpy(snapped).to(table.device))
+    model.encoding.qat_affine = (offset, scale)
+    return True
+
+
 def _atomic_save(obj, path: Path) -> None:
-    tmp = path.with_name(path.name + ".partial")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
+    """torch.save to a temporary file beside `path`, fsync, rename: a kill mid-write keeps the previous checkpoint."""
+    tmp = path.with_name(path.name + f".partial-{os.getpid()}")
+    try:
+        with open(tmp, "wb") as f:
+            torch.save(obj, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, events: EventSink = null_sink,
           should_cancel: Callable[[], bool] = lambda: False, checkpoint_path: str | os.PathLike | None = None,
           resume_from: str | os.PathLike | None = None,
-          before_freeze: Callable[[NeuralBVH], None] | None = None) -> TrainResult:
+          before_freeze: Callable[[NeuralBVH], None] | None = None,
+          checkpoint_extra: dict | None = None) -> TrainResult:
     """Train `model` in place on rays around `bvh`, labelled by `tracer`; freezes HashVQAD near the end.
 
     before_freeze(model) is called once just before the HashVQAD freeze (e.g. to score the soft model).
+    checkpoint_extra: stored in every checkpoint under 'extra' (the caller's settings and mesh identity).
     """
     if cfg.steps is None and cfg.time_limit_s is None:
         raise ValueError("set a step budget or a time limit")
@@ -382,7 +413,7 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
     from .kernels import mlp as fused_mlp
 
     # Fast path, MLP network: one fused kernel per step (kernels/mlp.py); otherwise torch autograd.
-    fused_step = fused_mlp.applies(model)
+    fused_step = fused_mlp.trains(model)
 
     def held_out_loss() -> float:
         held_out = label_samples(batches.bvh, tracer, *sample_rays(batches.lo, batches.hi, 8192,
@@ -408,7 +439,9 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
                           "torch_rng": torch.get_rng_state(), "train_config": cfg.to_dict(),
                           "leaf_errors": None if leaf_errors is None else leaf_errors.error.clone(),
                           "cut": None if tree_cut is None else batches.bvh.leaf_full.tolist(),
-                          "tree_cut_rounds_done": 0 if tree_cut is None else tree_cut.rounds_done},
+                          "tree_cut_rounds_done": 0 if tree_cut is None else tree_cut.rounds_done,
+                          "qat_affine": model.encoding.qat_affine if qat_on else None,
+                          "extra": checkpoint_extra or {}},
                          Path(checkpoint_path))
 
     events({"event": "phase", "phase": "train",
@@ -416,12 +449,17 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
                        f"{kernels.describe(device)}"})
     t0 = time.perf_counter() - elapsed_before
     last_emit = 0.0
+    last_checkpoint = elapsed_before
     n_samples = 0
     ema = None
     first_losses: list[float] = []  # the first 5 batches; [0] is the untrained model's loss
     step = start_step
     loss_val = float("nan")
     phase = "train"
+    qat_on = False
+    if ck.get("qat_affine") is not None:  # resumed inside the quantization-aware phase
+        model.encoding.qat_affine = ck["qat_affine"]
+        qat_on = True
     try:
         while True:
             elapsed = time.perf_counter() - t0
@@ -445,6 +483,10 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
                         phase = "anneal"
                         events({"event": "phase", "phase": "anneal",
                                 "message": f"softmax temperature 1 -> {cfg.tau_min}"})
+            if cfg.qat_bits and not qat_on and frac >= 1.0 - cfg.qat_fraction:
+                qat_on = _snap_table(model, cfg.qat_bits)
+                events({"event": "phase", "phase": "quantize",
+                        "message": f"feature table snapped to {cfg.qat_bits} bits; the network adapts to it"})
             for g in opt.param_groups:
                 g["lr"] = cfg.lr * g["lr_factor"] * cfg.lr_final_factor ** frac
             batch = batches.next()
@@ -470,6 +512,8 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
             if not fused_step:
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
+            if qat_on:  # the snapped table stays on its grid
+                model.encoding.table.grad = None
             opt.step()
             step += 1
             refined = tree_cut.refine(frac, batches.bvh, leaf_errors) if tree_cut is not None else None
@@ -481,9 +525,11 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
                             "nodes by splitting the leaves with the highest error"})
             n_samples += len(batch)
             history.append((step, loss_val))
-            if cfg.checkpoint_every and step % cfg.checkpoint_every == 0:
-                save_checkpoint(step, time.perf_counter() - t0)
             now = time.perf_counter() - t0
+            if ((cfg.checkpoint_every and step % cfg.checkpoint_every == 0)
+                    or (cfg.checkpoint_every_s and now - last_checkpoint >= cfg.checkpoint_every_s)):
+                save_checkpoint(step, now)
+                last_checkpoint = now
             if now - last_emit >= cfg.progress_every_s:
                 last_emit = now
                 run_time = now - elapsed_before

@@ -5,6 +5,7 @@ import torch
 from nbvh_core.fileformat import (MAGIC, NBVHFileError, component_bytes, load_nbvh, pack_codes, read_info,
                                   save_nbvh, unpack_codes)
 from nbvh_core.pipeline import compress_mesh, preset
+from nbvh_core.quantize import StorageConfig
 from nbvh_core.render import orbit_cameras, render_neural
 
 
@@ -44,8 +45,8 @@ def test_file_size_equals_component_bytes(trained, enc):
     path, res = trained[enc]
     info = read_info(path)
     assert info.total_bytes == path.stat().st_size == sum(info.components.values()) == res.file_bytes
-    sizes = res.model.stored_bytes()
-    assert info.components["bvh"] == sizes["bvh"] == len(res.model.nodes) * 32
+    sizes = res.model.stored_bytes(res.settings.storage())
+    assert info.components["bvh"] == sizes["bvh"] == 24 + len(res.model.nodes) * 10  # 8-bit boxes, 16-bit links
     assert info.components["features"] == sizes["features"]
     assert info.components["network"] == sizes["network"]
     if enc == "hashvqad":
@@ -55,12 +56,13 @@ def test_file_size_equals_component_bytes(trained, enc):
 
 def test_float16_halves_the_tables(trained, tmp_path):
     path, res = trained["hashgrid"]
-    half = tmp_path / "half.nbvh"
-    save_nbvh(res.model, half, float_bytes=2)
-    a, b = read_info(path).components, read_info(half).components
+    half, full = tmp_path / "half.nbvh", tmp_path / "full.nbvh"
+    save_nbvh(res.model, half, storage=StorageConfig(16, 16, 32))
+    save_nbvh(res.model, full, storage=StorageConfig.float32())
+    a, b = read_info(full).components, read_info(half).components
     assert b["features"] * 2 == a["features"] and b["network"] * 2 == a["network"]
     m = load_nbvh(half)
-    assert torch.allclose(m.encoding.table, res.model.encoding.table, atol=1e-3)
+    assert torch.allclose(m.encoding.table, res.model.encoding.float_rows(), atol=1e-3)
 
 
 def test_damaged_truncated_and_foreign_files_refused(trained, tmp_path):

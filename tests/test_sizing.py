@@ -99,7 +99,7 @@ def test_scene_budget_is_shared_by_need():
     smooth = MeshFeatures(triangles=20000, area=3.0, occupancy=0.05, roughness=0.02)
     detailed = MeshFeatures(triangles=200000, area=6.0, occupancy=0.15, roughness=0.4)
     size = lambda i, l2: estimate_file_bytes(preset("default").with_overrides(log2_table=l2))  # noqa: E731
-    budget = 1.6e6
+    budget = size(0, 11) + size(1, 11)  # both cannot have the largest table (2^12)
     plan = split_budget([smooth, detailed], budget, fit, size)
     assert plan["total"] <= budget
     assert plan["log2"][1] > plan["log2"][0]  # the detailed mesh gets the bigger table
@@ -109,7 +109,7 @@ def test_scene_budget_is_shared_by_need():
     assert plan_w["log2"][0] > plan_w["log2"][1]
     # A budget below the smallest models is refused with the size they need, not silently exceeded.
     with pytest.raises(ValueError, match="too small for these 2 meshes"):
-        split_budget([smooth, detailed], 100e3, fit, size)
+        split_budget([smooth, detailed], 1.5 * size(0, 5), fit, size)
 
 
 def _line_fit(slope_per_doubling: float = -0.3):

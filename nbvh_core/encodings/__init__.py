@@ -9,10 +9,11 @@ from .hashvqad import HashVQAD
 ENCODINGS = {"hashgrid": HashGrid, "hashvqad": HashVQAD}
 
 
-def make_encoding(cfg: EncodingConfig) -> HashGrid:
+def make_encoding(cfg: EncodingConfig, inference: bool = False) -> HashGrid:
+    """The encoding `cfg.kind` names; `inference=True` allocates no trainable state (the file reader fills it)."""
     if cfg.kind not in ENCODINGS:
         raise ValueError(f"unknown encoding {cfg.kind!r}; choose from {', '.join(ENCODINGS)}")
-    return ENCODINGS[cfg.kind](cfg)
+    return ENCODINGS[cfg.kind](cfg, inference)
 
 
 __all__ = ["EncodingConfig", "HashGrid", "HashVQAD", "ENCODINGS", "make_encoding"]

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import ctypes
 import math
+from dataclasses import dataclass
 
 import torch
 
@@ -35,6 +36,28 @@ class GridSpec:
         return (self.cfg.levels, self.cfg.features, p(self.scales), p(self.res), p(self.dense),
                 ctypes.c_int64(self.vertex_table), ctypes.c_int64(rows), p(codes), ctypes.c_int64(code_rows),
                 kernels.threads())
+
+
+@dataclass
+class FusedLookup:
+    """What a fused kernel reads: rows (L, R, F) of `kind` 'f32' | 'f16' | 'u8' (codes: value = offset + code *
+    scale, offset/scale (L, F) float32), the level geometry, frozen HashVQAD codes or None, rows they select from."""
+
+    rows: torch.Tensor
+    kind: str
+    spec: GridSpec
+    codes: torch.Tensor | None
+    code_rows: int
+    offset: torch.Tensor | None = None
+    scale: torch.Tensor | None = None
+
+    #: The kernels' table type argument.
+    KIND_ARG = {"f32": 0, "f16": 1, "u8": 2}
+
+    def kernel_args(self) -> tuple:
+        """(rows, kind, offset, scale) pointers/ints as nbvh_mlp_segments takes them."""
+        p = kernels.ptr
+        return (p(self.rows), self.KIND_ARG[self.kind], p(self.offset), p(self.scale))
 
 
 class _FusedEncode(torch.autograd.Function):
@@ -84,4 +107,17 @@ def fused_encode_half(points: torch.Tensor, table_half: torch.Tensor, spec: Grid
     codes = None if codes is None else codes.contiguous()
     kernels.load().nbvh_encode_forward_f16(points.data_ptr(), points.shape[0], table_half.data_ptr(), out.data_ptr(),
                                            *spec.args(table_half.shape[1], codes, code_rows))
+    return out
+
+
+@torch.no_grad()
+def fused_encode_u8(points: torch.Tensor, look: FusedLookup) -> torch.Tensor:
+    """Inference only: the lookup from uint8 rows (look.kind == 'u8'), dequantized per feature after the 8-corner
+    sum (offset + scale * sum_c w_c code_c: exact, the weights sum to 1). Returns (N, L * F) float32."""
+    points = points.to(torch.float32).contiguous()
+    levels, rows, feats = look.rows.shape
+    out = torch.empty((points.shape[0], levels * feats), dtype=torch.float32)
+    kernels.load().nbvh_encode_forward_u8(points.data_ptr(), points.shape[0], look.rows.data_ptr(),
+                                          kernels.ptr(look.offset), kernels.ptr(look.scale), out.data_ptr(),
+                                          *look.spec.args(rows, look.codes, look.code_rows))
     return out

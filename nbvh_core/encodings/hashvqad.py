@@ -24,7 +24,7 @@ import torch
 from torch import nn
 
 from .base import MASK32, PRIMES, EncodingConfig
-from .hashgrid import HashGrid
+from .hashgrid import HashGrid, table_features_bytes
 
 
 def candidate_rows(entries: torch.Tensor, candidates: torch.Tensor, table_size: int) -> torch.Tensor:
@@ -40,11 +40,13 @@ class HashVQAD(HashGrid):
     `freeze()`.
     """
 
-    def __init__(self, cfg: EncodingConfig):
-        super().__init__(cfg)
+    def __init__(self, cfg: EncodingConfig, inference: bool = False):
+        super().__init__(cfg, inference)
         if cfg.candidates < 2 or cfg.candidates & (cfg.candidates - 1):
             raise ValueError(f"HashVQAD candidates t must be a power of two >= 2, got {cfg.candidates}")
-        self.logits = nn.Parameter(torch.randn(cfg.levels, cfg.index_size, cfg.candidates) * 1e-2)
+        # A model built to be loaded (inference) never allocates the soft index: L * H * t floats, 128x the table.
+        self.logits = None if inference else nn.Parameter(
+            torch.randn(cfg.levels, cfg.index_size, cfg.candidates) * 1e-2)
         self.register_buffer("codes", torch.zeros(0, dtype=torch.uint8), persistent=True)
         self.temperature = 1.0
         self._cand_cache: torch.Tensor | None = None
@@ -67,7 +69,7 @@ class HashVQAD(HashGrid):
 
     def row_table(self) -> torch.Tensor:
         if self.frozen:
-            return self.table
+            return self.float_rows()
         cfg = self.cfg
         n_t, n_c = cfg.table_size, cfg.candidates
         probs = torch.softmax(self.logits / self.temperature, dim=-1)  # (L, H, t)
@@ -97,8 +99,8 @@ class HashVQAD(HashGrid):
     def code_bits(self) -> int:
         return int(math.log2(self.cfg.candidates))
 
-    def stored_bytes(self, float_bytes: int = 4) -> dict[str, int]:
-        """{'features': L*T*F*float_bytes, 'index': ceil(L*H*log2(t) / 8)}."""
+    def stored_bytes(self, table_bits: int = 32) -> dict[str, int]:
+        """{'features': as HashGrid's, 'index': ceil(L*H*log2(t) / 8)}."""
         cfg = self.cfg
-        return {"features": self.table.numel() * float_bytes,
+        return {"features": table_features_bytes(cfg, table_bits),
                 "index": (cfg.levels * cfg.index_size * self.code_bits() + 7) // 8}

@@ -38,7 +38,7 @@ import torch
 
 SOURCE = Path(__file__).with_name("nbvh_kernels.cpp")
 FLAGS = ["-O3", "-march=native", "-ffp-contract=off", "-fopenmp", "-shared", "-fPIC", "-std=c++17"]
-ABI_VERSION = 8
+ABI_VERSION = 9
 PATHS = ("fast", "reference")
 
 _path = os.environ.get("NBVH_PATH", "fast")
@@ -155,15 +155,17 @@ def load() -> ctypes.CDLL | None:
     lib.nbvh_encode_forward.argtypes = enc
     lib.nbvh_encode_backward.argtypes = enc
     lib.nbvh_encode_forward_f16.argtypes = enc
+    lib.nbvh_encode_forward_u8.argtypes = [P, I64, P, P, P, P, *enc[4:]]
     lib.nbvh_stream_next.argtypes = [P, P, I64, P, P, P, P, P, P, P, P, I32, P, P, P, I32]
     lib.nbvh_leaves_traverse.argtypes = [P, P, I64, P, P, P, P, P, I32, P, P, I32]
     lib.nbvh_leaves_traverse.restype = P
     lib.nbvh_leaves_collect.argtypes = [P, P, P, P]
     lib.nbvh_leaves_collect.restype = None
-    lib.nbvh_mlp_segments.argtypes = [P, P, P, P, P, I64, I32, P, P, I32, *enc[4:13], I32, P, P, P, I32]
+    lib.nbvh_mlp_segments.argtypes = [P, P, P, P, P, I64, I32, P, P, I32, P, P, *enc[4:13], I32, P, P, P, I32]
     lib.nbvh_mlp_train.argtypes = [P, P, P, P, P, I64, I32, P, P, *enc[4:13], I32, P, P, P, P, P, I64,
                                    ctypes.c_float, ctypes.c_float, P, P, P, P, P, P, I32]
-    for fn in (lib.nbvh_encode_forward, lib.nbvh_encode_forward_f16, lib.nbvh_encode_backward, lib.nbvh_stream_next,
+    for fn in (lib.nbvh_encode_forward, lib.nbvh_encode_forward_f16, lib.nbvh_encode_forward_u8,
+               lib.nbvh_encode_backward, lib.nbvh_stream_next,
                lib.nbvh_mlp_segments, lib.nbvh_mlp_train):
         fn.restype = None
     _lib = lib

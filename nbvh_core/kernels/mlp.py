@@ -23,6 +23,11 @@ def applies(model) -> bool:
             and hasattr(model.encoding, "fused_lookup") and model.encoding.table.dtype == torch.float32)
 
 
+def trains(model) -> bool:
+    """True when a training step can run fused (as `applies`, with float rows to train)."""
+    return applies(model) and not model.encoding.quantized
+
+
 def _linears(model) -> list[nn.Linear]:
     return [m for m in model.network.modules() if isinstance(m, nn.Linear)]
 
@@ -45,14 +50,15 @@ def segments_raw(model, packed: tuple[torch.Tensor, torch.Tensor], rays_o: torch
     """Raw network outputs (B, 5) of B segments: what `model.forward(rays_o[ray], rays_d[ray], t_enter, t_exit)`
     returns, to float rounding (the sums run in another order). rays_o, rays_d: (N, 3); ray: (B,) int64."""
     dims, params = packed
-    table, half, spec, codes, code_rows = model.encoding.fused_lookup()
+    look = model.encoding.fused_lookup()
     k = model.cfg.network.k
     frac = torch.linspace(0.0, 1.0, k, dtype=torch.float32)
     ray, t_enter, t_exit = ray.contiguous(), t_enter.contiguous(), t_exit.contiguous()
     out = torch.empty((ray.numel(), int(dims[-1])), dtype=torch.float32)
     load().nbvh_mlp_segments(
         ptr(rays_o.contiguous()), ptr(rays_d.contiguous()), ptr(ray), ptr(t_enter), ptr(t_exit), ray.numel(), k,
-        ptr(frac), ptr(table), int(half), *_grid_args(spec, table, codes, code_rows), len(dims) - 1, ptr(dims),
+        ptr(frac), *look.kernel_args(), *_grid_args(look.spec, look.rows, look.codes, look.code_rows), len(dims) - 1,
+        ptr(dims),
         ptr(params), ptr(out), threads())
     return out
 

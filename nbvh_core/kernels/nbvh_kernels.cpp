@@ -30,6 +30,8 @@ struct Grid {
     int64_t rows;             // rows per level in `table`
     const uint8_t* codes;     // (L, vertex_table) frozen HashVQAD codes, or null
     int64_t code_rows;        // T: candidate rows hash2(i, code) mod T (with codes)
+    const float* qoffset = nullptr;  // (L, F) uint8 tables: value = offset + code * scale
+    const float* qscale = nullptr;
     uint32_t vertex_mask = 0; // vertex_table - 1 when it is a power of two <= 2^32, else 0
     uint32_t code_mask = 0;
 
@@ -132,8 +134,9 @@ inline void corners_any(const Grid& g, int l, const float* x, int64_t* row, floa
     corners(g, l, x, row, w);
 }
 
-// Table entries are float32, or float16 (`_Float16`, inference only: half the bytes to gather; the compiler turns
-// the conversion into vcvtph2ps).
+// Table entries are float32, float16 (`_Float16`, inference only: half the bytes to gather; the compiler turns
+// the conversion into vcvtph2ps), or uint8 codes (inference only; the caller applies the level's affine map to the
+// sum, which is exact because the 8 weights sum to 1).
 template <int F, typename T>
 inline void accumulate(float* __restrict out, const T* __restrict tab, const int64_t* row, const float* w, int f_dyn) {
 #ifdef NBVH_AVX2
@@ -149,6 +152,9 @@ inline void accumulate(float* __restrict out, const T* __restrict tab, const int
                 __m256 v;
                 if constexpr (std::is_same<T, float>::value)
                     v = _mm256_loadu_ps(src + 8 * j);
+                else if constexpr (std::is_same<T, uint8_t>::value)
+                    v = _mm256_cvtepi32_ps(_mm256_cvtepu8_epi32(
+                        _mm_loadl_epi64(reinterpret_cast<const __m128i*>(src + 8 * j))));
                 else
                     v = _mm256_cvtph_ps(_mm_loadu_si128(reinterpret_cast<const __m128i*>(src + 8 * j)));
                 acc[j] = _mm256_fmadd_ps(wc, v, acc[j]);
@@ -177,6 +183,13 @@ inline void encode_point(const Grid& g, const float* p, const T* table, float* o
     for (int l = 0; l < g.levels; ++l) {
         corners_any(g, l, p, row, w, fits32(g, l));
         accumulate<F>(out + l * nf, table + (int64_t)l * g.rows * nf, row, w, nf);
+        if constexpr (std::is_same<T, uint8_t>::value) {
+            const float* off = g.qoffset + l * nf;
+            const float* sc = g.qscale + l * nf;
+            float* o = out + l * nf;
+#pragma omp simd
+            for (int f = 0; f < nf; ++f) o[f] = off[f] + sc[f] * o[f];
+        }
     }
 }
 
@@ -566,22 +579,28 @@ void mlp_train_t(const Grid& g, const float* rays_o, const float* rays_d, const 
 
 extern "C" {
 
-int nbvh_abi_version() { return 8; }
+int nbvh_abi_version() { return 9; }
 
 // Fused MLP inference over B segments (see mlp_segments_t): rays_o/rays_d (n_rays, 3), ray (B,) int64 ray of each
-// segment, te/tx (B,) segment ends, frac (k,) point fractions; table (L, rows, F) float32, or float16 when
-// table_half; dims (n_layers + 1,) int32 layer widths (dims[0] = k * L * F); params packed as in mlp_segments_t.
+// segment, te/tx (B,) segment ends, frac (k,) point fractions; table (L, rows, F) of table_kind 0 float32, 1 float16,
+// 2 uint8 codes (with qoffset/qscale (L, F): value = offset + code * scale; null otherwise); dims (n_layers + 1,) int32 layer widths (dims[0] = k * L * F); params packed as in mlp_segments_t.
 // out (B, dims[n_layers]) float32: the network's raw outputs.
 void nbvh_mlp_segments(const float* rays_o, const float* rays_d, const int64_t* ray, const float* te, const float* tx,
-                       int64_t b, int k, const float* frac, const void* table, int table_half, int levels,
+                       int64_t b, int k, const float* frac, const void* table, int table_kind,
+                       const float* qoffset, const float* qscale, int levels,
                        int features, const float* scales, const int64_t* res, const uint8_t* dense,
                        int64_t vertex_table, int64_t rows, const uint8_t* codes, int64_t code_rows, int n_layers,
                        const int32_t* dims, const float* params, float* out, int threads) {
     Grid g{levels, features, scales, res, dense, vertex_table, rows, codes, code_rows};
+    g.qoffset = qoffset;
+    g.qscale = qscale;
     g.init_masks();
     by_features(features, [&](auto F) {
         constexpr int f = decltype(F)::value;
-        if (table_half)
+        if (table_kind == 2)
+            mlp_segments_t<f, uint8_t>(g, rays_o, rays_d, ray, te, tx, b, k, frac, static_cast<const uint8_t*>(table),
+                                       n_layers, dims, params, out, threads);
+        else if (table_kind == 1)
             mlp_segments_t<f, _Float16>(g, rays_o, rays_d, ray, te, tx, b, k, frac, static_cast<const _Float16*>(table),
                                         n_layers, dims, params, out, threads);
         else
@@ -620,6 +639,18 @@ void nbvh_encode_forward_f16(const float* points, int64_t n, const void* table, 
     g.init_masks();
     const _Float16* t = static_cast<const _Float16*>(table);
     by_features(features, [&](auto F) { encode_forward_t<decltype(F)::value, _Float16>(g, points, n, t, out, threads); });
+}
+
+// Inference from uint8 codes (L, rows, F) with qoffset/qscale (L, F) float32 (value = offset + code * scale).
+void nbvh_encode_forward_u8(const float* points, int64_t n, const uint8_t* table, const float* qoffset,
+                            const float* qscale, float* out, int levels, int features, const float* scales,
+                            const int64_t* res, const uint8_t* dense, int64_t vertex_table, int64_t rows,
+                            const uint8_t* codes, int64_t code_rows, int threads) {
+    Grid g{levels, features, scales, res, dense, vertex_table, rows, codes, code_rows};
+    g.qoffset = qoffset;
+    g.qscale = qscale;
+    g.init_masks();
+    by_features(features, [&](auto F) { encode_forward_t<decltype(F)::value, uint8_t>(g, points, n, table, out, threads); });
 }
 
 // points (n, 3) float32; table (L, rows, F) float32; out (n, L * F) float32.
