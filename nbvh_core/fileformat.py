@@ -531,8 +531,10 @@ def load_nbvh(path: str | os.PathLike, device: str | torch.device = "cpu") -> Ne
 
 
 def read_info(path: str | os.PathLike) -> FileInfo:
-    """Header, metadata and bytes by component of a .nbvh file, without building the model."""
+    """Header, metadata and bytes by component of a .nbvh file (validated as completely as `load_nbvh` does: a file
+    `info` accepts is one `render` can load)."""
     path = Path(path)
     data = _read(path)
+    decode_nbvh(data, str(path))
     header = _parse(data, str(path))
     return FileInfo(path=str(path), total_bytes=len(data), components=component_bytes(data), header=header)

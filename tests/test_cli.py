@@ -14,10 +14,13 @@ def run_cli(*args):
 @pytest.fixture(scope="module")
 def tiny_model(tmp_path_factory):
     out = tmp_path_factory.mktemp("cli") / "blob.nbvh"
-    r = run_cli("compress", "blob", "-o", str(out), "--preset", "tiny", "--size", "32", "--events")
+    r = run_cli("compress", "blob", "-o", str(out), "--preset", "tiny", "--size", "32", "--events", "--force")
     assert r.returncode == 0, r.stderr
     events = [json.loads(line) for line in r.stdout.splitlines() if line.startswith("{")]
-    assert events[-1]["event"] == "result" and events[-1]["bytes"] == out.stat().st_size
+    result = next(e for e in events if e["event"] == "result")
+    assert result["bytes"] == out.stat().st_size
+    assert events[-1] == {"event": "written", "files": [str(out), str(out.with_suffix(".json")),
+                                                        str(out.with_suffix(".preview.png"))]}
     return out
 
 
