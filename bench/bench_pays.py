@@ -109,6 +109,8 @@ def main() -> None:
     ap.add_argument("--presets", nargs="+", default=["default"])
     ap.add_argument("--table-bits", type=int, nargs="+", default=[8])
     ap.add_argument("--time-limit", type=float, help="override the preset's budget (not for headline numbers)")
+    ap.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
+                    help="Settings overrides for a configuration study, e.g. width=32 log2_table=12 (named in the row)")
     ap.add_argument("--csv", default=str(RESULTS / "pays.csv"))
     args = ap.parse_args()
     kernels.keep_freed_memory()
@@ -123,8 +125,14 @@ def main() -> None:
                 over = {"table_bits": bits, "network_bits": 16 if bits < 32 else 32, "node_bits": 8 if bits < 32 else 32}
                 if args.time_limit:
                     over["time_limit_s"] = args.time_limit
-                s = base.with_overrides(**over)
+                extra = {}
+                for item in args.set:
+                    key, value = item.split("=", 1)
+                    extra[key] = type(getattr(base, key))(value) if getattr(base, key) is not None else float(value)
+                s = base.with_overrides(**over, **extra)
                 storage = f"t{s.table_bits}/w{s.network_bits}/n{s.node_bits}"
+                if extra:
+                    storage += " " + " ".join(f"{k}={v}" for k, v in sorted(extra.items()))
                 if (mesh_name, preset_name, storage) in done:
                     continue
                 print(f"{mesh_name} {preset_name} {storage}: training {s.time_limit_s} s", flush=True)

@@ -46,6 +46,9 @@ class Settings:
     features: int = 16
     network: str = "kmlp"
     k: int = 8
+    #: The network's hidden layers and their width (NetworkConfig).
+    hidden: int = 4
+    width: int = 64
     labels: str = "consistent"
     lr: float = 5e-3
     steps: int | None = None
@@ -77,7 +80,7 @@ class Settings:
     def model_config(self) -> ModelConfig:
         return ModelConfig(EncodingConfig(kind=self.encoding, log2_table=self.log2_table, levels=self.levels,
                                           features=self.features),
-                           NetworkConfig(kind=self.network, k=self.k))
+                           NetworkConfig(kind=self.network, k=self.k, hidden=self.hidden, width=self.width))
 
     def storage(self) -> StorageConfig:
         return StorageConfig(self.table_bits, self.network_bits, self.node_bits)

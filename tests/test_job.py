@@ -64,7 +64,9 @@ def test_jobs_run_one_at_a_time_and_cancel_cleans_up(tmp_path, sample_meshes):
     assert first.state == second.state == "cancelled"
     assert not first.workdir.exists() and not second.workdir.exists()
     out = tmp_path / "out"
-    assert not out.exists() or not any(out.iterdir())  # nothing half-written left behind
+    # Nothing half-written left behind; only the cancelled training's checkpoint stays (the panel offers Resume).
+    left = sorted(p.name for p in out.iterdir()) if out.exists() else []
+    assert left in ([], [".slow.nbvh.checkpoint"]), left
 
 
 def test_damaged_model_and_bad_mesh_fail_with_message(tmp_path, sample_meshes):

@@ -36,7 +36,8 @@ def test_budget_is_honoured_by_the_real_file(sample_meshes, tmp_path):
 def test_target_maps_to_a_preset_and_is_checked(sample_meshes, tmp_path):
     chosen, why = resolve(preset("default").with_overrides(target_mse=0.02))
     assert chosen.log2_table == PRESETS["preview"].log2_table and "target" in why
-    res = compress_mesh(sample_meshes["blob"], preset("tiny").with_overrides(target_mse=0.5), tmp_path / "t.nbvh")
+    res = compress_mesh(sample_meshes["blob"], preset("tiny").with_overrides(target_mse=0.5, force=True),
+                        tmp_path / "t.nbvh")
     assert res.target_met is (res.quality.mse <= 0.5)
 
 
@@ -53,12 +54,21 @@ def test_small_mesh_is_reported_not_worth_compressing(sample_meshes):
     assert detailed.worth_compressing and detailed.resident["total"] > 10 * detailed.model_bytes
 
 
-def test_verdict_reaches_the_result_and_events(tmp_path):
+def test_verdict_ends_the_run_unless_forced(tmp_path):
+    import time
+
     from meshes import icosphere
+    from nbvh_core.pipeline import NotWorthCompressing
 
     events = []
-    res = compress_mesh(icosphere(2), preset("tiny"), tmp_path / "s.nbvh", events=events.append,
-                        evaluate_quality=False)
+    t0 = time.monotonic()
+    with pytest.raises(NotWorthCompressing, match="not worth compressing"):
+        compress_mesh(icosphere(2), preset("default"), tmp_path / "s.nbvh", events=events.append)
+    assert time.monotonic() - t0 < 30 and not (tmp_path / "s.nbvh").exists()
+    assert [e["event"] for e in events if e["event"] in ("verdict", "progress")] == ["verdict"]  # no training
+    events.clear()
+    res = compress_mesh(icosphere(2), preset("tiny").with_overrides(force=True), tmp_path / "s.nbvh",
+                        events=events.append, evaluate_quality=False)
     assert res.assessment["worth_compressing"] is False
-    assert any(e["event"] == "warning" and "not worth compressing" in e["message"] for e in events)
-    assert (tmp_path / "s.nbvh").exists()  # reported, not refused
+    assert any(e["event"] == "warning" and "forced" in e["message"] for e in events)
+    assert (tmp_path / "s.nbvh").exists()

@@ -158,7 +158,7 @@ def test_compress_mesh_retrains_at_the_size_the_measurement_calls_for(sample_mes
     monkeypatch.setattr(sizing, "load_fit", lambda *a: _line_fit())
     mesh = sample_meshes["blob"]
     events = []
-    res = compress_mesh(mesh, preset("tiny").with_overrides(target_mse=0.008), events=events.append)
+    res = compress_mesh(mesh, preset("tiny").with_overrides(target_mse=0.008, force=True), events=events.append)
     assert res.target_met is False
     assert res.settings.log2_table == 12
     assert "measured T=2^8:" in res.why and "T=2^12:" in res.why and "kept T=2^12" in res.why
@@ -167,7 +167,7 @@ def test_compress_mesh_retrains_at_the_size_the_measurement_calls_for(sample_mes
 
 def test_cli_quality_level_and_plan(tmp_path, capsys):
     out = tmp_path / "blob.nbvh"
-    rc = cli_main(["compress", "blob", "-o", str(out), "--preset", "tiny", "--quality", "preview"])
+    rc = cli_main(["compress", "blob", "-o", str(out), "--preset", "tiny", "--quality", "preview", "--force"])
     assert rc == 0 and out.exists()
     summary = json.loads((tmp_path / "blob.json").read_text())
     assert summary["settings"]["target_mse"] == QUALITY_LEVELS["preview"] and summary["target_met"] is not None
