@@ -110,6 +110,8 @@ def run(argv: list[str]) -> int:
             print("error: --save-blend must name a new file, not the open .blend", file=sys.stderr)
             return 1
         bpy.ops.wm.save_as_mainfile(filepath=str(target), copy=True)
+    for name, msg in session.kept_as_mesh.items():
+        print(f"{name}: kept as a mesh (nothing trained; --force trains anyway): {msg}")
     for name, msg in session.failures.items():
         print(f"error: {name}: {msg}", file=sys.stderr)
     return 1 if session.failures else 0

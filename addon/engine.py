@@ -43,6 +43,7 @@ class Session:
     blender_bytes: dict = field(default_factory=dict)  # object name -> export.mesh_data_bytes
     loaded: dict = field(default_factory=dict)  # object name -> load_result dict
     failures: dict = field(default_factory=dict)  # object name -> message
+    kept_as_mesh: dict = field(default_factory=dict)  # object name -> the "not worth compressing" verdict
     out_dir: str = ""
     scene_dir: str = ""  # shared meshes of a scene budget (every job reads all of them); removed by end_session
 
@@ -152,7 +153,8 @@ def finish_done(session: Session, scene) -> None:
     """Load previews of jobs that finished since the last call; record failures."""
     for job in session.queue.jobs:
         obj_name = session.objects.get(job.id)
-        if obj_name is None or obj_name in session.loaded or obj_name in session.failures:
+        if obj_name is None or obj_name in session.loaded or obj_name in session.failures \
+                or obj_name in session.kept_as_mesh:
             continue
         if job.state == "done":
             obj = bpy.data.objects.get(obj_name)
@@ -161,6 +163,8 @@ def finish_done(session: Session, scene) -> None:
                 continue
             session.loaded[obj_name] = previews.load_result(obj, job.result, scene)
             session.loaded[obj_name]["result"] = job.result
+        elif job.state == "skipped":
+            session.kept_as_mesh[obj_name] = job.verdict
         elif job.state in ("failed", "cancelled"):
             session.failures[obj_name] = job.error or job.state
 
@@ -170,6 +174,8 @@ def write_scene_report(session: Session) -> tuple[Path, Path] | None:
     for obj_name, loaded in session.loaded.items():
         job_report = json.loads(Path(loaded["result"]["files"]["report"]).read_text())
         entries.append(report.object_entry(obj_name, session.blender_bytes[obj_name], job_report))
-    if not entries:
+    if not entries and not session.kept_as_mesh:
         return None
-    return report.write_report(report.build_report(entries), session.out_dir)
+    kept = [{"name": n, "blender_mesh_bytes": session.blender_bytes[n], "verdict": v}
+            for n, v in session.kept_as_mesh.items()]
+    return report.write_report(report.build_report(entries, kept), session.out_dir)

@@ -103,7 +103,8 @@ def install_dependencies(venv_dir: str | Path, base_python: str | None = None) -
 
 @dataclass
 class Job:
-    """One object's compression. state: queued -> running -> done | failed | cancelled."""
+    """One object's compression. state: queued -> running -> done | skipped | failed | cancelled. `skipped`: the
+    verdict before training said "not worth compressing" (`verdict` holds the message; nothing was written)."""
 
     name: str
     request: dict
@@ -113,6 +114,7 @@ class Job:
     progress: dict = field(default_factory=dict)
     result: dict | None = None
     error: str | None = None
+    verdict: str | None = None
     log: list = field(default_factory=list)
     started: float | None = None
     _proc: subprocess.Popen | None = None
@@ -153,6 +155,8 @@ class Job:
                 self.progress.update({k: v for k, v in ev.items() if k != "event"})
             elif kind == "result":
                 self.result = ev
+            elif kind == "error" and ev.get("kind") == "not_worth":
+                self.verdict = ev.get("message", "not worth compressing")
             elif kind == "error":
                 self.error = ev.get("message", "unknown error")
             elif kind == "warning":
@@ -166,6 +170,8 @@ class Job:
             code = self._proc.returncode
             if code == 0 and self.result is not None:
                 self.state = "done"
+            elif code == 4 and self.verdict is not None:
+                self.state = "skipped"
             else:
                 self.state = "failed"
                 if not self.error:
@@ -231,6 +237,9 @@ class JobQueue:
 
     def active(self) -> Job | None:
         return next((j for j in self.jobs if j.state == "running"), None)
+
+    def finished(self, job: Job) -> bool:
+        return job.state in ("done", "skipped", "failed", "cancelled")
 
     def pending(self) -> list[Job]:
         return [j for j in self.jobs if j.state in ("queued", "running")]

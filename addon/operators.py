@@ -80,6 +80,7 @@ def _tick():
         props.progress = 1.0
         props.phase = "done" if not session.failures else "finished with errors"
         props.last_error = "; ".join(f"{k}: {v}" for k, v in session.failures.items())
+        props.last_note = "; ".join(f"{k} kept as a mesh: {v}" for k, v in session.kept_as_mesh.items())
         _state["session"] = None
         for area in (bpy.context.screen.areas if bpy.context.screen else []):
             area.tag_redraw()
@@ -119,6 +120,7 @@ class NBVH_OT_compress(bpy.types.Operator):
             self.report({"ERROR"}, "nothing to compress: " + props.last_error)
             return {"CANCELLED"}
         props.running, props.progress, props.phase, props.last_error = True, 0.0, "starting", ""
+        props.last_note = ""
         _state["session"] = session
         bpy.app.timers.register(_tick, first_interval=0.1)
         return {"FINISHED"}

@@ -47,6 +47,7 @@ class NBVH_Props(bpy.types.PropertyGroup):
     phase: bpy.props.StringProperty()
     eta: bpy.props.StringProperty()
     last_error: bpy.props.StringProperty()
+    last_note: bpy.props.StringProperty()  # verdicts: objects kept as meshes (not worth compressing)
     report_html: bpy.props.StringProperty(subtype="FILE_PATH")
 
 
@@ -107,6 +108,8 @@ class NBVH_PT_panel(bpy.types.Panel):
                 op.resume = True
         if props.last_error:
             layout.label(text=props.last_error, icon="ERROR")
+        if props.last_note:
+            layout.label(text=props.last_note, icon="INFO")
         for r in context.scene.nbvh_results:
             box = layout.box()
             box.label(text=r.object_name, icon="OBJECT_DATA")

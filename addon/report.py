@@ -45,7 +45,9 @@ def object_entry(name: str, blender_bytes: dict, job_report: dict) -> dict:
     }
 
 
-def build_report(entries: list[dict]) -> dict:
+def build_report(entries: list[dict], kept_as_mesh: list[dict] | None = None) -> dict:
+    """The scene report: trained `entries` (object_entry), and the objects whose verdict kept them as meshes
+    ({name, blender_mesh_bytes, verdict}: nothing was trained for them)."""
     totals = {"blender_mesh_bytes": sum(e["blender_mesh_bytes"]["total"] for e in entries),
               "ray_tracing_resident_bytes": sum(e["ray_tracing_resident_bytes"]["total"] for e in entries),
               "nbvh_bytes": sum(e["nbvh_bytes"] for e in entries)}
@@ -53,7 +55,7 @@ def build_report(entries: list[dict]) -> dict:
         totals["ratio_blender_mesh_to_nbvh"] = totals["blender_mesh_bytes"] / totals["nbvh_bytes"]
         totals["ratio_resident_to_nbvh"] = totals["ray_tracing_resident_bytes"] / totals["nbvh_bytes"]
     split = next((e["scene_split"] for e in entries if e.get("scene_split")), None)
-    return {"objects": entries, "totals": totals, "scene_split": split}
+    return {"objects": entries, "totals": totals, "scene_split": split, "kept_as_mesh": kept_as_mesh or []}
 
 
 def _img_tag(path: str | None, alt: str) -> str:
@@ -110,12 +112,20 @@ def write_report(report: dict, out_dir: str | Path, stem: str = "nbvh_report") -
     split_html = ""
     if split:
         lines = "".join(f"<tr><td>{html.escape(o['name'])}</td><td>{o['triangles']:,}</td><td>{o['weight']:.2f}</td>"
-                        f"<td>2^{o['log2_table']}</td><td>{_kb(o['bytes'])}</td><td>{o['predicted_mse']:.4g}</td></tr>"
+                        + (f"<td colspan=3>nothing: its mesh is smaller than any model</td></tr>" if o.get("excluded")
+                           or o["log2_table"] is None else
+                           f"<td>2^{o['log2_table']}</td><td>{_kb(o['bytes'])}</td><td>{o['predicted_mse']:.4g}</td></tr>")
                         for o in split["objects"])
+        level = "-" if split["level_mse"] is None else f"{split['level_mse']:.4g}"
         split_html = (f"<h2>Scene budget split</h2><p>{split['budget_kb']:g} KB shared by need (detail from the size "
-                      f"predictor, weight = size on screen): common quality level MSE {split['level_mse']:.4g}, planned "
+                      f"predictor, weight = size on screen): common quality level MSE {level}, planned "
                       f"total {_kb(split['total_bytes'])}.</p><table><tr><th>object</th><th>triangles</th><th>weight</th>"
                       f"<th>T</th><th>planned</th><th>predicted MSE</th></tr>{lines}</table>")
+    kept = report.get("kept_as_mesh") or []
+    if kept:
+        split_html += ("<h2>Kept as meshes (not worth compressing; nothing trained)</h2><table>" + "".join(
+            f"<tr><th>{html.escape(k['name'])}</th><td>{_kb(k['blender_mesh_bytes']['total'])} in Blender</td>"
+            f"<td>{html.escape(k['verdict'] or '')}</td></tr>" for k in kept) + "</table>")
     page = f"""<!doctype html><meta charset="utf-8"><title>NBVH asset memory report</title>
 <style>body{{font-family:sans-serif;max-width:60em;margin:2em auto}}th{{text-align:left;padding-right:1em}}
 img{{width:256px;image-rendering:pixelated;background:#000}}.pair{{display:flex;gap:1em}}</style>

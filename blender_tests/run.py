@@ -150,7 +150,10 @@ def compress_py_checks(name: str, prefix: list[str], work: Path, mesh: Path, env
     cases = [
         ("success", ["--objects", "Blob", "--out", str(out), "--preset", "tiny", "--steps", "20"], 0, "report:"),
         ("quality target", ["--objects", "Blob", "--out", str(work / "quality_out"), "--quality", "preview",
-                            "--time-limit", "5"], 0, "report:"),
+                            "--time-limit", "5", "--force"], 0, "report:"),
+        # The blob at MSE 0.02: a 250-triangle decimation meets it, so the verdict ends the job before training.
+        ("not worth it", ["--objects", "Blob", "--out", str(work / "verdict_out"), "--quality", "preview"], 0,
+         "kept as a mesh"),
         ("help", ["--help"], 0, "--objects"),
         ("missing object", ["--objects", "Nope", "--out", str(out)], 1, "no object named 'Nope'"),
         ("non-mesh object", ["--objects", "Cam", "--out", str(out)], 1, "'Cam' is a camera"),

@@ -330,9 +330,9 @@ def cmd_samples(args: argparse.Namespace) -> int:
 
 
 def cmd_plan(args: argparse.Namespace) -> int:
-    """Share one byte budget among several meshes by need (sizing.split_budget) and print the split."""
+    """Share one byte budget among several meshes by need (sizing.split_scene) and print the split."""
     from .pipeline import estimate_file_bytes, preset
-    from .sizing import load_fit, mesh_features, split_budget
+    from .sizing import load_fit, split_scene
 
     fit = load_fit()
     if fit is None:
@@ -341,19 +341,24 @@ def cmd_plan(args: argparse.Namespace) -> int:
     weights = args.weights or [1.0] * len(meshes)
     if len(weights) != len(meshes):
         raise ValueError(f"{len(weights)} weights for {len(meshes)} meshes")
-    feats = [mesh_features(m) for m in meshes]
     base = preset(fit.method)
-    plan = split_budget(feats, args.budget_kb * 1024, fit,
-                        lambda i, l2: estimate_file_bytes(base.with_overrides(log2_table=l2)), weights)
+    plan = split_scene(meshes, args.budget_kb * 1024, fit,
+                       lambda i, l2: estimate_file_bytes(base.with_overrides(log2_table=l2)), weights)
     rows = [{"mesh": m.name, "triangles": m.n_triangles, "weight": w, "log2_table": l2, "bytes": b,
-             "predicted_mse": round(p, 6)} for m, w, l2, b, p in zip(meshes, weights, plan["log2"], plan["bytes"],
-                                                                    plan["predicted_mse"])]
+             "predicted_mse": None if p is None else round(p, 6), "excluded": i in plan["excluded"]}
+            for i, (m, w, l2, b, p) in enumerate(zip(meshes, weights, plan["log2"], plan["bytes"],
+                                                     plan["predicted_mse"]))]
     if args.json:
-        print(json.dumps({**plan, "objects": rows}, indent=2))
+        print(json.dumps({**{k: v for k, v in plan.items() if k != "features"}, "objects": rows}, indent=2))
         return 0
-    print(f"budget {args.budget_kb:g} KB shared by need: common quality level MSE {plan['level']:.4g} "
+    level = "-" if plan["level"] is None else f"{plan['level']:.4g}"
+    print(f"budget {args.budget_kb:g} KB shared by need: common quality level MSE {level} "
           f"(each mesh aims at level / weight), total {plan['total'] / 1024:.0f} KB")
     for r in rows:
+        if r["excluded"]:
+            print(f"  {r['mesh']}: {r['triangles']:,} triangles -> nothing: its mesh is smaller than any model "
+                  f"(keep the mesh)")
+            continue
         print(f"  {r['mesh']}: {r['triangles']:,} triangles, weight {r['weight']:g} -> T=2^{r['log2_table']}, "
               f"{r['bytes'] / 1024:.0f} KB, predicted MSE {r['predicted_mse']:.4g}")
     return 0

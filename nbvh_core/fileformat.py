@@ -297,11 +297,11 @@ def _parse(data: bytes, where: str) -> dict:
     if major not in READABLE_MAJORS:
         raise NBVHFileError(f"{where}: .nbvh format version {major}.{minor} is not supported "
                             f"(this reader reads {', '.join(f'{m}.x' for m in READABLE_MAJORS)})")
-    if hlen > min(MAX_HEADER_BYTES, len(data) - _PREFIX.size - 4):
-        raise NBVHFileError(f"{where}: header length {hlen} does not fit the file ({len(data)} bytes)")
     stored_crc = struct.unpack_from("<I", data, len(data) - 4)[0]
     if zlib.crc32(memoryview(data)[:-4]) != stored_crc:
         raise NBVHFileError(f"{where}: damaged or truncated file (checksum mismatch)")
+    if hlen > min(MAX_HEADER_BYTES, len(data) - _PREFIX.size - 4):
+        raise NBVHFileError(f"{where}: header length {hlen} does not fit the file ({len(data)} bytes)")
     try:
         header = json.loads(bytes(data[_PREFIX.size:_PREFIX.size + hlen]))
     except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:

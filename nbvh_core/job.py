@@ -201,37 +201,44 @@ def _run_locked(request, events, should_cancel, mesh, settings, scene_split, fil
 
 def _scene_share(scene: dict, settings, events):
     """This object's share of a scene budget: {"budget_kb", "meshes": [npz paths, all objects, in order], "names",
-    "weights", "index"}. Every job computes the same split (sizing.split_budget, deterministic) and takes entry
-    `index`; returns (settings with that size, the split for the report)."""
+    "weights", "index"}. Every job computes the same split (sizing.split_scene, deterministic) and takes entry
+    `index`; returns (settings with that size, the split for the report). An object the split excludes (never worth
+    compressing) keeps the smallest size: its verdict then ends its job before training."""
     import dataclasses
 
     from .mesh import mesh_from_arrays
     from .pipeline import PRESETS, estimate_file_bytes
-    from .sizing import load_fit, mesh_features, split_budget
+    from .sizing import load_fit, split_scene
 
     fit = load_fit()
     if fit is None:
         raise ValueError("a scene budget needs the size predictor (nbvh_core/sizing_fit.json), which is missing")
-    feats = []
+    meshes = []
     for path in scene["meshes"]:
         with np.load(path) as arrays:
-            feats.append(mesh_features(mesh_from_arrays(arrays["vertices"], arrays["faces"])))
+            meshes.append(mesh_from_arrays(arrays["vertices"], arrays["faces"]))
     base = dataclasses.replace(settings, encoding=PRESETS[fit.method].encoding, network=PRESETS[fit.method].network,
                                labels=PRESETS[fit.method].labels, nodes=PRESETS[fit.method].nodes, budget_kb=None,
                                target_mse=None)
-    plan = split_budget(feats, float(scene["budget_kb"]) * 1024, fit,
-                        lambda i, l2: estimate_file_bytes(dataclasses.replace(base, log2_table=l2)),
-                        scene.get("weights"))
+    plan = split_scene(meshes, float(scene["budget_kb"]) * 1024, fit,
+                       lambda i, l2: estimate_file_bytes(dataclasses.replace(base, log2_table=l2)),
+                       scene.get("weights"))
     i = int(scene["index"])
-    names = scene.get("names") or [str(k) for k in range(len(feats))]
+    names = scene.get("names") or [str(k) for k in range(len(meshes))]
     split = {"budget_kb": scene["budget_kb"], "level_mse": plan["level"], "total_bytes": plan["total"],
-             "objects": [{"name": n, "weight": w, "log2_table": l2, "bytes": b, "predicted_mse": p, "triangles": f.triangles}
-                         for n, w, l2, b, p, f in zip(names, plan["weights"], plan["log2"], plan["bytes"],
-                                                      plan["predicted_mse"], feats)]}
+             "objects": [{"name": n, "weight": w, "log2_table": l2, "bytes": b, "predicted_mse": p,
+                          "triangles": f.triangles, "excluded": k in plan["excluded"]}
+                         for k, (n, w, l2, b, p, f) in enumerate(zip(names, plan["weights"], plan["log2"],
+                                                                     plan["bytes"], plan["predicted_mse"],
+                                                                     plan["features"]))]}
+    if i in plan["excluded"]:
+        events({"event": "phase", "phase": "plan", "message": "scene budget: this object gets nothing (its mesh is "
+                                                               "smaller than any model)"})
+        return dataclasses.replace(base, log2_table=5), split
     events({"event": "phase", "phase": "plan",
-            "message": f"scene budget {scene['budget_kb']:g} KB shared by need over {len(feats)} objects: this one "
-                       f"gets T=2^{plan['log2'][i]} (~{plan['bytes'][i] / 1024:.0f} KB, predicted MSE "
-                       f"{plan['predicted_mse'][i]:.4g})"})
+            "message": f"scene budget {scene['budget_kb']:g} KB shared by need over {len(meshes) - len(plan['excluded'])}"
+                       f" objects: this one gets T=2^{plan['log2'][i]} (~{plan['bytes'][i] / 1024:.0f} KB, predicted "
+                       f"MSE {plan['predicted_mse'][i]:.4g})"})
     return dataclasses.replace(base, log2_table=plan["log2"][i]), split
 
 

@@ -373,3 +373,27 @@ def split_budget(features: list[MeshFeatures], budget_bytes: float, fit: SizeFit
     level, l2s, sizes, preds = best
     return {"level": level, "log2": l2s, "bytes": sizes, "predicted_mse": preds, "total": int(sum(sizes)),
             "weights": weights, "budget": budget_bytes}
+
+
+def split_scene(meshes: list[Mesh], budget_bytes: float, fit: SizeFit, bytes_for_log2,
+                weights: list[float] | None = None) -> dict:
+    """The one scene-budget split (CLI `plan`, the add-on's jobs): objects whose mesh as a ray tracer holds it is no
+    larger than their smallest model can never be worth compressing; they get nothing (log2 None, 0 bytes) and the
+    budget is shared by need among the others (`split_budget`). Returns split_budget's dict over all meshes, in
+    order, plus 'excluded': [indices] and 'features'."""
+    feats = [mesh_features(m) for m in meshes]
+    weights = [1.0] * len(meshes) if weights is None else list(weights)
+    smallest = bytes_for_log2(0, 5)
+    keep = [i for i, m in enumerate(meshes) if mesh_resident_bytes(m)["total"] > smallest]
+    out = {"level": None, "log2": [None] * len(meshes), "bytes": [0] * len(meshes),
+           "predicted_mse": [None] * len(meshes), "total": 0, "weights": weights, "budget": budget_bytes}
+    if keep:
+        plan = split_budget([feats[i] for i in keep], budget_bytes, fit, lambda j, l2: bytes_for_log2(keep[j], l2),
+                            [weights[i] for i in keep])
+        for j, i in enumerate(keep):
+            out["log2"][i], out["bytes"][i], out["predicted_mse"][i] = (plan["log2"][j], plan["bytes"][j],
+                                                                        plan["predicted_mse"][j])
+        out["level"], out["total"] = plan["level"], plan["total"]
+    out["excluded"] = [i for i in range(len(meshes)) if i not in keep]
+    out["features"] = feats
+    return out

@@ -9,5 +9,6 @@ sample=${1:-bunny}
 shift || true
 name=$(basename "${sample%%.*}")
 mkdir -p "out/$name"
-"$NBVH_PY" -m nbvh_core compress "$sample" -o "out/$name/$name.nbvh" "$@"
+# --overwrite: the demo owns out/NAME and replaces its own earlier result (only once the new one is complete)
+"$NBVH_PY" -m nbvh_core compress "$sample" -o "out/$name/$name.nbvh" --overwrite "$@"
 "$NBVH_PY" -m nbvh_core info "out/$name/$name.nbvh" --mesh "$sample"
