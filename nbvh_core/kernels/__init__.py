@@ -38,7 +38,7 @@ import torch
 
 SOURCE = Path(__file__).with_name("nbvh_kernels.cpp")
 FLAGS = ["-O3", "-march=native", "-ffp-contract=off", "-fopenmp", "-shared", "-fPIC", "-std=c++17"]
-ABI_VERSION = 9
+ABI_VERSION = 10
 PATHS = ("fast", "reference")
 
 _path = os.environ.get("NBVH_PATH", "fast")
@@ -164,9 +164,11 @@ def load() -> ctypes.CDLL | None:
     lib.nbvh_mlp_segments.argtypes = [P, P, P, P, P, I64, I32, P, P, I32, P, P, *enc[4:13], I32, P, P, P, I32]
     lib.nbvh_mlp_train.argtypes = [P, P, P, P, P, I64, I32, P, P, *enc[4:13], I32, P, P, P, P, P, I64,
                                    ctypes.c_float, ctypes.c_float, P, P, P, P, P, P, I32]
+    lib.nbvh_kmlp_segments.argtypes = lib.nbvh_mlp_segments.argtypes
+    lib.nbvh_kmlp_train.argtypes = lib.nbvh_mlp_train.argtypes
     for fn in (lib.nbvh_encode_forward, lib.nbvh_encode_forward_f16, lib.nbvh_encode_forward_u8,
                lib.nbvh_encode_backward, lib.nbvh_stream_next,
-               lib.nbvh_mlp_segments, lib.nbvh_mlp_train):
+               lib.nbvh_mlp_segments, lib.nbvh_mlp_train, lib.nbvh_kmlp_segments, lib.nbvh_kmlp_train):
         fn.restype = None
     _lib = lib
     return lib

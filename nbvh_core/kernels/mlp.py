@@ -1,4 +1,9 @@
-"""Fused MLP models on the fast path: one kernel call per wave of segments (inference) or per training step.
+"""Fused MLP and KMLP models on the fast path: one kernel call per wave of segments (inference) or per training step.
+
+KMLP (`nbvh_kmlp_segments` / `nbvh_kmlp_train`): the shared pair network runs on the same tiles, pair j reading the
+window [j D, (j + 2) D) of the segment's feature row (a first-layer GEMM on an offset pointer); training adds
+`networks.KMLP.loss` (the first-hit combination in log space) and its backward in the kernel, and the overlapping
+windows' input gradients add up per point before the encoding backward.
 
 `nbvh_mlp_segments` and `nbvh_mlp_train` (nbvh_kernels.cpp) compute, per tile of 48 segments kept in the cache,
 the segment points, the grid lookup and every Linear layer (bias and ReLU fused; AVX2 register-blocked
@@ -15,12 +20,18 @@ from . import fast_enabled, load, ptr, threads
 
 
 def applies(model) -> bool:
-    """True when a model's queries and training steps can run fused: fast path on this device, an MLP network,
-    a grid encoding with float32 rows."""
-    from ..networks import MLP
+    """True when a model's queries and training steps can run fused: fast path on this device, an MLP or KMLP
+    network with 5 outputs, a grid encoding with float32 (or quantized) rows."""
+    from ..networks import KMLP, MLP
 
-    return (fast_enabled(model.device) and isinstance(model.network, MLP)
+    return (fast_enabled(model.device) and isinstance(model.network, (MLP, KMLP))
             and hasattr(model.encoding, "fused_lookup") and model.encoding.table.dtype == torch.float32)
+
+
+def _is_kmlp(model) -> bool:
+    from ..networks import KMLP
+
+    return isinstance(model.network, KMLP)
 
 
 def trains(model) -> bool:
@@ -47,15 +58,19 @@ def _grid_args(spec, table, codes, code_rows) -> tuple:
 
 def segments_raw(model, packed: tuple[torch.Tensor, torch.Tensor], rays_o: torch.Tensor, rays_d: torch.Tensor,
                  ray: torch.Tensor, t_enter: torch.Tensor, t_exit: torch.Tensor) -> torch.Tensor:
-    """Raw network outputs (B, 5) of B segments: what `model.forward(rays_o[ray], rays_d[ray], t_enter, t_exit)`
-    returns, to float rounding (the sums run in another order). rays_o, rays_d: (N, 3); ray: (B,) int64."""
+    """Raw network outputs of B segments, (B, 5) for an MLP, (B, k - 1, 5) for a KMLP: what `model.forward(rays_o[ray],
+    rays_d[ray], t_enter, t_exit)` returns, to float rounding (the sums run in another order). rays_o, rays_d: (N, 3);
+    ray: (B,) int64."""
     dims, params = packed
     look = model.encoding.fused_lookup()
     k = model.cfg.network.k
     frac = torch.linspace(0.0, 1.0, k, dtype=torch.float32)
     ray, t_enter, t_exit = ray.contiguous(), t_enter.contiguous(), t_exit.contiguous()
-    out = torch.empty((ray.numel(), int(dims[-1])), dtype=torch.float32)
-    load().nbvh_mlp_segments(
+    kmlp = _is_kmlp(model)
+    shape = (ray.numel(), k - 1, int(dims[-1])) if kmlp else (ray.numel(), int(dims[-1]))
+    out = torch.empty(shape, dtype=torch.float32)
+    fn = load().nbvh_kmlp_segments if kmlp else load().nbvh_mlp_segments
+    fn(
         ptr(rays_o.contiguous()), ptr(rays_d.contiguous()), ptr(ray), ptr(t_enter), ptr(t_exit), ray.numel(), k,
         ptr(frac), *look.kernel_args(), *_grid_args(look.spec, look.rows, look.codes, look.code_rows), len(dims) - 1,
         ptr(dims),
@@ -83,7 +98,8 @@ def train_step(model, samples, want_raw: bool = False) -> tuple[float, dict]:
     net_cfg = model.cfg.network
     dims, params = pack(model)
     linears = _linears(model)
-    assert int(dims[-1]) == 5, "the fused loss is networks.MLP's (hit, depth, normal)"
+    assert int(dims[-1]) == 5, "the fused losses are networks.MLP's and KMLP's (hit, depth, normal)"
+    kmlp = _is_kmlp(model)
     rows, codes, code_rows = model.encoding._fused_rows()
     spec = model.encoding.grid_spec()
     codes = None if codes is None else codes.contiguous()
@@ -93,12 +109,13 @@ def train_step(model, samples, want_raw: bool = False) -> tuple[float, dict]:
     hit = samples.hit.to(torch.uint8).contiguous()
     local_t = samples.local_t.to(torch.float32).contiguous()
     normal = samples.normal.to(torch.float32).contiguous()
-    loss_parts = torch.zeros(3, dtype=torch.float64)
     grad_params = torch.empty_like(params)
     grad_table = torch.zeros_like(table)
-    points, dx = _scratch(model, b, k, int(dims[0]))
-    raw = torch.empty((b, 5), dtype=torch.float32) if want_raw else None
-    lib.nbvh_mlp_train(
+    feat_width = model.encoding.out_dim * k  # a segment's feature row (KMLP's pairs are windows of it)
+    points, dx = _scratch(model, b, k, feat_width)
+    raw = (torch.empty((b, k - 1, 5) if kmlp else (b, 5), dtype=torch.float32)) if want_raw else None
+    loss_parts = torch.zeros(4 if kmlp else 3, dtype=torch.float64)
+    (lib.nbvh_kmlp_train if kmlp else lib.nbvh_mlp_train)(
         ptr(samples.rays_o.contiguous()), ptr(samples.rays_d.contiguous()), ptr(samples.ray.contiguous()),
         ptr(samples.t_enter.contiguous()), ptr(samples.t_exit.contiguous()), b, k, ptr(frac), ptr(table),
         *_grid_args(spec, table, codes, code_rows), len(dims) - 1, ptr(dims), ptr(params), ptr(hit),
@@ -116,9 +133,15 @@ def train_step(model, samples, want_raw: bool = False) -> tuple[float, dict]:
         model.encoding.table.grad = grad_table
     else:  # a soft HashVQAD row table: on through its softmax to the table and the index logits
         torch.autograd.backward(rows, grad_table)
-    bce, depth, nrm = (float(v) for v in loss_parts)
-    total = bce + net_cfg.depth_weight * depth + net_cfg.normal_weight * nrm
-    parts = {"bce": torch.tensor(bce), "depth_l1": torch.tensor(depth), "normal_l1": torch.tensor(nrm)}
+    if kmlp:
+        bce, ce, depth, nrm = (float(v) for v in loss_parts)
+        total = bce + ce + net_cfg.depth_weight * depth + net_cfg.normal_weight * nrm
+        parts = {"bce": torch.tensor(bce), "segment_ce": torch.tensor(ce),
+                 "depth_l1": torch.tensor(depth / (k - 1)), "normal_l1": torch.tensor(nrm)}
+    else:
+        bce, depth, nrm = (float(v) for v in loss_parts)
+        total = bce + net_cfg.depth_weight * depth + net_cfg.normal_weight * nrm
+        parts = {"bce": torch.tensor(bce), "depth_l1": torch.tensor(depth), "normal_l1": torch.tensor(nrm)}
     if want_raw:
         parts["raw"] = raw
     return total, parts

@@ -388,11 +388,15 @@ struct Layers {
         for (int j = 0; j <= n; ++j) act[j].assign((size_t)TILE * padded(dims[j]), 0.f);
         return act;
     }
-    void forward(std::vector<std::vector<float>>& act) const {
+    // x0 (TILE rows of stride ld0) is the first layer's input when given (a KMLP pair: a window of the segment's
+    // feature row), else act[0].
+    void forward(std::vector<std::vector<float>>& act, const float* x0 = nullptr, int64_t ld0 = 0) const {
         for (int j = 0; j < n; ++j) {
             const int in = dims[j], out = dims[j + 1];
             float* y = act[j + 1].data();
-            gemm(TILE, out, in, act[j].data(), padded(in), 1, wt[j].data(), padded(out), y, padded(out), false);
+            const float* x = (j == 0 && x0) ? x0 : act[j].data();
+            const int64_t ldx = (j == 0 && x0) ? ld0 : padded(in);
+            gemm(TILE, out, in, x, ldx, 1, wt[j].data(), padded(out), y, padded(out), false);
             const bool relu = j + 1 < n;
             const float* bj = bias[j].data();
             for (int r = 0; r < TILE; ++r) {
@@ -575,11 +579,224 @@ void mlp_train_t(const Grid& g, const float* rays_o, const float* rays_d, const 
     loss_out[2] = total.normal * inv_hits;
 }
 
+
+// ---- Fused KMLP (networks.KMLP): one shared pair network over the k - 1 adjacent point pairs of a segment. Pair j's
+// input is the window [j * D, (j + 2) * D) of the segment's k * D feature row (D = L * F), so a pair is a first-layer
+// GEMM on an offset pointer into the tile's features; the deeper layers are the MLP path's.
+
+template <int F, typename T>
+void kmlp_segments_t(const Grid& g, const float* rays_o, const float* rays_d, const int64_t* ray, const float* te,
+                     const float* tx, int64_t b, int k, const float* frac, const T* table, int n_layers,
+                     const int32_t* dims, const float* params, float* out, int threads) {
+    const Layers net(n_layers, dims, params, false);
+    const int n_out = dims[n_layers];
+    const int width = g.levels * (F > 0 ? F : g.features);
+    const int64_t ldx = padded(k * width);
+    const int64_t tiles = (b + TILE - 1) / TILE;
+    const int pairs = k - 1;
+#pragma omp parallel num_threads(threads)
+    {
+        auto act = net.activations();
+        std::vector<float> x((size_t)TILE * ldx, 0.f);
+#pragma omp for schedule(dynamic, 4)
+        for (int64_t tile = 0; tile < tiles; ++tile) {
+            const int64_t s0 = tile * TILE;
+            const int m = (int)((b - s0) < TILE ? (b - s0) : TILE);
+            encode_tile<F>(g, rays_o, rays_d, ray, te, tx, s0, m, k, frac, table, x.data(), ldx, (float*)nullptr);
+            for (int j = 0; j < pairs; ++j) {
+                net.forward(act, x.data() + j * width, ldx);
+                for (int r = 0; r < m; ++r)
+                    std::memcpy(out + ((s0 + r) * pairs + j) * n_out, act[n_layers].data() + r * padded(n_out),
+                                sizeof(float) * n_out);
+            }
+        }
+    }
+}
+
+struct KLossSums {
+    double bce = 0, ce = 0, depth = 0, normal = 0;
+};
+
+inline float softplus(float x) { return std::fmax(x, 0.f) + std::log1p(std::exp(-std::fabs(x))); }
+
+// Loss of networks.KMLP for rows [0, m) of raw (TILE, P, 5), P = k - 1 pairs (see its docstring: BCE of the
+// leaf's hit probability in log space, the cross-entropy of the true sub-segment, masked L1s of the depth inside it
+// and of its normal); d loss / d raw into d_raw (TILE, P, 5), zero rows from m on.
+inline void kmlp_loss_rows(const float* raw, int P, int m, const uint8_t* hit, const float* local_t,
+                           const float* normal, float inv_b, float inv_hits, float w_t, float w_n, float* d_raw,
+                           KLossSums& sums) {
+    std::vector<float> log_miss(P), log_q(P), prob(P);
+    for (int r = 0; r < TILE; ++r) {
+        float* g = d_raw + (int64_t)r * P * 5;
+        for (int c = 0; c < P * 5; ++c) g[c] = 0.f;
+        if (r >= m) continue;
+        const float* o = raw + (int64_t)r * P * 5;
+        float cum = 0.f;
+        for (int i = 0; i < P; ++i) {
+            const float x = o[i * 5];
+            log_miss[i] = -softplus(x);
+            prob[i] = 1.f / (1.f + std::exp(-x));
+            cum += log_miss[i];
+            log_q[i] = -softplus(-x) + (cum - log_miss[i]);  // log p_i + sum_{l<i} log(1 - p_l)
+        }
+        const float log_none = cum;
+        const float one_minus = -std::expm1(log_none);
+        const bool clamped = !(one_minus > 1e-12f);
+        const float log_hit = std::log(clamped ? 1e-12f : one_minus);
+        const float d_hit_d_none = clamped ? 0.f : -std::exp(log_none) / one_minus;  // d log P / d log(1 - P)
+        const bool is_hit = hit[r] != 0;
+        const float y = is_hit ? 1.f : 0.f;
+        sums.bce += -(y * log_hit + (1.f - y) * log_none);
+        float g_none = -(y * d_hit_d_none + (1.f - y)) * inv_b;  // d loss / d log_none
+        int js = -1;
+        float g_ce = 0.f;
+        if (is_hit) {
+            const float pos = local_t[r] * (float)P;
+            js = (int)std::floor(pos);
+            js = js < 0 ? 0 : (js > P - 1 ? P - 1 : js);
+            const float ce = -(log_q[js] - log_hit);
+            sums.ce += std::fabs(ce);
+            g_ce = (float)((ce > 0.f) - (ce < 0.f)) * inv_hits;  // d |ce| / d ce
+            g_none += g_ce * d_hit_d_none;
+            float sub_t = pos - (float)js;
+            sub_t = sub_t < 0.f ? 0.f : (sub_t > 1.f ? 1.f : sub_t);
+            const float* oj = o + js * 5;
+            float* gj = g + js * 5;
+            const float s = 1.f / (1.f + std::exp(-oj[1]));
+            const float dt = s - sub_t;
+            sums.depth += std::fabs(dt);
+            gj[1] = w_t * inv_hits * (float)((dt > 0.f) - (dt < 0.f)) * s * (1.f - s);
+            const float vx = oj[2], vy = oj[3], vz = oj[4];
+            const float norm = std::sqrt(vx * vx + vy * vy + vz * vz);
+            const float den = norm > 1e-12f ? norm : 1e-12f;
+            const float n[3] = {vx / den, vy / den, vz / den};
+            float gn[3];
+            for (int a = 0; a < 3; ++a) {
+                const float d = n[a] - normal[3 * r + a];
+                sums.normal += std::fabs(d);
+                gn[a] = w_n * inv_hits * (float)((d > 0.f) - (d < 0.f));
+            }
+            if (norm > 1e-12f) {
+                const float dot = gn[0] * n[0] + gn[1] * n[1] + gn[2] * n[2];
+                for (int a = 0; a < 3; ++a) gj[2 + a] = (gn[a] - n[a] * dot) / norm;
+            } else {
+                for (int a = 0; a < 3; ++a) gj[2 + a] = gn[a] / 1e-12f;
+            }
+        }
+        // d log_none / d x_i = -p_i; d (-log q_js) / d x_i = -(1 - p_i) at i = js, +p_i before it, 0 after.
+        for (int i = 0; i < P; ++i) {
+            float gi = g_none * -prob[i];
+            if (js >= 0 && i <= js) gi += g_ce * (i == js ? -(1.f - prob[i]) : prob[i]);
+            g[i * 5] = gi;
+        }
+    }
+}
+
+template <int F>
+void kmlp_train_t(const Grid& g, const float* rays_o, const float* rays_d, const int64_t* ray, const float* te,
+                  const float* tx, int64_t b, int k, const float* frac, const float* table, int n_layers,
+                  const int32_t* dims, const float* params, const uint8_t* hit, const float* local_t,
+                  const float* normal, float inv_hits, float w_t, float w_n, double* loss_out, float* grad_params,
+                  float* points, float* dx, float* out_raw, int threads) {
+    const Layers net(n_layers, dims, params, true);
+    const int P = k - 1;
+    const int width = g.levels * (F > 0 ? F : g.features);
+    const int64_t ldx = padded(k * width);
+    std::vector<int64_t> g_off(n_layers + 1, 0);
+    for (int j = 0; j < n_layers; ++j) g_off[j + 1] = g_off[j] + (int64_t)dims[j] * padded(dims[j + 1]) + dims[j + 1];
+    const int64_t tiles = (b + TILE - 1) / TILE;
+    const float inv_b = 1.f / (float)b;
+    const int n_threads = threads < 1 ? 1 : threads;
+    const int n_out = dims[n_layers];
+    std::vector<std::vector<float>> grads(n_threads);
+    std::vector<KLossSums> sums(n_threads);
+#pragma omp parallel num_threads(n_threads)
+    {
+        const int tid = omp_get_thread_num();
+        std::vector<float>& gp = grads[tid];
+        gp.assign(g_off[n_layers], 0.f);
+        std::vector<std::vector<std::vector<float>>> acts(P);
+        for (int j = 0; j < P; ++j) acts[j] = net.activations();
+        std::vector<float> x((size_t)TILE * ldx, 0.f), d_x((size_t)TILE * ldx, 0.f);
+        std::vector<float> raw((size_t)TILE * P * 5, 0.f), d_raw((size_t)TILE * P * 5, 0.f);
+        const int64_t ld_max = padded(net.widest());
+        std::vector<float> d_a((size_t)TILE * ld_max, 0.f), d_b((size_t)TILE * ld_max, 0.f);
+#pragma omp for schedule(static)
+        for (int64_t tile = 0; tile < tiles; ++tile) {
+            const int64_t s0 = tile * TILE;
+            const int m = (int)((b - s0) < TILE ? (b - s0) : TILE);
+            encode_tile<F>(g, rays_o, rays_d, ray, te, tx, s0, m, k, frac, table, x.data(), ldx, points);
+            for (int j = 0; j < P; ++j) {
+                net.forward(acts[j], x.data() + j * width, ldx);
+                for (int r = 0; r < TILE; ++r)
+                    std::memcpy(&raw[((int64_t)r * P + j) * 5], acts[j][n_layers].data() + r * padded(n_out),
+                                sizeof(float) * 5);
+            }
+            if (out_raw)
+                std::memcpy(out_raw + s0 * P * 5, raw.data(), sizeof(float) * (size_t)m * P * 5);
+            kmlp_loss_rows(raw.data(), P, m, hit + s0, local_t + s0, normal + 3 * s0, inv_b, inv_hits, w_t, w_n,
+                           d_raw.data(), sums[tid]);
+            std::fill(d_x.begin(), d_x.end(), 0.f);
+            for (int p = 0; p < P; ++p) {
+                auto& act = acts[p];
+                float* d_cur = d_a.data();
+                float* d_prev = d_b.data();
+                const int64_t ld5 = padded(n_out);
+                for (int r = 0; r < TILE; ++r) {
+                    for (int c = 0; c < n_out; ++c) d_cur[r * ld5 + c] = d_raw[((int64_t)r * P + p) * 5 + c];
+                }
+                for (int j = n_layers - 1; j >= 0; --j) {
+                    const int n_in = dims[j], no = dims[j + 1];
+                    const int64_t ld_in = padded(n_in), ld_out = padded(no);
+                    float* gw = gp.data() + g_off[j];
+                    if (j == 0)  // the pair's input window of the tile's features, seen transposed
+                        gemm(n_in, no, TILE, x.data() + p * width, 1, ldx, d_cur, ld_out, gw, ld_out, true);
+                    else
+                        gemm(n_in, no, TILE, act[j].data(), 1, ld_in, d_cur, ld_out, gw, ld_out, true);
+                    float* gb = gw + (int64_t)n_in * ld_out;
+                    for (int r = 0; r < m; ++r)
+                        for (int c = 0; c < no; ++c) gb[c] += d_cur[r * ld_out + c];
+                    if (j > 0) {
+                        gemm(TILE, n_in, no, d_cur, ld_out, 1, net.w[j].data(), ld_in, d_prev, ld_in, false);
+                        const float* a = act[j].data();
+                        for (int64_t q = 0; q < (int64_t)TILE * ld_in; ++q)
+                            if (!(a[q] > 0.f)) d_prev[q] = 0.f;
+                        std::swap(d_cur, d_prev);
+                    } else {  // overlapping windows: the pair's input gradient adds into the segment's row
+                        gemm(TILE, n_in, no, d_cur, ld_out, 1, net.w[0].data(), ld_in, d_x.data() + p * width, ldx,
+                             true);
+                    }
+                }
+            }
+            for (int r = 0; r < m; ++r)
+                std::memcpy(dx + (s0 + r) * (int64_t)k * width, d_x.data() + r * ldx, sizeof(float) * k * width);
+        }
+    }
+    int64_t q = 0;
+    for (int j = 0; j < n_layers; ++j) {
+        const int n_in = dims[j], no = dims[j + 1];
+        for (int i = 0; i <= n_in; ++i) {
+            for (int o = 0; o < no; ++o) {
+                float v = 0.f;
+                for (int t = 0; t < n_threads; ++t)
+                    if (!grads[t].empty()) v += grads[t][g_off[j] + (int64_t)i * padded(no) + o];
+                grad_params[q++] = v;
+            }
+        }
+    }
+    KLossSums total;
+    for (const auto& ls : sums) { total.bce += ls.bce; total.ce += ls.ce; total.depth += ls.depth; total.normal += ls.normal; }
+    loss_out[0] = total.bce * inv_b;
+    loss_out[1] = total.ce * inv_hits;
+    loss_out[2] = total.depth * inv_hits;
+    loss_out[3] = total.normal * inv_hits;
+}
+
 }  // namespace
 
 extern "C" {
 
-int nbvh_abi_version() { return 9; }
+int nbvh_abi_version() { return 10; }
 
 // Fused MLP inference over B segments (see mlp_segments_t): rays_o/rays_d (n_rays, 3), ray (B,) int64 ray of each
 // segment, te/tx (B,) segment ends, frac (k,) point fractions; table (L, rows, F) of table_kind 0 float32, 1 float16,
@@ -639,6 +856,52 @@ void nbvh_encode_forward_f16(const float* points, int64_t n, const void* table, 
     g.init_masks();
     const _Float16* t = static_cast<const _Float16*>(table);
     by_features(features, [&](auto F) { encode_forward_t<decltype(F)::value, _Float16>(g, points, n, t, out, threads); });
+}
+
+// Fused KMLP inference (see kmlp_segments_t): arguments as nbvh_mlp_segments, dims[0] = 2 * L * F (a pair);
+// out (B, k - 1, dims[n_layers]) float32: the pair network's raw outputs.
+void nbvh_kmlp_segments(const float* rays_o, const float* rays_d, const int64_t* ray, const float* te, const float* tx,
+                        int64_t b, int k, const float* frac, const void* table, int table_kind,
+                        const float* qoffset, const float* qscale, int levels,
+                        int features, const float* scales, const int64_t* res, const uint8_t* dense,
+                        int64_t vertex_table, int64_t rows, const uint8_t* codes, int64_t code_rows, int n_layers,
+                        const int32_t* dims, const float* params, float* out, int threads) {
+    Grid g{levels, features, scales, res, dense, vertex_table, rows, codes, code_rows};
+    g.qoffset = qoffset;
+    g.qscale = qscale;
+    g.init_masks();
+    by_features(features, [&](auto F) {
+        constexpr int f = decltype(F)::value;
+        if (table_kind == 2)
+            kmlp_segments_t<f, uint8_t>(g, rays_o, rays_d, ray, te, tx, b, k, frac, static_cast<const uint8_t*>(table),
+                                        n_layers, dims, params, out, threads);
+        else if (table_kind == 1)
+            kmlp_segments_t<f, _Float16>(g, rays_o, rays_d, ray, te, tx, b, k, frac,
+                                         static_cast<const _Float16*>(table), n_layers, dims, params, out, threads);
+        else
+            kmlp_segments_t<f, float>(g, rays_o, rays_d, ray, te, tx, b, k, frac, static_cast<const float*>(table),
+                                      n_layers, dims, params, out, threads);
+    });
+}
+
+// One training step of a KMLP model (see kmlp_train_t): arguments as nbvh_mlp_train; loss_out (4,) float64 =
+// (bce, segment_ce, depth_l1 on the sub-segment scale, normal_l1); out_raw (B, k - 1, 5) or null.
+void nbvh_kmlp_train(const float* rays_o, const float* rays_d, const int64_t* ray, const float* te, const float* tx,
+                     int64_t b, int k, const float* frac, const float* table, int levels, int features,
+                     const float* scales, const int64_t* res, const uint8_t* dense, int64_t vertex_table, int64_t rows,
+                     const uint8_t* codes, int64_t code_rows, int n_layers, const int32_t* dims, const float* params,
+                     const uint8_t* hit, const float* local_t, const float* normal,
+                     int64_t hit_count, float w_t, float w_n, double* loss_out, float* grad_params, float* grad_table,
+                     float* points, float* dx, float* out_raw, int threads) {
+    Grid g{levels, features, scales, res, dense, vertex_table, rows, codes, code_rows};
+    g.init_masks();
+    const float inv_hits = 1.f / (float)(hit_count > 0 ? hit_count : 1);
+    by_features(features, [&](auto F) {
+        constexpr int f = decltype(F)::value;
+        kmlp_train_t<f>(g, rays_o, rays_d, ray, te, tx, b, k, frac, table, n_layers, dims, params, hit, local_t,
+                        normal, inv_hits, w_t, w_n, loss_out, grad_params, points, dx, out_raw, threads);
+        encode_backward_t<f>(g, points, b * k, dx, grad_table, threads);
+    });
 }
 
 // Inference from uint8 codes (L, rows, F) with qoffset/qscale (L, F) float32 (value = offset + code * scale).
