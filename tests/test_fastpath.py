@@ -274,3 +274,27 @@ def test_fused_training_step_gives_the_loss_and_gradients_of_autograd(enc_kw, ne
         scale = want[name].abs().max().clamp_min(1e-6)
         assert torch.allclose(p.grad, want[name], rtol=1e-3, atol=1e-4 * float(scale)), \
             (name, float((p.grad - want[name]).abs().max()), float(scale))
+
+
+@pytest.mark.parametrize("tau", [1.0, 0.05])
+def test_fused_soft_hashvqad_table_matches_the_reference(tau):
+    """HashVQAD's soft row table (softmax over t candidates) and its backward into the logits and the rows."""
+    from nbvh_core.encodings import HashVQAD
+
+    torch.manual_seed(1)
+    enc = HashVQAD(EncodingConfig(kind="hashvqad", log2_table=6, levels=3, features=8, index_factor=4,
+                                  candidates=8, init_scale=0.5))
+    with torch.no_grad():
+        enc.logits.normal_()
+    enc.temperature = tau
+    grad = torch.randn(3, 4 * 64, 8)
+    with kernels.using_path("reference"):
+        want = enc.row_table()
+        want.backward(grad)
+    want_g = (enc.logits.grad.clone(), enc.table.grad.clone())
+    enc.logits.grad = enc.table.grad = None
+    got = enc.row_table()
+    got.backward(grad)
+    assert torch.allclose(got, want, rtol=1e-5, atol=1e-6)
+    assert torch.allclose(enc.logits.grad, want_g[0], rtol=1e-4, atol=1e-5)
+    assert torch.allclose(enc.table.grad, want_g[1], rtol=1e-4, atol=1e-5)

@@ -23,6 +23,7 @@ import math
 import torch
 from torch import nn
 
+from .. import kernels
 from .base import MASK32, PRIMES, EncodingConfig
 from .hashgrid import HashGrid, table_features_bytes
 
@@ -31,6 +32,39 @@ def candidate_rows(entries: torch.Tensor, candidates: torch.Tensor, table_size: 
     """hash2(i, j) mod T for broadcastable int64 tensors of entries i and candidates j."""
     h = ((entries * PRIMES[1]) & MASK32) ^ ((candidates * PRIMES[2]) & MASK32)
     return h % table_size
+
+
+class _SoftTable(torch.autograd.Function):
+    """The soft row table S (L, H, F) and its backward into the rows and the logits, by the fused kernels
+    (`nbvh_vqad_soft_forward/backward`): one pass over the H entries for softmax and weighted rows, the backward's
+    row scatter one level per thread. Same values as `HashVQAD.reference_row_table` (tests/test_fastpath.py)."""
+
+    @staticmethod
+    def forward(ctx, logits, table, cand, tau, cfg):
+        lib = kernels.load()
+        L, H, t = logits.shape
+        T, F = table.shape[1], table.shape[2]
+        logits_c, table_c = logits.detach().contiguous(), table.detach().contiguous()
+        probs = torch.empty_like(logits_c)
+        soft = torch.empty((L, H, F), dtype=torch.float32)
+        lib.nbvh_vqad_soft_forward(logits_c.data_ptr(), table_c.data_ptr(), cand.data_ptr(), L, H, T, t, F,
+                                   1.0 / tau, probs.data_ptr(), soft.data_ptr(), kernels.threads())
+        ctx.save_for_backward(probs, table_c, cand)
+        ctx.tau = tau
+        return soft
+
+    @staticmethod
+    def backward(ctx, grad_soft):
+        probs, table, cand = ctx.saved_tensors
+        L, H, t = probs.shape
+        T, F = table.shape[1], table.shape[2]
+        grad_soft = grad_soft.contiguous()
+        g_table = torch.zeros_like(table)
+        g_logits = torch.empty_like(probs)
+        kernels.load().nbvh_vqad_soft_backward(probs.data_ptr(), table.data_ptr(), cand.data_ptr(),
+                                               grad_soft.data_ptr(), L, H, T, t, F, 1.0 / ctx.tau,
+                                               g_table.data_ptr(), g_logits.data_ptr(), kernels.threads())
+        return g_logits, g_table, None, None, None
 
 
 class HashVQAD(HashGrid):
@@ -70,6 +104,13 @@ class HashVQAD(HashGrid):
     def row_table(self) -> torch.Tensor:
         if self.frozen:
             return self.float_rows()
+        if kernels.fast_enabled(self.table.device) and self.cfg.candidates <= 256:
+            return _SoftTable.apply(self.logits, self.table, self._group_candidates().contiguous(),
+                                    float(self.temperature), self.cfg)
+        return self.reference_row_table()
+
+    def reference_row_table(self) -> torch.Tensor:
+        """The soft row table in torch (the reference the fused kernel is tested against)."""
         cfg = self.cfg
         n_t, n_c = cfg.table_size, cfg.candidates
         probs = torch.softmax(self.logits / self.temperature, dim=-1)  # (L, H, t)

@@ -38,7 +38,7 @@ import torch
 
 SOURCE = Path(__file__).with_name("nbvh_kernels.cpp")
 FLAGS = ["-O3", "-march=native", "-ffp-contract=off", "-fopenmp", "-shared", "-fPIC", "-std=c++17"]
-ABI_VERSION = 10
+ABI_VERSION = 11
 PATHS = ("fast", "reference")
 
 _path = os.environ.get("NBVH_PATH", "fast")
@@ -166,9 +166,13 @@ def load() -> ctypes.CDLL | None:
                                    ctypes.c_float, ctypes.c_float, P, P, P, P, P, P, I32]
     lib.nbvh_kmlp_segments.argtypes = lib.nbvh_mlp_segments.argtypes
     lib.nbvh_kmlp_train.argtypes = lib.nbvh_mlp_train.argtypes
+    F32 = ctypes.c_float
+    lib.nbvh_vqad_soft_forward.argtypes = [P, P, P, I32, I64, I64, I32, I32, F32, P, P, I32]
+    lib.nbvh_vqad_soft_backward.argtypes = [P, P, P, P, I32, I64, I64, I32, I32, F32, P, P, I32]
     for fn in (lib.nbvh_encode_forward, lib.nbvh_encode_forward_f16, lib.nbvh_encode_forward_u8,
                lib.nbvh_encode_backward, lib.nbvh_stream_next,
-               lib.nbvh_mlp_segments, lib.nbvh_mlp_train, lib.nbvh_kmlp_segments, lib.nbvh_kmlp_train):
+               lib.nbvh_mlp_segments, lib.nbvh_mlp_train, lib.nbvh_kmlp_segments, lib.nbvh_kmlp_train,
+               lib.nbvh_vqad_soft_forward, lib.nbvh_vqad_soft_backward):
         fn.restype = None
     _lib = lib
     return lib
