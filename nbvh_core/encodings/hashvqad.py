@@ -104,7 +104,8 @@ class HashVQAD(HashGrid):
     def row_table(self) -> torch.Tensor:
         if self.frozen:
             return self.float_rows()
-        if kernels.fast_enabled(self.table.device) and self.cfg.candidates <= 256:
+        if (kernels.fast_enabled(self.table.device) and self.cfg.candidates <= 256
+                and self.table.dtype == self.logits.dtype == torch.float32):  # the kernel computes in float32
             return _SoftTable.apply(self.logits, self.table, self._group_candidates().contiguous(),
                                     float(self.temperature), self.cfg)
         return self.reference_row_table()

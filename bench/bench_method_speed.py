@@ -1,0 +1,85 @@
+"""Speed of the paper's method steps on the fast path: training leaf samples/s and 512x512 render time per
+encoding x network, one run (ratios within the run), bunny, 2047 nodes, the default preset's other settings.
+
+    .venv/bin/python bench/bench_method_speed.py [--steps 150]   # -> bench/results/method_speed.{csv,md}
+
+HashVQAD trains in its soft phase (the softmax over t candidates of every index entry each step: the expensive
+one); its render is after the freeze (hard codes looked up in the kernel).
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from nbvh_core import kernels  # noqa: E402
+from nbvh_core.bvh import build_bvh  # noqa: E402
+from nbvh_core.exact import ExactTracer  # noqa: E402
+from nbvh_core.mesh import load_mesh  # noqa: E402
+from nbvh_core.model import NeuralBVH  # noqa: E402
+from nbvh_core.pipeline import preset  # noqa: E402
+from nbvh_core.render import orbit_cameras, render_neural  # noqa: E402
+from nbvh_core.samples_dir import sample_path  # noqa: E402
+from nbvh_core.train import train  # noqa: E402
+
+RESULTS = ROOT / "bench" / "results"
+METHODS = [("HashGrid T=2^11 + MLP (base, default preset)", {}),
+           ("HashGrid T=2^11 + KMLP (I/II)", {"network": "kmlp"}),
+           ("HashVQAD T=2^10 + MLP", {"encoding": "hashvqad", "log2_table": 10}),
+           ("HashVQAD T=2^10 + KMLP (III)", {"encoding": "hashvqad", "network": "kmlp", "log2_table": 10})]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--steps", type=int, default=150)
+    args = ap.parse_args()
+    kernels.keep_freed_memory()
+    mesh = load_mesh(sample_path("bunny"))
+    bvh = build_bvh(mesh, 2047)
+    tracer = ExactTracer(mesh)
+    rows = []
+    for name, over in METHODS:
+        s = preset("default").with_overrides(steps=args.steps, **over)
+        s.time_limit_s = None
+        model = NeuralBVH(bvh.nodes, s.model_config(), mesh.transform)
+        cfg = s.train_config()
+        cfg.anneal_fraction, cfg.freeze, cfg.qat_bits = 0.0, False, None  # the soft phase throughout
+        tr = train(model, bvh, tracer, cfg)
+        model.eval()
+        if hasattr(model.encoding, "freeze"):
+            model.encoding.freeze()
+        cam = orbit_cameras(1)[0]
+        render_neural(model, cam, 64, 64)  # warm-up
+        t = time.perf_counter()
+        render_neural(model, cam, 512, 512)
+        dt = time.perf_counter() - t
+        rows.append({"method": name, "train_samples_per_s": round(tr.samples_per_s), "render_512_s": round(dt, 4),
+                     "rays_per_s": round(512 * 512 / dt), "compute_path": tr.compute_path})
+        print(rows[-1], flush=True)
+    base = rows[0]
+    for r in rows:
+        r["train_slowdown_vs_base"] = round(base["train_samples_per_s"] / r["train_samples_per_s"], 2)
+        r["render_slowdown_vs_base"] = round(r["render_512_s"] / base["render_512_s"], 2)
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    with open(RESULTS / "method_speed.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    lines = ["# Method steps on the fast path (bench/bench_method_speed.py)", "",
+             f"Bunny, 2047 nodes, {args.steps} training steps each, one run on this 2-core CPU; "
+             f"`{base['compute_path']}`.", "",
+             "| method | training samples/s | x slower than base | 512x512 render s | x slower than base |",
+             "|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['method']} | {r['train_samples_per_s']:,} | {r['train_slowdown_vs_base']} | "
+                     f"{r['render_512_s']} | {r['render_slowdown_vs_base']} |")
+    (RESULTS / "method_speed.md").write_text("\n".join(lines) + "\n")
+
+
+if __name__ == "__main__":
+    main()
