@@ -33,6 +33,9 @@ from .train import Cancelled, TrainConfig, TrainingDiverged, TrainResult, train
 
 #: A diverged training restarts from scratch at a 10x lower learning rate, at most this many times.
 DIVERGENCE_RETRIES = 2
+#: Training with a target stops early once a quick check's MSE is below this fraction of the target (the quick
+#: check sees 4 views at 64 px, noisier than the 16 x 128 px evaluation that follows).
+EARLY_STOP_MARGIN = 0.7
 
 
 @dataclass
@@ -76,6 +79,9 @@ class Settings:
     force: bool = False
     #: Seconds between checkpoints when a checkpoint path is given (a kill loses at most this much training).
     checkpoint_every_s: float = 60.0
+    #: With a target MSE: seconds between quick quality checks during training (4 views, 64 px); training stops once
+    #: the quick MSE is below EARLY_STOP_MARGIN x the target (the full evaluation after it confirms or not).
+    target_check_every_s: float = 20.0
 
     def model_config(self) -> ModelConfig:
         return ModelConfig(EncodingConfig(kind=self.encoding, log2_table=self.log2_table, levels=self.levels,
@@ -89,7 +95,8 @@ class Settings:
         return TrainConfig(labels=self.labels, lr=self.lr, steps=self.steps, time_limit_s=self.time_limit_s,
                            rays_per_step=self.rays_per_step, seed=self.seed, device=self.device,
                            anneal_fraction=self.anneal_fraction, leaf_sampling=self.leaf_sampling,
-                           tree_cut=self.tree_cut, checkpoint_every_s=self.checkpoint_every_s, qat_bits=self.table_bits if self.table_bits == 8 else None,
+                           tree_cut=self.tree_cut, checkpoint_every_s=self.checkpoint_every_s,
+                           target_check_every_s=self.target_check_every_s, qat_bits=self.table_bits if self.table_bits == 8 else None,
                            qat_fraction=self.qat_fraction)
 
     def with_overrides(self, **kw) -> "Settings":
@@ -264,7 +271,17 @@ def resume_settings(checkpoint_path: str | Path, mesh: Mesh) -> Settings:
     return dataclasses.replace(settings, target_mse=None, budget_kb=None)
 
 
-def _train_with_restarts(mesh, bvh, tracer, settings, why, events, should_cancel, checkpoint_path, resume_from=None):
+def _target_check(tracer, target: float):
+    """The early-stop callback for a target MSE (see EARLY_STOP_MARGIN): a quick evaluation of the model as it is."""
+    def reached(model) -> bool:
+        with torch.no_grad():
+            q, _ = evaluate(model, tracer, 4, 64)
+        return q.mse <= EARLY_STOP_MARGIN * target
+    return reached
+
+
+def _train_with_restarts(mesh, bvh, tracer, settings, why, events, should_cancel, checkpoint_path, resume_from=None,
+                         target_reached=None):
     """Train a fresh model (or resume `resume_from`); on divergence restart from scratch at a 10x lower learning rate
     (at most DIVERGENCE_RETRIES times). Returns (model, TrainResult, settings actually used, why)."""
     for attempt in range(DIVERGENCE_RETRIES + 1):
@@ -273,7 +290,7 @@ def _train_with_restarts(mesh, bvh, tracer, settings, why, events, should_cancel
             extra = {"settings": settings.to_dict(), "mesh": mesh_identity(mesh)}
             tr = train(model, bvh, tracer, settings.train_config(), events=events, should_cancel=should_cancel,
                        checkpoint_path=checkpoint_path, resume_from=resume_from if attempt == 0 else None,
-                       checkpoint_extra=extra)
+                       checkpoint_extra=extra, target_reached=target_reached)
             return model, tr, settings, why
         except TrainingDiverged as exc:
             if attempt == DIVERGENCE_RETRIES:
@@ -327,8 +344,12 @@ def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = 
         """One training at table size 2^log2_table, scored; its MSE (inf without an evaluation)."""
         t = time.perf_counter()
         s_try = dataclasses.replace(settings, log2_table=log2_table)
+        stop = _target_check(tracer, target) if target is not None and evaluate_quality else None
         model, tr, s_used, why_used = _train_with_restarts(mesh, bvh, tracer, s_try, why, events, should_cancel,
-                                                           checkpoint_path, resume_from)
+                                                           checkpoint_path, resume_from, stop)
+        if tr.stopped_early:
+            why_used += (f"; T=2^{log2_table}: training stopped after {tr.seconds:.0f} s of the "
+                         f"{s_try.time_limit_s or 0:.0f} s budget, the target being met")
         seconds["train"] += time.perf_counter() - t
         model.eval()
         if compare_float32 and evaluate_quality:  # the same training before its storage is quantized
@@ -380,6 +401,7 @@ def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = 
         "assessment": assessment.to_dict(),
         "target_met": (None if settings.target_mse is None or quality is None else quality.mse <= settings.target_mse),
         "training": {"steps": tr.steps, "seconds": round(tr.seconds, 2), "samples": tr.samples,
+                     "stopped_early": tr.stopped_early,
                      "samples_per_s": round(tr.samples_per_s), "final_loss": tr.final_loss, "device": tr.device,
                      "compute_path": tr.compute_path,
                      "soft_loss_before_freeze": tr.soft_loss_before_freeze, "frozen_loss": tr.frozen_loss,

@@ -94,6 +94,9 @@ class TrainConfig:
     # the quantized rows; the affine map is kept (`encoding.qat_affine`) so the file's codes reproduce them exactly.
     qat_bits: int | None = None
     qat_fraction: float = 0.05
+    # With a `target_reached` callback (a requested quality), it is asked every this many seconds once 10% of the
+    # budget has passed; True ends training there (no more than the asset needs). HashVQAD stops only after its freeze.
+    target_check_every_s: float = 20.0
     ray_config: RayConfig = field(default_factory=RayConfig)
 
     def to_dict(self) -> dict:
@@ -113,6 +116,7 @@ class TrainResult:
     frozen_loss: float | None = None  # right after the freeze
     finetuned_loss: float | None = None  # at the end, after the hard fine-tune
     compute_path: str = ""  # kernels.describe(): fast (fused kernels) or reference (pure torch)
+    stopped_early: bool = False  # the target_reached callback ended training before the budget
 
 
 def pick_device(name: str = "auto") -> torch.device:
@@ -360,11 +364,13 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
           should_cancel: Callable[[], bool] = lambda: False, checkpoint_path: str | os.PathLike | None = None,
           resume_from: str | os.PathLike | None = None,
           before_freeze: Callable[[NeuralBVH], None] | None = None,
-          checkpoint_extra: dict | None = None) -> TrainResult:
+          checkpoint_extra: dict | None = None,
+          target_reached: Callable[[NeuralBVH], bool] | None = None) -> TrainResult:
     """Train `model` in place on rays around `bvh`, labelled by `tracer`; freezes HashVQAD near the end.
 
     before_freeze(model) is called once just before the HashVQAD freeze (e.g. to score the soft model).
     checkpoint_extra: stored in every checkpoint under 'extra' (the caller's settings and mesh identity).
+    target_reached(model) -> bool: polled every cfg.target_check_every_s seconds; True stops training early.
     """
     if cfg.steps is None and cfg.time_limit_s is None:
         raise ValueError("set a step budget or a time limit")
@@ -450,6 +456,8 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
     t0 = time.perf_counter() - elapsed_before
     last_emit = 0.0
     last_checkpoint = elapsed_before
+    last_target_check = elapsed_before
+    stopped_early = False
     n_samples = 0
     ema = None
     first_losses: list[float] = []  # the first 5 batches; [0] is the untrained model's loss
@@ -467,7 +475,14 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
                        elapsed / cfg.time_limit_s if cfg.time_limit_s else 0.0)
             if frac >= 1.0:
                 break
-            if should_cancel():
+            if (target_reached is not None and frac >= 0.1 and elapsed - last_target_check >= cfg.target_check_every_s
+                    and not (is_vqad and not model.encoding.frozen)):
+                last_target_check = elapsed
+                if target_reached(model):
+                    stopped_early = True
+                    events({"event": "phase", "phase": phase, "message": f"target reached at step {step} "
+                                                                         f"({elapsed:.0f} s): training stops"})
+                    break
                 save_checkpoint(step, elapsed)
                 raise Cancelled(f"cancelled at step {step}")
             if is_vqad and cfg.freeze and not model.encoding.frozen and frac >= 1.0 - cfg.finetune_fraction:
@@ -555,7 +570,8 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
     run_time = seconds - elapsed_before
     result = TrainResult(steps=step, seconds=seconds, samples=n_samples,
                          samples_per_s=n_samples / max(run_time, 1e-9), final_loss=ema if ema is not None else loss_val,
-                         device=str(device), history=history, compute_path=kernels.describe(device))
+                         device=str(device), history=history, compute_path=kernels.describe(device),
+                         stopped_early=stopped_early)
     events({"event": "progress", "phase": phase, "step": step, "total": cfg.steps, "fraction": 1.0,
             "loss": round(result.final_loss, 6), "samples_per_s": round(result.samples_per_s, 1),
             "elapsed_s": round(seconds, 2), "eta_s": 0.0})

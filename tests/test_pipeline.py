@@ -72,3 +72,16 @@ def test_verdict_ends_the_run_unless_forced(tmp_path):
     assert res.assessment["worth_compressing"] is False
     assert any(e["event"] == "warning" and "forced" in e["message"] for e in events)
     assert (tmp_path / "s.nbvh").exists()
+
+
+def test_training_stops_once_the_target_is_met(sample_meshes):
+    """No more than the asset needs: an easy target ends a 120 s budget early, and the result says so."""
+    s = preset("tiny").with_overrides(target_mse=0.5, force=True, time_limit_s=120.0, target_check_every_s=0.5)
+    s.steps = None
+    res = compress_mesh(sample_meshes["blob"], s)
+    assert res.training.stopped_early and res.training.seconds < 60
+    assert res.target_met and "the target being met" in res.why
+    # Without a target the budget is used in full.
+    res = compress_mesh(sample_meshes["blob"], preset("tiny").with_overrides(force=True, steps=60),
+                        evaluate_quality=False)
+    assert not res.training.stopped_early and res.training.steps == 60
