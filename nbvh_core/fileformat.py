@@ -49,6 +49,7 @@ from .encodings import ENCODINGS, EncodingConfig
 from .mesh import Transform
 from .model import ModelConfig, NeuralBVH
 from .networks import NETWORKS, NetworkConfig
+from .outputs import write_atomic  # noqa: F401  (re-exported: callers write files through it)
 from .quantize import NONE16, StorageConfig, decode_nodes, encode_nodes
 
 MAGIC = b"NBVH\x00\r\n\x1a"
@@ -494,25 +495,6 @@ def save_nbvh(model: NeuralBVH, path: str | os.PathLike, metadata: dict | None =
     On any error (e.g. disk full) the temporary file is removed and an existing file at `path` is untouched.
     """
     return write_atomic(path, encode_nbvh(model, metadata, storage))
-
-
-def write_atomic(path: str | os.PathLike, data: bytes) -> int:
-    """Write `data` to a temporary file beside `path`, fsync, rename into place; returns len(data).
-
-    On any error the temporary file is removed and an existing file at `path` is untouched.
-    """
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.partial-{os.getpid()}")
-    try:
-        with open(tmp, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return len(data)
 
 
 def _read(path: Path) -> bytes:

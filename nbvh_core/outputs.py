@@ -112,6 +112,32 @@ class OutputLock:
         self.release()
 
 
+def _write_synced(tmp: Path, data: bytes) -> None:
+    """Write `data` to `tmp` and fsync it (removed again on any error)."""
+    try:
+        with open(tmp, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def write_atomic(path: str | os.PathLike, data: bytes) -> int:
+    """Write `data` to a temporary file beside `path`, fsync, rename into place; returns len(data). On any error
+    the temporary file is removed and an existing file at `path` is untouched."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.partial-{os.getpid()}")
+    _write_synced(tmp, data)
+    try:
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return len(data)
+
+
 class OutputSet:
     """Stage files, then `commit()` them all (or none: see module docstring). `discard()` removes the stages."""
 
@@ -122,12 +148,8 @@ class OutputSet:
         target = Path(target)
         tmp = target.with_name(f".{target.name}.partial-{os.getpid()}")
         try:
-            with open(tmp, "wb") as f:
-                f.write(data)
-                f.flush()
-                os.fsync(f.fileno())
+            _write_synced(tmp, data)
         except BaseException:
-            tmp.unlink(missing_ok=True)
             self.discard()
             raise
         self._staged.append((tmp, target))

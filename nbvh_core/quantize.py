@@ -54,8 +54,9 @@ class StorageConfig:
 # ---------------------------------------------------------------------------------------------------- nodes
 def _decode_child(plo: np.ndarray, phi: np.ndarray, q: np.ndarray) -> np.ndarray:
     """(n, 3) float32 parent bounds, (n, 3) codes -> (n, 3) float32 decoded bounds (the one decode formula)."""
-    step = (phi - plo) / _Q
-    out = (plo + q.astype(np.float32) * step).astype(np.float32)
+    with np.errstate(over="ignore", invalid="ignore"):  # a crafted root box may overflow: the reader refuses it
+        step = (phi - plo) / _Q
+        out = (plo + q.astype(np.float32) * step).astype(np.float32)
     return np.where(q >= 255, phi, out).astype(np.float32)  # the top code is the parent's bound exactly
 
 

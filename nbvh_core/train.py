@@ -347,17 +347,14 @@ def _snap_table(model: NeuralBVH, bits: int) -> bool:
 
 
 def _atomic_save(obj, path: Path) -> None:
-    """torch.save to a temporary file beside `path`, fsync, rename: a kill mid-write keeps the previous checkpoint."""
-    tmp = path.with_name(path.name + f".partial-{os.getpid()}")
-    try:
-        with open(tmp, "wb") as f:
-            torch.save(obj, f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    """torch.save, written atomically (outputs.write_atomic): a kill mid-write keeps the previous checkpoint."""
+    import io
+
+    from .outputs import write_atomic
+
+    buf = io.BytesIO()
+    torch.save(obj, buf)
+    write_atomic(path, buf.getvalue())
 
 
 def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, events: EventSink = null_sink,

@@ -55,7 +55,7 @@ class FusedLookup:
     KIND_ARG = {"f32": 0, "f16": 1, "u8": 2}
 
     def kernel_args(self) -> tuple:
-        """(rows, kind, offset, scale) pointers/ints as nbvh_mlp_segments takes them."""
+        """(rows, kind, offset, scale) pointers/ints as nbvh_net_segments takes them."""
         p = kernels.ptr
         return (p(self.rows), self.KIND_ARG[self.kind], p(self.offset), p(self.scale))
 

@@ -12,7 +12,7 @@ caller asks `fast_enabled(device)`; results record `describe()` so a number says
 * `stream_next` - `traversal.LeafStream.next` per ray with a real per-ray stack loop (the reference advances all
   rays one pop at a time with tensor ops).
 * `leaves_traverse` / `leaves_collect` - the complete sorted leaf list per ray (training labels), one traversal.
-* `mlp_segments` / `mlp_train` (used through `kernels.mlp`) - inference / one training step of a whole MLP model
+* `net_segments` / `net_train` (used through `kernels.mlp`; MLP or KMLP) - inference / one training step of a whole MLP model
   per (ray, leaf) segment: points, encoding and every Linear layer (AVX2 6x16 register-blocked micro-kernel, bias
   and ReLU fused) on a tile of 48 segments that stays in the cache; the reference writes (B, k*L*F) features to
   memory and runs torch's layers over them.
@@ -38,7 +38,7 @@ import torch
 
 SOURCE = Path(__file__).with_name("nbvh_kernels.cpp")
 FLAGS = ["-O3", "-march=native", "-ffp-contract=off", "-fopenmp", "-shared", "-fPIC", "-std=c++17"]
-ABI_VERSION = 11
+ABI_VERSION = 12
 PATHS = ("fast", "reference")
 
 _path = os.environ.get("NBVH_PATH", "fast")
@@ -161,17 +161,15 @@ def load() -> ctypes.CDLL | None:
     lib.nbvh_leaves_traverse.restype = P
     lib.nbvh_leaves_collect.argtypes = [P, P, P, P]
     lib.nbvh_leaves_collect.restype = None
-    lib.nbvh_mlp_segments.argtypes = [P, P, P, P, P, I64, I32, P, P, I32, P, P, *enc[4:13], I32, P, P, P, I32]
-    lib.nbvh_mlp_train.argtypes = [P, P, P, P, P, I64, I32, P, P, *enc[4:13], I32, P, P, P, P, P, I64,
+    lib.nbvh_net_segments.argtypes = [P, P, P, P, P, I64, I32, P, P, I32, P, P, *enc[4:13], I32, I32, P, P, P, I32]
+    lib.nbvh_net_train.argtypes = [P, P, P, P, P, I64, I32, P, P, *enc[4:13], I32, I32, P, P, P, P, P, I64,
                                    ctypes.c_float, ctypes.c_float, P, P, P, P, P, P, I32]
-    lib.nbvh_kmlp_segments.argtypes = lib.nbvh_mlp_segments.argtypes
-    lib.nbvh_kmlp_train.argtypes = lib.nbvh_mlp_train.argtypes
     F32 = ctypes.c_float
     lib.nbvh_vqad_soft_forward.argtypes = [P, P, P, I32, I64, I64, I32, I32, F32, P, P, I32]
     lib.nbvh_vqad_soft_backward.argtypes = [P, P, P, P, I32, I64, I64, I32, I32, F32, P, P, I32]
     for fn in (lib.nbvh_encode_forward, lib.nbvh_encode_forward_f16, lib.nbvh_encode_forward_u8,
                lib.nbvh_encode_backward, lib.nbvh_stream_next,
-               lib.nbvh_mlp_segments, lib.nbvh_mlp_train, lib.nbvh_kmlp_segments, lib.nbvh_kmlp_train,
+               lib.nbvh_net_segments, lib.nbvh_net_train,
                lib.nbvh_vqad_soft_forward, lib.nbvh_vqad_soft_backward):
         fn.restype = None
     _lib = lib

@@ -1,11 +1,11 @@
 """Fused MLP and KMLP models on the fast path: one kernel call per wave of segments (inference) or per training step.
 
-KMLP (`nbvh_kmlp_segments` / `nbvh_kmlp_train`): the shared pair network runs on the same tiles, pair j reading the
+KMLP (the same `nbvh_net_segments` / `nbvh_net_train` with kmlp = 1): the shared pair network runs on the same tiles, pair j reading the
 window [j D, (j + 2) D) of the segment's feature row (a first-layer GEMM on an offset pointer); training adds
 `networks.KMLP.loss` (the first-hit combination in log space) and its backward in the kernel, and the overlapping
 windows' input gradients add up per point before the encoding backward.
 
-`nbvh_mlp_segments` and `nbvh_mlp_train` (nbvh_kernels.cpp) compute, per tile of 48 segments kept in the cache,
+`nbvh_net_segments` and `nbvh_net_train` (nbvh_kernels.cpp) compute, per tile of 48 segments kept in the cache,
 the segment points, the grid lookup and every Linear layer (bias and ReLU fused; AVX2 register-blocked
 micro-kernels); training adds `networks.MLP.loss` and its backward (the Linear layers' gradients, then the table's
 through the encoding backward kernel). The reference is the layer-by-layer torch model; tests/test_fastpath.py
@@ -69,11 +69,10 @@ def segments_raw(model, packed: tuple[torch.Tensor, torch.Tensor], rays_o: torch
     kmlp = _is_kmlp(model)
     shape = (ray.numel(), k - 1, int(dims[-1])) if kmlp else (ray.numel(), int(dims[-1]))
     out = torch.empty(shape, dtype=torch.float32)
-    fn = load().nbvh_kmlp_segments if kmlp else load().nbvh_mlp_segments
-    fn(
+    load().nbvh_net_segments(
         ptr(rays_o.contiguous()), ptr(rays_d.contiguous()), ptr(ray), ptr(t_enter), ptr(t_exit), ray.numel(), k,
-        ptr(frac), *look.kernel_args(), *_grid_args(look.spec, look.rows, look.codes, look.code_rows), len(dims) - 1,
-        ptr(dims),
+        ptr(frac), *look.kernel_args(), *_grid_args(look.spec, look.rows, look.codes, look.code_rows), int(kmlp),
+        len(dims) - 1, ptr(dims),
         ptr(params), ptr(out), threads())
     return out
 
@@ -115,10 +114,10 @@ def train_step(model, samples, want_raw: bool = False) -> tuple[float, dict]:
     points, dx = _scratch(model, b, k, feat_width)
     raw = (torch.empty((b, k - 1, 5) if kmlp else (b, 5), dtype=torch.float32)) if want_raw else None
     loss_parts = torch.zeros(4 if kmlp else 3, dtype=torch.float64)
-    (lib.nbvh_kmlp_train if kmlp else lib.nbvh_mlp_train)(
+    lib.nbvh_net_train(
         ptr(samples.rays_o.contiguous()), ptr(samples.rays_d.contiguous()), ptr(samples.ray.contiguous()),
         ptr(samples.t_enter.contiguous()), ptr(samples.t_exit.contiguous()), b, k, ptr(frac), ptr(table),
-        *_grid_args(spec, table, codes, code_rows), len(dims) - 1, ptr(dims), ptr(params), ptr(hit),
+        *_grid_args(spec, table, codes, code_rows), int(kmlp), len(dims) - 1, ptr(dims), ptr(params), ptr(hit),
         ptr(local_t), ptr(normal), int(hit.sum()), float(net_cfg.depth_weight), float(net_cfg.normal_weight),
         ptr(loss_parts), ptr(grad_params), ptr(grad_table), ptr(points), ptr(dx), ptr(raw), threads())
     # Unpack the Linear gradients (stored transposed, like the parameters).

@@ -257,6 +257,14 @@ void encode_backward_t(const Grid& g, const float* points, int64_t n, const floa
     }
 }
 
+// Calls fn(table) with the table pointer typed by table_kind: 0 float32, 1 float16, 2 uint8 codes.
+template <typename Fn>
+void by_table(int table_kind, const void* table, Fn&& fn) {
+    if (table_kind == 2) fn(static_cast<const uint8_t*>(table));
+    else if (table_kind == 1) fn(static_cast<const _Float16*>(table));
+    else fn(static_cast<const float*>(table));
+}
+
 // Calls fn(std::integral_constant<int, F>) with F = features for the common sizes (unrolled inner loops) and
 // F = 0 (runtime size) otherwise.
 template <typename Fn>
@@ -480,6 +488,58 @@ struct LossSums {
     double bce = 0, depth = 0, normal = 0;
 };
 
+// The masked L1 terms of one hit row o (5,) = (hit logit, depth logit, normal xyz): |sigmoid(o[1]) - target_t| and
+// |normalize(o[2:5]) - target_n|_1, added to the sums; their gradients (weights w_t, w_n, over the hit count) into
+// g[1..4]. Shared by the MLP loss and the KMLP loss (its true sub-segment's row).
+inline void depth_normal_rows(const float* o, float target_t, const float* target_n, float w_t, float w_n,
+                              float inv_hits, float* g, double& depth_sum, double& normal_sum) {
+    const float s = 1.f / (1.f + std::exp(-o[1]));
+    const float dt = s - target_t;
+    depth_sum += std::fabs(dt);
+    g[1] = w_t * inv_hits * (float)((dt > 0.f) - (dt < 0.f)) * s * (1.f - s);
+    const float vx = o[2], vy = o[3], vz = o[4];
+    const float norm = std::sqrt(vx * vx + vy * vy + vz * vz);
+    const float den = norm > 1e-12f ? norm : 1e-12f;
+    const float n[3] = {vx / den, vy / den, vz / den};
+    float gn[3];
+    for (int a = 0; a < 3; ++a) {
+        const float d = n[a] - target_n[a];
+        normal_sum += std::fabs(d);
+        gn[a] = w_n * inv_hits * (float)((d > 0.f) - (d < 0.f));
+    }
+    if (norm > 1e-12f) {  // d (v / |v|) = (g - n (n . g)) / |v|
+        const float dot = gn[0] * n[0] + gn[1] * n[1] + gn[2] * n[2];
+        for (int a = 0; a < 3; ++a) g[2 + a] = (gn[a] - n[a] * dot) / norm;
+    } else {  // the clamp: v / eps, constant denominator
+        for (int a = 0; a < 3; ++a) g[2 + a] = gn[a] / 1e-12f;
+    }
+}
+
+// Where layer j's gradients start in a thread's buffer: W^T (in, padded(out)) then the bias (out), layer after layer.
+inline std::vector<int64_t> grad_offsets(const int32_t* dims, int n_layers) {
+    std::vector<int64_t> g_off(n_layers + 1, 0);
+    for (int j = 0; j < n_layers; ++j) g_off[j + 1] = g_off[j] + (int64_t)dims[j] * padded(dims[j + 1]) + dims[j + 1];
+    return g_off;
+}
+
+// The threads' weight gradients (each W^T (in, padded(out)) then the bias, at g_off[j]) summed in thread order
+// (deterministic) into the packed, unpadded layout of params.
+inline void sum_thread_grads(const std::vector<std::vector<float>>& grads, const std::vector<int64_t>& g_off,
+                             const int32_t* dims, int n_layers, float* grad_params) {
+    int64_t q = 0;
+    for (int j = 0; j < n_layers; ++j) {
+        const int n_in = dims[j], n_out = dims[j + 1];
+        for (int i = 0; i <= n_in; ++i) {  // rows of W^T, then the bias as row n_in
+            for (int o = 0; o < n_out; ++o) {
+                float v = 0.f;
+                for (const auto& gt : grads)
+                    if (!gt.empty()) v += gt[g_off[j] + (int64_t)i * padded(n_out) + o];
+                grad_params[q++] = v;
+            }
+        }
+    }
+}
+
 // Loss of networks.MLP (BCE on the hit logit; masked L1 of sigmoid depth and of the normalised normal, divided by
 // the batch's hit count) for rows [0, m) of raw (TILE, 5); writes d loss / d raw into d_raw (TILE, 5), zero rows
 // from m on. inv_b = 1 / batch size, inv_hits = 1 / max(hit count, 1).
@@ -495,27 +555,7 @@ inline void mlp_loss_rows(const float* raw, int m, const uint8_t* hit, const flo
         const float p = 1.f / (1.f + std::exp(-x));
         g[0] = (p - y) * inv_b;
         if (!hit[r]) continue;
-        const float s = 1.f / (1.f + std::exp(-o[1]));
-        const float dt = s - local_t[r];
-        sums.depth += std::fabs(dt);
-        const float sgn_t = (dt > 0.f) - (dt < 0.f);
-        g[1] = w_t * inv_hits * sgn_t * s * (1.f - s);
-        const float vx = o[2], vy = o[3], vz = o[4];
-        const float norm = std::sqrt(vx * vx + vy * vy + vz * vz);
-        const float den = norm > 1e-12f ? norm : 1e-12f;
-        const float n[3] = {vx / den, vy / den, vz / den};
-        float gn[3];
-        for (int a = 0; a < 3; ++a) {
-            const float d = n[a] - normal[3 * r + a];
-            sums.normal += std::fabs(d);
-            gn[a] = w_n * inv_hits * (float)((d > 0.f) - (d < 0.f));
-        }
-        if (norm > 1e-12f) {  // d (v / |v|) = (g - n (n . g)) / |v|
-            const float dot = gn[0] * n[0] + gn[1] * n[1] + gn[2] * n[2];
-            for (int a = 0; a < 3; ++a) g[2 + a] = (gn[a] - n[a] * dot) / norm;
-        } else {  // the clamp: v / eps, constant denominator
-            for (int a = 0; a < 3; ++a) g[2 + a] = gn[a] / 1e-12f;
-        }
+        depth_normal_rows(o, local_t[r], normal + 3 * r, w_t, w_n, inv_hits, g, sums.depth, sums.normal);
     }
 }
 
@@ -526,8 +566,7 @@ void mlp_train_t(const Grid& g, const float* rays_o, const float* rays_d, const 
                  const float* normal, float inv_hits, float w_t, float w_n, double* loss_out, float* grad_params,
                  float* points, float* dx, float* out_raw, int threads) {
     const Layers net(n_layers, dims, params, true);
-    std::vector<int64_t> g_off(n_layers + 1, 0);  // per-thread gradients: W^T (in, padded(out)) then bias (out)
-    for (int j = 0; j < n_layers; ++j) g_off[j + 1] = g_off[j] + (int64_t)dims[j] * padded(dims[j + 1]) + dims[j + 1];
+    const std::vector<int64_t> g_off = grad_offsets(dims, n_layers);
     const int64_t tiles = (b + TILE - 1) / TILE;
     const float inv_b = 1.f / (float)b;
     const int n_threads = threads < 1 ? 1 : threads;
@@ -581,19 +620,7 @@ void mlp_train_t(const Grid& g, const float* rays_o, const float* rays_d, const 
             }
         }
     }
-    // Sum the threads' gradients in thread order (deterministic) into the packed, unpadded layout of params.
-    int64_t q = 0;
-    for (int j = 0; j < n_layers; ++j) {
-        const int n_in = dims[j], n_out = dims[j + 1];
-        for (int i = 0; i <= n_in; ++i) {  // rows of W^T, then the bias as row n_in
-            for (int o = 0; o < n_out; ++o) {
-                float v = 0.f;
-                for (int t = 0; t < n_threads; ++t)
-                    if (!grads[t].empty()) v += grads[t][g_off[j] + (int64_t)i * padded(n_out) + o];
-                grad_params[q++] = v;
-            }
-        }
-    }
+    sum_thread_grads(grads, g_off, dims, n_layers, grad_params);
     LossSums total;
     for (const auto& ls : sums) { total.bce += ls.bce; total.depth += ls.depth; total.normal += ls.normal; }
     loss_out[0] = total.bce * inv_b;
@@ -683,28 +710,8 @@ inline void kmlp_loss_rows(const float* raw, int P, int m, const uint8_t* hit, c
             g_none += g_ce * d_hit_d_none;
             float sub_t = pos - (float)js;
             sub_t = sub_t < 0.f ? 0.f : (sub_t > 1.f ? 1.f : sub_t);
-            const float* oj = o + js * 5;
-            float* gj = g + js * 5;
-            const float s = 1.f / (1.f + std::exp(-oj[1]));
-            const float dt = s - sub_t;
-            sums.depth += std::fabs(dt);
-            gj[1] = w_t * inv_hits * (float)((dt > 0.f) - (dt < 0.f)) * s * (1.f - s);
-            const float vx = oj[2], vy = oj[3], vz = oj[4];
-            const float norm = std::sqrt(vx * vx + vy * vy + vz * vz);
-            const float den = norm > 1e-12f ? norm : 1e-12f;
-            const float n[3] = {vx / den, vy / den, vz / den};
-            float gn[3];
-            for (int a = 0; a < 3; ++a) {
-                const float d = n[a] - normal[3 * r + a];
-                sums.normal += std::fabs(d);
-                gn[a] = w_n * inv_hits * (float)((d > 0.f) - (d < 0.f));
-            }
-            if (norm > 1e-12f) {
-                const float dot = gn[0] * n[0] + gn[1] * n[1] + gn[2] * n[2];
-                for (int a = 0; a < 3; ++a) gj[2 + a] = (gn[a] - n[a] * dot) / norm;
-            } else {
-                for (int a = 0; a < 3; ++a) gj[2 + a] = gn[a] / 1e-12f;
-            }
+            depth_normal_rows(o + js * 5, sub_t, normal + 3 * r, w_t, w_n, inv_hits, g + js * 5, sums.depth,
+                              sums.normal);
         }
         // d log_none / d x_i = -p_i; d (-log q_js) / d x_i = -(1 - p_i) at i = js, +p_i before it, 0 after.
         for (int i = 0; i < P; ++i) {
@@ -725,8 +732,7 @@ void kmlp_train_t(const Grid& g, const float* rays_o, const float* rays_d, const
     const int P = k - 1;
     const int width = g.levels * (F > 0 ? F : g.features);
     const int64_t ldx = padded(k * width);
-    std::vector<int64_t> g_off(n_layers + 1, 0);
-    for (int j = 0; j < n_layers; ++j) g_off[j + 1] = g_off[j] + (int64_t)dims[j] * padded(dims[j + 1]) + dims[j + 1];
+    const std::vector<int64_t> g_off = grad_offsets(dims, n_layers);
     const int64_t tiles = (b + TILE - 1) / TILE;
     const float inv_b = 1.f / (float)b;
     const int n_threads = threads < 1 ? 1 : threads;
@@ -796,18 +802,7 @@ void kmlp_train_t(const Grid& g, const float* rays_o, const float* rays_d, const
                 std::memcpy(dx + (s0 + r) * (int64_t)k * width, d_x.data() + r * ldx, sizeof(float) * k * width);
         }
     }
-    int64_t q = 0;
-    for (int j = 0; j < n_layers; ++j) {
-        const int n_in = dims[j], no = dims[j + 1];
-        for (int i = 0; i <= n_in; ++i) {
-            for (int o = 0; o < no; ++o) {
-                float v = 0.f;
-                for (int t = 0; t < n_threads; ++t)
-                    if (!grads[t].empty()) v += grads[t][g_off[j] + (int64_t)i * padded(no) + o];
-                grad_params[q++] = v;
-            }
-        }
-    }
+    sum_thread_grads(grads, g_off, dims, n_layers, grad_params);
     KLossSums total;
     for (const auto& ls : sums) { total.bce += ls.bce; total.ce += ls.ce; total.depth += ls.depth; total.normal += ls.normal; }
     loss_out[0] = total.bce * inv_b;
@@ -976,45 +971,48 @@ void vqad_soft_backward(const float* probs, const float* table, const int64_t* c
 
 extern "C" {
 
-int nbvh_abi_version() { return 11; }
+int nbvh_abi_version() { return 12; }
 
-// Fused MLP inference over B segments (see mlp_segments_t): rays_o/rays_d (n_rays, 3), ray (B,) int64 ray of each
-// segment, te/tx (B,) segment ends, frac (k,) point fractions; table (L, rows, F) of table_kind 0 float32, 1 float16,
-// 2 uint8 codes (with qoffset/qscale (L, F): value = offset + code * scale; null otherwise); dims (n_layers + 1,) int32 layer widths (dims[0] = k * L * F); params packed as in mlp_segments_t.
-// out (B, dims[n_layers]) float32: the network's raw outputs.
-void nbvh_mlp_segments(const float* rays_o, const float* rays_d, const int64_t* ray, const float* te, const float* tx,
+// Fused inference over B segments of an MLP (kmlp = 0: mlp_segments_t) or a KMLP (kmlp = 1: kmlp_segments_t):
+// rays_o/rays_d (n_rays, 3), ray (B,) int64 ray of each segment, te/tx (B,) segment ends, frac (k,) point
+// fractions; table (L, rows, F) of table_kind 0 float32, 1 float16, 2 uint8 codes (with qoffset/qscale (L, F):
+// value = offset + code * scale; null otherwise); dims (n_layers + 1,) int32 layer widths (dims[0] = k L F for an
+// MLP, 2 L F for a KMLP's pair); params packed as Layers reads them. out: (B, dims[n_layers]) for an MLP,
+// (B, k - 1, dims[n_layers]) for a KMLP, float32 raw outputs.
+void nbvh_net_segments(const float* rays_o, const float* rays_d, const int64_t* ray, const float* te, const float* tx,
                        int64_t b, int k, const float* frac, const void* table, int table_kind,
                        const float* qoffset, const float* qscale, int levels,
                        int features, const float* scales, const int64_t* res, const uint8_t* dense,
-                       int64_t vertex_table, int64_t rows, const uint8_t* codes, int64_t code_rows, int n_layers,
-                       const int32_t* dims, const float* params, float* out, int threads) {
+                       int64_t vertex_table, int64_t rows, const uint8_t* codes, int64_t code_rows, int kmlp,
+                       int n_layers, const int32_t* dims, const float* params, float* out, int threads) {
     Grid g{levels, features, scales, res, dense, vertex_table, rows, codes, code_rows};
     g.qoffset = qoffset;
     g.qscale = qscale;
     g.init_masks();
     by_features(features, [&](auto F) {
         constexpr int f = decltype(F)::value;
-        if (table_kind == 2)
-            mlp_segments_t<f, uint8_t>(g, rays_o, rays_d, ray, te, tx, b, k, frac, static_cast<const uint8_t*>(table),
-                                       n_layers, dims, params, out, threads);
-        else if (table_kind == 1)
-            mlp_segments_t<f, _Float16>(g, rays_o, rays_d, ray, te, tx, b, k, frac, static_cast<const _Float16*>(table),
-                                        n_layers, dims, params, out, threads);
-        else
-            mlp_segments_t<f, float>(g, rays_o, rays_d, ray, te, tx, b, k, frac, static_cast<const float*>(table),
-                                     n_layers, dims, params, out, threads);
+        by_table(table_kind, table, [&](auto tab) {
+            using T = std::remove_const_t<std::remove_pointer_t<decltype(tab)>>;
+            if (kmlp)
+                kmlp_segments_t<f, T>(g, rays_o, rays_d, ray, te, tx, b, k, frac, tab, n_layers, dims, params, out,
+                                      threads);
+            else
+                mlp_segments_t<f, T>(g, rays_o, rays_d, ray, te, tx, b, k, frac, tab, n_layers, dims, params, out,
+                                     threads);
+        });
     });
 }
 
-// One training step of an MLP model on B labelled segments (see mlp_train_t): loss parts (bce, depth_l1, normal_l1)
-// into loss_out (3,) float64; grad_params packed like params; grad_table (L, rows, F) accumulated (zero it first).
-// hit (B,) uint8, local_t (B,), normal (B, 3);
-// hit_count = number of hit rows. Scratch: points (B * k, 3), dx (B, dims[0]). out_raw (B, 5) or null: raw outputs.
-void nbvh_mlp_train(const float* rays_o, const float* rays_d, const int64_t* ray, const float* te, const float* tx,
+// One training step on B labelled segments of an MLP (mlp_train_t; loss_out (3,) float64 = bce, depth_l1,
+// normal_l1; out_raw (B, 5)) or a KMLP (kmlp_train_t; loss_out (4,) = bce, segment_ce, depth_l1 on the sub-segment
+// scale, normal_l1; out_raw (B, k - 1, 5)); grad_params packed like params; grad_table (L, rows, F) accumulated
+// (zero it first). hit (B,) uint8, local_t (B,), normal (B, 3); hit_count = number of hit rows.
+// Scratch: points (B * k, 3), dx (B, k L F). out_raw may be null.
+void nbvh_net_train(const float* rays_o, const float* rays_d, const int64_t* ray, const float* te, const float* tx,
                     int64_t b, int k, const float* frac, const float* table, int levels, int features,
                     const float* scales, const int64_t* res, const uint8_t* dense, int64_t vertex_table, int64_t rows,
-                    const uint8_t* codes, int64_t code_rows, int n_layers, const int32_t* dims, const float* params,
-                    const uint8_t* hit, const float* local_t, const float* normal,
+                    const uint8_t* codes, int64_t code_rows, int kmlp, int n_layers, const int32_t* dims,
+                    const float* params, const uint8_t* hit, const float* local_t, const float* normal,
                     int64_t hit_count, float w_t, float w_n, double* loss_out, float* grad_params, float* grad_table,
                     float* points, float* dx, float* out_raw, int threads) {
     Grid g{levels, features, scales, res, dense, vertex_table, rows, codes, code_rows};
@@ -1022,11 +1020,16 @@ void nbvh_mlp_train(const float* rays_o, const float* rays_d, const int64_t* ray
     const float inv_hits = 1.f / (float)(hit_count > 0 ? hit_count : 1);
     by_features(features, [&](auto F) {
         constexpr int f = decltype(F)::value;
-        mlp_train_t<f>(g, rays_o, rays_d, ray, te, tx, b, k, frac, table, n_layers, dims, params, hit, local_t,
-                       normal, inv_hits, w_t, w_n, loss_out, grad_params, points, dx, out_raw, threads);
+        if (kmlp)
+            kmlp_train_t<f>(g, rays_o, rays_d, ray, te, tx, b, k, frac, table, n_layers, dims, params, hit, local_t,
+                            normal, inv_hits, w_t, w_n, loss_out, grad_params, points, dx, out_raw, threads);
+        else
+            mlp_train_t<f>(g, rays_o, rays_d, ray, te, tx, b, k, frac, table, n_layers, dims, params, hit, local_t,
+                           normal, inv_hits, w_t, w_n, loss_out, grad_params, points, dx, out_raw, threads);
         encode_backward_t<f>(g, points, b * k, dx, grad_table, threads);
     });
 }
+
 
 // Inference with a float16 copy of the table (same arguments as nbvh_encode_forward; table is (L, rows, F) half).
 void nbvh_encode_forward_f16(const float* points, int64_t n, const void* table, float* out, int levels, int features,
@@ -1036,52 +1039,6 @@ void nbvh_encode_forward_f16(const float* points, int64_t n, const void* table, 
     g.init_masks();
     const _Float16* t = static_cast<const _Float16*>(table);
     by_features(features, [&](auto F) { encode_forward_t<decltype(F)::value, _Float16>(g, points, n, t, out, threads); });
-}
-
-// Fused KMLP inference (see kmlp_segments_t): arguments as nbvh_mlp_segments, dims[0] = 2 * L * F (a pair);
-// out (B, k - 1, dims[n_layers]) float32: the pair network's raw outputs.
-void nbvh_kmlp_segments(const float* rays_o, const float* rays_d, const int64_t* ray, const float* te, const float* tx,
-                        int64_t b, int k, const float* frac, const void* table, int table_kind,
-                        const float* qoffset, const float* qscale, int levels,
-                        int features, const float* scales, const int64_t* res, const uint8_t* dense,
-                        int64_t vertex_table, int64_t rows, const uint8_t* codes, int64_t code_rows, int n_layers,
-                        const int32_t* dims, const float* params, float* out, int threads) {
-    Grid g{levels, features, scales, res, dense, vertex_table, rows, codes, code_rows};
-    g.qoffset = qoffset;
-    g.qscale = qscale;
-    g.init_masks();
-    by_features(features, [&](auto F) {
-        constexpr int f = decltype(F)::value;
-        if (table_kind == 2)
-            kmlp_segments_t<f, uint8_t>(g, rays_o, rays_d, ray, te, tx, b, k, frac, static_cast<const uint8_t*>(table),
-                                        n_layers, dims, params, out, threads);
-        else if (table_kind == 1)
-            kmlp_segments_t<f, _Float16>(g, rays_o, rays_d, ray, te, tx, b, k, frac,
-                                         static_cast<const _Float16*>(table), n_layers, dims, params, out, threads);
-        else
-            kmlp_segments_t<f, float>(g, rays_o, rays_d, ray, te, tx, b, k, frac, static_cast<const float*>(table),
-                                      n_layers, dims, params, out, threads);
-    });
-}
-
-// One training step of a KMLP model (see kmlp_train_t): arguments as nbvh_mlp_train; loss_out (4,) float64 =
-// (bce, segment_ce, depth_l1 on the sub-segment scale, normal_l1); out_raw (B, k - 1, 5) or null.
-void nbvh_kmlp_train(const float* rays_o, const float* rays_d, const int64_t* ray, const float* te, const float* tx,
-                     int64_t b, int k, const float* frac, const float* table, int levels, int features,
-                     const float* scales, const int64_t* res, const uint8_t* dense, int64_t vertex_table, int64_t rows,
-                     const uint8_t* codes, int64_t code_rows, int n_layers, const int32_t* dims, const float* params,
-                     const uint8_t* hit, const float* local_t, const float* normal,
-                     int64_t hit_count, float w_t, float w_n, double* loss_out, float* grad_params, float* grad_table,
-                     float* points, float* dx, float* out_raw, int threads) {
-    Grid g{levels, features, scales, res, dense, vertex_table, rows, codes, code_rows};
-    g.init_masks();
-    const float inv_hits = 1.f / (float)(hit_count > 0 ? hit_count : 1);
-    by_features(features, [&](auto F) {
-        constexpr int f = decltype(F)::value;
-        kmlp_train_t<f>(g, rays_o, rays_d, ray, te, tx, b, k, frac, table, n_layers, dims, params, hit, local_t,
-                        normal, inv_hits, w_t, w_n, loss_out, grad_params, points, dx, out_raw, threads);
-        encode_backward_t<f>(g, points, b * k, dx, grad_table, threads);
-    });
 }
 
 // HashVQAD soft row table (see vqad_soft_forward): logits (L, H, t), table (L, T, F), cand (T, t) int64 rows;
