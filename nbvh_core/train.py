@@ -480,6 +480,7 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
                     events({"event": "phase", "phase": phase, "message": f"target reached at step {step} "
                                                                          f"({elapsed:.0f} s): training stops"})
                     break
+            if should_cancel():
                 save_checkpoint(step, elapsed)
                 raise Cancelled(f"cancelled at step {step}")
             if is_vqad and cfg.freeze and not model.encoding.frozen and frac >= 1.0 - cfg.finetune_fraction:

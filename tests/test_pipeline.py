@@ -81,6 +81,18 @@ def test_training_stops_once_the_target_is_met(sample_meshes):
     res = compress_mesh(sample_meshes["blob"], s)
     assert res.training.stopped_early and res.training.seconds < 60
     assert res.target_met and "the target being met" in res.why
+    # A target not met keeps training through every check, to the end of the budget.
+    from nbvh_core.bvh import build_bvh
+    from nbvh_core.exact import ExactTracer
+    from nbvh_core.model import NeuralBVH
+    from nbvh_core.train import train
+
+    s = preset("tiny").with_overrides(encoding="hashgrid", network="mlp", steps=300, target_check_every_s=0.02)
+    bvh = build_bvh(sample_meshes["blob"], 63)
+    checks = []
+    tr = train(NeuralBVH(bvh.nodes, s.model_config()), bvh, ExactTracer(sample_meshes["blob"]), s.train_config(),
+               target_reached=lambda m: checks.append(1) or False)
+    assert len(checks) >= 3 and not tr.stopped_early and tr.steps == 300
     # Without a target the budget is used in full.
     res = compress_mesh(sample_meshes["blob"], preset("tiny").with_overrides(force=True, steps=60),
                         evaluate_quality=False)
