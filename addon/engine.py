@@ -15,7 +15,7 @@ import bpy
 import numpy as np
 
 from . import export, previews, report
-from .job import JobQueue, default_python
+from .job import JobQueue, checkpoint_for, default_python
 
 #: Named quality targets (image MSE of the paper's metric) the panel offers besides the presets.
 QUALITY_TARGETS = {"preview": 0.02, "standard": 0.01, "high": 0.005}
@@ -64,7 +64,7 @@ def safe_name(name: str) -> str:
 
 def checkpoint_path(out_dir: str | Path, obj_name: str) -> Path | None:
     """The checkpoint a job that died while training `obj_name` left in out_dir, or None."""
-    p = Path(out_dir) / f".{safe_name(obj_name)}.nbvh.checkpoint"
+    p = checkpoint_for(Path(out_dir) / f"{safe_name(obj_name)}.nbvh")
     return p if p.exists() else None
 
 

@@ -9,7 +9,7 @@ A job is finished only when its process exited 0 *and* sent a `result` event; an
 crash, non-zero exit, cancel) is a failure with a message, and its temporary folder is removed. The job process
 writes its results as one unit at its very end, so a failed, cancelled or killed re-run never touches the object's
 previous result: cleanup removes only that process's own partial files and lock, never a finished output. A job
-that dies in training leaves its checkpoint (`resume_checkpoint`), which a new job can continue.
+that dies in training leaves its checkpoint (`checkpoint_for(model)`), which a new job can continue.
 """
 from __future__ import annotations
 
@@ -32,9 +32,11 @@ CORE_PARENT = _HERE if (_HERE / "nbvh_core").is_dir() else _HERE.parent
 
 
 try:  # the installed add-on carries nbvh_core inside it; in the repository it sits beside addon/
-    from .nbvh_core.events import parse_line as parse_event  # no torch: events.py is plain Python
+    from .nbvh_core.events import parse_line as parse_event  # no torch: events.py and outputs.py are plain Python
+    from .nbvh_core.outputs import checkpoint_for, lock_for  # noqa: F401  (checkpoint_for: for engine.py)
 except ImportError:
     from nbvh_core.events import parse_line as parse_event
+    from nbvh_core.outputs import checkpoint_for, lock_for  # noqa: F401
 
 
 def core_env() -> dict:
@@ -203,18 +205,12 @@ class Job:
         out_dir = Path(self.request.get("out_dir", ""))
         for p in out_dir.glob(f".{self.name}.*.partial-{pid}"):
             p.unlink(missing_ok=True)
-        lock = out_dir / f".{self.name}.nbvh.lock"
+        lock = lock_for(out_dir / f"{self.name}.nbvh")
         try:
             if lock.read_text().strip() == str(pid):
                 lock.unlink()
         except OSError:
             pass
-
-    @property
-    def resume_checkpoint(self) -> str | None:
-        """The checkpoint a failed training left (continue it with a request {"resume": path}), or None."""
-        p = Path(self.request.get("out_dir", "")) / f".{self.name}.nbvh.checkpoint"
-        return str(p) if self.state in ("failed", "cancelled") and p.exists() else None
 
     @property
     def fraction(self) -> float:

@@ -10,7 +10,6 @@ rows already there. `bench/results/pays.md` is rewritten from the CSV after ever
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import sys
 import time
@@ -22,6 +21,7 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 import numpy as np  # noqa: E402
 
+from bench_quality import append_row, read_rows  # noqa: E402
 from nbvh_core import kernels  # noqa: E402
 from nbvh_core.exact import ExactTracer  # noqa: E402
 from nbvh_core.metrics import evaluate_renderer  # noqa: E402
@@ -73,13 +73,6 @@ def equal_mse_decimation(mesh, tracer, target: float, views: int, res: int) -> d
         else:
             lo = mid
     return {"triangles": best[1], "resident": best[2], "draco": best[3], "mse": best[0]}
-
-
-def read_rows(path: Path) -> list[dict]:
-    if not path.exists():
-        return []
-    with open(path) as f:
-        return list(csv.DictReader(f))
 
 
 def write_md(rows: list[dict]) -> None:
@@ -152,12 +145,7 @@ def main() -> None:
                        "draco11_bytes": res.assessment.get("alternatives", {}).get("draco11_bytes"),
                        "equal_mse_decimation_draco11_bytes": dec.get("draco"),
                        "compute_path": res.training.compute_path, "created": time.strftime("%Y-%m-%dT%H:%M:%S")}
-                new = not path.exists()
-                with open(path, "a", newline="") as f:
-                    w = csv.DictWriter(f, fieldnames=FIELDS)
-                    if new:
-                        w.writeheader()
-                    w.writerow(row)
+                append_row(path, {k: row[k] for k in FIELDS})
                 print(json.dumps(row), flush=True)
                 write_md(read_rows(path))
 

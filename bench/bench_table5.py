@@ -12,7 +12,6 @@ default storage (8-bit tables and boxes, float16 weights; `estimate_file_bytes`)
 from __future__ import annotations
 
 import argparse
-import csv
 import sys
 import time
 from pathlib import Path
@@ -21,6 +20,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "bench")]
 
 from bench_meshes import bench_mesh  # noqa: E402
+from bench_quality import append_row, read_rows  # noqa: E402
 from nbvh_core import kernels  # noqa: E402
 from nbvh_core.pipeline import compress_mesh, estimate_file_bytes, preset  # noqa: E402
 
@@ -28,10 +28,6 @@ RESULTS = ROOT / "bench" / "results"
 PLAN = [("base", 11), ("I", 9), ("I", 10), ("II", 9), ("II", 10), ("III", 8), ("III", 9)]
 FIELDS = ["mesh", "method", "log2_table", "steps", "train_s", "mse", "iou", "file_bytes_float32",
           "file_bytes_default_storage", "created"]
-
-
-def rows_of(path: Path) -> list[dict]:
-    return list(csv.DictReader(open(path))) if path.exists() else []
 
 
 def bytes_to_reach(points: list[tuple[int, float]], target: float) -> float | None:
@@ -85,7 +81,7 @@ def main() -> None:
     args = ap.parse_args()
     kernels.keep_freed_memory()
     path = RESULTS / "table5.csv"
-    done = {(r["mesh"], r["method"], r["log2_table"]) for r in rows_of(path)}
+    done = {(r["mesh"], r["method"], r["log2_table"]) for r in read_rows(path)}
     for mesh_name in args.meshes:
         mesh = None
         for method, log2 in PLAN:
@@ -103,14 +99,9 @@ def main() -> None:
                    "file_bytes_default_storage": estimate_file_bytes(s.with_overrides(table_bits=8, network_bits=16,
                                                                                       node_bits=8)),
                    "created": time.strftime("%Y-%m-%dT%H:%M:%S")}
-            new = not path.exists()
-            with open(path, "a", newline="") as f:
-                w = csv.DictWriter(f, fieldnames=FIELDS)
-                if new:
-                    w.writeheader()
-                w.writerow(row)
+            append_row(path, {k: row[k] for k in FIELDS})
             print(row, f"({time.perf_counter() - t:.0f} s)", flush=True)
-            write_md(rows_of(path), args.steps)
+            write_md(read_rows(path), args.steps)
 
 
 if __name__ == "__main__":

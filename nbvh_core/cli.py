@@ -167,6 +167,7 @@ def cmd_compress(args: argparse.Namespace) -> int:
 
 
 def _compress_locked(args, mesh, mesh_path, out, stem, outputs, sink, staged) -> int:
+    from .outputs import checkpoint_for
     from .pipeline import compress_mesh, preset, resume_settings
     from .render import orbit_cameras, render_neural, render_reference, save_png
     from .sizing import QUALITY_LEVELS
@@ -187,7 +188,7 @@ def _compress_locked(args, mesh, mesh_path, out, stem, outputs, sink, staged) ->
         if args.steps is not None and args.time_limit is None:
             settings.time_limit_s = None
     settings = settings.with_overrides(force=True if args.force else None, checkpoint_every_s=args.checkpoint_every)
-    default_ck = out.with_name(f".{out.name}.checkpoint")
+    default_ck = checkpoint_for(out)
     checkpoint = Path(args.checkpoint) if args.checkpoint else default_ck
     try:
         result = compress_mesh(mesh, settings, None, events=sink, should_cancel=_install_cancel_handlers(),

@@ -173,11 +173,14 @@ def encode_nbvh(model: NeuralBVH, metadata: dict | None = None, storage: Storage
 def component_bytes(data: bytes) -> dict[str, int]:
     """Bytes of the file by component: header, bvh, features, [index], network, padding, checksum (sums to
     the file size)."""
-    header = _parse(data, "<bytes>")
+    return _components(_parse(data, "<bytes>"), len(data))
+
+
+def _components(header: dict, total: int) -> dict[str, int]:
     comps: dict[str, int] = {"header": _PREFIX.size + header["_header_len"]}
     for t in header["tensors"]:
         comps[t["component"]] = comps.get(t["component"], 0) + t["nbytes"]
-    comps["padding"] = len(data) - 4 - sum(comps.values())
+    comps["padding"] = total - 4 - sum(comps.values())
     comps["checksum"] = 4
     return comps
 
@@ -422,7 +425,11 @@ def _finite(arr: np.ndarray, what: str, where: str) -> np.ndarray:
 # ------------------------------------------------------------------------------------------------ reading
 def decode_nbvh(data: bytes, where: str = "<bytes>", device: str | torch.device = "cpu") -> NeuralBVH:
     """Build the model stored in `data` (inference-ready: HashVQAD frozen, 8-bit tables kept as codes)."""
-    header = _parse(data, where)
+    return _decode(data, _parse(data, where), where, device)
+
+
+def _decode(data: bytes, header: dict, where: str, device: str | torch.device = "cpu") -> NeuralBVH:
+    """`decode_nbvh` for a header `_parse` has already checked."""
     cfg, storage, expected = header["_config"], header["_storage"], header["_expected"]
     start = header["_payload_start"]
 
@@ -517,6 +524,6 @@ def read_info(path: str | os.PathLike) -> FileInfo:
     `info` accepts is one `render` can load)."""
     path = Path(path)
     data = _read(path)
-    decode_nbvh(data, str(path))
     header = _parse(data, str(path))
-    return FileInfo(path=str(path), total_bytes=len(data), components=component_bytes(data), header=header)
+    _decode(data, header, str(path))
+    return FileInfo(path=str(path), total_bytes=len(data), components=_components(header, len(data)), header=header)

@@ -16,7 +16,7 @@ cancelled or killed re-run leaves the previous result of the object exactly as i
   NAME.reference.png   the mesh from the same camera (Embree), for the side-by-side report
   NAME.points.npy      (P, 6) float32 proxy points and normals from the model's own ray hits, object-local
   NAME.report.json     sizes by component, the mesh's resident bytes, quality, training, settings
-Training writes `.NAME.nbvh.checkpoint` in out_dir every 60 s; a request with "resume": PATH continues it (the
+Training writes `.NAME.nbvh.checkpoint` in out_dir every 60 s (`outputs.checkpoint_for`); a request with "resume": PATH continues it (the
 add-on offers this after a crash). "force": true trains even when the verdict is "not worth compressing"
 (otherwise the job ends in seconds with a `verdict` event and an `error` event of kind "not_worth", exit 4).
 Events are JSON lines on stdout (see `events.py`); errors end with an `error` event and exit code != 0.
@@ -138,6 +138,7 @@ def run_job(request: dict, events, should_cancel) -> dict:
 
 def _run_locked(request, events, should_cancel, mesh, settings, scene_split, files, out_dir, name, staged) -> dict:
     from .exact import ExactTracer
+    from .outputs import checkpoint_for
     from .pipeline import compress_mesh
     from .render import Camera, orbit_cameras, render_neural, render_reference
     from .sizing import mesh_resident_bytes
@@ -152,9 +153,8 @@ def _run_locked(request, events, should_cancel, mesh, settings, scene_split, fil
         info = read_info(request["model"])
         result = _LoadedResult(model, info, str(request["model"]))
     else:
-        checkpoint = out_dir / f".{name}.nbvh.checkpoint"
         result = compress_mesh(mesh, settings, None, events=events, should_cancel=should_cancel,
-                               checkpoint_path=checkpoint, resume_from=request.get("resume"))
+                               checkpoint_path=checkpoint_for(model_path), resume_from=request.get("resume"))
         model = result.model
         staged.stage(model_path, result.data)
     cam_spec = request.get("camera")
@@ -191,7 +191,7 @@ def _run_locked(request, events, should_cancel, mesh, settings, scene_split, fil
         raise Cancelled("cancelled before the results were written")
     staged.commit()  # everything appears together (or the previous result stays)
     if not request.get("model"):
-        (out_dir / f".{name}.nbvh.checkpoint").unlink(missing_ok=True)
+        checkpoint_for(model_path).unlink(missing_ok=True)
     event = {"event": "result", "name": name, "path": str(model_path), "bytes": result.file_bytes,
              "files": files, "quality": report["quality"], "train_seconds": round(float(result.training.seconds), 2),
              "device": result.training.device}

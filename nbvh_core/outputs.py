@@ -30,6 +30,19 @@ def resolve_output(arg: str | os.PathLike, default_stem: str, suffix: str = ".nb
     return path
 
 
+def checkpoint_for(model: str | os.PathLike) -> Path:
+    """Where training toward `model` keeps its checkpoint by default: `.NAME.nbvh.checkpoint` beside it (the CLI,
+    the job worker and the add-on's Resume button all look there)."""
+    model = Path(model)
+    return model.with_name(f".{model.name}.checkpoint")
+
+
+def lock_for(model: str | os.PathLike) -> Path:
+    """The lock file of a run writing `model` (see OutputLock)."""
+    model = Path(model)
+    return model.with_name(f".{model.name}.lock")
+
+
 def _same_file(a: Path, b: Path) -> bool:
     try:
         if a.exists() and b.exists():
@@ -76,7 +89,7 @@ class OutputLock:
     """`with OutputLock(model_path):` - at most one run writes this output at a time (see module docstring)."""
 
     def __init__(self, target: Path):
-        self.path = target.with_name(f".{target.name}.lock")
+        self.path = lock_for(target)
         self.held = False
 
     def acquire(self) -> None:
