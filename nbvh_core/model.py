@@ -17,7 +17,7 @@ from .bvh import NODE_DTYPE
 from .encodings import EncodingConfig, make_encoding
 from .mesh import Transform
 from .networks import NetworkConfig, make_network
-from .quantize import StorageConfig
+from .quantize import StorageConfig, stored_node_bytes
 from .traversal import LeafStream, TorchBVH
 
 
@@ -162,8 +162,7 @@ class NeuralBVH(nn.Module):
         """Bytes of the stored tensors by component (no header) at `storage` (default float32 everywhere): bvh,
         features, [index], network."""
         st = storage or StorageConfig.float32()
-        m = len(self.nodes)
-        out = {"bvh": m * NODE_DTYPE.itemsize if st.node_bits == 32 else 24 + m * 10}
+        out = {"bvh": stored_node_bytes(len(self.nodes), st.node_bits)}
         out.update(self.encoding.stored_bytes(st.table_bits))
         out["network"] = sum(p.numel() for p in self.network.parameters()) * st.network_bits // 8
         return out

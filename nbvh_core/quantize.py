@@ -139,6 +139,12 @@ def decode_nodes(root: np.ndarray, boxes: np.ndarray, left: np.ndarray, leaf: np
     return nodes
 
 
+def stored_node_bytes(n_nodes: int, node_bits: int) -> int:
+    """Bytes a file spends on n_nodes BVH nodes: 32 each as float32 records, else the exact root (6 float32) and
+    per node 6 uint8 box codes + uint16 link + uint16 leaf ordinal (`encode_nodes`)."""
+    return n_nodes * NODE_DTYPE.itemsize if node_bits == 32 else 6 * 4 + n_nodes * (6 + 2 + 2)
+
+
 def snap_nodes(nodes: np.ndarray) -> np.ndarray:
     """The boxes a quantized file stores (each contains its exact box), or `nodes` when they cannot be quantized."""
     enc = encode_nodes(nodes)
