@@ -27,9 +27,15 @@ if str(HERE) not in sys.path:
 
 
 def engine_quality_levels() -> dict:
-    from addon.engine import QUALITY_TARGETS
+    from nbvh_core.quality_levels import QUALITY_LEVELS  # plain Python: no torch in Blender's process
 
-    return QUALITY_TARGETS
+    return QUALITY_LEVELS
+
+
+def describe_levels() -> str:
+    from nbvh_core.quality_levels import describe
+
+    return describe()
 
 
 def parse(argv: list[str]) -> argparse.Namespace:
@@ -42,7 +48,7 @@ def parse(argv: list[str]) -> argparse.Namespace:
     size.add_argument("--budget-kb", type=float)
     size.add_argument("--target-mse", type=float)
     size.add_argument("--quality", choices=list(engine_quality_levels()),
-                      help="named target: preview = MSE 0.02, standard = 0.01, high = 0.005")
+                      help=f"named target: {describe_levels()}")
     ap.add_argument("--time-limit", type=float, help="training seconds per object")
     ap.add_argument("--steps", type=int, help="training steps per object (tests)")
     ap.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"])
@@ -68,7 +74,7 @@ def run(argv: list[str]) -> int:
     objects = [bpy.data.objects[n] for n in args.objects]
     overrides = {"device": args.device, "time_limit_s": args.time_limit, "steps": args.steps,
                  "budget_kb": args.budget_kb, "force": True if args.force else None,
-                 "target_mse": engine.QUALITY_TARGETS[args.quality] if args.quality else args.target_mse}
+                 "target_mse": engine.QUALITY_LEVELS[args.quality] if args.quality else args.target_mse}
     if args.steps is not None and args.time_limit is None:
         overrides["time_limit_s"] = 0  # steps only (0 = no wall-clock limit, see job)
     overrides = {k: v for k, v in overrides.items() if v is not None}

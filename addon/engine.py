@@ -15,10 +15,7 @@ import bpy
 import numpy as np
 
 from . import export, previews, report
-from .job import JobQueue, checkpoint_for, default_python
-
-#: Named quality targets (image MSE of the paper's metric) the panel offers besides the presets.
-QUALITY_TARGETS = {"preview": 0.02, "standard": 0.01, "high": 0.005}
+from .job import QUALITY_LEVELS, JobQueue, checkpoint_for, default_python  # noqa: F401  (QUALITY_LEVELS: for callers)
 
 
 @dataclass

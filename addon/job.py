@@ -32,11 +32,13 @@ CORE_PARENT = _HERE if (_HERE / "nbvh_core").is_dir() else _HERE.parent
 
 
 try:  # the installed add-on carries nbvh_core inside it; in the repository it sits beside addon/
-    from .nbvh_core.events import parse_line as parse_event  # no torch: events.py and outputs.py are plain Python
+    from .nbvh_core.events import parse_line as parse_event  # no torch: these modules are plain Python
     from .nbvh_core.outputs import checkpoint_for, lock_for  # noqa: F401  (checkpoint_for: for engine.py)
+    from .nbvh_core.quality_levels import QUALITY_LEVELS  # noqa: F401  (for engine.py and the panel)
 except ImportError:
     from nbvh_core.events import parse_line as parse_event
     from nbvh_core.outputs import checkpoint_for, lock_for  # noqa: F401
+    from nbvh_core.quality_levels import QUALITY_LEVELS  # noqa: F401
 
 
 def core_env() -> dict:
@@ -80,7 +82,7 @@ def default_python(candidates: list[str] | None = None) -> str:
 def install_dependencies(venv_dir: str | Path, base_python: str | None = None) -> tuple[bool, str]:
     """Create a virtual environment at `venv_dir` with nbvh_core's pinned dependencies (torch 2.13.0 CPU).
 
-    Returns (ok, report). Blocking: the operator runs it in a background job of its own.
+    Returns (ok, report). Blocking: the operator calls it directly, so Blender waits until pip is done.
     """
     venv_dir = Path(venv_dir)
     base = base_python or shutil.which("python3") or sys.executable

@@ -32,7 +32,7 @@ def request_from_props(props) -> engine.Request:
         overrides["force"] = True
     preset = props.preset
     if props.mode == "TARGET":
-        overrides["target_mse"] = engine.QUALITY_TARGETS[props.target.lower()]
+        overrides["target_mse"] = engine.QUALITY_LEVELS[props.target.lower()]
     elif props.mode == "BUDGET":
         overrides["budget_kb"] = float(props.budget_kb)
     return engine.Request(preset=preset, overrides=overrides, out_dir=props.output_dir)

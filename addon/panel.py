@@ -30,8 +30,8 @@ class NBVH_Props(bpy.types.PropertyGroup):
         ("BUDGET", "Byte budget", "The best model that fits a size")], default="PRESET")
     preset: bpy.props.EnumProperty(name="Preset", items=PRESET_ITEMS, default="default")
     target: bpy.props.EnumProperty(name="Quality", items=[
-        ("PREVIEW", "Preview", "image MSE <= 0.02"), ("STANDARD", "Standard", "image MSE <= 0.01"),
-        ("HIGH", "High", "image MSE <= 0.005")], default="STANDARD")
+        (name.upper(), name.title(), f"image MSE <= {mse:g}") for name, mse in engine.QUALITY_LEVELS.items()],
+        default="STANDARD")
     budget_kb: bpy.props.IntProperty(name="Budget (KB)", default=400, min=16, max=100000)
     time_limit: bpy.props.IntProperty(name="Time limit (s)", default=180, min=5, max=24 * 3600)
     device: bpy.props.EnumProperty(name="Device", items=[("AUTO", "Auto", "CUDA when available"),

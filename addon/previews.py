@@ -29,20 +29,6 @@ def load_image(path: str, name: str):
     return img
 
 
-def image_from_array(name: str, pixels: np.ndarray):
-    """Float image from (H, W) or (H, W, 3|4) values in [0, 1], rows top-down (numpy) -> bottom-up (Blender)."""
-    h, w = pixels.shape[:2]
-    rgba = np.ones((h, w, 4), np.float32)
-    if pixels.ndim == 2:
-        rgba[..., :3] = pixels[..., None]
-    else:
-        rgba[..., :pixels.shape[2]] = pixels
-    img = bpy.data.images.new(name, w, h, alpha=True, float_buffer=True)
-    img.pixels.foreach_set(np.ascontiguousarray(rgba[::-1]).ravel())
-    img.pack()
-    return img
-
-
 def _collection_for(obj, scene):
     name = f"{COLLECTION_PREFIX}{obj.name}"
     coll = bpy.data.collections.get(name)

@@ -51,7 +51,7 @@ def main() -> None:
         cfg.anneal_fraction, cfg.freeze, cfg.qat_bits = 0.0, False, None  # the soft phase throughout
         tr = train(model, bvh, tracer, cfg)
         model.eval()
-        if hasattr(model.encoding, "freeze"):
+        if model.encoding.learned_index:
             model.encoding.freeze()
         cam = orbit_cameras(1)[0]
         render_neural(model, cam, 64, 64)  # warm-up

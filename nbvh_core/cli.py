@@ -35,20 +35,16 @@ def _resolve_mesh(arg: str) -> Path:
 def cmd_inspect(args: argparse.Namespace) -> int:
     import torch
 
-    from .bvh import build_full_tree, cut_tree, resident_bvh_nodes
+    from .bvh import build_full_tree, cut_tree
     from .exact import ExactTracer
-    from .mesh import load_mesh
     from .render import Camera, render_reference, save_png
     from .samples import generate_training_samples
+    from .sizing import mesh_resident_bytes
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        mesh = load_mesh(_resolve_mesh(args.mesh))
-    for w in caught:
-        print(f"warning: {w.message}", file=sys.stderr)
+    mesh = _load_mesh_reporting(args.mesh)
     t_load = time.perf_counter() - t0
     print(f"{mesh.name}: {mesh.n_vertices} vertices, {mesh.n_triangles} triangles (loaded in {t_load:.2f} s)")
 
@@ -82,10 +78,6 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     colour[fh.hit] = palette[bvh.tri_leaf[fh.tri[fh.hit]]] * (0.3 + 0.7 * ref.image.reshape(-1)[fh.hit, None])
     save_png(out / "leaves.png", colour.reshape(args.size, args.size, 3))
 
-    vertex_bytes = mesh.n_vertices * 12
-    index_bytes = mesh.n_triangles * 12
-    normal_bytes = mesh.n_vertices * 12
-    resident_nodes = resident_bvh_nodes(tree, 4)
     report = {
         "mesh": {"name": mesh.name, "vertices": mesh.n_vertices, "triangles": mesh.n_triangles,
                  "repairs": list(mesh.repairs), "transform": mesh.transform.to_dict(),
@@ -94,10 +86,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
                 "max_depth": bvh.max_depth, "build_seconds": round(t_bvh, 3),
                 "triangles_per_leaf": {"min": int(bvh.leaf_tri_count.min()), "max": int(bvh.leaf_tri_count.max()),
                                        "mean": round(float(bvh.leaf_tri_count.mean()), 2)}},
-        "resident_mesh_bytes": {"vertices_f32": vertex_bytes, "indices_i32": index_bytes,
-                                "normals_f32": normal_bytes, "bvh_nodes_leaf4": resident_nodes,
-                                "bvh_bytes_leaf4": resident_nodes * 32,
-                                "total": vertex_bytes + index_bytes + normal_bytes + resident_nodes * 32},
+        "resident_mesh_bytes": mesh_resident_bytes(mesh, tree),
         "training_samples": sample_stats,
         "exact_backend": tracer.backend,
         "torch": torch.__version__,
@@ -122,30 +111,13 @@ def _fmt_bytes(n: int) -> str:
     return f"{n / 1024:,.1f} KB" if n < 1024 ** 2 else f"{n / 1024 ** 2:,.2f} MB"
 
 
-def _install_cancel_handlers():
-    """SIGINT/SIGTERM set a flag the training loop polls (clean cancel, nothing half-written)."""
-    import signal
-    import threading
-
-    flag = threading.Event()
-
-    def handler(signum, frame):
-        flag.set()
-
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        try:
-            signal.signal(sig, handler)
-        except ValueError:  # not the main thread
-            pass
-    return flag.is_set
-
-
 def cmd_compress(args: argparse.Namespace) -> int:
     """Train, then write the model, its JSON report and its preview as one unit (outputs.OutputSet): checked before
     training (never over the input, never over a finished result without --overwrite, writable), one run per
     output (outputs.OutputLock), checkpoints every --checkpoint-every seconds (resume with --resume)."""
     from .events import json_lines, progress_bar
     from .outputs import OutputLock, OutputSet, check_outputs, resolve_output
+    from .process import outcome
 
     sink = json_lines(sys.stdout) if args.events else progress_bar(sys.stderr)
     try:
@@ -160,17 +132,17 @@ def cmd_compress(args: argparse.Namespace) -> int:
             return _compress_locked(args, mesh, mesh_path, out, stem, outputs, sink, OutputSet())
     except BaseException as exc:  # the event stream says how the run ended, whatever ended it
         if args.events:
-            kind = {"Cancelled": "cancelled", "TrainingDiverged": "diverged", "KeyboardInterrupt": "cancelled",
-                    "NotWorthCompressing": "not_worth"}.get(type(exc).__name__, "input")
-            sink({"event": "error", "kind": kind, "message": str(exc)})
+            sink({"event": "error", "kind": outcome(exc).kind, "message": str(exc)})
         raise
 
 
 def _compress_locked(args, mesh, mesh_path, out, stem, outputs, sink, staged) -> int:
     from .outputs import checkpoint_for
-    from .pipeline import compress_mesh, preset, resume_settings
+    from .pipeline import compress_mesh, resume_settings
+    from .process import NotWorthCompressing, install_cancel_handlers
+    from .settings import preset
     from .render import orbit_cameras, render_neural, render_reference, save_png
-    from .sizing import QUALITY_LEVELS
+    from .quality_levels import QUALITY_LEVELS
 
     if args.resume:
         settings = resume_settings(args.resume, mesh)
@@ -191,10 +163,10 @@ def _compress_locked(args, mesh, mesh_path, out, stem, outputs, sink, staged) ->
     default_ck = checkpoint_for(out)
     checkpoint = Path(args.checkpoint) if args.checkpoint else default_ck
     try:
-        result = compress_mesh(mesh, settings, None, events=sink, should_cancel=_install_cancel_handlers(),
+        result = compress_mesh(mesh, settings, None, events=sink, should_cancel=install_cancel_handlers(),
                                checkpoint_path=checkpoint, resume_from=args.resume)
     except BaseException as exc:
-        if checkpoint.exists() and type(exc).__name__ != "NotWorthCompressing":
+        if checkpoint.exists() and not isinstance(exc, NotWorthCompressing):
             print(f"\ntraining state kept in {checkpoint}: continue with "
                   f"`nbvh compress {args.mesh} -o {out} --resume {checkpoint}`", file=sys.stderr)
         raise
@@ -331,26 +303,18 @@ def cmd_samples(args: argparse.Namespace) -> int:
 
 
 def cmd_plan(args: argparse.Namespace) -> int:
-    """Share one byte budget among several meshes by need (sizing.split_scene) and print the split."""
-    from .pipeline import estimate_file_bytes, preset
-    from .sizing import load_fit, split_scene
+    """Share one byte budget among several meshes by need (sizing.plan_scene) and print the split."""
+    from .settings import preset
+    from .sizing import plan_scene
 
-    fit = load_fit()
-    if fit is None:
-        raise ValueError("no size predictor (nbvh_core/sizing_fit.json); run bench/fit_sizing.py")
     meshes = [_load_mesh_reporting(m) for m in args.meshes]
-    weights = args.weights or [1.0] * len(meshes)
-    if len(weights) != len(meshes):
-        raise ValueError(f"{len(weights)} weights for {len(meshes)} meshes")
-    base = preset(fit.method)
-    plan = split_scene(meshes, args.budget_kb * 1024, fit,
-                       lambda i, l2: estimate_file_bytes(base.with_overrides(log2_table=l2)), weights)
-    rows = [{"mesh": m.name, "triangles": m.n_triangles, "weight": w, "log2_table": l2, "bytes": b,
-             "predicted_mse": None if p is None else round(p, 6), "excluded": i in plan["excluded"]}
-            for i, (m, w, l2, b, p) in enumerate(zip(meshes, weights, plan["log2"], plan["bytes"],
-                                                     plan["predicted_mse"]))]
+    plan = plan_scene(meshes, args.budget_kb * 1024, preset(args.preset), args.weights)
+    rows = [{"mesh": r["name"], **{k: v for k, v in r.items() if k != "name"}} for r in plan["objects"]]
+    for r in rows:
+        r["predicted_mse"] = None if r["predicted_mse"] is None else round(r["predicted_mse"], 6)
     if args.json:
-        print(json.dumps({**{k: v for k, v in plan.items() if k != "features"}, "objects": rows}, indent=2))
+        skip = ("features", "objects", "base")
+        print(json.dumps({**{k: v for k, v in plan.items() if k not in skip}, "objects": rows}, indent=2))
         return 0
     level = "-" if plan["level"] is None else f"{plan['level']:.4g}"
     print(f"budget {args.budget_kb:g} KB shared by need: common quality level MSE {level} "
@@ -365,12 +329,7 @@ def cmd_plan(args: argparse.Namespace) -> int:
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="nbvh", description="Neural BVH geometry compression")
-    p.add_argument("--path", choices=["fast", "reference"],
-                   help="compute path: fused C++ kernels (fast, default) or pure torch (reference); "
-                        "also env NBVH_PATH")
-    sub = p.add_subparsers(dest="command", required=True)
+def _add_inspect_parser(sub) -> None:
     q = sub.add_parser("inspect", help="BVH + training rays of a mesh: report and images")
     q.add_argument("mesh", help="mesh file (OBJ/PLY/STL/OFF/GLB/glTF, optionally .gz) or a bundled sample name")
     q.add_argument("--out", required=True, help="output folder")
@@ -379,7 +338,12 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--seed", type=int, default=0)
     q.add_argument("--size", type=int, default=384, help="image size in pixels")
     q.set_defaults(func=cmd_inspect)
-    from .pipeline import PRESETS
+
+
+def _add_compress_parser(sub) -> None:
+    from .quality_levels import QUALITY_LEVELS
+    from .quality_levels import describe as describe_levels
+    from .settings import PRESETS
 
     c = sub.add_parser("compress", help="train a neural model of a mesh and write OUT.nbvh")
     c.add_argument("mesh")
@@ -389,8 +353,8 @@ def build_parser() -> argparse.ArgumentParser:
     size = c.add_mutually_exclusive_group()
     size.add_argument("--budget-kb", type=float, help="size the model to fit this many KB")
     size.add_argument("--target-mse", type=float, help="size the model for this image MSE (checked after training)")
-    size.add_argument("--quality", choices=["preview", "standard", "high"],
-                      help="a named target: preview = MSE 0.02, standard = 0.01, high = 0.005")
+    size.add_argument("--quality", choices=list(QUALITY_LEVELS),
+                      help=f"a named target: {describe_levels()}")
     c.add_argument("--encoding", choices=["hashgrid", "hashvqad"])
     c.add_argument("--network", choices=["mlp", "kmlp"])
     c.add_argument("--labels", choices=["ownership", "consistent"])
@@ -425,6 +389,9 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--force", action="store_true", help="train even when the verdict is 'not worth compressing'")
     c.add_argument("--events", action="store_true", help="print JSON-line events on stdout instead of a bar")
     c.set_defaults(func=cmd_compress)
+
+
+def _add_render_parser(sub) -> None:
     r = sub.add_parser("render", help="render a .nbvh model to PNG")
     r.add_argument("model")
     r.add_argument("-o", "--output", required=True)
@@ -437,11 +404,17 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--fov", type=float, default=40.0)
     r.add_argument("--half", action="store_true", help="float16 feature rows while rendering (faster on the CPU)")
     r.set_defaults(func=cmd_render)
+
+
+def _add_info_parser(sub) -> None:
     i = sub.add_parser("info", help="bytes per component and recorded numbers of a .nbvh file")
     i.add_argument("model")
     i.add_argument("--mesh", help="source mesh: also report the ratio to it")
     i.add_argument("--json", action="store_true")
     i.set_defaults(func=cmd_info)
+
+
+def _add_eval_parser(sub) -> None:
     e = sub.add_parser("eval", help="the paper's metric of a .nbvh model against its mesh")
     e.add_argument("mesh")
     e.add_argument("model")
@@ -449,24 +422,47 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--resolution", type=int, default=256)
     e.add_argument("--json", action="store_true")
     e.set_defaults(func=cmd_eval)
+
+
+def _add_plan_parser(sub) -> None:
+    from .settings import PRESETS
+
     pl = sub.add_parser("plan", help="share one byte budget among several meshes by need")
     pl.add_argument("meshes", nargs="+")
     pl.add_argument("--budget-kb", type=float, required=True)
     pl.add_argument("--weights", type=float, nargs="+", help="per mesh, e.g. its share of the screen (default 1)")
+    pl.add_argument("--preset", default="default", choices=list(PRESETS),
+                    help="the settings each object's model is sized with (its T comes from the split)")
     pl.add_argument("--json", action="store_true")
     pl.set_defaults(func=cmd_plan)
+
+
+def _add_samples_parser(sub) -> None:
     s = sub.add_parser("samples", help="list the bundled sample meshes")
     s.set_defaults(func=cmd_samples)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="nbvh", description="Neural BVH geometry compression")
+    p.add_argument("--path", choices=["fast", "reference"],
+                   help="compute path: fused C++ kernels (fast, default) or pure torch (reference); "
+                        "also env NBVH_PATH")
+    sub = p.add_subparsers(dest="command", required=True)
+    _add_inspect_parser(sub)
+    _add_compress_parser(sub)
+    _add_render_parser(sub)
+    _add_info_parser(sub)
+    _add_eval_parser(sub)
+    _add_plan_parser(sub)
+    _add_samples_parser(sub)
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
-    from .pipeline import NotWorthCompressing
-    from .train import Cancelled, TrainingDiverged
+    from . import kernels
+    from .process import Cancelled, NotWorthCompressing, outcome
 
     argv = sys.argv[1:] if argv is None else argv
-    from . import kernels
-
     kernels.keep_freed_memory()  # this process trains or renders: keep its freed blocks (see the function)
     if argv[:1] == ["job"]:  # the background job protocol (see job.py): JSON events on stdout
         from .job import main as job_main
@@ -474,20 +470,22 @@ def main(argv: list[str] | None = None) -> int:
         return job_main(argv[1:])
     args = build_parser().parse_args(argv)
     if args.path:
-        from . import kernels
-
         kernels.set_path(args.path)
     try:
         return args.func(args)
-    except (Cancelled, KeyboardInterrupt) as exc:
-        print(f"\ncancelled: {exc}; nothing was written", file=sys.stderr)
+    except Exception as exc:  # the exit code says how it ended (process.outcome); a crash keeps its traceback
+        end = outcome(exc)
+        if end.code == 1:
+            raise
+        if isinstance(exc, Cancelled):
+            print(f"\ncancelled: {exc}; nothing was written", file=sys.stderr)
+        elif isinstance(exc, NotWorthCompressing):
+            print(f"{exc}\nnothing was trained or written; --force trains anyway", file=sys.stderr)
+        elif end.kind == "diverged":
+            print(f"\nerror: {end.message}; nothing was written", file=sys.stderr)
+        else:
+            print(f"error: {end.message}", file=sys.stderr)
+        return end.code
+    except KeyboardInterrupt:
+        print("\ncancelled; nothing was written", file=sys.stderr)
         return 130
-    except NotWorthCompressing as exc:
-        print(f"{exc}\nnothing was trained or written; --force trains anyway", file=sys.stderr)
-        return 4
-    except TrainingDiverged as exc:
-        print(f"\nerror: training diverged: {exc}; nothing was written", file=sys.stderr)
-        return 3
-    except (ValueError, OSError) as exc:  # MeshError and NBVHFileError are ValueErrors
-        print(f"error: {exc}", file=sys.stderr)
-        return 2

@@ -74,10 +74,3 @@ def progress_bar(stream: TextIO = sys.stderr, width: int = 28, min_interval: flo
             stream.write(f"\n{kind}: {event.get('message')}\n")
             stream.flush()
     return sink
-
-
-def tee(*sinks: EventSink) -> EventSink:
-    def sink(event: dict) -> None:
-        for s in sinks:
-            s(event)
-    return sink

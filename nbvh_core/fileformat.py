@@ -139,7 +139,7 @@ def _tensors(model: NeuralBVH, storage: StorageConfig) -> list[tuple[str, str, b
         table = enc.float_rows().detach().cpu().numpy()
         out.append(("features", "features", table.astype(_float_dtype(storage.table_bits)).tobytes(),
                     list(table.shape)))
-    if model.cfg.encoding.kind == "hashvqad":
+    if enc.learned_index:
         if not enc.frozen:
             raise ValueError("HashVQAD must be frozen (argmax codes) before saving")
         codes = enc.codes.cpu().numpy()

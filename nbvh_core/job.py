@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from .events import json_lines
+from .process import Cancelled
 
 
 def _png_bytes(image: np.ndarray) -> bytes:
@@ -100,7 +101,8 @@ def run_job(request: dict, events, should_cancel) -> dict:
     """Run one request (see module docstring); returns the `result` event it emits."""
     from .mesh import mesh_from_arrays
     from .outputs import OutputLock, OutputSet, check_outputs
-    from .pipeline import preset, resume_settings
+    from .pipeline import resume_settings
+    from .settings import preset
 
     name = request["name"]
     out_dir = Path(request["out_dir"])
@@ -186,8 +188,6 @@ def _run_locked(request, events, should_cancel, mesh, settings, scene_split, fil
     staged.stage(Path(files["report"]), json.dumps(report, indent=2).encode())
     if should_cancel():
         staged.discard()
-        from .train import Cancelled
-
         raise Cancelled("cancelled before the results were written")
     staged.commit()  # everything appears together (or the previous result stays)
     if not request.get("model"):
@@ -201,36 +201,24 @@ def _run_locked(request, events, should_cancel, mesh, settings, scene_split, fil
 
 def _scene_share(scene: dict, settings, events):
     """This object's share of a scene budget: {"budget_kb", "meshes": [npz paths, all objects, in order], "names",
-    "weights", "index"}. Every job computes the same split (sizing.split_scene, deterministic) and takes entry
+    "weights", "index"}. Every job computes the same plan (sizing.plan_scene, deterministic) and takes entry
     `index`; returns (settings with that size, the split for the report). An object the split excludes (never worth
     compressing) keeps the smallest size: its verdict then ends its job before training."""
     import dataclasses
 
     from .mesh import mesh_from_arrays
-    from .pipeline import PRESETS, estimate_file_bytes
-    from .sizing import load_fit, split_scene
+    from .sizing import plan_scene
 
-    fit = load_fit()
-    if fit is None:
-        raise ValueError("a scene budget needs the size predictor (nbvh_core/sizing_fit.json), which is missing")
     meshes = []
     for path in scene["meshes"]:
         with np.load(path) as arrays:
             meshes.append(mesh_from_arrays(arrays["vertices"], arrays["faces"]))
-    base = dataclasses.replace(settings, encoding=PRESETS[fit.method].encoding, network=PRESETS[fit.method].network,
-                               labels=PRESETS[fit.method].labels, nodes=PRESETS[fit.method].nodes, budget_kb=None,
-                               target_mse=None)
-    plan = split_scene(meshes, float(scene["budget_kb"]) * 1024, fit,
-                       lambda i, l2: estimate_file_bytes(dataclasses.replace(base, log2_table=l2)),
-                       scene.get("weights"))
-    i = int(scene["index"])
     names = scene.get("names") or [str(k) for k in range(len(meshes))]
+    plan = plan_scene(meshes, float(scene["budget_kb"]) * 1024, settings, scene.get("weights"), names)
+    i = int(scene["index"])
     split = {"budget_kb": scene["budget_kb"], "level_mse": plan["level"], "total_bytes": plan["total"],
-             "objects": [{"name": n, "weight": w, "log2_table": l2, "bytes": b, "predicted_mse": p,
-                          "triangles": f.triangles, "excluded": k in plan["excluded"]}
-                         for k, (n, w, l2, b, p, f) in enumerate(zip(names, plan["weights"], plan["log2"],
-                                                                     plan["bytes"], plan["predicted_mse"],
-                                                                     plan["features"]))]}
+             "objects": plan["objects"]}
+    base = plan["base"]
     if i in plan["excluded"]:
         events({"event": "phase", "phase": "plan", "message": "scene budget: this object gets nothing (its mesh is "
                                                                "smaller than any model)"})
@@ -243,32 +231,23 @@ def _scene_share(scene: dict, settings, events):
 
 
 def main(argv: list[str]) -> int:
-    """Entry of `python -m nbvh_core job REQUEST.json`."""
-    from .cli import _install_cancel_handlers
-    from .pipeline import NotWorthCompressing
-    from .train import Cancelled, TrainingDiverged
+    """Entry of `python -m nbvh_core job REQUEST.json`: the exit code and the final `error` event's kind come from
+    `process.outcome`, as the CLI's do; a crash's event carries its traceback."""
+    from .process import install_cancel_handlers, outcome
 
     events = json_lines(sys.stdout)
-    should_cancel = _install_cancel_handlers()
+    should_cancel = install_cancel_handlers()
     try:
         request = json.loads(Path(argv[0]).read_text())
         run_job(request, events, should_cancel)
         return 0
-    except Cancelled as exc:
-        events({"event": "error", "kind": "cancelled", "message": str(exc)})
-        return 130
-    except TrainingDiverged as exc:
-        events({"event": "error", "kind": "diverged", "message": f"training diverged: {exc}"})
-        return 3
-    except NotWorthCompressing as exc:
-        events({"event": "error", "kind": "not_worth", "message": str(exc)})
-        return 4
-    except (ValueError, OSError, KeyError) as exc:
-        events({"event": "error", "kind": "input", "message": f"{type(exc).__name__}: {exc}"})
-        return 2
-    except Exception as exc:  # a crash still reaches the panel, with its traceback
-        events({"event": "error", "kind": "crash", "message": f"{type(exc).__name__}: {exc}",
-                "traceback": traceback.format_exc()})
-        return 1
+    except (Exception, KeyboardInterrupt) as exc:
+        end = outcome(exc)
+        event = {"event": "error", "kind": end.kind,
+                 "message": f"{type(exc).__name__}: {exc}" if end.kind == "input" else end.message}
+        if end.kind == "crash":
+            event["traceback"] = traceback.format_exc()
+        events(event)
+        return end.code
     finally:
         sys.stdout.flush()

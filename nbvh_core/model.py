@@ -76,6 +76,11 @@ class NeuralBVH(nn.Module):
     def device(self) -> torch.device:
         return self.encoding.table.device
 
+    def set_nodes(self, nodes: np.ndarray) -> None:
+        """Replace the BVH nodes ((M,) NODE_DTYPE; e.g. a refined tree cut during training); the traversal tree is
+        rebuilt on next use."""
+        self.nodes, self._tree = nodes, None
+
     def tree(self) -> TorchBVH:
         if self._tree is None or self._tree.device != self.device:
             self._tree = TorchBVH.from_nodes(self.nodes, self.device)
@@ -145,8 +150,8 @@ class NeuralBVH(nn.Module):
         return evaluated
 
     def _fused_network(self) -> tuple[torch.Tensor, torch.Tensor] | None:
-        """The packed MLP for the fused inference kernel (`kernels.mlp.pack`), or None where it does not apply
-        (reference path, CUDA, KMLP)."""
+        """The packed network for the fused inference kernel (`kernels.mlp.pack`), or None where `kernels.plan`
+        does not run it fused (reference path, CUDA)."""
         from .kernels import mlp
 
         return mlp.pack(self) if mlp.applies(self) else None
@@ -175,9 +180,8 @@ class NeuralBVH(nn.Module):
         rows = (enc.qcodes.numel() + 4 * (enc.qoffset.numel() + enc.qscale.numel()) if enc.quantized
                 else enc.table.numel() * enc.table.element_size())
         out = {"bvh": len(self.nodes) * NODE_DTYPE.itemsize, "features": int(rows)}
-        codes = getattr(enc, "codes", None)
-        if codes is not None and codes.numel():
-            out["index"] = int(codes.numel())
+        if enc.learned_index and enc.frozen:
+            out["index"] = int(enc.codes.numel())
         out["network"] = sum(p.numel() * p.element_size() for p in self.network.parameters())
         return out
 

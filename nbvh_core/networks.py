@@ -25,6 +25,7 @@ Parameter count does not depend on k.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from typing import ClassVar
 
 import torch
 import torch.nn.functional as F
@@ -54,17 +55,67 @@ def _mlp(n_in: int, cfg: NetworkConfig, n_out: int = 5) -> nn.Sequential:
     return nn.Sequential(*layers)
 
 
-def _masked_l1(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """Mean over masked rows of the L1 distance (summed over the last dim when 2-D); 0 when nothing is masked."""
+def _l1(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """(B,) L1 distance per row (summed over the last dim when 2-D)."""
     diff = (pred - target).abs()
-    if diff.dim() == 2:
-        diff = diff.sum(-1)
-    m = mask.to(diff.dtype)
-    return (diff * m).sum() / m.sum().clamp_min(1.0)
+    return diff.sum(-1) if diff.dim() == 2 else diff
 
 
-class MLP(nn.Module):
+def _masked_mean(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Mean of (B,) values over the masked rows; 0 when nothing is masked."""
+    m = mask.to(values.dtype)
+    return (values * m).sum() / m.sum().clamp_min(1.0)
+
+
+class Network(nn.Module):
+    """The contract every network keeps (the model, the trainer and the kernels' planner use only this).
+
+    * `forward(feats (B, k, D)) -> raw` (network-specific shape); `decode(raw) -> (hit_prob (B,), local_t (B,) in
+      [0, 1] along the segment, normal (B, 3) unit)`.
+    * `terms(raw, hit, local_t, normal) -> {name: (B,) per-sample term}` with 'bce' (every sample) and the hit-only
+      terms; `loss` is their means (hit-only terms over the hits, weighted by the config) and `sample_errors` the
+      same weighted sum per sample (loss-proportional leaf sampling): one definition of the loss.
+    * Capability flag `fused_kind`: the fused kernel that computes this network ('mlp' | 'kmlp'), or None.
+    """
+
+    fused_kind: ClassVar[str | None] = None
+    #: Hit-only terms and their weights' names in NetworkConfig (None: weight 1).
+    HIT_TERMS: ClassVar[dict[str, str | None]] = {}
+
+    def terms(self, raw: torch.Tensor, hit: torch.Tensor, local_t: torch.Tensor,
+              normal: torch.Tensor) -> dict[str, torch.Tensor]:
+        raise NotImplementedError
+
+    def _weight(self, name: str) -> float:
+        attr = self.HIT_TERMS[name]
+        return 1.0 if attr is None else float(getattr(self.cfg, attr))
+
+    def loss(self, raw: torch.Tensor, hit: torch.Tensor, local_t: torch.Tensor, normal: torch.Tensor):
+        """(total loss, {term: detached mean}) over B labelled segments."""
+        per = self.terms(raw, hit, local_t, normal)
+        parts = {"bce": per["bce"].mean()}
+        parts.update({name: _masked_mean(per[name], hit) for name in self.HIT_TERMS})
+        total = parts["bce"] + sum(self._weight(name) * parts[name] for name in self.HIT_TERMS)
+        return total, self.report_parts({k: v.detach() for k, v in parts.items()})
+
+    def report_parts(self, parts: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """The loss parts as reported (a network may rescale one to a common scale)."""
+        return parts
+
+    @torch.no_grad()
+    def sample_errors(self, raw: torch.Tensor, hit: torch.Tensor, local_t: torch.Tensor,
+                      normal: torch.Tensor) -> torch.Tensor:
+        """(B,) the loss's weighted terms per sample (hit-only terms count where hit)."""
+        per = self.terms(raw, hit, local_t, normal)
+        hit_f = hit.to(per["bce"].dtype)
+        return per["bce"] + hit_f * sum(self._weight(name) * per[name] for name in self.HIT_TERMS)
+
+
+class MLP(Network):
     """Baseline network (see module docstring). feats (B, k, D) -> raw (B, 5)."""
+
+    fused_kind = "mlp"
+    HIT_TERMS = {"depth_l1": "depth_weight", "normal_l1": "normal_weight"}
 
     def __init__(self, in_dim: int, cfg: NetworkConfig):
         super().__init__()
@@ -77,16 +128,18 @@ class MLP(nn.Module):
     def decode(self, raw: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         return torch.sigmoid(raw[:, 0]), torch.sigmoid(raw[:, 1]), F.normalize(raw[:, 2:5], dim=-1)
 
-    def loss(self, raw: torch.Tensor, hit: torch.Tensor, local_t: torch.Tensor, normal: torch.Tensor):
-        bce = F.binary_cross_entropy_with_logits(raw[:, 0], hit.to(raw.dtype))
-        l_t = _masked_l1(torch.sigmoid(raw[:, 1]), local_t, hit)
-        l_n = _masked_l1(F.normalize(raw[:, 2:5], dim=-1), normal, hit)
-        total = bce + self.cfg.depth_weight * l_t + self.cfg.normal_weight * l_n
-        return total, {"bce": bce.detach(), "depth_l1": l_t.detach(), "normal_l1": l_n.detach()}
+    def terms(self, raw: torch.Tensor, hit: torch.Tensor, local_t: torch.Tensor,
+              normal: torch.Tensor) -> dict[str, torch.Tensor]:
+        return {"bce": F.binary_cross_entropy_with_logits(raw[:, 0], hit.to(raw.dtype), reduction="none"),
+                "depth_l1": _l1(torch.sigmoid(raw[:, 1]), local_t),
+                "normal_l1": _l1(F.normalize(raw[:, 2:5], dim=-1), normal)}
 
 
-class KMLP(nn.Module):
+class KMLP(Network):
     """Shared pair network (see module docstring). feats (B, k, D) -> raw (B, k - 1, 5)."""
+
+    fused_kind = "kmlp"
+    HIT_TERMS = {"segment_ce": None, "depth_l1": "depth_weight", "normal_l1": "normal_weight"}
 
     def __init__(self, in_dim: int, cfg: NetworkConfig):
         super().__init__()
@@ -117,30 +170,30 @@ class KMLP(nn.Module):
         normal = F.normalize(raw[rows, j, 2:5], dim=-1)
         return hit_prob, local_t, normal
 
-    def loss(self, raw: torch.Tensor, hit: torch.Tensor, local_t: torch.Tensor, normal: torch.Tensor):
+    def terms(self, raw: torch.Tensor, hit: torch.Tensor, local_t: torch.Tensor,
+              normal: torch.Tensor) -> dict[str, torch.Tensor]:
         n_sub = raw.shape[1]
         log_q, log_none = self._first_hit_log_probs(raw[..., 0])
         log_hit = torch.log((-torch.expm1(log_none)).clamp_min(1e-12))  # log P, stable as P -> 0
         hit_f = hit.to(raw.dtype)
-        bce = -(hit_f * log_hit + (1 - hit_f) * log_none).mean()
         pos = local_t * n_sub
         j_star = pos.floor().clamp(0, n_sub - 1).long()
         rows = torch.arange(raw.shape[0], device=raw.device)
-        where_ce = -(log_q[rows, j_star] - log_hit)  # -log(q_j* / P)
-        ce = _masked_l1(where_ce, torch.zeros_like(where_ce), hit)
         sub_t = (pos - j_star.to(raw.dtype)).clamp(0, 1)
-        l_t = _masked_l1(torch.sigmoid(raw[rows, j_star, 1]), sub_t, hit)
-        l_n = _masked_l1(F.normalize(raw[rows, j_star, 2:5], dim=-1), normal, hit)
-        total = bce + ce + self.cfg.depth_weight * l_t + self.cfg.normal_weight * l_n
+        return {"bce": -(hit_f * log_hit + (1 - hit_f) * log_none),
+                "segment_ce": -(log_q[rows, j_star] - log_hit),  # -log(q_j* / P)
+                "depth_l1": _l1(torch.sigmoid(raw[rows, j_star, 1]), sub_t),
+                "normal_l1": _l1(F.normalize(raw[rows, j_star, 2:5], dim=-1), normal)}
+
+    def report_parts(self, parts: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         # Depth reported on the leaf scale (a sub-segment is 1/(k-1) of the leaf), comparable with the MLP's.
-        return total, {"bce": bce.detach(), "segment_ce": ce.detach(), "depth_l1": (l_t / n_sub).detach(),
-                       "normal_l1": l_n.detach()}
+        return {**parts, "depth_l1": parts["depth_l1"] / (self.cfg.k - 1)}
 
 
 NETWORKS = {"mlp": MLP, "kmlp": KMLP}
 
 
-def make_network(in_dim: int, cfg: NetworkConfig) -> nn.Module:
+def make_network(in_dim: int, cfg: NetworkConfig) -> Network:
     if cfg.kind not in NETWORKS:
         raise ValueError(f"unknown network {cfg.kind!r}; choose from {', '.join(NETWORKS)}")
     return NETWORKS[cfg.kind](in_dim, cfg)

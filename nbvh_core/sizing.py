@@ -9,13 +9,14 @@
   fills, how much its normals vary locally, triangle count), fitted on the benchmark meshes by
   bench/fit_sizing.py (data and leave-one-mesh-out errors in bench/results/sizing*.{csv,md}); coefficients in
   sizing_fit.json. It is calibrated at the benchmark's training budget; longer training only lowers the MSE.
-* **Choice** (`choose_table_and_nodes`): the (T, node count) of fewest file bytes whose predicted MSE meets the
-  target; the pipeline trains it, measures, and steps T up once if the target was missed
-  (`pipeline.compress_mesh`). `choose_size` is the same over T alone (scenes).
+* **Choice** (`resolve`, `choose_table_and_nodes`): a byte budget or a quality target turned into sizes: the
+  (T, node count) of fewest file bytes whose predicted MSE meets the target; `pipeline.compress_mesh` trains it,
+  measures and corrects (`search_size`: up to TARGET_TRAININGS trainings, calibrated by each measurement).
+  `choose_size` is the same over T alone (scenes).
 * **Verdict** (`assess`): when the mesh as it is, or a decimation of it that meets the target, is smaller
   resident than the model, compressing is not worth it; the result says so with all sizes (a user can still
   force the model).
-* **Scenes** (`split_budget`): one byte budget over several meshes, shared by need: every mesh gets the
+* **Scenes** (`plan_scene`, `split_budget`): one byte budget over several meshes, shared by need: every mesh gets the
   smallest T that meets a common quality level (scaled by its weight, e.g. its size on screen), with the level
   set as strict as the budget allows.
 """
@@ -31,6 +32,8 @@ import numpy as np
 
 from .bvh import build_full_tree, resident_bvh_nodes
 from .mesh import Mesh
+from .quality_levels import QUALITY_LEVELS  # noqa: F401  (re-exported: the levels a target is chosen from)
+from .settings import PRESETS, Settings, estimate_file_bytes
 
 FIT_PATH = Path(__file__).with_name("sizing_fit.json")
 #: Table sizes the chooser considers (log2 T): the range the predictor was fitted on (bench/fit_sizing.py).
@@ -38,13 +41,13 @@ LOG2_RANGE = range(8, 13)
 #: BVH node counts the chooser considers (the node effect is fitted at these counts).
 NODE_CHOICES = (1023, 2047, 4095)
 FEATURE_NAMES = ("log_area", "occupancy", "roughness", "log10_triangles")
-#: Named quality levels (image MSE of the paper's metric), shared by the CLI, the API and the add-on.
-QUALITY_LEVELS = {"preview": 0.02, "standard": 0.01, "high": 0.005}
 
 
-def mesh_resident_bytes(mesh: Mesh) -> dict:
-    """Bytes a ray tracer holds for `mesh`: vertices, indices, normals, bvh (<= 4 triangles per leaf), total."""
-    nodes = resident_bvh_nodes(build_full_tree(mesh), 4)
+def mesh_resident_bytes(mesh: Mesh, tree=None) -> dict:
+    """Bytes a ray tracer holds for `mesh`: vertices, indices, normals (float32 / int32, 12 B per vertex or
+    triangle each), bvh (32-byte nodes, <= 4 triangles per leaf), total. tree: the mesh's `bvh.build_full_tree`
+    when the caller has one (else it is built)."""
+    nodes = resident_bvh_nodes(tree if tree is not None else build_full_tree(mesh), 4)
     out = {"vertices": mesh.n_vertices * 12, "indices": mesh.n_triangles * 12, "normals": mesh.n_vertices * 12,
            "bvh": nodes * 32}
     out["total"] = sum(out.values())
@@ -221,6 +224,55 @@ def search_size(fit: SizeFit | None, features: MeshFeatures | None, target_mse: 
     return (min(met) if met else max(measured)), measured
 
 
+def resolve(s: Settings, mesh: Mesh | None = None) -> tuple[Settings, str]:
+    """Turn a byte budget or a quality target into concrete sizes; returns (settings, why).
+
+    Budget: the largest (T, nodes) of the grid T in 2^5..2^12, nodes in 255..8191 whose file fits the budget
+    (largest file first, ties to more nodes). Target (with the mesh): the method the size predictor was fitted
+    for (sizing_fit.json: HashGrid + MLP + consistent labels) at the smallest T whose predicted MSE meets the
+    target (`sizing.choose_table_and_nodes`); `compress_mesh` then measures and corrects (`sizing.search_size`).
+    """
+    if s.budget_kb is not None:
+        budget = s.budget_kb * 1024
+        best = None
+        for log2 in range(12, 4, -1):
+            for nodes in (8191, 4095, 2047, 1023, 511, 255):
+                cand = dataclasses.replace(s, log2_table=log2, nodes=nodes, budget_kb=None)
+                size = estimate_file_bytes(cand)
+                if size <= budget and (best is None or size > best[0]):
+                    best = (size, cand)
+        if best is None:
+            raise ValueError(f"a budget of {s.budget_kb:g} KB is too small for any model "
+                             f"(the smallest needs {estimate_file_bytes(dataclasses.replace(s, log2_table=5, nodes=255)) / 1024:.0f} KB)")
+        size, chosen = best
+        return chosen, (f"budget {s.budget_kb:g} KB: chose T=2^{chosen.log2_table}, {chosen.nodes} nodes "
+                        f"(estimated {size / 1024:.1f} KB), the largest grid point that fits")
+    if s.target_mse is not None:
+        if s.target_mse <= 0:
+            raise ValueError(f"target MSE must be > 0, got {s.target_mse:g}")
+        fit = load_fit()
+        if fit is None or mesh is None:
+            base = PRESETS["high" if s.target_mse < 0.01 else "default" if s.target_mse < 0.02 else "preview"]
+            chosen = dataclasses.replace(s, nodes=base.nodes, log2_table=base.log2_table)
+            return chosen, (f"target MSE {s.target_mse:g}: no size predictor available, used preset sizes "
+                            f"(T=2^{base.log2_table}, {base.nodes} nodes)")
+        feats = mesh_features(mesh)
+        fitted = PRESETS[fit.method]
+        base = dataclasses.replace(s, encoding=fitted.encoding, network=fitted.network, labels=fitted.labels)
+        l2, nodes, pred, reachable = choose_table_and_nodes(
+            fit, feats, s.target_mse,
+            lambda lt, n: estimate_file_bytes(dataclasses.replace(base, log2_table=lt, nodes=n)))
+        chosen = dataclasses.replace(base, nodes=nodes, log2_table=l2)
+        why = (f"target MSE {s.target_mse:g}: predicted MSE {pred:.4g} at T=2^{l2}, {nodes} nodes "
+               f"({fitted.encoding}+{fitted.network}; mesh area {feats.area:.2f}, occupancy {feats.occupancy:.3f}, "
+               f"roughness {feats.roughness:.3f}, {feats.triangles:,} triangles), the smallest file predicted to "
+               f"meet it with a {math.exp(fit.margin * fit.residual_std):.2f}x safety factor")
+        if not reachable:
+            why += "; the target is beyond every size the predictor knows: using the largest"
+        return chosen, why
+    return s, "fixed settings"
+
+
 # ----------------------------------------------------------------------------------------------- alternatives
 def mesh_like(mesh: Mesh, vertices: np.ndarray, faces: np.ndarray) -> Mesh:
     """Another triangulation of `mesh` (a decimation, a Draco-decoded copy) in the same normalised coordinates:
@@ -305,11 +357,9 @@ class Assessment:
 
 
 def assess(mesh: Mesh, settings, measure_alternatives: bool = False, tracer=None) -> Assessment:
-    """Compare the model `settings` (a pipeline.Settings, already resolved) would write with the mesh's resident
+    """Compare the model `settings` (already resolved) would write with the mesh's resident
     bytes and its Draco size, and, with `measure_alternatives` and a target MSE, with a decimation that meets it.
     worth_compressing is False when either is not larger than the model."""
-    from .pipeline import estimate_file_bytes
-
     model = estimate_file_bytes(settings)
     resident_bytes = mesh_resident_bytes(mesh)
     resident = resident_bytes["total"]
@@ -397,3 +447,37 @@ def split_scene(meshes: list[Mesh], budget_bytes: float, fit: SizeFit, bytes_for
     out["excluded"] = [i for i in range(len(meshes)) if i not in keep]
     out["features"] = feats
     return out
+
+
+def scene_base(settings: Settings, fit: SizeFit) -> Settings:
+    """The settings every object of a scene budget is sized with: `settings` with the method and node count the
+    size predictor was fitted for (only its predictions are comparable across objects) and no size request."""
+    fitted = PRESETS[fit.method]
+    return dataclasses.replace(settings, encoding=fitted.encoding, network=fitted.network, labels=fitted.labels,
+                               nodes=fitted.nodes, budget_kb=None, target_mse=None)
+
+
+def plan_scene(meshes: list[Mesh], budget_bytes: float, settings: Settings, weights: list[float] | None = None,
+               names: list[str] | None = None, fit: SizeFit | None = None) -> dict:
+    """The one scene-budget plan (CLI `plan`, the add-on's jobs): `split_scene` over `meshes` with every model's
+    bytes from `scene_base(settings)`. Returns split_scene's dict plus 'objects': one row per mesh (name, weight,
+    triangles, log2_table, bytes, predicted_mse, excluded) and 'base': the settings each share applies to
+    (`dataclasses.replace(plan['base'], log2_table=row['log2_table'])`). Raises ValueError without a size
+    predictor or when the budget is too small."""
+    fit = fit or load_fit()
+    if fit is None:
+        raise ValueError("a scene budget needs the size predictor (nbvh_core/sizing_fit.json), which is missing; "
+                         "run bench/fit_sizing.py")
+    weights = [1.0] * len(meshes) if weights is None else list(weights)
+    if len(weights) != len(meshes):
+        raise ValueError(f"{len(weights)} weights for {len(meshes)} meshes")
+    base = scene_base(settings, fit)
+    plan = split_scene(meshes, budget_bytes, fit,
+                       lambda i, l2: estimate_file_bytes(dataclasses.replace(base, log2_table=l2)), weights)
+    names = names or [m.name or str(i) for i, m in enumerate(meshes)]
+    plan["objects"] = [{"name": n, "weight": w, "triangles": f.triangles, "log2_table": l2, "bytes": b,
+                        "predicted_mse": p, "excluded": i in plan["excluded"]}
+                       for i, (n, w, l2, b, p, f) in enumerate(zip(names, plan["weights"], plan["log2"], plan["bytes"],
+                                                                   plan["predicted_mse"], plan["features"]))]
+    plan["base"] = base
+    return plan

@@ -26,20 +26,13 @@ import numpy as np
 import torch
 
 from . import kernels
-from .bvh import BVH, refine_cut
+from .batches import Batches, LeafErrors, TreeCut  # noqa: F401  (LeafErrors: re-exported)
+from .bvh import BVH
 from .events import EventSink, null_sink
 from .exact import ExactTracer
 from .model import NeuralBVH
-from .samples import (RayConfig, TrainingSamples, label_samples, root_box, sample_rays, sample_rays_in_leaves,
-                      split_samples)
-
-
-class Cancelled(Exception):
-    """The job was cancelled; nothing was saved as a result."""
-
-
-class TrainingDiverged(RuntimeError):
-    """Loss or parameters became NaN/inf or exploded; the model is not usable and is never saved."""
+from .process import Cancelled, TrainingDiverged
+from .samples import RayConfig, TrainingSamples, label_samples, sample_rays
 
 
 @dataclass
@@ -115,7 +108,8 @@ class TrainResult:
     soft_loss_before_freeze: float | None = None
     frozen_loss: float | None = None  # right after the freeze
     finetuned_loss: float | None = None  # at the end, after the hard fine-tune
-    compute_path: str = ""  # kernels.describe(): fast (fused kernels) or reference (pure torch)
+    compute_path: str = ""  # kernels.plan(...).describe(): which kernel ran each stage
+    kernel_plan: dict = field(default_factory=dict)  # the same, as fields (kernels.KernelPlan)
     stopped_early: bool = False  # the target_reached callback ended training before the budget
 
 
@@ -140,196 +134,189 @@ def samples_loss(model: NeuralBVH, s: TrainingSamples, device: torch.device, wan
     return loss, parts
 
 
-def sample_errors(network, raw: torch.Tensor, s: TrainingSamples) -> torch.Tensor:
-    """(S,) per-sample error of decoded predictions: BCE of the hit probability, plus for hits the weighted depth
-    and normal L1s (the loss's terms, per sample; for loss-proportional leaf sampling)."""
-    prob, local_t, normal = network.decode(raw.detach().cpu())
-    hit = s.hit.to(prob.dtype)
-    bce = torch.nn.functional.binary_cross_entropy(prob.clamp(1e-6, 1 - 1e-6), hit, reduction="none")
-    cfg = network.cfg
-    return bce + hit * (cfg.depth_weight * (local_t - s.local_t).abs()
-                        + cfg.normal_weight * (normal - s.normal).abs().sum(-1))
+# ------------------------------------------------------------------------------------------- the loop's parts
+def make_optimizer(model: NeuralBVH, cfg: TrainConfig, plan: kernels.KernelPlan) -> torch.optim.Adam:
+    """Adam over the model's parameters, HashVQAD's index logits in their own group at `logits_lr_factor` x lr;
+    the fused implementation where the plan says so (`kernels.optimizer_kernel`)."""
+    logits = [p for n, p in model.named_parameters() if n.endswith("logits")]
+    others = [p for n, p in model.named_parameters() if not n.endswith("logits")]
+    groups = [{"params": others, "lr_factor": 1.0}]
+    if logits:
+        groups.append({"params": logits, "lr_factor": cfg.logits_lr_factor})
+    return torch.optim.Adam(groups, lr=cfg.lr, fused=plan.optimizer == "fused Adam" or None)
 
 
-class LeafErrors:
-    """Running mean error per leaf (exponential, per batch) and the sampling weights drawn from it."""
+class Schedule:
+    """The training fraction in [0, 1] (steps or seconds, whichever budget runs out first) and the learning rate
+    at a fraction: lr x lr_factor(group) x lr_final_factor ** fraction (exponential decay over the budget)."""
 
-    def __init__(self, n_leaves: int, floor: float, decay: float = 0.9):
-        self.error = torch.ones(n_leaves, dtype=torch.float64)  # untrained: every leaf alike
-        self.floor, self.decay = floor, decay
-
-    def update(self, leaf: torch.Tensor, errors: torch.Tensor) -> None:
-        """leaf (S,) leaf ordinals, errors (S,) per-sample errors of one batch."""
-        n = self.error.shape[0]
-        total = torch.zeros(n, dtype=torch.float64).index_add_(0, leaf, errors.to(torch.float64))
-        count = torch.bincount(leaf, minlength=n).to(torch.float64)
-        seen = count > 0
-        self.error[seen] = self.decay * self.error[seen] + (1 - self.decay) * total[seen] / count[seen]
-
-    def weights(self) -> np.ndarray:
-        e = self.error.numpy()
-        return np.maximum(e, self.floor * e.mean())
-
-
-class _Batches:
-    """Fresh labelled rays for every step, from one seeded generator.
-
-    Rays for `cfg.label_steps` steps are drawn and labelled together (one chunk) and split by ray into per-step
-    batches. With `prefetch`, a background thread makes the next chunks while the current step trains (Embree,
-    numpy and the kernels release the GIL), in the same order from the same generator, so the batches are the ones
-    a synchronous run would see. `rng_state()` says where the last batch handed out came from (the generator's
-    state before its chunk and its index in the chunk): what a checkpoint stores to resume exactly.
-    """
-
-    def __init__(self, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, rng: np.random.Generator,
-                 prefetch: bool = False, resume: dict | None = None, leaf_errors: "LeafErrors | None" = None):
-        self.bvh, self.tracer, self.cfg, self.rng = bvh, tracer, cfg, rng
-        self.lo, self.hi = root_box(bvh)
-        from .traversal import TorchBVH
-
-        self.tree = TorchBVH.from_bvh(bvh)
-        self._pending: list = []  # batches of the current chunk not yet handed out
-        self._pool = None  # ray-drawing threads, made on first use
-        self.leaf_errors = leaf_errors  # loss-proportional leaf sampling: the running per-leaf errors
-        self._leaf_boxes = bvh.leaf_boxes() if leaf_errors is not None else None
-        self._state = {"chunk_state": rng.bit_generator.state, "index": -1}
-        skip = 0
-        self._weights_override = None  # the leaf weights the resumed chunk was drawn with
-        if resume is not None:
-            rng.bit_generator.state = resume["chunk_state"]
-            skip = resume["index"] + 1
-            self._weights_override = resume.get("leaf_weights")
-        self._queue = None
-        if prefetch:
-            import queue
-            import threading
-
-            self._queue = queue.Queue(maxsize=2)
-            self._stop = threading.Event()
-            self._thread = threading.Thread(target=self._produce, daemon=True)
-            self._thread.start()
-        for _ in range(skip):  # the resumed chunk's batches already trained on
-            self.next()
-
-    def _make(self):
-        """One chunk: [(batch, {'chunk_state', 'index'}), ...] for label_steps steps."""
-        chunk_state = self.rng.bit_generator.state
-        n_steps = max(1, self.cfg.label_steps)
-        per = self.cfg.rays_per_step
-        weights = None
-        if self.leaf_errors is not None:
-            weights = self._weights_override if self._weights_override is not None else self.leaf_errors.weights()
-            self._weights_override = None
-        o, d = self._draw(per * n_steps, weights)
-        chunk = label_samples(self.bvh, self.tracer, o, d, self.cfg.labels, tree=self.tree)
-        return [(part, {"chunk_state": chunk_state, "index": i, "leaf_weights": weights})
-                for i, part in enumerate(split_samples(chunk, per))]
-
-    def set_bvh(self, bvh: BVH) -> None:
-        """Label with a refined cut from now on: the rest of the current labelling pass (labelled with the old cut)
-        is dropped, and the next pass starts from the generator's current state (recorded for checkpoints)."""
-        from .traversal import TorchBVH
-
-        self.bvh, self.tree = bvh, TorchBVH.from_bvh(bvh)
-        if self._leaf_boxes is not None:
-            self._leaf_boxes = bvh.leaf_boxes()
-        self._pending = []
-        self._state = {"chunk_state": self.rng.bit_generator.state, "index": -1}
-
-    def _draw(self, n: int, leaf_weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """n rays: all from `sample_rays`, or with leaf weights `leaf_ray_fraction` of them from
-        `sample_rays_in_leaves` (mixed by a permutation)."""
-        if leaf_weights is not None:  # loss-proportional: part of the rays start in the worst leaves
-            n_leaf = int(round(n * self.cfg.leaf_ray_fraction))
-            o_u, d_u = self._draw_uniform(n - n_leaf)
-            o_l, d_l = sample_rays_in_leaves(*self._leaf_boxes, leaf_weights, n_leaf, self.rng)
-            perm = self.rng.permutation(n)
-            return np.concatenate((o_u, o_l))[perm], np.concatenate((d_u, d_l))[perm]
-        return self._draw_uniform(n)
-
-    def _draw_uniform(self, n: int) -> tuple[np.ndarray, np.ndarray]:
-        """n rays of `sample_rays` in two halves drawn by two threads (numpy's generators and ufuncs release the
-        GIL), each from a generator seeded by the main one: deterministic, and resumable from its state."""
-        seeds = self.rng.integers(0, 2 ** 63, size=2)
-        sizes = (n // 2, n - n // 2)
-        if self._pool is None:
-            from concurrent.futures import ThreadPoolExecutor
-
-            self._pool = ThreadPoolExecutor(max_workers=2, thread_name_prefix="nbvh-rays")
-        halves = list(self._pool.map(
-            lambda i: sample_rays(self.lo, self.hi, sizes[i], np.random.default_rng(seeds[i]), self.cfg.ray_config),
-            range(2)))
-        return np.concatenate([h[0] for h in halves]), np.concatenate([h[1] for h in halves])
-
-    def _produce(self) -> None:
-        import queue
-
-        while not self._stop.is_set():
-            try:
-                item = self._make()
-            except Exception as exc:  # handed to the consumer, raised there
-                item = (exc, None)
-            while not self._stop.is_set():
-                try:
-                    self._queue.put(item, timeout=0.1)
-                    break
-                except queue.Full:
-                    continue
-            if isinstance(item[0], Exception):
-                return
-
-    def next(self) -> TrainingSamples:
-        if not self._pending:
-            chunk = self._queue.get() if self._queue is not None else self._make()
-            if isinstance(chunk[0], Exception):
-                raise chunk[0]
-            self._pending = list(chunk)
-        batch, self._state = self._pending.pop(0)
-        return batch
-
-    def rng_state(self) -> dict:
-        return self._state
-
-    def close(self) -> None:
-        if self._pool is not None:
-            self._pool.shutdown(wait=False)
-        if self._queue is not None:
-            self._stop.set()
-            self._thread.join(timeout=5)
-
-
-class _TreeCut:
-    """N-BVH's tree-cut splitting during training (TrainConfig.tree_cut): `start` is the coarse cut training begins
-    on (or the cut a checkpoint stopped at); `refine` splits the leaves with the highest running error in
-    cfg.tree_cut_rounds rounds spread over the first cfg.tree_cut_until of the budget, up to bvh's node budget."""
-
-    def __init__(self, bvh: BVH, cfg: TrainConfig, resumed_cut: list | None = None, rounds_done: int = 0):
-        from .bvh import coarse_cut, layout_cut
-
+    def __init__(self, cfg: TrainConfig):
         self.cfg = cfg
-        self.final_leaves = bvh.n_leaves
-        self.rounds_done = rounds_done
-        self.start = (layout_cut(bvh.full, {int(n) for n in resumed_cut}, bvh.budget, final=False)
-                      if resumed_cut is not None else
-                      coarse_cut(bvh, max(2, int(self.final_leaves * cfg.tree_cut_start))))
 
-    def refine(self, frac: float, current: BVH, leaf_errors: LeafErrors) -> BVH | None:
-        """The refined cut when a round is due at training fraction `frac` (leaf_errors follow the split: children
-        inherit their parent's error), else None."""
+    def fraction(self, step: int, elapsed_s: float) -> float:
         cfg = self.cfg
-        due = min(cfg.tree_cut_rounds, int(frac / cfg.tree_cut_until * cfg.tree_cut_rounds)) \
-            if cfg.tree_cut_until > 0 else 0
-        if current.n_leaves >= self.final_leaves or self.rounds_done >= due:
-            return None
-        self.rounds_done = due
-        # Leaves still to add, shared over the rounds left (the last round reaches the budget).
-        per_round = -(-(self.final_leaves - current.n_leaves) // max(1, cfg.tree_cut_rounds - due + 1))
-        refined, parent = refine_cut(current, leaf_errors.error.numpy(), per_round)
-        if refined.n_leaves == current.n_leaves:  # nothing left to split
-            self.final_leaves = refined.n_leaves
-            return None
-        leaf_errors.error = leaf_errors.error[torch.from_numpy(parent)]
-        return refined
+        return max(step / cfg.steps if cfg.steps else 0.0, elapsed_s / cfg.time_limit_s if cfg.time_limit_s else 0.0)
+
+    def set_lr(self, opt: torch.optim.Optimizer, fraction: float) -> None:
+        for g in opt.param_groups:
+            g["lr"] = self.cfg.lr * g["lr_factor"] * self.cfg.lr_final_factor ** fraction
+
+
+class DivergenceGuard:
+    """Raises TrainingDiverged for a non-finite loss, a loss above divergence_factor x its running mean after 50
+    steps, a running mean risen above rise_factor x the untrained model's loss, and (at the end, `finish`) a loss
+    that never fell 2% below its start in 50+ steps (a learning rate so high it killed the network early)."""
+
+    def __init__(self, cfg: TrainConfig, start_step: int):
+        self.cfg, self.start_step = cfg, start_step
+        self.ema: float | None = None
+        self.first: list[float] = []  # the first 5 losses; [0] is the untrained model's
+
+    def observe(self, step: int, loss: float) -> None:
+        cfg, ran = self.cfg, step - self.start_step
+        if not math.isfinite(loss):
+            raise TrainingDiverged(f"loss became {loss} at step {step}")
+        if self.ema is not None and ran > 50 and loss > cfg.divergence_factor * self.ema:
+            raise TrainingDiverged(f"loss jumped to {loss:.4g} (running mean {self.ema:.4g}) at step {step}")
+        self.ema = loss if self.ema is None else 0.98 * self.ema + 0.02 * loss
+        if len(self.first) < 5:
+            self.first.append(loss)
+        elif ran >= 50 and self.ema > cfg.rise_factor * self.first[0]:
+            raise TrainingDiverged(f"loss rose from {self.first[0]:.4g} to {self.ema:.4g} (running mean) by step "
+                                   f"{step}: the learning rate {cfg.lr:g} is too high for this model")
+
+    def finish(self, model: NeuralBVH, step: int) -> None:
+        for p in model.parameters():
+            if not torch.isfinite(p).all():
+                raise TrainingDiverged("parameters contain NaN/inf after training")
+        # One small batch is noisy enough to fake or hide a 2% fall: compare with the mean of the first 5.
+        start = max(float(np.mean(self.first)), self.first[0]) if self.first else None
+        ran = step - self.start_step
+        if start is not None and ran >= 50 and self.ema >= 0.98 * start:
+            # Dead ReLUs predict the prior and the loss stays at its start: such a model is useless; never saved.
+            raise TrainingDiverged(f"the loss did not fall in {ran} steps ({start:.4g} -> {self.ema:.4g}): "
+                                   f"the learning rate {self.cfg.lr:g} is too high for this model, or it cannot learn")
+
+
+def make_step(model: NeuralBVH, device: torch.device, plan: kernels.KernelPlan):
+    """The training step the plan chose, hiding fused vs autograd: step(batch, want_raw) -> (loss, parts) with every
+    parameter's .grad set (parts['raw']: the network's raw outputs when want_raw)."""
+    if plan.train_step != "autograd":  # forward, loss and backward in one kernel call (kernels/mlp.py)
+        from .kernels import mlp as fused_mlp
+
+        return lambda batch, want_raw: fused_mlp.train_step(model, batch, want_raw=want_raw)
+
+    def autograd_step(batch: TrainingSamples, want_raw: bool) -> tuple[float, dict]:
+        loss, parts = samples_loss(model, batch, device, want_raw=want_raw)
+        loss.backward()
+        return float(loss.detach()), parts
+
+    return autograd_step
+
+
+def _atomic_save(obj, path: Path) -> None:
+    """torch.save, written atomically (outputs.write_atomic): a kill mid-write keeps the previous checkpoint."""
+    import io
+
+    from .outputs import write_atomic
+
+    buf = io.BytesIO()
+    torch.save(obj, buf)
+    write_atomic(path, buf.getvalue())
+
+
+class Checkpoints:
+    """Writes the training state (atomically) every cfg.checkpoint_every steps and every cfg.checkpoint_every_s
+    seconds, and on demand (cancel); nothing without a path. `state()` gathers it (see `load_checkpoint`)."""
+
+    def __init__(self, path: str | os.PathLike | None, cfg: TrainConfig, extra: dict | None, last_s: float):
+        self.path = None if path is None else Path(path)
+        self.cfg, self.extra, self.last_s = cfg, extra or {}, last_s
+
+    def maybe_save(self, step: int, now_s: float, state) -> None:
+        cfg = self.cfg
+        if ((cfg.checkpoint_every and step % cfg.checkpoint_every == 0)
+                or (cfg.checkpoint_every_s and now_s - self.last_s >= cfg.checkpoint_every_s)):
+            self.save(state())
+            self.last_s = now_s
+
+    def save(self, state: dict) -> None:
+        if self.path is not None:
+            _atomic_save({**state, "train_config": self.cfg.to_dict(), "extra": self.extra}, self.path)
+
+
+def load_checkpoint(path: str | os.PathLike, model: NeuralBVH, opt: torch.optim.Optimizer,
+                    device: torch.device) -> dict:
+    """Load a checkpoint's model, optimizer and torch RNG state into `model` and `opt`; returns the whole
+    checkpoint (step, elapsed, history, numpy RNG, leaf errors, cut, ...) for the other parts."""
+    ck = torch.load(path, map_location=device, weights_only=False)
+    codes = ck["model"].get("encoding.codes")
+    if codes is not None and codes.numel() and model.encoding.learned_index:
+        model.encoding.freeze()  # the checkpoint is past the freeze: same structure before loading
+    model.load_state_dict(ck["model"])
+    opt.load_state_dict(ck["optimizer"])
+    torch.set_rng_state(ck["torch_rng"])
+    return ck
+
+
+class EncodingPhases:
+    """The encoding's life cycle inside training: its own schedule (HashVQAD's anneal: `Encoding.schedule`), the
+    freeze (scored before and after on held-out rays; `before_freeze(model)` is called first), and the
+    quantization-aware end (cfg.qat_bits: the table snapped to its grid and held there, see TrainConfig).
+    `before_step(fraction)` returns the phase the step trains in."""
+
+    def __init__(self, model: NeuralBVH, cfg: TrainConfig, events: EventSink, held_out_loss, before_freeze,
+                 qat_affine=None):
+        self.model, self.cfg, self.events = model, cfg, events
+        self.held_out_loss, self.before_freeze = held_out_loss, before_freeze
+        self.phase = "train"
+        self.losses: dict = {}  # 'soft' / 'frozen': held-out losses around the freeze
+        self.qat_on = qat_affine is not None
+        if self.qat_on:  # resumed inside the quantization-aware phase
+            model.encoding.qat_affine = qat_affine
+
+    def before_step(self, fraction: float) -> str:
+        enc, cfg = self.model.encoding, self.cfg
+        if enc.freeze_due(fraction, cfg):
+            self.freeze()
+            self.phase = "finetune"
+        own = enc.schedule(fraction, cfg)
+        if own is not None and own != self.phase:
+            self.phase = own
+            self.events({"event": "phase", "phase": own, "message": f"softmax temperature 1 -> {cfg.tau_min}"})
+        if cfg.qat_bits and not self.qat_on and fraction >= 1.0 - cfg.qat_fraction:
+            self.qat_on = _snap_table(self.model, cfg.qat_bits)
+            self.events({"event": "phase", "phase": "quantize",
+                         "message": f"feature table snapped to {cfg.qat_bits} bits; the network adapts to it"})
+        return self.phase
+
+    def after_backward(self) -> None:
+        if self.qat_on:  # the snapped table stays on its grid
+            self.model.encoding.table.grad = None
+
+    def freeze(self) -> None:
+        self.losses["soft"] = self.held_out_loss()
+        if self.before_freeze is not None:
+            self.before_freeze(self.model)
+        self.model.encoding.freeze()
+        self.losses["frozen"] = self.held_out_loss()
+        self.events({"event": "phase", "phase": "freeze",
+                     "message": f"index codes frozen; held-out loss {self.losses['soft']:.4f} -> "
+                                f"{self.losses['frozen']:.4f}; fine-tuning on the frozen codes"})
+
+    @property
+    def ready_to_stop(self) -> bool:
+        """An early stop waits for the encoding's final form (HashVQAD: frozen)."""
+        return self.model.encoding.frozen
+
+    def finish(self, result: "TrainResult") -> None:
+        """After the loop: a learned index is frozen now if the budget ended before its fine-tune."""
+        if self.model.encoding.learned_index and self.cfg.freeze:
+            if not self.model.encoding.frozen:
+                self.freeze()
+            result.soft_loss_before_freeze = self.losses.get("soft")
+            result.frozen_loss = self.losses.get("frozen")
+            result.finetuned_loss = self.held_out_loss()
 
 
 @torch.no_grad()
@@ -346,15 +333,105 @@ def _snap_table(model: NeuralBVH, bits: int) -> bool:
     return True
 
 
-def _atomic_save(obj, path: Path) -> None:
-    """torch.save, written atomically (outputs.write_atomic): a kill mid-write keeps the previous checkpoint."""
-    import io
+class Progress:
+    """`progress` events at most every cfg.progress_every_s (fraction, loss, samples/s, ETA) and the final one."""
 
-    from .outputs import write_atomic
+    def __init__(self, events: EventSink, cfg: TrainConfig, elapsed_before: float):
+        self.events, self.cfg, self.elapsed_before = events, cfg, elapsed_before
+        self.last = 0.0
+        self.samples = 0
 
-    buf = io.BytesIO()
-    torch.save(obj, buf)
-    write_atomic(path, buf.getvalue())
+    def maybe_emit(self, phase: str, step: int, fraction: float, loss: float, now: float) -> None:
+        if now - self.last < self.cfg.progress_every_s:
+            return
+        self.last = now
+        eta = (now / fraction - now) if fraction > 0.01 else None
+        self.emit(phase, step, fraction, loss, now, eta)
+
+    def samples_per_s(self, now: float) -> float:
+        return self.samples / max(now - self.elapsed_before, 1e-9)
+
+    def emit(self, phase: str, step: int, fraction: float, loss: float, now: float, eta: float | None) -> None:
+        self.events({"event": "progress", "phase": phase, "step": step, "total": self.cfg.steps,
+                     "fraction": round(fraction, 4), "loss": round(loss, 6),
+                     "samples_per_s": round(self.samples_per_s(now), 1), "elapsed_s": round(now, 2),
+                     "eta_s": None if eta is None else round(eta, 1)})
+
+
+class EarlyStop:
+    """Asks target_reached(model) every cfg.target_check_every_s once 10% of the budget has passed (and the
+    encoding is in its final form); True ends training (see TrainConfig.target_check_every_s)."""
+
+    def __init__(self, target_reached, cfg: TrainConfig, last_s: float):
+        self.target_reached, self.cfg, self.last_s = target_reached, cfg, last_s
+
+    def reached(self, model: NeuralBVH, fraction: float, elapsed: float, ready: bool) -> bool:
+        if (self.target_reached is None or fraction < 0.1 or not ready
+                or elapsed - self.last_s < self.cfg.target_check_every_s):
+            return False
+        self.last_s = elapsed
+        return bool(self.target_reached(model))
+
+
+class _TreeCutHook:
+    """N-BVH's tree cut inside training: the model and the batches start on the coarse cut, and follow each
+    refinement (`TreeCut.refine`)."""
+
+    def __init__(self, tree_cut: TreeCut, model: NeuralBVH, events: EventSink):
+        self.tree_cut, self.model, self.events = tree_cut, model, events
+
+    def after_step(self, fraction: float, batches: Batches, leaf_errors: LeafErrors, phase: str) -> None:
+        refined = self.tree_cut.refine(fraction, batches.bvh, leaf_errors)
+        if refined is None:
+            return
+        self.model.set_nodes(refined.nodes)
+        batches.set_bvh(refined)
+        if refined.n_leaves >= self.tree_cut.final_leaves:
+            self.events({"event": "phase", "phase": phase, "message": f"tree cut refined to {refined.n_nodes} "
+                                                                      "nodes by splitting the leaves with the highest error"})
+
+
+def _held_out_loss(model: NeuralBVH, batches: Batches, tracer: ExactTracer, cfg: TrainConfig,
+                   device: torch.device):
+    """A fixed set of 8192 held-out rays (seeded apart from training) and the model's loss on them, as a callable."""
+    def loss() -> float:
+        rays = sample_rays(batches.lo, batches.hi, 8192, np.random.default_rng(cfg.seed + 7919), cfg.ray_config)
+        held_out = label_samples(batches.bvh, tracer, *rays, cfg.labels, tree=batches.tree)
+        with torch.no_grad():
+            return float(samples_loss(model, held_out, device)[0])
+    return loss
+
+
+def _training_data(model, bvh, tracer, cfg, ck, device, plan, rng, events):
+    """The batches, the leaf errors (loss sampling or tree cut) and the tree-cut hook of one run (resumed from ck)."""
+    if cfg.leaf_sampling not in ("uniform", "loss"):
+        raise ValueError(f"leaf_sampling must be 'uniform' or 'loss', got {cfg.leaf_sampling!r}")
+    # Overlapping labels with training is part of the fast path; the reference path stays synchronous.
+    prefetch = (device.type == "cuda" if cfg.prefetch is None else cfg.prefetch) and plan.path == "fast"
+    cut = None
+    if cfg.tree_cut:  # train on a coarser cut first and split where the error is high (see TrainConfig)
+        tree_cut = TreeCut(bvh, cfg, ck.get("cut"), ck.get("tree_cut_rounds_done", 0))
+        bvh = tree_cut.start
+        model.set_nodes(bvh.nodes)
+        prefetch = False  # a refinement drops the labelled batches of the old cut: none may be in flight
+        cut = _TreeCutHook(tree_cut, model, events)
+    leaf_errors = LeafErrors(bvh.n_leaves, cfg.leaf_floor) if cfg.leaf_sampling == "loss" or cut else None
+    if leaf_errors is not None and ck.get("leaf_errors") is not None:
+        leaf_errors.error = ck["leaf_errors"].clone()
+    batches = Batches(bvh, tracer, cfg, rng, prefetch=prefetch, resume=ck.get("numpy_rng"),
+                      leaf_errors=leaf_errors if cfg.leaf_sampling == "loss" else None)
+    return batches, leaf_errors, cut
+
+
+def _checkpoint_state(model, opt, step, elapsed, history, batches, leaf_errors, cut, phases) -> dict:
+    """What a checkpoint holds (see load_checkpoint): model, optimizer, step, elapsed seconds, loss history, the
+    generators' states, the per-leaf errors, the tree cut, the quantization-aware phase's affine map."""
+    return {"model": model.state_dict(), "optimizer": opt.state_dict(), "step": step, "elapsed": elapsed,
+            "history": history, "numpy_rng": batches.rng_state(), "torch_rng": torch.get_rng_state(),
+            "leaf_errors": None if leaf_errors is None else leaf_errors.error.clone(),
+            "cut": None if cut is None else batches.bvh.leaf_full.tolist(),
+            "tree_cut_rounds_done": 0 if cut is None else cut.tree_cut.rounds_done,
+            "qat_affine": model.encoding.qat_affine if phases.qat_on else None}
 
 
 def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, events: EventSink = null_sink,
@@ -373,210 +450,67 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
         raise ValueError("set a step budget or a time limit")
     device = pick_device(cfg.device)
     torch.manual_seed(cfg.seed)
-    rng = np.random.default_rng(cfg.seed)
     model.to(device)
-    logits = [p for n, p in model.named_parameters() if n.endswith("logits")]
-    others = [p for n, p in model.named_parameters() if not n.endswith("logits")]
-    groups = [{"params": others, "lr_factor": 1.0}]
-    if logits:
-        groups.append({"params": logits, "lr_factor": cfg.logits_lr_factor})
-    # The fast path uses torch's fused Adam (one kernel over all parameters: 8 vs 84 ms per step for HashVQAD's
-    # 8.4M index logits on the 2-core CPU); the reference path keeps the default implementation.
-    opt = torch.optim.Adam(groups, lr=cfg.lr, fused=kernels.current_path() == "fast" or None)
-    start_step, elapsed_before = 0, 0.0
-    history: list = []
-    ck: dict = {}  # the checkpoint resumed from (empty for a fresh run)
-    if resume_from is not None:
-        ck = torch.load(resume_from, map_location=device, weights_only=False)
-        codes = ck["model"].get("encoding.codes")
-        if codes is not None and codes.numel() and hasattr(model.encoding, "freeze"):
-            model.encoding.freeze()  # the checkpoint is past the freeze: same structure before loading
-        model.load_state_dict(ck["model"])
-        opt.load_state_dict(ck["optimizer"])
-        start_step, elapsed_before, history = ck["step"], ck["elapsed"], ck["history"]
-        torch.set_rng_state(ck["torch_rng"])
-        events({"event": "phase", "phase": "train", "message": f"resumed at step {start_step}"})
-    # Overlapping labels with training is part of the fast path; the reference path stays synchronous.
-    prefetch = device.type == "cuda" if cfg.prefetch is None else cfg.prefetch
-    if cfg.leaf_sampling not in ("uniform", "loss"):
-        raise ValueError(f"leaf_sampling must be 'uniform' or 'loss', got {cfg.leaf_sampling!r}")
-    tree_cut = _TreeCut(bvh, cfg, ck.get("cut"), ck.get("tree_cut_rounds_done", 0)) if cfg.tree_cut else None
-    if tree_cut is not None:  # train on a coarser cut first and split where the error is high (see TrainConfig)
-        bvh = tree_cut.start
-        model.nodes, model._tree = bvh.nodes, None
-        prefetch = False  # a refinement drops the labelled batches of the old cut: none may be in flight
-    leaf_errors = (LeafErrors(bvh.n_leaves, cfg.leaf_floor)
-                   if cfg.leaf_sampling == "loss" or tree_cut is not None else None)
-    if leaf_errors is not None and ck.get("leaf_errors") is not None:
-        leaf_errors.error = ck["leaf_errors"].clone()
-    batches = _Batches(bvh, tracer, cfg, rng, prefetch=prefetch and kernels.current_path() == "fast",
-                       resume=ck.get("numpy_rng"), leaf_errors=leaf_errors if cfg.leaf_sampling == "loss" else None)
-    is_vqad = hasattr(model.encoding, "freeze")
-    result_losses: dict = {}
-    from .kernels import mlp as fused_mlp
+    plan = kernels.plan(model, device)
+    opt = make_optimizer(model, cfg, plan)
+    ck = load_checkpoint(resume_from, model, opt, device) if resume_from is not None else {}
+    step, elapsed_before, history = ck.get("step", 0), ck.get("elapsed", 0.0), ck.get("history", [])
+    if ck:
+        events({"event": "phase", "phase": "train", "message": f"resumed at step {step}"})
+    batches, leaf_errors, cut = _training_data(model, bvh, tracer, cfg, ck, device, plan,
+                                               np.random.default_rng(cfg.seed), events)
+    schedule, guard, progress = Schedule(cfg), DivergenceGuard(cfg, step), Progress(events, cfg, elapsed_before)
+    phases = EncodingPhases(model, cfg, events, _held_out_loss(model, batches, tracer, cfg, device), before_freeze,
+                            ck.get("qat_affine"))
+    checkpoints = Checkpoints(checkpoint_path, cfg, checkpoint_extra, elapsed_before)
+    early = EarlyStop(target_reached, cfg, elapsed_before)
+    train_step = make_step(model, device, plan)
+    events({"event": "phase", "phase": "train", "message": f"{model.cfg.encoding.kind}+{model.cfg.network.kind}, "
+                                                           f"{cfg.labels} labels, {plan.describe()}"})
 
-    # Fast path, MLP network: one fused kernel per step (kernels/mlp.py); otherwise torch autograd.
-    fused_step = fused_mlp.trains(model)
+    def state() -> dict:  # what a checkpoint holds now
+        return _checkpoint_state(model, opt, step, time.perf_counter() - t0, history, batches, leaf_errors, cut, phases)
 
-    def held_out_loss() -> float:
-        held_out = label_samples(batches.bvh, tracer, *sample_rays(batches.lo, batches.hi, 8192,
-                                                           np.random.default_rng(cfg.seed + 7919), cfg.ray_config),
-                                 cfg.labels, tree=batches.tree)
-        with torch.no_grad():
-            return float(samples_loss(model, held_out, device)[0])
-
-    def freeze_now() -> None:
-        result_losses["soft"] = held_out_loss()
-        if before_freeze is not None:
-            before_freeze(model)
-        model.encoding.freeze()
-        result_losses["frozen"] = held_out_loss()
-        events({"event": "phase", "phase": "freeze",
-                "message": f"index codes frozen; held-out loss {result_losses['soft']:.4f} -> "
-                           f"{result_losses['frozen']:.4f}; fine-tuning on the frozen codes"})
-
-    def save_checkpoint(step: int, elapsed: float) -> None:
-        if checkpoint_path is not None:
-            _atomic_save({"model": model.state_dict(), "optimizer": opt.state_dict(), "step": step,
-                          "elapsed": elapsed, "history": history, "numpy_rng": batches.rng_state(),
-                          "torch_rng": torch.get_rng_state(), "train_config": cfg.to_dict(),
-                          "leaf_errors": None if leaf_errors is None else leaf_errors.error.clone(),
-                          "cut": None if tree_cut is None else batches.bvh.leaf_full.tolist(),
-                          "tree_cut_rounds_done": 0 if tree_cut is None else tree_cut.rounds_done,
-                          "qat_affine": model.encoding.qat_affine if qat_on else None,
-                          "extra": checkpoint_extra or {}},
-                         Path(checkpoint_path))
-
-    events({"event": "phase", "phase": "train",
-            "message": f"{model.cfg.encoding.kind}+{model.cfg.network.kind}, {cfg.labels} labels, on {device}, "
-                       f"{kernels.describe(device)}"})
     t0 = time.perf_counter() - elapsed_before
-    last_emit = 0.0
-    last_checkpoint = elapsed_before
-    last_target_check = elapsed_before
-    stopped_early = False
-    n_samples = 0
-    ema = None
-    first_losses: list[float] = []  # the first 5 batches; [0] is the untrained model's loss
-    step = start_step
-    loss_val = float("nan")
-    phase = "train"
-    qat_on = False
-    if ck.get("qat_affine") is not None:  # resumed inside the quantization-aware phase
-        model.encoding.qat_affine = ck["qat_affine"]
-        qat_on = True
+    stopped_early, loss = False, float("nan")
     try:
-        while True:
-            elapsed = time.perf_counter() - t0
-            frac = max(step / cfg.steps if cfg.steps else 0.0,
-                       elapsed / cfg.time_limit_s if cfg.time_limit_s else 0.0)
-            if frac >= 1.0:
+        while (frac := schedule.fraction(step, elapsed := time.perf_counter() - t0)) < 1.0:
+            if early.reached(model, frac, elapsed, phases.ready_to_stop):
+                stopped_early = True
+                events({"event": "phase", "phase": phases.phase,
+                        "message": f"target reached at step {step} ({elapsed:.0f} s): training stops"})
                 break
-            if (target_reached is not None and frac >= 0.1 and elapsed - last_target_check >= cfg.target_check_every_s
-                    and not (is_vqad and not model.encoding.frozen)):
-                last_target_check = elapsed
-                if target_reached(model):
-                    stopped_early = True
-                    events({"event": "phase", "phase": phase, "message": f"target reached at step {step} "
-                                                                         f"({elapsed:.0f} s): training stops"})
-                    break
             if should_cancel():
-                save_checkpoint(step, elapsed)
+                checkpoints.save(state())
                 raise Cancelled(f"cancelled at step {step}")
-            if is_vqad and cfg.freeze and not model.encoding.frozen and frac >= 1.0 - cfg.finetune_fraction:
-                freeze_now()
-                phase = "finetune"
-            if is_vqad and not model.encoding.frozen:
-                anneal_end = 1.0 - (cfg.finetune_fraction if cfg.freeze else 0.0)
-                anneal_start = anneal_end - cfg.anneal_fraction
-                if frac >= anneal_start and cfg.anneal_fraction > 0:
-                    a = min(1.0, (frac - anneal_start) / cfg.anneal_fraction)
-                    model.encoding.temperature = float(cfg.tau_min ** a)
-                    if phase != "anneal":
-                        phase = "anneal"
-                        events({"event": "phase", "phase": "anneal",
-                                "message": f"softmax temperature 1 -> {cfg.tau_min}"})
-            if cfg.qat_bits and not qat_on and frac >= 1.0 - cfg.qat_fraction:
-                qat_on = _snap_table(model, cfg.qat_bits)
-                events({"event": "phase", "phase": "quantize",
-                        "message": f"feature table snapped to {cfg.qat_bits} bits; the network adapts to it"})
-            for g in opt.param_groups:
-                g["lr"] = cfg.lr * g["lr_factor"] * cfg.lr_final_factor ** frac
+            phase = phases.before_step(frac)
+            schedule.set_lr(opt, frac)
             batch = batches.next()
-            want_raw = leaf_errors is not None
-            if fused_step:  # forward, loss and backward in one kernel call: the gradients are set already
-                opt.zero_grad(set_to_none=True)
-                loss_val, parts = fused_mlp.train_step(model, batch, want_raw=want_raw)
-            else:
-                loss, parts = samples_loss(model, batch, device, want_raw=want_raw)
-                loss_val = float(loss.detach())
-            if want_raw:
-                leaf_errors.update(batch.leaf, sample_errors(model.network, parts["raw"], batch))
-            if not math.isfinite(loss_val):
-                raise TrainingDiverged(f"loss became {loss_val} at step {step}")
-            if ema is not None and step - start_step > 50 and loss_val > cfg.divergence_factor * ema:
-                raise TrainingDiverged(f"loss jumped to {loss_val:.4g} (running mean {ema:.4g}) at step {step}")
-            ema = loss_val if ema is None else 0.98 * ema + 0.02 * loss_val
-            if len(first_losses) < 5:
-                first_losses.append(loss_val)  # what "rose" and "did not fall" compare with
-            elif step - start_step >= 50 and ema > cfg.rise_factor * first_losses[0]:
-                raise TrainingDiverged(f"loss rose from {first_losses[0]:.4g} to {ema:.4g} (running mean) by step "
-                                       f"{step}: the learning rate {cfg.lr:g} is too high for this model")
-            if not fused_step:
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-            if qat_on:  # the snapped table stays on its grid
-                model.encoding.table.grad = None
+            opt.zero_grad(set_to_none=True)
+            loss, parts = train_step(batch, leaf_errors is not None)
+            if leaf_errors is not None:
+                leaf_errors.update(batch.leaf, model.network.sample_errors(
+                    parts["raw"].cpu(), batch.hit, batch.local_t, batch.normal))
+            guard.observe(step, loss)
+            phases.after_backward()
             opt.step()
             step += 1
-            refined = tree_cut.refine(frac, batches.bvh, leaf_errors) if tree_cut is not None else None
-            if refined is not None:
-                model.nodes, model._tree = refined.nodes, None
-                batches.set_bvh(refined)
-                if refined.n_leaves >= tree_cut.final_leaves:
-                    events({"event": "phase", "phase": phase, "message": f"tree cut refined to {refined.n_nodes} "
-                            "nodes by splitting the leaves with the highest error"})
-            n_samples += len(batch)
-            history.append((step, loss_val))
+            if cut is not None:
+                cut.after_step(frac, batches, leaf_errors, phase)
+            progress.samples += len(batch)
+            history.append((step, loss))
             now = time.perf_counter() - t0
-            if ((cfg.checkpoint_every and step % cfg.checkpoint_every == 0)
-                    or (cfg.checkpoint_every_s and now - last_checkpoint >= cfg.checkpoint_every_s)):
-                save_checkpoint(step, now)
-                last_checkpoint = now
-            if now - last_emit >= cfg.progress_every_s:
-                last_emit = now
-                run_time = now - elapsed_before
-                sps = n_samples / max(run_time, 1e-9)
-                eta = (now / frac - now) if frac > 0.01 else None
-                events({"event": "progress", "phase": phase, "step": step, "total": cfg.steps, "fraction": round(frac, 4),
-                        "loss": round(loss_val, 6), "samples_per_s": round(sps, 1), "elapsed_s": round(now, 2),
-                        "eta_s": None if eta is None else round(eta, 1)})
+            checkpoints.maybe_save(step, now, state)
+            progress.maybe_emit(phase, step, frac, loss, now)
     finally:
         batches.close()
-    for p in model.parameters():
-        if not torch.isfinite(p).all():
-            raise TrainingDiverged("parameters contain NaN/inf after training")
-    # One small batch is noisy enough to fake or hide a 2% fall: compare with the mean of the first 5 (a rate so high
-    # that the loss explodes within them is caught by the rise check above).
-    start_loss = max(float(np.mean(first_losses)), first_losses[0]) if first_losses else None
-    if start_loss is not None and step - start_step >= 50 and ema >= 0.98 * start_loss:
-        # A too-high learning rate can kill the network in the first steps (dead ReLUs): it then predicts the
-        # prior and the loss stays at its starting value. Such a model is useless; do not save it.
-        raise TrainingDiverged(f"the loss did not fall in {step - start_step} steps ({start_loss:.4g} -> {ema:.4g}): "
-                               f"the learning rate {cfg.lr:g} is too high for this model, or it cannot learn")
+    guard.finish(model, step)
     seconds = time.perf_counter() - t0
-    run_time = seconds - elapsed_before
-    result = TrainResult(steps=step, seconds=seconds, samples=n_samples,
-                         samples_per_s=n_samples / max(run_time, 1e-9), final_loss=ema if ema is not None else loss_val,
-                         device=str(device), history=history, compute_path=kernels.describe(device),
+    result = TrainResult(steps=step, seconds=seconds, samples=progress.samples,
+                         samples_per_s=progress.samples_per_s(seconds),
+                         final_loss=guard.ema if guard.ema is not None else loss, device=str(device),
+                         history=history, compute_path=plan.describe(), kernel_plan=plan.to_dict(),
                          stopped_early=stopped_early)
-    events({"event": "progress", "phase": phase, "step": step, "total": cfg.steps, "fraction": 1.0,
-            "loss": round(result.final_loss, 6), "samples_per_s": round(result.samples_per_s, 1),
-            "elapsed_s": round(seconds, 2), "eta_s": 0.0})
-    if is_vqad and cfg.freeze:
-        if not model.encoding.frozen:  # a budget too short to reach the fine-tune phase
-            freeze_now()
-        result.soft_loss_before_freeze = result_losses.get("soft")
-        result.frozen_loss = result_losses.get("frozen")
-        result.finetuned_loss = held_out_loss()
+    progress.emit(phases.phase, step, 1.0, result.final_loss, seconds, 0.0)
+    phases.finish(result)
     return result

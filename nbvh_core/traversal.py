@@ -126,7 +126,7 @@ def leaves_along_rays(tree: TorchBVH, rays_o: torch.Tensor, rays_d: torch.Tensor
     rays_o, rays_d: (N, 3) float32 on tree.device (directions need not be unit length; t is in units of
     |rays_d|); t_max: (N,) float32 or None. Leaves with t_enter > t_max are left out.
     """
-    if kernels.fast_enabled(rays_o.device):
+    if kernels.traversal_kernel(rays_o.device) == "fused":
         return _leaves_along_rays_fast(tree, rays_o, rays_d, t_max)
     n = rays_o.shape[0]
     dev = rays_o.device
@@ -209,7 +209,7 @@ class LeafStream:
         self.t_max = (torch.full((n,), torch.inf, device=dev) if t_max is None
                       else t_max.to(torch.float32).clone())
         depth = tree.max_depth + 2
-        self.fast = kernels.fast_enabled(dev)
+        self.fast = kernels.traversal_kernel(dev) == "fused"
         # The C++ stepper keeps int32 stacks (contiguous, one row per ray; it reads only entries below sp, so they
         # are left uninitialised); the reference int64.
         alloc = torch.empty if self.fast else torch.zeros

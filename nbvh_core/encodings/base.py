@@ -10,9 +10,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
+from typing import ClassVar
 
 import torch
 import torch.nn.functional as F
+from torch import nn
 
 PRIMES = (1, 2654435761, 805459861)
 MASK32 = 0xFFFFFFFF
@@ -50,6 +52,44 @@ class EncodingConfig:
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+
+class Encoding(nn.Module):
+    """The contract every encoding keeps (what the model, the trainer, the kernels' planner and the file use).
+
+    * `forward(points (N, 3) float32 in [0, 1]^3) -> (N, out_dim) float32`; `out_dim`; `stored_bytes(table_bits)
+      -> {component: bytes}` (what the file holds).
+    * Capability flags, read instead of probing for methods: `grid_lookup` - a multiresolution grid the fused
+      kernels read (`fused_lookup()`, `grid_spec()`; `kernels.plan` decides whether they do); `learned_index` - a
+      soft index that is trained, annealed and frozen into integer codes (`schedule`, `freeze`, `frozen`).
+    * Life cycle hooks the trainer calls (no-ops for a plain table): `schedule(fraction, cfg)` once per step with
+      the training fraction in [0, 1] (sets e.g. the softmax temperature; returns the name of the phase it is in,
+      or None for none of its own), `freeze_due(fraction, cfg)`, `freeze()`; `frozen` is True once the encoding is in the
+      form the file stores.
+    """
+
+    grid_lookup: ClassVar[bool] = False
+    learned_index: ClassVar[bool] = False
+
+    @property
+    def out_dim(self) -> int:
+        raise NotImplementedError
+
+    @property
+    def frozen(self) -> bool:
+        return True
+
+    def schedule(self, fraction: float, cfg) -> str | None:
+        return None
+
+    def freeze_due(self, fraction: float, cfg) -> bool:
+        return False
+
+    def freeze(self) -> None:
+        pass
+
+    def stored_bytes(self, table_bits: int = 32) -> dict[str, int]:
+        raise NotImplementedError
 
 
 def level_scales(cfg: EncodingConfig) -> list[float]:

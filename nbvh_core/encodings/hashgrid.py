@@ -5,11 +5,11 @@ import torch
 from torch import nn
 
 from .. import kernels
-from .base import EncodingConfig, corner_indices, gather_weighted_sum, level_scales
+from .base import Encoding, EncodingConfig, corner_indices, gather_weighted_sum, level_scales
 from .fused import FusedLookup, GridSpec, fused_encode, fused_encode_half, fused_encode_u8
 
 
-class HashGrid(nn.Module):
+class HashGrid(Encoding):
     """points (N, 3) in [0, 1]^3 -> features (N, L * F), level-major.
 
     Parameters: `table` (L, T, F). After `quantize_()` the rows live as uint8 codes (buffers `qcodes` (L, T, F),
@@ -18,6 +18,8 @@ class HashGrid(nn.Module):
     `gather_weighted_sum` (gather + weighted sum; its backward scatters with index_add_, no sort) on the reference
     path, and as one fused C++ pass (`fused.fused_encode`) on the fast path (`nbvh_core.kernels`).
     """
+
+    grid_lookup = True
 
     def __init__(self, cfg: EncodingConfig, inference: bool = False):
         super().__init__()
@@ -85,7 +87,7 @@ class HashGrid(nn.Module):
         return idx
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
-        if kernels.fast_enabled(points.device) and self.table.dtype == torch.float32:
+        if kernels.encoding_kernel(self, points.device) != "torch":
             return self._fused_forward(points)
         return self.reference_forward(points)
 
@@ -104,10 +106,15 @@ class HashGrid(nn.Module):
         spec = self.grid_spec()
         if self.quantized:
             return FusedLookup(self.qcodes, "u8", spec, codes, code_rows, self.qoffset, self.qscale)
-        # The float16 copy is of the stored rows only (a soft HashVQAD table is recomputed every step).
-        if self.half_tables and not torch.is_grad_enabled() and rows is self.table:
+        if self.uses_half_rows(rows):
             return FusedLookup(self._half_table(), "f16", spec, codes, code_rows)
         return FusedLookup(rows, "f32", spec, codes, code_rows)
+
+    def uses_half_rows(self, rows: torch.Tensor | None = None) -> bool:
+        """True when inference reads the float16 copy of the rows (`half_tables`, no grad); the copy is of the
+        stored rows only (a soft HashVQAD table is recomputed every step)."""
+        rows = self._fused_rows()[0] if rows is None else rows
+        return self.half_tables and not self.quantized and not torch.is_grad_enabled() and rows is self.table
 
     def grid_spec(self) -> GridSpec:
         """The constant level geometry the fused kernels read (built once)."""

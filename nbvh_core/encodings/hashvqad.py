@@ -74,6 +74,8 @@ class HashVQAD(HashGrid):
     `freeze()`.
     """
 
+    learned_index = True
+
     def __init__(self, cfg: EncodingConfig, inference: bool = False):
         super().__init__(cfg, inference)
         if cfg.candidates < 2 or cfg.candidates & (cfg.candidates - 1):
@@ -104,8 +106,7 @@ class HashVQAD(HashGrid):
     def row_table(self) -> torch.Tensor:
         if self.frozen:
             return self.float_rows()
-        if (kernels.fast_enabled(self.table.device) and self.cfg.candidates <= 256
-                and self.table.dtype == self.logits.dtype == torch.float32):  # the kernel computes in float32
+        if kernels.soft_table_kernel(self, self.table.device) == "fused":
             return _SoftTable.apply(self.logits, self.table, self._group_candidates().contiguous(),
                                     float(self.temperature), self.cfg)
         return self.reference_row_table()
@@ -131,6 +132,23 @@ class HashVQAD(HashGrid):
         code = self.codes.to(torch.int64)  # (L, H)
         level = torch.arange(self.cfg.levels, device=idx.device)[None, :, None].expand_as(idx)
         return candidate_rows(idx, code[level, idx], self.cfg.table_size)
+
+    def schedule(self, fraction: float, cfg) -> str | None:
+        """The soft index's life cycle over training (cfg: train.TrainConfig): temperature 1 until the anneal
+        phase (the `anneal_fraction` before the fine-tune, or before the end without a freeze), then geometrically
+        down to `tau_min`. Returns 'anneal' while annealing, else None."""
+        if self.frozen or cfg.anneal_fraction <= 0:
+            return None
+        anneal_end = 1.0 - (cfg.finetune_fraction if cfg.freeze else 0.0)
+        anneal_start = anneal_end - cfg.anneal_fraction
+        if fraction < anneal_start:
+            return None
+        self.temperature = float(cfg.tau_min ** min(1.0, (fraction - anneal_start) / cfg.anneal_fraction))
+        return "anneal"
+
+    def freeze_due(self, fraction: float, cfg) -> bool:
+        """True once the fine-tune phase (the last `finetune_fraction`) is reached with the index still soft."""
+        return cfg.freeze and not self.frozen and fraction >= 1.0 - cfg.finetune_fraction
 
     @torch.no_grad()
     def freeze(self) -> None:

@@ -16,27 +16,22 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from . import fast_enabled, load, ptr, threads
+from .library import load, ptr, threads
+from .plan import network_kernel, train_step_kernel
 
 
 def applies(model) -> bool:
-    """True when a model's queries and training steps can run fused: fast path on this device, an MLP or KMLP
-    network with 5 outputs, a grid encoding with float32 (or quantized) rows."""
-    from ..networks import KMLP, MLP
-
-    return (fast_enabled(model.device) and isinstance(model.network, (MLP, KMLP))
-            and hasattr(model.encoding, "fused_lookup") and model.encoding.table.dtype == torch.float32)
+    """True when a model's queries run fused (`kernels.plan`: its network stage is 'fused mlp' / 'fused kmlp')."""
+    return network_kernel(model) != "torch"
 
 
 def _is_kmlp(model) -> bool:
-    from ..networks import KMLP
-
-    return isinstance(model.network, KMLP)
+    return model.network.fused_kind == "kmlp"
 
 
 def trains(model) -> bool:
-    """True when a training step can run fused (as `applies`, with float rows to train)."""
-    return applies(model) and not model.encoding.quantized
+    """True when a training step runs fused (`kernels.plan`: its train_step stage is fused)."""
+    return train_step_kernel(model) != "autograd"
 
 
 def _linears(model) -> list[nn.Linear]:

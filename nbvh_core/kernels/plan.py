@@ -1,0 +1,110 @@
+"""Which kernel runs each stage: decided here and nowhere else, and recorded in every result.
+
+Every decision reads the one switch (`kernels.fast_enabled`: the fast path chosen, CPU tensors, the library built)
+and the model's declared capabilities (`Encoding.grid_lookup` / `learned_index`, `Network.fused_kind`), never
+probes for methods. The call sites ask the stage functions below; `plan(model, device)` gathers them into the
+`KernelPlan` a result records (`TrainResult.compute_path`, `kernel_plan`), so a number says exactly which code
+produced it.
+
+Stages: traversal (leaf streams and training label lists), encoding (grid lookups outside the fused network),
+soft_table (HashVQAD's softmax row table while its index is soft), network (inference per segment), train_step
+(forward, loss and backward of one step), optimizer (Adam's update).
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import torch
+
+from .library import current_path, describe, fast_enabled, threads
+
+TORCH = "torch"
+
+
+def traversal_kernel(device: torch.device | str) -> str:
+    """'fused' (per-ray stack loops in C++) or 'torch' (all rays one pop at a time with tensor ops)."""
+    return "fused" if fast_enabled(device) else TORCH
+
+
+def encoding_kernel(encoding, device: torch.device | str) -> str:
+    """'fused f32' | 'fused f16' | 'fused u8' (the row type the kernel reads) or 'torch'."""
+    if not (encoding.grid_lookup and fast_enabled(device)):
+        return TORCH
+    if encoding.quantized:
+        return "fused u8"
+    if encoding.table.dtype != torch.float32:
+        return TORCH
+    return "fused f16" if encoding.uses_half_rows() else "fused f32"
+
+
+def soft_table_kernel(encoding, device: torch.device | str) -> str | None:
+    """HashVQAD's soft row table: 'fused' or 'torch'; None when the encoding has no soft index (now)."""
+    if not encoding.learned_index or encoding.frozen:
+        return None
+    fused = (fast_enabled(device) and encoding.cfg.candidates <= 256
+             and encoding.table.dtype == encoding.logits.dtype == torch.float32)  # the kernel computes in float32
+    return "fused" if fused else TORCH
+
+
+def network_kernel(model) -> str:
+    """Inference per (ray, leaf) segment: 'fused mlp' | 'fused kmlp' (points, lookup and every layer in one call)
+    or 'torch' (the encoding's stage, then torch's layers)."""
+    net, enc = model.network, model.encoding
+    if (net.fused_kind is None or not enc.grid_lookup or not fast_enabled(model.device)
+            or enc.table.dtype != torch.float32):
+        return TORCH
+    return f"fused {net.fused_kind}"
+
+
+def train_step_kernel(model) -> str:
+    """One training step: 'fused mlp' | 'fused kmlp' (forward, loss and backward in one kernel call) or
+    'autograd' (torch autograd over the encoding's and the soft table's stages)."""
+    fused = network_kernel(model)
+    return fused if fused != TORCH and not model.encoding.quantized else "autograd"
+
+
+def optimizer_kernel() -> str:
+    """'fused Adam' (torch's one-kernel Adam over all parameters: 8 vs 84 ms per step for HashVQAD's 8.4M index
+    logits on the 2-core CPU) on the fast path, 'Adam' (the default implementation) on the reference path."""
+    return "fused Adam" if current_path() == "fast" else "Adam"
+
+
+@dataclass(frozen=True)
+class KernelPlan:
+    """What runs each stage for one model on one device (see the module docstring)."""
+
+    path: str  # 'fast' | 'reference': the switch
+    device: str
+    traversal: str
+    encoding: str
+    soft_table: str | None
+    network: str
+    train_step: str
+    optimizer: str
+    threads: int
+    note: str = ""  # why the fused kernels do not serve this device, if they do not
+
+    def describe(self) -> str:
+        """One line for results, e.g. 'fast on cpu (2 threads): traversal fused, train step fused kmlp, ...'."""
+        stages = [f"traversal {self.traversal}", f"train step {self.train_step}", f"network {self.network}",
+                  f"encoding {self.encoding}"]
+        if self.soft_table is not None:
+            stages.append(f"soft table {self.soft_table}")
+        stages.append(self.optimizer)
+        head = f"{self.path} on {self.device} ({self.threads} threads)"
+        return f"{head}: {', '.join(stages)}" + (f" [{self.note}]" if self.note else "")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def plan(model, device: torch.device | str | None = None) -> KernelPlan:
+    """The plan for `model` (NeuralBVH) on `device` (default: where the model is), as it is now (a HashVQAD's soft
+    table stage disappears once it is frozen; a quantized table is read as u8)."""
+    device = torch.device(device if device is not None else model.device)
+    enc = model.encoding
+    note = "" if fast_enabled(device) or current_path() == "reference" else describe(device)
+    return KernelPlan(path=current_path(), device=device.type, traversal=traversal_kernel(device),
+                      encoding=encoding_kernel(enc, device), soft_table=soft_table_kernel(enc, device),
+                      network=network_kernel(model), train_step=train_step_kernel(model),
+                      optimizer=optimizer_kernel(), threads=threads(), note=note)
