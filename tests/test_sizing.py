@@ -198,3 +198,23 @@ def test_table_and_node_choice_is_the_smallest_file_meeting_the_target():
     # Without a node fit the node count stays at the fitted one.
     plain = dataclasses.replace(fit, nodes_coef=0.0)
     assert choose_table_and_nodes(plain, f, 0.01, size_of)[1] == 2047
+
+
+def test_cli_plan_and_the_jobs_share_one_scene_plan(tmp_path, capsys, sample_meshes):
+    """`nbvh plan` and every job of a scene budget (job._scene_share) take their sizes from sizing.plan_scene."""
+    from nbvh_core.job import _scene_share
+
+    names = ["blob", "studs"]
+    paths = []
+    for n in names:
+        m = sample_meshes[n]
+        paths.append(str(tmp_path / f"{n}.npz"))
+        np.savez(paths[-1], vertices=m.vertices, faces=m.faces)
+    capsys.readouterr()
+    assert cli_main(["plan", *names, "--budget-kb", "900", "--json"]) == 0
+    cli_plan = {o["mesh"]: o["log2_table"] for o in json.loads(capsys.readouterr().out)["objects"]}
+    for i, n in enumerate(names):
+        scene = {"budget_kb": 900, "meshes": paths, "names": names, "index": i}
+        settings, split = _scene_share(scene, preset("default"), lambda e: None)
+        assert settings.log2_table == cli_plan[n] == split["objects"][i]["log2_table"]
+        assert settings.encoding == "hashgrid" and settings.budget_kb is None and settings.target_mse is None

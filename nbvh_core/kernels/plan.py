@@ -46,20 +46,21 @@ def soft_table_kernel(encoding, device: torch.device | str) -> str | None:
     return "fused" if fused else TORCH
 
 
-def network_kernel(model) -> str:
-    """Inference per (ray, leaf) segment: 'fused mlp' | 'fused kmlp' (points, lookup and every layer in one call)
-    or 'torch' (the encoding's stage, then torch's layers)."""
+def network_kernel(model, device: torch.device | str | None = None) -> str:
+    """Inference per (ray, leaf) segment on `device` (default: the model's): 'fused mlp' | 'fused kmlp' (points,
+    lookup and every layer in one call) or 'torch' (the encoding's stage, then torch's layers)."""
     net, enc = model.network, model.encoding
-    if (net.fused_kind is None or not enc.grid_lookup or not fast_enabled(model.device)
+    device = model.device if device is None else device
+    if (net.fused_kind is None or not enc.grid_lookup or not fast_enabled(device)
             or enc.table.dtype != torch.float32):
         return TORCH
     return f"fused {net.fused_kind}"
 
 
-def train_step_kernel(model) -> str:
+def train_step_kernel(model, device: torch.device | str | None = None) -> str:
     """One training step: 'fused mlp' | 'fused kmlp' (forward, loss and backward in one kernel call) or
     'autograd' (torch autograd over the encoding's and the soft table's stages)."""
-    fused = network_kernel(model)
+    fused = network_kernel(model, device)
     return fused if fused != TORCH and not model.encoding.quantized else "autograd"
 
 
@@ -106,5 +107,5 @@ def plan(model, device: torch.device | str | None = None) -> KernelPlan:
     note = "" if fast_enabled(device) or current_path() == "reference" else describe(device)
     return KernelPlan(path=current_path(), device=device.type, traversal=traversal_kernel(device),
                       encoding=encoding_kernel(enc, device), soft_table=soft_table_kernel(enc, device),
-                      network=network_kernel(model), train_step=train_step_kernel(model),
+                      network=network_kernel(model, device), train_step=train_step_kernel(model, device),
                       optimizer=optimizer_kernel(), threads=threads(), note=note)

@@ -1,0 +1,137 @@
+"""The code's shape, checked from the source (AST): no import cycles in nbvh_core (function-local imports count
+too), the layering (nbvh_core never imports bpy, the add-on never imports torch, the core modules the add-on loads
+are torch-free all the way down), no function in nbvh_core over 80 lines, and every C signature declared once."""
+from __future__ import annotations
+
+import ast
+import ctypes
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+CORE = ROOT / "nbvh_core"
+MAX_FUNCTION_LINES = 80
+#: Functions allowed past MAX_FUNCTION_LINES, with the reason (none today; an entry needs one).
+LONG_FUNCTIONS: dict[str, str] = {}
+#: The core modules the add-on imports inside Blender's process (addon/job.py), which has no torch.
+TORCH_FREE = ("nbvh_core.events", "nbvh_core.outputs", "nbvh_core.quality_levels", "nbvh_core.process")
+
+
+def _module_name(path: Path) -> str:
+    parts = list(path.relative_to(ROOT).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _imports(path: Path) -> set[str]:
+    """Every module `path` imports anywhere (top level or inside functions), as absolute dotted names; a
+    `from pkg import name` counts as pkg.name when that is a module, else as pkg."""
+    mod = _module_name(path)
+    package = mod if path.name == "__init__.py" else mod.rpartition(".")[0]
+    out = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            out.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")[:len(package.split(".")) - (node.level - 1)]
+                target = ".".join(base + ([node.module] if node.module else []))
+            else:
+                target = node.module
+            out.add(target)
+            out.update(f"{target}.{a.name}" for a in node.names)
+    return out
+
+
+def _core_graph() -> dict[str, set[str]]:
+    files = {_module_name(p): p for p in CORE.rglob("*.py")}
+    return {m: {d for d in _imports(p) if d in files and d != m} for m, p in files.items()}
+
+
+def _find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
+    state: dict[str, int] = {}  # 1 on the stack, 2 done
+    stack: list[str] = []
+
+    def visit(m: str) -> list[str] | None:
+        state[m] = 1
+        stack.append(m)
+        for d in sorted(graph[m]):
+            if state.get(d) == 1:
+                return stack[stack.index(d):] + [d]
+            if d not in state and (found := visit(d)):
+                return found
+        stack.pop()
+        state[m] = 2
+        return None
+
+    for m in sorted(graph):
+        if m not in state and (found := visit(m)):
+            return found
+    return None
+
+
+def test_no_import_cycles_in_nbvh_core():
+    graph = _core_graph()
+    assert len(graph) > 25  # the walk found the package
+    cycle = _find_cycle(graph)
+    assert cycle is None, " -> ".join(cycle)
+
+
+def test_the_cycle_finder_finds_a_cycle():
+    assert _find_cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
+    assert _find_cycle({"a": {"b"}, "b": set()}) is None
+
+
+def test_layers_nbvh_core_has_no_bpy_and_the_addon_no_torch():
+    for p in CORE.rglob("*.py"):
+        assert not any(i.split(".")[0] == "bpy" for i in _imports(p)), p
+    for p in list((ROOT / "addon").rglob("*.py")) + [ROOT / "compress.py"]:
+        assert not any(i.split(".")[0] == "torch" for i in _imports(p)), p
+
+
+def test_core_modules_the_addon_loads_are_torch_free_all_the_way_down():
+    graph = _core_graph()
+    files = {_module_name(p): p for p in CORE.rglob("*.py")}
+    for start in TORCH_FREE:
+        seen, todo = set(), [start, "nbvh_core"]  # importing a submodule runs the package's __init__ first
+        while todo:
+            m = todo.pop()
+            if m in seen:
+                continue
+            seen.add(m)
+            assert not any(i.split(".")[0] in ("torch", "bpy") for i in _imports(files[m])), f"{start} -> {m}"
+            todo.extend(graph[m])
+
+
+def test_no_function_in_nbvh_core_is_longer_than_80_lines():
+    long = []
+    for p in CORE.rglob("*.py"):
+        for node in ast.walk(ast.parse(p.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                n = node.end_lineno - node.lineno + 1
+                name = f"{_module_name(p)}.{node.name}"
+                if n > MAX_FUNCTION_LINES and name not in LONG_FUNCTIONS:
+                    long.append(f"{name}: {n} lines")
+    assert not long, long
+
+
+def test_c_signatures_are_read_from_the_source_and_bind_the_library():
+    from nbvh_core import kernels
+
+    sigs = kernels.c_signatures()
+    assert {"nbvh_encode_forward", "nbvh_net_train", "nbvh_vqad_soft_backward", "nbvh_leaves_traverse"} <= set(sigs)
+    restype, argtypes, names = sigs["nbvh_encode_forward"]
+    assert restype is None and names[:3] == ["points", "n", "table"]
+    assert argtypes[:3] == [ctypes.c_void_p, ctypes.c_int64, ctypes.c_void_p] and argtypes[-1] is ctypes.c_int
+    assert sigs["nbvh_leaves_traverse"][0] is ctypes.c_void_p
+    assert kernels.abi_version() == kernels.abi_version(kernels.SOURCE.read_text()) > 0
+    # A made-up declaration is parsed the same way (the parser, not a table, is the source of truth).
+    fake = 'extern "C" {\nvoid nbvh_x(const float* a, int64_t n,\n            double w, uint8_t* out) {\n}\n}'
+    assert kernels.c_signatures(fake)["nbvh_x"][1] == [ctypes.c_void_p, ctypes.c_int64, ctypes.c_double,
+                                                         ctypes.c_void_p]
+    lib = kernels.load()
+    if lib is None:
+        pytest.skip(kernels.describe())
+    assert lib.nbvh_encode_forward.argtypes == argtypes
+    with pytest.raises(TypeError):  # a call site with a missing argument fails loudly, not in C
+        lib.nbvh_encode_forward(0, 0)

@@ -1,0 +1,218 @@
+"""The training loop's parts, each alone: schedule, divergence guard, early stop, checkpoints, the encoding's life
+cycle, the step that hides fused vs autograd, the kernel plan, the networks' one loss definition, and how a run
+ends (process.outcome)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from nbvh_core import kernels
+from nbvh_core.bvh import build_bvh
+from nbvh_core.encodings import EncodingConfig
+from nbvh_core.exact import ExactTracer
+from nbvh_core.model import ModelConfig, NeuralBVH
+from nbvh_core.networks import NetworkConfig
+from nbvh_core.process import Cancelled, NotWorthCompressing, TrainingDiverged, outcome
+from nbvh_core.samples import label_samples, root_box, sample_rays
+from nbvh_core.train import (Checkpoints, DivergenceGuard, EarlyStop, EncodingPhases, Schedule, TrainConfig,
+                             make_optimizer, make_step, train)
+
+VQAD = dict(kind="hashvqad", log2_table=6, levels=2, features=4, index_factor=4, candidates=4)
+GRID = dict(kind="hashgrid", log2_table=6, levels=2, features=4)
+
+
+@pytest.fixture(scope="module")
+def blob(sample_meshes):
+    mesh = sample_meshes["blob"]
+    bvh = build_bvh(mesh, 31)
+    tracer = ExactTracer(mesh)
+    o, d = sample_rays(*root_box(bvh), 600, np.random.default_rng(2))
+    return mesh, bvh, tracer, label_samples(bvh, tracer, o, d, "consistent")
+
+
+def _model(bvh, enc=GRID, net="mlp"):
+    torch.manual_seed(0)
+    return NeuralBVH(bvh.nodes, ModelConfig(EncodingConfig(**enc), NetworkConfig(kind=net, k=4)))
+
+
+def test_schedule_fraction_is_the_first_budget_to_run_out_and_lr_decays():
+    s = Schedule(TrainConfig(steps=100, time_limit_s=10.0, lr=1e-2, lr_final_factor=0.1))
+    assert s.fraction(50, 1.0) == 0.5 and s.fraction(10, 8.0) == 0.8
+    assert Schedule(TrainConfig(steps=None, time_limit_s=4.0)).fraction(10 ** 6, 1.0) == 0.25
+    opt = torch.optim.Adam([{"params": [torch.zeros(1, requires_grad=True)], "lr_factor": 1.0},
+                            {"params": [torch.zeros(1, requires_grad=True)], "lr_factor": 10.0}], lr=1.0)
+    s.set_lr(opt, 1.0)
+    assert [g["lr"] for g in opt.param_groups] == pytest.approx([1e-3, 1e-2])
+    s.set_lr(opt, 0.0)
+    assert opt.param_groups[0]["lr"] == pytest.approx(1e-2)
+
+
+def test_divergence_guard_catches_each_failure_and_passes_a_falling_loss():
+    cfg = TrainConfig()
+    with pytest.raises(TrainingDiverged, match="became nan"):
+        DivergenceGuard(cfg, 0).observe(0, float("nan"))
+    g = DivergenceGuard(cfg, 0)
+    for step in range(60):
+        g.observe(step, 1.0)
+    with pytest.raises(TrainingDiverged, match="jumped"):
+        g.observe(60, 1000.0)
+    g = DivergenceGuard(cfg, 0)
+    with pytest.raises(TrainingDiverged, match="rose"):
+        for step in range(200):
+            g.observe(step, 1.0 + step * 0.2)
+    flat = DivergenceGuard(cfg, 0)
+    for step in range(60):
+        flat.observe(step, 1.0)
+    with pytest.raises(TrainingDiverged, match="did not fall"):
+        flat.finish(torch.nn.Linear(1, 1), 60)
+    good = DivergenceGuard(cfg, 0)
+    for step in range(60):
+        good.observe(step, 1.0 / (1 + step))
+    good.finish(torch.nn.Linear(1, 1), 60)  # no error
+    bad = torch.nn.Linear(1, 1)
+    with torch.no_grad():
+        bad.weight.fill_(float("inf"))
+    with pytest.raises(TrainingDiverged, match="NaN/inf"):
+        good.finish(bad, 60)
+
+
+def test_early_stop_asks_only_after_ten_percent_every_period_and_when_ready():
+    asked = []
+    stop = EarlyStop(lambda m: asked.append(1) or True, TrainConfig(target_check_every_s=5.0), 0.0)
+    assert not stop.reached(None, 0.05, 100.0, True)  # before 10% of the budget
+    assert not stop.reached(None, 0.5, 100.0, False)  # the encoding is not final yet (soft HashVQAD)
+    assert not stop.reached(None, 0.5, 3.0, True)  # less than a period since the last check
+    assert stop.reached(None, 0.5, 6.0, True) and asked == [1]
+    assert not stop.reached(None, 0.6, 8.0, True) and asked == [1]
+    assert not EarlyStop(None, TrainConfig(), 0.0).reached(None, 0.9, 100.0, True)
+
+
+def test_checkpoints_are_due_by_steps_or_seconds_and_atomic(tmp_path):
+    path = tmp_path / "ck"
+    saved = []
+    ck = Checkpoints(path, TrainConfig(checkpoint_every=10, checkpoint_every_s=30.0), {"who": "test"}, 0.0)
+    for step, now in ((5, 1.0), (10, 2.0), (11, 40.0), (12, 45.0)):
+        ck.maybe_save(step, now, lambda: saved.append(step) or {"step": step})
+    assert saved == [10, 11]  # step 10 by count, step 11 by time (30 s since the last)
+    data = torch.load(path, weights_only=False)
+    assert data["step"] == 11 and data["extra"] == {"who": "test"} and data["train_config"]["checkpoint_every"] == 10
+    assert list(tmp_path.iterdir()) == [path]  # no temporary left
+    Checkpoints(None, TrainConfig(checkpoint_every=1), None, 0.0).maybe_save(1, 1.0, lambda: {"x": 1})  # no path
+
+
+def test_hashvqad_life_cycle_anneal_then_freeze_then_finetune(blob):
+    _, bvh, _, _ = blob
+    model = _model(bvh, VQAD)
+    enc = model.encoding
+    assert enc.learned_index and not enc.frozen and not model.encoding.freeze_due(0.5, TrainConfig())
+    cfg = TrainConfig(anneal_fraction=0.3, finetune_fraction=0.1, tau_min=0.01, qat_bits=8, qat_fraction=0.05)
+    events, scored = [], []
+    phases = EncodingPhases(model, cfg, events.append, lambda: 1.0, lambda m: scored.append(m.encoding.frozen))
+    assert phases.before_step(0.5) == "train" and enc.temperature == 1.0
+    assert phases.before_step(0.61) == "anneal" and enc.temperature == pytest.approx(0.01 ** (0.01 / 0.3))
+    assert phases.before_step(0.75) == "anneal" and enc.temperature == pytest.approx(0.1)
+    assert not phases.ready_to_stop
+    assert phases.before_step(0.9) == "finetune" and enc.frozen and scored == [False]
+    assert phases.ready_to_stop and not phases.qat_on
+    phases.before_step(0.96)
+    assert phases.qat_on and enc.qat_affine is not None
+    kinds = [e["phase"] for e in events]
+    assert kinds == ["anneal", "freeze", "quantize"]  # each phase announced once
+    table = enc.table.detach().clone()
+    enc.table.grad = torch.ones_like(enc.table)
+    phases.after_backward()
+    assert enc.table.grad is None and torch.equal(enc.table, table)  # the snapped table stays on its grid
+
+
+def test_a_plain_grid_has_no_life_cycle(blob):
+    _, bvh, _, _ = blob
+    enc = _model(bvh).encoding
+    assert enc.grid_lookup and not enc.learned_index and enc.frozen
+    assert enc.schedule(0.99, TrainConfig()) is None and not enc.freeze_due(0.99, TrainConfig())
+
+
+@pytest.mark.parametrize("net", ["mlp", "kmlp"])
+def test_the_step_hides_fused_vs_autograd(blob, net):
+    _, bvh, _, batch = blob
+    grads = {}
+    for path in kernels.PATHS:
+        with kernels.using_path(path):
+            model = _model(bvh, net=net)
+            plan = kernels.plan(model)
+            assert (plan.train_step == f"fused {net}") == (path == "fast" and kernels.load() is not None)
+            step = make_step(model, torch.device("cpu"), plan)
+            model.zero_grad(set_to_none=True)
+            loss, parts = step(batch, True)
+            grads[path] = (loss, {n: p.grad.clone() for n, p in model.named_parameters()}, parts["raw"].shape)
+    (l_r, g_r, raw_r), (l_f, g_f, raw_f) = grads["reference"], grads["fast"]
+    assert l_f == pytest.approx(l_r, rel=1e-4) and raw_r == raw_f
+    for name in g_r:
+        assert torch.allclose(g_f[name], g_r[name], rtol=1e-3, atol=1e-6 + 1e-4 * float(g_r[name].abs().max())), name
+
+
+def test_kernel_plan_decides_each_stage_and_follows_the_model(blob):
+    _, bvh, _, _ = blob
+    if kernels.load() is None:
+        pytest.skip(kernels.describe())
+    soft = _model(bvh, VQAD, "kmlp")
+    p = kernels.plan(soft)
+    assert (p.path, p.traversal, p.encoding, p.soft_table, p.network, p.train_step, p.optimizer) == (
+        "fast", "fused", "fused f32", "fused", "fused kmlp", "fused kmlp", "fused Adam")
+    soft.encoding.freeze()
+    assert kernels.plan(soft).soft_table is None  # frozen: no soft table stage any more
+    grid = _model(bvh)
+    grid.eval()
+    grid.encoding.quantize_(8)
+    q = kernels.plan(grid)
+    assert q.encoding == "fused u8" and q.network == "fused mlp" and q.train_step == "autograd"  # codes: no training
+    with kernels.using_path("reference"):
+        r = kernels.plan(grid)
+    assert (r.traversal, r.encoding, r.network, r.train_step, r.optimizer) == ("torch",) * 3 + ("autograd", "Adam")
+    c = kernels.plan(_model(bvh), "cuda")  # decided for another device without moving the model
+    assert c.device == "cuda" and c.traversal == c.network == "torch" and "CPU-only" in c.note
+    assert p.describe().startswith("fast on cpu") and "train step fused kmlp" in p.describe()
+
+
+def test_training_records_its_plan_exactly(blob):
+    _, bvh, tracer, _ = blob
+    model = _model(bvh, VQAD, "kmlp")
+    want = kernels.plan(model).describe()
+    res = train(model, bvh, tracer, TrainConfig(steps=6, rays_per_step=256, label_steps=2))
+    assert res.compute_path == want and res.kernel_plan["soft_table"] == ("fused" if kernels.load() else "torch")
+
+
+def test_optimizer_groups_give_the_index_logits_their_own_rate(blob):
+    _, bvh, _, _ = blob
+    model = _model(bvh, VQAD)
+    opt = make_optimizer(model, TrainConfig(lr=1e-3, logits_lr_factor=10.0), kernels.plan(model))
+    assert [g["lr_factor"] for g in opt.param_groups] == [1.0, 10.0]
+    assert opt.param_groups[1]["params"][0] is model.encoding.logits
+
+
+@pytest.mark.parametrize("net", ["mlp", "kmlp"])
+def test_sample_errors_are_the_loss_terms_per_sample(blob, net):
+    _, bvh, _, batch = blob
+    model = _model(bvh, net=net)
+    raw = model(batch.rays_o[batch.ray], batch.rays_d[batch.ray], batch.t_enter, batch.t_exit).detach()
+    per = model.network.sample_errors(raw, batch.hit, batch.local_t, batch.normal)
+    terms = model.network.terms(raw, batch.hit, batch.local_t, batch.normal)
+    miss = ~batch.hit
+    assert torch.allclose(per[miss], terms["bce"][miss])  # a miss costs its BCE only
+    hits = batch.hit
+    loss, _ = model.network.loss(raw[hits], batch.hit[hits], batch.local_t[hits], batch.normal[hits])
+    assert float(per[hits].mean()) == pytest.approx(float(loss), rel=1e-5)  # all hits: the loss is their mean
+
+
+def test_outcome_maps_every_way_a_run_ends():
+    class _A:
+        message = "not worth it"
+
+    assert outcome(Cancelled("x"))[:2] == (130, "cancelled") and outcome(KeyboardInterrupt())[:2] == (130, "cancelled")
+    assert outcome(TrainingDiverged("nan"))[:2] == (3, "diverged")
+    assert outcome(NotWorthCompressing(_A())) == (4, "not_worth", "not worth it")
+    assert outcome(ValueError("bad mesh"))[:2] == (2, "input") and outcome(OSError("disk"))[0] == 2
+    assert outcome(ZeroDivisionError("bug"))[:2] == (1, "crash")
+    assert math.isclose(outcome(KeyError("name"))[0], 2)
