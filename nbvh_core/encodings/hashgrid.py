@@ -106,15 +106,18 @@ class HashGrid(Encoding):
         spec = self.grid_spec()
         if self.quantized:
             return FusedLookup(self.qcodes, "u8", spec, codes, code_rows, self.qoffset, self.qscale)
-        if self.uses_half_rows(rows):
+        if self.uses_half_rows():
             return FusedLookup(self._half_table(), "f16", spec, codes, code_rows)
         return FusedLookup(rows, "f32", spec, codes, code_rows)
 
-    def uses_half_rows(self, rows: torch.Tensor | None = None) -> bool:
+    def uses_half_rows(self) -> bool:
         """True when inference reads the float16 copy of the rows (`half_tables`, no grad); the copy is of the
         stored rows only (a soft HashVQAD table is recomputed every step)."""
-        rows = self._fused_rows()[0] if rows is None else rows
-        return self.half_tables and not self.quantized and not torch.is_grad_enabled() and rows is self.table
+        return self.half_tables and not self.quantized and not torch.is_grad_enabled() and self._reads_table()
+
+    def _reads_table(self) -> bool:
+        """True when the kernels read `table` itself (not rows computed from it)."""
+        return True
 
     def grid_spec(self) -> GridSpec:
         """The constant level geometry the fused kernels read (built once)."""

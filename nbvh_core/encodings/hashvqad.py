@@ -121,6 +121,9 @@ class HashVQAD(HashGrid):
         soft = torch.einsum("lmac,lacf->lmaf", probs, rows)
         return soft.reshape(cfg.levels, cfg.index_size, cfg.features)
 
+    def _reads_table(self) -> bool:
+        return self.frozen  # soft: the kernels read the soft row table computed from it
+
     def _fused_rows(self) -> tuple[torch.Tensor, torch.Tensor | None, int]:
         if self.frozen:  # vertex -> code -> candidate row, inside the kernel
             return self.table, self.codes, self.cfg.table_size
