@@ -6,6 +6,8 @@ Commands:
   info OUT.nbvh [--json]        bytes per component, settings, training and quality recorded in the file
   eval MESH OUT.nbvh [--json]   the paper's metric against the mesh: MSE, silhouette IoU, depth error
   inspect MESH --out DIR        BVH + labelled training rays of a mesh: report and images (no training)
+  plan MESH... --budget-kb N    share one byte budget among several meshes by need
+  batch LIBRARY -o OUT          a library on Ray: measure and decide every asset, train the worth ones, report
   samples                       list the bundled sample meshes
 
 MESH is a mesh file (OBJ/PLY/STL/OFF/GLB/glTF, optionally .gz) or a bundled sample name.
@@ -141,7 +143,7 @@ def _compress_locked(args, mesh, mesh_path, out, stem, outputs, sink, staged) ->
     from .pipeline import compress_mesh, resume_settings
     from .process import NotWorthCompressing, install_cancel_handlers
     from .settings import preset
-    from .render import orbit_cameras, render_neural, render_reference, save_png
+    from .render import orbit_cameras, png_bytes, render_neural, render_reference
     from .quality_levels import QUALITY_LEVELS
 
     if args.resume:
@@ -176,13 +178,10 @@ def _compress_locked(args, mesh, mesh_path, out, stem, outputs, sink, staged) ->
     cam = orbit_cameras(1)[0] if args.view is None else orbit_cameras(args.views or 16)[args.view]
     ref = render_reference(result.tracer, cam, args.size, args.size)
     neu = render_neural(result.model, cam, args.size, args.size)
-    import io
-
-    png = io.BytesIO()
-    save_png(png, np.concatenate([ref.image, neu.image], axis=1))
+    png = png_bytes(np.concatenate([ref.image, neu.image], axis=1))
     staged.stage(out, result.data)
     staged.stage(outputs[1], json.dumps(summary, indent=2).encode())
-    staged.stage(outputs[2], png.getvalue())
+    staged.stage(outputs[2], png)
     staged.commit()  # the model, its report and its preview appear together, or the previous ones stay
     if checkpoint == default_ck or args.resume == str(checkpoint):
         checkpoint.unlink(missing_ok=True)
@@ -329,6 +328,33 @@ def cmd_plan(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_batch(args: argparse.Namespace) -> int:
+    """Compress a library on Ray (batch.run_batch): measure and decide every asset, train the worth ones."""
+    from .batch import run_batch
+    from .events import json_lines, progress_bar
+    from .process import install_cancel_handlers
+    from .quality_levels import QUALITY_LEVELS
+
+    spec = {"preset": args.preset}
+    target = QUALITY_LEVELS[args.quality] if args.quality else args.target_mse
+    for key, value in (("target_mse", target), ("budget_kb", args.budget_kb), ("time_limit_s", args.time_limit),
+                       ("steps", args.steps)):
+        if value is not None:
+            spec[key] = value
+    if args.steps is not None and args.time_limit is None:
+        spec["time_limit_s"] = 0  # steps only
+    sink = json_lines(sys.stdout) if args.events else progress_bar(sys.stderr)
+    summary = run_batch(args.library, args.output, spec, sink, install_cancel_handlers(), address=args.address,
+                        num_cpus=args.num_cpus, measure_only=args.measure_only, blender=args.blender)
+    if not args.events:
+        t = summary["totals"]
+        print(f"\n{t['assets']} assets: " + ", ".join(f"{k} {v}" for k, v in sorted(t["by_status"].items())))
+        print(f"resident memory {_fmt_bytes(t['resident_before_bytes'])} -> {_fmt_bytes(t['resident_after_bytes'])} "
+              f"(saved {_fmt_bytes(t['saved_bytes'])}); model files {_fmt_bytes(t['model_storage_bytes'])}")
+        print(f"report: {summary['html']} (+ report.csv, report.json)")
+    return 0
+
+
 def _add_inspect_parser(sub) -> None:
     q = sub.add_parser("inspect", help="BVH + training rays of a mesh: report and images")
     q.add_argument("mesh", help="mesh file (OBJ/PLY/STL/OFF/GLB/glTF, optionally .gz) or a bundled sample name")
@@ -442,6 +468,30 @@ def _add_samples_parser(sub) -> None:
     s.set_defaults(func=cmd_samples)
 
 
+def _add_batch_parser(sub) -> None:
+    from .quality_levels import QUALITY_LEVELS
+    from .settings import PRESETS
+
+    b = sub.add_parser("batch", help="compress a library of assets on Ray (one machine or a cluster)")
+    b.add_argument("library", help="a folder (searched recursively: mesh files, .npz arrays, .blend files) or a "
+                                   "list file with one path per line")
+    b.add_argument("-o", "--output", required=True, help="output folder: report.html/.csv/.json, assets/, thumbs/")
+    b.add_argument("--preset", default="default", choices=list(PRESETS))
+    size = b.add_mutually_exclusive_group()
+    size.add_argument("--quality", choices=list(QUALITY_LEVELS), help="a named target for every asset")
+    size.add_argument("--target-mse", type=float, help="image MSE every asset's model must reach")
+    size.add_argument("--budget-kb", type=float, help="the largest model file per asset")
+    b.add_argument("--time-limit", type=float, help="training seconds per asset (default from the preset)")
+    b.add_argument("--steps", type=int, help="training steps per asset (with no --time-limit: steps only)")
+    b.add_argument("--address", help="join a Ray cluster ('auto' or HOST:PORT, started with `ray start`); "
+                                     "default: an embedded Ray on this machine")
+    b.add_argument("--num-cpus", type=int, help="CPUs of the embedded Ray (default: all of this machine's)")
+    b.add_argument("--measure-only", action="store_true", help="measure and decide every asset; train nothing")
+    b.add_argument("--blender", help="Blender binary for .blend files (default: $NBVH_BLENDER or `blender`)")
+    b.add_argument("--events", action="store_true", help="JSON-line events on stdout instead of a progress bar")
+    b.set_defaults(func=cmd_batch)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="nbvh", description="Neural BVH geometry compression")
     p.add_argument("--path", choices=["fast", "reference"],
@@ -454,6 +504,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_info_parser(sub)
     _add_eval_parser(sub)
     _add_plan_parser(sub)
+    _add_batch_parser(sub)
     _add_samples_parser(sub)
     return p
 

@@ -63,14 +63,20 @@ def progress_bar(stream: TextIO = sys.stderr, width: int = 28, min_interval: flo
             last[0] = now
             frac = max(0.0, min(1.0, float(event.get("fraction", 0.0))))
             bar = "#" * int(frac * width) + "-" * (width - int(frac * width))
-            stream.write(f"\r[{bar}] {frac * 100:5.1f}% {event.get('phase', '')} step {event.get('step')} "
-                         f"loss {event.get('loss', float('nan')):.4f} {event.get('samples_per_s', 0):,.0f} samples/s "
-                         f"ETA {_fmt_seconds(event.get('eta_s'))}   ")
+            if "done" in event:  # a library batch: assets, not steps
+                what = f"{event.get('phase', '')} {event['done']}/{event.get('total')} assets"
+            else:
+                what = (f"{event.get('phase', '')} step {event.get('step')} loss {event.get('loss', float('nan')):.4f} "
+                        f"{event.get('samples_per_s', 0):,.0f} samples/s")
+            stream.write(f"\r[{bar}] {frac * 100:5.1f}% {what} ETA {_fmt_seconds(event.get('eta_s'))}   ")
             stream.flush()
         elif kind == "phase":
             stream.write(f"\n{event.get('phase')}: {event.get('message', '')}\n")
             stream.flush()
         elif kind in ("warning", "error"):
             stream.write(f"\n{kind}: {event.get('message')}\n")
+            stream.flush()
+        elif kind == "asset" and event.get("status") == "failed":
+            stream.write(f"\n{event.get('name')}: failed: {event.get('error')}\n")
             stream.flush()
     return sink

@@ -34,16 +34,6 @@ from .events import json_lines
 from .process import Cancelled
 
 
-def _png_bytes(image: np.ndarray) -> bytes:
-    import io
-
-    from PIL import Image
-
-    buf = io.BytesIO()
-    Image.fromarray((np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8)).save(buf, format="PNG")
-    return buf.getvalue()
-
-
 def proxy_points(model, n_points: int, seed: int = 0) -> np.ndarray:
     """(P, 6) float32 points + unit normals on the model's surface, in the mesh's original coordinates.
 
@@ -142,7 +132,7 @@ def _run_locked(request, events, should_cancel, mesh, settings, scene_split, fil
     from .exact import ExactTracer
     from .outputs import checkpoint_for
     from .pipeline import compress_mesh
-    from .render import Camera, orbit_cameras, render_neural, render_reference
+    from .render import Camera, orbit_cameras, png_bytes, render_neural, render_reference
     from .sizing import mesh_resident_bytes
 
     model_path = Path(files["model"])
@@ -172,8 +162,8 @@ def _run_locked(request, events, should_cancel, mesh, settings, scene_split, fil
     events({"event": "phase", "phase": "preview", "message": f"{w}x{h} image, proxy points"})
     neural = render_neural(model, cam, w, h)
     reference = render_reference(result.tracer or ExactTracer(mesh), cam, w, h)
-    staged.stage(Path(files["preview"]), _png_bytes(neural.image))
-    staged.stage(Path(files["reference"]), _png_bytes(reference.image))
+    staged.stage(Path(files["preview"]), png_bytes(neural.image))
+    staged.stage(Path(files["reference"]), png_bytes(reference.image))
     import io
 
     buf = io.BytesIO()

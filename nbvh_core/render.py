@@ -109,11 +109,20 @@ def render_reference(tracer, camera: Camera, width: int, height: int) -> RenderR
 
 
 def save_png(path, image: np.ndarray) -> None:
-    """Save a (H, W) or (H, W, 3) float image in [0, 1] as 8-bit PNG."""
+    """Save a (H, W) or (H, W, 3) float image in [0, 1] as 8-bit PNG (`path`: a file name or a binary stream)."""
     from PIL import Image
 
     arr = (np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8)
     Image.fromarray(arr).save(path, format="PNG")
+
+
+def png_bytes(image: np.ndarray) -> bytes:
+    """The PNG file `save_png` would write, as bytes (for staged or returned outputs)."""
+    import io
+
+    buf = io.BytesIO()
+    save_png(buf, image)
+    return buf.getvalue()
 
 
 def render_neural(model, camera: Camera, width: int, height: int) -> RenderResult:
