@@ -1,6 +1,6 @@
 """Headless compression inside Blender (the same code path as the panel):
 
-    blender -b scene.blend -P compress.py -- --objects NAME [NAME ...] --out DIR
+    blender -b scene.blend -P compress.py -- (--objects NAME [NAME ...] | --all) --out DIR
             [--preset preview|default|high | --budget-kb N | --target-mse X | --quality preview|standard|high]
             [--time-limit S] [--device auto|cpu|cuda]
             [--python PATH] [--load MODEL.nbvh] [--save-blend FILE.blend] [--force] [--resume]
@@ -41,7 +41,9 @@ def describe_levels() -> str:
 def parse(argv: list[str]) -> argparse.Namespace:
     ap = argparse.ArgumentParser(prog="blender -b FILE.blend -P compress.py --",
                                  description="Compress Blender objects into neural geometry (.nbvh)")
-    ap.add_argument("--objects", nargs="+", required=True, help="object names")
+    which = ap.add_mutually_exclusive_group(required=True)
+    which.add_argument("--objects", nargs="+", help="object names")
+    which.add_argument("--all", action="store_true", help="every mesh object of the file")
     ap.add_argument("--out", required=True, help="output folder for .nbvh files, previews and the report")
     size = ap.add_mutually_exclusive_group()
     size.add_argument("--preset", default="default")
@@ -67,11 +69,17 @@ def run(argv: list[str]) -> int:
     from addon.job import default_python
 
     args = parse(argv)
-    missing = [n for n in args.objects if bpy.data.objects.get(n) is None]
-    if missing:
-        print(f"error: no object named {', '.join(repr(n) for n in missing)} in this file", file=sys.stderr)
-        return 1
-    objects = [bpy.data.objects[n] for n in args.objects]
+    if args.all:
+        objects = [o for o in bpy.context.scene.objects if o.type == "MESH"]
+        if not objects:
+            print("error: --all: this file has no mesh objects", file=sys.stderr)
+            return 1
+    else:
+        missing = [n for n in args.objects if bpy.data.objects.get(n) is None]
+        if missing:
+            print(f"error: no object named {', '.join(repr(n) for n in missing)} in this file", file=sys.stderr)
+            return 1
+        objects = [bpy.data.objects[n] for n in args.objects]
     overrides = {"device": args.device, "time_limit_s": args.time_limit, "steps": args.steps,
                  "budget_kb": args.budget_kb, "force": True if args.force else None,
                  "target_mse": engine.QUALITY_LEVELS[args.quality] if args.quality else args.target_mse}

@@ -8,11 +8,11 @@ from pathlib import Path
 
 import bpy
 
-from . import engine, previews
+from . import engine, library, previews
 from .job import check_python, default_python, install_dependencies
 
-# The session of the current Compress click (one at a time per Blender instance).
-_state = {"session": None, "messages": []}
+# The session of the current Compress click (one at a time per Blender instance), and the library / scene-report run.
+_state = {"session": None, "messages": [], "library": None}
 
 
 def addon_prefs(context):
@@ -227,5 +227,158 @@ class NBVH_OT_check_python(bpy.types.Operator):
         return {"FINISHED"} if ok else {"CANCELLED"}
 
 
+def _library_settings(props) -> dict:
+    """The batch's settings from the panel: the preset or target (a byte budget applies per asset), time limit."""
+    spec = {"preset": props.preset, "time_limit_s": float(props.time_limit), "device": props.device.lower()}
+    if props.mode == "TARGET":
+        spec["target_mse"] = engine.QUALITY_LEVELS[props.target.lower()]
+    elif props.mode == "BUDGET":
+        spec["budget_kb"] = float(props.budget_kb)
+    return spec
+
+
+def store_library_rows(props, run) -> None:
+    """The finished run's report -> the panel's rows (largest savings first) and totals line."""
+    rows, totals = library.read_rows(Path(run.out_dir) / "report.json")
+    props.library_rows.clear()
+    for r in rows:
+        item = props.library_rows.add()
+        item.name = run.names.get(r["name"], r["name"])
+        item.status = r.get("status") or ""
+        item.triangles = int(r.get("triangles") or 0)
+        item.resident_bytes = int(r.get("mesh_resident_bytes") or 0)
+        item.model_bytes = int(r.get("model_bytes") or r.get("predicted_model_bytes") or 0)
+        item.savings = int(r.get("saved_bytes") or r.get("predicted_savings") or 0)
+        item.verdict = (r.get("error") or r.get("verdict") or "")[:200]
+    saved = totals["saved_bytes"] or totals["predicted_savings_bytes"]
+    what = "saved" if totals["saved_bytes"] else "predicted savings"
+    props.library_summary = (f"{totals['assets']} objects, resident {totals['resident_before_bytes'] / 1024:,.0f} KB; "
+                             f"{what} {saved / 1024:,.0f} KB")
+    props.library_report_html = str(Path(run.out_dir) / "report.html")
+
+
+def _library_tick():
+    """Timer: advance the library job, mirror its progress, list its rows when it ends."""
+    run = _state["library"]
+    if run is None:
+        return None
+    props = bpy.context.scene.nbvh_props
+    run.queue.step()
+    job = run.job
+    props.library_progress = job.fraction
+    done, total = job.progress.get("done"), job.progress.get("total")
+    props.library_phase = f"{job.progress.get('phase', 'starting')}" + (f" {done}/{total}" if total else "")
+    if run.queue.finished(job):
+        props.library_running = False
+        if job.state == "done":
+            store_library_rows(props, run)
+            props.library_phase = "finished"
+        else:
+            props.library_phase = f"{job.state}: {job.error or ''}"[:300]
+        library.end_run(run)
+        _state["library"] = None
+    for area in (bpy.context.screen.areas if bpy.context.screen else []):
+        area.tag_redraw()
+    return None if _state["library"] is None else 0.25
+
+
+def start_library_run(props, run) -> None:
+    props.library_running, props.library_progress, props.library_phase = True, 0.0, "starting"
+    props.library_rows.clear()
+    props.library_summary = ""
+    _state["library"] = run
+    run.queue.step()  # starts the job now
+    bpy.app.timers.register(_library_tick, first_interval=0.25)
+
+
+class NBVH_OT_scene_report(bpy.types.Operator):
+    """Measure every mesh object of the scene and say which are worth compressing (no training): triangles,
+    resident bytes, verdict, predicted savings"""
+
+    bl_idname = "nbvh.scene_report"
+    bl_label = "Scene Memory Report"
+
+    @classmethod
+    def poll(cls, context):
+        return _state["library"] is None
+
+    def execute(self, context):
+        props = context.scene.nbvh_props
+        try:
+            run = library.start_scene_report(context, engine.output_dir(props.output_dir), _library_settings(props),
+                                             _python(context))
+        except RuntimeError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        for msg in run.refusals:
+            self.report({"WARNING"}, msg)
+        start_library_run(props, run)
+        return {"FINISHED"}
+
+
+class NBVH_OT_compress_library(bpy.types.Operator):
+    """Compress a folder of assets (mesh files and .blend files) as a batch in the background, with a library
+    memory report"""
+
+    bl_idname = "nbvh.compress_library"
+    bl_label = "Compress Library..."
+
+    directory: bpy.props.StringProperty(subtype="DIR_PATH")
+
+    @classmethod
+    def poll(cls, context):
+        return _state["library"] is None
+
+    def invoke(self, context, event):
+        context.window_manager.fileselect_add(self)
+        return {"RUNNING_MODAL"}
+
+    def execute(self, context):
+        props = context.scene.nbvh_props
+        folder = bpy.path.abspath(self.directory or props.library_folder)
+        try:
+            run = library.start_library(folder, engine.output_dir(props.output_dir), _library_settings(props),
+                                        _python(context))
+        except RuntimeError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        props.library_folder = folder
+        start_library_run(props, run)
+        return {"FINISHED"}
+
+
+class NBVH_OT_cancel_library(bpy.types.Operator):
+    """Stop the library run; what finished stays in its report"""
+
+    bl_idname = "nbvh.cancel_library"
+    bl_label = "Cancel"
+
+    def execute(self, context):
+        run = _state["library"]
+        if run is not None:
+            run.queue.cancel_all()
+            library.end_run(run)
+        props = context.scene.nbvh_props
+        props.library_running, props.library_phase = False, "cancelled"
+        _state["library"] = None
+        return {"FINISHED"}
+
+
+class NBVH_OT_open_library_report(bpy.types.Operator):
+    """Open the library / scene memory report (HTML) in the web browser"""
+
+    bl_idname = "nbvh.open_library_report"
+    bl_label = "Open Library Report"
+
+    def execute(self, context):
+        path = context.scene.nbvh_props.library_report_html
+        if not path or not Path(path).exists():
+            self.report({"WARNING"}, "no library report yet")
+            return {"CANCELLED"}
+        webbrowser.open(Path(path).as_uri())
+        return {"FINISHED"}
+
+
 CLASSES = (NBVH_OT_compress, NBVH_OT_cancel, NBVH_OT_toggle_preview, NBVH_OT_open_report, NBVH_OT_remove_result,
-           NBVH_OT_install_dependencies, NBVH_OT_check_python)
+           NBVH_OT_install_dependencies, NBVH_OT_check_python, NBVH_OT_scene_report, NBVH_OT_compress_library,
+           NBVH_OT_cancel_library, NBVH_OT_open_library_report)

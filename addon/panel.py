@@ -23,6 +23,18 @@ class NBVH_Result(bpy.types.PropertyGroup):
     train_seconds: bpy.props.FloatProperty()
 
 
+class NBVH_LibraryRow(bpy.types.PropertyGroup):
+    """One object (scene report) or asset (library) of the last library run."""
+
+    name: bpy.props.StringProperty()
+    status: bpy.props.StringProperty()
+    triangles: bpy.props.IntProperty()
+    resident_bytes: bpy.props.IntProperty()
+    model_bytes: bpy.props.IntProperty()
+    savings: bpy.props.IntProperty()
+    verdict: bpy.props.StringProperty()
+
+
 class NBVH_Props(bpy.types.PropertyGroup):
     mode: bpy.props.EnumProperty(name="Size by", items=[
         ("PRESET", "Preset", "A named quality preset"),
@@ -49,6 +61,13 @@ class NBVH_Props(bpy.types.PropertyGroup):
     last_error: bpy.props.StringProperty()
     last_note: bpy.props.StringProperty()  # verdicts: objects kept as meshes (not worth compressing)
     report_html: bpy.props.StringProperty(subtype="FILE_PATH")
+    library_folder: bpy.props.StringProperty(name="Library", subtype="DIR_PATH")
+    library_running: bpy.props.BoolProperty()
+    library_progress: bpy.props.FloatProperty(min=0.0, max=1.0, subtype="FACTOR")
+    library_phase: bpy.props.StringProperty()
+    library_summary: bpy.props.StringProperty()
+    library_report_html: bpy.props.StringProperty(subtype="FILE_PATH")
+    library_rows: bpy.props.CollectionProperty(type=NBVH_LibraryRow)
 
 
 class NBVH_Preferences(bpy.types.AddonPreferences):
@@ -124,7 +143,42 @@ class NBVH_PT_panel(bpy.types.Panel):
             op.object_name = r.object_name
 
 
-CLASSES = (NBVH_Result, NBVH_Props, NBVH_Preferences, NBVH_PT_panel)
+class NBVH_PT_library(bpy.types.Panel):
+    """Scene memory report and library batches (below the main panel)."""
+
+    bl_label = "Scene & Library Memory"
+    bl_idname = "NBVH_PT_library"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "NBVH"
+    bl_parent_id = "NBVH_PT_panel"
+
+    def draw(self, context):
+        layout = self.layout
+        props = context.scene.nbvh_props
+        row = layout.row()
+        row.operator("nbvh.scene_report", icon="SPREADSHEET")
+        row.operator("nbvh.compress_library", icon="FILE_FOLDER")
+        if props.library_running:
+            box = layout.box()
+            box.label(text=props.library_phase or "working")
+            box.prop(props, "library_progress", text="", slider=True)
+            box.operator("nbvh.cancel_library", icon="CANCEL")
+        elif props.library_phase:
+            layout.label(text=props.library_phase)
+        if props.library_summary:
+            layout.label(text=props.library_summary, icon="INFO")
+            layout.operator("nbvh.open_library_report", icon="TEXT")
+        for r in list(props.library_rows)[:30]:
+            box = layout.box()
+            box.label(text=f"{r.name}: {r.status}", icon="MESH_DATA")
+            box.label(text=f"{r.triangles:,} tris, resident {r.resident_bytes / 1024:,.0f} KB, "
+                           f"savings {r.savings / 1024:,.0f} KB")
+            if r.verdict:
+                box.label(text=r.verdict[:90])
+
+
+CLASSES = (NBVH_Result, NBVH_LibraryRow, NBVH_Props, NBVH_Preferences, NBVH_PT_panel, NBVH_PT_library)
 
 
 def register():

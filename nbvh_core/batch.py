@@ -418,12 +418,20 @@ def run_batch(library: str | os.PathLike, out: str | os.PathLike, spec: dict, ev
     """Run the whole library (see the module docstring). spec: preset name + Settings overrides, as the job
     request's "settings". Returns the report's summary (paths, totals, rows). Raises process.Cancelled (the
     report then holds what finished), ValueError for a LIBRARY that lists nothing."""
-    import ray
+    from .outputs import OutputLock
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    with OutputLock(out / "report.html"):  # one batch per output folder at a time
+        return _run_locked(Path(library), out, spec, events, should_cancel, address, num_cpus, measure_only, blender)
+
+
+def _run_locked(library: Path, out: Path, spec: dict, events: EventSink, should_cancel, address, num_cpus,
+                measure_only: bool, blender: str | None) -> dict:
+    import ray
+
     t0 = time.time()
-    assets = discover(Path(library), out / ".work", blender)
+    assets = discover(library, out / ".work", blender)
     started = _start_ray(address, num_cpus)
     try:
         cluster = cluster_info()

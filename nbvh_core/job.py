@@ -20,6 +20,8 @@ Training writes `.NAME.nbvh.checkpoint` in out_dir every 60 s (`outputs.checkpoi
 add-on offers this after a crash). "force": true trains even when the verdict is "not worth compressing"
 (otherwise the job ends in seconds with a `verdict` event and an `error` event of kind "not_worth", exit 4).
 Events are JSON lines on stdout (see `events.py`); errors end with an `error` event and exit code != 0.
+A request with "kind": "batch" runs a library (`run_batch_job`: the add-on's scene memory report and "Compress
+library...").
 """
 from __future__ import annotations
 
@@ -87,8 +89,24 @@ class _LoadedResult:
         return dict(self._summary)
 
 
+def run_batch_job(request: dict, events, should_cancel) -> dict:
+    """A library request ({"kind": "batch", "name", "library": folder or list file, "out_dir", "settings",
+    "measure_only": bool, "address": optional}): `batch.run_batch`, whose events (progress with the fraction of
+    assets done, one `asset` event per row) reach the add-on; the `result` event names the report."""
+    from .batch import run_batch
+
+    summary = run_batch(request["library"], request["out_dir"], dict(request.get("settings") or {}), events,
+                        should_cancel, address=request.get("address"), measure_only=bool(request.get("measure_only")))
+    event = {"event": "result", "name": request["name"], "path": summary["html"], "report": summary["html"],
+             "json": summary["json"], "totals": summary["totals"]}
+    events(event)
+    return event
+
+
 def run_job(request: dict, events, should_cancel) -> dict:
     """Run one request (see module docstring); returns the `result` event it emits."""
+    if request.get("kind") == "batch":
+        return run_batch_job(request, events, should_cancel)
     from .mesh import mesh_from_arrays
     from .outputs import OutputLock, OutputSet, check_outputs
     from .pipeline import resume_settings

@@ -167,3 +167,20 @@ def test_row_savings_are_counted_only_for_finished_models():
     assert r.saved_bytes == 0
     r.status = "done"
     assert r.saved_bytes == 990
+
+
+def test_the_job_protocol_runs_a_measure_only_batch(library, tmp_path):
+    """What the add-on's "Scene memory report" sends: a job request of kind batch; events end with the result."""
+    request = {"kind": "batch", "name": "scene-report", "library": str(library), "out_dir": str(tmp_path / "o"),
+               "measure_only": True, "settings": {"preset": "tiny"}}
+    (tmp_path / "request.json").write_text(json.dumps(request))
+    proc = subprocess.run([sys.executable, "-m", "nbvh_core", "job", str(tmp_path / "request.json")],
+                          capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    events = [json.loads(line) for line in proc.stdout.splitlines() if line.startswith("{")]
+    assert events[-1]["event"] == "result" and Path(events[-1]["report"]).exists()
+    progress = [e for e in events if e["event"] == "progress"]
+    assert progress and progress[-1]["fraction"] == 1.0 and progress[-1]["total"] == 6
+    statuses = {e["name"]: e["status"] for e in events if e["event"] == "asset"}
+    assert statuses["pebble"] == "not_worth" and statuses["props__broken"] == "failed" and statuses["blob"] == "measured"
+    assert not (tmp_path / "o" / "assets").exists()  # nothing trained
