@@ -165,9 +165,13 @@ class NBVH_OT_open_report(bpy.types.Operator):
 
     bl_idname = "nbvh.open_report"
     bl_label = "Open Report"
+    #: Which report: the property of nbvh_props that holds its path (the objects' or the library's).
+    which: bpy.props.StringProperty(default="report_html", options={"HIDDEN"})
 
     def execute(self, context):
-        path = context.scene.nbvh_props.report_html
+        if self.which not in ("report_html", "library_report_html"):
+            return {"CANCELLED"}
+        path = getattr(context.scene.nbvh_props, self.which)
         if not path or not Path(path).exists():
             self.report({"WARNING"}, "no report yet")
             return {"CANCELLED"}
@@ -364,21 +368,6 @@ class NBVH_OT_cancel_library(bpy.types.Operator):
         return {"FINISHED"}
 
 
-class NBVH_OT_open_library_report(bpy.types.Operator):
-    """Open the library / scene memory report (HTML) in the web browser"""
-
-    bl_idname = "nbvh.open_library_report"
-    bl_label = "Open Library Report"
-
-    def execute(self, context):
-        path = context.scene.nbvh_props.library_report_html
-        if not path or not Path(path).exists():
-            self.report({"WARNING"}, "no library report yet")
-            return {"CANCELLED"}
-        webbrowser.open(Path(path).as_uri())
-        return {"FINISHED"}
-
-
 CLASSES = (NBVH_OT_compress, NBVH_OT_cancel, NBVH_OT_toggle_preview, NBVH_OT_open_report, NBVH_OT_remove_result,
            NBVH_OT_install_dependencies, NBVH_OT_check_python, NBVH_OT_scene_report, NBVH_OT_compress_library,
-           NBVH_OT_cancel_library, NBVH_OT_open_library_report)
+           NBVH_OT_cancel_library)

@@ -168,7 +168,7 @@ class NBVH_PT_library(bpy.types.Panel):
             layout.label(text=props.library_phase)
         if props.library_summary:
             layout.label(text=props.library_summary, icon="INFO")
-            layout.operator("nbvh.open_library_report", icon="TEXT")
+            layout.operator("nbvh.open_report", text="Open Library Report", icon="TEXT").which = "library_report_html"
         for r in list(props.library_rows)[:30]:
             box = layout.box()
             box.label(text=f"{r.name}: {r.status}", icon="MESH_DATA")

@@ -14,7 +14,6 @@ Ray's token authentication: `ray get-auth-token --generate`, the same token on e
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import os
 import shutil
@@ -31,6 +30,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
 from bench_meshes import BENCH_MESHES, bench_mesh  # noqa: E402
+from bench_quality import write_rows  # noqa: E402
 
 RESULTS = ROOT / "bench" / "results"
 PORT = 6391
@@ -95,11 +95,7 @@ def main() -> None:
                          "bytes_cluster": c["model_bytes"], "mse_embedded": e["mse"], "mse_cluster": c["mse"],
                          "worker_cluster": c["worker"], "train_s_embedded": e["train_seconds"],
                          "train_s_cluster": c["train_seconds"]})
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    with open(RESULTS / "batch_cluster.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(out_rows[0]))
-        w.writeheader()
-        w.writerows(out_rows)
+    write_rows(RESULTS / "batch_cluster.csv", out_rows)
     lines = ["# Library batch: local 3-node Ray cluster vs embedded Ray (bench/bench_batch_cluster.py)", "",
              f"8 assets (bench_meshes.py), preset `{args.preset}`, {args.time_limit:g} s training each, one run on "
              "this 2-core CPU. Embedded: `nbvh batch LIB -o OUT --num-cpus 2`. Cluster: `ray start --head "

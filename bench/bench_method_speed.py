@@ -9,7 +9,6 @@ one); its render is after the freeze (hard codes looked up in the kernel).
 from __future__ import annotations
 
 import argparse
-import csv
 import sys
 import time
 from pathlib import Path
@@ -26,6 +25,9 @@ from nbvh_core.pipeline import preset  # noqa: E402
 from nbvh_core.render import orbit_cameras, render_neural  # noqa: E402
 from nbvh_core.samples_dir import sample_path  # noqa: E402
 from nbvh_core.train import train  # noqa: E402
+
+sys.path.insert(0, str(ROOT / "bench"))
+from bench_quality import write_rows  # noqa: E402
 
 RESULTS = ROOT / "bench" / "results"
 METHODS = [("HashGrid T=2^11 + MLP (base, default preset)", {}),
@@ -65,11 +67,7 @@ def main() -> None:
     for r in rows:
         r["train_slowdown_vs_base"] = round(base["train_samples_per_s"] / r["train_samples_per_s"], 2)
         r["render_slowdown_vs_base"] = round(r["render_512_s"] / base["render_512_s"], 2)
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    with open(RESULTS / "method_speed.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
+    write_rows(RESULTS / "method_speed.csv", rows)
     lines = ["# Method steps on the fast path (bench/bench_method_speed.py)", "",
              f"Bunny, 2047 nodes, {args.steps} training steps each, one run on this 2-core CPU; "
              f"`{base['compute_path']}`.", "",

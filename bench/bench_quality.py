@@ -102,6 +102,15 @@ def append_row(path: Path, row: dict) -> None:
         w.writerow(row)
 
 
+def write_rows(path: Path, rows: list[dict]) -> None:
+    """A whole CSV (header from the first row), replacing the file."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+
+
 def num(row: dict, key: str) -> float:
     v = row.get(key, "")
     return float(v) if v not in ("", None) else math.nan

@@ -154,6 +154,8 @@ def compress_py_checks(name: str, prefix: list[str], work: Path, mesh: Path, env
         # The blob at MSE 0.02: a 250-triangle decimation meets it, so the verdict ends the job before training.
         ("not worth it", ["--objects", "Blob", "--out", str(work / "verdict_out"), "--quality", "preview"], 0,
          "kept as a mesh"),
+        ("every mesh object", ["--all", "--out", str(work / "all_out"), "--preset", "tiny", "--steps", "20",
+                               "--force"], 0, "[Blob] wrote"),
         ("help", ["--help"], 0, "--objects"),
         ("missing object", ["--objects", "Nope", "--out", str(out)], 1, "no object named 'Nope'"),
         ("non-mesh object", ["--objects", "Cam", "--out", str(out)], 1, "'Cam' is a camera"),

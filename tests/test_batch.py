@@ -184,3 +184,34 @@ def test_the_job_protocol_runs_a_measure_only_batch(library, tmp_path):
     statuses = {e["name"]: e["status"] for e in events if e["event"] == "asset"}
     assert statuses["pebble"] == "not_worth" and statuses["props__broken"] == "failed" and statuses["blob"] == "measured"
     assert not (tmp_path / "o" / "assets").exists()  # nothing trained
+
+
+def test_ctrl_c_stops_the_run_and_keeps_what_finished(tmp_path):
+    """SIGINT after the first trained asset: exit 130, that asset's result and the report kept, the other one
+    marked cancelled; a rerun trains only the one that was cancelled."""
+    lib = tmp_path / "lib"
+    lib.mkdir()
+    shutil.copy(ROOT / "assets" / "blob.ply.gz", lib / "blob.ply.gz")
+    ico = icosphere(4, noise=0.03, seed=5)
+    np.savez(lib / "sphere.npz", vertices=ico.vertices, faces=ico.faces)
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "nbvh_core", "batch", str(lib), "-o", str(out), "--preset", "tiny", "--steps", "1500",
+           "--num-cpus", "1", "--events"]  # one slot: the assets train one after the other
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    first = None
+    for line in proc.stdout:
+        ev = json.loads(line) if line.startswith("{") else {}
+        if ev.get("event") == "asset" and ev.get("phase") == "train" and ev.get("status") == "done":
+            first = ev["name"]
+            proc.send_signal(signal.SIGINT)
+            break
+    proc.stdout.read()
+    assert proc.wait(timeout=120) == 130 and first is not None, proc.stderr.read()[-2000:]
+    rows = {r["name"]: r for r in json.loads((out / "report.json").read_text())["rows"]}
+    other = ({"blob", "sphere"} - {first}).pop()
+    assert rows[first]["status"] == "done" and (out / rows[first]["files"]["model"]).exists()
+    assert rows[other]["status"] == "cancelled"
+    events = []
+    run_batch(lib, out, {"preset": "tiny", "steps": 1500, "time_limit_s": 0}, events.append, num_cpus=2)
+    trained = [e["name"] for e in events if e.get("event") == "asset" and e["phase"] == "train"]
+    assert trained == [other]
