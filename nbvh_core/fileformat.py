@@ -480,6 +480,8 @@ def _decode(data: bytes, header: dict, where: str, device: str | torch.device = 
         state = {name[len("network."):]: torch.from_numpy(array(name).astype(np.float32))
                  for name in expected if name.startswith("network.")}
         model.network.load_state_dict(state)
+        if storage.network_bits == 16:
+            model.hold_network_half()  # resident as stored
     model.metadata = header.get("metadata", {})
     model.storage = storage
     return model.to(device).eval()

@@ -175,7 +175,8 @@ class NeuralBVH(nn.Module):
     def resident_bytes(self) -> dict[str, int]:
         """Bytes this model holds to answer rays, by component: the traversal's decoded nodes (32 B each), the
         feature rows as held (uint8 codes + affine, or floats), HashVQAD's codes (one byte each), the network's
-        float32 weights (the kernels read float32)."""
+        weights as held (float16 after `finalize_storage` at 16 bits, or when loaded from such a file; the fused
+        kernels read them without a float32 copy)."""
         enc = self.encoding
         rows = (enc.qcodes.numel() + 4 * (enc.qoffset.numel() + enc.qscale.numel()) if enc.quantized
                 else enc.table.numel() * enc.table.element_size())
@@ -195,8 +196,14 @@ class NeuralBVH(nn.Module):
         elif storage.table_bits == 16 and not self.encoding.quantized:
             self.encoding.table.copy_(self.encoding.table.half().float())
         if storage.network_bits == 16:
-            for p in self.network.parameters():
-                p.copy_(p.half().float())
+            self.hold_network_half()
+
+    @torch.no_grad()
+    def hold_network_half(self) -> None:
+        """Keep the network's weights in float16 from now on, as the file stores them (half the resident bytes;
+        the fused kernels read them as they are, the reference path casts per call). Inference only."""
+        for p in self.network.parameters():
+            p.data = p.data.to(torch.float16)
 
     def flops_per_segment(self) -> dict[str, int]:
         """Floating-point operations (a multiply-add = 2) to evaluate one (ray, leaf) segment, by part:

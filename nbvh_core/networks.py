@@ -55,6 +55,18 @@ def _mlp(n_in: int, cfg: NetworkConfig, n_out: int = 5) -> nn.Sequential:
     return nn.Sequential(*layers)
 
 
+def run_layers(net: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
+    """`net(x)` for weights held in any float type (a finalized model keeps its network in float16, as stored):
+    each Linear runs in x's dtype (a transient cast of its weights on this reference path; the fused kernels read
+    the float16 weights as they are)."""
+    for m in net:
+        if isinstance(m, nn.Linear):
+            x = F.linear(x, m.weight.to(x.dtype), m.bias.to(x.dtype))
+        else:
+            x = m(x)
+    return x
+
+
 def _l1(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """(B,) L1 distance per row (summed over the last dim when 2-D)."""
     diff = (pred - target).abs()
@@ -123,7 +135,7 @@ class MLP(Network):
         self.net = _mlp(in_dim * cfg.k, cfg)
 
     def forward(self, feats: torch.Tensor) -> torch.Tensor:
-        return self.net(feats.reshape(feats.shape[0], -1))
+        return run_layers(self.net, feats.reshape(feats.shape[0], -1))
 
     def decode(self, raw: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         return torch.sigmoid(raw[:, 0]), torch.sigmoid(raw[:, 1]), F.normalize(raw[:, 2:5], dim=-1)
@@ -150,7 +162,7 @@ class KMLP(Network):
 
     def forward(self, feats: torch.Tensor) -> torch.Tensor:
         pairs = torch.cat((feats[:, :-1], feats[:, 1:]), dim=-1)  # (B, k-1, 2D)
-        return self.net(pairs)
+        return run_layers(self.net, pairs)
 
     @staticmethod
     def _first_hit_log_probs(logit: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -197,8 +197,9 @@ FUSED_MODELS = [
 ]
 
 
+@pytest.mark.parametrize("half", [False, True], ids=["f32-weights", "f16-weights"])
 @pytest.mark.parametrize("enc_kw,net_kw", FUSED_MODELS)
-def test_fused_inference_matches_the_layer_by_layer_network(enc_kw, net_kw, sample_meshes):
+def test_fused_inference_matches_the_layer_by_layer_network(enc_kw, net_kw, half, sample_meshes):
     torch.manual_seed(0)
     bvh_nodes = build_bvh(sample_meshes["blob"], 63).nodes
     model = NeuralBVH(bvh_nodes, ModelConfig(EncodingConfig(**enc_kw), NetworkConfig(**net_kw))).eval()
@@ -206,6 +207,11 @@ def test_fused_inference_matches_the_layer_by_layer_network(enc_kw, net_kw, samp
         model.encoding.table.normal_()
     if enc_kw["kind"] == "hashvqad":
         model.encoding.freeze()
+    if half:  # the stored half-precision network, held as it is stored; the kernel reads float16 weights
+        n_params = sum(p.numel() for p in model.network.parameters())
+        model.hold_network_half()
+        assert model.resident_bytes()["network"] == 2 * n_params
+        assert kernels.plan(model).network.endswith("f16 weights") and kernels.plan(model).train_step == "autograd"
     n_rays, n_seg = 300, 1001  # not a multiple of the kernel's 48-segment tile
     o = torch.rand(n_rays, 3)
     d = torch.nn.functional.normalize(torch.randn(n_rays, 3), dim=1)

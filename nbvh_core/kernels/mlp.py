@@ -40,11 +40,13 @@ def _linears(model) -> list[nn.Linear]:
 
 def pack(model) -> tuple[torch.Tensor, torch.Tensor]:
     """dims (layers + 1,) int32 (dims[0] = k * L * F) and params: each Linear's weight transposed (in, out), then
-    its bias, packed float32: what both kernels read."""
+    its bias, packed in the weights' own type (float32 for training; float16 for a finalized half-precision
+    network, which the inference kernel reads without widening it)."""
     linears = _linears(model)
     dims = torch.tensor([linears[0].in_features] + [m.out_features for m in linears], dtype=torch.int32)
-    params = torch.cat([torch.cat((m.weight.detach().t().reshape(-1), m.bias.detach())) for m in linears])
-    return dims, params.to(torch.float32).contiguous()
+    dtype = torch.float16 if linears[0].weight.dtype == torch.float16 else torch.float32
+    params = torch.cat([torch.cat((m.weight.detach().t().reshape(-1), m.bias.detach())).to(dtype) for m in linears])
+    return dims, params.contiguous()
 
 
 def _grid_args(spec, table, codes, code_rows) -> tuple:
@@ -67,8 +69,7 @@ def segments_raw(model, packed: tuple[torch.Tensor, torch.Tensor], rays_o: torch
     load().nbvh_net_segments(
         ptr(rays_o.contiguous()), ptr(rays_d.contiguous()), ptr(ray), ptr(t_enter), ptr(t_exit), ray.numel(), k,
         ptr(frac), *look.kernel_args(), *_grid_args(look.spec, look.rows, look.codes, look.code_rows), int(kmlp),
-        len(dims) - 1, ptr(dims),
-        ptr(params), ptr(out), threads())
+        len(dims) - 1, ptr(dims), ptr(params), int(params.dtype == torch.float16), ptr(out), threads())
     return out
 
 
@@ -91,6 +92,7 @@ def train_step(model, samples, want_raw: bool = False) -> tuple[float, dict]:
     lib = load()
     net_cfg = model.cfg.network
     dims, params = pack(model)
+    assert params.dtype == torch.float32, "training runs on float32 weights"
     linears = _linears(model)
     assert int(dims[-1]) == 5, "the fused losses are networks.MLP's and KMLP's (hit, depth, normal)"
     kmlp = _is_kmlp(model)

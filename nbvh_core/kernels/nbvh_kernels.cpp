@@ -314,15 +314,24 @@ inline int64_t padded(int d) { return d % 16 == 0 ? d + 16 : d; }
 #ifdef NBVH_AVX2
 // MR x 16 register block. Named accumulators: with an array, GCC stored every accumulator to the stack after each
 // FMA (half the speed); C is added at the end when accumulating.
-template <int MR>
-inline void micro_16(const float* A, int64_t a_row, int64_t a_k, const float* B, int64_t ldb, int k_in, float* C,
+// 16 consecutive B values of row q as two float vectors: float rows load directly, float16 rows (inference with
+// the stored half-precision weights) convert with F16C on the way into the registers.
+inline void load_b16(const float* b, __m256& lo, __m256& hi) { lo = _mm256_loadu_ps(b); hi = _mm256_loadu_ps(b + 8); }
+inline void load_b16(const _Float16* b, __m256& lo, __m256& hi) {
+    lo = _mm256_cvtph_ps(_mm_loadu_si128(reinterpret_cast<const __m128i*>(b)));
+    hi = _mm256_cvtph_ps(_mm_loadu_si128(reinterpret_cast<const __m128i*>(b + 8)));
+}
+
+template <int MR, typename TB>
+inline void micro_16(const float* A, int64_t a_row, int64_t a_k, const TB* B, int64_t ldb, int k_in, float* C,
                      int64_t ldc, bool acc) {
     static_assert(MR >= 1 && MR <= 6, "1 to 6 rows");
     __m256 c00 = _mm256_setzero_ps(), c01 = c00, c10 = c00, c11 = c00, c20 = c00, c21 = c00, c30 = c00, c31 = c00,
            c40 = c00, c41 = c00, c50 = c00, c51 = c00;
     const float* a0 = A;
     for (int q = 0; q < k_in; ++q, a0 += a_k) {
-        const __m256 b0 = _mm256_loadu_ps(B + q * ldb), b1 = _mm256_loadu_ps(B + q * ldb + 8);
+        __m256 b0, b1;
+        load_b16(B + q * ldb, b0, b1);
         __m256 a = _mm256_broadcast_ss(a0);
         c00 = _mm256_fmadd_ps(a, b0, c00); c01 = _mm256_fmadd_ps(a, b1, c01);
         if constexpr (MR > 1) { a = _mm256_broadcast_ss(a0 + a_row); c10 = _mm256_fmadd_ps(a, b0, c10); c11 = _mm256_fmadd_ps(a, b1, c11); }
@@ -346,21 +355,22 @@ inline void micro_16(const float* A, int64_t a_row, int64_t a_k, const float* B,
 }
 #endif
 
-void gemm(int m, int n, int k_in, const float* A, int64_t a_row, int64_t a_k, const float* B, int64_t ldb, float* C,
+template <typename TB>
+void gemm(int m, int n, int k_in, const float* A, int64_t a_row, int64_t a_k, const TB* B, int64_t ldb, float* C,
           int64_t ldc, bool acc) {
 #ifdef NBVH_AVX2
     if (n % 16 == 0) {
         for (int j = 0; j < n; j += 16) {
             int r = 0;
-            for (; r + 6 <= m; r += 6) micro_16<6>(A + r * a_row, a_row, a_k, B + j, ldb, k_in, C + r * ldc + j, ldc, acc);
+            for (; r + 6 <= m; r += 6) micro_16<6, TB>(A + r * a_row, a_row, a_k, B + j, ldb, k_in, C + r * ldc + j, ldc, acc);
             const float* a = A + r * a_row;
             float* cc = C + r * ldc + j;
             switch (m - r) {
-                case 1: micro_16<1>(a, a_row, a_k, B + j, ldb, k_in, cc, ldc, acc); break;
-                case 2: micro_16<2>(a, a_row, a_k, B + j, ldb, k_in, cc, ldc, acc); break;
-                case 3: micro_16<3>(a, a_row, a_k, B + j, ldb, k_in, cc, ldc, acc); break;
-                case 4: micro_16<4>(a, a_row, a_k, B + j, ldb, k_in, cc, ldc, acc); break;
-                case 5: micro_16<5>(a, a_row, a_k, B + j, ldb, k_in, cc, ldc, acc); break;
+                case 1: micro_16<1, TB>(a, a_row, a_k, B + j, ldb, k_in, cc, ldc, acc); break;
+                case 2: micro_16<2, TB>(a, a_row, a_k, B + j, ldb, k_in, cc, ldc, acc); break;
+                case 3: micro_16<3, TB>(a, a_row, a_k, B + j, ldb, k_in, cc, ldc, acc); break;
+                case 4: micro_16<4, TB>(a, a_row, a_k, B + j, ldb, k_in, cc, ldc, acc); break;
+                case 5: micro_16<5, TB>(a, a_row, a_k, B + j, ldb, k_in, cc, ldc, acc); break;
                 default: break;
             }
         }
@@ -373,9 +383,9 @@ void gemm(int m, int n, int k_in, const float* A, int64_t a_row, int64_t a_k, co
             for (int j = 0; j < n; ++j) c[j] = 0.f;
         for (int q = 0; q < k_in; ++q) {
             const float av = A[r * a_row + q * a_k];
-            const float* b = B + q * ldb;
+            const TB* b = B + q * ldb;
 #pragma omp simd
-            for (int j = 0; j < n; ++j) c[j] += av * b[j];
+            for (int j = 0; j < n; ++j) c[j] += av * (float)b[j];
         }
     }
 }
@@ -383,25 +393,38 @@ void gemm(int m, int n, int k_in, const float* A, int64_t a_row, int64_t a_k, co
 
 // The network's Linear layers in the layouts the kernels read, padded rows: wt[j] (in, out) = weight^T for the
 // forward pass, w[j] (out, in) = torch's layout for the backward pass. params: for each layer j, W_j^T
-// (dims[j], dims[j+1]) row-major then bias_j (dims[j+1]); hidden layers use ReLU, the last none.
+// (dims[j], dims[j+1]) row-major then bias_j (dims[j+1]); hidden layers use ReLU, the last none. TW: the weights'
+// type as stored (float, or float16 for inference with network_bits 16: read by the GEMM as they are).
+template <typename TW = float>
 struct Layers {
     int n;
     const int32_t* dims;
-    std::vector<std::vector<float>> wt, w, bias;
+    std::vector<std::vector<TW>> wt;
+    // A layer whose width is not a multiple of 16 (the 5 outputs) runs the scalar GEMM, where converting float16
+    // per element costs more than the layer: its few weights are widened to float32 once per call instead.
+    std::vector<std::vector<float>> wt_wide, w, bias;
 
-    Layers(int n_layers, const int32_t* dims_, const float* params, bool backward) : n(n_layers), dims(dims_) {
-        wt.resize(n); w.resize(n); bias.resize(n);
-        const float* p = params;
+    Layers(int n_layers, const int32_t* dims_, const TW* params, bool backward) : n(n_layers), dims(dims_) {
+        wt.resize(n); wt_wide.resize(n); w.resize(n); bias.resize(n);
+        const TW* p = params;
         for (int j = 0; j < n; ++j) {
             const int in = dims[j], out = dims[j + 1];
-            wt[j].assign((size_t)in * padded(out), 0.f);
-            for (int i = 0; i < in; ++i) std::memcpy(&wt[j][i * padded(out)], p + (int64_t)i * out, sizeof(float) * out);
+            if (!std::is_same<TW, float>::value && out % 16 != 0) {
+                wt_wide[j].assign((size_t)in * padded(out), 0.f);
+                for (int i = 0; i < in; ++i)
+                    for (int o = 0; o < out; ++o) wt_wide[j][i * padded(out) + o] = (float)p[(int64_t)i * out + o];
+            } else {
+                wt[j].assign((size_t)in * padded(out), TW(0));
+                for (int i = 0; i < in; ++i)
+                    std::memcpy(&wt[j][i * padded(out)], p + (int64_t)i * out, sizeof(TW) * out);
+            }
             if (backward) {
                 w[j].assign((size_t)out * padded(in), 0.f);
                 for (int i = 0; i < in; ++i)
-                    for (int o = 0; o < out; ++o) w[j][o * padded(in) + i] = p[(int64_t)i * out + o];
+                    for (int o = 0; o < out; ++o) w[j][o * padded(in) + i] = (float)p[(int64_t)i * out + o];
             }
-            bias[j].assign(p + (int64_t)in * out, p + (int64_t)in * out + out);
+            bias[j].resize(out);
+            for (int o = 0; o < out; ++o) bias[j][o] = (float)p[(int64_t)in * out + o];
             p += (int64_t)in * out + out;
         }
     }
@@ -424,7 +447,10 @@ struct Layers {
             float* y = act[j + 1].data();
             const float* x = (j == 0 && x0) ? x0 : act[j].data();
             const int64_t ldx = (j == 0 && x0) ? ld0 : padded(in);
-            gemm(TILE, out, in, x, ldx, 1, wt[j].data(), padded(out), y, padded(out), false);
+            if (!wt_wide[j].empty())
+                gemm(TILE, out, in, x, ldx, 1, wt_wide[j].data(), padded(out), y, padded(out), false);
+            else
+                gemm(TILE, out, in, x, ldx, 1, wt[j].data(), padded(out), y, padded(out), false);
             const bool relu = j + 1 < n;
             const float* bj = bias[j].data();
             for (int r = 0; r < TILE; ++r) {
@@ -459,11 +485,11 @@ inline void encode_tile(const Grid& g, const float* rays_o, const float* rays_d,
     }
 }
 
-template <int F, typename T>
+template <int F, typename T, typename TW>
 void mlp_segments_t(const Grid& g, const float* rays_o, const float* rays_d, const int64_t* ray, const float* te,
                     const float* tx, int64_t b, int k, const float* frac, const T* table, int n_layers,
-                    const int32_t* dims, const float* params, float* out, int threads) {
-    const Layers net(n_layers, dims, params, false);
+                    const int32_t* dims, const TW* params, float* out, int threads) {
+    const Layers<TW> net(n_layers, dims, params, false);
     const int n_out = dims[n_layers];
     const int64_t tiles = (b + TILE - 1) / TILE;
 #pragma omp parallel num_threads(threads)
@@ -565,7 +591,7 @@ void mlp_train_t(const Grid& g, const float* rays_o, const float* rays_d, const 
                  const int32_t* dims, const float* params, const uint8_t* hit, const float* local_t,
                  const float* normal, float inv_hits, float w_t, float w_n, double* loss_out, float* grad_params,
                  float* points, float* dx, float* out_raw, int threads) {
-    const Layers net(n_layers, dims, params, true);
+    const Layers<float> net(n_layers, dims, params, true);
     const std::vector<int64_t> g_off = grad_offsets(dims, n_layers);
     const int64_t tiles = (b + TILE - 1) / TILE;
     const float inv_b = 1.f / (float)b;
@@ -633,11 +659,11 @@ void mlp_train_t(const Grid& g, const float* rays_o, const float* rays_d, const 
 // input is the window [j * D, (j + 2) * D) of the segment's k * D feature row (D = L * F), so a pair is a first-layer
 // GEMM on an offset pointer into the tile's features; the deeper layers are the MLP path's.
 
-template <int F, typename T>
+template <int F, typename T, typename TW>
 void kmlp_segments_t(const Grid& g, const float* rays_o, const float* rays_d, const int64_t* ray, const float* te,
                      const float* tx, int64_t b, int k, const float* frac, const T* table, int n_layers,
-                     const int32_t* dims, const float* params, float* out, int threads) {
-    const Layers net(n_layers, dims, params, false);
+                     const int32_t* dims, const TW* params, float* out, int threads) {
+    const Layers<TW> net(n_layers, dims, params, false);
     const int n_out = dims[n_layers];
     const int width = g.levels * (F > 0 ? F : g.features);
     const int64_t ldx = padded(k * width);
@@ -728,7 +754,7 @@ void kmlp_train_t(const Grid& g, const float* rays_o, const float* rays_d, const
                   const int32_t* dims, const float* params, const uint8_t* hit, const float* local_t,
                   const float* normal, float inv_hits, float w_t, float w_n, double* loss_out, float* grad_params,
                   float* points, float* dx, float* out_raw, int threads) {
-    const Layers net(n_layers, dims, params, true);
+    const Layers<float> net(n_layers, dims, params, true);
     const int P = k - 1;
     const int width = g.levels * (F > 0 ? F : g.features);
     const int64_t ldx = padded(k * width);
@@ -971,36 +997,45 @@ void vqad_soft_backward(const float* probs, const float* table, const int64_t* c
 
 extern "C" {
 
-int nbvh_abi_version() { return 12; }
+int nbvh_abi_version() { return 13; }
 
 // Fused inference over B segments of an MLP (kmlp = 0: mlp_segments_t) or a KMLP (kmlp = 1: kmlp_segments_t):
 // rays_o/rays_d (n_rays, 3), ray (B,) int64 ray of each segment, te/tx (B,) segment ends, frac (k,) point
 // fractions; table (L, rows, F) of table_kind 0 float32, 1 float16, 2 uint8 codes (with qoffset/qscale (L, F):
 // value = offset + code * scale; null otherwise); dims (n_layers + 1,) int32 layer widths (dims[0] = k L F for an
 // MLP, 2 L F for a KMLP's pair); params packed as Layers reads them. out: (B, dims[n_layers]) for an MLP,
-// (B, k - 1, dims[n_layers]) for a KMLP, float32 raw outputs.
+// (B, k - 1, dims[n_layers]) for a KMLP, float32 raw outputs. weight_kind 0: params float32; 1: float16 (the
+// stored half-precision network, read by the GEMM as it is: no float32 copy).
 void nbvh_net_segments(const float* rays_o, const float* rays_d, const int64_t* ray, const float* te, const float* tx,
                        int64_t b, int k, const float* frac, const void* table, int table_kind,
                        const float* qoffset, const float* qscale, int levels,
                        int features, const float* scales, const int64_t* res, const uint8_t* dense,
                        int64_t vertex_table, int64_t rows, const uint8_t* codes, int64_t code_rows, int kmlp,
-                       int n_layers, const int32_t* dims, const float* params, float* out, int threads) {
+                       int n_layers, const int32_t* dims, const void* params, int weight_kind, float* out,
+                       int threads) {
     Grid g{levels, features, scales, res, dense, vertex_table, rows, codes, code_rows};
     g.qoffset = qoffset;
     g.qscale = qscale;
     g.init_masks();
-    by_features(features, [&](auto F) {
-        constexpr int f = decltype(F)::value;
-        by_table(table_kind, table, [&](auto tab) {
-            using T = std::remove_const_t<std::remove_pointer_t<decltype(tab)>>;
-            if (kmlp)
-                kmlp_segments_t<f, T>(g, rays_o, rays_d, ray, te, tx, b, k, frac, tab, n_layers, dims, params, out,
-                                      threads);
-            else
-                mlp_segments_t<f, T>(g, rays_o, rays_d, ray, te, tx, b, k, frac, tab, n_layers, dims, params, out,
-                                     threads);
+    auto run = [&](auto weights) {
+        using TW = std::remove_const_t<std::remove_pointer_t<decltype(weights)>>;
+        by_features(features, [&](auto F) {
+            constexpr int f = decltype(F)::value;
+            by_table(table_kind, table, [&](auto tab) {
+                using T = std::remove_const_t<std::remove_pointer_t<decltype(tab)>>;
+                if (kmlp)
+                    kmlp_segments_t<f, T, TW>(g, rays_o, rays_d, ray, te, tx, b, k, frac, tab, n_layers, dims, weights,
+                                              out, threads);
+                else
+                    mlp_segments_t<f, T, TW>(g, rays_o, rays_d, ray, te, tx, b, k, frac, tab, n_layers, dims, weights,
+                                             out, threads);
+            });
         });
-    });
+    };
+    if (weight_kind == 1)
+        run(static_cast<const _Float16*>(params));
+    else
+        run(static_cast<const float*>(params));
 }
 
 // One training step on B labelled segments of an MLP (mlp_train_t; loss_out (3,) float64 = bce, depth_l1,

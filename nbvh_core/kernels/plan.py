@@ -54,14 +54,16 @@ def network_kernel(model, device: torch.device | str | None = None) -> str:
     if (net.fused_kind is None or not enc.grid_lookup or not fast_enabled(device)
             or enc.table.dtype != torch.float32):
         return TORCH
-    return f"fused {net.fused_kind}"
+    half = next(net.parameters()).dtype == torch.float16
+    return f"fused {net.fused_kind}" + (" f16 weights" if half else "")
 
 
 def train_step_kernel(model, device: torch.device | str | None = None) -> str:
     """One training step: 'fused mlp' | 'fused kmlp' (forward, loss and backward in one kernel call) or
     'autograd' (torch autograd over the encoding's and the soft table's stages)."""
     fused = network_kernel(model, device)
-    return fused if fused != TORCH and not model.encoding.quantized else "autograd"
+    trainable = not model.encoding.quantized and next(model.network.parameters()).dtype == torch.float32
+    return fused.replace(" f16 weights", "") if fused != TORCH and trainable else "autograd"
 
 
 def optimizer_kernel() -> str:
