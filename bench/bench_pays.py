@@ -79,7 +79,7 @@ def write_md(rows: list[dict]) -> None:
     lines = ["# Does compression pay? (bench/bench_pays.py)", "",
              "Neural model at the preset's own time budget vs the quadric decimation of the same image MSE (16 views,"
              " 128 px, same metric), on this 2-core CPU. Resident = what a ray tracer holds to trace (mesh: vertices,"
-             " indices, normals, BVH; model: decoded nodes, table as held, float32 network). File = the .nbvh.", "",
+             " indices, normals, BVH; model: decoded nodes, table as held, network as held: float16 since the kernels read it so, float32 in rows measured before). File = the .nbvh.", "",
              "| mesh | preset | storage | train s | file B | model resident B | MSE (stored) | MSE (float32) | IoU "
              "| equal-MSE decimation | its resident B | decimation / model resident | decimation / file "
              "| Draco-11 of the mesh | of the decimation |",
