@@ -71,38 +71,14 @@ def default_python(candidates: list[str] | None = None) -> str:
     options = list(candidates or [])
     if os.environ.get("NBVH_PYTHON"):
         options.insert(0, os.environ["NBVH_PYTHON"])
-    options += [str(CORE_PARENT / ".venv" / "bin" / "python"), str(CORE_PARENT.parent / ".venv" / "bin" / "python"),
+    from .installer import venv_python
+
+    options += [str(venv_python(CORE_PARENT / ".venv")), str(venv_python(CORE_PARENT.parent / ".venv")),
                 shutil.which("python3") or ""]
     for p in options:
         if p and Path(p).exists() and check_python(p)[0]:
             return p
     return ""
-
-
-def install_dependencies(venv_dir: str | Path, base_python: str | None = None) -> tuple[bool, str]:
-    """Create a virtual environment at `venv_dir` with nbvh_core's pinned dependencies (torch 2.13.0 CPU).
-
-    Returns (ok, report). Blocking: the operator calls it directly, so Blender waits until pip is done.
-    """
-    venv_dir = Path(venv_dir)
-    base = base_python or shutil.which("python3") or sys.executable
-    steps = []
-    try:
-        if not (venv_dir / "bin" / "python").exists():
-            subprocess.run([base, "-m", "venv", str(venv_dir)], check=True, capture_output=True, text=True)
-            steps.append(f"created {venv_dir} from {base}")
-        py = str(venv_dir / "bin" / "python")
-        req = CORE_PARENT / "nbvh_core" / "requirements.txt"
-        cmd = [py, "-m", "pip", "install", "-q", "-r", str(req)]
-        out = subprocess.run(cmd, capture_output=True, text=True)
-        if out.returncode != 0:
-            return False, "\n".join(steps + [f"pip failed: {out.stderr.strip()[-2000:]}"])
-        steps.append(f"installed {req.read_text().split()}")
-        ok, msg = check_python(py)
-        steps.append(msg)
-        return ok, "\n".join(steps)
-    except (OSError, subprocess.CalledProcessError) as exc:
-        return False, "\n".join(steps + [f"failed: {exc}"])
 
 
 @dataclass

@@ -9,7 +9,7 @@ from pathlib import Path
 import bpy
 
 from . import engine, library, previews
-from .job import check_python, default_python, install_dependencies
+from .job import check_python, core_env, default_python
 
 # The session of the current Compress click (one at a time per Blender instance), and the library / scene-report run.
 _state = {"session": None, "messages": [], "library": None}
@@ -202,21 +202,71 @@ class NBVH_OT_remove_result(bpy.types.Operator):
         return {"FINISHED"}
 
 
+def _install_tick():
+    """Timer: advance the dependency installer and mirror it into the preferences; done -> the new Python."""
+    inst = _state.get("installer")
+    if inst is None:
+        return None
+    prefs = addon_prefs(bpy.context)
+    state = inst.poll()
+    if prefs is not None:
+        prefs.install_progress = inst.fraction
+        prefs.install_status = f"{inst.phase}: {inst.line}"[:200] if state == "running" else {
+            "done": "installed: jobs run with the new environment", "cancelled": "install cancelled",
+            "failed": (inst.error.splitlines() or ["failed"])[0][:200]}.get(state, state)
+        if state == "done":
+            prefs.python_path = _state["installer_python"]
+    for window in bpy.context.window_manager.windows:
+        for area in window.screen.areas:
+            area.tag_redraw()
+    if state == "running":
+        return 0.25
+    _state["installer"] = None
+    return None
+
+
 class NBVH_OT_install_dependencies(bpy.types.Operator):
-    """Create a virtual environment with PyTorch (CPU) and nbvh_core's dependencies for the background jobs"""
+    """Create a virtual environment with PyTorch (CPU build) and nbvh_core's dependencies for the background jobs,
+    in a background process (progress and Cancel in these preferences)"""
 
     bl_idname = "nbvh.install_dependencies"
     bl_label = "Install Dependencies"
 
+    @classmethod
+    def poll(cls, context):
+        return _state.get("installer") is None
+
     def execute(self, context):
-        prefs = addon_prefs(context)
+        from .installer import Installer, default_base_python, install_steps, venv_python
+
+        if not getattr(bpy.app, "online_access", True):  # Blender 4.2+: Preferences > System > Allow Online Access
+            self.report({"ERROR"}, "online access is off (Preferences > System > Network > Allow Online Access): "
+                                   "pip cannot download PyTorch")
+            return {"CANCELLED"}
         venv = Path(bpy.utils.user_resource("SCRIPTS", path="nbvh_venv", create=True))
-        ok, msg = install_dependencies(venv)
-        for line in msg.splitlines():
-            self.report({"INFO" if ok else "ERROR"}, line)
-        if ok and prefs is not None:
-            prefs.python_path = str(venv / "bin" / "python")
-        return {"FINISHED"} if ok else {"CANCELLED"}
+        req = Path(__file__).resolve().parent / "nbvh_core" / "requirements.txt"
+        if not req.exists():  # the repository layout: nbvh_core beside addon/
+            req = Path(__file__).resolve().parent.parent / "nbvh_core" / "requirements.txt"
+        env = core_env()
+        inst = Installer(install_steps(venv, default_base_python(), req), env=env)
+        _state["installer"], _state["installer_python"] = inst, str(venv_python(venv))
+        inst.start()
+        bpy.app.timers.register(_install_tick, first_interval=0.25)
+        self.report({"INFO"}, f"installing into {venv} in the background")
+        return {"FINISHED"}
+
+
+class NBVH_OT_cancel_install(bpy.types.Operator):
+    """Stop the dependency install (the half-made environment is continued by the next install)"""
+
+    bl_idname = "nbvh.cancel_install"
+    bl_label = "Cancel Install"
+
+    def execute(self, context):
+        inst = _state.get("installer")
+        if inst is not None:
+            inst.cancel()
+        return {"FINISHED"}
 
 
 class NBVH_OT_check_python(bpy.types.Operator):
@@ -369,5 +419,5 @@ class NBVH_OT_cancel_library(bpy.types.Operator):
 
 
 CLASSES = (NBVH_OT_compress, NBVH_OT_cancel, NBVH_OT_toggle_preview, NBVH_OT_open_report, NBVH_OT_remove_result,
-           NBVH_OT_install_dependencies, NBVH_OT_check_python, NBVH_OT_scene_report, NBVH_OT_compress_library,
+           NBVH_OT_install_dependencies, NBVH_OT_cancel_install, NBVH_OT_check_python, NBVH_OT_scene_report, NBVH_OT_compress_library,
            NBVH_OT_cancel_library)

@@ -77,12 +77,20 @@ class NBVH_Preferences(bpy.types.AddonPreferences):
         name="Python for jobs", subtype="FILE_PATH",
         description="A Python with PyTorch that runs nbvh_core (empty: found automatically)")
 
+    install_progress: bpy.props.FloatProperty(min=0.0, max=1.0, subtype="FACTOR")
+    install_status: bpy.props.StringProperty()
+
     def draw(self, context):
         col = self.layout.column()
         col.prop(self, "python_path")
         row = col.row()
         row.operator("nbvh.check_python")
         row.operator("nbvh.install_dependencies")
+        if self.install_status:
+            col.label(text=self.install_status)
+            if operators._state.get("installer") is not None:
+                col.prop(self, "install_progress", text="", slider=True)
+                col.operator("nbvh.cancel_install", icon="CANCEL")
 
 
 class NBVH_PT_panel(bpy.types.Panel):

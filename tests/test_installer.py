@@ -1,0 +1,69 @@
+"""The add-on's dependency installer (addon/installer.py, no bpy): the commands per OS (the CPU build of PyTorch,
+Windows' Scripts\\python.exe) and the watched background steps (progress, the current pip line, failure, cancel)."""
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from addon.installer import TORCH_CPU_INDEX, Installer, Step, install_steps, venv_python  # noqa: E402
+
+REQ = ROOT / "nbvh_core" / "requirements.txt"
+
+
+def test_commands_pick_the_cpu_build_and_the_platform_paths(tmp_path):
+    assert venv_python(tmp_path, "nt") == tmp_path / "Scripts" / "python.exe"
+    assert venv_python(tmp_path, "posix") == tmp_path / "bin" / "python"
+    linux = install_steps(tmp_path / "v", "/usr/bin/python3", REQ, system="Linux", os_name="posix")
+    assert [s.label for s in linux][0] == "creating the virtual environment"
+    torch_step = next(s for s in linux if "PyTorch" in s.label)
+    assert "torch==2.13.0" in torch_step.cmd and torch_step.cmd[-2:] == ["--index-url", TORCH_CPU_INDEX]
+    assert torch_step.cmd[0] == str(tmp_path / "v" / "bin" / "python")
+    windows = install_steps(tmp_path / "w", "python.exe", REQ, system="Windows", os_name="nt")
+    assert next(s for s in windows if "PyTorch" in s.label).cmd[0] == str(tmp_path / "w" / "Scripts" / "python.exe")
+    mac = install_steps(tmp_path / "m", "python3", REQ, system="Darwin", os_name="posix")
+    assert "--index-url" not in next(s for s in mac if "PyTorch" in s.label).cmd  # PyPI's macOS wheels are CPU
+    (tmp_path / "e" / "bin").mkdir(parents=True)
+    (tmp_path / "e" / "bin" / "python").write_text("")
+    assert "creating" not in install_steps(tmp_path / "e", "python3", REQ, os_name="posix")[0].label  # it exists
+
+
+def _run(inst: Installer, timeout: float = 30.0) -> list[tuple[str, float, str]]:
+    seen = []
+    inst.start()
+    t0 = time.monotonic()
+    while inst.poll() == "running" and time.monotonic() - t0 < timeout:
+        seen.append((inst.phase, inst.fraction, inst.line))
+        time.sleep(0.05)
+    return seen
+
+
+def test_steps_run_in_order_with_progress_and_the_current_line():
+    py = sys.executable
+    inst = Installer([Step("one", [py, "-c", "print('Collecting torch'); import time; time.sleep(0.5)"]),
+                      Step("two", [py, "-c", "print('Installing collected packages: numpy')"])])
+    seen = _run(inst)
+    assert inst.state == "done" and inst.fraction == 1.0
+    assert ("one", 0.0, "Collecting torch") in seen
+    assert inst.log == ["Collecting torch", "Installing collected packages: numpy"]
+
+
+def test_a_failed_step_stops_with_its_output():
+    py = sys.executable
+    inst = Installer([Step("pip", [py, "-c", "import sys; print('ERROR: No matching distribution'); sys.exit(1)"]),
+                      Step("never", [py, "-c", "print('not run')"])])
+    _run(inst)
+    assert inst.state == "failed" and "pip failed (exit 1)" in inst.error and "No matching distribution" in inst.error
+    assert "not run" not in inst.log
+
+
+def test_cancel_stops_the_running_step_at_once():
+    inst = Installer([Step("slow", [sys.executable, "-c", "import time; time.sleep(60)"])])
+    inst.start()
+    time.sleep(0.3)
+    t0 = time.monotonic()
+    inst.cancel()
+    assert inst.state == "cancelled" and time.monotonic() - t0 < 5 and inst._proc.poll() is not None
