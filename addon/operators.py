@@ -91,6 +91,20 @@ def _tick():
     return 0.25
 
 
+def compress_disabled_reason(context) -> str:
+    """Why Compress cannot run now ('' when it can): shown on the greyed-out button and in the panel."""
+    if _state["session"] is not None:
+        return "a compression is running (Cancel it, or wait for it to finish)"
+    if not context.selected_objects:
+        return "select one or more mesh objects to compress"
+    return ""
+
+
+def selection_key(context) -> str:
+    """The selection a message was about: a message about other objects is not shown (it is stale)."""
+    return "|".join(sorted(o.name for o in context.selected_objects))
+
+
 class NBVH_OT_compress(bpy.types.Operator):
     """Compress the selected objects into neural geometry (.nbvh) in a background process"""
 
@@ -100,7 +114,10 @@ class NBVH_OT_compress(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        return _state["session"] is None and bool(context.selected_objects)
+        why = compress_disabled_reason(context)
+        if why and hasattr(cls, "poll_message_set"):  # Blender 3.0+: the greyed-out button's tooltip says why
+            cls.poll_message_set(why)
+        return not why
 
     resume: bpy.props.BoolProperty(default=False, options={"HIDDEN"})
 
@@ -117,10 +134,12 @@ class NBVH_OT_compress(bpy.types.Operator):
             self.report({"WARNING"}, msg)
         if not session.objects:
             props.last_error = "; ".join(refusals) or "nothing to compress"
+            props.message_selection = selection_key(context)
             self.report({"ERROR"}, "nothing to compress: " + props.last_error)
             return {"CANCELLED"}
         props.running, props.progress, props.phase, props.last_error = True, 0.0, "starting", ""
         props.last_note = ""
+        props.message_selection = selection_key(context)
         _state["session"] = session
         bpy.app.timers.register(_tick, first_interval=0.1)
         return {"FINISHED"}
@@ -175,7 +194,45 @@ class NBVH_OT_open_report(bpy.types.Operator):
         if not path or not Path(path).exists():
             self.report({"WARNING"}, "no report yet")
             return {"CANCELLED"}
-        webbrowser.open(Path(path).as_uri())
+        if not _open_in_browser(Path(path)):  # no browser registered (a server, a bare desktop): read it here
+            text = open_report_text(Path(path))
+            self.report({"INFO"}, f"no web browser found: the report is in the Text Editor as '{text.name}' ({path})")
+        return {"FINISHED"}
+
+
+def _open_in_browser(path: Path) -> bool:
+    try:
+        return bool(webbrowser.open(path.as_uri()))
+    except webbrowser.Error:
+        return False
+
+
+def open_report_text(path: Path):
+    """Load the report's JSON (beside the HTML) as a Blender text block and show it in a Text Editor if one is
+    open; returns the text block."""
+    src = path.with_suffix(".json") if path.with_suffix(".json").exists() else path
+    name = f"NBVH {src.name}"
+    old = bpy.data.texts.get(name)
+    if old is not None:
+        bpy.data.texts.remove(old)
+    text = bpy.data.texts.load(str(src))
+    text.name = name
+    for area in (bpy.context.screen.areas if bpy.context.screen else []):
+        if area.type == "TEXT_EDITOR":
+            area.spaces.active.text = text
+    return text
+
+
+class NBVH_OT_open_folder(bpy.types.Operator):
+    """Open the folder the results are written to in the system's file browser"""
+
+    bl_idname = "nbvh.open_folder"
+    bl_label = "Open Output Folder"
+
+    def execute(self, context):
+        folder = engine.output_dir(context.scene.nbvh_props.output_dir)
+        folder.mkdir(parents=True, exist_ok=True)
+        bpy.ops.wm.path_open(filepath=str(folder))
         return {"FINISHED"}
 
 
@@ -418,6 +475,7 @@ class NBVH_OT_cancel_library(bpy.types.Operator):
         return {"FINISHED"}
 
 
-CLASSES = (NBVH_OT_compress, NBVH_OT_cancel, NBVH_OT_toggle_preview, NBVH_OT_open_report, NBVH_OT_remove_result,
+CLASSES = (NBVH_OT_compress, NBVH_OT_cancel, NBVH_OT_toggle_preview, NBVH_OT_open_report, NBVH_OT_open_folder,
+           NBVH_OT_remove_result,
            NBVH_OT_install_dependencies, NBVH_OT_cancel_install, NBVH_OT_check_python, NBVH_OT_scene_report, NBVH_OT_compress_library,
            NBVH_OT_cancel_library)

@@ -16,10 +16,16 @@ class NBVH_Result(bpy.types.PropertyGroup):
     report_path: bpy.props.StringProperty(subtype="FILE_PATH")
     image_name: bpy.props.StringProperty()
     proxy_name: bpy.props.StringProperty()
-    nbvh_bytes: bpy.props.IntProperty()
-    blender_bytes: bpy.props.IntProperty()
-    mse: bpy.props.FloatProperty()
-    iou: bpy.props.FloatProperty()
+    nbvh_bytes: bpy.props.IntProperty(name=".nbvh bytes", description="Size of the model file; a neural model is "
+                                      "ray-traced as it is stored, so this is also about what it holds in memory")
+    blender_bytes: bpy.props.IntProperty(name="Mesh bytes", description="What the mesh holds as Blender stores it "
+                                         "(positions, corners, faces, normals)")
+    mse: bpy.props.FloatProperty(name="MSE", precision=5, description=(
+        "Image mean squared error of the neural rendering against the exact one of the mesh, over 16 orbit views "
+        "(0 = identical; 0.01 is the 'standard' quality level)"))
+    iou: bpy.props.FloatProperty(name="IoU", precision=4, description=(
+        "Silhouette intersection over union: the share of pixels covered by both renderings among those covered "
+        "by either (1 = the same outline)"))
     train_seconds: bpy.props.FloatProperty()
 
 
@@ -60,6 +66,7 @@ class NBVH_Props(bpy.types.PropertyGroup):
     eta: bpy.props.StringProperty()
     last_error: bpy.props.StringProperty()
     last_note: bpy.props.StringProperty()  # verdicts: objects kept as meshes (not worth compressing)
+    message_selection: bpy.props.StringProperty()  # the selection last_error / last_note are about
     report_html: bpy.props.StringProperty(subtype="FILE_PATH")
     library_folder: bpy.props.StringProperty(name="Library", subtype="DIR_PATH")
     library_running: bpy.props.BoolProperty()
@@ -133,16 +140,27 @@ class NBVH_PT_panel(bpy.types.Panel):
                 op = layout.operator("nbvh.compress", text=f"Resume training ({', '.join(resumable)[:40]})",
                                      icon="RECOVER_LAST")
                 op.resume = True
-        if props.last_error:
+        why = operators.compress_disabled_reason(context)
+        if why and not props.running:
+            layout.label(text=why, icon="INFO")
+        current = props.running or props.message_selection in ("", operators.selection_key(context))
+        if props.last_error and current:  # a message about another selection is stale: not shown
             layout.label(text=props.last_error, icon="ERROR")
-        if props.last_note:
+        if props.last_note and current:
             layout.label(text=props.last_note, icon="INFO")
+        out = engine.output_dir(props.output_dir)
+        row = layout.row()
+        row.label(text=f"Output: {out}", icon="FILE_FOLDER")
+        row.operator("nbvh.open_folder", text="", icon="FOLDER_REDIRECT")
         for r in context.scene.nbvh_results:
             box = layout.box()
             box.label(text=r.object_name, icon="OBJECT_DATA")
             box.label(text=f".nbvh {r.nbvh_bytes / 1024:.1f} KB vs mesh {r.blender_bytes / 1024:.1f} KB "
                            f"({r.blender_bytes / max(r.nbvh_bytes, 1):.1f}x)")
-            box.label(text=f"MSE {r.mse:.4f}  IoU {r.iou:.3f}  {r.train_seconds:.0f} s")
+            row = box.row()  # props, not text: hovering shows what MSE and IoU mean
+            row.prop(r, "mse", emboss=False)
+            row.prop(r, "iou", emboss=False)
+            row.label(text=f"{r.train_seconds:.0f} s")
             row = box.row()
             op = row.operator("nbvh.toggle_preview", text="Proxy", icon="HIDE_OFF")
             op.object_name = r.object_name

@@ -342,6 +342,21 @@ def test_compress_library_folder_with_a_blend_file():
     assert blob.name == "Blob"
 
 
+def test_disabled_compress_says_why_and_the_report_opens_without_a_browser():
+    ops = ADDON["operators"]
+    setup_scene()
+    select()
+    why = ops.compress_disabled_reason(bpy.context)
+    assert "select" in why and not bpy.ops.nbvh.compress.poll()
+    select("Blob")
+    assert ops.compress_disabled_reason(bpy.context) == "" and ops.selection_key(bpy.context) == "Blob"
+    report = Path(bpy.context.scene.nbvh_props.report_html)
+    assert report.exists(), report  # written by the compress tests above
+    text = ops.open_report_text(report)
+    assert text.name.startswith("NBVH ") and json.loads(text.as_string())  # the report's JSON, readable in Blender
+    assert bpy.data.texts.get(text.name) is not None
+
+
 def test_text_converts_to_mesh():
     export = ADDON["export"]
     verts, tris, nbytes = export.evaluated_triangles(bpy.data.objects["Label"], bpy.context.evaluated_depsgraph_get())

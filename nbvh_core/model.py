@@ -173,7 +173,8 @@ class NeuralBVH(nn.Module):
         return out
 
     def resident_bytes(self) -> dict[str, int]:
-        """Bytes this model holds to answer rays, by component: the traversal's decoded nodes (32 B each), the
+        """Bytes this model holds to answer rays, by component: the decoded node records (32 B each; the fused
+        traversal reads them in place, `traversal.TorchBVH` is a view of them on the CPU), the
         feature rows as held (uint8 codes + affine, or floats), HashVQAD's codes (one byte each), the network's
         weights as held (float16 after `finalize_storage` at 16 bits, or when loaded from such a file; the fused
         kernels read them without a float32 copy)."""

@@ -28,37 +28,56 @@ from . import kernels
 from .bvh import BVH
 
 
-@dataclass
 class TorchBVH:
-    """BVH node arrays as tensors on one device. lo, hi: (M, 3) float32; left: (M,) int64 (0 = leaf);
-    leaf: (M,) int64 leaf ordinal (-1 for internal and padding nodes)."""
+    """BVH node records as tensors on one device, without copies beyond the one (M, 8) record table: `records`
+    holds each 32-byte node (lo xyz, hi xyz as float32; left, leaf as int32) and lo, hi: (M, 3) float32 are views
+    of it; left, leaf: (M,) int64 (0 = leaf; -1 for internal and padding nodes) are made on first use (the
+    reference traversal and training's labels ask for them; the fused inference kernel reads the records in place,
+    so a model answering rays holds its nodes once: `NeuralBVH.resident_bytes`)."""
 
-    lo: torch.Tensor
-    hi: torch.Tensor
-    left: torch.Tensor
-    leaf: torch.Tensor
-    max_depth: int
-    _int32: tuple | None = None
+    def __init__(self, records: torch.Tensor, max_depth: int):
+        self.records = records
+        self.lo, self.hi = records[:, 0:3], records[:, 3:6]
+        self.max_depth = max_depth
+        self._links: tuple | None = None
+        self._int32: tuple | None = None
+
+    def _int64_links(self) -> tuple[torch.Tensor, torch.Tensor]:
+        if self._links is None:
+            links = self.records.view(torch.int32)[:, 6:8]
+            self._links = (links[:, 0].to(torch.int64), links[:, 1].to(torch.int64))
+        return self._links
+
+    @property
+    def left(self) -> torch.Tensor:
+        return self._int64_links()[0]
+
+    @property
+    def leaf(self) -> torch.Tensor:
+        return self._int64_links()[1]
 
     def int32_arrays(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """(left, leaf) as contiguous int32 (what the C++ kernels read); cached."""
+        """(left, leaf) as contiguous int32 (what the label kernels read); cached."""
         if self._int32 is None:
-            self._int32 = (self.left.to(torch.int32).contiguous(), self.leaf.to(torch.int32).contiguous())
+            links = self.records.view(torch.int32)[:, 6:8]
+            self._int32 = (links[:, 0].contiguous(), links[:, 1].contiguous())
         return self._int32
 
     @staticmethod
     def from_nodes(nodes: np.ndarray, device: str | torch.device = "cpu") -> "TorchBVH":
-        """From a (M,) NODE_DTYPE array (a BVH's nodes or the ones read from a file)."""
-        left = torch.as_tensor(nodes["left"].astype(np.int64), device=device)
-        depth = np.zeros(len(nodes), np.int64)
-        internal = np.flatnonzero(nodes["left"] > 0)  # BFS layout: parents come before children
+        """From a (M,) NODE_DTYPE array (a BVH's nodes or the ones read from a file); on the CPU the records are a
+        view of `nodes` itself (the array must stay alive and unchanged: NeuralBVH.set_nodes replaces it whole)."""
+        arr = np.ascontiguousarray(nodes)
+        records = torch.from_numpy(arr.view(np.float32).reshape(len(arr), 8))
+        if torch.device(device).type != "cpu":
+            records = records.to(device)
+        depth = np.zeros(len(arr), np.int64)
+        internal = np.flatnonzero(arr["left"] > 0)  # BFS layout: parents come before children
         for i in internal:
-            depth[nodes["left"][i]:nodes["left"][i] + 2] = depth[i] + 1
-        return TorchBVH(lo=torch.as_tensor(nodes["lo"].copy(), device=device),
-                        hi=torch.as_tensor(nodes["hi"].copy(), device=device),
-                        left=left,
-                        leaf=torch.as_tensor(nodes["leaf"].astype(np.int64), device=device),
-                        max_depth=int(depth.max()) if len(nodes) else 0)
+            depth[arr["left"][i]:arr["left"][i] + 2] = depth[i] + 1
+        tree = TorchBVH(records, int(depth.max()) if len(arr) else 0)
+        tree._source = arr  # keeps the viewed array alive
+        return tree
 
     @staticmethod
     def from_bvh(bvh: BVH, device: str | torch.device = "cpu") -> "TorchBVH":
@@ -66,7 +85,7 @@ class TorchBVH:
 
     @property
     def device(self) -> torch.device:
-        return self.lo.device
+        return self.records.device
 
 
 def ray_box(rays_o: torch.Tensor, inv_d: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor,
@@ -306,10 +325,11 @@ class LeafStream:
         lib, p = kernels.load(), kernels.ptr
         tree = self.tree
         n = self.sp.shape[0]
-        left, leaf = tree.int32_arrays()
         self.t_max = self.t_max.contiguous()
-        lib.nbvh_stream_next(p(self._o), p(self._inv), n, p(tree.lo.contiguous()), p(tree.hi.contiguous()), p(left),
-                             p(leaf), p(self.stack_node), p(self.stack_t), p(self.sp), p(self.t_max),
+        rec = tree.records  # read in place: boxes at float offsets 0 and 3, links at int32 offsets 6 and 7, stride 8
+        base = p(rec)
+        lib.nbvh_stream_next(p(self._o), p(self._inv), n, base, base + 12, base + 24, base + 28, 8, 8,
+                             p(self.stack_node), p(self.stack_t), p(self.sp), p(self.t_max),
                              self.stack_node.shape[1], p(self._out_leaf), p(self._out_te), p(self._out_tx),
                              kernels.threads())
         ray = torch.nonzero(self._out_leaf >= 0).squeeze(1)

@@ -304,3 +304,22 @@ def test_fused_soft_hashvqad_table_matches_the_reference(tau):
     assert torch.allclose(got, want, rtol=1e-5, atol=1e-6)
     assert torch.allclose(enc.logits.grad, want_g[0], rtol=1e-4, atol=1e-5)
     assert torch.allclose(enc.table.grad, want_g[1], rtol=1e-4, atol=1e-5)
+
+
+def test_fused_queries_read_the_node_records_in_place(sample_meshes):
+    """A model answering rays on the fast path holds its nodes once: the traversal reads model.nodes' own memory
+    (the 32-byte records resident_bytes counts), and no int64 link copies are made."""
+    from nbvh_core.render import orbit_cameras
+
+    torch.manual_seed(0)
+    model = NeuralBVH(build_bvh(sample_meshes["blob"], 255).nodes,
+                      ModelConfig(EncodingConfig(kind="hashgrid", log2_table=6, levels=2, features=8),
+                                  NetworkConfig(kind="mlp", k=4))).eval()
+    o, d = (torch.from_numpy(a) for a in orbit_cameras(2)[0].rays(32, 32))
+    fast = model.query(o, d)
+    tree = model.tree()
+    assert np.shares_memory(tree.records.numpy(), model.nodes) and tree._links is None
+    assert model.resident_bytes()["bvh"] == model.nodes.nbytes
+    with kernels.using_path("reference"):
+        ref = model.query(o, d)
+    assert torch.equal(fast.hit, ref.hit) and torch.allclose(fast.t[fast.hit], ref.t[ref.hit], atol=1e-5)

@@ -997,7 +997,7 @@ void vqad_soft_backward(const float* probs, const float* table, const int64_t* c
 
 extern "C" {
 
-int nbvh_abi_version() { return 13; }
+int nbvh_abi_version() { return 14; }
 
 // Fused inference over B segments of an MLP (kmlp = 0: mlp_segments_t) or a KMLP (kmlp = 1: kmlp_segments_t):
 // rays_o/rays_d (n_rays, 3), ray (B,) int64 ray of each segment, te/tx (B,) segment ends, frac (k,) point
@@ -1123,12 +1123,14 @@ void nbvh_encode_backward(const float* points, int64_t n, const float* grad_out,
 }
 
 // One step of traversal.LeafStream.next for every ray with sp > 0: pop (nearer child first) until a leaf is
-// reached. out_leaf[r] = leaf ordinal or -1 (no leaf this call), out_node, out_te, out_tx per ray.
+// reached. Node i's box is node_lo/node_hi + box_stride * i (3 floats each), its links node_left/node_leaf
+// [link_stride * i]: strides 8 read the 32-byte node records in place (the model's own array, no copy). out_leaf[r] = leaf ordinal or -1 (no leaf this call), out_node, out_te, out_tx per ray.
 // Stacks: stack_node (n, depth) int32, stack_t (n, depth) float32, sp (n,) int32; t_max (n,) float32.
 void nbvh_stream_next(const float* rays_o, const float* inv_d, int64_t n, const float* node_lo,
-                      const float* node_hi, const int32_t* node_left, const int32_t* node_leaf, int32_t* stack_node,
-                      float* stack_t, int32_t* sp_arr, const float* t_max_arr, int depth, int32_t* out_leaf,
-                      float* out_te, float* out_tx, int threads) {
+                      const float* node_hi, const int32_t* node_left, const int32_t* node_leaf, int64_t box_stride,
+                      int64_t link_stride, int32_t* stack_node, float* stack_t, int32_t* sp_arr,
+                      const float* t_max_arr, int depth, int32_t* out_leaf, float* out_te, float* out_tx,
+                      int threads) {
 #pragma omp parallel for schedule(dynamic, 256) num_threads(threads)
     for (int64_t r = 0; r < n; ++r) {
         out_leaf[r] = -1;
@@ -1143,19 +1145,22 @@ void nbvh_stream_next(const float* rays_o, const float* inv_d, int64_t n, const 
             --sp;
             const int32_t node = st_n[sp];
             if (!(st_t[sp] <= t_max)) continue;  // entered beyond a shortened t_max: skip
-            const int32_t left = node_left[node];
+            const int32_t left = node_left[link_stride * node];
             if (left == 0) {
-                if (node_leaf[node] < 0) continue;  // padding node (never entered in practice)
+                const int32_t leaf = node_leaf[link_stride * node];
+                if (leaf < 0) continue;  // padding node (never entered in practice)
                 float te, tx;
-                ray_box(o, inv, node_lo + 3 * node, node_hi + 3 * node, INFINITY, &te, &tx);
-                out_leaf[r] = node_leaf[node];
+                ray_box(o, inv, node_lo + box_stride * node, node_hi + box_stride * node, INFINITY, &te, &tx);
+                out_leaf[r] = leaf;
                 out_te[r] = te;
                 out_tx[r] = tx;
                 break;
             }
             float te_l, tx_l, te_r, tx_r;
-            const bool hit_l = ray_box(o, inv, node_lo + 3 * left, node_hi + 3 * left, t_max, &te_l, &tx_l);
-            const bool hit_r = ray_box(o, inv, node_lo + 3 * (left + 1), node_hi + 3 * (left + 1), t_max, &te_r, &tx_r);
+            const bool hit_l = ray_box(o, inv, node_lo + box_stride * left, node_hi + box_stride * left, t_max, &te_l,
+                                       &tx_l);
+            const bool hit_r = ray_box(o, inv, node_lo + box_stride * (left + 1), node_hi + box_stride * (left + 1),
+                                       t_max, &te_r, &tx_r);
             const bool right_first = te_r < te_l;
             const int32_t near = right_first ? left + 1 : left, far = right_first ? left : left + 1;
             const bool near_hit = right_first ? hit_r : hit_l, far_hit = right_first ? hit_l : hit_r;
