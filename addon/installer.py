@@ -35,6 +35,18 @@ def torch_requirement(requirements: Path) -> str:
     return "torch"
 
 
+def stop_process(proc: subprocess.Popen | None, timeout_s: float = 10.0) -> None:
+    """Terminate a running child process, killing it when it does not end within timeout_s."""
+    if proc is None or proc.poll() is not None:
+        return
+    proc.terminate()
+    try:
+        proc.wait(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
 @dataclass
 class Step:
     label: str
@@ -125,12 +137,7 @@ class Installer:
 
     def cancel(self) -> None:
         """Stop the running step now (a half-made environment stays; the next install continues it)."""
-        if self._proc is not None and self._proc.poll() is None:
-            self._proc.terminate()
-            try:
-                self._proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                self._proc.kill()
+        stop_process(self._proc)
         if self.state in ("queued", "running"):
             self.state = "cancelled"
 

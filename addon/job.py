@@ -160,13 +160,9 @@ class Job:
 
     def cancel(self) -> None:
         """Stop the job now; its temporary folder goes; a finished job's outputs are kept."""
-        if self._proc is not None and self._proc.poll() is None:
-            self._proc.terminate()
-            try:
-                self._proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                self._proc.kill()
-                self._proc.wait()
+        from .installer import stop_process
+
+        stop_process(self._proc)
         if self.state in ("queued", "running"):
             self.state = "cancelled"
             self.error = "cancelled"
