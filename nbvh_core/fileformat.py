@@ -118,7 +118,9 @@ def _tensors(model: NeuralBVH, storage: StorageConfig) -> list[tuple[str, str, b
     enc = model.encoding
     nodes = np.ascontiguousarray(model.nodes, NODE_DTYPE)
     out = []
-    packed = encode_nodes(nodes) if storage.node_bits == 8 else None
+    packed = None
+    if storage.node_bits == 8:  # the format the model holds, as it is; else encoded from its nodes
+        packed = model.compact_nodes if model.compact_nodes is not None else encode_nodes(nodes)
     if storage.node_bits == 8 and packed is None:
         raise ValueError("the BVH's boxes cannot be quantized relative to their parents (a child outside its "
                          "parent box); save with node_bits=32")
@@ -451,8 +453,10 @@ def _decode(data: bytes, header: dict, where: str, device: str | torch.device = 
         _check_nodes_links(pre, where)
         if (root[:3] > root[3:]).any():
             raise NBVHFileError(f"{where}: BVH root box is empty")
-        nodes = decode_nodes(root, array("bvh.boxes"), left, leaf)
+        compact = {"root": root, "boxes": array("bvh.boxes"), "left": left, "leaf": leaf}
+        nodes = decode_nodes(root, compact["boxes"], left, leaf)
     else:
+        compact = None
         nodes = array("bvh")
     _check_nodes(nodes, where)
     try:
@@ -482,6 +486,8 @@ def _decode(data: bytes, header: dict, where: str, device: str | torch.device = 
         model.network.load_state_dict(state)
         if storage.network_bits == 16:
             model.hold_network_half()  # resident as stored
+        if compact is not None:
+            model.hold_nodes_compact(compact)
     model.metadata = header.get("metadata", {})
     model.storage = storage
     return model.to(device).eval()

@@ -17,8 +17,8 @@ from .bvh import NODE_DTYPE
 from .encodings import EncodingConfig, make_encoding
 from .mesh import Transform
 from .networks import NetworkConfig, make_network
-from .quantize import StorageConfig, stored_node_bytes
-from .traversal import LeafStream, TorchBVH
+from .quantize import StorageConfig, decode_nodes, encode_nodes, stored_node_bytes
+from .traversal import CompactBVH, LeafStream, TorchBVH
 
 
 @dataclass
@@ -54,7 +54,9 @@ class NeuralBVH(nn.Module):
                  inference: bool = False):
         """inference=True: built to be filled by the file reader (no trainable encoding state is allocated)."""
         super().__init__()
-        self.nodes = nodes
+        self._nodes = nodes
+        #: The stored 8-bit node format, held instead of the decoded nodes after `hold_nodes_compact`.
+        self.compact_nodes: dict | None = None
         self.cfg = cfg
         self.transform = transform or Transform(1.0, np.zeros(3))
         self.encoding = make_encoding(cfg.encoding, inference)
@@ -76,13 +78,43 @@ class NeuralBVH(nn.Module):
     def device(self) -> torch.device:
         return self.encoding.table.device
 
+    @property
+    def nodes(self) -> np.ndarray:
+        """(M,) NODE_DTYPE decoded nodes (decoded on each access while the model holds the 8-bit format)."""
+        if self._nodes is not None:
+            return self._nodes
+        c = self.compact_nodes
+        return decode_nodes(c["root"], c["boxes"], c["left"], c["leaf"])
+
+    @property
+    def n_nodes(self) -> int:
+        return len(self._nodes) if self._nodes is not None else len(self.compact_nodes["left"])
+
     def set_nodes(self, nodes: np.ndarray) -> None:
         """Replace the BVH nodes ((M,) NODE_DTYPE; e.g. a refined tree cut during training); the traversal tree is
         rebuilt on next use."""
-        self.nodes, self._tree = nodes, None
+        self._nodes, self.compact_nodes, self._tree = nodes, None, None
 
-    def tree(self) -> TorchBVH:
-        if self._tree is None or self._tree.device != self.device:
+    def hold_nodes_compact(self, packed: dict | None = None) -> bool:
+        """Hold the nodes in the file's 8-bit format (10 B per node; `packed` as `quantize.encode_nodes` returns
+        it, default: encoded from the current nodes) instead of decoded 32-byte records; the fused traversal
+        decodes boxes on the way down. Inference only. False (nothing changed) when the boxes cannot be encoded."""
+        packed = packed if packed is not None else encode_nodes(self.nodes)
+        if packed is None:
+            return False
+        self.compact_nodes, self._nodes, self._tree = packed, None, None
+        return True
+
+    def tree(self) -> TorchBVH | CompactBVH:
+        """What the traversal reads: the 8-bit nodes as held (fused traversal on the CPU), else the decoded node
+        records (a view of `nodes`; decoded from the 8-bit format for the reference path)."""
+        from . import kernels
+
+        if self.compact_nodes is not None and kernels.traversal_kernel(self.device) == "fused":
+            if not isinstance(self._tree, CompactBVH):
+                self._tree = CompactBVH(self.compact_nodes)
+            return self._tree
+        if self._tree is None or isinstance(self._tree, CompactBVH) or self._tree.device != self.device:
             self._tree = TorchBVH.from_nodes(self.nodes, self.device)
         return self._tree
 
@@ -118,6 +150,8 @@ class NeuralBVH(nn.Module):
         normal = torch.zeros((n, 3), device=dev)
         evaluated = 0
         fused = self._fused_network()
+        if self.compact_nodes is not None:  # stacks carry 6 floats more per entry: chunks 4x smaller, same memory
+            ray_chunk = min(ray_chunk, 1 << 15)
         for c0 in range(0, n, ray_chunk):
             c1 = min(n, c0 + ray_chunk)
             evaluated += self._query_chunk(rays_o[c0:c1], rays_d[c0:c1], hit[c0:c1], t_out[c0:c1], normal[c0:c1],
@@ -167,21 +201,24 @@ class NeuralBVH(nn.Module):
         """Bytes of the stored tensors by component (no header) at `storage` (default float32 everywhere): bvh,
         features, [index], network."""
         st = storage or StorageConfig.float32()
-        out = {"bvh": stored_node_bytes(len(self.nodes), st.node_bits)}
+        out = {"bvh": stored_node_bytes(self.n_nodes, st.node_bits)}
         out.update(self.encoding.stored_bytes(st.table_bits))
         out["network"] = sum(p.numel() for p in self.network.parameters()) * st.network_bits // 8
         return out
 
     def resident_bytes(self) -> dict[str, int]:
-        """Bytes this model holds to answer rays, by component: the decoded node records (32 B each; the fused
-        traversal reads them in place, `traversal.TorchBVH` is a view of them on the CPU), the
+        """Bytes this model holds to answer rays, by component: the nodes as held (the file's 8-bit format, 10 B
+        each, after `hold_nodes_compact`; else the decoded 32-byte records, which the fused traversal reads in
+        place: `traversal.TorchBVH` is a view of them on the CPU), the
         feature rows as held (uint8 codes + affine, or floats), HashVQAD's codes (one byte each), the network's
         weights as held (float16 after `finalize_storage` at 16 bits, or when loaded from such a file; the fused
         kernels read them without a float32 copy)."""
         enc = self.encoding
         rows = (enc.qcodes.numel() + 4 * (enc.qoffset.numel() + enc.qscale.numel()) if enc.quantized
                 else enc.table.numel() * enc.table.element_size())
-        out = {"bvh": len(self.nodes) * NODE_DTYPE.itemsize, "features": int(rows)}
+        bvh = (stored_node_bytes(self.n_nodes, 8) if self.compact_nodes is not None
+               else self.n_nodes * NODE_DTYPE.itemsize)
+        out = {"bvh": bvh, "features": int(rows)}
         if enc.learned_index and enc.frozen:
             out["index"] = int(enc.codes.numel())
         out["network"] = sum(p.numel() * p.element_size() for p in self.network.parameters())
@@ -190,14 +227,17 @@ class NeuralBVH(nn.Module):
     @torch.no_grad()
     def finalize_storage(self, storage: StorageConfig) -> None:
         """Make this in-memory model exactly the one a file at `storage` loads back: the table as uint8 codes
-        (8 bits) or rounded to float16, the network's weights rounded to float16 (16 bits). Nodes are snapped by
-        the pipeline before training (`quantize.snap_nodes`). Irreversible; inference only afterwards."""
+        (8 bits) or rounded to float16, the network's weights held in float16 (16 bits), the nodes held in the
+        8-bit format (8 bits; the pipeline trained on exactly these boxes: `quantize.snap_nodes`). Irreversible;
+        inference only afterwards."""
         if storage.table_bits == 8:
             self.encoding.quantize_(8)
         elif storage.table_bits == 16 and not self.encoding.quantized:
             self.encoding.table.copy_(self.encoding.table.half().float())
         if storage.network_bits == 16:
             self.hold_network_half()
+        if storage.node_bits == 8:
+            self.hold_nodes_compact()
 
     @torch.no_grad()
     def hold_network_half(self) -> None:
@@ -217,6 +257,6 @@ class NeuralBVH(nn.Module):
         return {"encoding": 2 * net.k * enc.levels * 8 * enc.features, "network": runs * per_run}
 
     def describe(self) -> dict:
-        return {"config": self.cfg.to_dict(), "nodes": int(len(self.nodes)),
+        return {"config": self.cfg.to_dict(), "nodes": int(self.n_nodes),
                 "transform": self.transform.to_dict()}
 

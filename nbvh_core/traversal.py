@@ -88,6 +88,31 @@ class TorchBVH:
         return self.records.device
 
 
+class CompactBVH:
+    """The stored 8-bit node format held as it is (`quantize.encode_nodes`: root box (6,) float32, boxes (M, 6)
+    uint8 codes relative to the parent, left and leaf (M,) uint16 with 65535 for none): 10 bytes per node. Only the
+    fused traversal reads it (`LeafStream` decodes the boxes on the way down, bit-identical to the decoded nodes
+    training used); lo/hi: the root box (1, 3), for the first push."""
+
+    def __init__(self, packed: dict):
+        self.packed = {k: np.ascontiguousarray(v) for k, v in packed.items()}
+        root = torch.from_numpy(self.packed["root"].astype(np.float32))
+        self.lo, self.hi = root[:3].view(1, 3), root[3:].view(1, 3)
+        left = self.packed["left"].astype(np.int64)
+        depth = np.zeros(len(left), np.int64)
+        for i in np.flatnonzero(left > 0):  # BFS layout: parents come before children
+            depth[left[i]:left[i] + 2] = depth[i] + 1
+        self.max_depth = int(depth.max()) if len(left) else 0
+
+    @property
+    def device(self) -> torch.device:
+        return torch.device("cpu")
+
+    def pointers(self) -> tuple[int, int, int]:
+        """(codes, left, leaf) addresses for the kernel."""
+        return (self.packed["boxes"].ctypes.data, self.packed["left"].ctypes.data, self.packed["leaf"].ctypes.data)
+
+
 def ray_box(rays_o: torch.Tensor, inv_d: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor,
             t_max: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Slab test of rays against boxes, element-wise over the leading dimension.
@@ -235,6 +260,11 @@ class LeafStream:
         self.stack_node = alloc((n, depth), dtype=torch.int32 if self.fast else torch.int64, device=dev)
         self.stack_t = alloc((n, depth), dtype=torch.float32, device=dev)
         self.sp = torch.zeros(n, dtype=torch.int32 if self.fast else torch.int64, device=dev)
+        self.compact = isinstance(tree, CompactBVH)
+        if self.compact:  # each stack entry carries its node's decoded box
+            assert self.fast, "8-bit nodes are read by the fused traversal only"
+            self.stack_box = torch.empty((n, depth, 6), dtype=torch.float32)
+            self.stack_box[:, 0, :3], self.stack_box[:, 0, 3:] = tree.lo, tree.hi
         if self.fast:  # what the kernel reads and writes, allocated once per stream
             self._o = rays_o.to(torch.float32).contiguous()
             self._inv = self.inv_d.to(torch.float32).contiguous()
@@ -326,6 +356,14 @@ class LeafStream:
         tree = self.tree
         n = self.sp.shape[0]
         self.t_max = self.t_max.contiguous()
+        if self.compact:
+            codes, left, leaf = tree.pointers()
+            lib.nbvh_stream_next_q(p(self._o), p(self._inv), n, codes, left, leaf, p(self.stack_node),
+                                   p(self.stack_t), p(self.stack_box), p(self.sp), p(self.t_max),
+                                   self.stack_node.shape[1], p(self._out_leaf), p(self._out_te), p(self._out_tx),
+                                   kernels.threads())
+            ray = torch.nonzero(self._out_leaf >= 0).squeeze(1)
+            return ray, self._out_leaf[ray].to(torch.int64), self._out_te[ray], self._out_tx[ray]
         rec = tree.records  # read in place: boxes at float offsets 0 and 3, links at int32 offsets 6 and 7, stride 8
         base = p(rec)
         lib.nbvh_stream_next(p(self._o), p(self._inv), n, base, base + 12, base + 24, base + 28, 8, 8,

@@ -1172,6 +1172,75 @@ void nbvh_stream_next(const float* rays_o, const float* inv_d, int64_t n, const 
     }
 }
 
+// The 8-bit node format (quantize.encode_nodes) decoded during traversal: child box = parent's decoded box + codes,
+// per axis lo = plo + q * ((phi - plo) / 255) (code 255: phi exactly), the float32 operations of
+// quantize._decode_child in the same order, so the boxes are bit-identical to the ones training used. A child with
+// q_lo > q_hi on some axis is empty and decodes as (+inf, -inf), as quantize.decode_nodes writes it.
+inline void decode_box(const float* parent, const uint8_t* q, float* box) {
+    bool empty = false;
+    for (int a = 0; a < 3; ++a) {
+        const float plo = parent[a], phi = parent[3 + a];
+        const float step = (phi - plo) / 255.0f;
+        const uint8_t ql = q[a], qh = q[3 + a];
+        box[a] = ql >= 255 ? phi : plo + (float)ql * step;
+        box[3 + a] = qh >= 255 ? phi : plo + (float)qh * step;
+        empty |= ql > qh;
+    }
+    if (empty)
+        for (int a = 0; a < 3; ++a) { box[a] = INFINITY; box[3 + a] = -INFINITY; }
+}
+
+// nbvh_stream_next on the stored 8-bit nodes (the model holds the file's 10 bytes per node, not decoded boxes):
+// codes (M, 6) uint8, left/leaf (M,) uint16 (65535 = none); each stack entry carries its node's decoded box
+// (stack_box (n, depth, 6) float32), from which the children are decoded when it is popped.
+void nbvh_stream_next_q(const float* rays_o, const float* inv_d, int64_t n, const uint8_t* codes,
+                        const uint16_t* node_left, const uint16_t* node_leaf, int32_t* stack_node, float* stack_t,
+                        float* stack_box, int32_t* sp_arr, const float* t_max_arr, int depth, int32_t* out_leaf,
+                        float* out_te, float* out_tx, int threads) {
+#pragma omp parallel for schedule(dynamic, 256) num_threads(threads)
+    for (int64_t r = 0; r < n; ++r) {
+        out_leaf[r] = -1;
+        int32_t sp = sp_arr[r];
+        if (sp == 0) continue;
+        const float* o = rays_o + 3 * r;
+        const float* inv = inv_d + 3 * r;
+        const float t_max = t_max_arr[r];
+        int32_t* st_n = stack_node + r * depth;
+        float* st_t = stack_t + r * depth;
+        float* st_b = stack_box + r * depth * 6;
+        while (sp > 0) {
+            --sp;
+            const int32_t node = st_n[sp];
+            if (!(st_t[sp] <= t_max)) continue;
+            const float* box = st_b + 6 * sp;
+            const int32_t left = node_left[node];
+            if (left == 0) {
+                if (node_leaf[node] == 65535) continue;
+                float te, tx;
+                ray_box(o, inv, box, box + 3, INFINITY, &te, &tx);
+                out_leaf[r] = node_leaf[node];
+                out_te[r] = te;
+                out_tx[r] = tx;
+                break;
+            }
+            float bl[6], br[6], te_l, tx_l, te_r, tx_r;
+            decode_box(box, codes + 6 * (int64_t)left, bl);
+            decode_box(box, codes + 6 * (int64_t)(left + 1), br);
+            const bool hit_l = ray_box(o, inv, bl, bl + 3, t_max, &te_l, &tx_l);
+            const bool hit_r = ray_box(o, inv, br, br + 3, t_max, &te_r, &tx_r);
+            const bool right_first = te_r < te_l;  // the float traversal's order, exactly
+            const int32_t near = right_first ? left + 1 : left, far = right_first ? left : left + 1;
+            const bool near_hit = right_first ? hit_r : hit_l, far_hit = right_first ? hit_l : hit_r;
+            const float near_t = right_first ? te_r : te_l, far_t = right_first ? te_l : te_r;
+            const float* near_b = right_first ? br : bl;
+            const float* far_b = right_first ? bl : br;
+            if (far_hit) { st_n[sp] = far; st_t[sp] = far_t; std::memcpy(st_b + 6 * sp, far_b, 24); ++sp; }
+            if (near_hit) { st_n[sp] = near; st_t[sp] = near_t; std::memcpy(st_b + 6 * sp, near_b, 24); ++sp; }
+        }
+        sp_arr[r] = sp;
+    }
+}
+
 // Complete front-to-back leaf lists (traversal.leaves_along_rays) in one traversal: each thread walks a contiguous
 // block of rays and appends its (node, t_enter, t_exit) runs to its own list, sorted per ray by (t_enter, t_exit,
 // node) like the reference; nbvh_leaves_collect then copies the lists, in thread order (= ray order), into the

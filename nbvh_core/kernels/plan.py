@@ -107,7 +107,10 @@ def plan(model, device: torch.device | str | None = None) -> KernelPlan:
     device = torch.device(device if device is not None else model.device)
     enc = model.encoding
     note = "" if fast_enabled(device) or current_path() == "reference" else describe(device)
-    return KernelPlan(path=current_path(), device=device.type, traversal=traversal_kernel(device),
+    traversal = traversal_kernel(device)
+    if traversal == "fused" and model.compact_nodes is not None:
+        traversal = "fused 8-bit nodes"
+    return KernelPlan(path=current_path(), device=device.type, traversal=traversal,
                       encoding=encoding_kernel(enc, device), soft_table=soft_table_kernel(enc, device),
                       network=network_kernel(model, device), train_step=train_step_kernel(model, device),
                       optimizer=optimizer_kernel(), threads=threads(), note=note)
