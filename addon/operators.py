@@ -82,6 +82,10 @@ def _tick():
         props.last_error = "; ".join(f"{k}: {v}" for k, v in session.failures.items())
         props.last_note = "; ".join(f"{k} kept as a mesh: {v}" for k, v in session.kept_as_mesh.items())
         _state["session"] = None
+        done = [f"{name}: {loaded['result']['bytes'] / 1024:,.1f} KB" for name, loaded in session.loaded.items()]
+        notify(f"NBVH: {props.phase}", done + [f"{k}: {v}" for k, v in session.failures.items()]
+               + [f"{k}: kept as a mesh" for k in session.kept_as_mesh] + [f"results in {session.out_dir}"],
+               "ERROR" if session.failures else "INFO")
         for area in (bpy.context.screen.areas if bpy.context.screen else []):
             area.tag_redraw()
         return None
@@ -89,6 +93,22 @@ def _tick():
         if area.type == "VIEW_3D":
             area.tag_redraw()
     return 0.25
+
+
+def notify(title: str, lines: list[str], icon: str = "INFO") -> None:
+    """Say that a background run ended (a popup at the mouse; nothing in background mode, where the events are
+    printed). Timers have no operator to `report` through."""
+    if bpy.app.background:
+        return
+
+    def draw(menu, context):
+        for line in lines[:8]:
+            menu.layout.label(text=line[:120])
+
+    try:
+        bpy.context.window_manager.popup_menu(draw, title=title, icon=icon)
+    except (RuntimeError, AttributeError):  # no window to show it in (a timer between redraws)
+        pass
 
 
 def compress_disabled_reason(context) -> str:
@@ -159,6 +179,7 @@ class NBVH_OT_cancel(bpy.types.Operator):
         props = context.scene.nbvh_props
         props.running, props.phase = False, "cancelled"
         _state["session"] = None
+        self.report({"INFO"}, "NBVH: compression cancelled; earlier results are kept")
         return {"FINISHED"}
 
 
@@ -384,8 +405,10 @@ def _library_tick():
         if job.state == "done":
             store_library_rows(props, run)
             props.library_phase = "finished"
+            notify("NBVH: library report ready", [props.library_summary, props.library_report_html])
         else:
             props.library_phase = f"{job.state}: {job.error or ''}"[:300]
+            notify(f"NBVH: library run {job.state}", [props.library_phase], "ERROR")
         library.end_run(run)
         _state["library"] = None
     for area in (bpy.context.screen.areas if bpy.context.screen else []):
@@ -472,6 +495,7 @@ class NBVH_OT_cancel_library(bpy.types.Operator):
         props = context.scene.nbvh_props
         props.library_running, props.library_phase = False, "cancelled"
         _state["library"] = None
+        self.report({"INFO"}, "NBVH: library run cancelled; what finished stays in its report")
         return {"FINISHED"}
 
 

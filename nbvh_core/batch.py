@@ -268,9 +268,19 @@ def _safe(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", name)[:120]
 
 
+def require_ray():
+    """The ray module, or a clear ValueError naming the pinned version to install (exit code 2, not a crash)."""
+    try:
+        import ray
+    except ImportError:
+        raise ValueError("nbvh batch runs on Ray, which is not installed in this Python: "
+                         "pip install ray==2.60.0 (or rerun the add-on's Install Dependencies)") from None
+    return ray
+
+
 def _start_ray(address: str | None, num_cpus: int | None) -> bool:
     """Connect to `address` or start an embedded Ray; True when this call started it (and must shut it down)."""
-    import ray
+    ray = require_ray()
 
     if ray.is_initialized():
         return False
@@ -420,6 +430,7 @@ def run_batch(library: str | os.PathLike, out: str | os.PathLike, spec: dict, ev
     report then holds what finished), ValueError for a LIBRARY that lists nothing."""
     from .outputs import OutputLock
 
+    require_ray()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     with OutputLock(out / "report.html"):  # one batch per output folder at a time

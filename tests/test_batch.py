@@ -215,3 +215,9 @@ def test_ctrl_c_stops_the_run_and_keeps_what_finished(tmp_path):
     run_batch(lib, out, {"preset": "tiny", "steps": 1500, "time_limit_s": 0}, events.append, num_cpus=2)
     trained = [e["name"] for e in events if e.get("event") == "asset" and e["phase"] == "train"]
     assert trained == [other]
+
+
+def test_without_ray_the_batch_says_what_to_install(monkeypatch, tmp_path):
+    monkeypatch.setitem(sys.modules, "ray", None)  # import ray -> ImportError
+    with pytest.raises(ValueError, match="pip install ray==2.60.0"):
+        run_batch(tmp_path, tmp_path / "out", TINY)
