@@ -1,5 +1,5 @@
 """Mesh objects out of a .blend file, through a `blender` binary run headless (nbvh_core never imports bpy: the
-script below runs in Blender's own process and writes one .npz per object).
+add-on's `blend_export_script.py` runs in Blender's own process and writes one .npz per object).
 
     export_blend(Path("props.blend"), Path("cache/props"), blender="blender") -> [(object name, npz path), ...]
 
@@ -14,38 +14,19 @@ import shutil
 import subprocess
 from pathlib import Path
 
-#: Runs inside Blender (2.8+ API, tested on 3.4 and 5.0): argv after "--" is the output folder.
-EXPORT_SCRIPT = r'''
-import json, os, re, sys
-import bpy
-import numpy as np
+#: The script Blender runs (Blender-side code lives with the add-on: in the repository addon/ sits beside
+#: nbvh_core/, in the installed add-on nbvh_core/ sits inside it).
+_SCRIPT_NAME = "blend_export_script.py"
 
-out = sys.argv[sys.argv.index("--") + 1]
-os.makedirs(out, exist_ok=True)
-deps = bpy.context.evaluated_depsgraph_get()
-done = []
-for obj in bpy.data.objects:
-    if obj.type != "MESH":
-        continue
-    ev = obj.evaluated_get(deps)
-    mesh = ev.to_mesh()
-    try:
-        mesh.calc_loop_triangles()
-        nv, nt = len(mesh.vertices), len(mesh.loop_triangles)
-        if nt == 0:
-            continue
-        v = np.empty(nv * 3, np.float32)
-        mesh.vertices.foreach_get("co", v)
-        f = np.empty(nt * 3, np.int32)
-        mesh.loop_triangles.foreach_get("vertices", f)
-    finally:
-        ev.to_mesh_clear()
-    safe = re.sub(r"[^A-Za-z0-9_.-]+", "_", obj.name)
-    path = os.path.join(out, safe + ".npz")
-    np.savez(path, vertices=v.reshape(-1, 3), faces=f.reshape(-1, 3))
-    done.append([obj.name, path])
-print("NBVH_EXPORT " + json.dumps(done))
-'''
+
+def export_script() -> Path:
+    """Where the Blender-side export script is; raises ValueError when this nbvh_core came without it."""
+    here = Path(__file__).resolve().parent
+    for candidate in (here.parent / _SCRIPT_NAME, here.parent / "addon" / _SCRIPT_NAME):
+        if candidate.exists():
+            return candidate
+    raise ValueError(f"the Blender export script ({_SCRIPT_NAME}) is missing beside nbvh_core: reinstall the add-on "
+                     "or use a checkout of the repository")
 
 
 def find_blender() -> str | None:
@@ -60,7 +41,7 @@ def export_blend(blend: Path, out_dir: Path, blender: str | None = None, timeout
     if blender is None:
         raise ValueError(f"{blend}: a .blend needs a `blender` binary (none on PATH; set NBVH_BLENDER)")
     out_dir.mkdir(parents=True, exist_ok=True)
-    cmd = [blender, "-b", "--factory-startup", str(blend), "--python-expr", EXPORT_SCRIPT, "--", str(out_dir)]
+    cmd = [blender, "-b", "--factory-startup", str(blend), "--python", str(export_script()), "--", str(out_dir)]
     try:
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s)
     except subprocess.TimeoutExpired:
