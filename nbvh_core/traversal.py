@@ -364,9 +364,7 @@ class LeafStream:
                                    kernels.threads())
             ray = torch.nonzero(self._out_leaf >= 0).squeeze(1)
             return ray, self._out_leaf[ray].to(torch.int64), self._out_te[ray], self._out_tx[ray]
-        rec = tree.records  # read in place: boxes at float offsets 0 and 3, links at int32 offsets 6 and 7, stride 8
-        base = p(rec)
-        lib.nbvh_stream_next(p(self._o), p(self._inv), n, base, base + 12, base + 24, base + 28, 8, 8,
+        lib.nbvh_stream_next(p(self._o), p(self._inv), n, p(tree.records),  # the node records, read in place
                              p(self.stack_node), p(self.stack_t), p(self.sp), p(self.t_max),
                              self.stack_node.shape[1], p(self._out_leaf), p(self._out_te), p(self._out_tx),
                              kernels.threads())

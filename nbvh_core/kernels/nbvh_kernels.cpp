@@ -995,9 +995,113 @@ void vqad_soft_backward(const float* probs, const float* table, const int64_t* c
 
 }  // namespace
 
+// The two node formats the stream stepper reads, behind one interface: node_box(node, carried) - a node's box (lo
+// xyz, hi xyz: 6 floats); child_box(child, parent_box, scratch) - a child's box; left_of / leaf_of - its links
+// (leaf_of < 0: none). carries_box: each stack entry keeps its node's box (the 8-bit format has no boxes to read).
+struct RecordNodes {  // the 32-byte node records, read in place: lo, hi float32, then left, leaf int32
+    const float* records;
+    static constexpr bool carries_box = false;
+    const float* node_box(int32_t node, const float*) const { return records + 8 * (int64_t)node; }
+    const float* child_box(int32_t child, const float*, float*) const { return records + 8 * (int64_t)child; }
+    int32_t left_of(int32_t node) const { return reinterpret_cast<const int32_t*>(records)[8 * (int64_t)node + 6]; }
+    int32_t leaf_of(int32_t node) const { return reinterpret_cast<const int32_t*>(records)[8 * (int64_t)node + 7]; }
+};
+
+// The 8-bit node format (quantize.encode_nodes) decoded during traversal: child box = parent's decoded box + codes,
+// per axis lo = plo + q * ((phi - plo) / 255) (code 255: phi exactly), the float32 operations of
+// quantize._decode_child in the same order, so the boxes are bit-identical to the ones training used. A child with
+// q_lo > q_hi on some axis is empty and decodes as (+inf, -inf), as quantize.decode_nodes writes it.
+inline void decode_box(const float* parent, const uint8_t* q, float* box) {
+    bool empty = false;
+    for (int a = 0; a < 3; ++a) {
+        const float plo = parent[a], phi = parent[3 + a];
+        const float step = (phi - plo) / 255.0f;
+        const uint8_t ql = q[a], qh = q[3 + a];
+        box[a] = ql >= 255 ? phi : plo + (float)ql * step;
+        box[3 + a] = qh >= 255 ? phi : plo + (float)qh * step;
+        empty |= ql > qh;
+    }
+    if (empty)
+        for (int a = 0; a < 3; ++a) { box[a] = INFINITY; box[3 + a] = -INFINITY; }
+}
+
+struct CodedNodes {  // codes (M, 6) uint8 relative to the parent's box, left/leaf (M,) uint16 (65535 = none)
+    const uint8_t* codes;
+    const uint16_t* left;
+    const uint16_t* leaf;
+    static constexpr bool carries_box = true;
+    const float* node_box(int32_t, const float* carried) const { return carried; }
+    const float* child_box(int32_t child, const float* parent, float* scratch) const {
+        decode_box(parent, codes + 6 * (int64_t)child, scratch);
+        return scratch;
+    }
+    int32_t left_of(int32_t node) const { return left[node]; }
+    int32_t leaf_of(int32_t node) const { return leaf[node] == 65535 ? -1 : leaf[node]; }
+};
+
+// One step of traversal.LeafStream.next for every ray with sp > 0: pop (nearer child first) until a leaf is
+// reached. out_leaf[r] = leaf ordinal or -1 (no leaf this call), out_te, out_tx per ray.
+// Stacks: stack_node (n, depth) int32, stack_t (n, depth) float32, stack_box (n, depth, 6) float32 when the format
+// carries boxes (else unused), sp (n,) int32; t_max (n,) float32.
+template <class Nodes>
+void stream_next_t(const Nodes& nodes, const float* rays_o, const float* inv_d, int64_t n, int32_t* stack_node,
+                   float* stack_t, float* stack_box, int32_t* sp_arr, const float* t_max_arr, int depth,
+                   int32_t* out_leaf, float* out_te, float* out_tx, int threads) {
+#pragma omp parallel for schedule(dynamic, 256) num_threads(threads)
+    for (int64_t r = 0; r < n; ++r) {
+        out_leaf[r] = -1;
+        int32_t sp = sp_arr[r];
+        if (sp == 0) continue;
+        const float* o = rays_o + 3 * r;
+        const float* inv = inv_d + 3 * r;
+        const float t_max = t_max_arr[r];
+        int32_t* st_n = stack_node + r * depth;
+        float* st_t = stack_t + r * depth;
+        float* st_b = Nodes::carries_box ? stack_box + r * depth * 6 : nullptr;
+        while (sp > 0) {
+            --sp;
+            const int32_t node = st_n[sp];
+            if (!(st_t[sp] <= t_max)) continue;  // entered beyond a shortened t_max: skip
+            const float* box = nodes.node_box(node, Nodes::carries_box ? st_b + 6 * sp : nullptr);
+            const int32_t left = nodes.left_of(node);
+            if (left == 0) {
+                const int32_t leaf = nodes.leaf_of(node);
+                if (leaf < 0) continue;  // padding node (never entered in practice)
+                float te, tx;
+                ray_box(o, inv, box, box + 3, INFINITY, &te, &tx);
+                out_leaf[r] = leaf;
+                out_te[r] = te;
+                out_tx[r] = tx;
+                break;
+            }
+            // Both children's boxes before a push overwrites the popped entry's box.
+            float scratch_l[6], scratch_r[6], te_l, tx_l, te_r, tx_r;
+            const float* bl = nodes.child_box(left, box, scratch_l);
+            const float* br = nodes.child_box(left + 1, box, scratch_r);
+            const bool hit_l = ray_box(o, inv, bl, bl + 3, t_max, &te_l, &tx_l);
+            const bool hit_r = ray_box(o, inv, br, br + 3, t_max, &te_r, &tx_r);
+            const bool right_first = te_r < te_l;
+            const int32_t near = right_first ? left + 1 : left, far = right_first ? left : left + 1;
+            const bool near_hit = right_first ? hit_r : hit_l, far_hit = right_first ? hit_l : hit_r;
+            const float near_t = right_first ? te_r : te_l, far_t = right_first ? te_l : te_r;
+            const float* near_b = right_first ? br : bl;
+            const float* far_b = right_first ? bl : br;
+            auto push = [&](int32_t child, float t, const float* child_box) {
+                st_n[sp] = child;
+                st_t[sp] = t;
+                if constexpr (Nodes::carries_box) std::memcpy(st_b + 6 * sp, child_box, 6 * sizeof(float));
+                ++sp;
+            };
+            if (far_hit) push(far, far_t, far_b);
+            if (near_hit) push(near, near_t, near_b);
+        }
+        sp_arr[r] = sp;
+    }
+}
+
 extern "C" {
 
-int nbvh_abi_version() { return 14; }
+int nbvh_abi_version() { return 15; }
 
 // Fused inference over B segments of an MLP (kmlp = 0: mlp_segments_t) or a KMLP (kmlp = 1: kmlp_segments_t):
 // rays_o/rays_d (n_rays, 3), ray (B,) int64 ray of each segment, te/tx (B,) segment ends, frac (k,) point
@@ -1122,123 +1226,21 @@ void nbvh_encode_backward(const float* points, int64_t n, const float* grad_out,
     });
 }
 
-// One step of traversal.LeafStream.next for every ray with sp > 0: pop (nearer child first) until a leaf is
-// reached. Node i's box is node_lo/node_hi + box_stride * i (3 floats each), its links node_left/node_leaf
-// [link_stride * i]: strides 8 read the 32-byte node records in place (the model's own array, no copy). out_leaf[r] = leaf ordinal or -1 (no leaf this call), out_node, out_te, out_tx per ray.
-// Stacks: stack_node (n, depth) int32, stack_t (n, depth) float32, sp (n,) int32; t_max (n,) float32.
-void nbvh_stream_next(const float* rays_o, const float* inv_d, int64_t n, const float* node_lo,
-                      const float* node_hi, const int32_t* node_left, const int32_t* node_leaf, int64_t box_stride,
-                      int64_t link_stride, int32_t* stack_node, float* stack_t, int32_t* sp_arr,
-                      const float* t_max_arr, int depth, int32_t* out_leaf, float* out_te, float* out_tx,
-                      int threads) {
-#pragma omp parallel for schedule(dynamic, 256) num_threads(threads)
-    for (int64_t r = 0; r < n; ++r) {
-        out_leaf[r] = -1;
-        int32_t sp = sp_arr[r];
-        if (sp == 0) continue;
-        const float* o = rays_o + 3 * r;
-        const float* inv = inv_d + 3 * r;
-        const float t_max = t_max_arr[r];
-        int32_t* st_n = stack_node + r * depth;
-        float* st_t = stack_t + r * depth;
-        while (sp > 0) {
-            --sp;
-            const int32_t node = st_n[sp];
-            if (!(st_t[sp] <= t_max)) continue;  // entered beyond a shortened t_max: skip
-            const int32_t left = node_left[link_stride * node];
-            if (left == 0) {
-                const int32_t leaf = node_leaf[link_stride * node];
-                if (leaf < 0) continue;  // padding node (never entered in practice)
-                float te, tx;
-                ray_box(o, inv, node_lo + box_stride * node, node_hi + box_stride * node, INFINITY, &te, &tx);
-                out_leaf[r] = leaf;
-                out_te[r] = te;
-                out_tx[r] = tx;
-                break;
-            }
-            float te_l, tx_l, te_r, tx_r;
-            const bool hit_l = ray_box(o, inv, node_lo + box_stride * left, node_hi + box_stride * left, t_max, &te_l,
-                                       &tx_l);
-            const bool hit_r = ray_box(o, inv, node_lo + box_stride * (left + 1), node_hi + box_stride * (left + 1),
-                                       t_max, &te_r, &tx_r);
-            const bool right_first = te_r < te_l;
-            const int32_t near = right_first ? left + 1 : left, far = right_first ? left : left + 1;
-            const bool near_hit = right_first ? hit_r : hit_l, far_hit = right_first ? hit_l : hit_r;
-            const float near_t = right_first ? te_r : te_l, far_t = right_first ? te_l : te_r;
-            if (far_hit) { st_n[sp] = far; st_t[sp] = far_t; ++sp; }
-            if (near_hit) { st_n[sp] = near; st_t[sp] = near_t; ++sp; }
-        }
-        sp_arr[r] = sp;
-    }
+// stream_next_t on the 32-byte node records (NODE_DTYPE, the model's own array, read in place).
+void nbvh_stream_next(const float* rays_o, const float* inv_d, int64_t n, const float* records, int32_t* stack_node,
+                      float* stack_t, int32_t* sp_arr, const float* t_max_arr, int depth, int32_t* out_leaf,
+                      float* out_te, float* out_tx, int threads) {
+    stream_next_t(RecordNodes{records}, rays_o, inv_d, n, stack_node, stack_t, nullptr, sp_arr, t_max_arr, depth,
+                  out_leaf, out_te, out_tx, threads);
 }
 
-// The 8-bit node format (quantize.encode_nodes) decoded during traversal: child box = parent's decoded box + codes,
-// per axis lo = plo + q * ((phi - plo) / 255) (code 255: phi exactly), the float32 operations of
-// quantize._decode_child in the same order, so the boxes are bit-identical to the ones training used. A child with
-// q_lo > q_hi on some axis is empty and decodes as (+inf, -inf), as quantize.decode_nodes writes it.
-inline void decode_box(const float* parent, const uint8_t* q, float* box) {
-    bool empty = false;
-    for (int a = 0; a < 3; ++a) {
-        const float plo = parent[a], phi = parent[3 + a];
-        const float step = (phi - plo) / 255.0f;
-        const uint8_t ql = q[a], qh = q[3 + a];
-        box[a] = ql >= 255 ? phi : plo + (float)ql * step;
-        box[3 + a] = qh >= 255 ? phi : plo + (float)qh * step;
-        empty |= ql > qh;
-    }
-    if (empty)
-        for (int a = 0; a < 3; ++a) { box[a] = INFINITY; box[3 + a] = -INFINITY; }
-}
-
-// nbvh_stream_next on the stored 8-bit nodes (the model holds the file's 10 bytes per node, not decoded boxes):
-// codes (M, 6) uint8, left/leaf (M,) uint16 (65535 = none); each stack entry carries its node's decoded box
-// (stack_box (n, depth, 6) float32), from which the children are decoded when it is popped.
+// stream_next_t on the stored 8-bit nodes (the model holds the file's 10 bytes per node, not decoded boxes).
 void nbvh_stream_next_q(const float* rays_o, const float* inv_d, int64_t n, const uint8_t* codes,
                         const uint16_t* node_left, const uint16_t* node_leaf, int32_t* stack_node, float* stack_t,
                         float* stack_box, int32_t* sp_arr, const float* t_max_arr, int depth, int32_t* out_leaf,
                         float* out_te, float* out_tx, int threads) {
-#pragma omp parallel for schedule(dynamic, 256) num_threads(threads)
-    for (int64_t r = 0; r < n; ++r) {
-        out_leaf[r] = -1;
-        int32_t sp = sp_arr[r];
-        if (sp == 0) continue;
-        const float* o = rays_o + 3 * r;
-        const float* inv = inv_d + 3 * r;
-        const float t_max = t_max_arr[r];
-        int32_t* st_n = stack_node + r * depth;
-        float* st_t = stack_t + r * depth;
-        float* st_b = stack_box + r * depth * 6;
-        while (sp > 0) {
-            --sp;
-            const int32_t node = st_n[sp];
-            if (!(st_t[sp] <= t_max)) continue;
-            const float* box = st_b + 6 * sp;
-            const int32_t left = node_left[node];
-            if (left == 0) {
-                if (node_leaf[node] == 65535) continue;
-                float te, tx;
-                ray_box(o, inv, box, box + 3, INFINITY, &te, &tx);
-                out_leaf[r] = node_leaf[node];
-                out_te[r] = te;
-                out_tx[r] = tx;
-                break;
-            }
-            float bl[6], br[6], te_l, tx_l, te_r, tx_r;
-            decode_box(box, codes + 6 * (int64_t)left, bl);
-            decode_box(box, codes + 6 * (int64_t)(left + 1), br);
-            const bool hit_l = ray_box(o, inv, bl, bl + 3, t_max, &te_l, &tx_l);
-            const bool hit_r = ray_box(o, inv, br, br + 3, t_max, &te_r, &tx_r);
-            const bool right_first = te_r < te_l;  // the float traversal's order, exactly
-            const int32_t near = right_first ? left + 1 : left, far = right_first ? left : left + 1;
-            const bool near_hit = right_first ? hit_r : hit_l, far_hit = right_first ? hit_l : hit_r;
-            const float near_t = right_first ? te_r : te_l, far_t = right_first ? te_l : te_r;
-            const float* near_b = right_first ? br : bl;
-            const float* far_b = right_first ? bl : br;
-            if (far_hit) { st_n[sp] = far; st_t[sp] = far_t; std::memcpy(st_b + 6 * sp, far_b, 24); ++sp; }
-            if (near_hit) { st_n[sp] = near; st_t[sp] = near_t; std::memcpy(st_b + 6 * sp, near_b, 24); ++sp; }
-        }
-        sp_arr[r] = sp;
-    }
+    stream_next_t(CodedNodes{codes, node_left, node_leaf}, rays_o, inv_d, n, stack_node, stack_t, stack_box, sp_arr,
+                  t_max_arr, depth, out_leaf, out_te, out_tx, threads);
 }
 
 // Complete front-to-back leaf lists (traversal.leaves_along_rays) in one traversal: each thread walks a contiguous
