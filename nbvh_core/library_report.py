@@ -95,9 +95,9 @@ def _row_html(r) -> str:
             + _cell(r.error or r.verdict or "") + "</tr>")
 
 
-def html_report(rows: list, info: dict) -> str:
-    """The report page (self-contained but for the thumbnails in thumbs/)."""
-    t = totals(rows)
+def html_report(rows: list, info: dict, t: dict | None = None) -> str:
+    """The report page (self-contained but for the thumbnails in thumbs/); t: `totals(rows)` when computed."""
+    t = t if t is not None else totals(rows)
     head = ("<tr><th>original</th><th>neural</th><th>asset</th><th>status</th><th>triangles</th>"
             "<th>resident (mesh)</th><th>resident (model)</th><th>.nbvh file</th><th>Draco 11-bit</th>"
             "<th>saved</th><th>MSE</th><th>IoU</th><th>train</th><th>verdict / error</th></tr>")
@@ -128,6 +128,6 @@ def write_report(out: Path, rows: list, info: dict) -> dict:
     data = {"info": info, "totals": totals(rows), "rows": [r.to_dict() for r in rows]}
     write_atomic(out / "report.json", json.dumps(data, indent=2, default=str).encode())
     write_atomic(out / "report.csv", _csv_text(rows).encode())
-    write_atomic(out / "report.html", html_report(rows, info).encode())
+    write_atomic(out / "report.html", html_report(rows, info, data["totals"]).encode())
     return {"json": str(out / "report.json"), "csv": str(out / "report.csv"), "html": str(out / "report.html"),
             "totals": data["totals"], "rows": data["rows"]}
