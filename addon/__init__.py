@@ -16,12 +16,14 @@ bl_info = {
 
 
 def register():
-    from . import panel
+    from . import panel, render_engine
 
     panel.register()
+    render_engine.register()
 
 
 def unregister():
-    from . import panel
+    from . import panel, render_engine
 
+    render_engine.unregister()
     panel.unregister()

@@ -121,6 +121,8 @@ def remove_all(obj_name: str) -> None:
     obj = bpy.data.objects.get(obj_name)
     if obj is not None:
         remove_proxy(obj)
+        if hasattr(obj, "nbvh_model"):
+            obj.nbvh_model = ""  # the render engine draws the mesh again
     for key in (f"{obj_name} (neural)", f"{obj_name} (mesh)"):
         img = bpy.data.images.get(key)
         if img is not None:
@@ -137,8 +139,23 @@ def load_result(obj, result: dict, scene) -> dict:
     reference = load_image(files["reference"], f"{obj.name} (mesh)")
     points = np.load(files["points"])
     proxy = make_proxy(obj, points, scene)
+    link_model(obj, result.get("path") or files.get("model"))
     return {"image": neural.name, "reference_image": reference.name, "proxy": proxy.name,
             "points": int(len(points))}
+
+
+def link_model(obj, model: str | None) -> None:
+    """Point the object at its model for the NBVH render engine: relative to the .blend when it is saved (so
+    the link survives moving the project folder), else absolute."""
+    if not model or not hasattr(obj, "nbvh_model"):
+        return
+    path = str(Path(model).resolve())
+    if bpy.data.filepath:
+        try:
+            path = bpy.path.relpath(path)
+        except ValueError:  # another drive (Windows)
+            pass
+    obj.nbvh_model = path
 
 
 def camera_for(context, obj, width: int = 256, height: int = 256) -> dict | None:

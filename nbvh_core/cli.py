@@ -519,6 +519,10 @@ def main(argv: list[str] | None = None) -> int:
         from .job import main as job_main
 
         return job_main(argv[1:])
+    if argv[:1] == ["render-worker"]:  # the render engine's worker (see render_worker.py): JSON lines both ways
+        from .render_worker import main as worker_main
+
+        return worker_main(argv[1:])
     args = build_parser().parse_args(argv)
     if args.path:
         kernels.set_path(args.path)
