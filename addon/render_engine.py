@@ -370,6 +370,14 @@ class OBJECT_PT_nbvh_model(bpy.types.Panel):
             self.layout.label(text="The file is missing: the NBVH engine draws the mesh", icon="ERROR")
 
 
+def _model_property():
+    kwargs = dict(name="NBVH model", subtype="FILE_PATH",
+                  description="The .nbvh model the NBVH render engine draws this object from (set by Compress)")
+    if bpy.app.version >= (5, 0, 0):  # Blender 5 asks paths to declare that they may be relative to the .blend
+        return bpy.props.StringProperty(options={"PATH_SUPPORTS_BLEND_RELATIVE"}, **kwargs)
+    return bpy.props.StringProperty(**kwargs)
+
+
 def _compat_panels():
     """Blender's own panels that list the built-in render engine (resolution, output, lights, ...)."""
     exclude = {"VIEWLAYER_PT_filter", "VIEWLAYER_PT_layer_passes"}
@@ -386,9 +394,7 @@ def register():
     for cls in CLASSES:
         bpy.utils.register_class(cls)
     bpy.types.Scene.nbvh_render = bpy.props.PointerProperty(type=NBVH_RenderSettings)
-    bpy.types.Object.nbvh_model = bpy.props.StringProperty(
-        name="NBVH model", subtype="FILE_PATH",
-        description="The .nbvh model the NBVH render engine draws this object from (set by Compress)")
+    bpy.types.Object.nbvh_model = _model_property()
     for panel in _compat_panels():
         panel.COMPAT_ENGINES.add(ENGINE_ID)
 

@@ -62,6 +62,77 @@ def blob_npz(work: Path) -> Path:
     return path
 
 
+def engine_models(work: Path) -> Path:
+    """Three bundled samples as object-local meshes (.npz) and quickly trained models (.nbvh) of them, for the
+    render-engine tests (trained once for both Blender flavours)."""
+    from nbvh_core.mesh import load_mesh
+    from nbvh_core.pipeline import compress_mesh
+    from nbvh_core.settings import preset
+
+    folder = work / "engine_models"
+    folder.mkdir()
+    for name in ("blob", "bunny", "studs"):
+        mesh = load_mesh(ROOT / "assets" / f"{name}.ply.gz")
+        np.savez(folder / f"{name}.npz", vertices=mesh.transform.to_original(mesh.vertices).astype(np.float32),
+                 faces=mesh.faces)
+        compress_mesh(mesh, preset("preview").with_overrides(force=True, time_limit_s=None, steps=800),
+                      folder / f"{name}.nbvh", evaluate_quality=False)
+    return folder
+
+
+RENDER_SAVED = r'''
+import sys, bpy
+argv = sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:]
+zip_path, blend, out = argv
+bpy.ops.extensions.package_install_files(filepath=zip_path, repo="user_default", enable_on_install=True)
+bpy.ops.wm.open_mainfile(filepath=blend)
+scene = bpy.context.scene
+assert scene.render.engine == "NBVH", scene.render.engine
+scene.render.filepath = out
+bpy.ops.render.render(write_still=True)
+print("rendered", out)
+'''
+
+
+def render_saved_blend_checks(name: str, prefix: list[str], work: Path, zip_path: Path, env: dict) -> tuple[int, int]:
+    """The .blend the engine test saved, moved to another folder (its model links are relative), rendered again
+    headless: `blender -b scene.blend --addons nbvh -E NBVH -o OUT -f 1` with the binary, a script with bpy.
+    The image must be the one the test rendered inside Blender."""
+    from PIL import Image
+
+    src = work / "engine_scene"
+    if not (src / "scene.blend").exists():
+        print(f"  [{name}] FAIL engine render from the command line: the engine test saved no scene")
+        return 0, 1
+    moved = work / "moved_project"
+    shutil.copytree(src, moved)
+    shutil.rmtree(src / "models")  # the links must point into the moved folder, not the old one
+    t0 = time.monotonic()
+    if prefix[0] == sys.executable:
+        script = work / "render_saved.py"
+        script.write_text(RENDER_SAVED)
+        out = moved / "cli_0001.png"
+        r = run([sys.executable, str(script), str(zip_path), str(moved / "scene.blend"), str(out)], env)
+    else:
+        r = run([prefix[0], "-b", str(moved / "scene.blend"), "--addons", "nbvh", "-E", "NBVH", "-o",
+                 str(moved / "cli_####"), "-F", "PNG", "-f", "1"], env)
+        out = moved / "cli_0001.png"
+    ok = out.exists() and (moved / "neural.png").exists()
+    detail = f"exit {r.returncode}"
+    if ok:
+        got = np.asarray(Image.open(out).convert("RGB"), np.float32) / 255
+        want = np.asarray(Image.open(moved / "neural.png").convert("RGB"), np.float32) / 255
+        diff = float(((got - want) ** 2).mean()) if got.shape == want.shape else float("inf")
+        ok = diff < 1e-3
+        detail += f", MSE to the in-Blender render {diff:.2e}"
+    label = "engine render of a saved, moved .blend from the command line"
+    if ok:
+        print(f"  [{name}] PASS {label} ({detail}, {time.monotonic() - t0:.1f} s)")
+        return 1, 0
+    print(f"  [{name}] FAIL {label}: {detail}\n" + "\n".join((r.stdout + r.stderr).splitlines()[-30:]))
+    return 0, 1
+
+
 def run(cmd: list[str], env: dict, timeout: float = 1200) -> subprocess.CompletedProcess:
     print("$", " ".join(cmd), flush=True)
     return subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=timeout)
@@ -76,6 +147,7 @@ def main() -> int:
 
     zip_path = build(work / "dist")
     mesh = blob_npz(work)
+    models = engine_models(work)
     passed = failed = 0
     found = flavours(args.only)
     if not found:
@@ -94,7 +166,8 @@ def main() -> int:
                    BLENDER_USER_EXTENSIONS=str(fwork / "user" / "extensions"))
         env.pop("PYTHONPATH", None)
         r = run(script_cmd(prefix, ROOT / "blender_tests" / "inside_blender.py",
-                           ["--zip", str(zip_path), "--mesh", str(mesh), "--python", JOB_PYTHON, "--work", str(fwork)]), env)
+                           ["--zip", str(zip_path), "--mesh", str(mesh), "--python", JOB_PYTHON, "--work", str(fwork),
+                            "--models", str(models)]), env)
         lines = (r.stdout + r.stderr).splitlines()
         print("\n".join(f"  [{name}] {line}" for line in lines if line.startswith(("PASS", "FAIL", "Blender", "  ", "Trace", "Assert", "    "))
                         or "Error" in line))
@@ -106,6 +179,8 @@ def main() -> int:
             passed, failed = passed + p, failed + f
         if summary is None or (r.returncode != 0 and not (summary and int(summary.split()[2]))):
             failed += 1
+        p, f = render_saved_blend_checks(name, prefix, fwork, zip_path, env)
+        passed, failed = passed + p, failed + f
         # compress.py, headless, the same code path as the panel.
         p, f = compress_py_checks(name, prefix, fwork, mesh, env)
         passed, failed = passed + p, failed + f
