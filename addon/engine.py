@@ -15,7 +15,7 @@ import bpy
 import numpy as np
 
 from . import export, previews, report
-from .job import QUALITY_LEVELS, JobQueue, checkpoint_for, default_python  # noqa: F401  (QUALITY_LEVELS: for callers)
+from .job import QUALITY_LEVELS, TARGET_TRAININGS, JobQueue, checkpoint_for, default_python  # noqa: F401  (for callers)
 
 
 @dataclass

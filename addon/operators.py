@@ -9,7 +9,7 @@ from pathlib import Path
 import bpy
 
 from . import engine, library, previews
-from .job import check_python, core_env, default_python
+from .job import TARGET_TRAININGS, check_python, core_env, default_python
 
 # The session of the current Compress click (one at a time per Blender instance), and the library / scene-report run.
 _state = {"session": None, "messages": [], "library": None}
@@ -38,6 +38,15 @@ def request_from_props(props) -> engine.Request:
     return engine.Request(preset=preset, overrides=overrides, out_dir=props.output_dir)
 
 
+def _verdict(report_path: str) -> str:
+    """The job's comparison with what the user could ship instead (its report's assessment message)."""
+    try:
+        report = json.loads(Path(report_path).read_text())
+    except (OSError, ValueError):
+        return ""
+    return str((report.get("assessment") or {}).get("message") or "")
+
+
 def _store_results(scene, session) -> None:
     for obj_name, loaded in session.loaded.items():
         res = loaded["result"]
@@ -53,6 +62,7 @@ def _store_results(scene, session) -> None:
         item.iou = q.get("silhouette_iou") or 0.0
         item.train_seconds = res.get("train_seconds") or 0.0
         item.blender_bytes = session.blender_bytes[obj_name]["total"]
+        item.verdict = _verdict(res["files"]["report"])
     paths = engine.write_scene_report(session)
     if paths:
         scene.nbvh_props.report_html = str(paths[1])
@@ -70,8 +80,9 @@ def _tick():
     if job is not None:
         props.progress = job.fraction
         props.phase = f"{job.name}: {job.progress.get('phase', 'starting')}"
-        eta = job.progress.get("eta_s")
-        props.eta = "" if eta is None else f"{eta:.0f} s"
+        props.eta = format_eta(job.eta_s(), session.queue.eta_s(), job.clock.trainings, job.request)
+    warnings = [f"{session.objects.get(j.id, j.name)}: {w}" for j in session.queue.jobs for w in j.log]
+    props.warnings = "; ".join(warnings[-3:])[:400]
     engine.finish_done(session, scene)
     if not session.queue.pending():
         _store_results(scene, session)
@@ -82,6 +93,8 @@ def _tick():
         props.last_error = "; ".join(f"{k}: {v}" for k, v in session.failures.items())
         props.last_note = "; ".join(f"{k} kept as a mesh: {v}" for k, v in session.kept_as_mesh.items())
         _state["session"] = None
+        if props.show_image and session.loaded:
+            previews.show_image(bpy.data.images.get(next(iter(session.loaded.values()))["image"]))
         done = [f"{name}: {loaded['result']['bytes'] / 1024:,.1f} KB" for name, loaded in session.loaded.items()]
         notify(f"NBVH: {props.phase}", done + [f"{k}: {v}" for k, v in session.failures.items()]
                + [f"{k}: kept as a mesh" for k in session.kept_as_mesh] + [f"results in {session.out_dir}"],
@@ -93,6 +106,22 @@ def _tick():
         if area.type == "VIEW_3D":
             area.tag_redraw()
     return 0.25
+
+
+def format_eta(this_s: float | None, all_s: float | None, trainings: int, request: dict) -> str:
+    """'35 s', '35 s, all 2 min' (more objects queued), '+ up to 2 more trainings' for a target search."""
+    def fmt(x: float) -> str:
+        return f"{x:.0f} s" if x < 90 else f"{x / 60:.0f} min"
+
+    if this_s is None:
+        return ""
+    text = fmt(this_s)
+    if all_s is not None and all_s > this_s + 1:
+        text += f", all {fmt(all_s)}"
+    settings = request.get("settings") or {}
+    if settings.get("target_mse") is not None and trainings < TARGET_TRAININGS:
+        text += f" (at most; a target search trains up to {TARGET_TRAININGS} times)"
+    return text
 
 
 def notify(title: str, lines: list[str], icon: str = "INFO") -> None:
@@ -158,7 +187,7 @@ class NBVH_OT_compress(bpy.types.Operator):
             self.report({"ERROR"}, "nothing to compress: " + props.last_error)
             return {"CANCELLED"}
         props.running, props.progress, props.phase, props.last_error = True, 0.0, "starting", ""
-        props.last_note = ""
+        props.last_note = props.warnings = ""
         props.message_selection = selection_key(context)
         _state["session"] = session
         bpy.app.timers.register(_tick, first_interval=0.1)

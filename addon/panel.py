@@ -27,6 +27,8 @@ class NBVH_Result(bpy.types.PropertyGroup):
         "Silhouette intersection over union: the share of pixels covered by both renderings among those covered "
         "by either (1 = the same outline)"))
     train_seconds: bpy.props.FloatProperty()
+    verdict: bpy.props.StringProperty(description="What the user could ship instead: the mesh as a ray tracer "
+                                      "holds it, a decimation of equal quality, Draco for storage")
 
 
 class NBVH_LibraryRow(bpy.types.PropertyGroup):
@@ -60,12 +62,16 @@ class NBVH_Props(bpy.types.PropertyGroup):
         name="Train even if not worth it",
         description="Without this, an object whose mesh (or a decimation of it) is already smaller than the model "
                     "would be gets its verdict in seconds and no training")
+    show_image: bpy.props.BoolProperty(name="Show result in Image Editor", default=True,
+                                       description="When a compression finishes, show its neural rendering in an "
+                                                   "Image Editor (a new window when none is open)")
     running: bpy.props.BoolProperty()
     progress: bpy.props.FloatProperty(min=0.0, max=1.0, subtype="FACTOR")
     phase: bpy.props.StringProperty()
     eta: bpy.props.StringProperty()
     last_error: bpy.props.StringProperty()
     last_note: bpy.props.StringProperty()  # verdicts: objects kept as meshes (not worth compressing)
+    warnings: bpy.props.StringProperty()  # the jobs' warning events (a target missed, a restart after divergence)
     message_selection: bpy.props.StringProperty()  # the selection last_error / last_note are about
     report_html: bpy.props.StringProperty(subtype="FILE_PATH")
     library_folder: bpy.props.StringProperty(name="Library", subtype="DIR_PATH")
@@ -119,9 +125,12 @@ class NBVH_PT_panel(bpy.types.Panel):
         else:
             col.prop(props, "budget_kb")
         col.prop(props, "time_limit")
+        if props.mode == "TARGET":
+            col.label(text=f"per training: a target search trains up to {engine.TARGET_TRAININGS} times", icon="INFO")
         col.prop(props, "device")
         col.prop(props, "output_dir")
         col.prop(props, "force")
+        col.prop(props, "show_image")
         if props.running:
             box = layout.box()
             box.label(text=props.phase or "working")
@@ -130,6 +139,8 @@ class NBVH_PT_panel(bpy.types.Panel):
             else:
                 box.prop(props, "progress", text=f"ETA {props.eta or '?'}", slider=True)
             box.operator("nbvh.cancel", icon="CANCEL")
+        if props.warnings and (props.running or props.message_selection in ("", operators.selection_key(context))):
+            _wrapped(layout, props.warnings, "ERROR")
         else:
             n = len(context.selected_objects)
             layout.operator("nbvh.compress", text=f"Compress {n} object{'s' if n != 1 else ''} to NBVH",
@@ -161,12 +172,23 @@ class NBVH_PT_panel(bpy.types.Panel):
             row.prop(r, "mse", emboss=False)
             row.prop(r, "iou", emboss=False)
             row.label(text=f"{r.train_seconds:.0f} s")
+            if r.verdict:
+                _wrapped(box, r.verdict, "NONE", width=60)
             row = box.row()
             op = row.operator("nbvh.toggle_preview", text="Proxy", icon="HIDE_OFF")
             op.object_name = r.object_name
             row.operator("nbvh.open_report", text="Report", icon="TEXT")
             op = row.operator("nbvh.remove_result", text="", icon="TRASH")
             op.object_name = r.object_name
+
+
+def _wrapped(layout, text: str, icon: str = "NONE", width: int = 48, lines: int = 4) -> None:
+    """A long message as several labels (a sidebar cuts one long label off)."""
+    import textwrap
+
+    col = layout.column(align=True)
+    for i, line in enumerate(textwrap.wrap(text, width)[:lines]):
+        col.label(text=line, icon=icon if i == 0 else "BLANK1")
 
 
 class NBVH_PT_library(bpy.types.Panel):

@@ -144,6 +144,34 @@ def load_result(obj, result: dict, scene) -> dict:
             "points": int(len(points))}
 
 
+def show_image(image) -> bool:
+    """Show `image` in an Image Editor: one already open in any window, else the one Blender's render view opens
+    (the user's "Render Display" preference: a new window by default). False in background mode or without a
+    window."""
+    if bpy.app.background or image is None:
+        return False
+    wm = bpy.context.window_manager
+
+    def editor():
+        return next((a for w in wm.windows for a in w.screen.areas if a.type == "IMAGE_EDITOR"), None)
+
+    area = editor()
+    if area is None and wm.windows:
+        window = wm.windows[0]
+        view = next((a for a in window.screen.areas if a.type == "VIEW_3D"), window.screen.areas[0])
+        try:
+            with bpy.context.temp_override(window=window, area=view):
+                bpy.ops.render.view_show("INVOKE_DEFAULT")
+        except (RuntimeError, AttributeError, TypeError):
+            return False
+        area = editor()
+    if area is None:
+        return False
+    area.spaces.active.image = image
+    area.tag_redraw()
+    return True
+
+
 def link_model(obj, model: str | None) -> None:
     """Point the object at its model for the NBVH render engine: relative to the .blend when it is saved (so
     the link survives moving the project folder), else absolute."""

@@ -46,10 +46,20 @@ class NBVH_RenderSettings(bpy.types.PropertyGroup):
                                             description="Fraction of the viewport's pixels traced in Rendered shading")
 
 
-def _python() -> str:
+def _worker() -> render_client.RenderWorker:
+    """The running render worker, else a new one with the jobs' Python (found once: checking a Python starts a
+    process, too slow for every viewport update). Raises ValueError when there is none, WorkerError when it
+    cannot start."""
+    worker = render_client.current_worker()
+    if worker is not None and worker.alive:
+        return worker
     from .operators import _python as job_python
 
-    return job_python(bpy.context)
+    python = job_python(bpy.context)
+    if not python:
+        raise ValueError("no Python with PyTorch for the render worker: set one in the add-on preferences "
+                         "(NBVH > Install Dependencies)")
+    return render_client.shared_worker(python)
 
 
 # ---------------------------------------------------------------------------------------------- scene
@@ -189,11 +199,8 @@ class NBVHRenderEngine(bpy.types.RenderEngine):
         self.end_result(result)
 
     def _render_final(self, depsgraph, width: int, height: int) -> np.ndarray | None:
-        python = _python()
-        if not python:
-            raise ValueError("no Python with PyTorch for the render worker: set one in the add-on preferences")
         self.update_stats("", "NBVH: starting the render worker")
-        worker = render_client.shared_worker(python)
+        worker = _worker()
         meshes = MeshFiles()
         try:
             desc, notes = scene_description(depsgraph, meshes)
@@ -239,7 +246,7 @@ class NBVHRenderEngine(bpy.types.RenderEngine):
             if isinstance(update.id, bpy.types.Object) and update.is_updated_geometry:
                 state["meshes"].invalidate(update.id.original.name)
         try:
-            worker = render_client.shared_worker(_python())
+            worker = _worker()
             desc, notes = scene_description(depsgraph, state["meshes"])
             state["scene_id"] = worker.set_scene(desc)
             state["error"] = "; ".join(notes) or None

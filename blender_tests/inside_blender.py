@@ -21,7 +21,9 @@ from pathlib import Path
 
 import bpy
 import numpy as np
-from mathutils import Vector
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import engine_scene  # noqa: E402  (beside this file)
 
 ARGS = None
 ADDON = {}  # module, engine, previews, operators, job
@@ -371,69 +373,6 @@ def test_text_converts_to_mesh():
     assert nbytes["positions"] == len(verts) * 12
 
 
-def _set_base_color(obj, rgb):
-    mat = bpy.data.materials.new(f"{obj.name} paint")
-    mat.diffuse_color = (*rgb, 1.0)
-    if bpy.app.version < (5, 0, 0):
-        mat.use_nodes = True
-    bsdf = next((n for n in mat.node_tree.nodes if n.type == "BSDF_PRINCIPLED"), None) if mat.node_tree else None
-    if bsdf is not None:
-        bsdf.inputs["Base Color"].default_value = (*rgb, 1.0)
-    obj.data.materials.append(mat)
-
-
-def engine_scene():
-    """Three objects with models (rotated, scaled, moved), a ground plane without one, a sun and a point light,
-    a camera; the models copied beside the saved .blend and linked relative to it."""
-    scene = bpy.context.scene
-    for obj in list(scene.objects):
-        bpy.data.objects.remove(obj)
-    folder = Path(ARGS.work) / "engine_scene"
-    (folder / "models").mkdir(parents=True, exist_ok=True)
-    placed = {"blob": ((-1.4, 0.0, 0.0), (0.0, 0.0, 0.4), (0.8, 0.3, 0.2)),
-              "bunny": ((0.0, 0.2, 0.0), (0.3, 0.0, -0.6), (0.85, 0.85, 0.85)),
-              "studs": ((1.4, 0.0, 0.0), (0.0, 0.2, 0.9), (0.2, 0.55, 0.8))}
-    for name, (loc, rot, rgb) in placed.items():
-        data = np.load(Path(ARGS.models) / f"{name}.npz")
-        v = data["vertices"]  # the coordinates the model was trained in: they must stay the object's own
-        scale = 1.1 / float(np.ptp(v, axis=0).max())
-        obj = make_mesh_object(name, v, data["faces"])
-        obj.rotation_euler = rot
-        obj.scale = (scale,) * 3
-        bpy.context.view_layer.update()
-        centre = obj.matrix_world @ Vector(((v.max(0) + v.min(0)) / 2).tolist())
-        obj.location = Vector(loc) - (centre - obj.location)
-        _set_base_color(obj, rgb)
-        src = Path(ARGS.models) / f"{name}.nbvh"
-        (folder / "models" / src.name).write_bytes(src.read_bytes())
-    ground = make_mesh_object("Ground", np.array([[-4, -4, -0.6], [4, -4, -0.6], [4, 4, -0.6], [-4, 4, -0.6]], float),
-                              np.array([[0, 1, 2], [0, 2, 3]]))
-    _set_base_color(ground, (0.5, 0.5, 0.5))
-    sun = bpy.data.objects.new("Sun", bpy.data.lights.new("Sun", "SUN"))
-    sun.data.energy = 2.5
-    sun.rotation_euler = (0.6, 0.2, 0.4)
-    lamp = bpy.data.objects.new("Lamp", bpy.data.lights.new("Lamp", "POINT"))
-    lamp.data.energy = 400.0
-    lamp.data.color = (1.0, 0.85, 0.7)
-    lamp.location = (2.0, -3.0, 3.0)
-    cam = bpy.data.objects.new("Cam", bpy.data.cameras.new("Cam"))
-    cam.location = (0.0, -5.2, 2.2)
-    cam.rotation_euler = (math.radians(68), 0.0, 0.0)
-    for obj in (sun, lamp, cam):
-        scene.collection.objects.link(obj)
-    scene.camera = cam
-    scene.render.engine = "NBVH"
-    scene.render.resolution_x, scene.render.resolution_y, scene.render.resolution_percentage = 320, 180, 100
-    scene.render.image_settings.file_format = "PNG"
-    scene.nbvh_render.samples = 4
-    blend = folder / "scene.blend"
-    bpy.ops.wm.save_as_mainfile(filepath=str(blend))
-    for name in placed:
-        bpy.data.objects[name].nbvh_model = bpy.path.relpath(str(folder / "models" / f"{name}.nbvh"))
-    bpy.ops.wm.save_mainfile()
-    return scene, folder
-
-
 def render_to(scene, path: Path) -> np.ndarray:
     scene.render.filepath = str(path)
     bpy.ops.render.render(write_still=True)
@@ -449,7 +388,7 @@ def test_render_engine_draws_three_models_like_their_meshes():
     """Final render with the NBVH engine (models) against the same scene from the meshes (the reference tracer,
     same camera and lights): the image MSE is bounded; shadows darken the ground; the saved .blend keeps
     relative links (run.py renders it again with `blender -b scene.blend -E NBVH -f 1` from another folder)."""
-    scene, folder = engine_scene()
+    scene, folder = engine_scene.build(Path(ARGS.models), Path(ARGS.work) / "engine_scene", make_mesh_object)
     assert "NBVH" in {getattr(e, "bl_idname", None) for e in bpy.types.RenderEngine.__subclasses__()}
     assert bpy.data.objects["blob"].nbvh_model.startswith("//")
     t0 = time.monotonic()

@@ -5,6 +5,10 @@ from __future__ import annotations
 #: name -> image MSE the model must reach (lower = better).
 QUALITY_LEVELS = {"preview": 0.02, "standard": 0.01, "high": 0.005}
 
+#: A quality target costs at most this many trainings: the predicted size, then corrections (`sizing.next_size`);
+#: the add-on's ETA and the panel's time-limit hint say so.
+TARGET_TRAININGS = 3
+
 
 def describe() -> str:
     """'preview = MSE 0.02, standard = 0.01, high = 0.005' (for help texts)."""

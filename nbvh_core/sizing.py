@@ -32,7 +32,7 @@ import numpy as np
 
 from .bvh import build_full_tree, resident_bvh_nodes
 from .mesh import Mesh
-from .quality_levels import QUALITY_LEVELS  # noqa: F401  (re-exported: the levels a target is chosen from)
+from .quality_levels import QUALITY_LEVELS, TARGET_TRAININGS  # noqa: F401  (QUALITY_LEVELS re-exported)
 from .settings import PRESETS, Settings, estimate_file_bytes
 
 FIT_PATH = Path(__file__).with_name("sizing_fit.json")
@@ -170,8 +170,6 @@ def choose_table_and_nodes(fit: SizeFit, features: MeshFeatures, target_mse: flo
     return l2, n, predict_mse(fit, l2, features, n), False
 
 
-#: A quality target costs at most this many trainings: the predicted size, then corrections (see `next_size`).
-TARGET_TRAININGS = 3
 
 
 def next_size(fit: SizeFit | None, features: MeshFeatures | None, target_mse: float,

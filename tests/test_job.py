@@ -82,3 +82,39 @@ def test_damaged_model_and_bad_mesh_fail_with_message(tmp_path, sample_meshes):
     assert a.state == "failed" and "checksum" in a.error
     assert b.state == "failed" and "NaN" in b.error
     assert damaged.exists()  # the user's file is never deleted
+
+
+def test_job_eta_covers_every_phase_and_every_training_of_a_target_search(monkeypatch):
+    """The whole-job ETA: a target search may train TARGET_TRAININGS times, each its time limit, each followed by
+    an evaluation (timed in this job once seen), then the preview."""
+    import addon.job as job_mod
+
+    now = [100.0]
+    monkeypatch.setattr(job_mod.time, "monotonic", lambda: now[0])
+    req = {"settings": {"time_limit_s": 60, "target_mse": 0.01}}
+    clock = job_mod.JobClock()
+    g, f = job_mod.EVAL_GUESS_S, job_mod.FINISH_GUESS_S
+    assert clock.estimate(req) == 3 * (60 + g) + f
+    assert clock.estimate({"settings": {"time_limit_s": 60}}) == 60 + g + f
+    assert clock.remaining(req) == 3 * (60 + g) + f  # planning: nothing trained yet
+    clock.see({"event": "phase", "phase": "train", "message": "hashgrid+mlp"})
+    clock.see({"event": "progress", "phase": "train", "eta_s": 40.0})
+    assert clock.remaining(req) == 40 + g + 2 * (60 + g) + f
+    now[0] += 10  # the ETA runs down between progress events
+    assert clock.remaining(req) == 30 + g + 2 * (60 + g) + f
+    clock.see({"event": "phase", "phase": "eval", "message": "16 views"})
+    now[0] += 7
+    clock.see({"event": "phase", "phase": "search", "message": "trying T=2^12"})
+    assert clock.eval_seconds == 7
+    clock.see({"event": "phase", "phase": "train", "message": "hashgrid+mlp"})
+    clock.see({"event": "progress", "phase": "train", "eta_s": 50.0})
+    assert clock.remaining(req) == 50 + 7 + (60 + 7) + f  # one training may follow, evaluations timed
+    clock.see({"event": "phase", "phase": "preview", "message": "256x256"})
+    assert clock.remaining(req) == f
+    # A run by steps (no time limit) has no ETA until training reports one.
+    steps = job_mod.JobClock()
+    assert steps.estimate({"settings": {"steps": 500}}) is None
+    steps.see({"event": "phase", "phase": "train", "message": "x"})
+    assert steps.remaining({"settings": {"steps": 500}}) is None
+    steps.see({"event": "progress", "phase": "train", "eta_s": 12.0})
+    assert steps.remaining({"settings": {"steps": 500}}) == 12 + g + f
