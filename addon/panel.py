@@ -140,7 +140,7 @@ class NBVH_PT_panel(bpy.types.Panel):
                 box.prop(props, "progress", text=f"ETA {props.eta or '?'}", slider=True)
             box.operator("nbvh.cancel", icon="CANCEL")
         if props.warnings and (props.running or props.message_selection in ("", operators.selection_key(context))):
-            _wrapped(layout, props.warnings, "ERROR")
+            _wrapped(layout, props.warnings, "ERROR", context)
         else:
             n = len(context.selected_objects)
             layout.operator("nbvh.compress", text=f"Compress {n} object{'s' if n != 1 else ''} to NBVH",
@@ -153,27 +153,28 @@ class NBVH_PT_panel(bpy.types.Panel):
                 op.resume = True
         why = operators.compress_disabled_reason(context)
         if why and not props.running:
-            layout.label(text=why, icon="INFO")
+            _wrapped(layout, why, "INFO", context)
         current = props.running or props.message_selection in ("", operators.selection_key(context))
         if props.last_error and current:  # a message about another selection is stale: not shown
-            layout.label(text=props.last_error, icon="ERROR")
+            _wrapped(layout, props.last_error, "ERROR", context, lines=6)
         if props.last_note and current:
-            layout.label(text=props.last_note, icon="INFO")
+            _wrapped(layout, props.last_note, "INFO", context, lines=6)
         out = engine.output_dir(props.output_dir)
         row = layout.row()
-        row.label(text=f"Output: {out}", icon="FILE_FOLDER")
+        row.label(text=f"Output: {_short_path(out, context)}", icon="FILE_FOLDER")
         row.operator("nbvh.open_folder", text="", icon="FOLDER_REDIRECT")
         for r in context.scene.nbvh_results:
             box = layout.box()
             box.label(text=r.object_name, icon="OBJECT_DATA")
-            box.label(text=f".nbvh {r.nbvh_bytes / 1024:.1f} KB vs mesh {r.blender_bytes / 1024:.1f} KB "
-                           f"({r.blender_bytes / max(r.nbvh_bytes, 1):.1f}x)")
-            row = box.row()  # props, not text: hovering shows what MSE and IoU mean
-            row.prop(r, "mse", emboss=False)
-            row.prop(r, "iou", emboss=False)
-            row.label(text=f"{r.train_seconds:.0f} s")
+            col = box.column(align=True)
+            col.label(text=f".nbvh {r.nbvh_bytes / 1024:,.1f} KB")
+            col.label(text=f"mesh {r.blender_bytes / 1024:,.0f} KB ({r.blender_bytes / max(r.nbvh_bytes, 1):.1f}x)")
+            # props, not text: hovering shows what MSE and IoU mean
+            col.prop(r, "mse", text="MSE", emboss=False)
+            col.prop(r, "iou", text="IoU", emboss=False)
+            col.label(text=f"trained {r.train_seconds:.0f} s")
             if r.verdict:
-                _wrapped(box, r.verdict, "NONE", width=60)
+                _wrapped(box, r.verdict, "NONE", context, lines=6)
             row = box.row()
             op = row.operator("nbvh.toggle_preview", text="Proxy", icon="HIDE_OFF")
             op.object_name = r.object_name
@@ -182,13 +183,26 @@ class NBVH_PT_panel(bpy.types.Panel):
             op.object_name = r.object_name
 
 
-def _wrapped(layout, text: str, icon: str = "NONE", width: int = 48, lines: int = 4) -> None:
-    """A long message as several labels (a sidebar cuts one long label off)."""
+def _chars(context) -> int:
+    """About how many characters of a label fit across the region (the sidebar is narrow by default)."""
+    scale = context.preferences.system.ui_scale
+    return max(18, int((context.region.width if context.region else 300) / (7.5 * scale)) - 6)
+
+
+def _wrapped(layout, text: str, icon: str = "NONE", context=None, lines: int = 4) -> None:
+    """A long message as several labels, wrapped to the region's width (one long label would be cut off)."""
     import textwrap
 
     col = layout.column(align=True)
+    width = _chars(context or bpy.context)
     for i, line in enumerate(textwrap.wrap(text, width)[:lines]):
         col.label(text=line, icon=icon if i == 0 else "BLANK1")
+
+
+def _short_path(path, context) -> str:
+    """A folder path that fits: its end, with "..." for what is left out."""
+    text, width = str(path), _chars(context) - 8
+    return text if len(text) <= width else "..." + text[-max(8, width - 3):]
 
 
 class NBVH_PT_library(bpy.types.Panel):
