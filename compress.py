@@ -65,10 +65,12 @@ def parse(argv: list[str]) -> argparse.Namespace:
 def run(argv: list[str]) -> int:
     import bpy
 
-    from addon import engine
+    from addon import engine, previews, render_engine
     from addon.job import default_python
 
     args = parse(argv)
+    if not hasattr(bpy.types.Object, "nbvh_model"):  # the add-on is not enabled here: its object link still saves
+        bpy.types.Object.nbvh_model = render_engine._model_property()
     if args.all:
         objects = [o for o in bpy.context.scene.objects if o.type == "MESH"]
         if not objects:
@@ -123,7 +125,9 @@ def run(argv: list[str]) -> int:
         if bpy.data.filepath and Path(bpy.data.filepath).resolve() == target:
             print("error: --save-blend must name a new file, not the open .blend", file=sys.stderr)
             return 1
+        links = previews.relink_models(target)  # "//" in the saved file means its own folder
         bpy.ops.wm.save_as_mainfile(filepath=str(target), copy=True)
+        print(f"saved {target} with {links} model link(s) relative to it (the NBVH render engine draws them)")
     for name, msg in session.kept_as_mesh.items():
         print(f"{name}: kept as a mesh (nothing trained; --force trains anyway): {msg}")
     for name, msg in session.failures.items():

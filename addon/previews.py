@@ -186,6 +186,28 @@ def link_model(obj, model: str | None) -> None:
     obj.nbvh_model = path
 
 
+def relink_models(target_blend: str | Path) -> int:
+    """Rewrite every object's model link relative to `target_blend` (a .blend about to be saved elsewhere, whose
+    folder "//" will then mean); a link whose file is missing is left as it is. Returns the links rewritten."""
+    import os
+
+    folder = Path(target_blend).resolve().parent
+    count = 0
+    for obj in bpy.data.objects:
+        link = getattr(obj, "nbvh_model", "")
+        if not link:
+            continue
+        path = Path(bpy.path.abspath(link)).resolve()
+        if not path.is_file():
+            continue
+        try:
+            obj.nbvh_model = "//" + Path(os.path.relpath(path, folder)).as_posix()
+        except ValueError:  # another drive (Windows): keep it absolute
+            obj.nbvh_model = str(path)
+        count += 1
+    return count
+
+
 def camera_for(context, obj, width: int = 256, height: int = 256) -> dict | None:
     """The scene camera (or the viewport's view when there is none), in the object's local coordinates."""
     import math

@@ -378,6 +378,7 @@ class OBJECT_PT_nbvh_model(bpy.types.Panel):
 
 
 def _model_property():
+    """`Object.nbvh_model` (compress.py registers it too when the add-on is not enabled)."""
     kwargs = dict(name="NBVH model", subtype="FILE_PATH",
                   description="The .nbvh model the NBVH render engine draws this object from (set by Compress)")
     if bpy.app.version >= (5, 0, 0):  # Blender 5 asks paths to declare that they may be relative to the .blend

@@ -231,11 +231,15 @@ def compress_py_checks(name: str, prefix: list[str], work: Path, mesh: Path, env
          "kept as a mesh"),
         ("every mesh object", ["--all", "--out", str(work / "all_out"), "--preset", "tiny", "--steps", "20",
                                "--force"], 0, "[Blob] wrote"),
+        ("save blend with model links", ["--objects", "Blob", "--out", str(work / "saved_out"), "--preset", "tiny",
+                                         "--steps", "20", "--force", "--save-blend",
+                                         str(work / "saved" / "with_links.blend")], 0, "with 1 model link(s)"),
         ("help", ["--help"], 0, "--objects"),
         ("missing object", ["--objects", "Nope", "--out", str(out)], 1, "no object named 'Nope'"),
         ("non-mesh object", ["--objects", "Cam", "--out", str(out)], 1, "'Cam' is a camera"),
         ("damaged .nbvh", ["--objects", "Blob", "--out", str(out), "--load", str(damaged)], 1, "checksum"),
     ]
+    (work / "saved").mkdir(exist_ok=True)
     passed = failed = 0
     for label, args, want_code, want_text in cases:
         cmd = script_cmd([sys.executable, str(ROOT / "blender_tests" / "bpy_compress.py")] if prefix[0] == sys.executable
