@@ -18,7 +18,8 @@ Tensors of format 2 (`storage` in the header says which form each component take
 * features (L x T x F): float32 or float16 `features`; 8 bits: `features` uint8 codes + `features.offset`,
   `features.scale` (L x F float32).
 * `index` (HashVQAD only: L x H codes of log2(t) bits, packed little-endian within each byte).
-* the network's parameters in `state_dict` order (`network.NAME`, float32 or float16).
+* the network's parameters in `state_dict` order (`network.NAME`, float32 or float16; 8 bits (format 2.1): each
+  Linear's `network.N.weight` as int8 rows and `network.N.weight_scale` (rows,) float16, biases float16).
 Format 1 files (float32/float16 everywhere, `float_bytes` in the header) still load.
 
 The reader trusts nothing: `_check_header` validates every header field's type and range, derives the exact
@@ -50,11 +51,11 @@ from .mesh import Transform
 from .model import ModelConfig, NeuralBVH
 from .networks import NETWORKS, NetworkConfig
 from .outputs import write_atomic  # noqa: F401  (re-exported: callers write files through it)
-from .quantize import NONE16, StorageConfig, decode_nodes, encode_nodes
+from .quantize import NONE16, StorageConfig, decode_nodes, encode_nodes, quantize_rows
 
 MAGIC = b"NBVH\x00\r\n\x1a"
 VERSION_MAJOR = 2
-VERSION_MINOR = 0
+VERSION_MINOR = 1  # 2.1: network_bits 8 (a 2.0 reader refuses such a file by its storage field)
 READABLE_MAJORS = (1, 2)
 _PREFIX = struct.Struct("<8sHHI")
 _ALIGN = 8
@@ -146,10 +147,30 @@ def _tensors(model: NeuralBVH, storage: StorageConfig) -> list[tuple[str, str, b
             raise ValueError("HashVQAD must be frozen (argmax codes) before saving")
         codes = enc.codes.cpu().numpy()
         out.append(("index", "index", pack_codes(codes, enc.code_bits()), list(codes.shape)))
-    fdt = _float_dtype(storage.network_bits)
-    for name, p in model.network.state_dict().items():
-        arr = p.detach().cpu().numpy()
-        out.append((f"network.{name}", "network", arr.astype(fdt).tobytes(), list(arr.shape)))
+    for name, arr in _network_arrays(model, storage.network_bits):
+        out.append((f"network.{name}", "network", arr.tobytes(), list(arr.shape)))
+    return out
+
+
+def _network_arrays(model: NeuralBVH, bits: int) -> list[tuple[str, np.ndarray]]:
+    """The network's stored arrays in file order: every state_dict entry at `bits` (32/16), or at 8 bits each
+    weight as int8 rows followed by its float16 row scales (held ones as they are, else quantized now)."""
+    from torch import nn
+
+    if bits != 8:
+        fdt = _float_dtype(bits)
+        return [(n, p.detach().cpu().numpy().astype(fdt)) for n, p in model.network.state_dict().items()
+                if not n.endswith(".weight_scale")]
+    out = []
+    for name, m in model.network.named_modules():
+        if not isinstance(m, nn.Linear):
+            continue
+        if m.weight.dtype == torch.int8:
+            codes, scale = m.weight.cpu().numpy(), m.weight_scale.cpu().numpy()
+        else:
+            codes, scale = quantize_rows(m.weight.detach().float().cpu().numpy())
+        out += [(f"{name}.weight", codes.astype(np.int8)), (f"{name}.weight_scale", scale.astype(np.float16)),
+                (f"{name}.bias", m.bias.detach().cpu().numpy().astype(np.float16))]
     return out
 
 
@@ -278,9 +299,13 @@ def _expected_tensors(cfg: ModelConfig, storage: StorageConfig, n_nodes: int) ->
         out["features"] = ((L, T, F), "<f2" if storage.table_bits == 16 else "<f4")
     if enc.kind == "hashvqad":
         out["index"] = ((L, enc.index_size), f"packed{int(math.log2(enc.candidates))}")
-    fdt = "<f2" if storage.network_bits == 16 else "<f4"
+    fdt = "<f4" if storage.network_bits == 32 else "<f2"
     for name, shape in _network_shapes(cfg).items():
-        out[f"network.{name}"] = (shape, fdt)
+        if storage.network_bits == 8 and name.endswith("weight") and len(shape) == 2:
+            out[f"network.{name}"] = (shape, "i1")
+            out[f"network.{name}_scale"] = ((shape[0],), "<f2")
+        else:
+            out[f"network.{name}"] = (shape, fdt)
     return out
 
 
@@ -481,16 +506,39 @@ def _decode(data: bytes, header: dict, where: str, device: str | torch.device = 
                 raise NBVHFileError(f"{where}: HashVQAD codes out of range")
             enc.codes = torch.from_numpy(codes.copy())
             enc.logits = None
-        state = {name[len("network."):]: torch.from_numpy(array(name).astype(np.float32))
-                 for name in expected if name.startswith("network.")}
-        model.network.load_state_dict(state)
-        if storage.network_bits == 16:
-            model.hold_network_half()  # resident as stored
+        _load_network(model, storage.network_bits, array, [n for n in expected if n.startswith("network.")])
         if compact is not None:
             model.hold_nodes_compact(compact)
     model.metadata = header.get("metadata", {})
     model.storage = storage
     return model.to(device).eval()
+
+
+def _load_network(model: NeuralBVH, bits: int, array, names: list[str]) -> None:
+    """Fill the model's network from the file's arrays and hold it as stored (float16, or int8 rows + scales)."""
+    from .quantize import dequantize_rows
+
+    if bits != 8:
+        model.network.load_state_dict({n[len("network."):]: torch.from_numpy(array(n).astype(np.float32))
+                                       for n in names})
+        if bits == 16:
+            model.hold_network_half()  # resident as stored
+        return
+    rows, state = {}, {}
+    for n in names:
+        key = n[len("network."):]
+        if key.endswith(".weight_scale"):
+            continue
+        if f"{n}_scale" in names:
+            codes, scale = array(n), array(f"{n}_scale")
+            if not np.isfinite(scale.astype(np.float32)).all():
+                raise NBVHFileError(f"network scales must be finite ({n})")
+            rows[key] = (codes, scale)
+            state[key] = torch.from_numpy(dequantize_rows(codes, scale).astype(np.float32))
+        else:
+            state[key] = torch.from_numpy(array(n).astype(np.float32))
+    model.network.load_state_dict(state)
+    model.hold_network_int8(rows)
 
 
 def _check_nodes_links(nodes: np.ndarray, where: str) -> None:

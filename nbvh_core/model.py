@@ -17,7 +17,7 @@ from .bvh import NODE_DTYPE
 from .encodings import EncodingConfig, make_encoding
 from .mesh import Transform
 from .networks import NetworkConfig, make_network
-from .quantize import StorageConfig, decode_nodes, encode_nodes, stored_node_bytes
+from .quantize import StorageConfig, decode_nodes, encode_nodes, quantize_rows, stored_node_bytes
 from .traversal import CompactBVH, LeafStream, TorchBVH
 
 
@@ -203,7 +203,7 @@ class NeuralBVH(nn.Module):
         st = storage or StorageConfig.float32()
         out = {"bvh": stored_node_bytes(self.n_nodes, st.node_bits)}
         out.update(self.encoding.stored_bytes(st.table_bits))
-        out["network"] = sum(p.numel() for p in self.network.parameters()) * st.network_bits // 8
+        out["network"] = network_stored_bytes(self.network, st.network_bits)
         return out
 
     def resident_bytes(self) -> dict[str, int]:
@@ -221,7 +221,8 @@ class NeuralBVH(nn.Module):
         out = {"bvh": bvh, "features": int(rows)}
         if enc.learned_index and enc.frozen:
             out["index"] = int(enc.codes.numel())
-        out["network"] = sum(p.numel() * p.element_size() for p in self.network.parameters())
+        out["network"] = sum(t.numel() * t.element_size()
+                             for t in (*self.network.parameters(), *self.network.buffers()))
         return out
 
     @torch.no_grad()
@@ -236,8 +237,29 @@ class NeuralBVH(nn.Module):
             self.encoding.table.copy_(self.encoding.table.half().float())
         if storage.network_bits == 16:
             self.hold_network_half()
+        elif storage.network_bits == 8:
+            self.hold_network_int8()
         if storage.node_bits == 8:
             self.hold_nodes_compact()
+
+    @torch.no_grad()
+    def hold_network_int8(self, rows: dict | None = None) -> None:
+        """Keep each Linear's weight as int8 rows with float16 scales (`quantize.quantize_rows`; `rows`: state_dict
+        weight name -> (codes, scale) as a file stores them, default: quantized from the current weights) and the
+        biases in float16, as a file with network_bits 8 stores them. Inference only."""
+        for name, m in self.network.named_modules():
+            if not isinstance(m, nn.Linear):
+                continue
+            key = f"{name}.weight"
+            if rows is not None:
+                codes, scale = rows[key]
+            else:
+                codes, scale = quantize_rows(m.weight.detach().float().cpu().numpy())
+            m.weight.requires_grad_(False)
+            m.weight.data = torch.from_numpy(np.ascontiguousarray(codes, np.int8)).to(m.weight.device)
+            m.register_buffer("weight_scale", torch.from_numpy(np.ascontiguousarray(scale, np.float16)).to(m.weight.device))
+            m.bias.requires_grad_(False)
+            m.bias.data = m.bias.data.to(torch.float16)
 
     @torch.no_grad()
     def hold_network_half(self) -> None:
@@ -260,3 +282,15 @@ class NeuralBVH(nn.Module):
         return {"config": self.cfg.to_dict(), "nodes": int(self.n_nodes),
                 "transform": self.transform.to_dict()}
 
+
+
+def network_stored_bytes(network: nn.Module, bits: int) -> int:
+    """Bytes of a network's stored tensors at `bits` per weight: 32/16: every parameter at that width; 8: each
+    Linear's weight as int8 plus a float16 scale per row, biases float16."""
+    if bits != 8:
+        return sum(p.numel() for p in network.parameters()) * bits // 8
+    total = 0
+    for m in network.modules():
+        if isinstance(m, nn.Linear):
+            total += m.in_features * m.out_features + 2 * m.out_features + 2 * m.out_features
+    return total

@@ -55,13 +55,23 @@ def _mlp(n_in: int, cfg: NetworkConfig, n_out: int = 5) -> nn.Sequential:
     return nn.Sequential(*layers)
 
 
+def linear_weight(m: nn.Linear, dtype: torch.dtype) -> torch.Tensor:
+    """A Linear's (out, in) weight in `dtype`, however it is held: float32/float16 as they are, int8 rows
+    (`network_bits=8`: `weight` int8 codes + `weight_scale` (out,) float16) as float16(code * scale) - the one
+    formula every path uses (quantize.dequantize_rows)."""
+    w = m.weight
+    if w.dtype == torch.int8:
+        w = (w.float() * m.weight_scale.float()[:, None]).half()
+    return w.to(dtype)
+
+
 def run_layers(net: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
-    """`net(x)` for weights held in any float type (a finalized model keeps its network in float16, as stored):
-    each Linear runs in x's dtype (a transient cast of its weights on this reference path; the fused kernels read
-    the float16 weights as they are)."""
+    """`net(x)` for weights held in any form (a finalized model keeps its network as stored: float16, or int8 rows
+    with scales): each Linear runs in x's dtype (a transient cast of its weights on this reference path; the fused
+    kernels read float16 weights as they are)."""
     for m in net:
         if isinstance(m, nn.Linear):
-            x = F.linear(x, m.weight.to(x.dtype), m.bias.to(x.dtype))
+            x = F.linear(x, linear_weight(m, x.dtype), m.bias.to(x.dtype))
         else:
             x = m(x)
     return x

@@ -197,7 +197,7 @@ FUSED_MODELS = [
 ]
 
 
-@pytest.mark.parametrize("half", [False, True], ids=["f32-weights", "f16-weights"])
+@pytest.mark.parametrize("half", [False, True, "int8"], ids=["f32-weights", "f16-weights", "int8-weights"])
 @pytest.mark.parametrize("enc_kw,net_kw", FUSED_MODELS)
 def test_fused_inference_matches_the_layer_by_layer_network(enc_kw, net_kw, half, sample_meshes):
     torch.manual_seed(0)
@@ -207,11 +207,17 @@ def test_fused_inference_matches_the_layer_by_layer_network(enc_kw, net_kw, half
         model.encoding.table.normal_()
     if enc_kw["kind"] == "hashvqad":
         model.encoding.freeze()
-    if half:  # the stored half-precision network, held as it is stored; the kernel reads float16 weights
+    if half is True:  # the stored half-precision network, held as it is stored; the kernel reads float16 weights
         n_params = sum(p.numel() for p in model.network.parameters())
         model.hold_network_half()
         assert model.resident_bytes()["network"] == 2 * n_params
         assert kernels.plan(model).network.endswith("f16 weights") and kernels.plan(model).train_step == "autograd"
+    elif half == "int8":  # int8 rows + float16 scales, held as a file stores them
+        model.hold_network_int8()
+        linears = [m for m in model.network.modules() if isinstance(m, torch.nn.Linear)]
+        assert model.resident_bytes()["network"] == sum(m.in_features * m.out_features + 4 * m.out_features
+                                                        for m in linears)
+        assert kernels.plan(model).network.endswith("int8 weights")
     n_rays, n_seg = 300, 1001  # not a multiple of the kernel's 48-segment tile
     o = torch.rand(n_rays, 3)
     d = torch.nn.functional.normalize(torch.randn(n_rays, 3), dim=1)

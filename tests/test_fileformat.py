@@ -106,3 +106,45 @@ def test_component_bytes_of_encoded_data(trained):
     path, _ = trained["hashvqad"]
     comps = component_bytes(path.read_bytes())
     assert set(comps) == {"header", "bvh", "features", "index", "network", "padding", "checksum"}
+
+
+def test_quantize_rows_is_symmetric_per_row_and_exact_at_the_largest_weight():
+    from nbvh_core.quantize import dequantize_rows, quantize_rows
+
+    w = np.random.default_rng(1).normal(size=(37, 53)).astype(np.float32) * np.linspace(0.01, 3, 37)[:, None]
+    w[5] = 0.0  # a zero row
+    codes, scale = quantize_rows(w)
+    assert codes.dtype == np.int8 and scale.dtype == np.float16 and scale.shape == (37,)
+    back = dequantize_rows(codes, scale).astype(np.float32)
+    step = scale.astype(np.float32)[:, None]
+    assert (np.abs(back - w) <= 0.5 * step + 2e-3 * np.abs(w) + 1e-8).all()  # half a step (+ float16 rounding)
+    assert (np.abs(codes).max(axis=1)[np.arange(37) != 5] >= 126).all() and not codes[5].any()
+    c2, s2 = quantize_rows(back)  # a held (dequantized) network re-quantizes to the same rows
+    assert np.array_equal(c2, codes) and np.array_equal(s2, scale)
+
+
+def test_int8_network_file_loads_as_stored_and_renders_like_its_float16_twin(sample_meshes, tmp_path):
+    """network_bits 8 (format 2.1): the file stores int8 rows + float16 scales, the loaded model holds exactly
+    them (resident = stored), renders what the in-memory finalized model renders, and its image stays close to
+    the float16 network's."""
+    s = preset("tiny").with_overrides(steps=300, rays_per_step=2048, force=True)
+    res16 = compress_mesh(sample_meshes["blob"], s, tmp_path / "w16.nbvh", evaluate_quality=False)
+    res8 = compress_mesh(sample_meshes["blob"], s.with_overrides(network_bits=8), tmp_path / "w8.nbvh",
+                         evaluate_quality=False)
+    info8, info16 = read_info(tmp_path / "w8.nbvh"), read_info(tmp_path / "w16.nbvh")
+    linears = [m for m in res8.model.network.modules() if isinstance(m, torch.nn.Linear)]
+    n_w = sum(m.in_features * m.out_features for m in linears)
+    n_out = sum(m.out_features for m in linears)
+    assert info8.components["network"] == n_w + 4 * n_out == res8.model.stored_bytes(res8.settings.storage())["network"]
+    assert info16.components["network"] == 2 * (n_w + n_out)
+    loaded = load_nbvh(tmp_path / "w8.nbvh")
+    assert loaded.resident_bytes()["network"] == info8.components["network"]
+    for (n, p), (_, q) in zip(res8.model.network.state_dict().items(), loaded.network.state_dict().items()):
+        assert p.dtype == q.dtype and torch.equal(p, q), n
+    cam = orbit_cameras(3)[1]
+    a, b = render_neural(res8.model, cam, 48, 48), render_neural(loaded, cam, 48, 48)
+    assert np.array_equal(a.image, b.image)
+    c = render_neural(res16.model, cam, 48, 48)
+    assert (a.hit == c.hit).mean() > 0.97 and float(np.abs(a.image - c.image).mean()) < 0.02
+    # A 2.0 reader's storage field cannot name 8 bits; this reader still reads 2.0 files (the float16 one).
+    assert load_nbvh(tmp_path / "w16.nbvh").resident_bytes()["network"] == info16.components["network"]

@@ -16,6 +16,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from ..networks import linear_weight
 from .library import load, ptr, threads
 from .plan import network_kernel, train_step_kernel
 
@@ -41,11 +42,14 @@ def _linears(model) -> list[nn.Linear]:
 def pack(model) -> tuple[torch.Tensor, torch.Tensor]:
     """dims (layers + 1,) int32 (dims[0] = k * L * F) and params: each Linear's weight transposed (in, out), then
     its bias, packed in the weights' own type (float32 for training; float16 for a finalized half-precision
-    network, which the inference kernel reads without widening it)."""
+    network, which the inference kernel reads without widening it, and for an int8 one, expanded here)."""
     linears = _linears(model)
     dims = torch.tensor([linears[0].in_features] + [m.out_features for m in linears], dtype=torch.int32)
-    dtype = torch.float16 if linears[0].weight.dtype == torch.float16 else torch.float32
-    params = torch.cat([torch.cat((m.weight.detach().t().reshape(-1), m.bias.detach())).to(dtype) for m in linears])
+    # int8 rows (network_bits 8) expand per query into float16: the kernel's working copy, as its padded layer
+    # copies already are; the model holds the int8 rows.
+    dtype = torch.float16 if linears[0].weight.dtype in (torch.float16, torch.int8) else torch.float32
+    params = torch.cat([torch.cat((linear_weight(m, dtype).detach().t().reshape(-1), m.bias.detach().to(dtype)))
+                        for m in linears])
     return dims, params.contiguous()
 
 

@@ -54,8 +54,9 @@ def network_kernel(model, device: torch.device | str | None = None) -> str:
     if (net.fused_kind is None or not enc.grid_lookup or not fast_enabled(device)
             or enc.table.dtype != torch.float32):
         return TORCH
-    half = next(net.parameters()).dtype == torch.float16
-    return f"fused {net.fused_kind}" + (" f16 weights" if half else "")
+    dtype = next(net.parameters()).dtype
+    held = {torch.float16: " f16 weights", torch.int8: " int8 weights"}.get(dtype, "")
+    return f"fused {net.fused_kind}{held}"
 
 
 def train_step_kernel(model, device: torch.device | str | None = None) -> str:
