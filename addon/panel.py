@@ -16,8 +16,9 @@ class NBVH_Result(bpy.types.PropertyGroup):
     report_path: bpy.props.StringProperty(subtype="FILE_PATH")
     image_name: bpy.props.StringProperty()
     proxy_name: bpy.props.StringProperty()
-    nbvh_bytes: bpy.props.IntProperty(name=".nbvh bytes", description="Size of the model file; a neural model is "
-                                      "ray-traced as it is stored, so this is also about what it holds in memory")
+    nbvh_bytes: bpy.props.IntProperty(name=".nbvh bytes", description=(
+        "Size of the model file. A neural model is ray-traced as it is stored, so this is also what it holds in "
+        "memory (resident bytes); a mesh must hold vertices, indices, normals and a BVH to be traced"))
     blender_bytes: bpy.props.IntProperty(name="Mesh bytes", description="What the mesh holds as Blender stores it "
                                          "(positions, corners, faces, normals)")
     mse: bpy.props.FloatProperty(name="MSE", precision=5, description=(
@@ -167,9 +168,10 @@ class NBVH_PT_panel(bpy.types.Panel):
             box = layout.box()
             box.label(text=r.object_name, icon="OBJECT_DATA")
             col = box.column(align=True)
-            col.label(text=f".nbvh {r.nbvh_bytes / 1024:,.1f} KB")
-            col.label(text=f"mesh {r.blender_bytes / 1024:,.0f} KB ({r.blender_bytes / max(r.nbvh_bytes, 1):.1f}x)")
-            # props, not text: hovering shows what MSE and IoU mean
+            # props, not text: hovering explains what each size counts
+            col.prop(r, "nbvh_bytes", text=".nbvh bytes", emboss=False)
+            col.prop(r, "blender_bytes", text="mesh bytes", emboss=False)
+            col.label(text=f"{r.blender_bytes / max(r.nbvh_bytes, 1):.1f}x smaller than the mesh")
             col.prop(r, "mse", text="MSE", emboss=False)
             col.prop(r, "iou", text="IoU", emboss=False)
             col.label(text=f"trained {r.train_seconds:.0f} s")

@@ -3,6 +3,8 @@
     knot   - a tube around a (2, 3) torus knot: thin parts everywhere (tube radius 3% of the box), 28.8k triangles
     spiky  - a sphere with a high-frequency displacement: dense small detail on a closed surface, 81.9k triangles
     sheet  - an open wavy sheet with round holes: open surface, boundary edges, thin (zero-thickness), ~70k triangles
+    lattice - the heavy one (like the paper's multi-million-triangle models): a cubic strut lattice with fine bumps
+             on every strut, marching cubes at 320^3, >2M triangles (generated once, cached under ~/.cache/nbvh)
 
 Together with blob (smooth), studs (many repeated small details), gyroid (thin walls, holes), terrain (open height
 field) and bunny (a real scan with holes), they span detail levels, thin parts and open surfaces.
@@ -20,8 +22,8 @@ sys.path.insert(0, str(ROOT))
 from nbvh_core.mesh import Mesh, load_mesh, mesh_from_arrays  # noqa: E402
 from nbvh_core.samples_dir import SAMPLE_NAMES, sample_path  # noqa: E402
 
-MADE = ("knot", "spiky", "sheet")
-BENCH_MESHES = tuple(SAMPLE_NAMES) + MADE
+MADE = ("knot", "spiky", "sheet", "lattice")
+BENCH_MESHES = tuple(SAMPLE_NAMES) + ("knot", "spiky", "sheet")  # the heavy lattice only where named
 
 
 def _grid_faces(nu: int, nv: int, wrap_u: bool, wrap_v: bool) -> np.ndarray:
@@ -74,10 +76,41 @@ def sheet(n: int = 200) -> Mesh:
     return mesh_from_arrays(verts, faces[d > 0.28], name="sheet")
 
 
+def lattice(n: int = 320, period: float = 0.25, radius: float = 0.03) -> Mesh:
+    """A cubic lattice of struts (every `period` along x, y and z inside a 1.8-wide box), each strut covered with
+    bumps of 0.008 at a 0.05 wavelength: millions of triangles of fine, repeated detail. Cached (the marching
+    cubes take a minute)."""
+    import os
+
+    cache = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "nbvh" / f"lattice-{n}-{period}-{radius}.npz"
+    if cache.exists():
+        with np.load(cache) as d:
+            return mesh_from_arrays(d["vertices"], d["faces"], name="lattice")
+    from skimage.measure import marching_cubes
+
+    ax = np.linspace(-1.0, 1.0, n, dtype=np.float32)
+    h = float(ax[1] - ax[0])
+    x, y, z = np.meshgrid(ax, ax, ax, indexing="ij")
+    fx, fy, fz = [c - np.round(c / period) * period for c in (x, y, z)]
+    rods = np.minimum(np.minimum(np.sqrt(fy * fy + fz * fz), np.sqrt(fx * fx + fz * fz)), np.sqrt(fx * fx + fy * fy))
+    del fx, fy, fz
+    k = 2 * np.pi / 0.05
+    field = rods - radius - 0.008 * np.sin(k * x) * np.sin(k * y) * np.sin(k * z)
+    del rods
+    box = np.maximum(np.maximum(np.abs(x), np.abs(y)), np.abs(z)) - 0.9
+    field = np.maximum(field, box)
+    del x, y, z, box
+    verts, faces, _, _ = marching_cubes(field, level=0.0, spacing=(h, h, h))
+    verts, faces = (verts - 1.0).astype(np.float32), faces[:, ::-1].astype(np.int32)
+    cache.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(cache, vertices=verts, faces=faces)
+    return mesh_from_arrays(verts, faces, name="lattice")
+
+
 def bench_mesh(name: str) -> Mesh:
     """A benchmark mesh by name (see module docstring), normalised like every input."""
     if name in MADE:
-        return {"knot": knot, "spiky": spiky, "sheet": sheet}[name]()
+        return {"knot": knot, "spiky": spiky, "sheet": sheet, "lattice": lattice}[name]()
     return load_mesh(sample_path(name))
 
 

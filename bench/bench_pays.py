@@ -102,7 +102,7 @@ def main() -> None:
     ap.add_argument("--presets", nargs="+", default=["default"])
     ap.add_argument("--table-bits", type=int, nargs="+", default=[8])
     ap.add_argument("--network-bits", type=int, choices=[32, 16, 8],
-                    help="bits per network weight (default: 16 with quantized tables, else 32)")
+                    help="bits per network weight (default: the preset's with quantized tables, else 32)")
     ap.add_argument("--time-limit", type=float, help="override the preset's budget (not for headline numbers)")
     ap.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
                     help="Settings overrides for a configuration study, e.g. width=32 log2_table=12 (named in the row)")
@@ -117,7 +117,7 @@ def main() -> None:
         for preset_name in args.presets:
             for bits in args.table_bits:
                 base = preset(preset_name)
-                over = {"table_bits": bits, "network_bits": args.network_bits or (16 if bits < 32 else 32),
+                over = {"table_bits": bits, "network_bits": args.network_bits or (base.network_bits if bits < 32 else 32),
                         "node_bits": 8 if bits < 32 else 32}
                 if args.time_limit:
                     over["time_limit_s"] = args.time_limit

@@ -99,10 +99,16 @@ PRESETS: dict[str, Settings] = {
     # (~775 KB), 60 s on the bunny, HashGrid+MLP reached MSE 0.0032 / IoU 0.972 (405 steps) against
     # HashVQAD+MLP 0.013 / 0.885 (172 steps); on the gyroid, 90 s, KMLP lost to MLP (0.046 vs 0.025, HashVQAD).
     # So the user presets are HashGrid + MLP + consistent rays; the paper's full method is preset "III".
-    "preview": Settings(encoding="hashgrid", network="mlp", nodes=1023, log2_table=10, time_limit_s=60.0,
-                        eval_views=8),
-    "default": Settings(encoding="hashgrid", network="mlp", log2_table=11, time_limit_s=200.0),
-    "high": Settings(encoding="hashgrid", network="mlp", nodes=4095, log2_table=12, time_limit_s=600.0),
+    # Storage and feature width by measurement at the default preset's own budget (bench/results/pays.md, bunny,
+    # 200 s): 16 features x T=2^11 with float16 weights 247 KB at MSE 0.00051 (3.4x smaller resident than the
+    # equal-MSE decimation); int8 weight rows 202 KB at 0.00052 (4.1x); 8 features x T=2^12 (the same table bytes,
+    # a first layer half as wide: 30% more steps in the budget) with int8 rows 186 KB at 0.00045 (5.6x).
+    "preview": Settings(encoding="hashgrid", network="mlp", nodes=1023, log2_table=11, features=8, network_bits=8,
+                        time_limit_s=60.0, eval_views=8),
+    "default": Settings(encoding="hashgrid", network="mlp", log2_table=12, features=8, network_bits=8,
+                        time_limit_s=200.0),
+    "high": Settings(encoding="hashgrid", network="mlp", nodes=4095, log2_table=13, features=8, network_bits=8,
+                     time_limit_s=600.0),
     # The paper's method steps (same size knobs as `default`), for ablations.
     "base": Settings(encoding="hashgrid", network="mlp", labels="ownership", log2_table=11),
     "I": Settings(encoding="hashgrid", network="kmlp", labels="ownership", log2_table=11),
