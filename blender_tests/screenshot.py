@@ -24,6 +24,7 @@ ap.add_argument("--preset", default="default")
 ap.add_argument("--time-limit", type=int, default=60)
 ap.add_argument("--timeout", type=float, default=300)
 ap.add_argument("--models", help="build the engine test scene from these models first")
+ap.add_argument("--show-image", action="store_true", help="leave 'Show result in Image Editor' on")
 args = ap.parse_args(argv)
 state = {"phase": "setup", "t0": time.monotonic(), "since": 0.0, "code": 0}
 
@@ -52,7 +53,7 @@ def setup() -> None:
     bpy.context.preferences.view.show_splash = False
     props = bpy.context.scene.nbvh_props
     props.preset, props.time_limit, props.force = args.preset, args.time_limit, True
-    props.show_image = False  # a second window would cover the one photographed
+    props.show_image = args.show_image  # off by default: a second window would cover the one photographed
     obj = bpy.data.objects[args.compress]
     for o in bpy.context.scene.objects:
         o.select_set(o == obj)
