@@ -25,29 +25,9 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from addon.render_client import RenderWorker  # noqa: E402
-from nbvh_core.scene_render import view_projection  # noqa: E402
+from nbvh_core.scene_render import look_at, perspective, view_projection  # noqa: E402
 
 PLACES = {"bunny": (0.0, 0.0), "blob": (-1.4, 0.0), "studs": (1.4, 0.0)}
-
-
-def look_at(eye, target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0)) -> np.ndarray:
-    eye, target, up = (np.asarray(v, np.float64) for v in (eye, target, up))
-    f = (target - eye) / np.linalg.norm(target - eye)
-    r = np.cross(f, up)
-    r /= np.linalg.norm(r)
-    u = np.cross(r, f)
-    view = np.eye(4)
-    view[0, :3], view[1, :3], view[2, :3] = r, u, -f
-    view[:3, 3] = -view[:3, :3] @ eye
-    return view
-
-
-def perspective(fov_y: float, aspect: float, near: float = 0.05, far: float = 100.0) -> np.ndarray:
-    t = 1 / math.tan(fov_y / 2)
-    p = np.zeros((4, 4))
-    p[0, 0], p[1, 1] = t / aspect, t
-    p[2, 2], p[2, 3], p[3, 2] = (far + near) / (near - far), 2 * far * near / (near - far), -1
-    return p
 
 
 def scene(models: Path, names: list[str], geometry: str) -> dict:

@@ -85,3 +85,13 @@ def build(models: Path, folder: Path, make_object=None, width: int = 320, height
         bpy.data.objects[name].nbvh_model = bpy.path.relpath(str(folder / "models" / f"{name}.nbvh"))
     bpy.ops.wm.save_mainfile()
     return scene, folder
+
+
+def image_pixels(path) -> np.ndarray:
+    """(H, W, 4) float32 pixels of an image file as Blender reads it (row 0 at the bottom); the image is not kept."""
+    img = bpy.data.images.load(str(path))
+    w, h = img.size
+    px = np.empty(w * h * 4, np.float32)
+    img.pixels.foreach_get(px)
+    bpy.data.images.remove(img)
+    return px.reshape(h, w, 4)

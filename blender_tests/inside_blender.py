@@ -376,12 +376,7 @@ def test_text_converts_to_mesh():
 def render_to(scene, path: Path) -> np.ndarray:
     scene.render.filepath = str(path)
     bpy.ops.render.render(write_still=True)
-    img = bpy.data.images.load(str(path))
-    w, h = img.size
-    px = np.empty(w * h * 4, np.float32)
-    img.pixels.foreach_get(px)
-    bpy.data.images.remove(img)
-    return px.reshape(h, w, 4)
+    return engine_scene.image_pixels(path)
 
 
 def test_render_engine_draws_three_models_like_their_meshes():

@@ -76,16 +76,7 @@ nbvh_s = time.monotonic() - t0
 
 
 
-def pixels(path: Path):
-    img = bpy.data.images.load(str(path))
-    w, h = img.size
-    px = np.empty(w * h * 4, np.float32)
-    img.pixels.foreach_get(px)
-    bpy.data.images.remove(img)
-    return px.reshape(h, w, 4)
-
-
-left, right = pixels(nbvh_png), pixels(work / "cycles.png")
+left, right = engine_scene.image_pixels(nbvh_png), engine_scene.image_pixels(work / "cycles.png")
 gap = np.ones((left.shape[0], 8, 4), np.float32)
 both = np.concatenate([left, gap, right], axis=1)
 out = bpy.data.images.new("figure", both.shape[1], both.shape[0])

@@ -248,6 +248,29 @@ def camera_rays(ndc_to_world: np.ndarray, width: int, height: int, offset: tuple
     return ends[0], d
 
 
+def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """A (4, 4) view matrix in Blender's convention (world -> camera; the camera looks down its -Z, Z up in the
+    world by default), for cameras made outside Blender (tests, benchmarks)."""
+    eye, target, up = (np.asarray(v, np.float64) for v in (eye, target, up))
+    f = (target - eye) / np.linalg.norm(target - eye)
+    r = np.cross(f, up)
+    r /= np.linalg.norm(r)
+    u = np.cross(r, f)
+    view = np.eye(4)
+    view[0, :3], view[1, :3], view[2, :3] = r, u, -f
+    view[:3, 3] = -view[:3, :3] @ eye
+    return view
+
+
+def perspective(fov_y: float, aspect: float, near: float = 0.05, far: float = 100.0) -> np.ndarray:
+    """A (4, 4) OpenGL-style perspective projection (fov_y in radians, aspect = width / height), as Blender's."""
+    t = 1 / math.tan(fov_y / 2)
+    p = np.zeros((4, 4))
+    p[0, 0], p[1, 1] = t / aspect, t
+    p[2, 2], p[2, 3], p[3, 2] = (far + near) / (near - far), 2 * far * near / (near - far), -1
+    return p
+
+
 def view_projection(view: np.ndarray, projection: np.ndarray) -> np.ndarray:
     """The `ndc_to_world` matrix of a camera: inverse(projection @ view), both (4, 4) as Blender gives them."""
     return np.linalg.inv(np.asarray(projection, np.float64) @ np.asarray(view, np.float64))
