@@ -1,6 +1,7 @@
 import pytest
 
 from nbvh_core.pipeline import PRESETS, estimate_file_bytes, preset, resolve, compress_mesh
+from nbvh_core.sizing import LOG2_RANGE
 
 
 def test_presets_are_complete_and_distinct():
@@ -21,7 +22,7 @@ def test_budget_picks_the_largest_model_that_fits():
         assert size <= kb * 1024 and "budget" in why
         # Nothing on the grid that is bigger still fits (the next table size up does not).
         bigger = chosen.with_overrides(log2_table=chosen.log2_table + 1)
-        assert estimate_file_bytes(bigger) > kb * 1024 or chosen.log2_table == 12
+        assert estimate_file_bytes(bigger) > kb * 1024 or chosen.log2_table == LOG2_RANGE[-1]
     with pytest.raises(ValueError, match="too small"):
         resolve(preset("default").with_overrides(budget_kb=1))
 

@@ -154,14 +154,15 @@ def test_compress_mesh_retrains_at_the_size_the_measurement_calls_for(sample_mes
 
     # A fit that thinks this mesh is easy (predicted MSE 0.0067 at 2^8): it picks 2^8 for 0.008; the 20-step tiny
     # model misses that by far, the calibrated prediction finds no size that meets it, and the search takes the
-    # largest (2^12), which misses too.
+    # largest (the top of LOG2_RANGE), which misses too.
     monkeypatch.setattr(sizing, "load_fit", lambda *a: _line_fit())
     mesh = sample_meshes["blob"]
     events = []
     res = compress_mesh(mesh, preset("tiny").with_overrides(target_mse=0.008, force=True), events=events.append)
     assert res.target_met is False
-    assert res.settings.log2_table == 12
-    assert "measured T=2^8:" in res.why and "T=2^12:" in res.why and "kept T=2^12" in res.why
+    top = sizing.LOG2_RANGE[-1]
+    assert res.settings.log2_table == top
+    assert "measured T=2^8:" in res.why and f"T=2^{top}:" in res.why and f"kept T=2^{top}" in res.why
     assert any(e["event"] == "warning" and "missed the target" in e["message"] for e in events)
 
 
