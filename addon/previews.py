@@ -8,6 +8,7 @@
 """
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import bpy
@@ -172,26 +173,28 @@ def show_image(image) -> bool:
     return True
 
 
+def _relative_link(path: Path, blend: str | Path | None) -> str:
+    """`path` as a model link: "//" + relative to the folder of `blend` (a saved .blend), else absolute (no .blend,
+    or another drive on Windows)."""
+    if not blend:
+        return str(path)
+    try:
+        return "//" + Path(os.path.relpath(path, Path(blend).resolve().parent)).as_posix()
+    except ValueError:
+        return str(path)
+
+
 def link_model(obj, model: str | None) -> None:
     """Point the object at its model for the NBVH render engine: relative to the .blend when it is saved (so
     the link survives moving the project folder), else absolute."""
     if not model or not hasattr(obj, "nbvh_model"):
         return
-    path = str(Path(model).resolve())
-    if bpy.data.filepath:
-        try:
-            path = bpy.path.relpath(path)
-        except ValueError:  # another drive (Windows)
-            pass
-    obj.nbvh_model = path
+    obj.nbvh_model = _relative_link(Path(model).resolve(), bpy.data.filepath)
 
 
 def relink_models(target_blend: str | Path) -> int:
     """Rewrite every object's model link relative to `target_blend` (a .blend about to be saved elsewhere, whose
     folder "//" will then mean); a link whose file is missing is left as it is. Returns the links rewritten."""
-    import os
-
-    folder = Path(target_blend).resolve().parent
     count = 0
     for obj in bpy.data.objects:
         link = getattr(obj, "nbvh_model", "")
@@ -200,10 +203,7 @@ def relink_models(target_blend: str | Path) -> int:
         path = Path(bpy.path.abspath(link)).resolve()
         if not path.is_file():
             continue
-        try:
-            obj.nbvh_model = "//" + Path(os.path.relpath(path, folder)).as_posix()
-        except ValueError:  # another drive (Windows): keep it absolute
-            obj.nbvh_model = str(path)
+        obj.nbvh_model = _relative_link(path, target_blend)
         count += 1
     return count
 

@@ -113,6 +113,13 @@ class MeshFiles:
             if path:
                 Path(path).unlink(missing_ok=True)
 
+    def close(self) -> None:
+        """Remove the folder and every mesh in it."""
+        import shutil
+
+        self.files.clear()
+        shutil.rmtree(self.dir, ignore_errors=True)
+
     def path_for(self, obj, depsgraph) -> str:
         """The object's evaluated mesh as .npz (object-local). Raises export.ExportError."""
         if obj.name not in self.files:
@@ -229,7 +236,7 @@ class NBVHRenderEngine(bpy.types.RenderEngine):
                 raise render_client.WorkerError("the render worker returned no image")
             return channel.frame.pixels
         finally:
-            meshes.invalidate()
+            meshes.close()  # a final render's meshes are exported for it alone
 
     # -- viewport ----------------------------------------------------------------------------------------
     def _view(self) -> dict:
