@@ -6,8 +6,10 @@ Methods (pipeline presets): base = HashGrid + MLP + ownership labels, I = + KMLP
 III = + HashVQAD. base trains at T=2^11 (its 775 KB file in the paper's float32 storage); I/II at T=2^9, 2^10 and
 III at T=2^8, 2^9, each for the same number of steps, scored with the one metric (`metrics.evaluate`, 16 views,
 128 px). Bytes are the float32 file (the paper stores floats) and, beside them, the same model in this product's
-default storage (8-bit tables and boxes, float16 weights; `estimate_file_bytes`). Resumable: one CSV row per
-(mesh, method, log2 T) in bench/results/table5.csv; table5.md is rewritten after every row.
+default storage (8-bit tables, boxes and weight rows; `estimate_file_bytes`). Resumable: one CSV row per
+(mesh, method, log2 T) in bench/results/table5.csv; table5.md is rewritten after every row. Every method trains
+with this product's unoriented normal loss (`NetworkConfig.normal_loss`); `--normal-loss oriented` is the paper's
+(its run before the change: bench/results/table5_oriented_loss.md).
 """
 from __future__ import annotations
 
@@ -46,8 +48,8 @@ def bytes_to_reach(points: list[tuple[int, float]], target: float) -> float | No
     return None
 
 
-def write_md(rows: list[dict], steps: int) -> None:
-    lines = ["# Table 5 at equal steps (bench/bench_table5.py)", "",
+def write_md(rows: list[dict], steps: int, stem: str = "table5", normal_loss: str = "unoriented") -> None:
+    lines = [f"# Table 5 at equal steps (bench/bench_table5.py), {normal_loss} normal loss", "",
              f"{steps} training steps per model on this 2-core CPU; MSE over 16 views at 128 px. 'reaches at' = the "
              "bytes at which the method's MSE equals base's, interpolated (log-log) between its measured sizes, over "
              "base's bytes (float32 storage, as the paper stores; the default-storage column is the same model's size "
@@ -71,16 +73,18 @@ def write_md(rows: list[dict], steps: int) -> None:
             b = bytes_to_reach(pts, float(base["mse"]))
             cells.append("not reached" if b is None else f"{b / int(base['file_bytes_float32']):.2f}x")
         lines.append(f"| {mesh} | {float(base['mse']):.5f} | " + " | ".join(cells) + " |")
-    (RESULTS / "table5.md").write_text("\n".join(lines) + "\n")
+    (RESULTS / f"{stem}.md").write_text("\n".join(lines) + "\n")
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--steps", type=int, default=1200)
     ap.add_argument("--meshes", nargs="+", default=["bunny", "knot", "spiky", "gyroid", "studs"])
+    ap.add_argument("--normal-loss", choices=["unoriented", "oriented"], default="unoriented")
     args = ap.parse_args()
     kernels.keep_freed_memory()
-    path = RESULTS / "table5.csv"
+    stem = "table5" if args.normal_loss == "unoriented" else "table5_oriented_loss"
+    path = RESULTS / f"{stem}.csv"
     done = {(r["mesh"], r["method"], r["log2_table"]) for r in read_rows(path)}
     for mesh_name in args.meshes:
         mesh = None
@@ -89,19 +93,19 @@ def main() -> None:
                 continue
             mesh = mesh or bench_mesh(mesh_name)
             s = preset(method).with_overrides(steps=args.steps, log2_table=log2, table_bits=32, network_bits=32,
-                                              node_bits=32, force=True)
+                                              node_bits=32, force=True, normal_loss=args.normal_loss)
             s.time_limit_s = None
             t = time.perf_counter()
             res = compress_mesh(mesh, s, None)
             row = {"mesh": mesh_name, "method": method, "log2_table": log2, "steps": res.training.steps,
                    "train_s": round(res.training.seconds, 1), "mse": res.quality.mse,
                    "iou": res.quality.silhouette_iou, "file_bytes_float32": res.file_bytes,
-                   "file_bytes_default_storage": estimate_file_bytes(s.with_overrides(table_bits=8, network_bits=16,
+                   "file_bytes_default_storage": estimate_file_bytes(s.with_overrides(table_bits=8, network_bits=8,
                                                                                       node_bits=8)),
                    "created": time.strftime("%Y-%m-%dT%H:%M:%S")}
             append_row(path, {k: row[k] for k in FIELDS})
             print(row, f"({time.perf_counter() - t:.0f} s)", flush=True)
-            write_md(read_rows(path), args.steps)
+            write_md(read_rows(path), args.steps, stem, args.normal_loss)
 
 
 if __name__ == "__main__":

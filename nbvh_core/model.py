@@ -38,8 +38,8 @@ class ModelConfig:
 
 @dataclass
 class QueryResult:
-    """hit: (N,) bool; t: (N,) float32 distance along the ray (inf on a miss); normal: (N, 3) float32 unit
-    (0 on a miss); leaves_evaluated: total (ray, leaf) segments the network evaluated."""
+    """hit: (N,) bool; t: (N,) float32 distance along the ray (inf on a miss); normal: (N, 3) float32 unit,
+    facing the ray (n . d <= 0; 0 on a miss); leaves_evaluated: total (ray, leaf) segments the network evaluated."""
 
     hit: torch.Tensor
     t: torch.Tensor
@@ -156,6 +156,8 @@ class NeuralBVH(nn.Module):
             c1 = min(n, c0 + ray_chunk)
             evaluated += self._query_chunk(rays_o[c0:c1], rays_d[c0:c1], hit[c0:c1], t_out[c0:c1], normal[c0:c1],
                                            fused, batch)
+        # Normals face the ray (a network trained with the unoriented loss knows only the surface's line).
+        normal = torch.where(((normal * rays_d).sum(-1, keepdim=True) > 0), -normal, normal)
         return QueryResult(hit=hit, t=t_out, normal=normal, leaves_evaluated=evaluated)
 
     def _query_chunk(self, rays_o: torch.Tensor, rays_d: torch.Tensor, hit: torch.Tensor, t_out: torch.Tensor,

@@ -37,6 +37,8 @@ class Settings:
     #: The network's hidden layers and their width (NetworkConfig).
     hidden: int = 4
     width: int = 64
+    #: 'unoriented' | 'oriented' (NetworkConfig.normal_loss).
+    normal_loss: str = "unoriented"
     labels: str = "consistent"
     lr: float = 5e-3
     steps: int | None = None
@@ -71,7 +73,8 @@ class Settings:
     def model_config(self) -> ModelConfig:
         return ModelConfig(EncodingConfig(kind=self.encoding, log2_table=self.log2_table, levels=self.levels,
                                           features=self.features),
-                           NetworkConfig(kind=self.network, k=self.k, hidden=self.hidden, width=self.width))
+                           NetworkConfig(kind=self.network, k=self.k, hidden=self.hidden, width=self.width,
+                                         normal_loss=self.normal_loss))
 
     def storage(self) -> StorageConfig:
         return StorageConfig(self.table_bits, self.network_bits, self.node_bits)

@@ -118,6 +118,39 @@ def test_kmlp_decode_follows_front_to_back_rule():
     assert torch.allclose(normal[0], torch.tensor([0.0, 0.0, 1.0]))
 
 
+@pytest.mark.parametrize("kind", ["mlp", "kmlp"])
+def test_unoriented_normal_loss_ignores_the_sign_of_the_target_and_the_oriented_one_does_not(kind):
+    torch.manual_seed(0)
+    raw = torch.randn(64, 5) if kind == "mlp" else torch.randn(64, 3, 5)
+    hit, local_t = torch.ones(64, dtype=torch.bool), torch.rand(64)
+    normal = F.normalize(torch.randn(64, 3), dim=-1)
+    per = {}
+    for loss in ("unoriented", "oriented"):
+        net = {"mlp": MLP, "kmlp": KMLP}[kind](4, NetworkConfig(kind=kind, k=4, normal_loss=loss))
+        per[loss] = [net.terms(raw, hit, local_t, n)["normal_l1"] for n in (normal, -normal)]
+    assert torch.equal(per["unoriented"][0], per["unoriented"][1])
+    assert torch.equal(per["unoriented"][0], torch.minimum(*per["oriented"]))
+    assert not torch.allclose(per["oriented"][0], per["oriented"][1])
+    with pytest.raises(ValueError, match="normal loss"):
+        NetworkConfig(normal_loss="sideways")
+
+
+def test_query_normals_face_the_ray(blob_setup):
+    mesh, bvh, tracer = blob_setup
+    model = NeuralBVH(bvh.nodes, ModelConfig(EncodingConfig(kind="hashgrid", log2_table=6, levels=2, features=4),
+                                             NetworkConfig(kind="mlp", k=4)), mesh.transform)
+    with torch.no_grad():  # a hit everywhere, the raw normal a fixed direction: half the rays see its back
+        last = model.network.net[-1]
+        last.weight.zero_()
+        last.bias.copy_(torch.tensor([9.0, 0.0, 0.0, 0.0, 1.0]))
+    o, d = orbit_cameras(1)[0].rays(16, 16)
+    d = d * np.where(np.arange(len(d)) % 2 == 0, 1.0, -1.0)[:, None].astype(np.float32)
+    q = model.query(torch.from_numpy(o), torch.from_numpy(np.ascontiguousarray(d)))
+    assert bool(q.hit.any())
+    facing = (q.normal[q.hit] * torch.from_numpy(d)[q.hit]).sum(-1)
+    assert bool((facing <= 0).all()) and float(q.normal[q.hit].norm(dim=-1).min()) > 0.99
+
+
 @pytest.fixture(scope="module")
 def blob_setup(sample_meshes):
     mesh = sample_meshes["blob"]

@@ -120,6 +120,7 @@ def train_step(model, samples, want_raw: bool = False) -> tuple[float, dict]:
         ptr(samples.t_enter.contiguous()), ptr(samples.t_exit.contiguous()), b, k, ptr(frac), ptr(table),
         *_grid_args(spec, table, codes, code_rows), int(kmlp), len(dims) - 1, ptr(dims), ptr(params), ptr(hit),
         ptr(local_t), ptr(normal), int(hit.sum()), float(net_cfg.depth_weight), float(net_cfg.normal_weight),
+        int(net_cfg.normal_loss == "unoriented"),
         ptr(loss_parts), ptr(grad_params), ptr(grad_table), ptr(points), ptr(dx), ptr(raw), threads())
     # Unpack the Linear gradients (stored transposed, like the parameters).
     pos = 0

@@ -515,9 +515,9 @@ struct LossSums {
 };
 
 // The masked L1 terms of one hit row o (5,) = (hit logit, depth logit, normal xyz): |sigmoid(o[1]) - target_t| and
-// |normalize(o[2:5]) - target_n|_1, added to the sums; their gradients (weights w_t, w_n, over the hit count) into
-// g[1..4]. Shared by the MLP loss and the KMLP loss (its true sub-segment's row).
-inline void depth_normal_rows(const float* o, float target_t, const float* target_n, float w_t, float w_n,
+// |normalize(o[2:5]) - target_n|_1 (unoriented: to the nearer of +-target_n), added to the sums; their gradients
+// (weights w_t, w_n, over the hit count) into g[1..4]. Shared by the MLP loss and the KMLP loss (its true sub-segment's row).
+inline void depth_normal_rows(const float* o, float target_t, const float* target_n, float w_t, float w_n, int unoriented,
                               float inv_hits, float* g, double& depth_sum, double& normal_sum) {
     const float s = 1.f / (1.f + std::exp(-o[1]));
     const float dt = s - target_t;
@@ -527,9 +527,17 @@ inline void depth_normal_rows(const float* o, float target_t, const float* targe
     const float norm = std::sqrt(vx * vx + vy * vy + vz * vz);
     const float den = norm > 1e-12f ? norm : 1e-12f;
     const float n[3] = {vx / den, vy / den, vz / den};
+    // Unoriented: the L1 to the nearer of +target and -target (every consumer faces the normal toward the ray, so
+    // only its line matters; the two sides of a thin wall then need no ray direction to tell apart).
+    float sign = 1.f;
+    if (unoriented) {
+        float plus = 0.f, minus = 0.f;
+        for (int a = 0; a < 3; ++a) { plus += std::fabs(n[a] - target_n[a]); minus += std::fabs(n[a] + target_n[a]); }
+        sign = minus < plus ? -1.f : 1.f;
+    }
     float gn[3];
     for (int a = 0; a < 3; ++a) {
-        const float d = n[a] - target_n[a];
+        const float d = n[a] - sign * target_n[a];
         normal_sum += std::fabs(d);
         gn[a] = w_n * inv_hits * (float)((d > 0.f) - (d < 0.f));
     }
@@ -570,7 +578,7 @@ inline void sum_thread_grads(const std::vector<std::vector<float>>& grads, const
 // the batch's hit count) for rows [0, m) of raw (TILE, 5); writes d loss / d raw into d_raw (TILE, 5), zero rows
 // from m on. inv_b = 1 / batch size, inv_hits = 1 / max(hit count, 1).
 inline void mlp_loss_rows(const float* raw, int m, const uint8_t* hit, const float* local_t, const float* normal,
-                          float inv_b, float inv_hits, float w_t, float w_n, float* d_raw, LossSums& sums) {
+                          float inv_b, float inv_hits, float w_t, float w_n, int unoriented, float* d_raw, LossSums& sums) {
     for (int r = 0; r < TILE; ++r) {
         float* g = d_raw + r * 5;
         for (int c = 0; c < 5; ++c) g[c] = 0.f;
@@ -581,7 +589,7 @@ inline void mlp_loss_rows(const float* raw, int m, const uint8_t* hit, const flo
         const float p = 1.f / (1.f + std::exp(-x));
         g[0] = (p - y) * inv_b;
         if (!hit[r]) continue;
-        depth_normal_rows(o, local_t[r], normal + 3 * r, w_t, w_n, inv_hits, g, sums.depth, sums.normal);
+        depth_normal_rows(o, local_t[r], normal + 3 * r, w_t, w_n, unoriented, inv_hits, g, sums.depth, sums.normal);
     }
 }
 
@@ -589,7 +597,7 @@ template <int F>
 void mlp_train_t(const Grid& g, const float* rays_o, const float* rays_d, const int64_t* ray, const float* te,
                  const float* tx, int64_t b, int k, const float* frac, const float* table, int n_layers,
                  const int32_t* dims, const float* params, const uint8_t* hit, const float* local_t,
-                 const float* normal, float inv_hits, float w_t, float w_n, double* loss_out, float* grad_params,
+                 const float* normal, float inv_hits, float w_t, float w_n, int unoriented, double* loss_out, float* grad_params,
                  float* points, float* dx, float* out_raw, int threads) {
     const Layers<float> net(n_layers, dims, params, true);
     const std::vector<int64_t> g_off = grad_offsets(dims, n_layers);
@@ -621,7 +629,7 @@ void mlp_train_t(const Grid& g, const float* rays_o, const float* rays_d, const 
                                 sizeof(float) * dims[n_layers]);
             float* d_cur = d_a.data();
             float* d_prev = d_b.data();
-            mlp_loss_rows(act[n_layers].data(), m, hit + s0, local_t + s0, normal + 3 * s0, inv_b, inv_hits, w_t, w_n,
+            mlp_loss_rows(act[n_layers].data(), m, hit + s0, local_t + s0, normal + 3 * s0, inv_b, inv_hits, w_t, w_n, unoriented,
                           d_cur, sums[tid]);  // (TILE, 5), zero rows from m on: they add nothing below
             for (int j = n_layers - 1; j >= 0; --j) {
                 const int n_in = dims[j], n_out = dims[j + 1];
@@ -699,7 +707,7 @@ inline float softplus(float x) { return std::fmax(x, 0.f) + std::log1p(std::exp(
 // leaf's hit probability in log space, the cross-entropy of the true sub-segment, masked L1s of the depth inside it
 // and of its normal); d loss / d raw into d_raw (TILE, P, 5), zero rows from m on.
 inline void kmlp_loss_rows(const float* raw, int P, int m, const uint8_t* hit, const float* local_t,
-                           const float* normal, float inv_b, float inv_hits, float w_t, float w_n, float* d_raw,
+                           const float* normal, float inv_b, float inv_hits, float w_t, float w_n, int unoriented, float* d_raw,
                            KLossSums& sums) {
     std::vector<float> log_miss(P), log_q(P), prob(P);
     for (int r = 0; r < TILE; ++r) {
@@ -736,7 +744,7 @@ inline void kmlp_loss_rows(const float* raw, int P, int m, const uint8_t* hit, c
             g_none += g_ce * d_hit_d_none;
             float sub_t = pos - (float)js;
             sub_t = sub_t < 0.f ? 0.f : (sub_t > 1.f ? 1.f : sub_t);
-            depth_normal_rows(o + js * 5, sub_t, normal + 3 * r, w_t, w_n, inv_hits, g + js * 5, sums.depth,
+            depth_normal_rows(o + js * 5, sub_t, normal + 3 * r, w_t, w_n, unoriented, inv_hits, g + js * 5, sums.depth,
                               sums.normal);
         }
         // d log_none / d x_i = -p_i; d (-log q_js) / d x_i = -(1 - p_i) at i = js, +p_i before it, 0 after.
@@ -752,7 +760,7 @@ template <int F>
 void kmlp_train_t(const Grid& g, const float* rays_o, const float* rays_d, const int64_t* ray, const float* te,
                   const float* tx, int64_t b, int k, const float* frac, const float* table, int n_layers,
                   const int32_t* dims, const float* params, const uint8_t* hit, const float* local_t,
-                  const float* normal, float inv_hits, float w_t, float w_n, double* loss_out, float* grad_params,
+                  const float* normal, float inv_hits, float w_t, float w_n, int unoriented, double* loss_out, float* grad_params,
                   float* points, float* dx, float* out_raw, int threads) {
     const Layers<float> net(n_layers, dims, params, true);
     const int P = k - 1;
@@ -790,7 +798,7 @@ void kmlp_train_t(const Grid& g, const float* rays_o, const float* rays_d, const
             }
             if (out_raw)
                 std::memcpy(out_raw + s0 * P * 5, raw.data(), sizeof(float) * (size_t)m * P * 5);
-            kmlp_loss_rows(raw.data(), P, m, hit + s0, local_t + s0, normal + 3 * s0, inv_b, inv_hits, w_t, w_n,
+            kmlp_loss_rows(raw.data(), P, m, hit + s0, local_t + s0, normal + 3 * s0, inv_b, inv_hits, w_t, w_n, unoriented,
                            d_raw.data(), sums[tid]);
             std::fill(d_x.begin(), d_x.end(), 0.f);
             for (int p = 0; p < P; ++p) {
@@ -1101,7 +1109,7 @@ void stream_next_t(const Nodes& nodes, const float* rays_o, const float* inv_d, 
 
 extern "C" {
 
-int nbvh_abi_version() { return 15; }
+int nbvh_abi_version() { return 16; }
 
 // Fused inference over B segments of an MLP (kmlp = 0: mlp_segments_t) or a KMLP (kmlp = 1: kmlp_segments_t):
 // rays_o/rays_d (n_rays, 3), ray (B,) int64 ray of each segment, te/tx (B,) segment ends, frac (k,) point
@@ -1152,7 +1160,7 @@ void nbvh_net_train(const float* rays_o, const float* rays_d, const int64_t* ray
                     const float* scales, const int64_t* res, const uint8_t* dense, int64_t vertex_table, int64_t rows,
                     const uint8_t* codes, int64_t code_rows, int kmlp, int n_layers, const int32_t* dims,
                     const float* params, const uint8_t* hit, const float* local_t, const float* normal,
-                    int64_t hit_count, float w_t, float w_n, double* loss_out, float* grad_params, float* grad_table,
+                    int64_t hit_count, float w_t, float w_n, int unoriented, double* loss_out, float* grad_params, float* grad_table,
                     float* points, float* dx, float* out_raw, int threads) {
     Grid g{levels, features, scales, res, dense, vertex_table, rows, codes, code_rows};
     g.init_masks();
@@ -1161,10 +1169,10 @@ void nbvh_net_train(const float* rays_o, const float* rays_d, const int64_t* ray
         constexpr int f = decltype(F)::value;
         if (kmlp)
             kmlp_train_t<f>(g, rays_o, rays_d, ray, te, tx, b, k, frac, table, n_layers, dims, params, hit, local_t,
-                            normal, inv_hits, w_t, w_n, loss_out, grad_params, points, dx, out_raw, threads);
+                            normal, inv_hits, w_t, w_n, unoriented, loss_out, grad_params, points, dx, out_raw, threads);
         else
             mlp_train_t<f>(g, rays_o, rays_d, ray, te, tx, b, k, frac, table, n_layers, dims, params, hit, local_t,
-                           normal, inv_hits, w_t, w_n, loss_out, grad_params, points, dx, out_raw, threads);
+                           normal, inv_hits, w_t, w_n, unoriented, loss_out, grad_params, points, dx, out_raw, threads);
         encode_backward_t<f>(g, points, b * k, dx, grad_table, threads);
     });
 }
