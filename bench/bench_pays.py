@@ -3,6 +3,7 @@ decimation of the same image MSE, on resident bytes; and vs Draco on storage byt
 `metrics.evaluate` (16 orbit views, 128 px, Embree reference), the one the pipeline reports.
 
     .venv/bin/python bench/bench_pays.py --meshes bunny --presets default [--table-bits 8 32]
+    .venv/bin/python bench/bench_pays.py --charts    # only the charts, from pays.csv and baselines.csv
 
 Resumable: one CSV row per (mesh, preset, storage), appended as it lands (bench/results/pays.csv); a rerun skips
 rows already there. `bench/results/pays.md` is rewritten from the CSV after every row.
@@ -27,7 +28,7 @@ from nbvh_core.exact import ExactTracer  # noqa: E402
 from nbvh_core.metrics import evaluate_renderer  # noqa: E402
 from nbvh_core.pipeline import compress_mesh, preset  # noqa: E402
 from nbvh_core.render import render_reference  # noqa: E402
-from nbvh_core.sizing import decimate, mesh_resident_bytes  # noqa: E402
+from nbvh_core.sizing import choose_resolution, decimate, mesh_resident_bytes  # noqa: E402
 
 RESULTS = ROOT / "bench" / "results"
 FIELDS = ["mesh", "triangles", "preset", "storage", "train_s", "steps", "file_bytes", "model_resident_bytes",
@@ -96,6 +97,61 @@ def write_md(rows: list[dict]) -> None:
     (RESULTS / "pays.md").write_text("\n".join(lines) + "\n")
 
 
+def charts(rows: list[dict]) -> None:
+    """bench/results/rd_budget_{resident,storage}.png: per mesh, every neural row of pays.csv (each preset and
+    method step at its real budget; the latest storage the presets use marked) against the quadric decimations
+    (resident bytes: what a ray tracer holds) and Draco (storage bytes: what must be decoded first), all scored with
+    the one metric. Decimation and Draco curves from bench_quality's baselines.csv plus each row's equal-MSE
+    decimation point."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    base = read_rows(RESULTS / "baselines.csv")
+    meshes = list(dict.fromkeys(r["mesh"] for r in rows))
+    marks = {"preview": "v", "default": "o", "high": "^", "base": "s", "I": "P", "II": "X", "III": "D"}
+    for axis in ("resident", "storage"):
+        cols = min(3, len(meshes))
+        nrows = -(-len(meshes) // cols)
+        fig, axes = plt.subplots(nrows, cols, figsize=(4.6 * cols, 3.6 * nrows), squeeze=False)
+        for ax, mesh in zip(axes.flat, meshes):
+            mine = [r for r in rows if r["mesh"] == mesh]
+            dec = sorted((float(r[f"{axis}_bytes"]), float(r["mse"])) for r in base
+                         if r["mesh"] == mesh and r["baseline"] == "decimate+draco11" and float(r["mse"]) > 0)
+            eq_key = "equal_mse_decimation_resident_bytes" if axis == "resident" else "equal_mse_decimation_draco11_bytes"
+            eq = sorted((float(r[eq_key]), float(r["mse"])) for r in mine if r.get(eq_key) not in (None, "", "None"))
+            label = "quadric decimation" + (" (resident)" if axis == "resident" else " + Draco 11 (file)")
+            ax.plot(*zip(*sorted(dec + eq)), "^--", color="tab:purple", ms=4, label=label) if dec + eq else None
+            if axis == "storage":
+                draco = sorted((float(r["storage_bytes"]), float(r["mse"])) for r in base
+                               if r["mesh"] == mesh and r["baseline"] == "draco" and float(r["mse"]) > 0)
+                if draco:
+                    ax.plot(*zip(*draco), "s--", color="black", ms=4, label="Draco of the full mesh (bits)")
+            else:
+                ax.axvline(float(mine[0]["mesh_resident_bytes"]), color="gray", ls=":", label="full mesh, resident")
+            for r in mine:
+                x = float(r["model_resident_bytes"] if axis == "resident" else r["file_bytes"])
+                headline = r["storage"].startswith("t8/w8/n8") and "features=16" not in r["storage"]
+                ax.plot(x, float(r["mse"]), marks.get(r["preset"], "o"), ms=8 if headline else 5,
+                        color="tab:red" if headline else "tab:blue", alpha=1.0 if headline else 0.5,
+                        label=f"neural {r['preset']} {float(r['train_s']):.0f} s" if headline else None)
+            ax.set_xscale("log")
+            ax.set_yscale("log")
+            ax.set_title(f"{mesh} ({int(mine[0]['triangles']):,} triangles)", fontsize=9)
+            ax.set_xlabel(f"{axis} bytes")
+            ax.set_ylabel("image MSE")
+            ax.grid(alpha=0.3, which="both")
+            ax.legend(fontsize=6)
+        for ax in list(axes.flat)[len(meshes):]:
+            ax.axis("off")
+        fig.suptitle(f"Neural models at their presets' real budgets (red: current storage; blue: earlier "
+                     f"configurations) vs decimation / Draco, {axis} bytes, one metric", fontsize=9)
+        fig.tight_layout()
+        fig.savefig(RESULTS / f"rd_budget_{axis}.png", dpi=90)
+        plt.close(fig)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--meshes", nargs="+", default=["bunny"])
@@ -107,7 +163,11 @@ def main() -> None:
     ap.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
                     help="Settings overrides for a configuration study, e.g. width=32 log2_table=12 (named in the row)")
     ap.add_argument("--csv", default=str(RESULTS / "pays.csv"))
+    ap.add_argument("--charts", action="store_true", help="only redraw the charts from the CSVs")
     args = ap.parse_args()
+    if args.charts:
+        charts(read_rows(Path(args.csv)))
+        return
     kernels.keep_freed_memory()
     path = Path(args.csv)
     done = {(r["mesh"], r["preset"], r["storage"]) for r in read_rows(path)}
@@ -124,11 +184,14 @@ def main() -> None:
                 extra = {}
                 for item in args.set:
                     key, value = item.split("=", 1)
-                    extra[key] = type(getattr(base, key))(value) if getattr(base, key) is not None else float(value)
+                    kind = int if key in ("n_min", "n_max") else type(getattr(base, key))
+                    extra[key] = kind(value) if getattr(base, key) is not None or kind is int else float(value)
                 s = base.with_overrides(**over, **extra)
                 storage = f"t{s.table_bits}/w{s.network_bits}/n{s.node_bits}"
                 if extra:
                     storage += " " + " ".join(f"{k}={v}" for k, v in sorted(extra.items()))
+                if s.n_max is None:  # the grid chosen from the mesh: name it, so the row is not the 128 one
+                    storage += f" n_max=auto:{choose_resolution(mesh)[0]}"
                 if (mesh_name, preset_name, storage) in done:
                     continue
                 print(f"{mesh_name} {preset_name} {storage}: training {s.time_limit_s} s", flush=True)
@@ -151,6 +214,7 @@ def main() -> None:
                 append_row(path, {k: row[k] for k in FIELDS})
                 print(json.dumps(row), flush=True)
                 write_md(read_rows(path))
+                charts(read_rows(path))
 
 
 if __name__ == "__main__":

@@ -3,8 +3,8 @@
     .venv/bin/python bench/fit_sizing.py            # runs the missing grid points, fits, writes the results
     .venv/bin/python bench/fit_sizing.py --no-run   # fit and tables from what bench/results/quality.csv has
 
-Data: the user preset (`default`: HashGrid + MLP + consistent labels, 2047 nodes) at T = 2^8..2^12 and at
-1023 / 4095 nodes (T = 2^10) on every benchmark mesh, trained the quality benchmark's budget (15 s) and scored
+Data: the user preset (`default`: HashGrid + MLP + consistent labels, 8 features, int8 weight rows, the grid's
+N_max from the mesh, 2047 nodes) at T = 2^9..2^13 and at 1023 / 4095 nodes (T = 2^11) on every benchmark mesh, trained the quality benchmark's budget (15 s) and scored
 with its metric (rows part=GRID_PART in quality.csv; a new part name re-measures the grid, e.g. after the training
 got faster: 15 s buy more steps).
 
@@ -39,11 +39,12 @@ from nbvh_core.pipeline import estimate_file_bytes, preset  # noqa: E402
 from nbvh_core.sizing import (FEATURE_NAMES, FIT_PATH, LOG2_RANGE, QUALITY_LEVELS,  # noqa: E402
                               TARGET_TRAININGS, choose_table_and_nodes, fit_size_model, mesh_features, search_size)
 
-GRID = (8, 9, 10, 11, 12)
+GRID = (9, 10, 11, 12, 13)
 NODE_GRID = (1023, 2047, 4095)
 METHOD = "default"
-#: Rows of this grid measurement (stop 10: re-measured after the fused training step, ~2x more steps in 15 s).
-GRID_PART = "grid2"
+#: Rows of this grid measurement (grid2, stop 10: after the fused training step; grid3, stop 14: the presets' 8
+#: features, int8 weights and mesh-sized grid).
+GRID_PART = "grid3"
 
 
 def grid_rows(plan: bq.Plan) -> dict:

@@ -23,6 +23,10 @@ from .quantize import StorageConfig
 from .train import TrainConfig
 
 
+#: The paper's finest grid resolution (every model); the user presets choose theirs from the mesh.
+PAPER_N_MAX = 128
+
+
 @dataclass
 class Settings:
     """Everything one compression run needs. Sizes: `nodes` BVH nodes, `log2_table` = log2 T."""
@@ -32,6 +36,10 @@ class Settings:
     log2_table: int = 10
     levels: int = 4
     features: int = 16
+    #: The grid's coarsest and finest resolutions (cells across the unit box; EncodingConfig.n_min / n_max).
+    #: n_max None: chosen from the mesh's measured detail (`sizing.choose_resolution`, in `sizing.resolve`).
+    n_min: int = 16
+    n_max: int | None = 128
     network: str = "kmlp"
     k: int = 8
     #: The network's hidden layers and their width (NetworkConfig).
@@ -72,7 +80,9 @@ class Settings:
 
     def model_config(self) -> ModelConfig:
         return ModelConfig(EncodingConfig(kind=self.encoding, log2_table=self.log2_table, levels=self.levels,
-                                          features=self.features),
+                                          features=self.features, n_min=self.n_min,
+                                          # unresolved (no mesh yet): the paper's 128; bytes do not depend on it
+                                          n_max=self.n_max or PAPER_N_MAX),
                            NetworkConfig(kind=self.network, k=self.k, hidden=self.hidden, width=self.width,
                                          normal_loss=self.normal_loss))
 

@@ -33,7 +33,7 @@ import numpy as np
 from .bvh import build_full_tree, resident_bvh_nodes
 from .mesh import Mesh
 from .quality_levels import QUALITY_LEVELS, TARGET_TRAININGS  # noqa: F401  (QUALITY_LEVELS re-exported)
-from .settings import PRESETS, Settings, estimate_file_bytes
+from .settings import PAPER_N_MAX, PRESETS, Settings, estimate_file_bytes
 
 FIT_PATH = Path(__file__).with_name("sizing_fit.json")
 #: Table sizes the chooser considers (log2 T): the range the predictor was fitted on (bench/fit_sizing.py, 2^8..2^12
@@ -95,6 +95,51 @@ def mesh_features(mesh: Mesh, cells: int = 32) -> MeshFeatures:
     roughness = float(np.sum((1 - coherence) * cell_area[occupied]) / max(cell_area.sum(), 1e-30))
     return MeshFeatures(triangles=mesh.n_triangles, area=float(area.sum()), occupancy=float(occupied.mean()),
                         roughness=roughness)
+
+
+# ------------------------------------------------------------------------------------------ grid resolution
+#: Resolutions (cells across the unit box) at which `detail_resolution` measures the roughness.
+DETAIL_RESOLUTIONS = (16, 32, 64, 128, 256, 512, 1024)
+#: A surface is "resolved" at the first resolution whose cells are this close to flat (area-weighted mean of
+#: 1 - |mean normal| per cell; 0.01 ~ normals within ~8 degrees of their cell's mean).
+RESOLVED_ROUGHNESS = 0.01
+#: N_max = this x the resolved resolution, clamped to N_MAX_RANGE (calibrated in bench/results/resolution.md).
+N_MAX_FACTOR = 2
+N_MAX_RANGE = (64, 1024)
+
+
+def roughness_at(mesh: Mesh, resolutions: tuple[int, ...] = DETAIL_RESOLUTIONS) -> dict[int, float]:
+    """{cells across the unit box: area-weighted mean over occupied cells of 1 - |mean normal|} of the mesh in its
+    normalised frame (triangles binned by centroid). It falls as cells shrink toward the scale below which the
+    surface is flat; it is 0 once a cell holds one triangle. Linear in triangles (~4 s for 3.3M)."""
+    tri = mesh.triangles().astype(np.float64)
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    area = 0.5 * np.linalg.norm(cross, axis=1)
+    normal = cross / np.maximum(2 * area, 1e-30)[:, None]
+    centre = tri.mean(axis=1)
+    out = {}
+    for r in resolutions:
+        cell = np.clip((centre * r).astype(np.int64), 0, r - 1)
+        _, cid = np.unique((cell[:, 0] * r + cell[:, 1]) * r + cell[:, 2], return_inverse=True)
+        cell_area = np.bincount(cid, weights=area)
+        summed = np.stack([np.bincount(cid, weights=area * normal[:, a]) for a in range(3)], 1)
+        coherence = np.linalg.norm(summed, axis=1) / np.maximum(cell_area, 1e-30)
+        out[r] = float(max(0.0, np.sum((1 - coherence) * cell_area) / max(cell_area.sum(), 1e-30)))
+    return out
+
+
+def choose_resolution(mesh: Mesh) -> tuple[int, str]:
+    """The grid's finest resolution N_max for this mesh and why: N_MAX_FACTOR x the first resolution at which the
+    surface is resolved (`roughness_at` <= RESOLVED_ROUGHNESS), clamped to N_MAX_RANGE. The paper fixes 128 for
+    every model; a smooth blob is resolved at 32 cells (N_max 64: the fine level's rows go to fewer cells), a strut
+    lattice with fine bumps only at 512 (N_max 1024)."""
+    rough = roughness_at(mesh)
+    resolved = next((r for r, v in rough.items() if v <= RESOLVED_ROUGHNESS), max(rough))
+    n_max = int(min(max(N_MAX_FACTOR * resolved, N_MAX_RANGE[0]), N_MAX_RANGE[1]))
+    curve = ", ".join(f"{r}: {v:.3f}" for r, v in rough.items())
+    return n_max, (f"grid N_max {n_max}: the surface is flat within cells (roughness <= {RESOLVED_ROUGHNESS:g}) from "
+                   f"{resolved} cells across (roughness by cells: {curve}); N_max = {N_MAX_FACTOR}x that, in "
+                   f"{N_MAX_RANGE[0]}..{N_MAX_RANGE[1]}")
 
 
 # -------------------------------------------------------------------------------------------------- predictor
@@ -233,6 +278,14 @@ def resolve(s: Settings, mesh: Mesh | None = None) -> tuple[Settings, str]:
     for (sizing_fit.json: HashGrid + MLP + consistent labels) at the smallest T whose predicted MSE meets the
     target (`sizing.choose_table_and_nodes`); `compress_mesh` then measures and corrects (`sizing.search_size`).
     """
+    if s.n_max is None:
+        if mesh is None:
+            s, grid_why = dataclasses.replace(s, n_max=PAPER_N_MAX), f"grid N_max {PAPER_N_MAX} (no mesh to measure)"
+        else:
+            n_max, grid_why = choose_resolution(mesh)
+            s = dataclasses.replace(s, n_max=n_max)
+        chosen, why = resolve(s, mesh)
+        return chosen, f"{why}; {grid_why}"
     if s.budget_kb is not None:
         budget = s.budget_kb * 1024
         best = None

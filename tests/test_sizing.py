@@ -219,3 +219,29 @@ def test_cli_plan_and_the_jobs_share_one_scene_plan(tmp_path, capsys, sample_mes
         settings, split = _scene_share(scene, preset("default"), lambda e: None)
         assert settings.log2_table == cli_plan[n] == split["objects"][i]["log2_table"]
         assert settings.encoding == "hashgrid" and settings.budget_kb is None and settings.target_mse is None
+
+
+def test_grid_resolution_follows_the_measured_detail():
+    from nbvh_core.settings import PAPER_N_MAX
+    from nbvh_core.sizing import N_MAX_RANGE, choose_resolution, roughness_at
+
+    smooth = icosphere(5)
+    sphere = icosphere(6)
+    v = sphere.vertices - sphere.vertices.mean(0)
+    bumps = 1 + 0.03 * np.sin(60 * v[:, 0]) * np.sin(60 * v[:, 1]) * np.sin(60 * v[:, 2])
+    bumpy = mesh_from_arrays(v * bumps[:, None], sphere.faces, name="bumpy")
+    rough_smooth, rough_bumpy = roughness_at(smooth), roughness_at(bumpy)
+    values = list(rough_bumpy.values())
+    assert all(a >= b - 1e-9 for a, b in zip(values, values[1:]))  # finer cells are flatter
+    assert all(rough_bumpy[r] > rough_smooth[r] for r in (32, 64, 128))
+    n_smooth, why_smooth = choose_resolution(smooth)
+    n_bumpy, _ = choose_resolution(bumpy)
+    assert n_smooth == N_MAX_RANGE[0] and n_bumpy >= 4 * n_smooth
+    assert f"grid N_max {n_smooth}" in why_smooth
+    # Settings with n_max None are resolved from the mesh (and recorded); fixed ones are left alone.
+    auto = dataclasses.replace(preset("tiny"), n_max=None)
+    chosen, why = resolve(auto, bumpy)
+    assert chosen.n_max == n_bumpy and f"grid N_max {n_bumpy}" in why
+    assert resolve(auto)[0].n_max == PAPER_N_MAX
+    assert resolve(preset("tiny"), bumpy)[0].n_max == preset("tiny").n_max
+    assert estimate_file_bytes(auto) == estimate_file_bytes(chosen)  # the bytes do not depend on it
