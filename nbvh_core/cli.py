@@ -158,6 +158,7 @@ def _compress_locked(args, mesh, mesh_path, out, stem, outputs, sink, staged) ->
             table_bits=16 if args.float16 else args.table_bits, network_bits=16 if args.float16 else args.network_bits,
             node_bits=args.node_bits, rays_per_step=args.rays_per_step, budget_kb=args.budget_kb,
             leaf_sampling=args.leaf_sampling, tree_cut=True if args.tree_cut else None, normal_loss=args.normal_loss,
+            n_max=args.n_max,
             target_mse=QUALITY_LEVELS[args.quality] if args.quality else args.target_mse)
         if args.steps is not None and args.time_limit is None:
             settings.time_limit_s = None
@@ -393,6 +394,7 @@ def _add_compress_parser(sub) -> None:
     c.add_argument("--rays-per-step", type=int)
     c.add_argument("--leaf-sampling", choices=["uniform", "loss"],
                    help="'loss': half of each batch starts in leaves drawn by their running error (N-BVH's resampling)")
+    c.add_argument("--n-max", type=int, help="the grid's finest resolution (default: chosen from the mesh and T)")
     c.add_argument("--normal-loss", choices=["unoriented", "oriented"],
                    help="'unoriented' (default): normals learnt up to sign (rendering faces them toward the ray); "
                         "'oriented': the paper's loss against the mesh's winding")

@@ -26,7 +26,7 @@ from .process import Cancelled, NotWorthCompressing, TrainingDiverged
 from .quantize import snap_nodes
 from .settings import PRESETS, Settings, estimate_file_bytes, preset  # noqa: F401  (re-exported)
 from . import sizing
-from .sizing import assess, load_fit, mesh_features, resolve, search_size
+from .sizing import assess, choose_resolution, grid_measures, load_fit, mesh_features, resolve, search_size
 from .train import TrainResult, train
 
 #: A diverged training restarts from scratch at a 10x lower learning rate, at most this many times.
@@ -165,8 +165,9 @@ class _SizeSearch:
     finalized to the stored precision and scored; `trained[log2 T]` keeps them all."""
 
     def __init__(self, mesh, bvh, tracer, settings: Settings, why: str, events, should_cancel, checkpoint_path,
-                 resume_from, evaluate_quality: bool, compare_float32: bool, seconds: dict):
+                 resume_from, evaluate_quality: bool, compare_float32: bool, seconds: dict, grid=None):
         self.mesh, self.bvh, self.tracer, self.settings, self.why = mesh, bvh, tracer, settings, why
+        self.grid = grid  # sizing.GridMeasures when N_max follows the mesh (re-chosen for every table size tried)
         self.events, self.should_cancel = events, should_cancel
         self.checkpoint_path, self.resume_from = checkpoint_path, resume_from
         self.evaluate_quality, self.compare_float32, self.seconds = evaluate_quality, compare_float32, seconds
@@ -205,6 +206,8 @@ class _SizeSearch:
         """One training at table size 2^log2_table, finalized and scored; its MSE (inf without an evaluation)."""
         t = time.perf_counter()
         s_try = dataclasses.replace(self.settings, log2_table=log2_table)
+        if self.grid is not None and log2_table != self.settings.log2_table:
+            s_try.n_max = choose_resolution(self.grid, log2_table)[0]
         target = s_try.target_mse
         stop = _target_check(self.tracer, target) if target is not None and self.evaluate_quality else None
         model, tr, s_used, why_used = _train_with_restarts(self.mesh, self.bvh, self.tracer, s_try, self.why,
@@ -259,7 +262,8 @@ def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = 
     its storage is quantized (`seconds['mse_float32']`, for benchmarks). resume_from: a checkpoint of this mesh
     (`resume_settings` gives the settings it was made with; pass those). Raises NotWorthCompressing (in seconds,
     before any training) when the verdict says so and `settings.force` is off."""
-    settings, why = resolve(settings, mesh)
+    grid = grid_measures(mesh) if settings.n_max is None and resume_from is None else None
+    settings, why = resolve(settings, mesh, grid)
     if resume_from is not None:
         why += f"; resumed from the checkpoint {resume_from}"
     seconds: dict = {}
@@ -267,7 +271,7 @@ def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = 
     assessment = _verdict(mesh, settings, why, tracer, events, seconds)
     bvh = _training_bvh(mesh, settings, events, seconds)
     search = _SizeSearch(mesh, bvh, tracer, settings, why, events, should_cancel, checkpoint_path, resume_from,
-                         evaluate_quality, compare_float32, seconds)
+                         evaluate_quality, compare_float32, seconds, grid)
     chosen_log2, why = search.run()
     model, tr, settings, restart_notes, quality = search.trained[chosen_log2]
     why += restart_notes  # a restart at a lower learning rate, in the training kept

@@ -116,12 +116,15 @@ PRESETS: dict[str, Settings] = {
     # 200 s): 16 features x T=2^11 with float16 weights 247 KB at MSE 0.00051 (3.4x smaller resident than the
     # equal-MSE decimation); int8 weight rows 202 KB at 0.00052 (4.1x); 8 features x T=2^12 (the same table bytes,
     # a first layer half as wide: 30% more steps in the budget) with int8 rows 186 KB at 0.00045 (5.6x).
+    # The grid's finest resolution follows the mesh and the table (n_max None: `sizing.choose_resolution`): at
+    # T=2^12 and equal steps N_max 64 beat the paper's 128 on the bunny, blob and gyroid (13-32% lower MSE) and tied
+    # on the studs (bench/results/resolution.md).
     "preview": Settings(encoding="hashgrid", network="mlp", nodes=1023, log2_table=11, features=8, network_bits=8,
-                        time_limit_s=60.0, eval_views=8),
+                        n_max=None, time_limit_s=60.0, eval_views=8),
     "default": Settings(encoding="hashgrid", network="mlp", log2_table=12, features=8, network_bits=8,
-                        time_limit_s=200.0),
+                        n_max=None, time_limit_s=200.0),
     "high": Settings(encoding="hashgrid", network="mlp", nodes=4095, log2_table=13, features=8, network_bits=8,
-                     time_limit_s=600.0),
+                     n_max=None, time_limit_s=600.0),
     # The paper's method steps (same size knobs as `default`), for ablations.
     "base": Settings(encoding="hashgrid", network="mlp", labels="ownership", log2_table=11),
     "I": Settings(encoding="hashgrid", network="kmlp", labels="ownership", log2_table=11),

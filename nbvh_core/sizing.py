@@ -98,14 +98,45 @@ def mesh_features(mesh: Mesh, cells: int = 32) -> MeshFeatures:
 
 
 # ------------------------------------------------------------------------------------------ grid resolution
-#: Resolutions (cells across the unit box) at which `detail_resolution` measures the roughness.
+#: Resolutions (cells across the unit box) at which the surface is measured, and the range N_max is chosen in.
 DETAIL_RESOLUTIONS = (16, 32, 64, 128, 256, 512, 1024)
-#: A surface is "resolved" at the first resolution whose cells are this close to flat (area-weighted mean of
-#: 1 - |mean normal| per cell; 0.01 ~ normals within ~8 degrees of their cell's mean).
-RESOLVED_ROUGHNESS = 0.01
-#: N_max = this x the resolved resolution, clamped to N_MAX_RANGE (calibrated in bench/results/resolution.md).
-N_MAX_FACTOR = 2
 N_MAX_RANGE = (64, 1024)
+#: A surface is "resolved" at the first resolution whose cells are this close to flat (area-weighted mean of
+#: 1 - |mean normal| per cell; 0.01 ~ normals within ~8 degrees of their cell's mean); no level needs to be finer
+#: than DETAIL_FACTOR x that.
+RESOLVED_ROUGHNESS = 0.01
+DETAIL_FACTOR = 2
+#: The finest level may touch at most TABLE_LOAD x T surface cells: beyond that its vertices collide in the T rows
+#: faster than they add detail. Measured (bench/results/resolution.md; default preset, T=2^12, 1,500 steps, image
+#: MSE at N_max 32 / 64 / 128 / 256): bunny 0.00123 / 0.00120 / 0.00138 / 0.00171 (surface cells at 64: 3.1 T, at
+#: 128: 11 T), knot - / 0.00074 / 0.00079 / - (1.4 T, 5.2 T), gyroid 0.0095 / 0.0096 / 0.0114 / -, blob - / 0.00040 /
+#: 0.00059 / -, studs - / 0.0168 / 0.0172 / 0.0225, lattice - / 0.0545 / 0.0595 / 0.0596: every mesh measured, the
+#: 3.3M-triangle lattice of fine detail included, is best at 64 at this table size, and 128 loses from 5.2 T on.
+TABLE_LOAD = 4.0
+#: Surface samples (area-weighted) for counting the cells the surface passes through.
+SURFACE_SAMPLES = 200_000
+
+
+def surface_cells(mesh: Mesh, resolutions: tuple[int, ...] = DETAIL_RESOLUTIONS,
+                  samples: int = SURFACE_SAMPLES) -> dict[int, int]:
+    """{cells across the unit box: cells of the normalised frame the surface passes through}, counted from
+    `samples` area-weighted points on the triangles (fixed seed: the same mesh always gives the same counts; the
+    count saturates near `samples` at fine resolutions, where every choice is already far over any table)."""
+    tri = mesh.triangles().astype(np.float64)
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    if not area.sum() > 0:
+        return {r: 0 for r in resolutions}
+    rng = np.random.default_rng(0)
+    pick = rng.choice(len(tri), samples, p=area / area.sum())
+    uv = rng.random((samples, 2))
+    uv = np.where(uv.sum(1, keepdims=True) > 1, 1 - uv, uv)
+    t = tri[pick]
+    points = t[:, 0] + uv[:, :1] * (t[:, 1] - t[:, 0]) + uv[:, 1:] * (t[:, 2] - t[:, 0])
+    out = {}
+    for r in resolutions:
+        cell = np.clip((points * r).astype(np.int64), 0, r - 1)
+        out[r] = int(len(np.unique((cell[:, 0] * r + cell[:, 1]) * r + cell[:, 2])))
+    return out
 
 
 def roughness_at(mesh: Mesh, resolutions: tuple[int, ...] = DETAIL_RESOLUTIONS) -> dict[int, float]:
@@ -128,18 +159,36 @@ def roughness_at(mesh: Mesh, resolutions: tuple[int, ...] = DETAIL_RESOLUTIONS) 
     return out
 
 
-def choose_resolution(mesh: Mesh) -> tuple[int, str]:
-    """The grid's finest resolution N_max for this mesh and why: N_MAX_FACTOR x the first resolution at which the
-    surface is resolved (`roughness_at` <= RESOLVED_ROUGHNESS), clamped to N_MAX_RANGE. The paper fixes 128 for
-    every model; a smooth blob is resolved at 32 cells (N_max 64: the fine level's rows go to fewer cells), a strut
-    lattice with fine bumps only at 512 (N_max 1024)."""
-    rough = roughness_at(mesh)
-    resolved = next((r for r, v in rough.items() if v <= RESOLVED_ROUGHNESS), max(rough))
-    n_max = int(min(max(N_MAX_FACTOR * resolved, N_MAX_RANGE[0]), N_MAX_RANGE[1]))
-    curve = ", ".join(f"{r}: {v:.3f}" for r, v in rough.items())
-    return n_max, (f"grid N_max {n_max}: the surface is flat within cells (roughness <= {RESOLVED_ROUGHNESS:g}) from "
-                   f"{resolved} cells across (roughness by cells: {curve}); N_max = {N_MAX_FACTOR}x that, in "
-                   f"{N_MAX_RANGE[0]}..{N_MAX_RANGE[1]}")
+@dataclass
+class GridMeasures:
+    """What the grid choice reads: roughness and surface cells by resolution (see the functions above)."""
+
+    roughness: dict
+    cells: dict
+
+
+def grid_measures(mesh: Mesh) -> GridMeasures:
+    return GridMeasures(roughness_at(mesh), surface_cells(mesh))
+
+
+def choose_resolution(mesh: Mesh | GridMeasures, log2_table: int) -> tuple[int, str]:
+    """The grid's finest resolution N_max for this mesh and table size T = 2^log2_table, and why: the finest
+    resolution whose surface cells fit TABLE_LOAD x T (the table's capacity), no finer than DETAIL_FACTOR x the
+    resolution at which the surface is flat within cells (the detail's need), in N_MAX_RANGE. The paper fixes 128
+    for every model; here the default preset's T=2^12 gives 64 on every benchmark mesh (measured better there), a
+    larger table finer grids where the surface is small (the knot at T=2^13: 128)."""
+    m = mesh if isinstance(mesh, GridMeasures) else grid_measures(mesh)
+    table = 1 << log2_table
+    resolved = next((r for r, v in m.roughness.items() if v <= RESOLVED_ROUGHNESS), max(m.roughness))
+    detail_cap = DETAIL_FACTOR * resolved
+    fits = [r for r, c in m.cells.items() if c <= TABLE_LOAD * table]
+    table_cap = max(fits) if fits else min(m.cells)
+    n_max = int(min(max(min(detail_cap, table_cap), N_MAX_RANGE[0]), N_MAX_RANGE[1]))
+    cells = m.cells.get(n_max)
+    return n_max, (f"grid N_max {n_max}: the surface is flat within cells from {resolved} across (need <= "
+                   f"{detail_cap}); at {table_cap} it touches {m.cells.get(table_cap, 0):,} cells, within "
+                   f"{TABLE_LOAD:g} x T={table:,} rows (table capacity)"
+                   + (f"; {cells:,} surface cells at N_max" if cells is not None else ""))
 
 
 # -------------------------------------------------------------------------------------------------- predictor
@@ -270,20 +319,23 @@ def search_size(fit: SizeFit | None, features: MeshFeatures | None, target_mse: 
     return (min(met) if met else max(measured)), measured
 
 
-def resolve(s: Settings, mesh: Mesh | None = None) -> tuple[Settings, str]:
+def resolve(s: Settings, mesh: Mesh | None = None, grid: GridMeasures | None = None) -> tuple[Settings, str]:
     """Turn a byte budget or a quality target into concrete sizes; returns (settings, why).
 
     Budget: the largest (T, nodes) of the grid T in 2^5..2^13, nodes in 255..8191 whose file fits the budget
     (largest file first, ties to more nodes). Target (with the mesh): the method the size predictor was fitted
     for (sizing_fit.json: HashGrid + MLP + consistent labels) at the smallest T whose predicted MSE meets the
     target (`sizing.choose_table_and_nodes`); `compress_mesh` then measures and corrects (`sizing.search_size`).
+    n_max None: the grid's finest resolution is chosen for the mesh and the chosen T (`choose_resolution`; `grid`:
+    its measures when the caller has them).
     """
     if s.n_max is None:
         if mesh is None:
             s, grid_why = dataclasses.replace(s, n_max=PAPER_N_MAX), f"grid N_max {PAPER_N_MAX} (no mesh to measure)"
         else:
-            n_max, grid_why = choose_resolution(mesh)
-            s = dataclasses.replace(s, n_max=n_max)
+            chosen, why = resolve(dataclasses.replace(s, n_max=PAPER_N_MAX), mesh)  # sizes first, then their grid
+            n_max, grid_why = choose_resolution(grid or mesh, chosen.log2_table)
+            return dataclasses.replace(chosen, n_max=n_max), f"{why}; {grid_why}"
         chosen, why = resolve(s, mesh)
         return chosen, f"{why}; {grid_why}"
     if s.budget_kb is not None:

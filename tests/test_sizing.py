@@ -223,7 +223,7 @@ def test_cli_plan_and_the_jobs_share_one_scene_plan(tmp_path, capsys, sample_mes
 
 def test_grid_resolution_follows_the_measured_detail():
     from nbvh_core.settings import PAPER_N_MAX
-    from nbvh_core.sizing import N_MAX_RANGE, choose_resolution, roughness_at
+    from nbvh_core.sizing import N_MAX_RANGE, TABLE_LOAD, choose_resolution, grid_measures, roughness_at
 
     smooth = icosphere(5)
     sphere = icosphere(6)
@@ -234,14 +234,22 @@ def test_grid_resolution_follows_the_measured_detail():
     values = list(rough_bumpy.values())
     assert all(a >= b - 1e-9 for a, b in zip(values, values[1:]))  # finer cells are flatter
     assert all(rough_bumpy[r] > rough_smooth[r] for r in (32, 64, 128))
-    n_smooth, why_smooth = choose_resolution(smooth)
-    n_bumpy, _ = choose_resolution(bumpy)
+    # A big table: the detail decides (the smooth sphere needs the coarsest, the bumps a finer grid).
+    n_smooth, why_smooth = choose_resolution(smooth, 20)
+    n_bumpy, _ = choose_resolution(bumpy, 20)
     assert n_smooth == N_MAX_RANGE[0] and n_bumpy >= 4 * n_smooth
     assert f"grid N_max {n_smooth}" in why_smooth
-    # Settings with n_max None are resolved from the mesh (and recorded); fixed ones are left alone.
+    # A small table: its capacity decides (no finer level than its rows can hold without colliding).
+    measures = grid_measures(bumpy)
+    for log2 in (10, 12, 14):
+        n_max = choose_resolution(measures, log2)[0]
+        assert n_max == N_MAX_RANGE[0] or measures.cells[n_max] <= TABLE_LOAD * (1 << log2)
+    assert choose_resolution(measures, 10)[0] <= choose_resolution(measures, 14)[0] <= n_bumpy
+    # Settings with n_max None are resolved from the mesh for the chosen T (and recorded); fixed ones are left alone.
     auto = dataclasses.replace(preset("tiny"), n_max=None)
     chosen, why = resolve(auto, bumpy)
-    assert chosen.n_max == n_bumpy and f"grid N_max {n_bumpy}" in why
+    want = choose_resolution(measures, chosen.log2_table)[0]
+    assert chosen.n_max == want and f"grid N_max {want}" in why
     assert resolve(auto)[0].n_max == PAPER_N_MAX
     assert resolve(preset("tiny"), bumpy)[0].n_max == preset("tiny").n_max
     assert estimate_file_bytes(auto) == estimate_file_bytes(chosen)  # the bytes do not depend on it

@@ -1,0 +1,83 @@
+"""The grid's finest resolution N_max against the table's capacity: the same preset, table size and step count at
+several N_max per mesh (equal steps: N_max does not change the cost of a step, and equal steps are robust to a
+busy machine), scored with the one metric (16 views, 128 px). Float32 storage, so only the grid differs.
+
+    .venv/bin/python bench/bench_resolution.py [--meshes bunny gyroid] [--n-max 64 128 256] [--steps 1500]
+
+Resumable: one CSV row per (mesh, preset, log2 T, N_max, steps) in bench/results/resolution.csv; resolution.md is
+rewritten after every row with `sizing.choose_resolution`'s pick beside the best measured.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path[:0] = [str(ROOT), str(ROOT / "bench")]
+
+from bench_meshes import bench_mesh  # noqa: E402
+from bench_quality import append_row, read_rows  # noqa: E402
+from nbvh_core import kernels  # noqa: E402
+from nbvh_core.pipeline import compress_mesh, preset  # noqa: E402
+from nbvh_core.sizing import TABLE_LOAD, choose_resolution, grid_measures  # noqa: E402
+
+RESULTS = ROOT / "bench" / "results"
+FIELDS = ["mesh", "preset", "log2_table", "n_max", "steps", "train_s", "mse", "iou", "surface_cells", "created"]
+
+
+def write_md(rows: list[dict]) -> None:
+    lines = ["# Grid resolution against table capacity (bench/bench_resolution.py)", "",
+             "Equal steps per row (the preset's settings, float32 storage, seed 0) on this 2-core CPU; image MSE over "
+             "16 views at 128 px. 'cells / T' = the surface cells of the finest level over the table's rows; the "
+             f"chooser takes the finest N_max within {TABLE_LOAD:g} x T and the detail's need. (The first 17 rows were "
+             "measured, with exactly these settings, by the one-off script this one was written from.)", "",
+             "| mesh | preset | T | steps | N_max | surface cells / T | MSE | IoU |", "|---|---|---|---|---|---|---|---|"]
+    for r in sorted(rows, key=lambda r: (r["mesh"], int(r["log2_table"]), int(r["steps"]), int(r["n_max"]))):
+        load = int(r["surface_cells"]) / (1 << int(r["log2_table"])) if r.get("surface_cells") else float("nan")
+        lines.append(f"| {r['mesh']} | {r['preset']} | 2^{r['log2_table']} | {r['steps']} | {r['n_max']} | "
+                     f"{load:.1f} | {float(r['mse']):.5f} | {float(r['iou']):.4f} |")
+    lines += ["", "| mesh | T | steps | best measured N_max | chooser's N_max |", "|---|---|---|---|---|"]
+    groups = dict.fromkeys((r["mesh"], r["log2_table"], r["steps"]) for r in rows)
+    for mesh, log2, steps in groups:
+        mine = [r for r in rows if (r["mesh"], r["log2_table"], r["steps"]) == (mesh, log2, steps)]
+        best = min(mine, key=lambda r: float(r["mse"]))
+        pick = choose_resolution(grid_measures(bench_mesh(mesh)), int(log2))[0]
+        lines.append(f"| {mesh} | 2^{log2} | {steps} | {best['n_max']} (MSE {float(best['mse']):.5f}) | {pick} |")
+    (RESULTS / "resolution.md").write_text("\n".join(lines) + "\n")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--meshes", nargs="+", default=["blob", "bunny", "studs", "gyroid", "knot", "lattice"])
+    ap.add_argument("--n-max", type=int, nargs="+", default=[64, 128, 256])
+    ap.add_argument("--preset", default="default")
+    ap.add_argument("--steps", type=int, default=1500)
+    args = ap.parse_args()
+    kernels.keep_freed_memory()
+    path = RESULTS / "resolution.csv"
+    for mesh_name in args.meshes:
+        mesh = None
+        for n_max in args.n_max:
+            base = preset(args.preset)
+            key = (mesh_name, args.preset, str(base.log2_table), str(n_max), str(args.steps))
+            if key in {tuple(r[k] for k in FIELDS[:5]) for r in read_rows(path)}:
+                continue
+            mesh = mesh or bench_mesh(mesh_name)
+            s = base.with_overrides(steps=args.steps, n_max=n_max, table_bits=32, network_bits=32, node_bits=32,
+                                    force=True)
+            s.time_limit_s = None
+            res = compress_mesh(mesh, s, None)
+            cells = grid_measures(mesh).cells.get(n_max, "")
+            row = {"mesh": mesh_name, "preset": args.preset, "log2_table": s.log2_table, "n_max": n_max,
+                   "steps": res.training.steps, "train_s": round(res.training.seconds, 1), "mse": res.quality.mse,
+                   "iou": res.quality.silhouette_iou, "surface_cells": cells,
+                   "created": time.strftime("%Y-%m-%dT%H:%M:%S")}
+            append_row(path, row)
+            print(row, flush=True)
+            write_md(read_rows(path))
+
+
+if __name__ == "__main__":
+    main()
