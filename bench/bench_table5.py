@@ -8,8 +8,9 @@ III at T=2^8, 2^9, each for the same number of steps, scored with the one metric
 128 px). Bytes are the float32 file (the paper stores floats) and, beside them, the same model in this product's
 default storage (8-bit tables, boxes and weight rows; `estimate_file_bytes`). Resumable: one CSV row per
 (mesh, method, log2 T) in bench/results/table5.csv; table5.md is rewritten after every row. Every method trains
-with this product's unoriented normal loss (`NetworkConfig.normal_loss`); `--normal-loss oriented` is the paper's
-(its run before the change: bench/results/table5_oriented_loss.md).
+with this product's normal targets facing the ray (`Settings.normal_loss`, default 'facing'); `--normal-loss
+oriented` is the paper's (as the mesh winds them), `unoriented` either sign; each loss has its own CSV
+(table5.csv, table5_oriented_loss.csv, table5_unoriented_loss.csv) and normal_loss.md compares them.
 """
 from __future__ import annotations
 
@@ -48,7 +49,26 @@ def bytes_to_reach(points: list[tuple[int, float]], target: float) -> float | No
     return None
 
 
-def write_md(rows: list[dict], steps: int, stem: str = "table5", normal_loss: str = "unoriented") -> None:
+def write_normal_loss_md() -> None:
+    """normal_loss.md: base's and III's MSE per mesh under each normal loss (the three Table 5 CSVs)."""
+    runs = {loss: read_rows(RESULTS / (f"table5.csv" if loss == "facing" else f"table5_{loss}_loss.csv"))
+            for loss in ("facing", "oriented", "unoriented")}
+    lines = ["# Normal loss at equal steps (bench/bench_table5.py's three runs)", "",
+             "Image MSE (16 views, 128 px) after the same steps, one run each; 'facing' = normal targets flipped "
+             "toward the ray (this product's default), 'oriented' = as the mesh winds them (the paper), "
+             "'unoriented' = L1 to the nearer of +-normal.", "",
+             "| mesh | method | T | facing | oriented | unoriented |", "|---|---|---|---|---|---|"]
+    keys = dict.fromkeys((r["mesh"], r["method"], r["log2_table"]) for rows in runs.values() for r in rows)
+    for key in keys:
+        cells = []
+        for loss in runs:
+            row = next((r for r in runs[loss] if (r["mesh"], r["method"], r["log2_table"]) == key), None)
+            cells.append(f"{float(row['mse']):.5f}" if row else "-")
+        lines.append(f"| {key[0]} | {key[1]} | 2^{key[2]} | " + " | ".join(cells) + " |")
+    (RESULTS / "normal_loss.md").write_text("\n".join(lines) + "\n")
+
+
+def write_md(rows: list[dict], steps: int, stem: str = "table5", normal_loss: str = "facing") -> None:
     lines = [f"# Table 5 at equal steps (bench/bench_table5.py), {normal_loss} normal loss", "",
              f"{steps} training steps per model on this 2-core CPU; MSE over 16 views at 128 px. 'reaches at' = the "
              "bytes at which the method's MSE equals base's, interpolated (log-log) between its measured sizes, over "
@@ -82,10 +102,10 @@ def main() -> None:
     ap.add_argument("--meshes", nargs="+", default=["bunny", "knot", "spiky", "gyroid", "studs"])
     ap.add_argument("--methods", nargs="+", default=["base", "I", "II", "III"],
                     help="method steps to run (base and III answer the Table 5 question alone)")
-    ap.add_argument("--normal-loss", choices=["unoriented", "oriented"], default="unoriented")
+    ap.add_argument("--normal-loss", choices=["facing", "oriented", "unoriented"], default="facing")
     args = ap.parse_args()
     kernels.keep_freed_memory()
-    stem = "table5" if args.normal_loss == "unoriented" else "table5_oriented_loss"
+    stem = "table5" if args.normal_loss == "facing" else f"table5_{args.normal_loss}_loss"
     path = RESULTS / f"{stem}.csv"
     done = {(r["mesh"], r["method"], r["log2_table"]) for r in read_rows(path)}
     for mesh_name in args.meshes:
@@ -108,6 +128,7 @@ def main() -> None:
             append_row(path, {k: row[k] for k in FIELDS})
             print(row, f"({time.perf_counter() - t:.0f} s)", flush=True)
             write_md(read_rows(path), args.steps, stem, args.normal_loss)
+            write_normal_loss_md()
 
 
 if __name__ == "__main__":

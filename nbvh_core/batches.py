@@ -81,7 +81,8 @@ class Batches:
             weights = self._weights_override if self._weights_override is not None else self.leaf_errors.weights()
             self._weights_override = None
         o, d = self._draw(per * n_steps, weights)
-        chunk = label_samples(self.bvh, self.tracer, o, d, self.cfg.labels, tree=self.tree)
+        chunk = label_samples(self.bvh, self.tracer, o, d, self.cfg.labels, tree=self.tree,
+                              facing_normals=self.cfg.facing_normals)
         return [(part, {"chunk_state": chunk_state, "index": i, "leaf_weights": weights})
                 for i, part in enumerate(split_samples(chunk, per))]
 

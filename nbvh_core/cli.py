@@ -395,9 +395,9 @@ def _add_compress_parser(sub) -> None:
     c.add_argument("--leaf-sampling", choices=["uniform", "loss"],
                    help="'loss': half of each batch starts in leaves drawn by their running error (N-BVH's resampling)")
     c.add_argument("--n-max", type=int, help="the grid's finest resolution (default: chosen from the mesh and T)")
-    c.add_argument("--normal-loss", choices=["unoriented", "oriented"],
-                   help="'unoriented' (default): normals learnt up to sign (rendering faces them toward the ray); "
-                        "'oriented': the paper's loss against the mesh's winding")
+    c.add_argument("--normal-loss", choices=["facing", "oriented", "unoriented"],
+                   help="'facing' (default): normal targets face the ray, as every renderer shades them; 'oriented': "
+                        "the paper's, as the mesh winds them; 'unoriented': either sign")
     c.add_argument("--tree-cut", action="store_true",
                    help="start from half the BVH leaves and split the worst ones during training (N-BVH's tree cut)")
     c.add_argument("--seed", type=int)

@@ -32,17 +32,16 @@ import torch.nn.functional as F
 from torch import nn
 
 
-NORMAL_LOSSES = ("unoriented", "oriented")
+NORMAL_LOSSES = ("oriented", "unoriented")
 
 
 @dataclass
 class NetworkConfig:
     """kind: 'mlp' | 'kmlp'; k points per segment; `hidden` layers of `width`; loss weights w_t, w_n.
 
-    normal_loss: 'unoriented' (default) - the normal's L1 to the nearer of +-target: the network learns the
-    surface's line, not which side the mesh's winding calls outside (every consumer faces the normal toward the
-    ray; a thin wall's two sides need no ray direction to tell apart; measured on the gyroid, KMLP 600 steps: MSE
-    0.044 -> 0.022); 'oriented' - the paper's L1 to the target as the mesh winds it.
+    normal_loss: 'oriented' (default) - the L1 to the target normal as given (the mesh's winding, or facing the ray
+    when the trainer labels so: TrainConfig.facing_normals); 'unoriented' - the L1 to the nearer of +-target (the
+    surface's line only; measured worse than facing targets, bench/results/normal_loss.md).
     """
 
     kind: str = "kmlp"
@@ -51,7 +50,7 @@ class NetworkConfig:
     width: int = 64
     depth_weight: float = 1.0
     normal_weight: float = 0.5
-    normal_loss: str = "unoriented"
+    normal_loss: str = "oriented"
 
     def __post_init__(self) -> None:
         if self.normal_loss not in NORMAL_LOSSES:

@@ -23,6 +23,7 @@ from .quantize import StorageConfig
 from .train import TrainConfig
 
 
+NORMAL_LOSSES = ("facing", "oriented", "unoriented")
 #: The paper's finest grid resolution (every model); the user presets choose theirs from the mesh.
 PAPER_N_MAX = 128
 
@@ -45,8 +46,10 @@ class Settings:
     #: The network's hidden layers and their width (NetworkConfig).
     hidden: int = 4
     width: int = 64
-    #: 'unoriented' | 'oriented' (NetworkConfig.normal_loss).
-    normal_loss: str = "unoriented"
+    #: 'facing': normal targets flipped to face the ray (TrainConfig.facing_normals), L1 to them; 'oriented': the
+    #: paper's L1 to the normal as the mesh winds it; 'unoriented': L1 to the nearer of +-normal
+    #: (NetworkConfig.normal_loss). Measured in bench/results/normal_loss.md.
+    normal_loss: str = "facing"
     labels: str = "consistent"
     lr: float = 5e-3
     steps: int | None = None
@@ -79,12 +82,14 @@ class Settings:
     target_check_every_s: float = 20.0
 
     def model_config(self) -> ModelConfig:
+        if self.normal_loss not in NORMAL_LOSSES:
+            raise ValueError(f"unknown normal loss {self.normal_loss!r}; choose from {', '.join(NORMAL_LOSSES)}")
         return ModelConfig(EncodingConfig(kind=self.encoding, log2_table=self.log2_table, levels=self.levels,
                                           features=self.features, n_min=self.n_min,
                                           # unresolved (no mesh yet): the paper's 128; bytes do not depend on it
                                           n_max=self.n_max or PAPER_N_MAX),
                            NetworkConfig(kind=self.network, k=self.k, hidden=self.hidden, width=self.width,
-                                         normal_loss=self.normal_loss))
+                                         normal_loss="unoriented" if self.normal_loss == "unoriented" else "oriented"))
 
     def storage(self) -> StorageConfig:
         return StorageConfig(self.table_bits, self.network_bits, self.node_bits)
@@ -92,7 +97,7 @@ class Settings:
     def train_config(self) -> TrainConfig:
         return TrainConfig(labels=self.labels, lr=self.lr, steps=self.steps, time_limit_s=self.time_limit_s,
                            rays_per_step=self.rays_per_step, seed=self.seed, device=self.device,
-                           anneal_fraction=self.anneal_fraction, leaf_sampling=self.leaf_sampling,
+                           anneal_fraction=self.anneal_fraction, facing_normals=self.normal_loss == "facing", leaf_sampling=self.leaf_sampling,
                            tree_cut=self.tree_cut, checkpoint_every_s=self.checkpoint_every_s,
                            target_check_every_s=self.target_check_every_s, qat_bits=self.table_bits if self.table_bits == 8 else None,
                            qat_fraction=self.qat_fraction)

@@ -41,6 +41,8 @@ class TrainConfig:
     one must be set). rays_per_step: rays drawn per step (each yields ~1-5 leaf samples)."""
 
     labels: str = "consistent"
+    #: Normal targets facing the ray (samples.label_samples' facing_normals) rather than as the mesh winds them.
+    facing_normals: bool = True
     lr: float = 1e-3
     lr_final_factor: float = 0.1
     rays_per_step: int = 4096
@@ -396,7 +398,8 @@ def _held_out_loss(model: NeuralBVH, batches: Batches, tracer: ExactTracer, cfg:
     """A fixed set of 8192 held-out rays (seeded apart from training) and the model's loss on them, as a callable."""
     def loss() -> float:
         rays = sample_rays(batches.lo, batches.hi, 8192, np.random.default_rng(cfg.seed + 7919), cfg.ray_config)
-        held_out = label_samples(batches.bvh, tracer, *rays, cfg.labels, tree=batches.tree)
+        held_out = label_samples(batches.bvh, tracer, *rays, cfg.labels, tree=batches.tree,
+                                 facing_normals=cfg.facing_normals)
         with torch.no_grad():
             return float(samples_loss(model, held_out, device)[0])
     return loss

@@ -254,9 +254,9 @@ def test_fused_inference_is_not_used_where_it_does_not_apply(sample_meshes):
 @pytest.mark.parametrize("enc_kw,net_kw", FUSED_MODELS + [
     (dict(kind="hashvqad", log2_table=8, levels=2, features=8, index_factor=8, candidates=4, init_scale=0.5),
      dict(kind="mlp", k=4)),  # soft (not frozen): gradients go on through the softmax
-    # the paper's oriented normal loss (the default is unoriented)
-    (dict(kind="hashgrid", log2_table=6, levels=2, features=8), dict(kind="mlp", k=4, normal_loss="oriented")),
-    (dict(kind="hashgrid", log2_table=6, levels=2, features=8), dict(kind="kmlp", k=4, normal_loss="oriented"))])
+    # the unoriented normal loss (the L1 to the nearer of +-target, a flag of the kernel)
+    (dict(kind="hashgrid", log2_table=6, levels=2, features=8), dict(kind="mlp", k=4, normal_loss="unoriented")),
+    (dict(kind="hashgrid", log2_table=6, levels=2, features=8), dict(kind="kmlp", k=4, normal_loss="unoriented"))])
 def test_fused_training_step_gives_the_loss_and_gradients_of_autograd(enc_kw, net_kw, sample_meshes):
     from nbvh_core.exact import ExactTracer
     from nbvh_core.kernels import mlp

@@ -169,7 +169,8 @@ def test_every_config_trains_and_renders(blob_setup, encoding, network, labels):
     from nbvh_core.samples import generate_training_samples
     from nbvh_core.train import samples_loss
 
-    held_out = generate_training_samples(bvh, tracer, 2048, labels, seed=99)
+    held_out = generate_training_samples(bvh, tracer, 2048, labels, seed=99,
+                                         facing_normals=TrainConfig().facing_normals)  # the targets it trains on
     with torch.no_grad():
         before = float(samples_loss(model, held_out, torch.device("cpu"))[0])
     res = train(model, bvh, tracer, TrainConfig(labels=labels, steps=6, rays_per_step=256, lr=5e-3))

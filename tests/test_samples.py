@@ -142,3 +142,18 @@ def test_leaf_errors_follow_the_batches_and_keep_a_floor():
         le.update(torch.tensor([1]), torch.tensor([0.0]))
     w = le.weights()
     assert w[1] == pytest.approx(0.1 * le.error.numpy().mean())  # a solved leaf keeps the floor
+
+
+@pytest.mark.parametrize("mode", ["ownership", "consistent"])
+def test_facing_normals_are_the_geometric_ones_turned_toward_the_ray(sample_bvhs, sample_tracers, mode):
+    bvh, tracer = sample_bvhs["blob"], sample_tracers["blob"]
+    o, d = sample_rays(*root_box(bvh), 3000, np.random.default_rng(5))
+    wound = label_samples(bvh, tracer, o, d, mode)
+    facing = label_samples(bvh, tracer, o, d, mode, facing_normals=True)
+    hit = wound.hit
+    dots = (facing.normal[hit] * facing.rays_d[facing.ray[hit]]).sum(-1)
+    assert bool((dots <= 0).all())
+    same = (facing.normal[hit] == wound.normal[hit]).all(-1)
+    flipped = (facing.normal[hit] == -wound.normal[hit]).all(-1)
+    assert bool((same | flipped).all()) and bool(flipped.any()) and bool(same.any())  # rays start inside and out
+    assert torch.equal(facing.hit, wound.hit) and torch.equal(facing.t_hit, wound.t_hit)
