@@ -191,7 +191,7 @@ def main() -> None:
                 if extra:
                     storage += " " + " ".join(f"{k}={v}" for k, v in sorted(extra.items()))
                 if s.n_max is None:  # the grid chosen from the mesh: name it, so the row is not the 128 one
-                    storage += f" n_max=auto:{choose_resolution(mesh)[0]}"
+                    storage += f" n_max=auto:{choose_resolution(mesh, s.log2_table)[0]}"
                 if (mesh_name, preset_name, storage) in done:
                     continue
                 print(f"{mesh_name} {preset_name} {storage}: training {s.time_limit_s} s", flush=True)

@@ -184,11 +184,9 @@ def choose_resolution(mesh: Mesh | GridMeasures, log2_table: int) -> tuple[int, 
     fits = [r for r, c in m.cells.items() if c <= TABLE_LOAD * table]
     table_cap = max(fits) if fits else min(m.cells)
     n_max = int(min(max(min(detail_cap, table_cap), N_MAX_RANGE[0]), N_MAX_RANGE[1]))
-    cells = m.cells.get(n_max)
     return n_max, (f"grid N_max {n_max}: the surface is flat within cells from {resolved} across (need <= "
                    f"{detail_cap}); at {table_cap} it touches {m.cells.get(table_cap, 0):,} cells, within "
-                   f"{TABLE_LOAD:g} x T={table:,} rows (table capacity)"
-                   + (f"; {cells:,} surface cells at N_max" if cells is not None else ""))
+                   f"{TABLE_LOAD:g} x T={table:,} rows (table capacity)")
 
 
 # -------------------------------------------------------------------------------------------------- predictor
