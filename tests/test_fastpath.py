@@ -130,7 +130,7 @@ def test_training_follows_the_same_loss_curve_and_renders_the_same(blob_model):
             runs[path] = (model.eval(), np.array([loss for _, loss in res.history]), res.compute_path)
     (m_r, loss_r, path_r), (m_f, loss_f, path_f) = runs["reference"], runs["fast"]
     assert path_r.startswith("reference") and path_f.startswith("fast")
-    assert loss_f[-5:].mean() < 0.9 * loss_f[0]  # it trained (40 small steps: ~15% lower)
+    assert loss_f[-5:].mean() < 0.95 * loss_f[0]  # it trained (40 small steps: ~10% lower with facing targets)
     # Same data (same seed): only float rounding differs, so the curves stay together.
     assert np.max(np.abs(loss_f - loss_r) / loss_r) < 0.02, np.max(np.abs(loss_f - loss_r) / loss_r)
     # One model queried both ways: same hits, distances and normals.
