@@ -504,13 +504,19 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="smoke run: 2 meshes, tiny budgets (about a minute)")
     ap.add_argument("--charts", action="store_true", help="only rebuild tables and charts from the CSVs")
     ap.add_argument("--parts", default="baselines,sweep,divergence", help="comma-separated parts to run")
+    ap.add_argument("--meshes", nargs="+", help="run the parts for these meshes (e.g. the heavy lattice's baselines "
+                    "for bench_pays' charts); the report and charts keep the benchmark meshes")
+    ap.add_argument("--decimate-to", type=int, nargs="+", help="triangle counts of the decimation baselines")
     args = ap.parse_args()
     kernels.keep_freed_memory()  # as the CLI does: freed blocks stay in the heap (see the function)
     plan = Plan(args.quick)
+    run_plan = Plan(args.quick)
+    run_plan.meshes = tuple(args.meshes) if args.meshes else plan.meshes
+    run_plan.decimate_to = tuple(args.decimate_to) if args.decimate_to else plan.decimate_to
     t0 = time.perf_counter()
     if not args.charts:
         for part in args.parts.split(","):
-            {"baselines": run_baselines, "sweep": run_sweep, "divergence": run_divergence}[part](plan)
+            {"baselines": run_baselines, "sweep": run_sweep, "divergence": run_divergence}[part](run_plan)
     text = report(plan)
     charts(plan)
     print(text)
