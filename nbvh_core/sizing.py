@@ -81,20 +81,30 @@ class MeshFeatures:
 
 def mesh_features(mesh: Mesh, cells: int = 32) -> MeshFeatures:
     """Measure `mesh` (see MeshFeatures). Linear in the triangle count; ~0.1 s for 100k triangles."""
+    tri, area, normal = _triangle_areas_normals(mesh)
+    roughness, occupied = _cell_roughness(tri.mean(axis=1), area, normal, cells)
+    return MeshFeatures(triangles=mesh.n_triangles, area=float(area.sum()), occupancy=occupied / cells ** 3,
+                        roughness=roughness)
+
+
+def _triangle_areas_normals(mesh: Mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The mesh's triangles (T, 3, 3) float64 in its normalised frame, their areas (T,) and unit normals (T, 3)."""
     tri = mesh.triangles().astype(np.float64)
     cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     area = 0.5 * np.linalg.norm(cross, axis=1)
-    normal = cross / np.maximum(2 * area, 1e-30)[:, None]
-    cell = np.clip((tri.mean(axis=1) * cells).astype(np.int64), 0, cells - 1)
-    cid = (cell[:, 0] * cells + cell[:, 1]) * cells + cell[:, 2]
-    n_cells = cells ** 3
-    cell_area = np.bincount(cid, weights=area, minlength=n_cells)
-    summed = np.stack([np.bincount(cid, weights=area * normal[:, a], minlength=n_cells) for a in range(3)], 1)
+    return tri, area, cross / np.maximum(2 * area, 1e-30)[:, None]
+
+
+def _cell_roughness(centre: np.ndarray, area: np.ndarray, normal: np.ndarray, r: int) -> tuple[float, int]:
+    """Triangles binned by centre into r^3 cells of the unit box: (area-weighted mean over occupied cells of
+    1 - |mean normal|, occupied cells)."""
+    cell = np.clip((centre * r).astype(np.int64), 0, r - 1)
+    _, cid = np.unique((cell[:, 0] * r + cell[:, 1]) * r + cell[:, 2], return_inverse=True)
+    cell_area = np.bincount(cid, weights=area)
+    summed = np.stack([np.bincount(cid, weights=area * normal[:, a]) for a in range(3)], 1)
     occupied = cell_area > 0
     coherence = np.linalg.norm(summed[occupied], axis=1) / cell_area[occupied]
-    roughness = float(np.sum((1 - coherence) * cell_area[occupied]) / max(cell_area.sum(), 1e-30))
-    return MeshFeatures(triangles=mesh.n_triangles, area=float(area.sum()), occupancy=float(occupied.mean()),
-                        roughness=roughness)
+    return float(np.sum((1 - coherence) * cell_area[occupied]) / max(cell_area.sum(), 1e-30)), int(occupied.sum())
 
 
 # ------------------------------------------------------------------------------------------ grid resolution
@@ -122,8 +132,7 @@ def surface_cells(mesh: Mesh, resolutions: tuple[int, ...] = DETAIL_RESOLUTIONS,
     """{cells across the unit box: cells of the normalised frame the surface passes through}, counted from
     `samples` area-weighted points on the triangles (fixed seed: the same mesh always gives the same counts; the
     count saturates near `samples` at fine resolutions, where every choice is already far over any table)."""
-    tri = mesh.triangles().astype(np.float64)
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    tri, area, _ = _triangle_areas_normals(mesh)
     if not area.sum() > 0:
         return {r: 0 for r in resolutions}
     rng = np.random.default_rng(0)
@@ -143,20 +152,9 @@ def roughness_at(mesh: Mesh, resolutions: tuple[int, ...] = DETAIL_RESOLUTIONS) 
     """{cells across the unit box: area-weighted mean over occupied cells of 1 - |mean normal|} of the mesh in its
     normalised frame (triangles binned by centroid). It falls as cells shrink toward the scale below which the
     surface is flat; it is 0 once a cell holds one triangle. Linear in triangles (~4 s for 3.3M)."""
-    tri = mesh.triangles().astype(np.float64)
-    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    area = 0.5 * np.linalg.norm(cross, axis=1)
-    normal = cross / np.maximum(2 * area, 1e-30)[:, None]
+    tri, area, normal = _triangle_areas_normals(mesh)
     centre = tri.mean(axis=1)
-    out = {}
-    for r in resolutions:
-        cell = np.clip((centre * r).astype(np.int64), 0, r - 1)
-        _, cid = np.unique((cell[:, 0] * r + cell[:, 1]) * r + cell[:, 2], return_inverse=True)
-        cell_area = np.bincount(cid, weights=area)
-        summed = np.stack([np.bincount(cid, weights=area * normal[:, a]) for a in range(3)], 1)
-        coherence = np.linalg.norm(summed, axis=1) / np.maximum(cell_area, 1e-30)
-        out[r] = float(max(0.0, np.sum((1 - coherence) * cell_area) / max(cell_area.sum(), 1e-30)))
-    return out
+    return {r: max(0.0, _cell_roughness(centre, area, normal, r)[0]) for r in resolutions}
 
 
 @dataclass
