@@ -28,7 +28,7 @@ from nbvh_core.exact import ExactTracer  # noqa: E402
 from nbvh_core.metrics import evaluate_renderer  # noqa: E402
 from nbvh_core.pipeline import compress_mesh, preset  # noqa: E402
 from nbvh_core.render import render_reference  # noqa: E402
-from nbvh_core.sizing import choose_resolution, decimate, mesh_resident_bytes  # noqa: E402
+from nbvh_core.sizing import choose_resolution, decimate, grid_measures, mesh_resident_bytes  # noqa: E402
 
 RESULTS = ROOT / "bench" / "results"
 FIELDS = ["mesh", "triangles", "preset", "storage", "train_s", "steps", "file_bytes", "model_resident_bytes",
@@ -179,6 +179,7 @@ def main() -> None:
     done = {(r["mesh"], r["preset"], r["storage"]) for r in read_rows(path)}
     for mesh_name in args.meshes:
         mesh = load_bench_mesh(mesh_name)
+        grid = None  # the mesh's grid measures, taken once (seconds on the 3.3M-triangle lattice)
         tracer = ExactTracer(mesh)
         for preset_name in args.presets:
             for bits in args.table_bits:
@@ -197,7 +198,8 @@ def main() -> None:
                 if extra:
                     storage += " " + " ".join(f"{k}={v}" for k, v in sorted(extra.items()))
                 if s.n_max is None:  # the grid chosen from the mesh: name it, so the row is not the 128 one
-                    storage += f" n_max=auto:{choose_resolution(mesh, s.log2_table)[0]}"
+                    grid = grid or grid_measures(mesh)
+                    storage += f" n_max=auto:{choose_resolution(grid, s.log2_table)[0]}"
                 if (mesh_name, preset_name, storage) in done:
                     continue
                 print(f"{mesh_name} {preset_name} {storage}: training {s.time_limit_s} s", flush=True)

@@ -10,6 +10,7 @@ rewritten after every row with `sizing.choose_resolution`'s pick beside the best
 from __future__ import annotations
 
 import argparse
+import functools
 import sys
 import time
 from pathlib import Path
@@ -24,6 +25,12 @@ from nbvh_core.pipeline import compress_mesh, preset  # noqa: E402
 from nbvh_core.sizing import TABLE_LOAD, choose_resolution, grid_measures  # noqa: E402
 
 RESULTS = ROOT / "bench" / "results"
+@functools.lru_cache(maxsize=None)
+def mesh_grid(name: str):
+    """The bench mesh's grid measures, taken once per run (loading and measuring the lattice takes seconds)."""
+    return grid_measures(bench_mesh(name))
+
+
 FIELDS = ["mesh", "preset", "log2_table", "n_max", "steps", "train_s", "mse", "iou", "surface_cells", "created"]
 
 
@@ -43,7 +50,7 @@ def write_md(rows: list[dict]) -> None:
     for mesh, log2, steps in groups:
         mine = [r for r in rows if (r["mesh"], r["log2_table"], r["steps"]) == (mesh, log2, steps)]
         best = min(mine, key=lambda r: float(r["mse"]))
-        pick = choose_resolution(grid_measures(bench_mesh(mesh)), int(log2))[0]
+        pick = choose_resolution(mesh_grid(mesh), int(log2))[0]
         lines.append(f"| {mesh} | 2^{log2} | {steps} | {best['n_max']} (MSE {float(best['mse']):.5f}) | {pick} |")
     (RESULTS / "resolution.md").write_text("\n".join(lines) + "\n")
 
@@ -69,7 +76,7 @@ def main() -> None:
                                     force=True)
             s.time_limit_s = None
             res = compress_mesh(mesh, s, None)
-            cells = grid_measures(mesh).cells.get(n_max, "")
+            cells = mesh_grid(mesh_name).cells.get(n_max, "")
             row = {"mesh": mesh_name, "preset": args.preset, "log2_table": s.log2_table, "n_max": n_max,
                    "steps": res.training.steps, "train_s": round(res.training.seconds, 1), "mse": res.quality.mse,
                    "iou": res.quality.silhouette_iou, "surface_cells": cells,

@@ -156,7 +156,7 @@ class NeuralBVH(nn.Module):
             c1 = min(n, c0 + ray_chunk)
             evaluated += self._query_chunk(rays_o[c0:c1], rays_d[c0:c1], hit[c0:c1], t_out[c0:c1], normal[c0:c1],
                                            fused, batch)
-        # Normals face the ray (a network trained with the unoriented loss knows only the surface's line).
+        # Normals face the ray, whatever sign the network learnt (unoriented loss; rays that started inside).
         normal = torch.where(((normal * rays_d).sum(-1, keepdim=True) > 0), -normal, normal)
         return QueryResult(hit=hit, t=t_out, normal=normal, leaves_evaluated=evaluated)
 
