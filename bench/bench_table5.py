@@ -11,6 +11,9 @@ default storage (8-bit tables, boxes and weight rows; `estimate_file_bytes`). Re
 with this product's normal targets facing the ray (`Settings.normal_loss`, default 'facing'); `--normal-loss
 oriented` is the paper's (as the mesh winds them), `unoriented` either sign; each loss has its own CSV
 (table5.csv, table5_oriented_loss.csv, table5_unoriented_loss.csv) and normal_loss.md compares them.
+`--n-max auto` (default) lets every method's grid be chosen from the mesh and its table (`sizing.choose_resolution`,
+as the user presets do; base and III alike), `--n-max 128` is the paper's fixed grid (stem suffix `_nmax128`).
+Stop 14's runs (KMLP normal weight 0.5, N_max 128) are kept as table5_stop14_{facing,oriented,unoriented}_loss.csv.
 """
 from __future__ import annotations
 
@@ -29,8 +32,8 @@ from nbvh_core.pipeline import compress_mesh, estimate_file_bytes, preset  # noq
 
 RESULTS = ROOT / "bench" / "results"
 PLAN = [("base", 11), ("I", 9), ("I", 10), ("II", 9), ("II", 10), ("III", 8), ("III", 9)]
-FIELDS = ["mesh", "method", "log2_table", "steps", "train_s", "mse", "iou", "file_bytes_float32",
-          "file_bytes_default_storage", "created"]
+FIELDS = ["mesh", "method", "log2_table", "n_max", "normal_weight", "steps", "train_s", "mse", "iou",
+          "file_bytes_float32", "file_bytes_default_storage", "created"]
 
 
 def bytes_to_reach(points: list[tuple[int, float]], target: float) -> float | None:
@@ -50,10 +53,10 @@ def bytes_to_reach(points: list[tuple[int, float]], target: float) -> float | No
 
 
 def write_normal_loss_md() -> None:
-    """normal_loss.md: base's and III's MSE per mesh under each normal loss (the three Table 5 CSVs)."""
-    runs = {loss: read_rows(RESULTS / (f"table5.csv" if loss == "facing" else f"table5_{loss}_loss.csv"))
-            for loss in ("facing", "oriented", "unoriented")}
-    lines = ["# Normal loss at equal steps (bench/bench_table5.py's three runs)", "",
+    """normal_loss.md: base's and III's MSE per mesh under each normal loss (stop 14's three Table 5 CSVs)."""
+    runs = {loss: read_rows(RESULTS / f"table5_stop14_{loss}_loss.csv") for loss in ("facing", "oriented", "unoriented")}
+    lines = ["# Normal loss at equal steps (bench/bench_table5.py's three runs, stop 14: KMLP normal weight 0.5, "
+             "N_max 128)", "",
              "Image MSE (16 views, 128 px) after the same steps, one run each; 'facing' = normal targets flipped "
              "toward the ray (this product's default), 'oriented' = as the mesh winds them (the paper), "
              "'unoriented' = L1 to the nearer of +-normal.", "",
@@ -68,16 +71,19 @@ def write_normal_loss_md() -> None:
     (RESULTS / "normal_loss.md").write_text("\n".join(lines) + "\n")
 
 
-def write_md(rows: list[dict], steps: int, stem: str = "table5", normal_loss: str = "facing") -> None:
-    lines = [f"# Table 5 at equal steps (bench/bench_table5.py), {normal_loss} normal loss", "",
+def write_md(rows: list[dict], steps: int, stem: str = "table5", normal_loss: str = "facing",
+             n_max: str = "auto") -> None:
+    grid = "the grid chosen per mesh" if n_max == "auto" else f"N_max {n_max}"
+    lines = [f"# Table 5 at equal steps (bench/bench_table5.py --n-max {n_max}), {normal_loss} normal loss, {grid}", "",
              f"{steps} training steps per model on this 2-core CPU; MSE over 16 views at 128 px. 'reaches at' = the "
              "bytes at which the method's MSE equals base's, interpolated (log-log) between its measured sizes, over "
              "base's bytes (float32 storage, as the paper stores; the default-storage column is the same model's size "
              "in this product's 8-bit format).",
-             "", "| mesh | method | T | MSE | IoU | float32 file B | default-storage B | train s |",
-             "|---|---|---|---|---|---|---|---|"]
+             "", "| mesh | method | T | N_max | normal weight | MSE | IoU | float32 file B | default-storage B | train s |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        lines.append(f"| {r['mesh']} | {r['method']} | 2^{r['log2_table']} | {float(r['mse']):.5f} | "
+        lines.append(f"| {r['mesh']} | {r['method']} | 2^{r['log2_table']} | {r.get('n_max') or 128} | "
+                     f"{r.get('normal_weight') or '-'} | {float(r['mse']):.5f} | "
                      f"{float(r['iou']):.4f} | {int(r['file_bytes_float32']):,} | "
                      f"{int(r['file_bytes_default_storage']):,} | {float(r['train_s']):.0f} |")
     lines += ["", "| mesh | base MSE | I reaches at | II reaches at | III reaches at (bytes / base) |",
@@ -104,9 +110,13 @@ def main() -> None:
     ap.add_argument("--methods", nargs="+", default=["base", "I", "II", "III"],
                     help="method steps to run (base and III answer the Table 5 question alone)")
     ap.add_argument("--normal-loss", choices=["facing", "oriented", "unoriented"], default="facing")
+    ap.add_argument("--n-max", default="auto", help="'auto' (chosen per mesh and table) or a resolution (128: the "
+                    "paper's)")
     args = ap.parse_args()
     kernels.keep_freed_memory()
-    stem = "table5" if args.normal_loss == "facing" else f"table5_{args.normal_loss}_loss"
+    n_max = None if args.n_max == "auto" else int(args.n_max)
+    stem = ("table5" if args.normal_loss == "facing" else f"table5_{args.normal_loss}_loss") + (
+        "" if n_max is None else f"_nmax{n_max}")
     path = RESULTS / f"{stem}.csv"
     done = {(r["mesh"], r["method"], r["log2_table"]) for r in read_rows(path)}
     for mesh_name in args.meshes:
@@ -117,10 +127,11 @@ def main() -> None:
             mesh = mesh or bench_mesh(mesh_name)
             s = preset(method).with_overrides(steps=args.steps, log2_table=log2, table_bits=32, network_bits=32,
                                               node_bits=32, force=True, normal_loss=args.normal_loss)
-            s.time_limit_s = None
+            s.time_limit_s, s.n_max = None, n_max
             t = time.perf_counter()
             res = compress_mesh(mesh, s, None)
-            row = {"mesh": mesh_name, "method": method, "log2_table": log2, "steps": res.training.steps,
+            row = {"mesh": mesh_name, "method": method, "log2_table": log2, "n_max": res.settings.n_max,
+                   "normal_weight": res.model.cfg.network.normal_weight, "steps": res.training.steps,
                    "train_s": round(res.training.seconds, 1), "mse": res.quality.mse,
                    "iou": res.quality.silhouette_iou, "file_bytes_float32": res.file_bytes,
                    "file_bytes_default_storage": estimate_file_bytes(s.with_overrides(table_bits=8, network_bits=8,
@@ -128,8 +139,7 @@ def main() -> None:
                    "created": time.strftime("%Y-%m-%dT%H:%M:%S")}
             append_row(path, {k: row[k] for k in FIELDS})
             print(row, f"({time.perf_counter() - t:.0f} s)", flush=True)
-            write_md(read_rows(path), args.steps, stem, args.normal_loss)
-            write_normal_loss_md()
+            write_md(read_rows(path), args.steps, stem, args.normal_loss, args.n_max)
 
 
 if __name__ == "__main__":

@@ -50,6 +50,8 @@ class Settings:
     #: paper's L1 to the normal as the mesh winds it; 'unoriented': L1 to the nearer of +-normal
     #: (NetworkConfig.normal_loss). Measured in bench/results/normal_loss.md.
     normal_loss: str = "facing"
+    #: The normal term's weight in the loss; None: the network's own (networks.NORMAL_WEIGHTS).
+    normal_weight: float | None = None
     labels: str = "consistent"
     lr: float = 5e-3
     steps: int | None = None
@@ -89,6 +91,7 @@ class Settings:
                                           # unresolved (no mesh yet): the paper's 128; bytes do not depend on it
                                           n_max=self.n_max or PAPER_N_MAX),
                            NetworkConfig(kind=self.network, k=self.k, hidden=self.hidden, width=self.width,
+                                         normal_weight=self.normal_weight,
                                          normal_loss="unoriented" if self.normal_loss == "unoriented" else "oriented"))
 
     def storage(self) -> StorageConfig:
