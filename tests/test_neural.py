@@ -157,6 +157,11 @@ def blob_setup(sample_meshes):
     return mesh, build_bvh(mesh, 63), ExactTracer(mesh)
 
 
+#: Steps for every configuration: HashVQAD anneals and freezes inside them; at 6, hashvqad + KMLP (normal weight 3)
+#: ended 0.1% above where it started, at 10 and 16 every configuration was below.
+STEPS = 10
+
+
 @pytest.mark.parametrize("encoding,network,labels",
                          list(itertools.product(["hashgrid", "hashvqad"], ["mlp", "kmlp"], ["ownership", "consistent"])))
 def test_every_config_trains_and_renders(blob_setup, encoding, network, labels):
@@ -173,11 +178,11 @@ def test_every_config_trains_and_renders(blob_setup, encoding, network, labels):
                                          facing_normals=TrainConfig().facing_normals)  # the targets it trains on
     with torch.no_grad():
         before = float(samples_loss(model, held_out, torch.device("cpu"))[0])
-    res = train(model, bvh, tracer, TrainConfig(labels=labels, steps=6, rays_per_step=256, lr=5e-3))
-    assert res.steps == 6 and all(np.isfinite(loss) for _, loss in res.history)
+    res = train(model, bvh, tracer, TrainConfig(labels=labels, steps=STEPS, rays_per_step=256, lr=5e-3))
+    assert res.steps == STEPS and all(np.isfinite(loss) for _, loss in res.history)
     with torch.no_grad():
         after = float(samples_loss(model, held_out, torch.device("cpu"))[0])
-    assert after < before  # it learns something even in 6 steps
+    assert after < before  # it learns something even in a few steps
     if encoding == "hashvqad":
         assert model.encoding.frozen and res.frozen_loss is not None
     img = render_neural(model, orbit_cameras(1)[0], 24, 24)
