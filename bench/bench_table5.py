@@ -98,7 +98,7 @@ def write_md(rows: list[dict], steps: int, stem: str = "table5", normal_loss: st
             pts = sorted((int(r["file_bytes_float32"]), float(r["mse"])) for r in mine if r["method"] == method)
             b = bytes_to_reach(pts, float(base["mse"]))
             cells.append("- (not run)" if not pts else "not reached" if b is None
-                         else f"{b / int(base['file_bytes_float32']):.2f}x")
+                         else f"{b / int(base['file_bytes_float32']):.3f}x")
         lines.append(f"| {mesh} | {float(base['mse']):.5f} | " + " | ".join(cells) + " |")
     (RESULTS / f"{stem}.md").write_text("\n".join(lines) + "\n")
 

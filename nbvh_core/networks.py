@@ -9,8 +9,9 @@ i = 0..k-1 (both segment ends included), and share one interface:
 
 **MLP** (N-BVH baseline): one MLP over the concatenated k encodings (k * D inputs), 4 hidden layers of 64,
 ReLU, 5 outputs: hit logit h, depth logit d, normal (3). hit_prob = sigmoid(h), local_t = sigmoid(d).
-Loss = BCE(h, hit) + w_t * |sigmoid(d) - local_t| + w_n * |normalize(n) - normal|_1, the last two only
-where the target is a hit (N-BVH's masked L1s).
+Loss = BCE(h, hit) + w_t * |sigmoid(d) - local_t| + w_n * |normalize(n) - normal|_1 + w_u * (|n| - 1)^2, the
+last three only where the target is a hit (N-BVH's masked L1s, and a pull that keeps the raw normal near unit
+length: NORMAL_UNIT_WEIGHTS).
 
 **KMLP**: one shared MLP over each of the k - 1 adjacent pairs (2 * D inputs), 5 outputs per pair j: hit logit
 h_j, depth logit d_j inside sub-segment j, normal n_j. Combination rule, front to back: with p_j = sigmoid(h_j),
@@ -19,7 +20,7 @@ hit probability is P = sum_j q_j = 1 - prod_j (1 - p_i). The leaf reports a hit 
 sub-segment j^ = argmax_j q_j, at local_t = (j^ + sigmoid(d_j^)) / (k - 1) with normal n_j^.
 Loss (log space, stable): BCE(P, hit) + for hits, the cross-entropy -log(q_j* / P) of the true sub-segment
 j* = min(floor(local_t * (k - 1)), k - 2), plus the masked L1s of depth (on the sub-segment scale) and normal
-of pair j*.
+of pair j* and the unit pull on its normal.
 Parameter count does not depend on k.
 """
 from __future__ import annotations
@@ -40,6 +41,13 @@ NORMAL_LOSSES = ("oriented", "unoriented")
 #: The MLP barely moves (0.0084 at 0.5, 0.0095 at 1, 0.0090 at 2); lowering KMLP's depth weight to the leaf scale
 #: instead made it worse (0.048).
 NORMAL_WEIGHTS = {"mlp": 0.5, "kmlp": 3.0}
+#: Weight of the unit pull (|v| - 1)^2 on the raw normal v (hit rows; KMLP's true pair). The L1 of normalize(v) is blind
+#: to |v| and its gradient shrinks as 1 / |v|; every Adam step on it is orthogonal to v and lengthens it. Measured on
+#: the studs (III, T=2^8, 1,200 steps, image MSE): without the pull, 3 of 4 seeds stalled with |v| at 20-25 and the
+#: normal L1 at ~1.83 (no better than not knowing the ray's side) from step ~300 on (MSE 0.0498 x3, the fourth
+#: 0.0148); with 0.1 none stalled but all learnt slower (0.0153-0.0224); with 0.01 the two stalling seeds reach
+#: 0.0130 and 0.0142 (k=4: 0.0127 vs 0.0121 without). The MLP never stalled: off.
+NORMAL_UNIT_WEIGHTS = {"mlp": 0.0, "kmlp": 0.01}
 
 
 @dataclass
@@ -58,11 +66,15 @@ class NetworkConfig:
     depth_weight: float = 1.0
     #: None: the network's own (NORMAL_WEIGHTS); a file stores the resolved number.
     normal_weight: float | None = None
+    #: Weight of the unit pull (|raw normal| - 1)^2; None: the network's own (NORMAL_UNIT_WEIGHTS).
+    normal_unit_weight: float | None = None
     normal_loss: str = "oriented"
 
     def __post_init__(self) -> None:
         if self.normal_weight is None:
             self.normal_weight = NORMAL_WEIGHTS.get(self.kind, NORMAL_WEIGHTS["mlp"])
+        if self.normal_unit_weight is None:
+            self.normal_unit_weight = NORMAL_UNIT_WEIGHTS.get(self.kind, NORMAL_UNIT_WEIGHTS["mlp"])
         if self.normal_loss not in NORMAL_LOSSES:
             raise ValueError(f"unknown normal loss {self.normal_loss!r}; choose from {', '.join(NORMAL_LOSSES)}")
 
@@ -110,6 +122,11 @@ def _normal_l1(pred: torch.Tensor, target: torch.Tensor, unoriented: bool) -> to
     """(B,) L1 of unit normals (B, 3); unoriented: to the nearer of +target and -target."""
     same = _l1(pred, target)
     return torch.minimum(same, _l1(pred, -target)) if unoriented else same
+
+
+def _unit_pull(v: torch.Tensor) -> torch.Tensor:
+    """(B,) (|v| - 1)^2 of raw normals v (B, 3): keeps them near unit length (see NORMAL_UNIT_WEIGHTS)."""
+    return (v.norm(dim=-1) - 1.0) ** 2
 
 
 def _masked_mean(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -170,7 +187,7 @@ class MLP(Network):
     """Baseline network (see module docstring). feats (B, k, D) -> raw (B, 5)."""
 
     fused_kind = "mlp"
-    HIT_TERMS = {"depth_l1": "depth_weight", "normal_l1": "normal_weight"}
+    HIT_TERMS = {"depth_l1": "depth_weight", "normal_l1": "normal_weight", "normal_unit": "normal_unit_weight"}
 
     def __init__(self, in_dim: int, cfg: NetworkConfig):
         super().__init__()
@@ -187,14 +204,16 @@ class MLP(Network):
               normal: torch.Tensor) -> dict[str, torch.Tensor]:
         return {"bce": F.binary_cross_entropy_with_logits(raw[:, 0], hit.to(raw.dtype), reduction="none"),
                 "depth_l1": _l1(torch.sigmoid(raw[:, 1]), local_t),
-                "normal_l1": _normal_l1(F.normalize(raw[:, 2:5], dim=-1), normal, self.unoriented)}
+                "normal_l1": _normal_l1(F.normalize(raw[:, 2:5], dim=-1), normal, self.unoriented),
+                "normal_unit": _unit_pull(raw[:, 2:5])}
 
 
 class KMLP(Network):
     """Shared pair network (see module docstring). feats (B, k, D) -> raw (B, k - 1, 5)."""
 
     fused_kind = "kmlp"
-    HIT_TERMS = {"segment_ce": None, "depth_l1": "depth_weight", "normal_l1": "normal_weight"}
+    HIT_TERMS = {"segment_ce": None, "depth_l1": "depth_weight", "normal_l1": "normal_weight",
+                 "normal_unit": "normal_unit_weight"}
 
     def __init__(self, in_dim: int, cfg: NetworkConfig):
         super().__init__()
@@ -238,7 +257,8 @@ class KMLP(Network):
         return {"bce": -(hit_f * log_hit + (1 - hit_f) * log_none),
                 "segment_ce": -(log_q[rows, j_star] - log_hit),  # -log(q_j* / P)
                 "depth_l1": _l1(torch.sigmoid(raw[rows, j_star, 1]), sub_t),
-                "normal_l1": _normal_l1(F.normalize(raw[rows, j_star, 2:5], dim=-1), normal, self.unoriented)}
+                "normal_l1": _normal_l1(F.normalize(raw[rows, j_star, 2:5], dim=-1), normal, self.unoriented),
+                "normal_unit": _unit_pull(raw[rows, j_star, 2:5])}
 
     def report_parts(self, parts: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         # Depth reported on the leaf scale (a sub-segment is 1/(k-1) of the leaf), comparable with the MLP's.

@@ -52,6 +52,8 @@ class Settings:
     normal_loss: str = "facing"
     #: The normal term's weight in the loss; None: the network's own (networks.NORMAL_WEIGHTS).
     normal_weight: float | None = None
+    #: The unit pull's weight on raw normals; None: the network's own (networks.NORMAL_UNIT_WEIGHTS).
+    normal_unit_weight: float | None = None
     labels: str = "consistent"
     lr: float = 5e-3
     steps: int | None = None
@@ -91,7 +93,7 @@ class Settings:
                                           # unresolved (no mesh yet): the paper's 128; bytes do not depend on it
                                           n_max=self.n_max or PAPER_N_MAX),
                            NetworkConfig(kind=self.network, k=self.k, hidden=self.hidden, width=self.width,
-                                         normal_weight=self.normal_weight,
+                                         normal_weight=self.normal_weight, normal_unit_weight=self.normal_unit_weight,
                                          normal_loss="unoriented" if self.normal_loss == "unoriented" else "oriented"))
 
     def storage(self) -> StorageConfig:

@@ -256,7 +256,10 @@ def test_fused_inference_is_not_used_where_it_does_not_apply(sample_meshes):
      dict(kind="mlp", k=4)),  # soft (not frozen): gradients go on through the softmax
     # the unoriented normal loss (the L1 to the nearer of +-target, a flag of the kernel)
     (dict(kind="hashgrid", log2_table=6, levels=2, features=8), dict(kind="mlp", k=4, normal_loss="unoriented")),
-    (dict(kind="hashgrid", log2_table=6, levels=2, features=8), dict(kind="kmlp", k=4, normal_loss="unoriented"))])
+    (dict(kind="hashgrid", log2_table=6, levels=2, features=8), dict(kind="kmlp", k=4, normal_loss="unoriented")),
+    # the unit pull on raw normals, on where the network's default leaves it off (MLP) and off where it is on (KMLP)
+    (dict(kind="hashgrid", log2_table=6, levels=2, features=8), dict(kind="mlp", k=4, normal_unit_weight=0.7)),
+    (dict(kind="hashgrid", log2_table=6, levels=2, features=8), dict(kind="kmlp", k=4, normal_unit_weight=0.0))])
 def test_fused_training_step_gives_the_loss_and_gradients_of_autograd(enc_kw, net_kw, sample_meshes):
     from nbvh_core.exact import ExactTracer
     from nbvh_core.kernels import mlp

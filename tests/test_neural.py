@@ -135,6 +135,32 @@ def test_unoriented_normal_loss_ignores_the_sign_of_the_target_and_the_oriented_
         NetworkConfig(normal_loss="sideways")
 
 
+@pytest.mark.parametrize("kind", ["mlp", "kmlp"])
+def test_unit_pull_holds_raw_normals_near_unit_length_without_turning_them(kind):
+    """The pull (|v| - 1)^2 is zero at unit length and its gradient on a long or short raw normal points along it
+    (it changes the length, never the direction the L1 is learning)."""
+    net = {"mlp": MLP, "kmlp": KMLP}[kind](4, NetworkConfig(kind=kind, k=4, normal_unit_weight=1.0))
+    assert NetworkConfig(kind="kmlp").normal_unit_weight > 0 and NetworkConfig(kind="mlp").normal_unit_weight == 0
+    hit, local_t = torch.ones(3, dtype=torch.bool), torch.full((3,), 0.1)  # KMLP: the true pair is pair 0
+    direction = F.normalize(torch.tensor([[1.0, 2.0, -2.0]]), dim=-1)
+    lengths = torch.tensor([1.0, 25.0, 0.2])
+    raw = torch.zeros((3, 5) if kind == "mlp" else (3, 3, 5))
+    v = direction * lengths[:, None]
+    if kind == "mlp":
+        raw[:, 2:5] = v
+    else:
+        raw[:, 0, 2:5] = v
+    raw.requires_grad_(True)
+    unit = net.terms(raw, hit, local_t, direction.expand(3, 3))["normal_unit"]
+    assert torch.allclose(unit, (lengths - 1) ** 2)
+    unit.sum().backward()
+    g = raw.grad[:, 2:5] if kind == "mlp" else raw.grad[:, 0, 2:5]
+    assert float(g[0].abs().max()) < 1e-6
+    along = (g * direction).sum(-1)
+    assert float(along[1]) > 0 > float(along[2])  # descent shortens the long one, lengthens the short one
+    assert torch.allclose(g, along[:, None] * direction, atol=1e-5)
+
+
 def test_query_normals_face_the_ray(blob_setup):
     mesh, bvh, tracer = blob_setup
     model = NeuralBVH(bvh.nodes, ModelConfig(EncodingConfig(kind="hashgrid", log2_table=6, levels=2, features=4),

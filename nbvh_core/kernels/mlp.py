@@ -114,13 +114,13 @@ def train_step(model, samples, want_raw: bool = False) -> tuple[float, dict]:
     feat_width = model.encoding.out_dim * k  # a segment's feature row (KMLP's pairs are windows of it)
     points, dx = _scratch(model, b, k, feat_width)
     raw = (torch.empty((b, k - 1, 5) if kmlp else (b, 5), dtype=torch.float32)) if want_raw else None
-    loss_parts = torch.zeros(4 if kmlp else 3, dtype=torch.float64)
+    loss_parts = torch.zeros(5 if kmlp else 4, dtype=torch.float64)
     lib.nbvh_net_train(
         ptr(samples.rays_o.contiguous()), ptr(samples.rays_d.contiguous()), ptr(samples.ray.contiguous()),
         ptr(samples.t_enter.contiguous()), ptr(samples.t_exit.contiguous()), b, k, ptr(frac), ptr(table),
         *_grid_args(spec, table, codes, code_rows), int(kmlp), len(dims) - 1, ptr(dims), ptr(params), ptr(hit),
         ptr(local_t), ptr(normal), int(hit.sum()), float(net_cfg.depth_weight), float(net_cfg.normal_weight),
-        int(net_cfg.normal_loss == "unoriented"),
+        int(net_cfg.normal_loss == "unoriented"), float(net_cfg.normal_unit_weight),
         ptr(loss_parts), ptr(grad_params), ptr(grad_table), ptr(points), ptr(dx), ptr(raw), threads())
     # Unpack the Linear gradients (stored transposed, like the parameters).
     pos = 0
@@ -135,14 +135,16 @@ def train_step(model, samples, want_raw: bool = False) -> tuple[float, dict]:
     else:  # a soft HashVQAD row table: on through its softmax to the table and the index logits
         torch.autograd.backward(rows, grad_table)
     if kmlp:
-        bce, ce, depth, nrm = (float(v) for v in loss_parts)
-        total = bce + ce + net_cfg.depth_weight * depth + net_cfg.normal_weight * nrm
+        bce, ce, depth, nrm, unit = (float(v) for v in loss_parts)
+        total = bce + ce + net_cfg.depth_weight * depth + net_cfg.normal_weight * nrm + net_cfg.normal_unit_weight * unit
         parts = {"bce": torch.tensor(bce), "segment_ce": torch.tensor(ce),
-                 "depth_l1": torch.tensor(depth / (k - 1)), "normal_l1": torch.tensor(nrm)}
+                 "depth_l1": torch.tensor(depth / (k - 1)), "normal_l1": torch.tensor(nrm),
+                 "normal_unit": torch.tensor(unit)}
     else:
-        bce, depth, nrm = (float(v) for v in loss_parts)
-        total = bce + net_cfg.depth_weight * depth + net_cfg.normal_weight * nrm
-        parts = {"bce": torch.tensor(bce), "depth_l1": torch.tensor(depth), "normal_l1": torch.tensor(nrm)}
+        bce, depth, nrm, unit = (float(v) for v in loss_parts)
+        total = bce + net_cfg.depth_weight * depth + net_cfg.normal_weight * nrm + net_cfg.normal_unit_weight * unit
+        parts = {"bce": torch.tensor(bce), "depth_l1": torch.tensor(depth), "normal_l1": torch.tensor(nrm),
+                 "normal_unit": torch.tensor(unit)}
     if want_raw:
         parts["raw"] = raw
     return total, parts

@@ -511,14 +511,16 @@ void mlp_segments_t(const Grid& g, const float* rays_o, const float* rays_d, con
 }
 
 struct LossSums {
-    double bce = 0, depth = 0, normal = 0;
+    double bce = 0, depth = 0, normal = 0, unit = 0;
 };
 
-// The masked L1 terms of one hit row o (5,) = (hit logit, depth logit, normal xyz): |sigmoid(o[1]) - target_t| and
-// |normalize(o[2:5]) - target_n|_1 (unoriented: to the nearer of +-target_n), added to the sums; their gradients
-// (weights w_t, w_n, over the hit count) into g[1..4]. Shared by the MLP loss and the KMLP loss (its true sub-segment's row).
+// The masked terms of one hit row o (5,) = (hit logit, depth logit, normal xyz): |sigmoid(o[1]) - target_t|,
+// |normalize(o[2:5]) - target_n|_1 (unoriented: to the nearer of +-target_n) and the unit pull (|o[2:5]| - 1)^2,
+// added to the sums; their gradients (weights w_t, w_n, w_unit, over the hit count) into g[1..4]. Shared by the MLP
+// loss and the KMLP loss (its true sub-segment's row).
 inline void depth_normal_rows(const float* o, float target_t, const float* target_n, float w_t, float w_n, int unoriented,
-                              float inv_hits, float* g, double& depth_sum, double& normal_sum) {
+                              float w_unit, float inv_hits, float* g, double& depth_sum, double& normal_sum,
+                              double& unit_sum) {
     const float s = 1.f / (1.f + std::exp(-o[1]));
     const float dt = s - target_t;
     depth_sum += std::fabs(dt);
@@ -547,6 +549,10 @@ inline void depth_normal_rows(const float* o, float target_t, const float* targe
     } else {  // the clamp: v / eps, constant denominator
         for (int a = 0; a < 3; ++a) g[2 + a] = gn[a] / 1e-12f;
     }
+    const float du = norm - 1.f;  // d (|v| - 1)^2 = 2 (|v| - 1) v / |v| (0 at v = 0, as torch's norm backward)
+    unit_sum += du * du;
+    const float gu = norm > 1e-12f ? w_unit * inv_hits * 2.f * du / norm : 0.f;
+    for (int a = 0; a < 3; ++a) g[2 + a] += gu * o[2 + a];
 }
 
 // Where layer j's gradients start in a thread's buffer: W^T (in, padded(out)) then the bias (out), layer after layer.
@@ -578,7 +584,7 @@ inline void sum_thread_grads(const std::vector<std::vector<float>>& grads, const
 // the batch's hit count) for rows [0, m) of raw (TILE, 5); writes d loss / d raw into d_raw (TILE, 5), zero rows
 // from m on. inv_b = 1 / batch size, inv_hits = 1 / max(hit count, 1).
 inline void mlp_loss_rows(const float* raw, int m, const uint8_t* hit, const float* local_t, const float* normal,
-                          float inv_b, float inv_hits, float w_t, float w_n, int unoriented, float* d_raw, LossSums& sums) {
+                          float inv_b, float inv_hits, float w_t, float w_n, int unoriented, float w_unit, float* d_raw, LossSums& sums) {
     for (int r = 0; r < TILE; ++r) {
         float* g = d_raw + r * 5;
         for (int c = 0; c < 5; ++c) g[c] = 0.f;
@@ -589,7 +595,8 @@ inline void mlp_loss_rows(const float* raw, int m, const uint8_t* hit, const flo
         const float p = 1.f / (1.f + std::exp(-x));
         g[0] = (p - y) * inv_b;
         if (!hit[r]) continue;
-        depth_normal_rows(o, local_t[r], normal + 3 * r, w_t, w_n, unoriented, inv_hits, g, sums.depth, sums.normal);
+        depth_normal_rows(o, local_t[r], normal + 3 * r, w_t, w_n, unoriented, w_unit, inv_hits, g, sums.depth, sums.normal,
+                          sums.unit);
     }
 }
 
@@ -597,7 +604,7 @@ template <int F>
 void mlp_train_t(const Grid& g, const float* rays_o, const float* rays_d, const int64_t* ray, const float* te,
                  const float* tx, int64_t b, int k, const float* frac, const float* table, int n_layers,
                  const int32_t* dims, const float* params, const uint8_t* hit, const float* local_t,
-                 const float* normal, float inv_hits, float w_t, float w_n, int unoriented, double* loss_out, float* grad_params,
+                 const float* normal, float inv_hits, float w_t, float w_n, int unoriented, float w_unit, double* loss_out, float* grad_params,
                  float* points, float* dx, float* out_raw, int threads) {
     const Layers<float> net(n_layers, dims, params, true);
     const std::vector<int64_t> g_off = grad_offsets(dims, n_layers);
@@ -630,7 +637,7 @@ void mlp_train_t(const Grid& g, const float* rays_o, const float* rays_d, const 
             float* d_cur = d_a.data();
             float* d_prev = d_b.data();
             mlp_loss_rows(act[n_layers].data(), m, hit + s0, local_t + s0, normal + 3 * s0, inv_b, inv_hits, w_t, w_n, unoriented,
-                          d_cur, sums[tid]);  // (TILE, 5), zero rows from m on: they add nothing below
+                          w_unit, d_cur, sums[tid]);  // (TILE, 5), zero rows from m on: they add nothing below
             for (int j = n_layers - 1; j >= 0; --j) {
                 const int n_in = dims[j], n_out = dims[j + 1];
                 const int64_t ld_in = padded(n_in), ld_out = padded(n_out);
@@ -656,10 +663,13 @@ void mlp_train_t(const Grid& g, const float* rays_o, const float* rays_d, const 
     }
     sum_thread_grads(grads, g_off, dims, n_layers, grad_params);
     LossSums total;
-    for (const auto& ls : sums) { total.bce += ls.bce; total.depth += ls.depth; total.normal += ls.normal; }
+    for (const auto& ls : sums) {
+        total.bce += ls.bce; total.depth += ls.depth; total.normal += ls.normal; total.unit += ls.unit;
+    }
     loss_out[0] = total.bce * inv_b;
     loss_out[1] = total.depth * inv_hits;
     loss_out[2] = total.normal * inv_hits;
+    loss_out[3] = total.unit * inv_hits;
 }
 
 
@@ -698,7 +708,7 @@ void kmlp_segments_t(const Grid& g, const float* rays_o, const float* rays_d, co
 }
 
 struct KLossSums {
-    double bce = 0, ce = 0, depth = 0, normal = 0;
+    double bce = 0, ce = 0, depth = 0, normal = 0, unit = 0;
 };
 
 inline float softplus(float x) { return std::fmax(x, 0.f) + std::log1p(std::exp(-std::fabs(x))); }
@@ -707,7 +717,7 @@ inline float softplus(float x) { return std::fmax(x, 0.f) + std::log1p(std::exp(
 // leaf's hit probability in log space, the cross-entropy of the true sub-segment, masked L1s of the depth inside it
 // and of its normal); d loss / d raw into d_raw (TILE, P, 5), zero rows from m on.
 inline void kmlp_loss_rows(const float* raw, int P, int m, const uint8_t* hit, const float* local_t,
-                           const float* normal, float inv_b, float inv_hits, float w_t, float w_n, int unoriented, float* d_raw,
+                           const float* normal, float inv_b, float inv_hits, float w_t, float w_n, int unoriented, float w_unit, float* d_raw,
                            KLossSums& sums) {
     std::vector<float> log_miss(P), log_q(P), prob(P);
     for (int r = 0; r < TILE; ++r) {
@@ -744,8 +754,8 @@ inline void kmlp_loss_rows(const float* raw, int P, int m, const uint8_t* hit, c
             g_none += g_ce * d_hit_d_none;
             float sub_t = pos - (float)js;
             sub_t = sub_t < 0.f ? 0.f : (sub_t > 1.f ? 1.f : sub_t);
-            depth_normal_rows(o + js * 5, sub_t, normal + 3 * r, w_t, w_n, unoriented, inv_hits, g + js * 5, sums.depth,
-                              sums.normal);
+            depth_normal_rows(o + js * 5, sub_t, normal + 3 * r, w_t, w_n, unoriented, w_unit, inv_hits, g + js * 5,
+                              sums.depth, sums.normal, sums.unit);
         }
         // d log_none / d x_i = -p_i; d (-log q_js) / d x_i = -(1 - p_i) at i = js, +p_i before it, 0 after.
         for (int i = 0; i < P; ++i) {
@@ -760,7 +770,7 @@ template <int F>
 void kmlp_train_t(const Grid& g, const float* rays_o, const float* rays_d, const int64_t* ray, const float* te,
                   const float* tx, int64_t b, int k, const float* frac, const float* table, int n_layers,
                   const int32_t* dims, const float* params, const uint8_t* hit, const float* local_t,
-                  const float* normal, float inv_hits, float w_t, float w_n, int unoriented, double* loss_out, float* grad_params,
+                  const float* normal, float inv_hits, float w_t, float w_n, int unoriented, float w_unit, double* loss_out, float* grad_params,
                   float* points, float* dx, float* out_raw, int threads) {
     const Layers<float> net(n_layers, dims, params, true);
     const int P = k - 1;
@@ -799,7 +809,7 @@ void kmlp_train_t(const Grid& g, const float* rays_o, const float* rays_d, const
             if (out_raw)
                 std::memcpy(out_raw + s0 * P * 5, raw.data(), sizeof(float) * (size_t)m * P * 5);
             kmlp_loss_rows(raw.data(), P, m, hit + s0, local_t + s0, normal + 3 * s0, inv_b, inv_hits, w_t, w_n, unoriented,
-                           d_raw.data(), sums[tid]);
+                           w_unit, d_raw.data(), sums[tid]);
             std::fill(d_x.begin(), d_x.end(), 0.f);
             for (int p = 0; p < P; ++p) {
                 auto& act = acts[p];
@@ -838,11 +848,14 @@ void kmlp_train_t(const Grid& g, const float* rays_o, const float* rays_d, const
     }
     sum_thread_grads(grads, g_off, dims, n_layers, grad_params);
     KLossSums total;
-    for (const auto& ls : sums) { total.bce += ls.bce; total.ce += ls.ce; total.depth += ls.depth; total.normal += ls.normal; }
+    for (const auto& ls : sums) {
+        total.bce += ls.bce; total.ce += ls.ce; total.depth += ls.depth; total.normal += ls.normal; total.unit += ls.unit;
+    }
     loss_out[0] = total.bce * inv_b;
     loss_out[1] = total.ce * inv_hits;
     loss_out[2] = total.depth * inv_hits;
     loss_out[3] = total.normal * inv_hits;
+    loss_out[4] = total.unit * inv_hits;
 }
 
 
@@ -1109,7 +1122,7 @@ void stream_next_t(const Nodes& nodes, const float* rays_o, const float* inv_d, 
 
 extern "C" {
 
-int nbvh_abi_version() { return 16; }
+int nbvh_abi_version() { return 17; }
 
 // Fused inference over B segments of an MLP (kmlp = 0: mlp_segments_t) or a KMLP (kmlp = 1: kmlp_segments_t):
 // rays_o/rays_d (n_rays, 3), ray (B,) int64 ray of each segment, te/tx (B,) segment ends, frac (k,) point
@@ -1150,9 +1163,9 @@ void nbvh_net_segments(const float* rays_o, const float* rays_d, const int64_t* 
         run(static_cast<const float*>(params));
 }
 
-// One training step on B labelled segments of an MLP (mlp_train_t; loss_out (3,) float64 = bce, depth_l1,
-// normal_l1; out_raw (B, 5)) or a KMLP (kmlp_train_t; loss_out (4,) = bce, segment_ce, depth_l1 on the sub-segment
-// scale, normal_l1; out_raw (B, k - 1, 5)); grad_params packed like params; grad_table (L, rows, F) accumulated
+// One training step on B labelled segments of an MLP (mlp_train_t; loss_out (4,) float64 = bce, depth_l1,
+// normal_l1, normal_unit; out_raw (B, 5)) or a KMLP (kmlp_train_t; loss_out (5,) = bce, segment_ce, depth_l1 on the
+// sub-segment scale, normal_l1, normal_unit; out_raw (B, k - 1, 5)); grad_params packed like params; grad_table (L, rows, F) accumulated
 // (zero it first). hit (B,) uint8, local_t (B,), normal (B, 3); hit_count = number of hit rows.
 // Scratch: points (B * k, 3), dx (B, k L F). out_raw may be null.
 void nbvh_net_train(const float* rays_o, const float* rays_d, const int64_t* ray, const float* te, const float* tx,
@@ -1160,7 +1173,7 @@ void nbvh_net_train(const float* rays_o, const float* rays_d, const int64_t* ray
                     const float* scales, const int64_t* res, const uint8_t* dense, int64_t vertex_table, int64_t rows,
                     const uint8_t* codes, int64_t code_rows, int kmlp, int n_layers, const int32_t* dims,
                     const float* params, const uint8_t* hit, const float* local_t, const float* normal,
-                    int64_t hit_count, float w_t, float w_n, int unoriented, double* loss_out, float* grad_params, float* grad_table,
+                    int64_t hit_count, float w_t, float w_n, int unoriented, float w_unit, double* loss_out, float* grad_params, float* grad_table,
                     float* points, float* dx, float* out_raw, int threads) {
     Grid g{levels, features, scales, res, dense, vertex_table, rows, codes, code_rows};
     g.init_masks();
@@ -1169,10 +1182,10 @@ void nbvh_net_train(const float* rays_o, const float* rays_d, const int64_t* ray
         constexpr int f = decltype(F)::value;
         if (kmlp)
             kmlp_train_t<f>(g, rays_o, rays_d, ray, te, tx, b, k, frac, table, n_layers, dims, params, hit, local_t,
-                            normal, inv_hits, w_t, w_n, unoriented, loss_out, grad_params, points, dx, out_raw, threads);
+                            normal, inv_hits, w_t, w_n, unoriented, w_unit, loss_out, grad_params, points, dx, out_raw, threads);
         else
             mlp_train_t<f>(g, rays_o, rays_d, ray, te, tx, b, k, frac, table, n_layers, dims, params, hit, local_t,
-                           normal, inv_hits, w_t, w_n, unoriented, loss_out, grad_params, points, dx, out_raw, threads);
+                           normal, inv_hits, w_t, w_n, unoriented, w_unit, loss_out, grad_params, points, dx, out_raw, threads);
         encode_backward_t<f>(g, points, b * k, dx, grad_table, threads);
     });
 }
