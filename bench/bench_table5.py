@@ -10,7 +10,7 @@ default storage (8-bit tables, boxes and weight rows; `estimate_file_bytes`). Re
 (mesh, method, log2 T) in bench/results/table5.csv; table5.md is rewritten after every row. Every method trains
 with this product's normal targets facing the ray (`Settings.normal_loss`, default 'facing'); `--normal-loss
 oriented` is the paper's (as the mesh winds them), `unoriented` either sign; each loss has its own CSV
-(table5.csv, table5_oriented_loss.csv, table5_unoriented_loss.csv) and normal_loss.md compares them.
+(table5.csv, table5_oriented_loss.csv, table5_unoriented_loss.csv); normal_loss.md compares stop 14's three.
 `--n-max auto` (default) lets every method's grid be chosen from the mesh and its table (`sizing.choose_resolution`,
 as the user presets do; base and III alike), `--n-max 128` is the paper's fixed grid (stem suffix `_nmax128`).
 Stop 14's runs (KMLP normal weight 0.5, N_max 128) are kept as table5_stop14_{facing,oriented,unoriented}_loss.csv.
@@ -18,6 +18,7 @@ Stop 14's runs (KMLP normal weight 0.5, N_max 128) are kept as table5_stop14_{fa
 from __future__ import annotations
 
 import argparse
+import itertools
 import sys
 import time
 from pathlib import Path
@@ -26,13 +27,13 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "bench")]
 
 from bench_meshes import bench_mesh  # noqa: E402
-from bench_quality import append_row, read_rows  # noqa: E402
+from bench_quality import append_row, read_rows, write_rows  # noqa: E402
 from nbvh_core import kernels  # noqa: E402
 from nbvh_core.pipeline import compress_mesh, estimate_file_bytes, preset  # noqa: E402
 
 RESULTS = ROOT / "bench" / "results"
 PLAN = [("base", 11), ("I", 9), ("I", 10), ("II", 9), ("II", 10), ("III", 8), ("III", 9)]
-FIELDS = ["mesh", "method", "log2_table", "n_max", "normal_weight", "steps", "train_s", "mse", "iou",
+FIELDS = ["mesh", "method", "log2_table", "seed", "n_max", "normal_weight", "steps", "train_s", "mse", "iou",
           "file_bytes_float32", "file_bytes_default_storage", "created"]
 
 
@@ -52,23 +53,13 @@ def bytes_to_reach(points: list[tuple[int, float]], target: float) -> float | No
     return None
 
 
-def write_normal_loss_md() -> None:
-    """normal_loss.md: base's and III's MSE per mesh under each normal loss (stop 14's three Table 5 CSVs)."""
-    runs = {loss: read_rows(RESULTS / f"table5_stop14_{loss}_loss.csv") for loss in ("facing", "oriented", "unoriented")}
-    lines = ["# Normal loss at equal steps (bench/bench_table5.py's three runs, stop 14: KMLP normal weight 0.5, "
-             "N_max 128)", "",
-             "Image MSE (16 views, 128 px) after the same steps, one run each; 'facing' = normal targets flipped "
-             "toward the ray (this product's default), 'oriented' = as the mesh winds them (the paper), "
-             "'unoriented' = L1 to the nearer of +-normal.", "",
-             "| mesh | method | T | facing | oriented | unoriented |", "|---|---|---|---|---|---|"]
-    keys = dict.fromkeys((r["mesh"], r["method"], r["log2_table"]) for rows in runs.values() for r in rows)
-    for key in keys:
-        cells = []
-        for loss in runs:
-            row = next((r for r in runs[loss] if (r["mesh"], r["method"], r["log2_table"]) == key), None)
-            cells.append(f"{float(row['mse']):.5f}" if row else "-")
-        lines.append(f"| {key[0]} | {key[1]} | 2^{key[2]} | " + " | ".join(cells) + " |")
-    (RESULTS / "normal_loss.md").write_text("\n".join(lines) + "\n")
+def mean_mse(rows: list[dict], method: str) -> list[tuple[int, float]]:
+    """[(float32 bytes, MSE averaged over the seeds run)] of one method's sizes, smallest first."""
+    by_size: dict[int, list[float]] = {}
+    for r in rows:
+        if r["method"] == method:
+            by_size.setdefault(int(r["file_bytes_float32"]), []).append(float(r["mse"]))
+    return sorted((b, sum(v) / len(v)) for b, v in by_size.items())
 
 
 def write_md(rows: list[dict], steps: int, stem: str = "table5", normal_loss: str = "facing",
@@ -79,27 +70,30 @@ def write_md(rows: list[dict], steps: int, stem: str = "table5", normal_loss: st
              "bytes at which the method's MSE equals base's, interpolated (log-log) between its measured sizes, over "
              "base's bytes (float32 storage, as the paper stores; the default-storage column is the same model's size "
              "in this product's 8-bit format).",
-             "", "| mesh | method | T | N_max | normal weight | MSE | IoU | float32 file B | default-storage B | train s |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "", "| mesh | method | T | seed | N_max | normal weight | MSE | IoU | float32 file B | default-storage B | "
+             "train s |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        lines.append(f"| {r['mesh']} | {r['method']} | 2^{r['log2_table']} | {r.get('n_max') or 128} | "
-                     f"{r.get('normal_weight') or '-'} | {float(r['mse']):.5f} | "
+        lines.append(f"| {r['mesh']} | {r['method']} | 2^{r['log2_table']} | {r.get('seed') or 0} | "
+                     f"{r.get('n_max') or 128} | {r.get('normal_weight') or '-'} | {float(r['mse']):.5f} | "
                      f"{float(r['iou']):.4f} | {int(r['file_bytes_float32']):,} | "
                      f"{int(r['file_bytes_default_storage']):,} | {float(r['train_s']):.0f} |")
-    lines += ["", "| mesh | base MSE | I reaches at | II reaches at | III reaches at (bytes / base) |",
-              "|---|---|---|---|---|"]
+    lines += ["", "Each size's MSE is the mean over the seeds run (the seeds column); with one seed per cell a single "
+              "run decides, and 1,200-step runs differ by ~10% between seeds.", "",
+              "| mesh | seeds | base MSE | I reaches at | II reaches at | III reaches at (bytes / base) |",
+              "|---|---|---|---|---|---|"]
     for mesh in dict.fromkeys(r["mesh"] for r in rows):
         mine = [r for r in rows if r["mesh"] == mesh]
-        base = next((r for r in mine if r["method"] == "base"), None)
-        if base is None:
+        base = mean_mse(mine, "base")
+        if not base:
             continue
+        (base_bytes, base_mse), = base
         cells = []
         for method in ("I", "II", "III"):
-            pts = sorted((int(r["file_bytes_float32"]), float(r["mse"])) for r in mine if r["method"] == method)
-            b = bytes_to_reach(pts, float(base["mse"]))
-            cells.append("- (not run)" if not pts else "not reached" if b is None
-                         else f"{b / int(base['file_bytes_float32']):.3f}x")
-        lines.append(f"| {mesh} | {float(base['mse']):.5f} | " + " | ".join(cells) + " |")
+            pts = mean_mse(mine, method)
+            b = bytes_to_reach(pts, base_mse)
+            cells.append("- (not run)" if not pts else "not reached" if b is None else f"{b / base_bytes:.3f}x")
+        seeds = sorted({r.get("seed") or "0" for r in mine})
+        lines.append(f"| {mesh} | {', '.join(seeds)} | {base_mse:.5f} | " + " | ".join(cells) + " |")
     (RESULTS / f"{stem}.md").write_text("\n".join(lines) + "\n")
 
 
@@ -110,6 +104,7 @@ def main() -> None:
     ap.add_argument("--methods", nargs="+", default=["base", "I", "II", "III"],
                     help="method steps to run (base and III answer the Table 5 question alone)")
     ap.add_argument("--normal-loss", choices=["facing", "oriented", "unoriented"], default="facing")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0], help="one row per seed; the tables average them")
     ap.add_argument("--n-max", default="auto", help="'auto' (chosen per mesh and table) or a resolution (128: the "
                     "paper's)")
     args = ap.parse_args()
@@ -118,19 +113,22 @@ def main() -> None:
     stem = ("table5" if args.normal_loss == "facing" else f"table5_{args.normal_loss}_loss") + (
         "" if n_max is None else f"_nmax{n_max}")
     path = RESULTS / f"{stem}.csv"
-    done = {(r["mesh"], r["method"], r["log2_table"]) for r in read_rows(path)}
+    rows = read_rows(path)
+    if rows and "seed" not in rows[0]:  # written before the seed column: those rows are seed 0
+        write_rows(path, [{k: r.get(k, "0" if k == "seed" else "") for k in FIELDS} for r in rows])
+    done = {(r["mesh"], r["method"], r["log2_table"], r.get("seed") or "0") for r in read_rows(path)}
     for mesh_name in args.meshes:
         mesh = None
-        for method, log2 in PLAN:
-            if method not in args.methods or (mesh_name, method, str(log2)) in done:
+        for (method, log2), seed in itertools.product(PLAN, args.seeds):
+            if method not in args.methods or (mesh_name, method, str(log2), str(seed)) in done:
                 continue
             mesh = mesh or bench_mesh(mesh_name)
             s = preset(method).with_overrides(steps=args.steps, log2_table=log2, table_bits=32, network_bits=32,
-                                              node_bits=32, force=True, normal_loss=args.normal_loss)
+                                              node_bits=32, force=True, normal_loss=args.normal_loss, seed=seed)
             s.time_limit_s, s.n_max = None, n_max
             t = time.perf_counter()
             res = compress_mesh(mesh, s, None)
-            row = {"mesh": mesh_name, "method": method, "log2_table": log2, "n_max": res.settings.n_max,
+            row = {"mesh": mesh_name, "method": method, "log2_table": log2, "seed": seed, "n_max": res.settings.n_max,
                    "normal_weight": res.model.cfg.network.normal_weight, "steps": res.training.steps,
                    "train_s": round(res.training.seconds, 1), "mse": res.quality.mse,
                    "iou": res.quality.silhouette_iou, "file_bytes_float32": res.file_bytes,
