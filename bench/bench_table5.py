@@ -53,13 +53,14 @@ def bytes_to_reach(points: list[tuple[int, float]], target: float) -> float | No
     return None
 
 
-def mean_mse(rows: list[dict], method: str) -> list[tuple[int, float]]:
-    """[(float32 bytes, MSE averaged over the seeds run)] of one method's sizes, smallest first."""
-    by_size: dict[int, list[float]] = {}
+def mean_mse(rows: list[dict], method: str) -> list[tuple[float, float]]:
+    """[(float32 bytes, MSE), both averaged over the seeds run] of one method's table sizes, smallest first (a file's
+    header differs by a few bytes between runs)."""
+    by_size: dict[int, list[tuple[int, float]]] = {}
     for r in rows:
         if r["method"] == method:
-            by_size.setdefault(int(r["file_bytes_float32"]), []).append(float(r["mse"]))
-    return sorted((b, sum(v) / len(v)) for b, v in by_size.items())
+            by_size.setdefault(int(r["log2_table"]), []).append((int(r["file_bytes_float32"]), float(r["mse"])))
+    return sorted((sum(b for b, _ in v) / len(v), sum(m for _, m in v) / len(v)) for v in by_size.values())
 
 
 def write_md(rows: list[dict], steps: int, stem: str = "table5", normal_loss: str = "facing",
