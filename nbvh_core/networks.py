@@ -167,8 +167,12 @@ class Network(nn.Module):
         per = self.terms(raw, hit, local_t, normal)
         parts = {"bce": per["bce"].mean()}
         parts.update({name: _masked_mean(per[name], hit) for name in self.HIT_TERMS})
-        total = parts["bce"] + sum(self._weight(name) * parts[name] for name in self.HIT_TERMS)
+        total = self.weighted_total(parts)
         return total, self.report_parts({k: v.detach() for k, v in parts.items()})
+
+    def weighted_total(self, parts: dict):
+        """The loss from its parts' means (tensors or floats; 'bce' and every HIT_TERMS name), hit terms weighted."""
+        return parts["bce"] + sum(self._weight(name) * parts[name] for name in self.HIT_TERMS)
 
     def report_parts(self, parts: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         """The loss parts as reported (a network may rescale one to a common scale)."""

@@ -134,17 +134,11 @@ def train_step(model, samples, want_raw: bool = False) -> tuple[float, dict]:
         model.encoding.table.grad = grad_table
     else:  # a soft HashVQAD row table: on through its softmax to the table and the index logits
         torch.autograd.backward(rows, grad_table)
-    if kmlp:
-        bce, ce, depth, nrm, unit = (float(v) for v in loss_parts)
-        total = bce + ce + net_cfg.depth_weight * depth + net_cfg.normal_weight * nrm + net_cfg.normal_unit_weight * unit
-        parts = {"bce": torch.tensor(bce), "segment_ce": torch.tensor(ce),
-                 "depth_l1": torch.tensor(depth / (k - 1)), "normal_l1": torch.tensor(nrm),
-                 "normal_unit": torch.tensor(unit)}
-    else:
-        bce, depth, nrm, unit = (float(v) for v in loss_parts)
-        total = bce + net_cfg.depth_weight * depth + net_cfg.normal_weight * nrm + net_cfg.normal_unit_weight * unit
-        parts = {"bce": torch.tensor(bce), "depth_l1": torch.tensor(depth), "normal_l1": torch.tensor(nrm),
-                 "normal_unit": torch.tensor(unit)}
+    # The kernel's loss parts come in the network's order: bce, then its hit terms (networks.Network.HIT_TERMS).
+    net = model.network
+    means = dict(zip(["bce", *net.HIT_TERMS], (float(v) for v in loss_parts)))
+    total = net.weighted_total(means)
+    parts = {name: torch.tensor(v) for name, v in net.report_parts(means).items()}
     if want_raw:
         parts["raw"] = raw
     return total, parts
