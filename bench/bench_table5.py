@@ -1,6 +1,7 @@
-"""The paper's Table 5 at equal steps: the bytes each method step needs to reach base's image MSE.
+"""The paper's Table 5 at equal steps or equal wall time: the bytes each method step needs to reach base's MSE.
 
     .venv/bin/python bench/bench_table5.py [--steps 1200] [--meshes bunny knot spiky gyroid studs]
+    .venv/bin/python bench/bench_table5.py --time-limit 200 --plan base:11 I:10 III:8 III:9   # equal wall time
 
 Methods (pipeline presets): base = HashGrid + MLP + ownership labels, I = + KMLP, II = + consistent labels,
 III = + HashVQAD. base trains at T=2^11 (its 775 KB file in the paper's float32 storage); I/II at T=2^9, 2^10 and
@@ -14,6 +15,8 @@ oriented` is the paper's (as the mesh winds them), `unoriented` either sign; eac
 `--n-max auto` (default) lets every method's grid be chosen from the mesh and its table (`sizing.choose_resolution`,
 as the user presets do; base and III alike), `--n-max 128` is the paper's fixed grid (stem suffix `_nmax128`).
 Stop 14's runs (KMLP normal weight 0.5, N_max 128) are kept as table5_stop14_{facing,oriented,unoriented}_loss.csv.
+`--time-limit S` trains every model for S seconds instead of a step count (the default preset's 200 s is the users'
+budget; a slower step buys fewer steps), stem suffix `_time{S}`; needs an otherwise idle CPU.
 """
 from __future__ import annotations
 
@@ -27,7 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "bench")]
 
 from bench_meshes import bench_mesh  # noqa: E402
-from bench_quality import append_row, read_rows, write_rows  # noqa: E402
+from bench_quality import append_row, read_rows  # noqa: E402
 from nbvh_core import kernels  # noqa: E402
 from nbvh_core.pipeline import compress_mesh, estimate_file_bytes, preset  # noqa: E402
 
@@ -64,20 +67,24 @@ def mean_mse(rows: list[dict], method: str) -> list[tuple[float, float]]:
 
 
 def write_md(rows: list[dict], steps: int, stem: str = "table5", normal_loss: str = "facing",
-             n_max: str = "auto") -> None:
+             n_max: str = "auto", time_limit: float | None = None) -> None:
     grid = "the grid chosen per mesh" if n_max == "auto" else f"N_max {n_max}"
-    lines = [f"# Table 5 at equal steps (bench/bench_table5.py --n-max {n_max}), {normal_loss} normal loss, {grid}", "",
-             f"{steps} training steps per model on this 2-core CPU; MSE over 16 views at 128 px. 'reaches at' = the "
+    if time_limit is None:
+        title, budget = "equal steps", f"{steps} training steps per model"
+    else:
+        title, budget = f"equal wall time ({time_limit:g} s, --time-limit)", f"{time_limit:g} s of training per model"
+    lines = [f"# Table 5 at {title} (bench/bench_table5.py --n-max {n_max}), {normal_loss} normal loss, {grid}", "",
+             f"{budget} on this 2-core CPU; MSE over 16 views at 128 px. 'reaches at' = the "
              "bytes at which the method's MSE equals base's, interpolated (log-log) between its measured sizes, over "
              "base's bytes (float32 storage, as the paper stores; the default-storage column is the same model's size "
              "in this product's 8-bit format).",
              "", "| mesh | method | T | seed | N_max | normal weight | MSE | IoU | float32 file B | default-storage B | "
-             "train s |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "steps | train s |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(f"| {r['mesh']} | {r['method']} | 2^{r['log2_table']} | {r.get('seed') or 0} | "
                      f"{r.get('n_max') or 128} | {r.get('normal_weight') or '-'} | {float(r['mse']):.5f} | "
                      f"{float(r['iou']):.4f} | {int(r['file_bytes_float32']):,} | "
-                     f"{int(r['file_bytes_default_storage']):,} | {float(r['train_s']):.0f} |")
+                     f"{int(r['file_bytes_default_storage']):,} | {r['steps']} | {float(r['train_s']):.0f} |")
     lines += ["", "Each size's MSE is the mean over the seeds run (the seeds column); with one seed per cell a single "
               "run decides, and 1,200-step runs differ by ~10% between seeds.", "",
               "| mesh | seeds | base MSE | I reaches at | II reaches at | III reaches at (bytes / base) |",
@@ -108,25 +115,27 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, nargs="+", default=[0], help="one row per seed; the tables average them")
     ap.add_argument("--n-max", default="auto", help="'auto' (chosen per mesh and table) or a resolution (128: the "
                     "paper's)")
+    ap.add_argument("--time-limit", type=float, help="seconds of training per model instead of --steps")
+    ap.add_argument("--plan", nargs="+", metavar="METHOD:LOG2T",
+                    help="the (method, table size) cells to run, e.g. base:11 III:8 (default: "
+                         + " ".join(f"{m}:{t}" for m, t in PLAN) + ")")
     args = ap.parse_args()
+    plan = [(m, int(t)) for m, t in (c.split(":") for c in args.plan)] if args.plan else PLAN
     kernels.keep_freed_memory()
     n_max = None if args.n_max == "auto" else int(args.n_max)
     stem = ("table5" if args.normal_loss == "facing" else f"table5_{args.normal_loss}_loss") + (
-        "" if n_max is None else f"_nmax{n_max}")
+        "" if n_max is None else f"_nmax{n_max}") + ("" if args.time_limit is None else f"_time{args.time_limit:g}")
     path = RESULTS / f"{stem}.csv"
-    rows = read_rows(path)
-    if rows and "seed" not in rows[0]:  # written before the seed column: those rows are seed 0
-        write_rows(path, [{k: r.get(k, "0" if k == "seed" else "") for k in FIELDS} for r in rows])
     done = {(r["mesh"], r["method"], r["log2_table"], r.get("seed") or "0") for r in read_rows(path)}
     for mesh_name in args.meshes:
         mesh = None
-        for (method, log2), seed in itertools.product(PLAN, args.seeds):
+        for (method, log2), seed in itertools.product(plan, args.seeds):
             if method not in args.methods or (mesh_name, method, str(log2), str(seed)) in done:
                 continue
             mesh = mesh or bench_mesh(mesh_name)
-            s = preset(method).with_overrides(steps=args.steps, log2_table=log2, table_bits=32, network_bits=32,
+            s = preset(method).with_overrides(steps=None if args.time_limit else args.steps, log2_table=log2, table_bits=32, network_bits=32,
                                               node_bits=32, force=True, normal_loss=args.normal_loss, seed=seed)
-            s.time_limit_s, s.n_max = None, n_max
+            s.time_limit_s, s.n_max = args.time_limit, n_max
             t = time.perf_counter()
             res = compress_mesh(mesh, s, None)
             row = {"mesh": mesh_name, "method": method, "log2_table": log2, "seed": seed, "n_max": res.settings.n_max,
@@ -138,7 +147,7 @@ def main() -> None:
                    "created": time.strftime("%Y-%m-%dT%H:%M:%S")}
             append_row(path, {k: row[k] for k in FIELDS})
             print(row, f"({time.perf_counter() - t:.0f} s)", flush=True)
-            write_md(read_rows(path), args.steps, stem, args.normal_loss, args.n_max)
+            write_md(read_rows(path), args.steps, stem, args.normal_loss, args.n_max, args.time_limit)
 
 
 if __name__ == "__main__":
