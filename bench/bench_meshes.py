@@ -11,6 +11,7 @@ field) and bunny (a real scan with holes), they span detail levels, thin parts a
 """
 from __future__ import annotations
 
+import functools
 import sys
 from pathlib import Path
 
@@ -112,6 +113,15 @@ def bench_mesh(name: str) -> Mesh:
     if name in MADE:
         return {"knot": knot, "spiky": spiky, "sheet": sheet, "lattice": lattice}[name]()
     return load_mesh(sample_path(name))
+
+
+@functools.lru_cache(maxsize=None)
+def bench_grid(name: str):
+    """The bench mesh's grid measures (`sizing.grid_measures`), taken once per process: loading and measuring the
+    3.3M-triangle lattice takes seconds, and several benches choose a grid per (mesh, table size)."""
+    from nbvh_core.sizing import grid_measures
+
+    return grid_measures(bench_mesh(name))
 
 
 if __name__ == "__main__":

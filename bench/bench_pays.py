@@ -22,13 +22,14 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 import numpy as np  # noqa: E402
 
+from bench_meshes import bench_grid, bench_mesh  # noqa: E402
 from bench_quality import append_row, read_rows  # noqa: E402
 from nbvh_core import kernels  # noqa: E402
 from nbvh_core.exact import ExactTracer  # noqa: E402
 from nbvh_core.metrics import evaluate_renderer  # noqa: E402
 from nbvh_core.pipeline import compress_mesh, preset  # noqa: E402
 from nbvh_core.render import render_reference  # noqa: E402
-from nbvh_core.sizing import choose_resolution, decimate, grid_measures, mesh_resident_bytes  # noqa: E402
+from nbvh_core.sizing import choose_resolution, decimate, mesh_resident_bytes  # noqa: E402
 
 RESULTS = ROOT / "bench" / "results"
 FIELDS = ["mesh", "triangles", "preset", "storage", "train_s", "steps", "file_bytes", "model_resident_bytes",
@@ -36,12 +37,6 @@ FIELDS = ["mesh", "triangles", "preset", "storage", "train_s", "steps", "file_by
           "equal_mse_decimation_resident_bytes", "ratio_resident_decimation_to_model",
           "ratio_resident_decimation_to_file", "draco11_bytes", "equal_mse_decimation_draco11_bytes", "compute_path",
           "created"]
-
-
-def load_bench_mesh(name: str):
-    from bench_meshes import bench_mesh
-
-    return bench_mesh(name)
 
 
 def decimation_mse(mesh, tracer, triangles: int, views: int, res: int) -> tuple[float, int, int, int]:
@@ -178,8 +173,7 @@ def main() -> None:
     path = Path(args.csv)
     done = {(r["mesh"], r["preset"], r["storage"]) for r in read_rows(path)}
     for mesh_name in args.meshes:
-        mesh = load_bench_mesh(mesh_name)
-        grid = None  # the mesh's grid measures, taken once (seconds on the 3.3M-triangle lattice)
+        mesh = bench_mesh(mesh_name)
         tracer = ExactTracer(mesh)
         for preset_name in args.presets:
             for bits in args.table_bits:
@@ -198,8 +192,7 @@ def main() -> None:
                 if extra:
                     storage += " " + " ".join(f"{k}={v}" for k, v in sorted(extra.items()))
                 if s.n_max is None:  # the grid chosen from the mesh: name it, so the row is not the 128 one
-                    grid = grid or grid_measures(mesh)
-                    storage += f" n_max=auto:{choose_resolution(grid, s.log2_table)[0]}"
+                    storage += f" n_max=auto:{choose_resolution(bench_grid(mesh_name), s.log2_table)[0]}"
                 if (mesh_name, preset_name, storage) in done:
                     continue
                 print(f"{mesh_name} {preset_name} {storage}: training {s.time_limit_s} s", flush=True)

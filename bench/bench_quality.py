@@ -29,6 +29,7 @@ and sheet (rows by mesh).
 from __future__ import annotations
 
 import argparse
+import copy
 import csv
 import math
 import sys
@@ -510,7 +511,7 @@ def main() -> None:
     args = ap.parse_args()
     kernels.keep_freed_memory()  # as the CLI does: freed blocks stay in the heap (see the function)
     plan = Plan(args.quick)
-    run_plan = Plan(args.quick)
+    run_plan = copy.copy(plan)  # what runs may be narrowed by flags; the report keeps the full plan
     run_plan.meshes = tuple(args.meshes) if args.meshes else plan.meshes
     run_plan.decimate_to = tuple(args.decimate_to) if args.decimate_to else plan.decimate_to
     t0 = time.perf_counter()

@@ -16,7 +16,6 @@ One row per (mesh, preset, levels, steps) in bench/results/levels.csv, levels.md
 from __future__ import annotations
 
 import argparse
-import functools
 import sys
 import time
 from pathlib import Path
@@ -24,19 +23,13 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "bench")]
 
-from bench_meshes import bench_mesh  # noqa: E402
+from bench_meshes import bench_grid, bench_mesh  # noqa: E402
 from bench_quality import append_row, read_rows  # noqa: E402
 from nbvh_core import kernels  # noqa: E402
 from nbvh_core.pipeline import compress_mesh, preset  # noqa: E402
-from nbvh_core.sizing import TABLE_LOAD, choose_resolution, grid_measures  # noqa: E402
+from nbvh_core.sizing import TABLE_LOAD, choose_resolution  # noqa: E402
 
 RESULTS = ROOT / "bench" / "results"
-@functools.lru_cache(maxsize=None)
-def mesh_grid(name: str):
-    """The bench mesh's grid measures, taken once per run (loading and measuring the lattice takes seconds)."""
-    return grid_measures(bench_mesh(name))
-
-
 FIELDS = ["mesh", "preset", "log2_table", "n_max", "steps", "train_s", "mse", "iou", "surface_cells", "created"]
 
 
@@ -56,7 +49,7 @@ def write_md(rows: list[dict]) -> None:
     for mesh, log2, steps in groups:
         mine = [r for r in rows if (r["mesh"], r["log2_table"], r["steps"]) == (mesh, log2, steps)]
         best = min(mine, key=lambda r: float(r["mse"]))
-        pick = choose_resolution(mesh_grid(mesh), int(log2))[0]
+        pick = choose_resolution(bench_grid(mesh), int(log2))[0]
         lines.append(f"| {mesh} | 2^{log2} | {steps} | {best['n_max']} (MSE {float(best['mse']):.5f}) | {pick} |")
     (RESULTS / "resolution.md").write_text("\n".join(lines) + "\n")
 
@@ -127,7 +120,7 @@ def main() -> None:
             mesh = mesh or bench_mesh(mesh_name)
             res = equal_steps(mesh, base, args.steps, n_max=n_max)
             s = res.settings
-            cells = mesh_grid(mesh_name).cells.get(n_max, "")
+            cells = bench_grid(mesh_name).cells.get(n_max, "")
             row = {"mesh": mesh_name, "preset": args.preset, "log2_table": s.log2_table, "n_max": n_max,
                    "steps": res.training.steps, "train_s": round(res.training.seconds, 1), "mse": res.quality.mse,
                    "iou": res.quality.silhouette_iou, "surface_cells": cells,
