@@ -17,7 +17,8 @@ Tensors of format 2 (`storage` in the header says which form each component take
   (6 float32), `bvh.boxes` (M x 6 uint8, relative to the parent's decoded box), `bvh.left`, `bvh.leaf` (M uint16).
 * features (L x T x F): float32 or float16 `features`; 8 bits: `features` uint8 codes + `features.offset`,
   `features.scale` (L x F float32).
-* `index` (HashVQAD only: L x H codes of log2(t) bits, packed little-endian within each byte).
+* `index` (HashVQAD only: codes of log2(t) bits, packed little-endian within each byte; format 2.2: the reachable
+  entries of each level (`HashVQAD.reachable_entries`), level after level; before 2.2: all L x H entries).
 * the network's parameters in `state_dict` order (`network.NAME`, float32 or float16; 8 bits (format 2.1): each
   Linear's `network.N.weight` as int8 rows and `network.N.weight_scale` (rows,) float16, biases float16).
 Format 1 files (float32/float16 everywhere, `float_bytes` in the header) still load.
@@ -47,6 +48,7 @@ import torch
 
 from .bvh import MAX_NODES, NODE_DTYPE
 from .encodings import ENCODINGS, EncodingConfig
+from .encodings.base import level_vertex_counts
 from .mesh import Transform
 from .model import ModelConfig, NeuralBVH
 from .networks import NETWORKS, NetworkConfig
@@ -55,7 +57,9 @@ from .quantize import NONE16, StorageConfig, decode_nodes, encode_nodes, quantiz
 
 MAGIC = b"NBVH\x00\r\n\x1a"
 VERSION_MAJOR = 2
-VERSION_MINOR = 1  # 2.1: network_bits 8 (a 2.0 reader refuses such a file by its storage field)
+VERSION_MINOR = 2  # 2.1: network_bits 8 (a 2.0 reader refuses such a file by its storage field); 2.2: HashVQAD's
+#                    index holds its reachable entries only (a 2.1 reader refuses such a file by the index's shape)
+REACHABLE_INDEX_SINCE = (2, 2)
 READABLE_MAJORS = (1, 2)
 _PREFIX = struct.Struct("<8sHHI")
 _ALIGN = 8
@@ -145,7 +149,9 @@ def _tensors(model: NeuralBVH, storage: StorageConfig) -> list[tuple[str, str, b
     if enc.learned_index:
         if not enc.frozen:
             raise ValueError("HashVQAD must be frozen (argmax codes) before saving")
-        codes = enc.codes.cpu().numpy()
+        # 2.2: the codes as held (the entries a vertex can select, level by level); before: all L x H entries
+        reachable_only = (VERSION_MAJOR, VERSION_MINOR) >= REACHABLE_INDEX_SINCE
+        codes = (enc.codes if reachable_only else enc.full_codes()).cpu().numpy()
         out.append(("index", "index", pack_codes(codes, enc.code_bits()), list(codes.shape)))
     for name, arr in _network_arrays(model, storage.network_bits):
         out.append((f"network.{name}", "network", arr.tobytes(), list(arr.shape)))
@@ -282,8 +288,10 @@ def _network_shapes(cfg: ModelConfig) -> dict[str, tuple[int, ...]]:
     return {name: tuple(p.shape) for name, p in net.state_dict().items()}
 
 
-def _expected_tensors(cfg: ModelConfig, storage: StorageConfig, n_nodes: int) -> dict[str, tuple[tuple, str]]:
-    """name -> (shape, numpy dtype or 'packed<bits>') of every tensor a file with this config must hold."""
+def _expected_tensors(cfg: ModelConfig, storage: StorageConfig, n_nodes: int,
+                      version: tuple[int, int] = (VERSION_MAJOR, VERSION_MINOR)) -> dict[str, tuple[tuple, str]]:
+    """name -> (shape, numpy dtype or 'packed<bits>') of every tensor a file of this format version and config
+    must hold."""
     enc = cfg.encoding
     L, T, F = enc.levels, enc.table_size, enc.features
     out: dict[str, tuple[tuple, str]] = {}
@@ -298,7 +306,9 @@ def _expected_tensors(cfg: ModelConfig, storage: StorageConfig, n_nodes: int) ->
     else:
         out["features"] = ((L, T, F), "<f2" if storage.table_bits == 16 else "<f4")
     if enc.kind == "hashvqad":
-        out["index"] = ((L, enc.index_size), f"packed{int(math.log2(enc.candidates))}")
+        shape = ((sum(level_vertex_counts(enc, enc.index_size)),) if version >= REACHABLE_INDEX_SINCE
+                 else (L, enc.index_size))
+        out["index"] = (shape, f"packed{int(math.log2(enc.candidates))}")
     fdt = "<f4" if storage.network_bits == 32 else "<f2"
     for name, shape in _network_shapes(cfg).items():
         if storage.network_bits == 8 and name.endswith("weight") and len(shape) == 2:
@@ -341,7 +351,7 @@ def _parse(data: bytes, where: str) -> dict:
         raise NBVHFileError(f"{where}: the header must be a JSON object, not {type(header).__name__}")
     header["_header_len"] = hlen
     header["_payload_start"] = _PREFIX.size + hlen
-    header["_major"] = major
+    header["_major"], header["_minor"] = major, minor
     _check_header(header, len(data) - 4 - _PREFIX.size - hlen, where)
     return header
 
@@ -382,7 +392,7 @@ def _check_header(header: dict, payload: int, where: str) -> None:
     node_tensor = by_name.get("bvh" if storage.node_bits == 32 else "bvh.left")
     if node_tensor is None or len(node_tensor["shape"]) != 1 or not 1 <= node_tensor["shape"][0] <= MAX_NODES:
         raise NBVHFileError(f"{where}: the BVH tensor is missing or its node count is not in [1, {MAX_NODES}]")
-    expected = _expected_tensors(cfg, storage, node_tensor["shape"][0])
+    expected = _expected_tensors(cfg, storage, node_tensor["shape"][0], (header["_major"], header["_minor"]))
     if set(expected) != set(by_name):
         missing, extra = sorted(set(expected) - set(by_name)), sorted(set(by_name) - set(expected))
         raise NBVHFileError(f"{where}: tensors do not match the config (missing {missing[:3]}, unexpected "
@@ -504,7 +514,8 @@ def _decode(data: bytes, header: dict, where: str, device: str | torch.device = 
             codes = array("index")
             if (codes >= cfg.encoding.candidates).any():
                 raise NBVHFileError(f"{where}: HashVQAD codes out of range")
-            enc.codes = torch.from_numpy(codes.copy())
+            codes = torch.from_numpy(codes.copy())
+            enc.codes = codes if codes.ndim == 1 else enc.compact_codes(codes)  # before 2.2: all L x H entries
             enc.logits = None
         _load_network(model, storage.network_bits, array, [n for n in expected if n.startswith("network.")])
         if compact is not None:

@@ -32,6 +32,8 @@ ENCODINGS = [
     ("hashgrid", dict(log2_table=11, levels=4, features=16)),  # level 0 dense, levels 1-3 hashed
     ("hashgrid", dict(log2_table=5, levels=3, features=3, n_min=3, n_max=40)),  # odd F: generic kernel
     ("hashvqad", dict(log2_table=8, levels=2, features=4, index_factor=8, candidates=4)),
+    # H = 128 T: level 0 dense, reaching 17^3 of its 8,192 entries (codes held for those only)
+    ("hashvqad", dict(log2_table=6, levels=2, features=4, index_factor=128, candidates=4)),
 ]
 
 
@@ -189,6 +191,7 @@ FUSED_MODELS = [
     (dict(kind="hashgrid", log2_table=5, levels=3, features=3, n_min=3, n_max=40), dict(kind="mlp", k=4, width=24)),
     (dict(kind="hashgrid", log2_table=6, levels=2, features=8), dict(kind="mlp", k=3, hidden=0)),
     (dict(kind="hashvqad", log2_table=8, levels=2, features=8, index_factor=8, candidates=4), dict(kind="mlp", k=6)),
+    (dict(kind="hashvqad", log2_table=6, levels=2, features=8, index_factor=128, candidates=4), dict(kind="mlp", k=4)),
     # KMLP (the paper's network): pairs are windows of the segment's feature row, the combination in the kernel.
     (dict(kind="hashgrid", log2_table=11, levels=4, features=16), dict(kind="kmlp", k=8)),
     (dict(kind="hashgrid", log2_table=5, levels=3, features=3, n_min=3, n_max=40), dict(kind="kmlp", k=4, width=24)),
@@ -294,18 +297,23 @@ def test_fused_training_step_gives_the_loss_and_gradients_of_autograd(enc_kw, ne
             (name, float((p.grad - want[name]).abs().max()), float(scale))
 
 
-@pytest.mark.parametrize("tau", [1.0, 0.05])
-def test_fused_soft_hashvqad_table_matches_the_reference(tau):
-    """HashVQAD's soft row table (softmax over t candidates) and its backward into the logits and the rows."""
+@pytest.mark.parametrize("tau,index_factor", [(1.0, 4), (0.05, 4), (1.0, 128)])
+def test_fused_soft_hashvqad_table_matches_the_reference(tau, index_factor):
+    """HashVQAD's soft row table (softmax over t candidates) and its backward into the logits and the rows; with
+    H = 128 T the coarsest level is dense and reaches 17^3 of its 8,192 entries: the rest is zero and learns
+    nothing."""
     from nbvh_core.encodings import HashVQAD
 
     torch.manual_seed(1)
-    enc = HashVQAD(EncodingConfig(kind="hashvqad", log2_table=6, levels=3, features=8, index_factor=4,
+    enc = HashVQAD(EncodingConfig(kind="hashvqad", log2_table=6, levels=3, features=8, index_factor=index_factor,
                                   candidates=8, init_scale=0.5))
     with torch.no_grad():
         enc.logits.normal_()
     enc.temperature = tau
-    grad = torch.randn(3, 4 * 64, 8)
+    H = index_factor * 64
+    reach = enc.reachable_entries()
+    assert reach == ([17 ** 3, H, H] if index_factor == 128 else [H, H, H])
+    grad = torch.randn(3, H, 8)
     with kernels.using_path("reference"):
         want = enc.row_table()
         want.backward(grad)
@@ -316,6 +324,8 @@ def test_fused_soft_hashvqad_table_matches_the_reference(tau):
     assert torch.allclose(got, want, rtol=1e-5, atol=1e-6)
     assert torch.allclose(enc.logits.grad, want_g[0], rtol=1e-4, atol=1e-5)
     assert torch.allclose(enc.table.grad, want_g[1], rtol=1e-4, atol=1e-5)
+    assert not got[0, reach[0]:].any() and not enc.logits.grad[0, reach[0]:].any()
+    assert got[0, :reach[0]].abs().sum(-1).min() > 0 and enc.logits.grad[0, :reach[0]].abs().sum() > 0
 
 
 def test_fused_queries_read_the_node_records_in_place(sample_meshes):

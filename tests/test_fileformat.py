@@ -54,6 +54,33 @@ def test_file_size_equals_component_bytes(trained, enc):
     assert info.components["header"] < 4096 and info.components["padding"] < 64
 
 
+def test_hashvqad_file_keeps_the_reachable_codes_and_full_index_files_still_load(trained, tmp_path, monkeypatch):
+    """Format 2.2 stores the codes of the index entries a vertex can select (the tiny grid's dense coarse level
+    reaches 17^3 of its 8,192); a 2.1 file, which stored all L x H, loads to the same model."""
+    import nbvh_core.fileformat as fileformat
+
+    path, res = trained["hashvqad"]
+    enc = res.model.encoding
+    cfg, bits = enc.cfg, enc.code_bits()
+    reach = enc.reachable_entries()
+    assert reach[0] == 17 ** 3 < cfg.index_size
+    assert read_info(path).components["index"] == (sum(reach) * bits + 7) // 8
+    assert enc.codes.shape == (sum(reach),)  # held as stored
+    new = load_nbvh(path)
+    assert torch.equal(new.encoding.codes, enc.codes)
+    old = tmp_path / "full_index.nbvh"
+    monkeypatch.setattr(fileformat, "VERSION_MINOR", 1)  # as a 2.1 writer wrote it
+    save_nbvh(res.model, old, storage=res.settings.storage())
+    monkeypatch.undo()
+    assert old.read_bytes()[8:12] == bytes([2, 0, 1, 0])
+    assert read_info(old).components["index"] == (cfg.levels * cfg.index_size * bits + 7) // 8
+    loaded = load_nbvh(old)
+    assert torch.equal(loaded.encoding.codes, enc.codes)
+    cam = orbit_cameras(3)[0]
+    a, b = render_neural(new, cam, 32, 32), render_neural(loaded, cam, 32, 32)
+    assert np.array_equal(a.image, b.image) and np.array_equal(a.hit, b.hit)
+
+
 def test_float16_halves_the_tables(trained, tmp_path):
     path, res = trained["hashgrid"]
     half, full = tmp_path / "half.nbvh", tmp_path / "full.nbvh"

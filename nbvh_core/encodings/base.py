@@ -100,6 +100,17 @@ def level_scales(cfg: EncodingConfig) -> list[float]:
     return [cfg.n_min * b ** level - 1.0 for level in range(cfg.levels)]
 
 
+def level_vertex_counts(cfg: EncodingConfig, vertex_table: int) -> list[int]:
+    """How many distinct vertex indices each level can produce (the table entries it can ever read): R^3 on a
+    level indexed densely (its R^3 vertices fit the vertex_table entries; R = ceil(s_l) + 2, as `corner_indices`),
+    else vertex_table (every hash value). Coarse levels of a large table reach only a part of it."""
+    counts = []
+    for s in level_scales(cfg):
+        res = int(math.ceil(s)) + 2
+        counts.append(res ** 3 if res ** 3 <= vertex_table else vertex_table)
+    return counts
+
+
 def spatial_hash(corner: torch.Tensor) -> torch.Tensor:
     """(..., 3) int64 vertex coordinates -> (...,) int64 32-bit hash."""
     h = (corner[..., 0] * PRIMES[0]) & MASK32

@@ -90,8 +90,9 @@ class _FusedEncode(torch.autograd.Function):
 
 def fused_encode(points: torch.Tensor, table: torch.Tensor, spec: GridSpec, codes: torch.Tensor | None = None,
                  code_rows: int = 0) -> torch.Tensor:
-    """points (N, 3) float32 CPU in [0, 1]^3 (clamped); table (L, R, F) float32 rows; codes (L, H) uint8 frozen
-    HashVQAD codes (rows = hash2(vertex, code) mod code_rows) or None (rows = vertex indices).
+    """points (N, 3) float32 CPU in [0, 1]^3 (clamped); table (L, R, F) float32 rows; codes uint8 frozen
+    HashVQAD codes of the reachable entries, level after level (rows = hash2(vertex, code) mod code_rows), or None
+    (rows = vertex indices).
     Returns (N, L * F) float32, differentiable in `table`."""
     if codes is not None:
         codes = codes.contiguous()

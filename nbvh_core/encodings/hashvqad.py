@@ -14,7 +14,12 @@ candidate j being row hash2(i, j) mod T with hash2(i, j) = (i * 2654435761) xor 
 * Annealing: `temperature` is lowered (geometrically, by the trainer) so the softmax approaches a one-hot.
 * Frozen (hard): `freeze()` stores argmax_j logits as one integer in [0, t) per entry (log2(t) bits each, bit
   packed in the file); a vertex then looks up row hash2(i, I[i]) mod T directly.
-Stored size per level: V = T * F floats, I = H * log2(t) bits.
+* Reachable entries: a coarse level indexed densely reads only its R^3 < H entries (`reachable_entries`; with the
+  paper's H = 128 T most coarse levels do: at T=2^9 and N_max 64, 5,832 and 19,683 of 65,536). The soft table is
+  computed for those only (the rest is zero and trains nothing), and the frozen codes are held and stored (file
+  format 2.2) for those only, level after level. The function is the paper's; its bytes and the soft table's work
+  are not.
+Stored size per level: V = T * F floats, I = (reachable entries) * log2(t) bits.
 """
 from __future__ import annotations
 
@@ -24,7 +29,7 @@ import torch
 from torch import nn
 
 from .. import kernels
-from .base import MASK32, PRIMES, EncodingConfig
+from .base import MASK32, PRIMES, EncodingConfig, level_vertex_counts
 from .hashgrid import HashGrid, table_features_bytes
 
 
@@ -36,32 +41,33 @@ def candidate_rows(entries: torch.Tensor, candidates: torch.Tensor, table_size: 
 
 class _SoftTable(torch.autograd.Function):
     """The soft row table S (L, H, F) and its backward into the rows and the logits, by the fused kernels
-    (`nbvh_vqad_soft_forward/backward`): one pass over the H entries for softmax and weighted rows, the backward's
-    row scatter one level per thread. Same values as `HashVQAD.reference_row_table` (tests/test_fastpath.py)."""
+    (`nbvh_vqad_soft_forward/backward`): one pass over the reachable entries (`reach` (L,) int64 per level) for
+    softmax and weighted rows, the rest zero (rows and logit gradients); the backward's row gradients summed per
+    thread. Same values as `HashVQAD.reference_row_table` (tests/test_fastpath.py)."""
 
     @staticmethod
-    def forward(ctx, logits, table, cand, tau, cfg):
+    def forward(ctx, logits, table, cand, reach, tau):
         lib = kernels.load()
         L, H, t = logits.shape
         T, F = table.shape[1], table.shape[2]
         logits_c, table_c = logits.detach().contiguous(), table.detach().contiguous()
-        probs = torch.empty_like(logits_c)
+        probs = torch.empty_like(logits_c)  # rows of unreachable entries stay unwritten: nothing reads them
         soft = torch.empty((L, H, F), dtype=torch.float32)
-        lib.nbvh_vqad_soft_forward(logits_c.data_ptr(), table_c.data_ptr(), cand.data_ptr(), L, H, T, t, F,
-                                   1.0 / tau, probs.data_ptr(), soft.data_ptr(), kernels.threads())
-        ctx.save_for_backward(probs, table_c, cand)
+        lib.nbvh_vqad_soft_forward(logits_c.data_ptr(), table_c.data_ptr(), cand.data_ptr(), reach.data_ptr(), L, H,
+                                   T, t, F, 1.0 / tau, probs.data_ptr(), soft.data_ptr(), kernels.threads())
+        ctx.save_for_backward(probs, table_c, cand, reach)
         ctx.tau = tau
         return soft
 
     @staticmethod
     def backward(ctx, grad_soft):
-        probs, table, cand = ctx.saved_tensors
+        probs, table, cand, reach = ctx.saved_tensors
         L, H, t = probs.shape
         T, F = table.shape[1], table.shape[2]
         grad_soft = grad_soft.contiguous()
         g_table = torch.zeros_like(table)
         g_logits = torch.empty_like(probs)
-        kernels.load().nbvh_vqad_soft_backward(probs.data_ptr(), table.data_ptr(), cand.data_ptr(),
+        kernels.load().nbvh_vqad_soft_backward(probs.data_ptr(), table.data_ptr(), cand.data_ptr(), reach.data_ptr(),
                                                grad_soft.data_ptr(), L, H, T, t, F, 1.0 / ctx.tau,
                                                g_table.data_ptr(), g_logits.data_ptr(), kernels.threads())
         return g_logits, g_table, None, None, None
@@ -70,8 +76,8 @@ class _SoftTable(torch.autograd.Function):
 class HashVQAD(HashGrid):
     """points (N, 3) in [0, 1]^3 -> features (N, L * F); see module docstring.
 
-    Parameters: `table` (L, T, F) feature rows; `logits` (L, H, t) while soft. Buffer `codes` (L, H) uint8 after
-    `freeze()`.
+    Parameters: `table` (L, T, F) feature rows; `logits` (L, H, t) while soft. Buffer `codes` uint8 after
+    `freeze()`: (sum of `reachable_entries()`,), the reachable entries' codes level after level.
     """
 
     learned_index = True
@@ -86,6 +92,8 @@ class HashVQAD(HashGrid):
         self.register_buffer("codes", torch.zeros(0, dtype=torch.uint8), persistent=True)
         self.temperature = 1.0
         self._cand_cache: torch.Tensor | None = None
+        # (L,) int64 on the CPU (the kernels read it; made explicitly there, also under a meta-device context)
+        self._reach = torch.tensor(self.reachable_entries(), dtype=torch.int64, device="cpu")
 
     @property
     def frozen(self) -> bool:
@@ -93,6 +101,34 @@ class HashVQAD(HashGrid):
 
     def _vertex_table_size(self) -> int:
         return self.cfg.index_size
+
+    def reachable_entries(self) -> list[int]:
+        """Per level, the index entries a grid vertex can select (`base.level_vertex_counts`): entries 0..n-1."""
+        return level_vertex_counts(self.cfg, self.cfg.index_size)
+
+    def code_starts(self) -> list[int]:
+        """L + 1 offsets: level l's codes are codes[starts[l]:starts[l + 1]]."""
+        starts = [0]
+        for n in self.reachable_entries():
+            starts.append(starts[-1] + n)
+        return starts
+
+    def compact_codes(self, full: torch.Tensor) -> torch.Tensor:
+        """(L, H) codes -> the reachable entries' codes, level after level (the held and stored form)."""
+        return torch.cat([full[level, :n] for level, n in enumerate(self.reachable_entries())]).contiguous()
+
+    def full_codes(self) -> torch.Tensor:
+        """(L, H) uint8: the held codes spread back over the whole index, unreachable entries code 0."""
+        full = torch.zeros((self.cfg.levels, self.cfg.index_size), dtype=torch.uint8, device=self.codes.device)
+        starts = self.code_starts()
+        for level, n in enumerate(self.reachable_entries()):
+            full[level, :n] = self.codes[starts[level]:starts[level + 1]]
+        return full
+
+    def _reachable_mask(self, device) -> torch.Tensor:
+        """(L, H) bool: entry i of level l is reachable."""
+        reach = torch.tensor(self.reachable_entries(), dtype=torch.int64, device=device)
+        return torch.arange(self.cfg.index_size, device=device)[None, :] < reach[:, None]
 
     def _group_candidates(self) -> torch.Tensor:
         """(T, t) int64: candidate rows of entries i = 0..T-1; entry m * T + a has the same rows as entry a."""
@@ -107,19 +143,20 @@ class HashVQAD(HashGrid):
         if self.frozen:
             return self.float_rows()
         if kernels.soft_table_kernel(self, self.table.device) == "fused":
-            return _SoftTable.apply(self.logits, self.table, self._group_candidates().contiguous(),
-                                    float(self.temperature), self.cfg)
+            return _SoftTable.apply(self.logits, self.table, self._group_candidates().contiguous(), self._reach,
+                                    float(self.temperature))
         return self.reference_row_table()
 
     def reference_row_table(self) -> torch.Tensor:
-        """The soft row table in torch (the reference the fused kernel is tested against)."""
+        """The soft row table in torch (the reference the fused kernel is tested against); rows of unreachable
+        entries are zero."""
         cfg = self.cfg
         n_t, n_c = cfg.table_size, cfg.candidates
         probs = torch.softmax(self.logits / self.temperature, dim=-1)  # (L, H, t)
         probs = probs.view(cfg.levels, cfg.index_factor, n_t, n_c)  # entry i = m * T + a -> [m, a]
         rows = self.table[:, self._group_candidates()]  # (L, T, t, F)
-        soft = torch.einsum("lmac,lacf->lmaf", probs, rows)
-        return soft.reshape(cfg.levels, cfg.index_size, cfg.features)
+        soft = torch.einsum("lmac,lacf->lmaf", probs, rows).reshape(cfg.levels, cfg.index_size, cfg.features)
+        return soft * self._reachable_mask(soft.device)[..., None]
 
     def _reads_table(self) -> bool:
         return self.frozen  # soft: the kernels read the soft row table computed from it
@@ -132,9 +169,9 @@ class HashVQAD(HashGrid):
     def vertex_rows(self, idx: torch.Tensor) -> torch.Tensor:
         if not self.frozen:
             return idx  # rows of the soft table S are the index entries themselves
-        code = self.codes.to(torch.int64)  # (L, H)
-        level = torch.arange(self.cfg.levels, device=idx.device)[None, :, None].expand_as(idx)
-        return candidate_rows(idx, code[level, idx], self.cfg.table_size)
+        starts = torch.tensor(self.code_starts()[:-1], dtype=torch.int64, device=idx.device)
+        code = self.codes.to(torch.int64)[idx + starts[None, :, None]]  # idx < the level's reachable entries
+        return candidate_rows(idx, code, self.cfg.table_size)
 
     def schedule(self, fraction: float, cfg) -> str | None:
         """The soft index's life cycle over training (cfg: train.TrainConfig): temperature 1 until the anneal
@@ -155,15 +192,16 @@ class HashVQAD(HashGrid):
 
     @torch.no_grad()
     def freeze(self) -> None:
-        """Replace the soft index table by argmax codes (irreversible); drops the logits."""
-        self.codes = self.logits.argmax(dim=-1).to(torch.uint8)
+        """Replace the soft index table by the argmax codes of its reachable entries (irreversible); drops the
+        logits."""
+        self.codes = self.compact_codes(self.logits.argmax(dim=-1).to(torch.uint8))
         self.logits = None
 
     def code_bits(self) -> int:
         return int(math.log2(self.cfg.candidates))
 
     def stored_bytes(self, table_bits: int = 32) -> dict[str, int]:
-        """{'features': as HashGrid's, 'index': ceil(L*H*log2(t) / 8)}."""
+        """{'features': as HashGrid's, 'index': ceil(reachable entries * log2(t) / 8)} (file format 2.2)."""
         cfg = self.cfg
         return {"features": table_features_bytes(cfg, table_bits),
-                "index": (cfg.levels * cfg.index_size * self.code_bits() + 7) // 8}
+                "index": (sum(self.reachable_entries()) * self.code_bits() + 7) // 8}

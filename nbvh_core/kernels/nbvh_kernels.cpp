@@ -5,6 +5,7 @@
 // traversal.py) with the same float32 operations in the same order where the order matters for the result:
 // grid cells, hashes and box tests are bit-identical (built with -ffp-contract=off, no fused multiply-add);
 // only the order of the 8-corner sums differs (float rounding, ~1e-7 relative).
+#include <algorithm>
 #include <cmath>
 #include <cstdint>
 #include <cstring>
@@ -44,17 +45,20 @@ struct Grid {
     const uint8_t* dense;     // (L,) 1 when level l indexes densely
     int64_t vertex_table;     // vertex index range: T (HashGrid) or H (HashVQAD)
     int64_t rows;             // rows per level in `table`
-    const uint8_t* codes;     // (L, vertex_table) frozen HashVQAD codes, or null
+    const uint8_t* codes;     // frozen HashVQAD codes of the reachable entries, level after level, or null
     int64_t code_rows;        // T: candidate rows hash2(i, code) mod T (with codes)
     const float* qoffset = nullptr;  // (L, F) uint8 tables: value = offset + code * scale
     const float* qscale = nullptr;
     uint32_t vertex_mask = 0; // vertex_table - 1 when it is a power of two <= 2^32, else 0
     uint32_t code_mask = 0;
+    int64_t code_start[17] = {0};  // level l's first code in `codes`: a dense level reaches res^3 entries, else all
 
     void init_masks() {
         auto pow2 = [](int64_t v) { return v > 0 && v <= (int64_t(1) << 32) && (v & (v - 1)) == 0; };
         vertex_mask = pow2(vertex_table) ? (uint32_t)(vertex_table - 1) : 0;
         code_mask = pow2(code_rows) ? (uint32_t)(code_rows - 1) : 0;
+        for (int l = 0; l < levels && l < 16; ++l)
+            code_start[l + 1] = code_start[l] + (dense[l] ? res[l] * res[l] * res[l] : vertex_table);
     }
 };
 
@@ -75,7 +79,7 @@ inline void cell(const Grid& g, int l, const float* x, float* frac, I* base) {
 // Row a frozen HashVQAD code selects for vertex index idx at level l (identity without codes).
 inline int64_t code_row(const Grid& g, int l, int64_t idx) {
     if (!g.codes) return idx;
-    const uint32_t code = g.codes[(int64_t)l * g.vertex_table + idx];
+    const uint32_t code = g.codes[g.code_start[l] + idx];
     const uint32_t h = ((uint32_t)idx * P1) ^ (code * P2);
     return g.code_mask ? (int64_t)(h & g.code_mask) : (int64_t)(h % (uint64_t)g.code_rows);
 }
@@ -923,18 +927,44 @@ inline void softmax_row(const float* lg, int t, float inv_tau, float* p) {
     for (int c = 0; c < t; ++c) p[c] *= inv;
 }
 
+// The reachable entries of all levels in one index space: entry q of [0, sum reach) is entry q - start[l] of level l
+// (start: L + 1 prefix sums). Unreachable entries (a dense coarse level's beyond its R^3) are skipped.
+struct ReachableEntries {
+    std::vector<int64_t> start;
+    ReachableEntries(const int64_t* reach, int L, int64_t H) : start(L + 1, 0) {
+        for (int l = 0; l < L; ++l) start[l + 1] = start[l] + std::min<int64_t>(std::max<int64_t>(reach[l], 0), H);
+    }
+    int64_t total() const { return start.back(); }
+    // (level, entry) of q; L is small (<= 16): a scan.
+    void locate(int64_t q, int* l, int64_t* i) const {
+        int lv = 0;
+        while (q >= start[lv + 1]) ++lv;
+        *l = lv;
+        *i = q - start[lv];
+    }
+};
+
 template <int TF>
-void vqad_soft_forward_t(const float* logits, const float* table, const int64_t* cand, int L, int64_t H, int64_t T,
-                         int t, int F_dyn, float inv_tau, float* probs, float* soft, int threads) {
+void vqad_soft_forward_t(const float* logits, const float* table, const int64_t* cand, const int64_t* reach, int L,
+                         int64_t H, int64_t T, int t, int F_dyn, float inv_tau, float* probs, float* soft,
+                         int threads) {
     const int F = TF > 0 ? TF : F_dyn;
+    const ReachableEntries entries(reach, L, H);
+    for (int l = 0; l < L; ++l) {  // rows no vertex reads: zero (the reference's value)
+        const int64_t n = entries.start[l + 1] - entries.start[l];
+        std::memset(soft + ((int64_t)l * H + n) * F, 0, sizeof(float) * (size_t)((H - n) * F));
+    }
 #pragma omp parallel num_threads(threads)
     {
     const FlushDenormals ftz_guard;
     // Entries in memory order (streaming the logits, probabilities and rows written); a level's T candidate rows
     // (T F floats) stay in L2 while its entries pass.
 #pragma omp for schedule(static)
-    for (int64_t le = 0; le < (int64_t)L * H; ++le) {
-        const int64_t l = le / H, a = (le % H) % T;
+    for (int64_t q = 0; q < entries.total(); ++q) {
+        int l;
+        int64_t i;
+        entries.locate(q, &l, &i);
+        const int64_t le = (int64_t)l * H + i, a = i % T;
         float* p = probs + le * t;
         softmax_row(logits + le * t, t, inv_tau, p);
         float acc[TF > 0 ? TF : 256];
@@ -953,11 +983,16 @@ void vqad_soft_forward_t(const float* logits, const float* table, const int64_t*
 }
 
 template <int TF>
-void vqad_soft_backward_t(const float* probs, const float* table, const int64_t* cand, const float* grad_soft, int L,
-                          int64_t H, int64_t T, int t, int F_dyn, float inv_tau, float* grad_table, float* grad_logits,
-                          int threads) {
+void vqad_soft_backward_t(const float* probs, const float* table, const int64_t* cand, const int64_t* reach,
+                          const float* grad_soft, int L, int64_t H, int64_t T, int t, int F_dyn, float inv_tau,
+                          float* grad_table, float* grad_logits, int threads) {
     const int F = TF > 0 ? TF : F_dyn;
     const int n_threads = threads < 1 ? 1 : threads;
+    const ReachableEntries entries(reach, L, H);
+    for (int l = 0; l < L; ++l) {  // logits no vertex reaches get no gradient
+        const int64_t n = entries.start[l + 1] - entries.start[l];
+        std::memset(grad_logits + ((int64_t)l * H + n) * t, 0, sizeof(float) * (size_t)((H - n) * t));
+    }
     std::vector<std::vector<float>> local(n_threads);
 #pragma omp parallel num_threads(n_threads)
     {
@@ -965,8 +1000,11 @@ void vqad_soft_backward_t(const float* probs, const float* table, const int64_t*
         std::vector<float>& gt = local[omp_get_thread_num()];
         gt.assign((size_t)L * T * F, 0.f);  // this thread's row gradients (L2-resident), summed in thread order
 #pragma omp for schedule(static)
-        for (int64_t le = 0; le < (int64_t)L * H; ++le) {
-            const int64_t l = le / H, a = (le % H) % T;
+        for (int64_t q = 0; q < entries.total(); ++q) {
+            int l;
+            int64_t i;
+            entries.locate(q, &l, &i);
+            const int64_t le = (int64_t)l * H + i, a = i % T;
             const float* p = probs + le * t;
             const float* gs = grad_soft + le * F;
             const int64_t* ca = cand + a * t;
@@ -996,22 +1034,25 @@ void vqad_soft_backward_t(const float* probs, const float* table, const int64_t*
     }
 }
 
-void vqad_soft_forward(const float* logits, const float* table, const int64_t* cand, int L, int64_t H, int64_t T,
-                       int t, int F, float inv_tau, float* probs, float* soft, int threads) {
-    if (F == 16) vqad_soft_forward_t<16>(logits, table, cand, L, H, T, t, F, inv_tau, probs, soft, threads);
-    else if (F == 8) vqad_soft_forward_t<8>(logits, table, cand, L, H, T, t, F, inv_tau, probs, soft, threads);
-    else vqad_soft_forward_t<0>(logits, table, cand, L, H, T, t, F, inv_tau, probs, soft, threads);
+void vqad_soft_forward(const float* logits, const float* table, const int64_t* cand, const int64_t* reach, int L,
+                       int64_t H, int64_t T, int t, int F, float inv_tau, float* probs, float* soft, int threads) {
+    if (F == 16) vqad_soft_forward_t<16>(logits, table, cand, reach, L, H, T, t, F, inv_tau, probs, soft, threads);
+    else if (F == 8) vqad_soft_forward_t<8>(logits, table, cand, reach, L, H, T, t, F, inv_tau, probs, soft, threads);
+    else vqad_soft_forward_t<0>(logits, table, cand, reach, L, H, T, t, F, inv_tau, probs, soft, threads);
 }
 
-void vqad_soft_backward(const float* probs, const float* table, const int64_t* cand, const float* grad_soft, int L,
-                        int64_t H, int64_t T, int t, int F, float inv_tau, float* grad_table, float* grad_logits,
-                        int threads) {
+void vqad_soft_backward(const float* probs, const float* table, const int64_t* cand, const int64_t* reach,
+                        const float* grad_soft, int L, int64_t H, int64_t T, int t, int F, float inv_tau,
+                        float* grad_table, float* grad_logits, int threads) {
     if (F == 16)
-        vqad_soft_backward_t<16>(probs, table, cand, grad_soft, L, H, T, t, F, inv_tau, grad_table, grad_logits, threads);
+        vqad_soft_backward_t<16>(probs, table, cand, reach, grad_soft, L, H, T, t, F, inv_tau, grad_table, grad_logits,
+                                 threads);
     else if (F == 8)
-        vqad_soft_backward_t<8>(probs, table, cand, grad_soft, L, H, T, t, F, inv_tau, grad_table, grad_logits, threads);
+        vqad_soft_backward_t<8>(probs, table, cand, reach, grad_soft, L, H, T, t, F, inv_tau, grad_table, grad_logits,
+                                threads);
     else
-        vqad_soft_backward_t<0>(probs, table, cand, grad_soft, L, H, T, t, F, inv_tau, grad_table, grad_logits, threads);
+        vqad_soft_backward_t<0>(probs, table, cand, reach, grad_soft, L, H, T, t, F, inv_tau, grad_table, grad_logits,
+                                threads);
 }
 
 }  // namespace
@@ -1122,7 +1163,7 @@ void stream_next_t(const Nodes& nodes, const float* rays_o, const float* inv_d, 
 
 extern "C" {
 
-int nbvh_abi_version() { return 17; }
+int nbvh_abi_version() { return 18; }
 
 // Fused inference over B segments of an MLP (kmlp = 0: mlp_segments_t) or a KMLP (kmlp = 1: kmlp_segments_t):
 // rays_o/rays_d (n_rays, 3), ray (B,) int64 ray of each segment, te/tx (B,) segment ends, frac (k,) point
@@ -1201,18 +1242,22 @@ void nbvh_encode_forward_f16(const float* points, int64_t n, const void* table, 
     by_features(features, [&](auto F) { encode_forward_t<decltype(F)::value, _Float16>(g, points, n, t, out, threads); });
 }
 
-// HashVQAD soft row table (see vqad_soft_forward): logits (L, H, t), table (L, T, F), cand (T, t) int64 rows;
-// probs (L, H, t) and soft (L, H, F) written. t <= 256.
-void nbvh_vqad_soft_forward(const float* logits, const float* table, const int64_t* cand, int levels, int64_t H,
-                            int64_t T, int t, int F, float inv_tau, float* probs, float* soft, int threads) {
-    vqad_soft_forward(logits, table, cand, levels, H, T, t, F, inv_tau, probs, soft, threads);
+// HashVQAD soft row table (see vqad_soft_forward): logits (L, H, t), table (L, T, F), cand (T, t) int64 rows, reach
+// (L,) int64 reachable entries per level (entries 0..reach[l]-1); soft (L, H, F) written (zero beyond reach), probs
+// (L, H, t) written for the reachable entries. t <= 256.
+void nbvh_vqad_soft_forward(const float* logits, const float* table, const int64_t* cand, const int64_t* reach,
+                            int levels, int64_t H, int64_t T, int t, int F, float inv_tau, float* probs, float* soft,
+                            int threads) {
+    vqad_soft_forward(logits, table, cand, reach, levels, H, T, t, F, inv_tau, probs, soft, threads);
 }
 
-// Its backward: grad_soft (L, H, F) -> grad_table (L, T, F) accumulated (zero it first), grad_logits (L, H, t).
-void nbvh_vqad_soft_backward(const float* probs, const float* table, const int64_t* cand, const float* grad_soft,
-                             int levels, int64_t H, int64_t T, int t, int F, float inv_tau, float* grad_table,
-                             float* grad_logits, int threads) {
-    vqad_soft_backward(probs, table, cand, grad_soft, levels, H, T, t, F, inv_tau, grad_table, grad_logits, threads);
+// Its backward: grad_soft (L, H, F) -> grad_table (L, T, F) accumulated (zero it first), grad_logits (L, H, t)
+// written (zero beyond reach).
+void nbvh_vqad_soft_backward(const float* probs, const float* table, const int64_t* cand, const int64_t* reach,
+                             const float* grad_soft, int levels, int64_t H, int64_t T, int t, int F, float inv_tau,
+                             float* grad_table, float* grad_logits, int threads) {
+    vqad_soft_backward(probs, table, cand, reach, grad_soft, levels, H, T, t, F, inv_tau, grad_table, grad_logits,
+                       threads);
 }
 
 // Inference from uint8 codes (L, rows, F) with qoffset/qscale (L, F) float32 (value = offset + code * scale).
