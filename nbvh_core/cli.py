@@ -396,8 +396,8 @@ def _add_compress_parser(sub) -> None:
                    help="'loss': half of each batch starts in leaves drawn by their running error (N-BVH's resampling)")
     c.add_argument("--n-max", type=int, help="the grid's finest resolution (default: chosen from the mesh and T)")
     c.add_argument("--normal-loss", choices=["facing", "oriented", "unoriented"],
-                   help="'facing' (default): normal targets face the ray, as every renderer shades them; 'oriented': "
-                        "the paper's, as the mesh winds them; 'unoriented': either sign")
+                   help="'oriented' (default): the paper's, as the mesh winds them; 'facing': targets turned toward "
+                        "the ray (fails on surfaces seen from both sides); 'unoriented': either sign")
     c.add_argument("--tree-cut", action="store_true",
                    help="start from half the BVH leaves and split the worst ones during training (N-BVH's tree cut)")
     c.add_argument("--seed", type=int)

@@ -42,7 +42,7 @@ class TrainConfig:
 
     labels: str = "consistent"
     #: Normal targets facing the ray (samples.label_samples' facing_normals) rather than as the mesh winds them.
-    facing_normals: bool = True
+    facing_normals: bool = False
     lr: float = 1e-3
     lr_final_factor: float = 0.1
     rays_per_step: int = 4096
