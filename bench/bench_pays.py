@@ -29,6 +29,7 @@ from nbvh_core.exact import ExactTracer  # noqa: E402
 from nbvh_core.metrics import evaluate_renderer  # noqa: E402
 from nbvh_core.pipeline import compress_mesh, preset  # noqa: E402
 from nbvh_core.render import render_reference  # noqa: E402
+from nbvh_core.settings import Settings  # noqa: E402
 from nbvh_core.sizing import choose_resolution, decimate, mesh_resident_bytes  # noqa: E402
 
 RESULTS = ROOT / "bench" / "results"
@@ -127,10 +128,11 @@ def charts(rows: list[dict]) -> None:
                 ax.axvline(float(mine[0]["mesh_resident_bytes"]), color="gray", ls=":", label="full mesh, resident")
             for r in mine:
                 x = float(r["model_resident_bytes"] if axis == "resident" else r["file_bytes"])
-                current = "n_max=auto" in r["storage"]  # the presets as they are now (grid chosen from the mesh)
-                earlier = not current and r["storage"] in ("t8/w8/n8", "t8/w8/n8 n_max=128")
+                # the presets as they are now: the grid chosen from the mesh, the product's normal targets
+                current = "n_max=auto" in r["storage"] and f"normals={Settings.normal_loss}" in r["storage"]
+                earlier = "n_max=auto" in r["storage"] and "normals=" not in r["storage"]  # stop 14-15: facing
                 color, label = (("tab:red", f"neural {r['preset']} {float(r['train_s']):.0f} s (now)") if current
-                                else ("tab:orange", f"neural {r['preset']}, N_max 128") if earlier
+                                else ("tab:orange", f"neural {r['preset']}, facing normal targets") if earlier
                                 else ("tab:blue", "earlier configurations"))
                 ax.plot(x, float(r["mse"]), marks.get(r["preset"], "o"), ms=8 if current else 6 if earlier else 5,
                         color=color, alpha=1.0 if current or earlier else 0.5, label=label)
@@ -145,8 +147,8 @@ def charts(rows: list[dict]) -> None:
             ax.legend(unique.values(), unique.keys(), fontsize=6)
         for ax in list(axes.flat)[len(meshes):]:
             ax.axis("off")
-        fig.suptitle(f"Neural models at their presets' real budgets (red: the presets now; orange: with the paper's "
-                     f"N_max 128; blue: earlier configurations) vs decimation / Draco, {axis} bytes, one metric",
+        fig.suptitle(f"Neural models at their presets' real budgets (red: the presets now; orange: with facing normal "
+                     f"targets; blue: earlier configurations) vs decimation / Draco, {axis} bytes, one metric",
                      fontsize=9)
         fig.tight_layout()
         fig.savefig(RESULTS / f"rd_budget_{axis}.png", dpi=90)
@@ -193,6 +195,7 @@ def main() -> None:
                     storage += " " + " ".join(f"{k}={v}" for k, v in sorted(extra.items()))
                 if s.n_max is None:  # the grid chosen from the mesh: name it, so the row is not the 128 one
                     storage += f" n_max=auto:{choose_resolution(bench_grid(mesh_name), s.log2_table)[0]}"
+                storage += f" normals={s.normal_loss}"  # rows before the tag trained with facing targets (stop 14-15)
                 if (mesh_name, preset_name, storage) in done:
                     continue
                 print(f"{mesh_name} {preset_name} {storage}: training {s.time_limit_s} s", flush=True)
