@@ -41,6 +41,8 @@ class Settings:
     #: n_max None: chosen from the mesh's measured detail (`sizing.choose_resolution`, in `sizing.resolve`).
     n_min: int = 16
     n_max: int | None = 128
+    #: HashVQAD's index entries per feature row, H / T (the paper's 2^7; EncodingConfig.index_factor).
+    index_factor: int = 128
     network: str = "kmlp"
     k: int = 8
     #: The network's hidden layers and their width (NetworkConfig).
@@ -92,7 +94,9 @@ class Settings:
             raise ValueError(f"unknown normal loss {self.normal_loss!r}; choose from {', '.join(NORMAL_LOSSES)}")
         return ModelConfig(EncodingConfig(kind=self.encoding, log2_table=self.log2_table, levels=self.levels,
                                           features=self.features, n_min=self.n_min,
+                                          index_factor=self.index_factor,
                                           # unresolved (no mesh yet): the paper's 128; bytes do not depend on it
+                                          # (but for HashVQAD's index: a dense level reaches R^3 of its entries)
                                           n_max=self.n_max or PAPER_N_MAX),
                            NetworkConfig(kind=self.network, k=self.k, hidden=self.hidden, width=self.width,
                                          normal_weight=self.normal_weight, normal_unit_weight=self.normal_unit_weight,

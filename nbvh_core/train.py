@@ -255,6 +255,8 @@ def load_checkpoint(path: str | os.PathLike, model: NeuralBVH, opt: torch.optim.
     codes = ck["model"].get("encoding.codes")
     if codes is not None and codes.numel() and model.encoding.learned_index:
         model.encoding.freeze()  # the checkpoint is past the freeze: same structure before loading
+        if codes.dim() == 2:  # written while frozen codes were held for all L x H entries (before format 2.2)
+            ck["model"]["encoding.codes"] = model.encoding.compact_codes(codes)
     model.load_state_dict(ck["model"])
     opt.load_state_dict(ck["optimizer"])
     torch.set_rng_state(ck["torch_rng"])

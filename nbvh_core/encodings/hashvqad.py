@@ -86,6 +86,8 @@ class HashVQAD(HashGrid):
         super().__init__(cfg, inference)
         if cfg.candidates < 2 or cfg.candidates & (cfg.candidates - 1):
             raise ValueError(f"HashVQAD candidates t must be a power of two >= 2, got {cfg.candidates}")
+        if cfg.index_factor < 1:
+            raise ValueError(f"HashVQAD index factor H / T must be >= 1, got {cfg.index_factor}")
         # A model built to be loaded (inference) never allocates the soft index: L * H * t floats, 128x the table.
         self.logits = None if inference else nn.Parameter(
             torch.randn(cfg.levels, cfg.index_size, cfg.candidates) * 1e-2)
