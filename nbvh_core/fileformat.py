@@ -48,7 +48,7 @@ import torch
 
 from .bvh import MAX_NODES, NODE_DTYPE
 from .encodings import ENCODINGS, EncodingConfig
-from .encodings.base import level_vertex_counts
+from .encodings.base import code_width, level_vertex_counts
 from .mesh import Transform
 from .model import ModelConfig, NeuralBVH
 from .networks import NETWORKS, NetworkConfig
@@ -149,10 +149,11 @@ def _tensors(model: NeuralBVH, storage: StorageConfig) -> list[tuple[str, str, b
     if enc.learned_index:
         if not enc.frozen:
             raise ValueError("HashVQAD must be frozen (argmax codes) before saving")
-        # 2.2: the codes as held (the entries a vertex can select, level by level); before: all L x H entries
-        reachable_only = (VERSION_MAJOR, VERSION_MINOR) >= REACHABLE_INDEX_SINCE
-        codes = (enc.codes if reachable_only else enc.full_codes()).cpu().numpy()
-        out.append(("index", "index", pack_codes(codes, enc.code_bits()), list(codes.shape)))
+        if (VERSION_MAJOR, VERSION_MINOR) >= REACHABLE_INDEX_SINCE:  # the packed codes as held (see HashVQAD)
+            out.append(("index", "index", enc.codes.cpu().numpy().tobytes(), [sum(enc.reachable_entries())]))
+        else:  # before 2.2: all L x H entries
+            full = enc.full_codes().cpu().numpy()
+            out.append(("index", "index", pack_codes(full, enc.code_bits()), list(full.shape)))
     for name, arr in _network_arrays(model, storage.network_bits):
         out.append((f"network.{name}", "network", arr.tobytes(), list(arr.shape)))
     return out
@@ -308,7 +309,7 @@ def _expected_tensors(cfg: ModelConfig, storage: StorageConfig, n_nodes: int,
     if enc.kind == "hashvqad":
         shape = ((sum(level_vertex_counts(enc, enc.index_size)),) if version >= REACHABLE_INDEX_SINCE
                  else (L, enc.index_size))
-        out["index"] = (shape, f"packed{int(math.log2(enc.candidates))}")
+        out["index"] = (shape, f"packed{code_width(enc.candidates)}")
     fdt = "<f4" if storage.network_bits == 32 else "<f2"
     for name, shape in _network_shapes(cfg).items():
         if storage.network_bits == 8 and name.endswith("weight") and len(shape) == 2:
@@ -515,7 +516,7 @@ def _decode(data: bytes, header: dict, where: str, device: str | torch.device = 
             if (codes >= cfg.encoding.candidates).any():
                 raise NBVHFileError(f"{where}: HashVQAD codes out of range")
             codes = torch.from_numpy(codes.copy())
-            enc.codes = codes if codes.ndim == 1 else enc.compact_codes(codes)  # before 2.2: all L x H entries
+            enc.codes = enc.pack(codes) if codes.ndim == 1 else enc.compact_codes(codes)  # 2-D: before 2.2
             enc.logits = None
         _load_network(model, storage.network_bits, array, [n for n in expected if n.startswith("network.")])
         if compact is not None:

@@ -100,6 +100,13 @@ def level_scales(cfg: EncodingConfig) -> list[float]:
     return [cfg.n_min * b ** level - 1.0 for level in range(cfg.levels)]
 
 
+def code_width(candidates: int) -> int:
+    """Bits per HashVQAD code as held and stored: the smallest of 1, 2, 4, 8 that holds log2(t) (whole codes per
+    byte, so a kernel reads one with a shift and a mask)."""
+    need = max(1, math.ceil(math.log2(candidates)))
+    return next(b for b in (1, 2, 4, 8) if b >= need)
+
+
 def level_vertex_counts(cfg: EncodingConfig, vertex_table: int) -> list[int]:
     """How many distinct vertex indices each level can produce (the table entries it can ever read): R^3 on a
     level indexed densely (its R^3 vertices fit the vertex_table entries; R = ceil(s_l) + 2, as `corner_indices`),

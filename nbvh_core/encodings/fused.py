@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import torch
 
 from .. import kernels
-from .base import EncodingConfig, level_scales
+from .base import EncodingConfig, code_width, level_scales
 
 
 class GridSpec:
@@ -30,12 +30,13 @@ class GridSpec:
         self.scales = torch.tensor(scales, dtype=torch.float32)
         self.res = torch.tensor(res, dtype=torch.int64)
         self.dense = torch.tensor([r ** 3 <= vertex_table for r in res], dtype=torch.uint8)
+        self.code_bits = code_width(cfg.candidates)  # of frozen HashVQAD codes, when a lookup has them
 
     def args(self, rows: int, codes: torch.Tensor | None, code_rows: int) -> tuple:
         p = kernels.ptr
         return (self.cfg.levels, self.cfg.features, p(self.scales), p(self.res), p(self.dense),
                 ctypes.c_int64(self.vertex_table), ctypes.c_int64(rows), p(codes), ctypes.c_int64(code_rows),
-                kernels.threads())
+                self.code_bits, kernels.threads())
 
 
 @dataclass
@@ -91,8 +92,8 @@ class _FusedEncode(torch.autograd.Function):
 def fused_encode(points: torch.Tensor, table: torch.Tensor, spec: GridSpec, codes: torch.Tensor | None = None,
                  code_rows: int = 0) -> torch.Tensor:
     """points (N, 3) float32 CPU in [0, 1]^3 (clamped); table (L, R, F) float32 rows; codes uint8 frozen
-    HashVQAD codes of the reachable entries, level after level (rows = hash2(vertex, code) mod code_rows), or None
-    (rows = vertex indices).
+    HashVQAD codes of the reachable entries, level after level, bit-packed (`spec.code_bits` each; rows =
+    hash2(vertex, code) mod code_rows), or None (rows = vertex indices).
     Returns (N, L * F) float32, differentiable in `table`."""
     if codes is not None:
         codes = codes.contiguous()

@@ -23,13 +23,12 @@ Stored size per level: V = T * F floats, I = (reachable entries) * log2(t) bits.
 """
 from __future__ import annotations
 
-import math
 
 import torch
 from torch import nn
 
 from .. import kernels
-from .base import MASK32, PRIMES, EncodingConfig, level_vertex_counts
+from .base import MASK32, PRIMES, EncodingConfig, code_width, level_vertex_counts
 from .hashgrid import HashGrid, table_features_bytes
 
 
@@ -77,7 +76,8 @@ class HashVQAD(HashGrid):
     """points (N, 3) in [0, 1]^3 -> features (N, L * F); see module docstring.
 
     Parameters: `table` (L, T, F) feature rows; `logits` (L, H, t) while soft. Buffer `codes` uint8 after
-    `freeze()`: (sum of `reachable_entries()`,), the reachable entries' codes level after level.
+    `freeze()`: the reachable entries' codes level after level, bit-packed as the file stores them (`code_bits()`
+    each, little-endian within a byte: 4 bits at t = 16).
     """
 
     learned_index = True
@@ -115,16 +115,33 @@ class HashVQAD(HashGrid):
             starts.append(starts[-1] + n)
         return starts
 
+    def pack(self, codes: torch.Tensor) -> torch.Tensor:
+        """Codes (C,) (one per uint8) -> the held form: bit-packed, `code_bits()` each, little-endian in a byte."""
+        bits = self.code_bits()
+        per = 8 // bits
+        flat = codes.to(torch.uint8).reshape(-1)
+        flat = torch.cat([flat, flat.new_zeros((-flat.numel()) % per)]).view(-1, per).to(torch.int32)
+        shifts = torch.arange(per, dtype=torch.int32, device=flat.device) * bits
+        return (flat << shifts).sum(dim=1).to(torch.uint8).contiguous()  # the fields do not overlap: sum = or
+
+    def unpack(self, positions: torch.Tensor) -> torch.Tensor:
+        """The held codes at int64 `positions` (any shape) in the level-after-level order, as int64."""
+        bits = self.code_bits()
+        per = 8 // bits
+        byte = self.codes.to(torch.int64)[positions // per]
+        return (byte >> ((positions % per) * bits)) & ((1 << bits) - 1)
+
     def compact_codes(self, full: torch.Tensor) -> torch.Tensor:
-        """(L, H) codes -> the reachable entries' codes, level after level (the held and stored form)."""
-        return torch.cat([full[level, :n] for level, n in enumerate(self.reachable_entries())]).contiguous()
+        """(L, H) codes -> the held form: the reachable entries' codes level after level, packed (`pack`)."""
+        return self.pack(torch.cat([full[level, :n] for level, n in enumerate(self.reachable_entries())]))
 
     def full_codes(self) -> torch.Tensor:
         """(L, H) uint8: the held codes spread back over the whole index, unreachable entries code 0."""
         full = torch.zeros((self.cfg.levels, self.cfg.index_size), dtype=torch.uint8, device=self.codes.device)
         starts = self.code_starts()
         for level, n in enumerate(self.reachable_entries()):
-            full[level, :n] = self.codes[starts[level]:starts[level + 1]]
+            pos = torch.arange(starts[level], starts[level] + n, device=self.codes.device)
+            full[level, :n] = self.unpack(pos).to(torch.uint8)
         return full
 
     def _reachable_mask(self, device) -> torch.Tensor:
@@ -172,7 +189,7 @@ class HashVQAD(HashGrid):
         if not self.frozen:
             return idx  # rows of the soft table S are the index entries themselves
         starts = torch.tensor(self.code_starts()[:-1], dtype=torch.int64, device=idx.device)
-        code = self.codes.to(torch.int64)[idx + starts[None, :, None]]  # idx < the level's reachable entries
+        code = self.unpack(idx + starts[None, :, None])  # idx < the level's reachable entries
         return candidate_rows(idx, code, self.cfg.table_size)
 
     def schedule(self, fraction: float, cfg) -> str | None:
@@ -200,7 +217,8 @@ class HashVQAD(HashGrid):
         self.logits = None
 
     def code_bits(self) -> int:
-        return int(math.log2(self.cfg.candidates))
+        """Bits per code as held and stored (`base.code_width`: 4 at t = 16)."""
+        return code_width(self.cfg.candidates)
 
     def stored_bytes(self, table_bits: int = 32) -> dict[str, int]:
         """{'features': as HashGrid's, 'index': ceil(reachable entries * log2(t) / 8)} (file format 2.2)."""

@@ -45,13 +45,17 @@ struct Grid {
     const uint8_t* dense;     // (L,) 1 when level l indexes densely
     int64_t vertex_table;     // vertex index range: T (HashGrid) or H (HashVQAD)
     int64_t rows;             // rows per level in `table`
-    const uint8_t* codes;     // frozen HashVQAD codes of the reachable entries, level after level, or null
+    const uint8_t* codes;     // frozen HashVQAD codes of the reachable entries, level after level, bit-packed
+                              // (code_bits each, little-endian within a byte, as the file stores them), or null
     int64_t code_rows;        // T: candidate rows hash2(i, code) mod T (with codes)
+    int code_bits = 8;        // 1, 2, 4 or 8
     const float* qoffset = nullptr;  // (L, F) uint8 tables: value = offset + code * scale
     const float* qscale = nullptr;
     uint32_t vertex_mask = 0; // vertex_table - 1 when it is a power of two <= 2^32, else 0
     uint32_t code_mask = 0;
     int64_t code_start[17] = {0};  // level l's first code in `codes`: a dense level reaches res^3 entries, else all
+    int code_shift = 0;            // log2(codes per byte)
+    uint32_t code_value_mask = 255;
 
     void init_masks() {
         auto pow2 = [](int64_t v) { return v > 0 && v <= (int64_t(1) << 32) && (v & (v - 1)) == 0; };
@@ -59,6 +63,8 @@ struct Grid {
         code_mask = pow2(code_rows) ? (uint32_t)(code_rows - 1) : 0;
         for (int l = 0; l < levels && l < 16; ++l)
             code_start[l + 1] = code_start[l] + (dense[l] ? res[l] * res[l] * res[l] : vertex_table);
+        code_shift = code_bits == 1 ? 3 : code_bits == 2 ? 2 : code_bits == 4 ? 1 : 0;
+        code_value_mask = code_bits >= 8 ? 255u : (1u << code_bits) - 1u;
     }
 };
 
@@ -79,7 +85,9 @@ inline void cell(const Grid& g, int l, const float* x, float* frac, I* base) {
 // Row a frozen HashVQAD code selects for vertex index idx at level l (identity without codes).
 inline int64_t code_row(const Grid& g, int l, int64_t idx) {
     if (!g.codes) return idx;
-    const uint32_t code = g.codes[g.code_start[l] + idx];
+    const int64_t j = g.code_start[l] + idx;
+    const uint32_t shift = (uint32_t)(j & ((1 << g.code_shift) - 1)) * (uint32_t)g.code_bits;
+    const uint32_t code = ((uint32_t)g.codes[j >> g.code_shift] >> shift) & g.code_value_mask;
     const uint32_t h = ((uint32_t)idx * P1) ^ (code * P2);
     return g.code_mask ? (int64_t)(h & g.code_mask) : (int64_t)(h % (uint64_t)g.code_rows);
 }
@@ -1163,7 +1171,7 @@ void stream_next_t(const Nodes& nodes, const float* rays_o, const float* inv_d, 
 
 extern "C" {
 
-int nbvh_abi_version() { return 18; }
+int nbvh_abi_version() { return 19; }
 
 // Fused inference over B segments of an MLP (kmlp = 0: mlp_segments_t) or a KMLP (kmlp = 1: kmlp_segments_t):
 // rays_o/rays_d (n_rays, 3), ray (B,) int64 ray of each segment, te/tx (B,) segment ends, frac (k,) point
@@ -1176,10 +1184,10 @@ void nbvh_net_segments(const float* rays_o, const float* rays_d, const int64_t* 
                        int64_t b, int k, const float* frac, const void* table, int table_kind,
                        const float* qoffset, const float* qscale, int levels,
                        int features, const float* scales, const int64_t* res, const uint8_t* dense,
-                       int64_t vertex_table, int64_t rows, const uint8_t* codes, int64_t code_rows, int kmlp,
+                       int64_t vertex_table, int64_t rows, const uint8_t* codes, int64_t code_rows, int code_bits, int kmlp,
                        int n_layers, const int32_t* dims, const void* params, int weight_kind, float* out,
                        int threads) {
-    Grid g{levels, features, scales, res, dense, vertex_table, rows, codes, code_rows};
+    Grid g{levels, features, scales, res, dense, vertex_table, rows, codes, code_rows, code_bits};
     g.qoffset = qoffset;
     g.qscale = qscale;
     g.init_masks();
@@ -1212,11 +1220,11 @@ void nbvh_net_segments(const float* rays_o, const float* rays_d, const int64_t* 
 void nbvh_net_train(const float* rays_o, const float* rays_d, const int64_t* ray, const float* te, const float* tx,
                     int64_t b, int k, const float* frac, const float* table, int levels, int features,
                     const float* scales, const int64_t* res, const uint8_t* dense, int64_t vertex_table, int64_t rows,
-                    const uint8_t* codes, int64_t code_rows, int kmlp, int n_layers, const int32_t* dims,
+                    const uint8_t* codes, int64_t code_rows, int code_bits, int kmlp, int n_layers, const int32_t* dims,
                     const float* params, const uint8_t* hit, const float* local_t, const float* normal,
                     int64_t hit_count, float w_t, float w_n, int unoriented, float w_unit, double* loss_out, float* grad_params, float* grad_table,
                     float* points, float* dx, float* out_raw, int threads) {
-    Grid g{levels, features, scales, res, dense, vertex_table, rows, codes, code_rows};
+    Grid g{levels, features, scales, res, dense, vertex_table, rows, codes, code_rows, code_bits};
     g.init_masks();
     const float inv_hits = 1.f / (float)(hit_count > 0 ? hit_count : 1);
     by_features(features, [&](auto F) {
@@ -1235,8 +1243,8 @@ void nbvh_net_train(const float* rays_o, const float* rays_d, const int64_t* ray
 // Inference with a float16 copy of the table (same arguments as nbvh_encode_forward; table is (L, rows, F) half).
 void nbvh_encode_forward_f16(const float* points, int64_t n, const void* table, float* out, int levels, int features,
                              const float* scales, const int64_t* res, const uint8_t* dense, int64_t vertex_table,
-                             int64_t rows, const uint8_t* codes, int64_t code_rows, int threads) {
-    Grid g{levels, features, scales, res, dense, vertex_table, rows, codes, code_rows};
+                             int64_t rows, const uint8_t* codes, int64_t code_rows, int code_bits, int threads) {
+    Grid g{levels, features, scales, res, dense, vertex_table, rows, codes, code_rows, code_bits};
     g.init_masks();
     const _Float16* t = static_cast<const _Float16*>(table);
     by_features(features, [&](auto F) { encode_forward_t<decltype(F)::value, _Float16>(g, points, n, t, out, threads); });
@@ -1264,8 +1272,8 @@ void nbvh_vqad_soft_backward(const float* probs, const float* table, const int64
 void nbvh_encode_forward_u8(const float* points, int64_t n, const uint8_t* table, const float* qoffset,
                             const float* qscale, float* out, int levels, int features, const float* scales,
                             const int64_t* res, const uint8_t* dense, int64_t vertex_table, int64_t rows,
-                            const uint8_t* codes, int64_t code_rows, int threads) {
-    Grid g{levels, features, scales, res, dense, vertex_table, rows, codes, code_rows};
+                            const uint8_t* codes, int64_t code_rows, int code_bits, int threads) {
+    Grid g{levels, features, scales, res, dense, vertex_table, rows, codes, code_rows, code_bits};
     g.qoffset = qoffset;
     g.qscale = qscale;
     g.init_masks();
@@ -1275,8 +1283,8 @@ void nbvh_encode_forward_u8(const float* points, int64_t n, const uint8_t* table
 // points (n, 3) float32; table (L, rows, F) float32; out (n, L * F) float32.
 void nbvh_encode_forward(const float* points, int64_t n, const float* table, float* out, int levels, int features,
                          const float* scales, const int64_t* res, const uint8_t* dense, int64_t vertex_table,
-                         int64_t rows, const uint8_t* codes, int64_t code_rows, int threads) {
-    Grid g{levels, features, scales, res, dense, vertex_table, rows, codes, code_rows};
+                         int64_t rows, const uint8_t* codes, int64_t code_rows, int code_bits, int threads) {
+    Grid g{levels, features, scales, res, dense, vertex_table, rows, codes, code_rows, code_bits};
     g.init_masks();
     by_features(features, [&](auto F) { encode_forward_t<decltype(F)::value>(g, points, n, table, out, threads); });
 }
@@ -1284,8 +1292,8 @@ void nbvh_encode_forward(const float* points, int64_t n, const float* table, flo
 // grad_table (L, rows, F) float32 is accumulated into (zero it first).
 void nbvh_encode_backward(const float* points, int64_t n, const float* grad_out, float* grad_table, int levels,
                           int features, const float* scales, const int64_t* res, const uint8_t* dense,
-                          int64_t vertex_table, int64_t rows, const uint8_t* codes, int64_t code_rows, int threads) {
-    Grid g{levels, features, scales, res, dense, vertex_table, rows, codes, code_rows};
+                          int64_t vertex_table, int64_t rows, const uint8_t* codes, int64_t code_rows, int code_bits, int threads) {
+    Grid g{levels, features, scales, res, dense, vertex_table, rows, codes, code_rows, code_bits};
     g.init_masks();
     by_features(features, [&](auto F) {
         encode_backward_t<decltype(F)::value>(g, points, n, grad_out, grad_table, threads);
