@@ -4,7 +4,7 @@
     .venv/bin/python bench/fit_sizing.py --no-run   # fit and tables from what bench/results/quality.csv has
 
 Data: the user preset (`default`: HashGrid + MLP + consistent labels, 8 features, int8 weight rows, the grid's
-N_max from the mesh, 2047 nodes) at T = 2^9..2^13 and at 1023 / 4095 nodes (T = 2^11) on every benchmark mesh, trained the quality benchmark's budget (15 s) and scored
+N_max from the mesh, 2047 nodes) at T = 2^8..2^13 and at 1023 / 4095 nodes (T = 2^11) on every benchmark mesh, trained the quality benchmark's budget (15 s) and scored
 with its metric (rows part=GRID_PART in quality.csv; a new part name re-measures the grid, e.g. after the training
 got faster: 15 s buy more steps).
 
@@ -39,8 +39,11 @@ from nbvh_core.pipeline import estimate_file_bytes, preset  # noqa: E402
 from nbvh_core.sizing import (FEATURE_NAMES, FIT_PATH, LOG2_RANGE, QUALITY_LEVELS,  # noqa: E402
                               TARGET_TRAININGS, choose_table_and_nodes, fit_size_model, mesh_features, search_size)
 
-GRID = (9, 10, 11, 12, 13)
+#: From the smallest table the search may choose (2^8: a size the grid lacks would end a simulated search
+#: unmeasured) to the largest.
+GRID = (8, 9, 10, 11, 12, 13)
 NODE_GRID = (1023, 2047, 4095)
+NODE_T = 11  # the table size the node count is varied at
 METHOD = "default"
 #: Rows of this grid measurement (grid2, stop 10: after the fused training step; grid3, stop 14: the presets' 8
 #: features, int8 weights and mesh-sized grid, with facing normal targets - its open surfaces (terrain, sheet) came
@@ -76,7 +79,7 @@ def main() -> None:
                     bq.run_neural(plan, cache, GRID_PART, mesh_name, METHOD, l2, 0, plan.train_s, done)
             for nodes in NODE_GRID:  # the node count, varied at the middle table size
                 if nodes != preset(METHOD).nodes:
-                    bq.run_neural(plan, cache, f"{GRID_PART}_n{nodes}", mesh_name, METHOD, GRID[2], 0, plan.train_s,
+                    bq.run_neural(plan, cache, f"{GRID_PART}_n{nodes}", mesh_name, METHOD, NODE_T, 0, plan.train_s,
                                   done, nodes=nodes)
     data = grid_rows(plan)
     meshes = [m for m in plan.meshes if any((m, l2) in data for l2 in GRID)]
@@ -114,8 +117,8 @@ def main() -> None:
     def node_slopes(m):
         out = []
         for n in NODE_GRID:
-            if n != ref and (m, GRID[2], n) in configs and (m, GRID[2], ref) in configs:
-                out.append((math.log(configs[(m, GRID[2], n)][0]) - math.log(configs[(m, GRID[2], ref)][0]))
+            if n != ref and (m, NODE_T, n) in configs and (m, NODE_T, ref) in configs:
+                out.append((math.log(configs[(m, NODE_T, n)][0]) - math.log(configs[(m, NODE_T, ref)][0]))
                            / (math.log2(n + 1) - math.log2(ref + 1)))
         return out
 
@@ -241,12 +244,12 @@ def main() -> None:
         f = feats[m]
         L.append(f"| {m} | {f.triangles:,} | {f.area:.2f} | {f.occupancy:.3f} | {f.roughness:.3f} |")
     others = [n for n in NODE_GRID if n != ref]
-    L += [f"\n## Measured grid (image MSE by T at {ref} nodes; by node count at T=2^{GRID[2]})\n",
+    L += [f"\n## Measured grid (image MSE by T at {ref} nodes; by node count at T=2^{NODE_T})\n",
           "| mesh | " + " | ".join(f"2^{l}" for l in GRID) + " | " + " | ".join(f"{n} nodes" for n in others) + " |",
           "|---|" + "---|" * (len(GRID) + len(others))]
     for m in meshes:
         L.append(f"| {m} | " + " | ".join(f"{data[(m, l)][0]:.5f}" if (m, l) in data else "-" for l in GRID) + " | "
-                 + " | ".join(f"{configs[(m, GRID[2], n)][0]:.5f}" if (m, GRID[2], n) in configs else "-" for n in others)
+                 + " | ".join(f"{configs[(m, NODE_T, n)][0]:.5f}" if (m, NODE_T, n) in configs else "-" for n in others)
                  + " |")
     L.append(f"\nNode effect: log MSE changes by {slope_mean:+.3f} +- {slope_se:.3f} (standard error) per doubling of "
              f"the node count (slopes over meshes at T=2^10). "
