@@ -29,7 +29,7 @@ from nbvh_core.exact import ExactTracer  # noqa: E402
 from nbvh_core.metrics import evaluate_renderer  # noqa: E402
 from nbvh_core.pipeline import compress_mesh, preset  # noqa: E402
 from nbvh_core.render import render_reference  # noqa: E402
-from nbvh_core.settings import Settings  # noqa: E402
+from nbvh_core.settings import NORMAL_LOSS_BY_NETWORK  # noqa: E402
 from nbvh_core.sizing import choose_resolution, decimate, mesh_resident_bytes  # noqa: E402
 
 RESULTS = ROOT / "bench" / "results"
@@ -129,7 +129,9 @@ def charts(rows: list[dict]) -> None:
             for r in mine:
                 x = float(r["model_resident_bytes"] if axis == "resident" else r["file_bytes"])
                 # the presets as they are now: the grid chosen from the mesh, the product's normal targets
-                current = "n_max=auto" in r["storage"] and f"normals={Settings.normal_loss}" in r["storage"]
+                network = "kmlp" if "network=kmlp" in r["storage"] else preset(r["preset"]).network
+                current = ("n_max=auto" in r["storage"]
+                           and f"normals={NORMAL_LOSS_BY_NETWORK[network]}" in r["storage"])
                 earlier = "n_max=auto" in r["storage"] and "normals=" not in r["storage"]  # stop 14-15: facing
                 color, label = (("tab:red", f"neural {r['preset']} {float(r['train_s']):.0f} s (now)") if current
                                 else ("tab:orange", f"neural {r['preset']}, facing normal targets") if earlier
@@ -195,7 +197,7 @@ def main() -> None:
                     storage += " " + " ".join(f"{k}={v}" for k, v in sorted(extra.items()))
                 if s.n_max is None:  # the grid chosen from the mesh: name it, so the row is not the 128 one
                     storage += f" n_max=auto:{choose_resolution(bench_grid(mesh_name), s.log2_table)[0]}"
-                storage += f" normals={s.normal_loss}"  # rows before the tag trained with facing targets (stop 14-15)
+                storage += f" normals={s.resolved_normal_loss()}"  # rows without the tag: facing (stop 14-15)
                 if (mesh_name, preset_name, storage) in done:
                     continue
                 print(f"{mesh_name} {preset_name} {storage}: training {s.time_limit_s} s", flush=True)

@@ -9,10 +9,10 @@ III at T=2^8, 2^9, each for the same number of steps, scored with the one metric
 128 px). Bytes are the float32 file (the paper stores floats) and, beside them, the same model in this product's
 default storage (8-bit tables, boxes and weight rows; `estimate_file_bytes`). Resumable: one CSV row per
 (mesh, method, log2 T) in bench/results/table5.csv; table5.md is rewritten after every row. Every method trains
-with the product's normal loss (`Settings.normal_loss`: 'oriented', the paper's, as the mesh winds the normals);
-`--normal-loss facing` turns the targets toward the ray (stop 15's default: its equal-steps run is
-table5_facing_loss.csv), `unoriented` either sign; each loss other than the product's has its own CSV
-(table5_facing_loss.csv, table5_unoriented_loss.csv); normal_loss.md compares stop 14's three.
+with its network's own normal targets (`settings.NORMAL_LOSS_BY_NETWORK`: the MLP's as the mesh winds them, KMLP's
+facing the ray); `--normal-loss facing|oriented|unoriented` gives every method one loss, in its own CSV
+(table5_facing_loss.csv, table5_oriented_loss.csv, table5_unoriented_loss.csv); normal_loss.md compares stop 14's
+three.
 `--n-max auto` (default) lets every method's grid be chosen from the mesh and its table (`sizing.choose_resolution`,
 as the user presets do; base and III alike), `--n-max 128` is the paper's fixed grid (stem suffix `_nmax128`).
 Stop 14's runs (KMLP normal weight 0.5, N_max 128) are kept as table5_stop14_{facing,oriented,unoriented}_loss.csv.
@@ -34,7 +34,6 @@ from bench_meshes import bench_mesh  # noqa: E402
 from bench_quality import append_row, read_rows  # noqa: E402
 from nbvh_core import kernels  # noqa: E402
 from nbvh_core.pipeline import compress_mesh, estimate_file_bytes, preset  # noqa: E402
-from nbvh_core.settings import Settings  # noqa: E402
 
 RESULTS = ROOT / "bench" / "results"
 PLAN = [("base", 11), ("I", 9), ("I", 10), ("II", 9), ("II", 10), ("III", 8), ("III", 9)]
@@ -68,14 +67,15 @@ def mean_mse(rows: list[dict], method: str) -> list[tuple[float, float]]:
     return sorted((sum(b for b, _ in v) / len(v), sum(m for _, m in v) / len(v)) for v in by_size.values())
 
 
-def write_md(rows: list[dict], steps: int, stem: str = "table5", normal_loss: str = Settings.normal_loss,
+def write_md(rows: list[dict], steps: int, stem: str = "table5", normal_loss: str | None = None,
              n_max: str = "auto", time_limit: float | None = None) -> None:
     grid = "the grid chosen per mesh" if n_max == "auto" else f"N_max {n_max}"
     if time_limit is None:
         title, budget = "equal steps", f"{steps} training steps per model"
     else:
         title, budget = f"equal wall time ({time_limit:g} s, --time-limit)", f"{time_limit:g} s of training per model"
-    lines = [f"# Table 5 at {title} (bench/bench_table5.py --n-max {n_max}), {normal_loss} normal loss, {grid}", "",
+    loss = f"{normal_loss} normal loss" if normal_loss else "each network's own normal targets (MLP wound, KMLP facing)"
+    lines = [f"# Table 5 at {title} (bench/bench_table5.py --n-max {n_max}), {loss}, {grid}", "",
              f"{budget} on this 2-core CPU; MSE over 16 views at 128 px. 'reaches at' = the "
              "bytes at which the method's MSE equals base's, interpolated (log-log) between its measured sizes, over "
              "base's bytes (float32 storage, as the paper stores; the default-storage column is the same model's size "
@@ -113,7 +113,8 @@ def main() -> None:
     ap.add_argument("--meshes", nargs="+", default=["bunny", "knot", "spiky", "gyroid", "studs"])
     ap.add_argument("--methods", nargs="+", default=["base", "I", "II", "III"],
                     help="method steps to run (base and III answer the Table 5 question alone)")
-    ap.add_argument("--normal-loss", choices=["facing", "oriented", "unoriented"], default=Settings.normal_loss)
+    ap.add_argument("--normal-loss", choices=["facing", "oriented", "unoriented"],
+                    help="one normal loss for every method (default: each network's own)")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0], help="one row per seed; the tables average them")
     ap.add_argument("--n-max", default="auto", help="'auto' (chosen per mesh and table) or a resolution (128: the "
                     "paper's)")
@@ -125,7 +126,7 @@ def main() -> None:
     plan = [(m, int(t)) for m, t in (c.split(":") for c in args.plan)] if args.plan else PLAN
     kernels.keep_freed_memory()
     n_max = None if args.n_max == "auto" else int(args.n_max)
-    stem = ("table5" if args.normal_loss == Settings.normal_loss else f"table5_{args.normal_loss}_loss") + (
+    stem = ("table5" if args.normal_loss is None else f"table5_{args.normal_loss}_loss") + (
         "" if n_max is None else f"_nmax{n_max}") + ("" if args.time_limit is None else f"_time{args.time_limit:g}")
     path = RESULTS / f"{stem}.csv"
     done = {(r["mesh"], r["method"], r["log2_table"], r.get("seed") or "0") for r in read_rows(path)}

@@ -398,8 +398,9 @@ def _add_compress_parser(sub) -> None:
     c.add_argument("--index-factor", type=int, help="HashVQAD's index entries per feature row, H / T (default: the "
                    "paper's 128)")
     c.add_argument("--normal-loss", choices=["facing", "oriented", "unoriented"],
-                   help="'oriented' (default): the paper's, as the mesh winds them; 'facing': targets turned toward "
-                        "the ray (fails on surfaces seen from both sides); 'unoriented': either sign")
+                   help="normal targets: 'oriented' (the paper's, as the mesh winds them), 'facing' (turned toward "
+                        "the ray), 'unoriented' (either sign); default: the network's own (MLP oriented, KMLP "
+                        "facing, as measured)")
     c.add_argument("--tree-cut", action="store_true",
                    help="start from half the BVH leaves and split the worst ones during training (N-BVH's tree cut)")
     c.add_argument("--seed", type=int)

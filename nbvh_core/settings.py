@@ -24,6 +24,14 @@ from .train import TrainConfig
 
 
 NORMAL_LOSSES = ("facing", "oriented", "unoriented")
+#: Each network's normal targets, by measurement (bench/error_split.py, 1,000-1,200 equal steps, image MSE):
+#: the MLP fails with facing targets where a surface is seen from both sides (terrain, HashGrid T=2^11, two seeds:
+#: 0.053 / 0.054 facing, half the pixels' normals > 18 degrees off; 0.0028 / 0.0033 as wound) and gains as wound on
+#: closed meshes at the default preset's 200 s (bunny 0.00039 vs 0.00049, spiky 0.00042 vs 0.00064, two sessions);
+#: KMLP, whose pair network sees the segment's two ends in order, keeps facing normals right on the terrain (1.7% off)
+#: and loses silhouettes as wound (III T=2^9: 0.0017 facing vs 0.0068 wound, IoU 0.986 vs 0.911; spiky 0.0017 vs
+#: 0.0048, bench/results/table5*.md).
+NORMAL_LOSS_BY_NETWORK = {"mlp": "oriented", "kmlp": "facing"}
 #: The paper's finest grid resolution (every model); the user presets choose theirs from the mesh.
 PAPER_N_MAX = 128
 
@@ -50,10 +58,8 @@ class Settings:
     width: int = 64
     #: 'facing': normal targets flipped to face the ray (TrainConfig.facing_normals), L1 to them; 'oriented': the
     #: paper's L1 to the normal as the mesh winds it; 'unoriented': L1 to the nearer of +-normal
-    #: (NetworkConfig.normal_loss). Measured in bench/results/normal_loss.md: on closed meshes facing and oriented
-    #: tie; on open surfaces seen from both sides facing fails (terrain, T=2^11, 1,000 steps, two seeds: image
-    #: MSE 0.053 / 0.054 with half the pixels' normals off by > 18 degrees, oriented 0.0028 / 0.0033).
-    normal_loss: str = "oriented"
+    #: (NetworkConfig.normal_loss); None: the network's own (NORMAL_LOSS_BY_NETWORK).
+    normal_loss: str | None = None
     #: The normal term's weight in the loss; None: the network's own (networks.NORMAL_WEIGHTS).
     normal_weight: float | None = None
     #: The unit pull's weight on raw normals; None: the network's own (networks.NORMAL_UNIT_WEIGHTS).
@@ -90,8 +96,7 @@ class Settings:
     target_check_every_s: float = 20.0
 
     def model_config(self) -> ModelConfig:
-        if self.normal_loss not in NORMAL_LOSSES:
-            raise ValueError(f"unknown normal loss {self.normal_loss!r}; choose from {', '.join(NORMAL_LOSSES)}")
+        normal_loss = self.resolved_normal_loss()
         return ModelConfig(EncodingConfig(kind=self.encoding, log2_table=self.log2_table, levels=self.levels,
                                           features=self.features, n_min=self.n_min,
                                           index_factor=self.index_factor,
@@ -100,7 +105,14 @@ class Settings:
                                           n_max=self.n_max or PAPER_N_MAX),
                            NetworkConfig(kind=self.network, k=self.k, hidden=self.hidden, width=self.width,
                                          normal_weight=self.normal_weight, normal_unit_weight=self.normal_unit_weight,
-                                         normal_loss="unoriented" if self.normal_loss == "unoriented" else "oriented"))
+                                         normal_loss="unoriented" if normal_loss == "unoriented" else "oriented"))
+
+    def resolved_normal_loss(self) -> str:
+        """`normal_loss`, or the network's own (NORMAL_LOSS_BY_NETWORK) when None."""
+        loss = self.normal_loss or NORMAL_LOSS_BY_NETWORK.get(self.network, "oriented")
+        if loss not in NORMAL_LOSSES:
+            raise ValueError(f"unknown normal loss {loss!r}; choose from {', '.join(NORMAL_LOSSES)}")
+        return loss
 
     def storage(self) -> StorageConfig:
         return StorageConfig(self.table_bits, self.network_bits, self.node_bits)
@@ -108,7 +120,8 @@ class Settings:
     def train_config(self) -> TrainConfig:
         return TrainConfig(labels=self.labels, lr=self.lr, steps=self.steps, time_limit_s=self.time_limit_s,
                            rays_per_step=self.rays_per_step, seed=self.seed, device=self.device,
-                           anneal_fraction=self.anneal_fraction, facing_normals=self.normal_loss == "facing", leaf_sampling=self.leaf_sampling,
+                           anneal_fraction=self.anneal_fraction,
+                           facing_normals=self.resolved_normal_loss() == "facing", leaf_sampling=self.leaf_sampling,
                            tree_cut=self.tree_cut, checkpoint_every_s=self.checkpoint_every_s,
                            target_check_every_s=self.target_check_every_s, qat_bits=self.table_bits if self.table_bits == 8 else None,
                            qat_fraction=self.qat_fraction)

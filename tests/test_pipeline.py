@@ -98,3 +98,20 @@ def test_training_stops_once_the_target_is_met(sample_meshes):
     res = compress_mesh(sample_meshes["blob"], preset("tiny").with_overrides(force=True, steps=60),
                         evaluate_quality=False)
     assert not res.training.stopped_early and res.training.steps == 60
+
+
+def test_normal_targets_are_each_networks_own_unless_set():
+    """MLP presets train on normals as the mesh winds them, KMLP ones on normals facing the ray (measured:
+    settings.NORMAL_LOSS_BY_NETWORK); an explicit normal_loss wins, a wrong one is refused."""
+    from nbvh_core.settings import NORMAL_LOSS_BY_NETWORK
+
+    assert NORMAL_LOSS_BY_NETWORK == {"mlp": "oriented", "kmlp": "facing"}
+    for name, facing in (("default", False), ("preview", False), ("base", False), ("I", True), ("III", True)):
+        s = preset(name)
+        assert s.train_config().facing_normals is facing, name
+        assert s.model_config().network.normal_loss == "oriented"
+    assert preset("default").with_overrides(normal_loss="facing").train_config().facing_normals
+    unoriented = preset("III").with_overrides(normal_loss="unoriented")
+    assert not unoriented.train_config().facing_normals and unoriented.model_config().network.normal_loss == "unoriented"
+    with pytest.raises(ValueError, match="normal loss"):
+        preset("default").with_overrides(normal_loss="sideways").model_config()
