@@ -381,8 +381,10 @@ def _check_header(header: dict, payload: int, where: str) -> None:
             raise NBVHFileError(f"{where}: every tensor entry needs a name and a component")
         for key in ("offset", "nbytes"):
             _int_field(t, key, where, 0, payload)
+        # a dimension cannot exceed the payload's bits (packed codes: down to 1 bit each); the exact size per
+        # tensor is checked against the config below
         if not isinstance(t.get("shape"), list) or not all(isinstance(v, int) and not isinstance(v, bool) and
-                                                          0 <= v <= payload for v in t["shape"]):
+                                                          0 <= v <= 8 * payload for v in t["shape"]):
             raise NBVHFileError(f"{where}: tensor {t['name'][:40]!r} has a bad shape")
         if t["offset"] % _ALIGN or t["offset"] + t["nbytes"] > payload:
             raise NBVHFileError(f"{where}: tensor {t['name'][:40]!r} extends past the end of the file or is "

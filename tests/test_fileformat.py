@@ -81,6 +81,27 @@ def test_hashvqad_file_keeps_the_reachable_codes_and_full_index_files_still_load
     assert np.array_equal(a.image, b.image) and np.array_equal(a.hit, b.hit)
 
 
+def test_a_hashvqad_file_with_more_codes_than_payload_bytes_loads(sample_meshes, tmp_path):
+    """Packed codes can outnumber the file's bytes (4 bits each): a small table and network with a large index
+    (H = 1024 T) must still pass the reader's shape checks (a 200 s HashVQAD run at T=2^9 once failed them)."""
+    from nbvh_core.bvh import build_bvh
+    from nbvh_core.encodings import EncodingConfig
+    from nbvh_core.model import ModelConfig, NeuralBVH
+    from nbvh_core.networks import NetworkConfig
+
+    torch.manual_seed(0)
+    cfg = ModelConfig(EncodingConfig(kind="hashvqad", log2_table=4, levels=2, features=2, n_max=32,
+                                     index_factor=1024), NetworkConfig(kind="mlp", k=2, hidden=0))
+    model = NeuralBVH(build_bvh(sample_meshes["blob"], 15).nodes, cfg).eval()
+    model.encoding.freeze()
+    path = tmp_path / "many_codes.nbvh"
+    save_nbvh(model, path, storage=StorageConfig(32, 32, 32))
+    count = sum(model.encoding.reachable_entries())
+    assert count > path.stat().st_size
+    loaded = load_nbvh(path)
+    assert torch.equal(loaded.encoding.codes, model.encoding.codes)
+
+
 def test_float16_halves_the_tables(trained, tmp_path):
     path, res = trained["hashgrid"]
     half, full = tmp_path / "half.nbvh", tmp_path / "full.nbvh"
