@@ -252,7 +252,7 @@ def main() -> None:
                  + " | ".join(f"{configs[(m, NODE_T, n)][0]:.5f}" if (m, NODE_T, n) in configs else "-" for n in others)
                  + " |")
     L.append(f"\nNode effect: log MSE changes by {slope_mean:+.3f} +- {slope_se:.3f} (standard error) per doubling of "
-             f"the node count (slopes over meshes at T=2^10). "
+             f"the node count (slopes over meshes at T=2^{NODE_T}). "
              + ("The chooser trades nodes against table rows by predicted MSE per byte." if use_nodes else
                 f"That cannot be told from noise at this training budget, so the chooser keeps {ref} nodes and "
                 "chooses T (a node fit is used automatically when the data show an effect)."))
