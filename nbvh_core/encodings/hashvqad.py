@@ -15,11 +15,11 @@ candidate j being row hash2(i, j) mod T with hash2(i, j) = (i * 2654435761) xor 
 * Frozen (hard): `freeze()` stores argmax_j logits as one integer in [0, t) per entry (log2(t) bits each, bit
   packed in the file); a vertex then looks up row hash2(i, I[i]) mod T directly.
 * Reachable entries: a coarse level indexed densely reads only its R^3 < H entries (`reachable_entries`; with the
-  paper's H = 128 T most coarse levels do: at T=2^9 and N_max 64, 5,832 and 19,683 of 65,536). The soft table is
+  paper's H = 128 T most coarse levels do: at T=2^9 and N_max 64, 4,913 and 19,683 of 65,536). The soft table is
   computed for those only (the rest is zero and trains nothing), and the frozen codes are held and stored (file
   format 2.2) for those only, level after level. The function is the paper's; its bytes and the soft table's work
   are not.
-Stored size per level: V = T * F floats, I = (reachable entries) * log2(t) bits.
+Stored size per level: V = T * F floats, I = (reachable entries) * `code_bits()` (log2(t) rounded up to 1, 2, 4, 8).
 """
 from __future__ import annotations
 
