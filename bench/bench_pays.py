@@ -130,12 +130,12 @@ def charts(rows: list[dict]) -> None:
                 x = float(r["model_resident_bytes"] if axis == "resident" else r["file_bytes"])
                 # the presets as they are now: the grid chosen from the mesh, the product's normal targets
                 network = "kmlp" if "network=kmlp" in r["storage"] else preset(r["preset"]).network
-                current = ("n_max=auto" in r["storage"]
-                           and f"normals={NORMAL_LOSS_BY_NETWORK[network]}" in r["storage"])
+                current = ("n_max=auto" in r["storage"] and "=" not in r["storage"].split(" n_max=")[0]
+                           and f"normals={NORMAL_LOSS_BY_NETWORK[network]}" in r["storage"])  # the preset, no --set
                 earlier = "n_max=auto" in r["storage"] and "normals=" not in r["storage"]  # stop 14-15: facing
                 color, label = (("tab:red", f"neural {r['preset']} {float(r['train_s']):.0f} s (now)") if current
                                 else ("tab:orange", f"neural {r['preset']}, facing normal targets") if earlier
-                                else ("tab:blue", "earlier configurations"))
+                                else ("tab:blue", "other and earlier configurations"))
                 ax.plot(x, float(r["mse"]), marks.get(r["preset"], "o"), ms=8 if current else 6 if earlier else 5,
                         color=color, alpha=1.0 if current or earlier else 0.5, label=label)
             handles, labels = ax.get_legend_handles_labels()
@@ -150,7 +150,7 @@ def charts(rows: list[dict]) -> None:
         for ax in list(axes.flat)[len(meshes):]:
             ax.axis("off")
         fig.suptitle(f"Neural models at their presets' real budgets (red: the presets now; orange: with facing normal "
-                     f"targets; blue: earlier configurations) vs decimation / Draco, {axis} bytes, one metric",
+                     f"targets; blue: other and earlier configurations) vs decimation / Draco, {axis} bytes, one metric",
                      fontsize=9)
         fig.tight_layout()
         fig.savefig(RESULTS / f"rd_budget_{axis}.png", dpi=90)
