@@ -11,7 +11,7 @@ import zlib
 
 import numpy as np
 
-from nbvh_core.fileformat import _PREFIX, NBVHFileError, decode_nbvh
+from nbvh_core.fileformat import _PREFIX, VERSION_MAJOR, VERSION_MINOR, NBVHFileError, decode_nbvh
 from nbvh_core.render import orbit_cameras, render_neural
 
 
@@ -21,11 +21,13 @@ def split(data: bytes) -> tuple[dict, bytes]:
     return json.loads(data[_PREFIX.size:_PREFIX.size + hlen]), data[_PREFIX.size + hlen:-4]
 
 
-def craft(header, payload: bytes, major: int = 2) -> bytes:
-    """A file with this header (any JSON value) and payload, and a valid checksum."""
+def craft(header, payload: bytes, major: int = 2, minor: int | None = None) -> bytes:
+    """A file with this header (any JSON value) and payload, and a valid checksum; version major.minor (minor: the
+    writer's own for major 2, else 0 - the tensor layout the payload came with)."""
+    minor = (VERSION_MINOR if major == VERSION_MAJOR else 0) if minor is None else minor
     hdr = json.dumps(header).encode()
     hdr += b" " * ((-(_PREFIX.size + len(hdr))) % 8)
-    body = _PREFIX.pack(b"NBVH\x00\r\n\x1a", major, 0, len(hdr)) + hdr + payload
+    body = _PREFIX.pack(b"NBVH\x00\r\n\x1a", major, minor, len(hdr)) + hdr + payload
     return body + struct.pack("<I", zlib.crc32(body))
 
 

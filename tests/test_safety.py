@@ -165,12 +165,15 @@ def test_crafted_headers_and_nodes_refused_by_the_cli(model_file, tmp_path, case
     assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - peak0 < 200_000  # KB: nothing sized by the header
 
 
-def test_format_1_files_still_load(model_file, sample_meshes, tmp_path):
+def test_format_1_files_still_load(model_file, sample_meshes, tmp_path, monkeypatch):
     """A file as the previous release wrote it (format 1.0: float32 nodes, tables and weights) loads and renders."""
+    import nbvh_core.fileformat as fileformat
     from nbvh_core.fileformat import encode_nbvh
 
     model = load_nbvh(model_file)
+    monkeypatch.setattr(fileformat, "VERSION_MINOR", 1)  # HashVQAD's index for all L x H entries, as 1.0 had it
     v2 = encode_nbvh(model, {}, None)  # float32 everywhere: the v1 tensor set
+    monkeypatch.undo()
     header, payload = split(v2)
     header.pop("storage")
     header["float_bytes"] = 4
