@@ -100,6 +100,11 @@ def level_scales(cfg: EncodingConfig) -> list[float]:
     return [cfg.n_min * b ** level - 1.0 for level in range(cfg.levels)]
 
 
+def vertex_resolution(scale: float) -> int:
+    """Grid vertices per axis of a level with scale s_l: coordinates 0..ceil(s_l) + 1 (module docstring)."""
+    return int(math.ceil(scale)) + 2
+
+
 def code_width(candidates: int) -> int:
     """Bits per HashVQAD code as held and stored: the smallest of 1, 2, 4, 8 that holds log2(t) (whole codes per
     byte, so a kernel reads one with a shift and a mask)."""
@@ -109,11 +114,11 @@ def code_width(candidates: int) -> int:
 
 def level_vertex_counts(cfg: EncodingConfig, vertex_table: int) -> list[int]:
     """How many distinct vertex indices each level can produce (the table entries it can ever read): R^3 on a
-    level indexed densely (its R^3 vertices fit the vertex_table entries; R = ceil(s_l) + 2, as `corner_indices`),
+    level indexed densely (its R^3 vertices fit the vertex_table entries; R = `vertex_resolution`),
     else vertex_table (every hash value). Coarse levels of a large table reach only a part of it."""
     counts = []
     for s in level_scales(cfg):
-        res = int(math.ceil(s)) + 2
+        res = vertex_resolution(s)
         counts.append(res ** 3 if res ** 3 <= vertex_table else vertex_table)
     return counts
 
@@ -145,7 +150,7 @@ def corner_indices(points: torch.Tensor, scales: list[float], table_size: int) -
         c = base.to(torch.int64)[:, None, :] + corners[None]  # (N, 8, 3)
         w3 = torch.where(corners[None].bool(), frac[:, None, :], 1.0 - frac[:, None, :])
         w = w3.prod(dim=-1)
-        res = int(math.ceil(s)) + 2  # vertices per axis
+        res = vertex_resolution(s)
         if res ** 3 <= table_size:
             idx = c[..., 0] + c[..., 1] * res + c[..., 2] * res * res
         else:

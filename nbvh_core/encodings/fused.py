@@ -6,13 +6,12 @@ Same answer as `corner_indices` + `gather_weighted_sum` (tested in tests/test_fa
 from __future__ import annotations
 
 import ctypes
-import math
 from dataclasses import dataclass
 
 import torch
 
 from .. import kernels
-from .base import EncodingConfig, code_width, level_scales
+from .base import EncodingConfig, code_width, level_scales, vertex_resolution
 
 
 class GridSpec:
@@ -24,7 +23,7 @@ class GridSpec:
 
     def __init__(self, cfg: EncodingConfig, vertex_table: int):
         scales = level_scales(cfg)
-        res = [int(math.ceil(s)) + 2 for s in scales]
+        res = [vertex_resolution(s) for s in scales]
         self.cfg = cfg
         self.vertex_table = vertex_table
         self.scales = torch.tensor(scales, dtype=torch.float32)

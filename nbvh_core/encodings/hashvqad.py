@@ -146,8 +146,7 @@ class HashVQAD(HashGrid):
 
     def _reachable_mask(self, device) -> torch.Tensor:
         """(L, H) bool: entry i of level l is reachable."""
-        reach = torch.tensor(self.reachable_entries(), dtype=torch.int64, device=device)
-        return torch.arange(self.cfg.index_size, device=device)[None, :] < reach[:, None]
+        return torch.arange(self.cfg.index_size, device=device)[None, :] < self._reach.to(device)[:, None]
 
     def _group_candidates(self) -> torch.Tensor:
         """(T, t) int64: candidate rows of entries i = 0..T-1; entry m * T + a has the same rows as entry a."""
