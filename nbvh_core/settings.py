@@ -70,6 +70,8 @@ class Settings:
     time_limit_s: float | None = 180.0
     rays_per_step: int = 4096
     anneal_fraction: float = 0.3
+    #: HashVQAD: the last fraction of training run on the frozen (argmax) codes (TrainConfig.finetune_fraction).
+    finetune_fraction: float = 0.1
     #: 'uniform' or 'loss' (N-BVH's loss-proportional resampling of leaves; see TrainConfig.leaf_sampling).
     leaf_sampling: str = "uniform"
     #: N-BVH's tree-cut splitting during training (see TrainConfig.tree_cut).
@@ -120,7 +122,7 @@ class Settings:
     def train_config(self) -> TrainConfig:
         return TrainConfig(labels=self.labels, lr=self.lr, steps=self.steps, time_limit_s=self.time_limit_s,
                            rays_per_step=self.rays_per_step, seed=self.seed, device=self.device,
-                           anneal_fraction=self.anneal_fraction,
+                           anneal_fraction=self.anneal_fraction, finetune_fraction=self.finetune_fraction,
                            facing_normals=self.resolved_normal_loss() == "facing", leaf_sampling=self.leaf_sampling,
                            tree_cut=self.tree_cut, checkpoint_every_s=self.checkpoint_every_s,
                            target_check_every_s=self.target_check_every_s, qat_bits=self.table_bits if self.table_bits == 8 else None,

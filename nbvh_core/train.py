@@ -257,6 +257,16 @@ def load_checkpoint(path: str | os.PathLike, model: NeuralBVH, opt: torch.optim.
         model.encoding.freeze()  # the checkpoint is past the freeze: same structure before loading
         if codes.dim() == 2:  # written while frozen codes were held for all L x H entries (before format 2.2)
             ck["model"]["encoding.codes"] = model.encoding.compact_codes(codes)
+    logits = ck["model"].get("encoding.logits")
+    if logits is not None and logits.dim() == 3 and model.encoding.learned_index:
+        # written while the soft index held logits for all L x H entries: keep the reachable ones', and their
+        # Adam moments (the optimizer state's tensors of that shape), in the compact layout held now
+        full_shape = logits.shape
+        ck["model"]["encoding.logits"] = model.encoding.compact_index(logits)
+        for state in ck["optimizer"]["state"].values():
+            for key, value in state.items():
+                if torch.is_tensor(value) and value.shape == full_shape:
+                    state[key] = model.encoding.compact_index(value)
     model.load_state_dict(ck["model"])
     opt.load_state_dict(ck["optimizer"])
     torch.set_rng_state(ck["torch_rng"])
@@ -453,6 +463,9 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
     """
     if cfg.steps is None and cfg.time_limit_s is None:
         raise ValueError("set a step budget or a time limit")
+    if not (0.0 <= cfg.finetune_fraction < 1.0 and 0.0 <= cfg.anneal_fraction <= 1.0 - cfg.finetune_fraction):
+        raise ValueError(f"need 0 <= finetune_fraction < 1 and 0 <= anneal_fraction <= 1 - finetune_fraction, got "
+                         f"{cfg.finetune_fraction} and {cfg.anneal_fraction}")
     device = pick_device(cfg.device)
     torch.manual_seed(cfg.seed)
     model.to(device)

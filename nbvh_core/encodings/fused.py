@@ -38,6 +38,13 @@ class GridSpec:
                 self.code_bits, kernels.threads())
 
 
+def level_rows(table: torch.Tensor) -> int:
+    """The kernels' `rows` argument for a row table: R of an (L, R, F) table, 0 for an (R, F) table that holds only
+    the reachable entries' rows, level after level (HashVQAD's soft table; level l's first row is its first code's
+    index, Grid.code_start in the kernel)."""
+    return table.shape[1] if table.dim() == 3 else 0
+
+
 @dataclass
 class FusedLookup:
     """What a fused kernel reads: rows (L, R, F) of `kind` 'f32' | 'f16' | 'u8' (codes: value = offset + code *
@@ -64,11 +71,11 @@ class _FusedEncode(torch.autograd.Function):
     @staticmethod
     def forward(ctx, points, table, spec, codes, code_rows):
         lib = kernels.load()
-        levels, rows, feats = table.shape
+        levels, feats = spec.cfg.levels, table.shape[-1]
         points = points.detach().contiguous()
         table_c = table.detach().contiguous()
         out = torch.empty((points.shape[0], levels * feats), dtype=torch.float32)
-        args = spec.args(rows, codes, code_rows)
+        args = spec.args(level_rows(table), codes, code_rows)
         lib.nbvh_encode_forward(points.data_ptr(), points.shape[0], table_c.data_ptr(), out.data_ptr(), *args)
         ctx.save_for_backward(points)
         ctx.spec, ctx.codes, ctx.code_rows, ctx.table_shape = spec, codes, code_rows, table.shape
@@ -79,10 +86,9 @@ class _FusedEncode(torch.autograd.Function):
         if not ctx.needs_input_grad[1]:
             return None, None, None, None, None
         (points,) = ctx.saved_tensors
-        levels, rows, feats = ctx.table_shape
         grad = grad.contiguous()
         g_table = torch.zeros(ctx.table_shape, dtype=torch.float32)
-        args = ctx.spec.args(rows, ctx.codes, ctx.code_rows)
+        args = ctx.spec.args(level_rows(g_table), ctx.codes, ctx.code_rows)
         kernels.load().nbvh_encode_backward(points.data_ptr(), points.shape[0], grad.data_ptr(), g_table.data_ptr(),
                                             *args)
         return None, g_table, None, None, None
@@ -90,7 +96,7 @@ class _FusedEncode(torch.autograd.Function):
 
 def fused_encode(points: torch.Tensor, table: torch.Tensor, spec: GridSpec, codes: torch.Tensor | None = None,
                  code_rows: int = 0) -> torch.Tensor:
-    """points (N, 3) float32 CPU in [0, 1]^3 (clamped); table (L, R, F) float32 rows; codes uint8 frozen
+    """points (N, 3) float32 CPU in [0, 1]^3 (clamped); table (L, R, F) float32 rows (or (R, F): `level_rows`); codes uint8 frozen
     HashVQAD codes of the reachable entries, level after level, bit-packed (`spec.code_bits` each; rows =
     hash2(vertex, code) mod code_rows), or None (rows = vertex indices).
     Returns (N, L * F) float32, differentiable in `table`."""

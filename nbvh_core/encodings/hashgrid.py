@@ -79,7 +79,8 @@ class HashGrid(Encoding):
         self._half = None
 
     def row_table(self) -> torch.Tensor:
-        """(L, T, F): the feature rows that vertices look up (for HashGrid, the table itself)."""
+        """(L, T, F): the feature rows that vertices look up (for HashGrid, the table itself; see
+        `level_row_offsets` for a table held in another layout)."""
         return self.float_rows()
 
     def vertex_rows(self, idx: torch.Tensor) -> torch.Tensor:
@@ -126,7 +127,8 @@ class HashGrid(Encoding):
         return self._spec
 
     def _fused_rows(self) -> tuple[torch.Tensor, torch.Tensor | None, int]:
-        """What the kernel reads: the (L, R, F) rows, the frozen codes (or None) and the rows codes select from."""
+        """What the kernel reads: the rows ((L, R, F), or (R, F) reachable rows level after level: `fused.level_rows`),
+        the frozen codes (or None) and the rows codes select from."""
         return self.table, None, 0
 
     def _half_table(self) -> torch.Tensor:
@@ -142,11 +144,14 @@ class HashGrid(Encoding):
         idx, w = corner_indices(points, self.scales, self._vertex_table_size())
         rows = self.vertex_rows(idx)
         table = self.row_table()
-        n_rows = table.shape[1]
-        flat_rows = rows + (torch.arange(cfg.levels, device=rows.device) * n_rows)[None, :, None]
+        flat_rows = rows + self.level_row_offsets(table).to(rows.device)[None, :, None]
         out = gather_weighted_sum(table.reshape(-1, cfg.features), flat_rows.reshape(-1, 8),
                                   w.reshape(-1, 8).to(table.dtype))
         return out.reshape(points.shape[0], cfg.levels * cfg.features)
+
+    def level_row_offsets(self, table: torch.Tensor) -> torch.Tensor:
+        """(L,) int64: the first row of each level in `table` (L, R, F) viewed as (L * R, F)."""
+        return torch.arange(self.cfg.levels, device=table.device) * table.shape[1]
 
     def _vertex_table_size(self) -> int:
         return self.cfg.table_size

@@ -5,20 +5,20 @@ into V) and the feature table V of T rows of F floats. Entry i may point at t ca
 candidate j being row hash2(i, j) mod T with hash2(i, j) = (i * 2654435761) xor (j * 805459861) on 32 bits.
 
 * Training (soft): entry i holds t logits; its feature is the softmax(logits / tau)-weighted sum of its t
-  candidate rows. Computed for all H entries at once as a "soft row table" S (H, F) (cost H * t * F per level
+  candidate rows. Computed for all (reachable) entries at once as a "soft row table" S (cost H * t * F per level
   per step, independent of the batch size), after which vertex lookups are the same 8-corner weighted sum as
   HashGrid's, into S. Because T is a power of two, hash2(i, j) mod T = (i * P1 mod T) xor (j * P2 mod T), and
   i * P1 mod T depends only on i mod T: the H = M * T entries split into M groups of T that share their
-  candidate rows, so S is one dense batched matmul softmax (L, M, T, t) x rows (L, T, t, F), forward and
+  candidate rows, so S is one dense batched matmul softmax (M, T, t) x rows (T, t, F) per level, forward and
   backward (no scatter over H * t candidates).
 * Annealing: `temperature` is lowered (geometrically, by the trainer) so the softmax approaches a one-hot.
 * Frozen (hard): `freeze()` stores argmax_j logits as one integer in [0, t) per entry (log2(t) bits each, bit
   packed in the file); a vertex then looks up row hash2(i, I[i]) mod T directly.
 * Reachable entries: a coarse level indexed densely reads only its R^3 < H entries (`reachable_entries`; with the
-  paper's H = 128 T most coarse levels do: at T=2^9 and N_max 64, 4,913 and 19,683 of 65,536). The soft table is
-  computed for those only (the rest is zero and trains nothing), and the frozen codes are held and stored (file
-  format 2.2) for those only, level after level. The function is the paper's; its bytes and the soft table's work
-  are not.
+  paper's H = 128 T most coarse levels do: at T=2^9 and N_max 64, 4,913 and 19,683 of 65,536). Only those have
+  logits, soft rows (S is (R, F), R their number over all levels, level after level) and, once frozen, codes, held
+  and stored (file format 2.2) level after level: the rest would train nothing. The function is the paper's; its
+  bytes and the soft phase's work (softmax, its backward, Adam over the logits) are not.
 Stored size per level: V = T * F floats, I = (reachable entries) * `code_bits()` (log2(t) rounded up to 1, 2, 4, 8).
 """
 from __future__ import annotations
@@ -39,43 +39,47 @@ def candidate_rows(entries: torch.Tensor, candidates: torch.Tensor, table_size: 
 
 
 class _SoftTable(torch.autograd.Function):
-    """The soft row table S (L, H, F) and its backward into the rows and the logits, by the fused kernels
-    (`nbvh_vqad_soft_forward/backward`): one pass over the reachable entries (`reach` (L,) int64 per level) for
-    softmax and weighted rows, the rest zero (rows and logit gradients); the backward's row gradients summed per
-    thread. Same values as `HashVQAD.reference_row_table` (tests/test_fastpath.py)."""
+    """The soft row table S (R, F) of the R reachable entries (level after level, as the logits (R, t)) and its
+    backward into the rows and the logits, by the fused kernels (`nbvh_vqad_soft_forward/backward`): one pass for
+    softmax and weighted rows; the backward's row gradients summed per thread. Same values as
+    `HashVQAD.reference_row_table` (tests/test_fastpath.py)."""
 
     @staticmethod
-    def forward(ctx, logits, table, cand, reach, tau):
+    def forward(ctx, logits, table, cand, reach, tau, index_size):
         lib = kernels.load()
-        L, H, t = logits.shape
-        T, F = table.shape[1], table.shape[2]
+        t = logits.shape[1]
+        L, T, F = table.shape
+        H = index_size
         logits_c, table_c = logits.detach().contiguous(), table.detach().contiguous()
-        probs = torch.empty_like(logits_c)  # rows of unreachable entries stay unwritten: nothing reads them
-        soft = torch.empty((L, H, F), dtype=torch.float32)
+        probs = torch.empty_like(logits_c)
+        soft = torch.empty((logits.shape[0], F), dtype=torch.float32)
         lib.nbvh_vqad_soft_forward(logits_c.data_ptr(), table_c.data_ptr(), cand.data_ptr(), reach.data_ptr(), L, H,
                                    T, t, F, 1.0 / tau, probs.data_ptr(), soft.data_ptr(), kernels.threads())
         ctx.save_for_backward(probs, table_c, cand, reach)
-        ctx.tau = tau
+        ctx.tau, ctx.index_size = tau, index_size
         return soft
 
     @staticmethod
     def backward(ctx, grad_soft):
         probs, table, cand, reach = ctx.saved_tensors
-        L, H, t = probs.shape
-        T, F = table.shape[1], table.shape[2]
+        t = probs.shape[1]
+        L, T, F = table.shape
+        H = ctx.index_size
         grad_soft = grad_soft.contiguous()
         g_table = torch.zeros_like(table)
         g_logits = torch.empty_like(probs)
         kernels.load().nbvh_vqad_soft_backward(probs.data_ptr(), table.data_ptr(), cand.data_ptr(), reach.data_ptr(),
                                                grad_soft.data_ptr(), L, H, T, t, F, 1.0 / ctx.tau,
                                                g_table.data_ptr(), g_logits.data_ptr(), kernels.threads())
-        return g_logits, g_table, None, None, None
+        return g_logits, g_table, None, None, None, None
 
 
 class HashVQAD(HashGrid):
     """points (N, 3) in [0, 1]^3 -> features (N, L * F); see module docstring.
 
-    Parameters: `table` (L, T, F) feature rows; `logits` (L, H, t) while soft. Buffer `codes` uint8 after
+    Parameters: `table` (L, T, F) feature rows; `logits` (R, t) while soft, R = the reachable entries of all levels,
+    level after level (`code_starts`: level l's are rows starts[l]:starts[l + 1]; entry i of level l is row
+    starts[l] + i). Buffer `codes` uint8 after
     `freeze()`: the reachable entries' codes level after level, bit-packed as the file stores them (`code_bits()`
     each, little-endian within a byte: 4 bits at t = 16).
     """
@@ -88,14 +92,16 @@ class HashVQAD(HashGrid):
             raise ValueError(f"HashVQAD candidates t must be a power of two >= 2, got {cfg.candidates}")
         if cfg.index_factor < 1:
             raise ValueError(f"HashVQAD index factor H / T must be >= 1, got {cfg.index_factor}")
-        # A model built to be loaded (inference) never allocates the soft index: L * H * t floats, 128x the table.
+        # (L,) int64 on the CPU (the kernels read it; made explicitly there, also under a meta-device context)
+        self._reach = torch.tensor(self.reachable_entries(), dtype=torch.int64, device="cpu")
+        # A model built to be loaded (inference) never allocates the soft index: R * t floats, up to 128x the table.
+        # Only the reachable entries have logits: the rest would train nothing and cost Adam its time.
         self.logits = None if inference else nn.Parameter(
-            torch.randn(cfg.levels, cfg.index_size, cfg.candidates) * 1e-2)
+            torch.randn(int(self._reach.sum()), cfg.candidates) * 1e-2)
         self.register_buffer("codes", torch.zeros(0, dtype=torch.uint8), persistent=True)
         self.temperature = 1.0
         self._cand_cache: torch.Tensor | None = None
-        # (L,) int64 on the CPU (the kernels read it; made explicitly there, also under a meta-device context)
-        self._reach = torch.tensor(self.reachable_entries(), dtype=torch.int64, device="cpu")
+        self._row_offsets: torch.Tensor | None = None
 
     @property
     def frozen(self) -> bool:
@@ -135,6 +141,11 @@ class HashVQAD(HashGrid):
         """(L, H) codes -> the held form: the reachable entries' codes level after level, packed (`pack`)."""
         return self.pack(torch.cat([full[level, :n] for level, n in enumerate(self.reachable_entries())]))
 
+    def compact_index(self, full: torch.Tensor) -> torch.Tensor:
+        """(L, H, ...) per-entry values -> (R, ...): the reachable entries', level after level (the layout of the
+        logits since they are held compact; converts an older checkpoint's (L, H, t) logits and their Adam moments)."""
+        return torch.cat([full[level, :n] for level, n in enumerate(self.reachable_entries())]).contiguous()
+
     def full_codes(self) -> torch.Tensor:
         """(L, H) uint8: the held codes spread back over the whole index, unreachable entries code 0."""
         full = torch.zeros((self.cfg.levels, self.cfg.index_size), dtype=torch.uint8, device=self.codes.device)
@@ -143,10 +154,6 @@ class HashVQAD(HashGrid):
             pos = torch.arange(starts[level], starts[level] + n, device=self.codes.device)
             full[level, :n] = self.unpack(pos).to(torch.uint8)
         return full
-
-    def _reachable_mask(self, device) -> torch.Tensor:
-        """(L, H) bool: entry i of level l is reachable."""
-        return torch.arange(self.cfg.index_size, device=device)[None, :] < self._reach.to(device)[:, None]
 
     def _group_candidates(self) -> torch.Tensor:
         """(T, t) int64: candidate rows of entries i = 0..T-1; entry m * T + a has the same rows as entry a."""
@@ -162,19 +169,34 @@ class HashVQAD(HashGrid):
             return self.float_rows()
         if kernels.soft_table_kernel(self, self.table.device) == "fused":
             return _SoftTable.apply(self.logits, self.table, self._group_candidates().contiguous(), self._reach,
-                                    float(self.temperature))
+                                    float(self.temperature), self.cfg.index_size)
         return self.reference_row_table()
 
     def reference_row_table(self) -> torch.Tensor:
-        """The soft row table in torch (the reference the fused kernel is tested against); rows of unreachable
-        entries are zero."""
+        """The soft row table (R, F) in torch, one row per reachable entry, level after level (the reference the
+        fused kernel is tested against)."""
         cfg = self.cfg
         n_t, n_c = cfg.table_size, cfg.candidates
-        probs = torch.softmax(self.logits / self.temperature, dim=-1)  # (L, H, t)
-        probs = probs.view(cfg.levels, cfg.index_factor, n_t, n_c)  # entry i = m * T + a -> [m, a]
-        rows = self.table[:, self._group_candidates()]  # (L, T, t, F)
-        soft = torch.einsum("lmac,lacf->lmaf", probs, rows).reshape(cfg.levels, cfg.index_size, cfg.features)
-        return soft * self._reachable_mask(soft.device)[..., None]
+        probs = torch.softmax(self.logits / self.temperature, dim=-1)  # (R, t)
+        cand = self._group_candidates()  # entry i = m * T + a has the rows of a
+        starts = self.code_starts()
+        parts = []
+        for level, n in enumerate(self.reachable_entries()):
+            p = probs[starts[level]:starts[level + 1]]
+            groups = -(-n // n_t)  # padded to whole groups of T entries, one batched matmul per level
+            p = torch.cat([p, p.new_zeros(groups * n_t - n, n_c)]).view(groups, n_t, n_c)
+            rows = self.table[level, cand]  # (T, t, F)
+            parts.append(torch.einsum("mac,acf->maf", p, rows).reshape(groups * n_t, cfg.features)[:n])
+        return torch.cat(parts)
+
+    def level_row_offsets(self, table: torch.Tensor) -> torch.Tensor:
+        """(L,) int64: the first row of each level in `table` viewed as (rows, F): the soft table (R, F) holds
+        only the reachable entries' rows (`code_starts`), a stored (L, T, F) table T per level."""
+        if table.dim() == 3:
+            return super().level_row_offsets(table)
+        if self._row_offsets is None or self._row_offsets.device != table.device:
+            self._row_offsets = torch.tensor(self.code_starts()[:-1], dtype=torch.int64, device=table.device)
+        return self._row_offsets
 
     def _reads_table(self) -> bool:
         return self.frozen  # soft: the kernels read the soft row table computed from it
@@ -212,7 +234,7 @@ class HashVQAD(HashGrid):
     def freeze(self) -> None:
         """Replace the soft index table by the argmax codes of its reachable entries (irreversible); drops the
         logits."""
-        self.codes = self.compact_codes(self.logits.argmax(dim=-1).to(torch.uint8))
+        self.codes = self.pack(self.logits.argmax(dim=-1).to(torch.uint8))  # already the reachable entries'
         self.logits = None
 
     def code_bits(self) -> int:

@@ -54,7 +54,8 @@ def pack(model) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def _grid_args(spec, table, codes, code_rows) -> tuple:
-    return spec.args(table.shape[1], codes, code_rows)[:-1]  # without the thread count (passed last)
+    from ..encodings.fused import level_rows  # the encodings import this package: here, not at the top
+    return spec.args(level_rows(table), codes, code_rows)[:-1]  # without the thread count (passed last)
 
 
 def segments_raw(model, packed: tuple[torch.Tensor, torch.Tensor], rays_o: torch.Tensor, rays_d: torch.Tensor,

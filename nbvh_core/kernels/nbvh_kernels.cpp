@@ -44,7 +44,8 @@ struct Grid {
     const int64_t* res;       // (L,) vertices per axis
     const uint8_t* dense;     // (L,) 1 when level l indexes densely
     int64_t vertex_table;     // vertex index range: T (HashGrid) or H (HashVQAD)
-    int64_t rows;             // rows per level in `table`
+    int64_t rows;             // rows per level in `table`; 0: `table` holds the reachable entries' rows only,
+                              // level after level (HashVQAD's soft row table): level l's start at code_start[l]
     const uint8_t* codes;     // frozen HashVQAD codes of the reachable entries, level after level, bit-packed
                               // (code_bits each, little-endian within a byte, as the file stores them), or null
     int64_t code_rows;        // T: candidate rows hash2(i, code) mod T (with codes)
@@ -56,6 +57,7 @@ struct Grid {
     int64_t code_start[17] = {0};  // level l's first code in `codes`: a dense level reaches res^3 entries, else all
     int code_shift = 0;            // log2(codes per byte)
     uint32_t code_value_mask = 255;
+    int64_t row_start[17] = {0};   // level l's first row in `table`: l * rows, or code_start[l] when rows is 0
 
     void init_masks() {
         auto pow2 = [](int64_t v) { return v > 0 && v <= (int64_t(1) << 32) && (v & (v - 1)) == 0; };
@@ -63,6 +65,7 @@ struct Grid {
         code_mask = pow2(code_rows) ? (uint32_t)(code_rows - 1) : 0;
         for (int l = 0; l < levels && l < 16; ++l)
             code_start[l + 1] = code_start[l] + (dense[l] ? res[l] * res[l] * res[l] : vertex_table);
+        for (int l = 0; l < levels && l < 17; ++l) row_start[l] = rows > 0 ? (int64_t)l * rows : code_start[l];
         code_shift = code_bits == 1 ? 3 : code_bits == 2 ? 2 : code_bits == 4 ? 1 : 0;
         code_value_mask = code_bits >= 8 ? 255u : (1u << code_bits) - 1u;
     }
@@ -210,7 +213,7 @@ inline void encode_point(const Grid& g, const float* p, const T* table, float* o
     float w[8];
     for (int l = 0; l < g.levels; ++l) {
         corners_any(g, l, p, row, w, fits32(g, l));
-        accumulate<F>(out + l * nf, table + (int64_t)l * g.rows * nf, row, w, nf);
+        accumulate<F>(out + l * nf, table + g.row_start[l] * nf, row, w, nf);
         if constexpr (std::is_same<T, uint8_t>::value) {
             const float* off = g.qoffset + l * nf;
             const float* sc = g.qscale + l * nf;
@@ -239,7 +242,7 @@ void encode_backward_t(const Grid& g, const float* points, int64_t n, const floa
     const FlushDenormals ftz_guard;
 #pragma omp for schedule(dynamic, 1)
     for (int l = 0; l < L; ++l) {
-        float* gt = grad_table + (int64_t)l * g.rows * nf;
+        float* gt = grad_table + g.row_start[l] * nf;
         int64_t row[8];
         float w[8];
         for (int64_t i = 0; i < n; ++i) {
@@ -872,7 +875,8 @@ void kmlp_train_t(const Grid& g, const float* rays_o, const float* rays_d, const
 
 
 // ---- HashVQAD's soft row table (encodings/hashvqad.py, training): S[l, e] = sum_c softmax(logits[l, e] / tau)_c *
-// table[l, cand[e mod T, c]] for all H entries; its backward into the rows and the logits. Entries e = m T + a share
+// table[l, cand[e mod T, c]] for the entries a vertex can reach (a dense coarse level's first R^3; held compact,
+// level after level, as the logits are); its backward into the rows and the logits. Entries e = m T + a share
 // the candidate rows of a (T a power of two), so work goes by (level, a): the t candidate rows are loaded once and
 // stay in L1 for the M = H / T entries that use them, and the backward sums their row gradients locally before one
 // add per row into a per-thread gradient table (summed in thread order: deterministic).
@@ -958,10 +962,6 @@ void vqad_soft_forward_t(const float* logits, const float* table, const int64_t*
                          int threads) {
     const int F = TF > 0 ? TF : F_dyn;
     const ReachableEntries entries(reach, L, H);
-    for (int l = 0; l < L; ++l) {  // rows no vertex reads: zero (the reference's value)
-        const int64_t n = entries.start[l + 1] - entries.start[l];
-        std::memset(soft + ((int64_t)l * H + n) * F, 0, sizeof(float) * (size_t)((H - n) * F));
-    }
 #pragma omp parallel num_threads(threads)
     {
     const FlushDenormals ftz_guard;
@@ -972,9 +972,9 @@ void vqad_soft_forward_t(const float* logits, const float* table, const int64_t*
         int l;
         int64_t i;
         entries.locate(q, &l, &i);
-        const int64_t le = (int64_t)l * H + i, a = i % T;
-        float* p = probs + le * t;
-        softmax_row(logits + le * t, t, inv_tau, p);
+        const int64_t a = i % T;
+        float* p = probs + q * t;
+        softmax_row(logits + q * t, t, inv_tau, p);
         float acc[TF > 0 ? TF : 256];
         for (int f = 0; f < F; ++f) acc[f] = 0.f;
         const int64_t* ca = cand + a * t;
@@ -985,7 +985,7 @@ void vqad_soft_forward_t(const float* logits, const float* table, const int64_t*
 #pragma omp simd
             for (int f = 0; f < F; ++f) acc[f] += pc * row[f];
         }
-        std::memcpy(soft + le * F, acc, sizeof(float) * F);
+        std::memcpy(soft + q * F, acc, sizeof(float) * F);
     }
     }
 }
@@ -997,10 +997,6 @@ void vqad_soft_backward_t(const float* probs, const float* table, const int64_t*
     const int F = TF > 0 ? TF : F_dyn;
     const int n_threads = threads < 1 ? 1 : threads;
     const ReachableEntries entries(reach, L, H);
-    for (int l = 0; l < L; ++l) {  // logits no vertex reaches get no gradient
-        const int64_t n = entries.start[l + 1] - entries.start[l];
-        std::memset(grad_logits + ((int64_t)l * H + n) * t, 0, sizeof(float) * (size_t)((H - n) * t));
-    }
     std::vector<std::vector<float>> local(n_threads);
 #pragma omp parallel num_threads(n_threads)
     {
@@ -1012,9 +1008,9 @@ void vqad_soft_backward_t(const float* probs, const float* table, const int64_t*
             int l;
             int64_t i;
             entries.locate(q, &l, &i);
-            const int64_t le = (int64_t)l * H + i, a = i % T;
-            const float* p = probs + le * t;
-            const float* gs = grad_soft + le * F;
+            const int64_t a = i % T;
+            const float* p = probs + q * t;
+            const float* gs = grad_soft + q * F;
             const int64_t* ca = cand + a * t;
             const float* lvl = table + l * T * F;
             float* glvl = gt.data() + l * T * F;
@@ -1030,7 +1026,7 @@ void vqad_soft_backward_t(const float* probs, const float* table, const int64_t*
                 g[c] = dot;
                 mean += pc * dot;
             }
-            float* gl = grad_logits + le * t;
+            float* gl = grad_logits + q * t;
             for (int c = 0; c < t; ++c) gl[c] = p[c] * (g[c] - mean) * inv_tau;
         }
     }
@@ -1171,7 +1167,7 @@ void stream_next_t(const Nodes& nodes, const float* rays_o, const float* inv_d, 
 
 extern "C" {
 
-int nbvh_abi_version() { return 19; }
+int nbvh_abi_version() { return 20; }
 
 // Fused inference over B segments of an MLP (kmlp = 0: mlp_segments_t) or a KMLP (kmlp = 1: kmlp_segments_t):
 // rays_o/rays_d (n_rays, 3), ray (B,) int64 ray of each segment, te/tx (B,) segment ends, frac (k,) point
@@ -1250,17 +1246,16 @@ void nbvh_encode_forward_f16(const float* points, int64_t n, const void* table, 
     by_features(features, [&](auto F) { encode_forward_t<decltype(F)::value, _Float16>(g, points, n, t, out, threads); });
 }
 
-// HashVQAD soft row table (see vqad_soft_forward): logits (L, H, t), table (L, T, F), cand (T, t) int64 rows, reach
-// (L,) int64 reachable entries per level (entries 0..reach[l]-1); soft (L, H, F) written (zero beyond reach), probs
-// (L, H, t) written for the reachable entries. t <= 256.
+// HashVQAD soft row table (see vqad_soft_forward) over the reachable entries only, level after level (R = sum of
+// reach): logits (R, t), table (L, T, F), cand (T, t) int64 rows, reach (L,) int64 reachable entries per level
+// (entries 0..reach[l]-1 of H); soft (R, F) and probs (R, t) written. t <= 256.
 void nbvh_vqad_soft_forward(const float* logits, const float* table, const int64_t* cand, const int64_t* reach,
                             int levels, int64_t H, int64_t T, int t, int F, float inv_tau, float* probs, float* soft,
                             int threads) {
     vqad_soft_forward(logits, table, cand, reach, levels, H, T, t, F, inv_tau, probs, soft, threads);
 }
 
-// Its backward: grad_soft (L, H, F) -> grad_table (L, T, F) accumulated (zero it first), grad_logits (L, H, t)
-// written (zero beyond reach).
+// Its backward: grad_soft (R, F) -> grad_table (L, T, F) accumulated (zero it first), grad_logits (R, t) written.
 void nbvh_vqad_soft_backward(const float* probs, const float* table, const int64_t* cand, const int64_t* reach,
                              const float* grad_soft, int levels, int64_t H, int64_t T, int t, int F, float inv_tau,
                              float* grad_table, float* grad_logits, int threads) {
