@@ -168,9 +168,10 @@ def main() -> None:
     ap.add_argument("--set", nargs="*", default=[], metavar="FIELD=VALUE",
                     help="Settings overrides for a configuration study, e.g. width=32 log2_table=12 (named in the row)")
     ap.add_argument("--csv", default=str(RESULTS / "pays.csv"))
-    ap.add_argument("--charts", action="store_true", help="only redraw the charts from the CSVs")
+    ap.add_argument("--charts", action="store_true", help="only rewrite the table and redraw the charts from the CSVs")
     args = ap.parse_args()
-    if args.charts:
+    if args.charts:  # also the table: rows merged in from other checkouts' runs
+        write_md(read_rows(Path(args.csv)))
         charts(read_rows(Path(args.csv)))
         return
     kernels.keep_freed_memory()

@@ -34,9 +34,8 @@ from nbvh_core.mesh import load_mesh  # noqa: E402
 from nbvh_core.model import NeuralBVH  # noqa: E402
 from nbvh_core.pipeline import preset  # noqa: E402
 from nbvh_core.render import orbit_cameras  # noqa: E402
-from nbvh_core.samples import label_samples, root_box, sample_rays  # noqa: E402
 from nbvh_core.samples_dir import sample_path  # noqa: E402
-from nbvh_core.train import TrainConfig, samples_loss, train  # noqa: E402
+from nbvh_core.train import train  # noqa: E402
 
 
 def matmul_peak_gflops(device: torch.device, n: int = 4096, repeat: int = 5) -> float:

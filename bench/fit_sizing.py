@@ -36,7 +36,7 @@ import bench_quality as bq  # noqa: E402
 from bench_meshes import bench_mesh  # noqa: E402
 from nbvh_core import kernels  # noqa: E402
 from nbvh_core.pipeline import estimate_file_bytes, preset  # noqa: E402
-from nbvh_core.sizing import (FEATURE_NAMES, FIT_PATH, LOG2_RANGE, QUALITY_LEVELS,  # noqa: E402
+from nbvh_core.sizing import (FEATURE_NAMES, FIT_PATH, QUALITY_LEVELS,  # noqa: E402
                               TARGET_TRAININGS, choose_table_and_nodes, fit_size_model, mesh_features, search_size)
 
 #: From the smallest table the search may choose (2^8: a size the grid lacks would end a simulated search
