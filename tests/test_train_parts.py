@@ -254,3 +254,16 @@ def test_a_checkpoint_with_logits_for_every_index_entry_resumes_compact(blob, tm
     assert torch.equal(fresh.encoding.logits, model.encoding.logits)
     got = fresh_opt.state[fresh.encoding.logits]
     assert moments and all(torch.equal(got[k], v) for k, v in moments.items())
+
+
+def test_the_freeze_point_follows_the_settings_and_bad_fractions_are_refused(blob):
+    from nbvh_core.settings import preset
+
+    _, bvh, tracer, _ = blob
+    cfg = preset("III").with_overrides(finetune_fraction=0.4).train_config()
+    assert cfg.finetune_fraction == 0.4
+    enc = _model(bvh, VQAD).encoding
+    assert not enc.freeze_due(0.59, cfg) and enc.freeze_due(0.6, cfg)
+    for ff, anneal in [(1.0, 0.0), (-0.1, 0.3), (0.8, 0.3)]:
+        with pytest.raises(ValueError, match="finetune_fraction"):
+            train(_model(bvh, VQAD), bvh, tracer, TrainConfig(steps=2, finetune_fraction=ff, anneal_fraction=anneal))
