@@ -137,14 +137,14 @@ class HashVQAD(HashGrid):
         byte = self.codes.to(torch.int64)[positions // per]
         return (byte >> ((positions % per) * bits)) & ((1 << bits) - 1)
 
-    def compact_codes(self, full: torch.Tensor) -> torch.Tensor:
-        """(L, H) codes -> the held form: the reachable entries' codes level after level, packed (`pack`)."""
-        return self.pack(torch.cat([full[level, :n] for level, n in enumerate(self.reachable_entries())]))
-
     def compact_index(self, full: torch.Tensor) -> torch.Tensor:
         """(L, H, ...) per-entry values -> (R, ...): the reachable entries', level after level (the layout of the
-        logits since they are held compact; converts an older checkpoint's (L, H, t) logits and their Adam moments)."""
+        logits and the codes; converts an older checkpoint's or file's full-index values)."""
         return torch.cat([full[level, :n] for level, n in enumerate(self.reachable_entries())]).contiguous()
+
+    def compact_codes(self, full: torch.Tensor) -> torch.Tensor:
+        """(L, H) codes -> the held form: the reachable entries' codes level after level, packed (`pack`)."""
+        return self.pack(self.compact_index(full))
 
     def full_codes(self) -> torch.Tensor:
         """(L, H) uint8: the held codes spread back over the whole index, unreachable entries code 0."""
