@@ -449,6 +449,15 @@ def _checkpoint_state(model, opt, step, elapsed, history, batches, leaf_errors, 
             "qat_affine": model.encoding.qat_affine if phases.qat_on else None}
 
 
+def check_config(cfg: TrainConfig) -> None:
+    """Raise ValueError for a budget or phase fractions no training can follow."""
+    if cfg.steps is None and cfg.time_limit_s is None:
+        raise ValueError("set a step budget or a time limit")
+    if not (0.0 <= cfg.finetune_fraction < 1.0 and 0.0 <= cfg.anneal_fraction <= 1.0 - cfg.finetune_fraction):
+        raise ValueError(f"need 0 <= finetune_fraction < 1 and 0 <= anneal_fraction <= 1 - finetune_fraction, got "
+                         f"{cfg.finetune_fraction} and {cfg.anneal_fraction}")
+
+
 def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, events: EventSink = null_sink,
           should_cancel: Callable[[], bool] = lambda: False, checkpoint_path: str | os.PathLike | None = None,
           resume_from: str | os.PathLike | None = None,
@@ -461,11 +470,7 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
     checkpoint_extra: stored in every checkpoint under 'extra' (the caller's settings and mesh identity).
     target_reached(model) -> bool: polled every cfg.target_check_every_s seconds; True stops training early.
     """
-    if cfg.steps is None and cfg.time_limit_s is None:
-        raise ValueError("set a step budget or a time limit")
-    if not (0.0 <= cfg.finetune_fraction < 1.0 and 0.0 <= cfg.anneal_fraction <= 1.0 - cfg.finetune_fraction):
-        raise ValueError(f"need 0 <= finetune_fraction < 1 and 0 <= anneal_fraction <= 1 - finetune_fraction, got "
-                         f"{cfg.finetune_fraction} and {cfg.anneal_fraction}")
+    check_config(cfg)
     device = pick_device(cfg.device)
     torch.manual_seed(cfg.seed)
     model.to(device)
