@@ -101,7 +101,7 @@ class HashVQAD(HashGrid):
         self.register_buffer("codes", torch.zeros(0, dtype=torch.uint8), persistent=True)
         self.temperature = 1.0
         self._cand_cache: torch.Tensor | None = None
-        self._row_offsets: torch.Tensor | None = None
+        self._starts_cache: torch.Tensor | None = None
 
     @property
     def frozen(self) -> bool:
@@ -194,9 +194,14 @@ class HashVQAD(HashGrid):
         only the reachable entries' rows (`code_starts`), a stored (L, T, F) table T per level."""
         if table.dim() == 3:
             return super().level_row_offsets(table)
-        if self._row_offsets is None or self._row_offsets.device != table.device:
-            self._row_offsets = torch.tensor(self.code_starts()[:-1], dtype=torch.int64, device=table.device)
-        return self._row_offsets
+        return self._level_starts(table.device)
+
+    def _level_starts(self, device) -> torch.Tensor:
+        """(L,) int64 `code_starts()[:-1]` on `device`: level l's first entry in the reachable-entries layout that
+        the logits, the soft rows and the codes share (built once per device)."""
+        if self._starts_cache is None or self._starts_cache.device != torch.device(device):
+            self._starts_cache = torch.tensor(self.code_starts()[:-1], dtype=torch.int64, device=device)
+        return self._starts_cache
 
     def _reads_table(self) -> bool:
         return self.frozen  # soft: the kernels read the soft row table computed from it
@@ -209,8 +214,7 @@ class HashVQAD(HashGrid):
     def vertex_rows(self, idx: torch.Tensor) -> torch.Tensor:
         if not self.frozen:
             return idx  # rows of the soft table S are the index entries themselves
-        starts = torch.tensor(self.code_starts()[:-1], dtype=torch.int64, device=idx.device)
-        code = self.unpack(idx + starts[None, :, None])  # idx < the level's reachable entries
+        code = self.unpack(idx + self._level_starts(idx.device)[None, :, None])  # idx < the level's reachable entries
         return candidate_rows(idx, code, self.cfg.table_size)
 
     def schedule(self, fraction: float, cfg) -> str | None:
