@@ -94,10 +94,19 @@ def read_rows(path: Path) -> list[dict]:
 
 
 def append_row(path: Path, row: dict) -> None:
-    new = not path.exists()
+    """One row onto a resumable CSV. A row with columns the file lacks (a bench that has learnt to record more)
+    rewrites the file with the wider header, the older rows' new cells empty, so columns never shift."""
     path.parent.mkdir(parents=True, exist_ok=True)
+    if path.exists():
+        with open(path, newline="") as f:
+            header = next(csv.reader(f), [])
+        if header and not set(row) <= set(header):
+            old = read_rows(path)
+            write_rows(path, [{**{k: "" for k in row}, **r} for r in old] + [row])
+            return
+    new = not path.exists()
     with open(path, "a", newline="") as f:
-        w = csv.DictWriter(f, list(row))
+        w = csv.DictWriter(f, list(row) if new else header, restval="")
         if new:
             w.writeheader()
         w.writerow(row)
