@@ -124,12 +124,15 @@ def main() -> None:
     ap.add_argument("--plan", nargs="+", metavar="METHOD:LOG2T",
                     help="the (method, table size) cells to run, e.g. base:11 III:8 (default: "
                          + " ".join(f"{m}:{t}" for m, t in PLAN) + ")")
+    ap.add_argument("--tag", default="", help="appended to the CSV's name: a run of its own (an equal-time "
+                    "comparison needs all its rows from one machine)")
     args = ap.parse_args()
     plan = [(m, int(t)) for m, t in (c.split(":") for c in args.plan)] if args.plan else PLAN
     kernels.keep_freed_memory()
     n_max = None if args.n_max == "auto" else int(args.n_max)
     stem = ("table5" if args.normal_loss is None else f"table5_{args.normal_loss}_loss") + (
-        "" if n_max is None else f"_nmax{n_max}") + ("" if args.time_limit is None else f"_time{args.time_limit:g}")
+        "" if n_max is None else f"_nmax{n_max}") + ("" if args.time_limit is None else f"_time{args.time_limit:g}") + (
+        f"_{args.tag}" if args.tag else "")
     path = RESULTS / f"{stem}.csv"
     done = {(r["mesh"], r["method"], r["log2_table"], r.get("seed") or "0") for r in read_rows(path)}
     for mesh_name in args.meshes:

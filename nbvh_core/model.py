@@ -173,10 +173,9 @@ class NeuralBVH(nn.Module):
             for s in range(0, ray.numel(), batch):
                 r, a, b = ray[s:s + batch], te[s:s + batch], tx[s:s + batch]
                 if fused is not None:
-                    raw = self._fused_raw(fused, rays_o, rays_d, r, a, b)
+                    prob, local_t, nrm = self._fused_first_hits(fused, rays_o, rays_d, r, a, b)
                 else:
-                    raw = self.forward(rays_o[r], rays_d[r], a, b)
-                prob, local_t, nrm = self.network.decode(raw)
+                    prob, local_t, nrm = self.network.decode(self.forward(rays_o[r], rays_d[r], a, b))
                 is_hit = prob > 0.5
                 rh = r[is_hit]
                 hit[rh] = True
@@ -198,6 +197,15 @@ class NeuralBVH(nn.Module):
         from .kernels import mlp
 
         return mlp.segments_raw(self, fused, rays_o, rays_d, ray, t_enter, t_exit)
+
+    def _fused_first_hits(self, fused: tuple[torch.Tensor, torch.Tensor], rays_o: torch.Tensor, rays_d: torch.Tensor,
+                          ray: torch.Tensor, t_enter: torch.Tensor, t_exit: torch.Tensor
+                          ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """What `network.decode(forward(...))` returns (hit probability, local t, unit normal) from one fused
+        kernel call (`kernels.mlp.segments_first_hits`)."""
+        from .kernels import mlp
+
+        return mlp.segments_first_hits(self, fused, rays_o, rays_d, ray, t_enter, t_exit)
 
     def stored_bytes(self, storage: StorageConfig | None = None) -> dict[str, int]:
         """Bytes of the stored tensors by component (no header) at `storage` (default float32 everywhere): bvh,

@@ -1,9 +1,10 @@
 """Fused MLP and KMLP models on the fast path: one kernel call per wave of segments (inference) or per training step.
 
 KMLP (the same `nbvh_net_segments` / `nbvh_net_train` with kmlp = 1): the shared pair network runs on the same tiles, pair j reading the
-window [j D, (j + 2) D) of the segment's feature row (a first-layer GEMM on an offset pointer); training adds
-`networks.KMLP.loss` (the first-hit combination in log space) and its backward in the kernel, and the overlapping
-windows' input gradients add up per point before the encoding backward.
+window [j D, (j + 2) D) of the segment's feature row (a first-layer GEMM on an offset pointer); queries combine the
+pairs into the first hit in the kernel (`segments_first_hits`: `networks.KMLP.decode`, a decided segment's later pairs
+skipped); training adds `networks.KMLP.loss` (the first-hit combination in log space) and its backward in the kernel,
+and the overlapping windows' input gradients add up per point before the encoding backward.
 
 `nbvh_net_segments` and `nbvh_net_train` (nbvh_kernels.cpp) compute, per tile of 48 segments kept in the cache,
 the segment points, the grid lookup and every Linear layer (bias and ReLU fused; AVX2 register-blocked
@@ -63,18 +64,38 @@ def segments_raw(model, packed: tuple[torch.Tensor, torch.Tensor], rays_o: torch
     """Raw network outputs of B segments, (B, 5) for an MLP, (B, k - 1, 5) for a KMLP: what `model.forward(rays_o[ray],
     rays_d[ray], t_enter, t_exit)` returns, to float rounding (the sums run in another order). rays_o, rays_d: (N, 3);
     ray: (B,) int64."""
+    k, n_out = model.cfg.network.k, int(packed[0][-1])
+    shape = (ray.numel(), k - 1, n_out) if _is_kmlp(model) else (ray.numel(), n_out)
+    return _net_segments(model, packed, rays_o, rays_d, ray, t_enter, t_exit, torch.empty(shape), decode=False)
+
+
+def segments_first_hits(model, packed: tuple[torch.Tensor, torch.Tensor], rays_o: torch.Tensor, rays_d: torch.Tensor,
+                        ray: torch.Tensor, t_enter: torch.Tensor, t_exit: torch.Tensor
+                        ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """`model.network.decode` of B segments' raw outputs, (hit probability (B,), local t (B,) in [0, 1], unit normal
+    (B, 3)), float32. A KMLP combines its pairs in the kernel and skips a segment's remaining pairs once it is decided
+    (a hit whose most likely pair later pairs cannot beat): the same hit decisions, depths and normals, to float
+    rounding, and for such a segment the probability is a lower bound (> 0.5) from the pairs it ran."""
+    if not _is_kmlp(model):
+        return model.network.decode(segments_raw(model, packed, rays_o, rays_d, ray, t_enter, t_exit))
+    out = _net_segments(model, packed, rays_o, rays_d, ray, t_enter, t_exit, torch.empty((ray.numel(), 5)),
+                        decode=True)
+    return out[:, 0], out[:, 1], out[:, 2:5]
+
+
+def _net_segments(model, packed, rays_o, rays_d, ray, t_enter, t_exit, out: torch.Tensor,
+                  decode: bool) -> torch.Tensor:
+    """One `nbvh_net_segments` call writing into `out` (float32, contiguous)."""
     dims, params = packed
     look = model.encoding.fused_lookup()
     k = model.cfg.network.k
     frac = torch.linspace(0.0, 1.0, k, dtype=torch.float32)
     ray, t_enter, t_exit = ray.contiguous(), t_enter.contiguous(), t_exit.contiguous()
-    kmlp = _is_kmlp(model)
-    shape = (ray.numel(), k - 1, int(dims[-1])) if kmlp else (ray.numel(), int(dims[-1]))
-    out = torch.empty(shape, dtype=torch.float32)
     load().nbvh_net_segments(
         ptr(rays_o.contiguous()), ptr(rays_d.contiguous()), ptr(ray), ptr(t_enter), ptr(t_exit), ray.numel(), k,
-        ptr(frac), *look.kernel_args(), *_grid_args(look.spec, look.rows, look.codes, look.code_rows), int(kmlp),
-        len(dims) - 1, ptr(dims), ptr(params), int(params.dtype == torch.float16), ptr(out), threads())
+        ptr(frac), *look.kernel_args(), *_grid_args(look.spec, look.rows, look.codes, look.code_rows),
+        int(_is_kmlp(model)), int(decode), len(dims) - 1, ptr(dims), ptr(params), int(params.dtype == torch.float16),
+        ptr(out), threads())
     return out
 
 

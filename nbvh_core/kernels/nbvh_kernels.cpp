@@ -455,20 +455,21 @@ struct Layers {
         return act;
     }
     // x0 (TILE rows of stride ld0) is the first layer's input when given (a KMLP pair: a window of the segment's
-    // feature row), else act[0].
-    void forward(std::vector<std::vector<float>>& act, const float* x0 = nullptr, int64_t ld0 = 0) const {
+    // feature row), else act[0]; only the first `rows` rows are computed (a KMLP's live segments).
+    void forward(std::vector<std::vector<float>>& act, const float* x0 = nullptr, int64_t ld0 = 0,
+                 int rows = TILE) const {
         for (int j = 0; j < n; ++j) {
             const int in = dims[j], out = dims[j + 1];
             float* y = act[j + 1].data();
             const float* x = (j == 0 && x0) ? x0 : act[j].data();
             const int64_t ldx = (j == 0 && x0) ? ld0 : padded(in);
             if (!wt_wide[j].empty())
-                gemm(TILE, out, in, x, ldx, 1, wt_wide[j].data(), padded(out), y, padded(out), false);
+                gemm(rows, out, in, x, ldx, 1, wt_wide[j].data(), padded(out), y, padded(out), false);
             else
-                gemm(TILE, out, in, x, ldx, 1, wt[j].data(), padded(out), y, padded(out), false);
+                gemm(rows, out, in, x, ldx, 1, wt[j].data(), padded(out), y, padded(out), false);
             const bool relu = j + 1 < n;
             const float* bj = bias[j].data();
-            for (int r = 0; r < TILE; ++r) {
+            for (int r = 0; r < rows; ++r) {
                 float* yr = y + r * padded(out);
                 for (int o = 0; o < out; ++o) {
                     const float v = yr[o] + bj[o];
@@ -692,10 +693,39 @@ void mlp_train_t(const Grid& g, const float* rays_o, const float* rays_d, const 
 // input is the window [j * D, (j + 2) * D) of the segment's k * D feature row (D = L * F), so a pair is a first-layer
 // GEMM on an offset pointer into the tile's features; the deeper layers are the MLP path's.
 
+inline float softplus(float x) { return std::fmax(x, 0.f) + std::log1p(std::exp(-std::fabs(x))); }
+
+// The first-hit combination of networks.KMLP.decode for one segment, pair by pair: the running sum of log(1 - p_i)
+// over the pairs seen and the most likely first-hit pair so far (log q_j = log p_j + sum_{i<j} log(1 - p_i), the
+// first of equal ones) with its depth and normal outputs.
+struct FirstHit {
+    float log_none = 0.f, best = -INFINITY, raw[4] = {0.f, 0.f, 0.f, 0.f};
+    int pair = 0;
+    void add(int j, const float* r) {
+        const float lq = -softplus(-r[0]) + log_none;
+        if (lq > best) { best = lq; pair = j; std::memcpy(raw, r + 1, sizeof raw); }
+        log_none -= softplus(r[0]);
+    }
+    // Later pairs cannot change the answer: P >= 1 - exp(log_none) > 1/2 already (a hit), and every later log q_j
+    // <= log_none < best (the chosen pair stays the argmax).
+    bool decided() const { return log_none < -0.69314718f && log_none < best; }
+    // (hit probability, local t in [0, 1], unit normal); for a segment decided early the probability is its lower
+    // bound from the pairs seen (> 1/2: the same hit decision).
+    void write(int pairs, float* o) const {
+        o[0] = -std::expm1(log_none);
+        o[1] = (pair + 1.f / (1.f + std::exp(-raw[0]))) / pairs;
+        const float n = std::fmax(std::sqrt(raw[1] * raw[1] + raw[2] * raw[2] + raw[3] * raw[3]), 1e-12f);
+        o[2] = raw[1] / n; o[3] = raw[2] / n; o[4] = raw[3] / n;
+    }
+};
+
+// decode 0: out (B, k - 1, n_out) raw pair outputs. decode 1 (n_out = 5): out (B, 5) = FirstHit::write, and a
+// segment's remaining pairs are skipped once it is decided (its feature row moves behind the tile's live rows, so
+// the next pair's GEMMs run on the live rows only).
 template <int F, typename T, typename TW>
 void kmlp_segments_t(const Grid& g, const float* rays_o, const float* rays_d, const int64_t* ray, const float* te,
                      const float* tx, int64_t b, int k, const float* frac, const T* table, int n_layers,
-                     const int32_t* dims, const TW* params, float* out, int threads) {
+                     const int32_t* dims, const TW* params, int decode, float* out, int threads) {
     const Layers<TW> net(n_layers, dims, params, false);
     const int n_out = dims[n_layers];
     const int width = g.levels * (F > 0 ? F : g.features);
@@ -707,17 +737,34 @@ void kmlp_segments_t(const Grid& g, const float* rays_o, const float* rays_d, co
         const FlushDenormals ftz_guard;
         auto act = net.activations();
         std::vector<float> x((size_t)TILE * ldx, 0.f);
+        std::vector<FirstHit> first(TILE);
+        std::vector<int> row_of(TILE);  // tile position -> segment row (positions [0, live) still evaluated)
 #pragma omp for schedule(dynamic, 4)
         for (int64_t tile = 0; tile < tiles; ++tile) {
             const int64_t s0 = tile * TILE;
             const int m = (int)((b - s0) < TILE ? (b - s0) : TILE);
             encode_tile<F>(g, rays_o, rays_d, ray, te, tx, s0, m, k, frac, table, x.data(), ldx, (float*)nullptr);
-            for (int j = 0; j < pairs; ++j) {
-                net.forward(act, x.data() + j * width, ldx);
-                for (int r = 0; r < m; ++r)
-                    std::memcpy(out + ((s0 + r) * pairs + j) * n_out, act[n_layers].data() + r * padded(n_out),
-                                sizeof(float) * n_out);
+            int live = m;
+            for (int r = 0; r < m; ++r) { first[r] = FirstHit(); row_of[r] = r; }
+            for (int j = 0; j < pairs && live > 0; ++j) {
+                net.forward(act, x.data() + j * width, ldx, decode ? live : TILE);
+                const float* y = act[n_layers].data();
+                if (!decode) {
+                    for (int r = 0; r < m; ++r)
+                        std::memcpy(out + ((s0 + r) * pairs + j) * n_out, y + r * padded(n_out), sizeof(float) * n_out);
+                    continue;
+                }
+                for (int p = live - 1; p >= 0; --p) {  // downwards: a row swapped into p is one already seen
+                    FirstHit& fh = first[row_of[p]];
+                    fh.add(j, y + p * padded(n_out));
+                    if (fh.decided() && p != --live) {
+                        std::swap_ranges(x.begin() + p * ldx, x.begin() + (p + 1) * ldx, x.begin() + live * ldx);
+                        std::swap(row_of[p], row_of[live]);
+                    }
+                }
             }
+            if (decode)
+                for (int r = 0; r < m; ++r) first[r].write(pairs, out + (s0 + r) * 5);
         }
     }
 }
@@ -726,7 +773,6 @@ struct KLossSums {
     double bce = 0, ce = 0, depth = 0, normal = 0, unit = 0;
 };
 
-inline float softplus(float x) { return std::fmax(x, 0.f) + std::log1p(std::exp(-std::fabs(x))); }
 
 // Loss of networks.KMLP for rows [0, m) of raw (TILE, P, 5), P = k - 1 pairs (see its docstring: BCE of the
 // leaf's hit probability in log space, the cross-entropy of the true sub-segment, masked L1s of the depth inside it
@@ -1167,21 +1213,23 @@ void stream_next_t(const Nodes& nodes, const float* rays_o, const float* inv_d, 
 
 extern "C" {
 
-int nbvh_abi_version() { return 20; }
+int nbvh_abi_version() { return 21; }
 
 // Fused inference over B segments of an MLP (kmlp = 0: mlp_segments_t) or a KMLP (kmlp = 1: kmlp_segments_t):
 // rays_o/rays_d (n_rays, 3), ray (B,) int64 ray of each segment, te/tx (B,) segment ends, frac (k,) point
 // fractions; table (L, rows, F) of table_kind 0 float32, 1 float16, 2 uint8 codes (with qoffset/qscale (L, F):
 // value = offset + code * scale; null otherwise); dims (n_layers + 1,) int32 layer widths (dims[0] = k L F for an
 // MLP, 2 L F for a KMLP's pair); params packed as Layers reads them. out: (B, dims[n_layers]) for an MLP,
-// (B, k - 1, dims[n_layers]) for a KMLP, float32 raw outputs. weight_kind 0: params float32; 1: float16 (the
+// (B, k - 1, dims[n_layers]) for a KMLP, float32 raw outputs; a KMLP with decode = 1: (B, 5) its first-hit
+// combination (hit probability, local t, unit normal: networks.KMLP.decode, kmlp_segments_t), pairs after a
+// segment is decided skipped. weight_kind 0: params float32; 1: float16 (the
 // stored half-precision network, read by the GEMM as it is: no float32 copy).
 void nbvh_net_segments(const float* rays_o, const float* rays_d, const int64_t* ray, const float* te, const float* tx,
                        int64_t b, int k, const float* frac, const void* table, int table_kind,
                        const float* qoffset, const float* qscale, int levels,
                        int features, const float* scales, const int64_t* res, const uint8_t* dense,
                        int64_t vertex_table, int64_t rows, const uint8_t* codes, int64_t code_rows, int code_bits, int kmlp,
-                       int n_layers, const int32_t* dims, const void* params, int weight_kind, float* out,
+                       int decode, int n_layers, const int32_t* dims, const void* params, int weight_kind, float* out,
                        int threads) {
     Grid g{levels, features, scales, res, dense, vertex_table, rows, codes, code_rows, code_bits};
     g.qoffset = qoffset;
@@ -1195,7 +1243,7 @@ void nbvh_net_segments(const float* rays_o, const float* rays_d, const int64_t* 
                 using T = std::remove_const_t<std::remove_pointer_t<decltype(tab)>>;
                 if (kmlp)
                     kmlp_segments_t<f, T, TW>(g, rays_o, rays_d, ray, te, tx, b, k, frac, tab, n_layers, dims, weights,
-                                              out, threads);
+                                              decode, out, threads);
                 else
                     mlp_segments_t<f, T, TW>(g, rays_o, rays_d, ray, te, tx, b, k, frac, tab, n_layers, dims, weights,
                                              out, threads);
