@@ -27,7 +27,7 @@ from bench_quality import append_row, read_rows  # noqa: E402
 from nbvh_core import kernels  # noqa: E402
 from nbvh_core.exact import ExactTracer  # noqa: E402
 from nbvh_core.metrics import evaluate_renderer  # noqa: E402
-from nbvh_core.pipeline import compress_mesh, preset  # noqa: E402
+from nbvh_core.pipeline import compress_mesh, estimate_file_bytes, preset  # noqa: E402
 from nbvh_core.render import render_reference  # noqa: E402
 from nbvh_core.settings import NORMAL_LOSS_BY_NETWORK  # noqa: E402
 from nbvh_core.sizing import choose_resolution, decimate, mesh_resident_bytes  # noqa: E402
@@ -93,6 +93,23 @@ def write_md(rows: list[dict]) -> None:
     (RESULTS / "pays.md").write_text("\n".join(lines) + "\n")
 
 
+def row_variant(row: dict) -> tuple[bool, bool]:
+    """(current, earlier) of a pays.csv row: current = the preset as it is now (no --set overrides, the grid chosen
+    from the mesh, the network's own normal targets, and the file the preset's sizes make today, within a header's
+    few hundred bytes: a row of an earlier preset with the same tags is not current); earlier = the stop 14-15 rows
+    (grid chosen from the mesh, facing normal targets, before the tag was written)."""
+    tags = row["storage"].split(" ")
+    overrides = [t for t in tags[1:] if not t.startswith(("n_max=", "normals="))]
+    auto_grid = any(t.startswith("n_max=auto") for t in tags)
+    s = preset(row["preset"])
+    bits = f"t{s.table_bits}/w{s.network_bits}/n{s.node_bits}"
+    current = (not overrides and auto_grid and tags[0] == bits
+               and f"normals={NORMAL_LOSS_BY_NETWORK[s.network]}" in tags
+               and abs(int(row["file_bytes"]) - estimate_file_bytes(s)) < 1024)
+    earlier = auto_grid and not any(t.startswith("normals=") for t in tags)
+    return current, earlier
+
+
 def charts(rows: list[dict]) -> None:
     """bench/results/rd_budget_{resident,storage}.png: per mesh, every neural row of pays.csv (each preset and
     method step at its real budget; the latest storage the presets use marked) against the quadric decimations
@@ -128,11 +145,7 @@ def charts(rows: list[dict]) -> None:
                 ax.axvline(float(mine[0]["mesh_resident_bytes"]), color="gray", ls=":", label="full mesh, resident")
             for r in mine:
                 x = float(r["model_resident_bytes"] if axis == "resident" else r["file_bytes"])
-                # the presets as they are now: the grid chosen from the mesh, the product's normal targets
-                network = "kmlp" if "network=kmlp" in r["storage"] else preset(r["preset"]).network
-                current = ("n_max=auto" in r["storage"] and "=" not in r["storage"].split(" n_max=")[0]
-                           and f"normals={NORMAL_LOSS_BY_NETWORK[network]}" in r["storage"])  # the preset, no --set
-                earlier = "n_max=auto" in r["storage"] and "normals=" not in r["storage"]  # stop 14-15: facing
+                current, earlier = row_variant(r)
                 color, label = (("tab:red", f"neural {r['preset']} {float(r['train_s']):.0f} s (now)") if current
                                 else ("tab:orange", f"neural {r['preset']}, facing normal targets") if earlier
                                 else ("tab:blue", "other and earlier configurations"))

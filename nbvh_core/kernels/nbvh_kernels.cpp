@@ -1057,6 +1057,15 @@ void vqad_soft_backward_t(const float* probs, const float* table, const int64_t*
             const int64_t a = i % T;
             const float* p = probs + q * t;
             const float* gs = grad_soft + q * F;
+            float* gl = grad_logits + q * t;
+            // An entry no vertex of the batch read has a zero gradient row: nothing to add to the rows, and zero
+            // logit gradients (exactly what the sums below give). Most of a fine level's entries, at a step's batch.
+            bool touched = false;
+            for (int f = 0; f < F && !touched; ++f) touched = gs[f] != 0.f;
+            if (!touched) {
+                std::memset(gl, 0, sizeof(float) * t);
+                continue;
+            }
             const int64_t* ca = cand + a * t;
             const float* lvl = table + l * T * F;
             float* glvl = gt.data() + l * T * F;
@@ -1072,7 +1081,6 @@ void vqad_soft_backward_t(const float* probs, const float* table, const int64_t*
                 g[c] = dot;
                 mean += pc * dot;
             }
-            float* gl = grad_logits + q * t;
             for (int c = 0; c < t; ++c) gl[c] = p[c] * (g[c] - mean) * inv_tau;
         }
     }
