@@ -97,6 +97,7 @@ def append_row(path: Path, row: dict) -> None:
     """One row onto a resumable CSV. A row with columns the file lacks (a bench that has learnt to record more)
     rewrites the file with the wider header, the older rows' new cells empty, so columns never shift."""
     path.parent.mkdir(parents=True, exist_ok=True)
+    header: list[str] = []  # none yet: a new (or empty) file starts with this row's
     if path.exists():
         with open(path, newline="") as f:
             header = next(csv.reader(f), [])
@@ -104,10 +105,9 @@ def append_row(path: Path, row: dict) -> None:
             old = read_rows(path)
             write_rows(path, [{**{k: "" for k in row}, **r} for r in old] + [row])
             return
-    new = not path.exists()
     with open(path, "a", newline="") as f:
-        w = csv.DictWriter(f, list(row) if new else header, restval="")
-        if new:
+        w = csv.DictWriter(f, header or list(row), restval="")
+        if not header:
             w.writeheader()
         w.writerow(row)
 

@@ -3,7 +3,7 @@ several N_max per mesh (equal steps: N_max does not change the cost of a step, a
 busy machine), scored with the one metric (16 views, 128 px). Float32 storage, so only the grid differs.
 
     .venv/bin/python bench/bench_resolution.py [--meshes bunny gyroid] [--n-max 64 128 256] [--steps 1500]
-    .venv/bin/python bench/bench_resolution.py --levels 2 4 8 [--meshes bunny gyroid studs]
+    .venv/bin/python bench/bench_resolution.py --levels 2 4 8 [--meshes bunny gyroid studs] [--time-limit 200]
 
 Resumable: one CSV row per (mesh, preset, log2 T, N_max, steps) in bench/results/resolution.csv; resolution.md is
 rewritten after every row with `sizing.choose_resolution`'s pick beside the best measured.
@@ -12,6 +12,8 @@ rewritten after every row with `sizing.choose_resolution`'s pick beside the best
 L = 2, 4, 8 at T = 2^13, 2^12, 2^11 for the default preset), each grid's N_max chosen for its T as the presets do. A
 step's cost grows with L (L lookups per point and an L x wider first layer): the training seconds are in every row.
 One row per (mesh, preset, levels, steps) in bench/results/levels.csv, levels.md rewritten after every row.
+`--time-limit S`: equal wall time instead (each grid trains S seconds with the preset's own storage, as a user's run
+does: the question equal steps leaves open, since a step's cost grows with L); one row per (mesh, preset, levels, S).
 """
 from __future__ import annotations
 
@@ -54,17 +56,24 @@ def write_md(rows: list[dict]) -> None:
     (RESULTS / "resolution.md").write_text("\n".join(lines) + "\n")
 
 
-LEVEL_FIELDS = ["mesh", "preset", "levels", "steps", "log2_table", "n_max", "train_s", "mse", "iou", "created"]
+LEVEL_FIELDS = ["mesh", "preset", "levels", "steps", "log2_table", "n_max", "train_s", "mse", "iou", "created",
+                "time_limit_s", "file_bytes"]
 
 
 def write_levels_md(rows: list[dict]) -> None:
     lines = ["# Grid levels against table rows at equal table bytes (bench/bench_resolution.py --levels)", "",
              "Equal steps per row (the preset's settings, levels x T x features constant, float32 storage, seed 0) on "
              "this 2-core CPU; image MSE over 16 views at 128 px; N_max chosen for each T as the presets choose it.",
-             "", "| mesh | preset | steps | levels | T | N_max | MSE | IoU | train s |", "|---|---|---|---|---|---|---|---|---|"]
-    for r in sorted(rows, key=lambda r: (r["mesh"], int(r["steps"]), int(r["levels"]))):
-        lines.append(f"| {r['mesh']} | {r['preset']} | {r['steps']} | {r['levels']} | 2^{r['log2_table']} | "
-                     f"{r['n_max']} | {float(r['mse']):.5f} | {float(r['iou']):.4f} | {float(r['train_s']):.0f} |")
+             "Rows with a time limit trained that many seconds each with the preset's own (quantized) storage; "
+             "their steps are the ones reached.",
+             "", "| mesh | preset | budget | levels | T | N_max | steps | MSE | IoU | train s |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    def budget(r: dict) -> str:
+        return f"{float(r['time_limit_s']):.0f} s" if r.get("time_limit_s") else f"{r['steps']} steps"
+    for r in sorted(rows, key=lambda r: (r["mesh"], budget(r), int(r["levels"]))):
+        lines.append(f"| {r['mesh']} | {r['preset']} | {budget(r)} | {r['levels']} | 2^{r['log2_table']} | "
+                     f"{r['n_max']} | {r['steps']} | {float(r['mse']):.5f} | {float(r['iou']):.4f} | "
+                     f"{float(r['train_s']):.0f} |")
     (RESULTS / "levels.md").write_text("\n".join(lines) + "\n")
 
 
@@ -72,6 +81,13 @@ def equal_steps(mesh, base, steps: int, **overrides):
     """compress_mesh with `base` (Settings) and `overrides` for exactly `steps` steps, float32 storage."""
     s = base.with_overrides(steps=steps, table_bits=32, network_bits=32, node_bits=32, force=True, **overrides)
     s.time_limit_s = None
+    return compress_mesh(mesh, s, None)
+
+
+def equal_time(mesh, base, seconds: float, **overrides):
+    """compress_mesh with `base` (Settings) and `overrides` for `seconds` of training, the preset's own storage."""
+    s = base.with_overrides(steps=None, force=True, **overrides)
+    s.time_limit_s = seconds
     return compress_mesh(mesh, s, None)
 
 
@@ -84,15 +100,22 @@ def run_levels(args) -> None:
             if levels & (levels - 1) or base.levels & (base.levels - 1):
                 raise SystemExit("levels must be powers of two to keep the table bytes equal")
             log2 = base.log2_table + (base.levels.bit_length() - levels.bit_length())  # levels x T constant
-            if (mesh_name, args.preset, str(levels), str(args.steps)) in {
-                    tuple(r[k] for k in LEVEL_FIELDS[:4]) for r in read_rows(path)}:
+            budget = f"{args.time_limit:g}" if args.time_limit else ""
+            done = {(r["mesh"], r["preset"], r["levels"], r.get("time_limit_s") or "", r["steps"])
+                    for r in read_rows(path)}
+            if any(d[:4] == (mesh_name, args.preset, str(levels), budget) and (budget or d[4] == str(args.steps))
+                   for d in done):
                 continue
             mesh = mesh or bench_mesh(mesh_name)
-            res = equal_steps(mesh, base, args.steps, levels=levels, log2_table=log2)
+            if args.time_limit:
+                res = equal_time(mesh, base, args.time_limit, levels=levels, log2_table=log2)
+            else:
+                res = equal_steps(mesh, base, args.steps, levels=levels, log2_table=log2)
             row = {"mesh": mesh_name, "preset": args.preset, "levels": levels, "steps": res.training.steps,
                    "log2_table": log2, "n_max": res.settings.n_max, "train_s": round(res.training.seconds, 1),
                    "mse": res.quality.mse, "iou": res.quality.silhouette_iou,
-                   "created": time.strftime("%Y-%m-%dT%H:%M:%S")}
+                   "created": time.strftime("%Y-%m-%dT%H:%M:%S"), "time_limit_s": budget,
+                   "file_bytes": res.file_bytes}
             append_row(path, row)
             print(row, flush=True)
             write_levels_md(read_rows(path))
@@ -105,6 +128,7 @@ def main() -> None:
     ap.add_argument("--preset", default="default")
     ap.add_argument("--steps", type=int, default=1500)
     ap.add_argument("--levels", type=int, nargs="+", help="trade levels against rows instead (powers of two)")
+    ap.add_argument("--time-limit", type=float, help="with --levels: equal wall time (s) instead of equal steps")
     args = ap.parse_args()
     kernels.keep_freed_memory()
     if args.levels:

@@ -372,6 +372,51 @@ def test_fused_soft_hashvqad_table_matches_the_reference(tau, index_factor):
     assert (enc.logits.grad[unread] == 0).all()
 
 
+def test_a_soft_step_computes_exactly_the_entries_its_batch_reads(sample_meshes, monkeypatch):
+    """`kernels.mlp.entries_read` marks the soft-table entries of every corner of every segment point (the reference
+    lookup's indices), the soft table computes those rows only (the others zero), and a step on it gives the same
+    loss and gradients as on the full table."""
+    from nbvh_core.encodings.base import corner_indices
+    from nbvh_core.exact import ExactTracer
+    from nbvh_core.kernels import mlp
+    from nbvh_core.samples import label_samples
+
+    mesh = sample_meshes["blob"]
+    bvh = build_bvh(mesh, 63)
+    torch.manual_seed(0)
+    model = NeuralBVH(bvh.nodes, ModelConfig(
+        EncodingConfig(kind="hashvqad", log2_table=6, levels=3, features=8, index_factor=64, candidates=8,
+                       init_scale=0.5), NetworkConfig(kind="kmlp", k=4)))
+    enc = model.encoding
+    o, d = sample_rays(*root_box(bvh), 300, np.random.default_rng(5))
+    batch = label_samples(bvh, ExactTracer(mesh), o, d, "consistent")
+    frac = torch.linspace(0.0, 1.0, 4)
+    needed = mlp.entries_read(model, batch, frac)
+    points = model.segment_points(batch.rays_o[batch.ray], batch.rays_d[batch.ray], batch.t_enter, batch.t_exit)
+    idx, _ = corner_indices(points.reshape(-1, 3), enc.scales, enc._vertex_table_size())
+    flat = idx + torch.tensor(enc.code_starts()[:-1])[None, :, None]
+    want = torch.zeros(sum(enc.reachable_entries()), dtype=torch.uint8)
+    want[flat.reshape(-1)] = 1
+    assert torch.equal(needed, want)
+    assert 0.05 < float(want.float().mean()) < 0.95  # a real subset: some entries read, some not
+    with torch.no_grad():
+        full, part = enc.row_table(), enc.row_table(needed)
+    assert torch.equal(part[needed == 1], full[needed == 1]) and (part[needed == 0] == 0).all()
+    grads = []
+    for use_mask in (True, False):
+        model.zero_grad(set_to_none=True)
+        if not use_mask:  # the same step on the whole soft table
+            monkeypatch.setattr(mlp, "entries_read", lambda *a: None)
+        loss, _ = mlp.train_step(model, batch)
+        grads.append((loss, {n: p.grad.clone() for n, p in model.named_parameters()}))
+    monkeypatch.undo()
+    assert grads[0][0] == grads[1][0]
+    for name, g in grads[0][1].items():
+        assert torch.equal(g, grads[1][1][name]), name
+    model.encoding.freeze()
+    assert mlp.entries_read(model, batch, frac) is None  # frozen: the kernels read the stored table
+
+
 def test_fused_queries_read_the_node_records_in_place(sample_meshes):
     """A model answering rays on the fast path holds its nodes once: the traversal reads model.nodes' own memory
     (the 32-byte records resident_bytes counts), and no int64 link copies are made."""

@@ -126,9 +126,10 @@ class HashGrid(Encoding):
             self._spec = GridSpec(self.cfg, self._vertex_table_size())
         return self._spec
 
-    def _fused_rows(self) -> tuple[torch.Tensor, torch.Tensor | None, int]:
+    def _fused_rows(self, needed: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor | None, int]:
         """What the kernel reads: the rows ((L, R, F), or (R, F) reachable rows level after level: `fused.level_rows`),
-        the frozen codes (or None) and the rows codes select from."""
+        the frozen codes (or None) and the rows codes select from. needed: the entries of a computed row table that
+        will be read (`HashVQAD.row_table`); a stored table ignores it."""
         return self.table, None, 0
 
     def _half_table(self) -> torch.Tensor:

@@ -42,10 +42,11 @@ class _SoftTable(torch.autograd.Function):
     """The soft row table S (R, F) of the R reachable entries (level after level, as the logits (R, t)) and its
     backward into the rows and the logits, by the fused kernels (`nbvh_vqad_soft_forward/backward`): one pass for
     softmax and weighted rows; the backward's row gradients summed per thread. Same values as
-    `HashVQAD.reference_row_table` (tests/test_fastpath.py)."""
+    `HashVQAD.reference_row_table` (tests/test_fastpath.py). needed (R,) uint8 or None: only the marked entries'
+    rows computed, the others zero (their gradient rows are zero too: the backward skips them)."""
 
     @staticmethod
-    def forward(ctx, logits, table, cand, reach, tau, index_size):
+    def forward(ctx, logits, table, cand, reach, tau, index_size, needed=None):
         lib = kernels.load()
         t = logits.shape[1]
         L, T, F = table.shape
@@ -54,7 +55,8 @@ class _SoftTable(torch.autograd.Function):
         probs = torch.empty_like(logits_c)
         soft = torch.empty((logits.shape[0], F), dtype=torch.float32)
         lib.nbvh_vqad_soft_forward(logits_c.data_ptr(), table_c.data_ptr(), cand.data_ptr(), reach.data_ptr(), L, H,
-                                   T, t, F, 1.0 / tau, probs.data_ptr(), soft.data_ptr(), kernels.threads())
+                                   T, t, F, 1.0 / tau, kernels.ptr(needed), probs.data_ptr(), soft.data_ptr(),
+                                   kernels.threads())
         ctx.save_for_backward(probs, table_c, cand, reach)
         ctx.tau, ctx.index_size = tau, index_size
         return soft
@@ -71,7 +73,7 @@ class _SoftTable(torch.autograd.Function):
         kernels.load().nbvh_vqad_soft_backward(probs.data_ptr(), table.data_ptr(), cand.data_ptr(), reach.data_ptr(),
                                                grad_soft.data_ptr(), L, H, T, t, F, 1.0 / ctx.tau,
                                                g_table.data_ptr(), g_logits.data_ptr(), kernels.threads())
-        return g_logits, g_table, None, None, None, None
+        return g_logits, g_table, None, None, None, None, None
 
 
 class HashVQAD(HashGrid):
@@ -164,12 +166,15 @@ class HashVQAD(HashGrid):
             self._cand_cache = candidate_rows(i, j, self.cfg.table_size)
         return self._cand_cache
 
-    def row_table(self) -> torch.Tensor:
+    def row_table(self, needed: torch.Tensor | None = None) -> torch.Tensor:
+        """The rows vertices look up: the stored table once frozen, else the soft row table (R, F). needed (R,) uint8
+        (fused kernel only): compute the marked entries' soft rows only, the others zero (a step's batch reads about
+        a quarter of them: `kernels.mlp.entries_read`)."""
         if self.frozen:
             return self.float_rows()
         if kernels.soft_table_kernel(self, self.table.device) == "fused":
             return _SoftTable.apply(self.logits, self.table, self._group_candidates().contiguous(), self._reach,
-                                    float(self.temperature), self.cfg.index_size)
+                                    float(self.temperature), self.cfg.index_size, needed)
         return self.reference_row_table()
 
     def reference_row_table(self) -> torch.Tensor:
@@ -206,10 +211,10 @@ class HashVQAD(HashGrid):
     def _reads_table(self) -> bool:
         return self.frozen  # soft: the kernels read the soft row table computed from it
 
-    def _fused_rows(self) -> tuple[torch.Tensor, torch.Tensor | None, int]:
+    def _fused_rows(self, needed: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor | None, int]:
         if self.frozen:  # vertex -> code -> candidate row, inside the kernel
             return self.table, self.codes, self.cfg.table_size
-        return self.row_table(), None, 0
+        return self.row_table(needed), None, 0
 
     def vertex_rows(self, idx: torch.Tensor) -> torch.Tensor:
         if not self.frozen:

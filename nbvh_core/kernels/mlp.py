@@ -111,6 +111,22 @@ def _scratch(model, b: int, k: int, width: int) -> tuple[torch.Tensor, torch.Ten
     return have[2][:b * k], have[3][:b]
 
 
+def entries_read(model, samples, frac: torch.Tensor) -> torch.Tensor | None:
+    """(R,) uint8: 1 for each entry of a soft HashVQAD row table that the k points (fractions `frac` (k,)) of the
+    samples' segments read, None for an encoding whose kernels read a stored table. The step then computes only
+    those soft rows (a quarter of them on the bunny at T=2^9)."""
+    enc = model.encoding
+    if enc._reads_table():  # a stored table (HashGrid, frozen HashVQAD): nothing computed per step
+        return None
+    needed = torch.zeros(sum(enc.reachable_entries()), dtype=torch.uint8)
+    spec = enc.grid_spec()
+    load().nbvh_mark_entries(
+        ptr(samples.rays_o.contiguous()), ptr(samples.rays_d.contiguous()), ptr(samples.ray.contiguous()),
+        ptr(samples.t_enter.contiguous()), ptr(samples.t_exit.contiguous()), len(samples), frac.numel(), ptr(frac),
+        *spec.args(0, None, 0)[:-1], ptr(needed), threads())
+    return needed
+
+
 def train_step(model, samples, want_raw: bool = False) -> tuple[float, dict]:
     """Loss of `model` on labelled `samples` (as `train.samples_loss` + `MLP.loss`) and its gradients, in one
     kernel call; sets `.grad` of every parameter (call after `zero_grad(set_to_none=True)`). Returns the total
@@ -122,12 +138,12 @@ def train_step(model, samples, want_raw: bool = False) -> tuple[float, dict]:
     linears = _linears(model)
     assert int(dims[-1]) == 5, "the fused losses are networks.MLP's and KMLP's (hit, depth, normal)"
     kmlp = _is_kmlp(model)
-    rows, codes, code_rows = model.encoding._fused_rows()
+    b, k = len(samples), net_cfg.k
+    frac = torch.linspace(0.0, 1.0, k, dtype=torch.float32)
+    rows, codes, code_rows = model.encoding._fused_rows(entries_read(model, samples, frac))
     spec = model.encoding.grid_spec()
     codes = None if codes is None else codes.contiguous()
     table = rows.detach().contiguous()
-    b, k = len(samples), net_cfg.k
-    frac = torch.linspace(0.0, 1.0, k, dtype=torch.float32)
     hit = samples.hit.to(torch.uint8).contiguous()
     local_t = samples.local_t.to(torch.float32).contiguous()
     normal = samples.normal.to(torch.float32).contiguous()

@@ -321,9 +321,13 @@ inline bool ray_box(const float* o, const float* inv, const float* lo, const flo
 
 constexpr int TILE = 48;  // segments per tile (a multiple of the micro-kernel's 6 rows)
 
-// Row stride of a width-d buffer: multiples of 16 floats get 16 more, so that rows are not 2 KB (or 256 B) apart;
-// power-of-two strides map a column's rows onto a few L1 sets and evict each other.
-inline int64_t padded(int d) { return d % 16 == 0 ? d + 16 : d; }
+// Columns a GEMM computes for an output width d: d rounded up to the micro-kernel's 16 (a narrow layer, the 5
+// outputs, then runs in vector registers on zero-padded weights instead of the scalar loop; the extra columns are
+// never read).
+inline int lanes(int d) { return (d + 15) / 16 * 16; }
+// Row stride of a width-d buffer: room for lanes(d) columns, and multiples of 16 floats get 16 more, so that rows
+// are not 2 KB (or 256 B) apart; power-of-two strides map a column's rows onto a few L1 sets and evict each other.
+inline int64_t padded(int d) { return d % 16 == 0 ? d + 16 : lanes(d); }
 
 // C (M, N) (+)= A (M, K) B (K, N); A(r, q) = A[r * a_row + q * a_k] (so A may be a transposed view); B row-major.
 #ifdef NBVH_AVX2
@@ -464,9 +468,9 @@ struct Layers {
             const float* x = (j == 0 && x0) ? x0 : act[j].data();
             const int64_t ldx = (j == 0 && x0) ? ld0 : padded(in);
             if (!wt_wide[j].empty())
-                gemm(rows, out, in, x, ldx, 1, wt_wide[j].data(), padded(out), y, padded(out), false);
+                gemm(rows, lanes(out), in, x, ldx, 1, wt_wide[j].data(), padded(out), y, padded(out), false);
             else
-                gemm(rows, out, in, x, ldx, 1, wt[j].data(), padded(out), y, padded(out), false);
+                gemm(rows, lanes(out), in, x, ldx, 1, wt[j].data(), padded(out), y, padded(out), false);
             const bool relu = j + 1 < n;
             const float* bj = bias[j].data();
             for (int r = 0; r < rows; ++r) {
@@ -480,8 +484,17 @@ struct Layers {
     }
 };
 
-// Features of the m segments from s0 (points t_i = t_enter + frac_i (t_exit - t_enter), as
-// NeuralBVH.segment_points) into rows of x (stride ldx); points (B * k, 3) written when not null.
+// Point i of segment seg: t_i = t_enter + frac_i (t_exit - t_enter) along its ray, as NeuralBVH.segment_points.
+inline void segment_point(const float* rays_o, const float* rays_d, const int64_t* ray, const float* te,
+                          const float* tx, int64_t seg, float frac_i, float* p) {
+    const float* o = rays_o + 3 * ray[seg];
+    const float* d = rays_d + 3 * ray[seg];
+    const float t = te[seg] + frac_i * (tx[seg] - te[seg]);
+    p[0] = o[0] + t * d[0]; p[1] = o[1] + t * d[1]; p[2] = o[2] + t * d[2];
+}
+
+// Features of the m segments from s0 (their k points, segment_point) into rows of x (stride ldx); points
+// (B * k, 3) written when not null.
 template <int F, typename T>
 inline void encode_tile(const Grid& g, const float* rays_o, const float* rays_d, const int64_t* ray, const float* te,
                         const float* tx, int64_t s0, int m, int k, const float* frac, const T* table, float* x,
@@ -489,12 +502,9 @@ inline void encode_tile(const Grid& g, const float* rays_o, const float* rays_d,
     const int width = g.levels * (F > 0 ? F : g.features);
     for (int s = 0; s < m; ++s) {
         const int64_t seg = s0 + s;
-        const float* o = rays_o + 3 * ray[seg];
-        const float* d = rays_d + 3 * ray[seg];
-        const float len = tx[seg] - te[seg];
         for (int i = 0; i < k; ++i) {
-            const float t = te[seg] + frac[i] * len;
-            const float p[3] = {o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]};
+            float p[3];
+            segment_point(rays_o, rays_d, ray, te, tx, seg, frac[i], p);
             if (points) std::memcpy(points + (seg * k + i) * 3, p, sizeof p);
             encode_point<F>(g, p, table, x + s * ldx + i * width);
         }
@@ -597,15 +607,16 @@ inline void sum_thread_grads(const std::vector<std::vector<float>>& grads, const
 }
 
 // Loss of networks.MLP (BCE on the hit logit; masked L1 of sigmoid depth and of the normalised normal, divided by
-// the batch's hit count) for rows [0, m) of raw (TILE, 5); writes d loss / d raw into d_raw (TILE, 5), zero rows
-// from m on. inv_b = 1 / batch size, inv_hits = 1 / max(hit count, 1).
-inline void mlp_loss_rows(const float* raw, int m, const uint8_t* hit, const float* local_t, const float* normal,
-                          float inv_b, float inv_hits, float w_t, float w_n, int unoriented, float w_unit, float* d_raw, LossSums& sums) {
+// the batch's hit count) for rows [0, m) of raw (TILE, 5 of ld); writes d loss / d raw into d_raw (TILE, ld),
+// zero rows from m on and zero columns from 5 on. inv_b = 1 / batch size, inv_hits = 1 / max(hit count, 1).
+inline void mlp_loss_rows(const float* raw, int64_t ld, int m, const uint8_t* hit, const float* local_t,
+                          const float* normal, float inv_b, float inv_hits, float w_t, float w_n, int unoriented,
+                          float w_unit, float* d_raw, LossSums& sums) {
     for (int r = 0; r < TILE; ++r) {
-        float* g = d_raw + r * 5;
-        for (int c = 0; c < 5; ++c) g[c] = 0.f;
+        float* g = d_raw + r * ld;
+        for (int c = 0; c < ld; ++c) g[c] = 0.f;
         if (r >= m) continue;
-        const float* o = raw + r * 5;
+        const float* o = raw + r * ld;
         const float x = o[0], y = hit[r] ? 1.f : 0.f;
         sums.bce += std::fmax(x, 0.f) - x * y + std::log1p(std::exp(-std::fabs(x)));
         const float p = 1.f / (1.f + std::exp(-x));
@@ -652,14 +663,14 @@ void mlp_train_t(const Grid& g, const float* rays_o, const float* rays_d, const 
                                 sizeof(float) * dims[n_layers]);
             float* d_cur = d_a.data();
             float* d_prev = d_b.data();
-            mlp_loss_rows(act[n_layers].data(), m, hit + s0, local_t + s0, normal + 3 * s0, inv_b, inv_hits, w_t, w_n, unoriented,
+            mlp_loss_rows(act[n_layers].data(), padded(dims[n_layers]), m, hit + s0, local_t + s0, normal + 3 * s0, inv_b, inv_hits, w_t, w_n, unoriented,
                           w_unit, d_cur, sums[tid]);  // (TILE, 5), zero rows from m on: they add nothing below
             for (int j = n_layers - 1; j >= 0; --j) {
                 const int n_in = dims[j], n_out = dims[j + 1];
                 const int64_t ld_in = padded(n_in), ld_out = padded(n_out);
                 float* gw = gp.data() + g_off[j];
                 // dW^T (in, out) += act[j]^T d_cur; db += column sums of d_cur
-                gemm(n_in, n_out, TILE, act[j].data(), 1, ld_in, d_cur, ld_out, gw, ld_out, true);
+                gemm(n_in, lanes(n_out), TILE, act[j].data(), 1, ld_in, d_cur, ld_out, gw, ld_out, true);
                 float* gb = gw + (int64_t)n_in * ld_out;
                 for (int r = 0; r < m; ++r)
                     for (int c = 0; c < n_out; ++c) gb[c] += d_cur[r * ld_out + c];
@@ -773,7 +784,6 @@ struct KLossSums {
     double bce = 0, ce = 0, depth = 0, normal = 0, unit = 0;
 };
 
-
 // Loss of networks.KMLP for rows [0, m) of raw (TILE, P, 5), P = k - 1 pairs (see its docstring: BCE of the
 // leaf's hit probability in log space, the cross-entropy of the true sub-segment, masked L1s of the depth inside it
 // and of its normal); d loss / d raw into d_raw (TILE, P, 5), zero rows from m on.
@@ -877,17 +887,16 @@ void kmlp_train_t(const Grid& g, const float* rays_o, const float* rays_d, const
                 float* d_cur = d_a.data();
                 float* d_prev = d_b.data();
                 const int64_t ld5 = padded(n_out);
-                for (int r = 0; r < TILE; ++r) {
-                    for (int c = 0; c < n_out; ++c) d_cur[r * ld5 + c] = d_raw[((int64_t)r * P + p) * 5 + c];
-                }
+                for (int r = 0; r < TILE; ++r)  // zero padding: the dW GEMM runs lanes(n_out) columns
+                    for (int c = 0; c < ld5; ++c) d_cur[r * ld5 + c] = c < n_out ? d_raw[((int64_t)r * P + p) * 5 + c] : 0.f;
                 for (int j = n_layers - 1; j >= 0; --j) {
                     const int n_in = dims[j], no = dims[j + 1];
                     const int64_t ld_in = padded(n_in), ld_out = padded(no);
                     float* gw = gp.data() + g_off[j];
                     if (j == 0)  // the pair's input window of the tile's features, seen transposed
-                        gemm(n_in, no, TILE, x.data() + p * width, 1, ldx, d_cur, ld_out, gw, ld_out, true);
+                        gemm(n_in, lanes(no), TILE, x.data() + p * width, 1, ldx, d_cur, ld_out, gw, ld_out, true);
                     else
-                        gemm(n_in, no, TILE, act[j].data(), 1, ld_in, d_cur, ld_out, gw, ld_out, true);
+                        gemm(n_in, lanes(no), TILE, act[j].data(), 1, ld_in, d_cur, ld_out, gw, ld_out, true);
                     float* gb = gw + (int64_t)n_in * ld_out;
                     for (int r = 0; r < m; ++r)
                         for (int c = 0; c < no; ++c) gb[c] += d_cur[r * ld_out + c];
@@ -1002,10 +1011,13 @@ struct ReachableEntries {
     }
 };
 
+// needed (R,) uint8 or null: only the entries marked are computed (a step reads a quarter of them, entries_read);
+// the others' soft rows are zero and their probabilities unwritten (the backward skips them: their gradient rows
+// are zero).
 template <int TF>
 void vqad_soft_forward_t(const float* logits, const float* table, const int64_t* cand, const int64_t* reach, int L,
-                         int64_t H, int64_t T, int t, int F_dyn, float inv_tau, float* probs, float* soft,
-                         int threads) {
+                         int64_t H, int64_t T, int t, int F_dyn, float inv_tau, const uint8_t* needed, float* probs,
+                         float* soft, int threads) {
     const int F = TF > 0 ? TF : F_dyn;
     const ReachableEntries entries(reach, L, H);
 #pragma omp parallel num_threads(threads)
@@ -1017,6 +1029,10 @@ void vqad_soft_forward_t(const float* logits, const float* table, const int64_t*
     for (int64_t q = 0; q < entries.total(); ++q) {
         int l;
         int64_t i;
+        if (needed && !needed[q]) {
+            std::memset(soft + q * F, 0, sizeof(float) * F);
+            continue;
+        }
         entries.locate(q, &l, &i);
         const int64_t a = i % T;
         float* p = probs + q * t;
@@ -1051,21 +1067,21 @@ void vqad_soft_backward_t(const float* probs, const float* table, const int64_t*
         gt.assign((size_t)L * T * F, 0.f);  // this thread's row gradients (L2-resident), summed in thread order
 #pragma omp for schedule(static)
         for (int64_t q = 0; q < entries.total(); ++q) {
-            int l;
-            int64_t i;
-            entries.locate(q, &l, &i);
-            const int64_t a = i % T;
-            const float* p = probs + q * t;
             const float* gs = grad_soft + q * F;
             float* gl = grad_logits + q * t;
             // An entry no vertex of the batch read has a zero gradient row: nothing to add to the rows, and zero
-            // logit gradients (exactly what the sums below give). Most of a fine level's entries, at a step's batch.
+            // logit gradients (exactly what the sums below give). 76% of all entries at a step's batch (bunny, T=2^9).
             bool touched = false;
             for (int f = 0; f < F && !touched; ++f) touched = gs[f] != 0.f;
             if (!touched) {
                 std::memset(gl, 0, sizeof(float) * t);
                 continue;
             }
+            int l;
+            int64_t i;
+            entries.locate(q, &l, &i);
+            const int64_t a = i % T;
+            const float* p = probs + q * t;
             const int64_t* ca = cand + a * t;
             const float* lvl = table + l * T * F;
             float* glvl = gt.data() + l * T * F;
@@ -1093,10 +1109,31 @@ void vqad_soft_backward_t(const float* probs, const float* table, const int64_t*
 }
 
 void vqad_soft_forward(const float* logits, const float* table, const int64_t* cand, const int64_t* reach, int L,
-                       int64_t H, int64_t T, int t, int F, float inv_tau, float* probs, float* soft, int threads) {
-    if (F == 16) vqad_soft_forward_t<16>(logits, table, cand, reach, L, H, T, t, F, inv_tau, probs, soft, threads);
-    else if (F == 8) vqad_soft_forward_t<8>(logits, table, cand, reach, L, H, T, t, F, inv_tau, probs, soft, threads);
-    else vqad_soft_forward_t<0>(logits, table, cand, reach, L, H, T, t, F, inv_tau, probs, soft, threads);
+                       int64_t H, int64_t T, int t, int F, float inv_tau, const uint8_t* needed, float* probs,
+                       float* soft, int threads) {
+    if (F == 16) vqad_soft_forward_t<16>(logits, table, cand, reach, L, H, T, t, F, inv_tau, needed, probs, soft, threads);
+    else if (F == 8) vqad_soft_forward_t<8>(logits, table, cand, reach, L, H, T, t, F, inv_tau, needed, probs, soft, threads);
+    else vqad_soft_forward_t<0>(logits, table, cand, reach, L, H, T, t, F, inv_tau, needed, probs, soft, threads);
+}
+
+// The entries of a soft row table (g.rows == 0: the reachable entries, level after level) that the k points of b
+// segments read: needed[row] = 1 for every corner of every level (the points and corners of encode_tile, bit for
+// bit). Concurrent marks store the same byte (relaxed atomics).
+void mark_entries(const Grid& g, const float* rays_o, const float* rays_d, const int64_t* ray, const float* te,
+                  const float* tx, int64_t b, int k, const float* frac, uint8_t* needed, int threads) {
+#pragma omp parallel for schedule(static) num_threads(threads)
+    for (int64_t seg = 0; seg < b; ++seg) {
+        int64_t row[8];
+        float w[8];
+        for (int i = 0; i < k; ++i) {
+            float p[3];
+            segment_point(rays_o, rays_d, ray, te, tx, seg, frac[i], p);
+            for (int l = 0; l < g.levels; ++l) {
+                corners_any(g, l, p, row, w, fits32(g, l));
+                for (int c = 0; c < 8; ++c) __atomic_store_n(needed + g.row_start[l] + row[c], (uint8_t)1, __ATOMIC_RELAXED);
+            }
+        }
+    }
 }
 
 void vqad_soft_backward(const float* probs, const float* table, const int64_t* cand, const int64_t* reach,
@@ -1221,7 +1258,7 @@ void stream_next_t(const Nodes& nodes, const float* rays_o, const float* inv_d, 
 
 extern "C" {
 
-int nbvh_abi_version() { return 21; }
+int nbvh_abi_version() { return 22; }
 
 // Fused inference over B segments of an MLP (kmlp = 0: mlp_segments_t) or a KMLP (kmlp = 1: kmlp_segments_t):
 // rays_o/rays_d (n_rays, 3), ray (B,) int64 ray of each segment, te/tx (B,) segment ends, frac (k,) point
@@ -1304,11 +1341,23 @@ void nbvh_encode_forward_f16(const float* points, int64_t n, const void* table, 
 
 // HashVQAD soft row table (see vqad_soft_forward) over the reachable entries only, level after level (R = sum of
 // reach): logits (R, t), table (L, T, F), cand (T, t) int64 rows, reach (L,) int64 reachable entries per level
-// (entries 0..reach[l]-1 of H); soft (R, F) and probs (R, t) written. t <= 256.
+// (entries 0..reach[l]-1 of H); soft (R, F) and probs (R, t) written. t <= 256. needed (R,) uint8 or null: only
+// the marked entries computed (nbvh_mark_entries), the others' soft rows zero, their probs unwritten.
 void nbvh_vqad_soft_forward(const float* logits, const float* table, const int64_t* cand, const int64_t* reach,
-                            int levels, int64_t H, int64_t T, int t, int F, float inv_tau, float* probs, float* soft,
-                            int threads) {
-    vqad_soft_forward(logits, table, cand, reach, levels, H, T, t, F, inv_tau, probs, soft, threads);
+                            int levels, int64_t H, int64_t T, int t, int F, float inv_tau, const uint8_t* needed,
+                            float* probs, float* soft, int threads) {
+    vqad_soft_forward(logits, table, cand, reach, levels, H, T, t, F, inv_tau, needed, probs, soft, threads);
+}
+
+// The soft row table entries (rows = 0: R reachable entries, level after level) that the k points of B segments
+// read (segments as nbvh_net_train's): needed (R,) uint8 set to 1 at each (zero it first).
+void nbvh_mark_entries(const float* rays_o, const float* rays_d, const int64_t* ray, const float* te, const float* tx,
+                       int64_t b, int k, const float* frac, int levels, int features, const float* scales,
+                       const int64_t* res, const uint8_t* dense, int64_t vertex_table, int64_t rows,
+                       const uint8_t* codes, int64_t code_rows, int code_bits, uint8_t* needed, int threads) {
+    Grid g{levels, features, scales, res, dense, vertex_table, rows, codes, code_rows, code_bits};
+    g.init_masks();
+    mark_entries(g, rays_o, rays_d, ray, te, tx, b, k, frac, needed, threads);
 }
 
 // Its backward: grad_soft (R, F) -> grad_table (L, T, F) accumulated (zero it first), grad_logits (R, t) written.
