@@ -111,6 +111,10 @@ def encode_nodes(nodes: np.ndarray) -> dict | None:
             q_hi += under
             down = (q_hi > 0) & (_decode_child(plo, phi, np.maximum(q_hi - 1, 0)) >= chi)
             q_hi -= down
+        # A parent thinner than 255 float32 steps decodes runs of codes to one value: the search can then pass
+        # q_lo beyond q_hi on a flat child, which the decoder reads as empty. Both decode to the flat face there
+        # (decoding is monotonic in q), so equal codes hold it.
+        q_lo = np.minimum(q_lo, q_hi)
         d_lo, d_hi = _decode_child(plo, phi, q_lo), _decode_child(plo, phi, q_hi)
         ok = empty | ((d_lo <= clo) & (d_hi >= chi)).all(axis=1)
         if not ok.all():
