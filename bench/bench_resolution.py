@@ -91,6 +91,12 @@ def equal_time(mesh, base, seconds: float, **overrides):
     return compress_mesh(mesh, s, None)
 
 
+def level_key(row: dict) -> tuple:
+    """What a levels row measured: (mesh, preset, levels, budget); the budget is its time limit in seconds, or its
+    step count for an equal-steps row (whose steps are the ones asked for)."""
+    return row["mesh"], row["preset"], row["levels"], row.get("time_limit_s") or f"{row['steps']} steps"
+
+
 def run_levels(args) -> None:
     path = RESULTS / "levels.csv"
     for mesh_name in args.meshes:
@@ -101,10 +107,8 @@ def run_levels(args) -> None:
                 raise SystemExit("levels must be powers of two to keep the table bytes equal")
             log2 = base.log2_table + (base.levels.bit_length() - levels.bit_length())  # levels x T constant
             budget = f"{args.time_limit:g}" if args.time_limit else ""
-            done = {(r["mesh"], r["preset"], r["levels"], r.get("time_limit_s") or "", r["steps"])
-                    for r in read_rows(path)}
-            if any(d[:4] == (mesh_name, args.preset, str(levels), budget) and (budget or d[4] == str(args.steps))
-                   for d in done):
+            if (mesh_name, args.preset, str(levels), budget or f"{args.steps} steps") in {
+                    level_key(r) for r in read_rows(path)}:
                 continue
             mesh = mesh or bench_mesh(mesh_name)
             if args.time_limit:

@@ -664,7 +664,7 @@ void mlp_train_t(const Grid& g, const float* rays_o, const float* rays_d, const 
             float* d_cur = d_a.data();
             float* d_prev = d_b.data();
             mlp_loss_rows(act[n_layers].data(), padded(dims[n_layers]), m, hit + s0, local_t + s0, normal + 3 * s0, inv_b, inv_hits, w_t, w_n, unoriented,
-                          w_unit, d_cur, sums[tid]);  // (TILE, 5), zero rows from m on: they add nothing below
+                          w_unit, d_cur, sums[tid]);  // (TILE, ld), zero rows from m on, zero columns from 5: they add nothing below
             for (int j = n_layers - 1; j >= 0; --j) {
                 const int n_in = dims[j], n_out = dims[j + 1];
                 const int64_t ld_in = padded(n_in), ld_out = padded(n_out);
