@@ -59,6 +59,11 @@ class Batches:
             rng.bit_generator.state = resume["chunk_state"]
             skip = resume["index"] + 1
             self._weights_override = resume.get("leaf_weights")
+            w = self._weights_override
+            if w is not None and (leaf_errors is None or w.shape != (bvh.n_leaves,) or not w.sum() > 0):
+                raise ValueError(f"the resumed leaf weights do not fit this BVH ({bvh.n_leaves} leaves)")
+            if not 0 <= skip <= max(1, cfg.label_steps):
+                raise ValueError(f"the resumed batch index {skip - 1} is outside a labelling pass")
         self._queue = None
         if prefetch:
             import queue
@@ -157,6 +162,20 @@ class Batches:
             self._thread.join(timeout=5)
 
 
+def check_cut(tree, cut: list, max_leaves: int) -> None:
+    """Raise ValueError unless `cut` (full-tree node ids) is a cut of `tree` of at most `max_leaves` leaves: every
+    triangle under exactly one of its nodes (the nodes' triangle ranges are nested, so disjoint ranges that cover
+    all triangles are exactly that)."""
+    ids = np.asarray(cut, dtype=np.int64)
+    if not 1 <= len(ids) <= max_leaves or ids.min() < 0 or ids.max() >= tree.n_nodes:
+        raise ValueError(f"the resumed tree cut names {len(ids)} nodes outside the tree's {tree.n_nodes}")
+    start, count = tree.start[ids], tree.count[ids]
+    order = np.argsort(start, kind="stable")
+    start, end = start[order], start[order] + count[order]
+    if (count <= 0).any() or start[0] != 0 or end[-1] != len(tree.tri_order) or (start[1:] != end[:-1]).any():
+        raise ValueError("the resumed tree cut is not a cut of this mesh's tree")
+
+
 class TreeCut:
     """N-BVH's tree-cut splitting during training (TrainConfig.tree_cut): `start` is the coarse cut training begins
     on (or the cut a checkpoint stopped at); `refine` splits the leaves with the highest running error in
@@ -168,6 +187,8 @@ class TreeCut:
         self.cfg = cfg
         self.final_leaves = bvh.n_leaves
         self.rounds_done = rounds_done
+        if resumed_cut is not None:
+            check_cut(bvh.full, resumed_cut, self.final_leaves)
         self.start = (layout_cut(bvh.full, {int(n) for n in resumed_cut}, bvh.budget, final=False)
                       if resumed_cut is not None else
                       coarse_cut(bvh, max(2, int(self.final_leaves * cfg.tree_cut_start))))

@@ -18,6 +18,12 @@ import numpy as np
 
 #: File extensions `load_mesh` reads (a trailing `.gz` is decompressed first).
 SUPPORTED_EXTENSIONS = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf")
+#: The largest mesh file (or decompressed .gz, or file a glTF/OBJ refers to) `load_mesh` reads: a 20M-triangle
+#: binary PLY is ~0.5 GB.
+MAX_MESH_BYTES = 8 << 30
+#: A .gz whose content would be more than this many times its size is refused before it is inflated (meshes
+#: compress 2-6x; a decompression bomb 1000x).
+MAX_GZIP_RATIO = 200
 
 
 class MeshError(ValueError):
@@ -161,30 +167,68 @@ def mesh_from_arrays(vertices: np.ndarray, faces: np.ndarray, name: str = "mesh"
 
 
 def _read_bytes(path: Path) -> tuple[bytes, str]:
-    """File contents (decompressed if `.gz`) and the mesh extension (e.g. '.ply')."""
+    """File contents (decompressed if `.gz`, at most MAX_GZIP_RATIO x the file and MAX_MESH_BYTES) and the mesh
+    extension (e.g. '.ply')."""
+    import zlib
+
     suffixes = [s.lower() for s in path.suffixes]
+    size = path.stat().st_size
+    if size > MAX_MESH_BYTES:
+        raise MeshError(f"{path}: {size} bytes is more than the {MAX_MESH_BYTES} a mesh file may have")
     data = path.read_bytes()
     if suffixes and suffixes[-1] == ".gz":
+        limit = min(MAX_MESH_BYTES, max(1 << 20, MAX_GZIP_RATIO * len(data)))
+        inflate = zlib.decompressobj(wbits=16 + zlib.MAX_WBITS)
         try:
-            data = gzip.decompress(data)
-        except (OSError, EOFError) as exc:
+            out = inflate.decompress(data, limit)
+            if inflate.unconsumed_tail:
+                raise MeshError(f"{path}: decompresses to more than {limit} bytes (over {MAX_GZIP_RATIO}x its size): "
+                                "refused as a decompression bomb")
+            if not inflate.eof:
+                raise MeshError(f"{path}: damaged gzip file: truncated")
+        except zlib.error as exc:
             raise MeshError(f"{path}: damaged gzip file: {exc}") from None
+        data = out
         suffixes = suffixes[:-1]
     ext = suffixes[-1] if suffixes else ""
     return data, ext
+
+
+def _confined_resolver(path: Path):
+    """trimesh's resolver for the files a glTF or OBJ names (buffers, textures, material libraries): only regular
+    files inside the mesh's own folder (trimesh refuses names that escape it), each at most MAX_MESH_BYTES, so a
+    name cannot make the reader wait on a pipe or device or read a huge file."""
+    from trimesh.resolvers import FilePathResolver
+
+    class ConfinedResolver(FilePathResolver):
+        def get(self, name: str) -> bytes:
+            for candidate in (name.strip(), name.strip().lstrip("/"), os.path.split(name)[-1]):
+                try:
+                    target = self.absolute(candidate)
+                except ValueError:
+                    continue
+                if target.is_file() and target.stat().st_size <= MAX_MESH_BYTES:
+                    return target.read_bytes()
+            raise ValueError(f"{name[:80]!r} is not a regular file of at most {MAX_MESH_BYTES} bytes beside the mesh")
+
+    return ConfinedResolver(str(path))
 
 
 def load_mesh(path: str | os.PathLike) -> Mesh:
     """Load OBJ, PLY, STL, OFF or GLB/glTF (optionally gzip-compressed, `name.ply.gz`) and validate it.
 
     Scenes (glTF with several nodes) are flattened with their node transforms applied. Polygons are
-    triangulated by the reader. Raises `MeshError` with the path and the reason on any failure.
+    triangulated by the reader. Files are data: only regular files are read, a .gz is inflated to at most
+    MAX_GZIP_RATIO x its size, and the files a glTF/OBJ names must be regular files in the mesh's folder
+    (`_confined_resolver`). Raises `MeshError` with the path and the reason on any failure.
     """
     path = Path(path)
     if not path.exists():
         raise MeshError(f"{path}: no such file")
     if path.is_dir():
         raise MeshError(f"{path}: is a folder, not a mesh file")
+    if not path.is_file():
+        raise MeshError(f"{path}: not a regular file (a pipe or device is never read)")
     data, ext = _read_bytes(path)
     if ext not in SUPPORTED_EXTENSIONS:
         raise MeshError(f"{path}: unsupported format {ext or '(no extension)'!r}; "
@@ -195,8 +239,11 @@ def load_mesh(path: str | os.PathLike) -> Mesh:
 
     try:
         # Plain files load by path so that glTF finds its external buffers; .gz ones from memory.
-        source = io.BytesIO(data) if path.suffix.lower() == ".gz" else str(path)
-        loaded = trimesh.load(source, file_type=ext[1:], force="mesh", process=False)
+        if path.suffix.lower() == ".gz":
+            loaded = trimesh.load(io.BytesIO(data), file_type=ext[1:], force="mesh", process=False)
+        else:
+            loaded = trimesh.load(io.BytesIO(data), file_type=ext[1:], force="mesh", process=False,
+                                  resolver=_confined_resolver(path))
     except Exception as exc:  # trimesh raises many types for broken files
         raise MeshError(f"{path}: could not read as {ext[1:].upper()}: {type(exc).__name__}: {exc}") from None
     vertices = getattr(loaded, "vertices", None)

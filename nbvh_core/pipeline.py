@@ -83,19 +83,19 @@ def mesh_identity(mesh: Mesh) -> dict:
 
 def resume_settings(checkpoint_path: str | Path, mesh: Mesh) -> Settings:
     """The settings a checkpoint was training with (a fixed size: the resumed run trains that one model), after
-    checking it belongs to `mesh`. Raises ValueError for a foreign, damaged or mismatched checkpoint."""
-    try:
-        ck = torch.load(checkpoint_path, map_location="cpu", weights_only=False)
-        extra = ck["extra"]
-        fields = {f.name for f in dataclasses.fields(Settings)}
-        settings = Settings(**{k: v for k, v in extra["settings"].items() if k in fields})
-    except FileNotFoundError:
-        raise ValueError(f"{checkpoint_path}: no such checkpoint") from None
-    except Exception as exc:  # torch.load raises many kinds for a foreign file
-        raise ValueError(f"{checkpoint_path}: not a checkpoint of this tool ({type(exc).__name__})") from None
+    checking it belongs to `mesh`. The file is read as data (`checkpoint.read_checkpoint`: never unpickled).
+    Raises ValueError (one line) for a foreign, damaged, crafted or mismatched checkpoint."""
+    from .checkpoint import read_checkpoint
+    from .settings import settings_from_dict
+
+    extra = read_checkpoint(checkpoint_path).header["extra"]
+    if not isinstance(extra.get("settings"), dict) or not isinstance(extra.get("mesh"), dict):
+        raise ValueError(f"{checkpoint_path}: the checkpoint names no settings or mesh (not a compress run's)")
+    settings = settings_from_dict(extra["settings"], f"{checkpoint_path}: checkpoint settings")
     if extra.get("mesh") != mesh_identity(mesh):
+        triangles = extra["mesh"].get("triangles")
         raise ValueError(f"{checkpoint_path}: the checkpoint was made for another mesh "
-                         f"({extra.get('mesh', {}).get('triangles')} triangles; this one has {mesh.n_triangles})")
+                         f"({str(triangles)[:20]} triangles; this one has {mesh.n_triangles})")
     return dataclasses.replace(settings, target_mse=None, budget_kb=None)
 
 

@@ -138,6 +138,53 @@ class Settings:
         return dataclasses.asdict(self)
 
 
+#: Ranges of Settings' numeric fields a file or request may set (sizes bound what a model allocates).
+SETTING_LIMITS = {"nodes": (1, 65535), "log2_table": (1, 24), "levels": (1, 16), "features": (1, 64),
+                  "n_min": (1, 1 << 16), "n_max": (1, 1 << 16), "index_factor": (1, 1024), "k": (2, 64),
+                  "hidden": (0, 16), "width": (1, 1024), "steps": (1, 1 << 40), "rays_per_step": (1, 1 << 22),
+                  "seed": (0, (1 << 63) - 1), "table_bits": (8, 32), "network_bits": (8, 32), "node_bits": (8, 32),
+                  "eval_views": (1, 1024), "eval_resolution": (8, 8192), "lr": (0.0, 10.0),
+                  "time_limit_s": (0.0, 1e7), "anneal_fraction": (0.0, 1.0), "finetune_fraction": (0.0, 1.0),
+                  "qat_fraction": (0.0, 1.0), "budget_kb": (0.0, 1e9), "target_mse": (0.0, 10.0),
+                  "checkpoint_every_s": (0.0, 1e9), "target_check_every_s": (0.0, 1e9),
+                  "normal_weight": (0.0, 1e6), "normal_unit_weight": (0.0, 1e6)}
+#: The largest model any setting may ask for (the high preset's is under 1 MB).
+MAX_MODEL_BYTES = 1 << 30
+
+
+def settings_from_dict(d, where: str = "settings") -> Settings:
+    """Settings from untrusted JSON (a checkpoint's header, a job request): known fields only, each of its declared
+    type, numbers in SETTING_LIMITS, and a model no larger than MAX_MODEL_BYTES. Raises ValueError (one line)."""
+    import math
+
+    if not isinstance(d, dict):
+        raise ValueError(f"{where}: settings must be an object")
+    kinds = {f.name: str(f.type) for f in dataclasses.fields(Settings)}
+    unknown = sorted(str(k)[:30] for k in d if k not in kinds)
+    if unknown:
+        raise ValueError(f"{where}: unknown settings: {', '.join(unknown[:5])}")
+    for name, value in d.items():
+        kind = kinds[name]
+        if value is None and "None" in kind:
+            continue
+        base = kind.split("|")[0].strip()
+        numeric = isinstance(value, (int, float)) and not isinstance(value, bool)
+        ok = {"int": isinstance(value, int) and numeric, "float": numeric and math.isfinite(value),
+              "str": isinstance(value, str) and len(value) <= 64, "bool": isinstance(value, bool)}[base]
+        lo, hi = SETTING_LIMITS.get(name, (None, None))
+        if not ok or (lo is not None and not lo <= value <= hi):
+            rng = f" in [{lo}, {hi}]" if lo is not None else ""
+            raise ValueError(f"{where}: setting {name!r} must be a {base}{rng}, got {str(value)[:40]}")
+    settings = Settings(**d)
+    try:
+        size = estimate_file_bytes(settings)
+    except Exception as exc:  # an impossible combination (e.g. an unknown encoding)
+        raise ValueError(f"{where}: unusable settings ({type(exc).__name__}: {str(exc)[:80]})") from None
+    if size > MAX_MODEL_BYTES:
+        raise ValueError(f"{where}: the settings ask for a {size} B model (at most {MAX_MODEL_BYTES})")
+    return settings
+
+
 PRESETS: dict[str, Settings] = {
     # What users pick. Within minutes on a 2-core CPU the cheapest steps learn most: measured at equal bytes
     # (~775 KB), 60 s on the bunny, HashGrid+MLP reached MSE 0.0032 / IoU 0.972 (405 steps) against

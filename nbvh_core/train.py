@@ -29,6 +29,7 @@ import torch
 from . import kernels
 from .batches import Batches, LeafErrors, TreeCut  # noqa: F401  (LeafErrors: re-exported)
 from .bvh import BVH
+from .checkpoint import CheckpointError, read_checkpoint, write_checkpoint
 from .events import EventSink, null_sink
 from .exact import ExactTracer
 from .model import NeuralBVH
@@ -217,17 +218,6 @@ def make_step(model: NeuralBVH, device: torch.device, plan: kernels.KernelPlan):
     return autograd_step
 
 
-def _atomic_save(obj, path: Path) -> None:
-    """torch.save, written atomically (outputs.write_atomic): a kill mid-write keeps the previous checkpoint."""
-    import io
-
-    from .outputs import write_atomic
-
-    buf = io.BytesIO()
-    torch.save(obj, buf)
-    write_atomic(path, buf.getvalue())
-
-
 class Checkpoints:
     """Writes the training state (atomically) every cfg.checkpoint_every steps and every cfg.checkpoint_every_s
     seconds, and on demand (cancel); nothing without a path. `state()` gathers it (see `load_checkpoint`)."""
@@ -245,33 +235,66 @@ class Checkpoints:
 
     def save(self, state: dict) -> None:
         if self.path is not None:
-            _atomic_save({**state, "train_config": self.cfg.to_dict(), "extra": self.extra}, self.path)
+            write_checkpoint(self.path, {**state, "train_config": self.cfg.to_dict(), "extra": self.extra})
 
 
 def load_checkpoint(path: str | os.PathLike, model: NeuralBVH, opt: torch.optim.Optimizer,
                     device: torch.device) -> dict:
-    """Load a checkpoint's model, optimizer and torch RNG state into `model` and `opt`; returns the whole
-    checkpoint (step, elapsed, history, numpy RNG, leaf errors, cut, ...) for the other parts."""
-    ck = torch.load(path, map_location=device, weights_only=False)
-    codes = ck["model"].get("encoding.codes")
+    """Load a checkpoint's model, optimizer moments and torch RNG state into `model` and `opt`, after checking every
+    tensor against what this model holds (names, shapes, dtypes); returns the rest for the other parts: step,
+    elapsed, history [(step, loss)], numpy_rng {chunk_state, index, leaf_weights}, leaf_errors, cut,
+    tree_cut_rounds_done, qat_affine. Raises CheckpointError (one line) for a file that does not fit."""
+    ck = read_checkpoint(path)
+    where = str(path)
+    codes = ck.get("model.encoding.codes")
     if codes is not None and codes.numel() and model.encoding.learned_index:
         model.encoding.freeze()  # the checkpoint is past the freeze: same structure before loading
-        if codes.dim() == 2:  # written while frozen codes were held for all L x H entries (before format 2.2)
-            ck["model"]["encoding.codes"] = model.encoding.compact_codes(codes)
-    logits = ck["model"].get("encoding.logits")
-    if logits is not None and logits.dim() == 3 and model.encoding.learned_index:
-        # written while the soft index held logits for all L x H entries: keep the reachable ones', and their
-        # Adam moments (the optimizer state's tensors of that shape), in the compact layout held now
-        full_shape = logits.shape
-        ck["model"]["encoding.logits"] = model.encoding.compact_index(logits)
-        for state in ck["optimizer"]["state"].values():
-            for key, value in state.items():
-                if torch.is_tensor(value) and value.shape == full_shape:
-                    state[key] = model.encoding.compact_index(value)
-    model.load_state_dict(ck["model"])
-    opt.load_state_dict(ck["optimizer"])
-    torch.set_rng_state(ck["torch_rng"])
-    return ck
+    model.load_state_dict(_matching(ck.tensors, "model.", model.state_dict(), where))
+    opt.load_state_dict(_optimizer_state(ck.tensors, opt, where))
+    torch.set_rng_state(ck.tensors["torch_rng"])
+    h = ck.header
+    rng = None if h["numpy_rng"] is None else dict(h["numpy_rng"], leaf_weights=_numpy(ck.get("leaf_weights")))
+    qat = ck.get("qat_offset"), ck.get("qat_scale")
+    return {"step": h["step"], "elapsed": float(h["elapsed"]),
+            "history": [(int(s), float(v)) for s, v in ck.tensors["history"].tolist()], "numpy_rng": rng,
+            "leaf_errors": ck.get("leaf_errors"), "cut": None if ck.get("cut") is None else ck.get("cut").tolist(),
+            "tree_cut_rounds_done": h["tree_cut_rounds_done"],
+            "qat_affine": None if qat[0] is None else (qat[0].numpy(), qat[1].numpy())}
+
+
+def _numpy(t: torch.Tensor | None) -> np.ndarray | None:
+    return None if t is None else t.numpy()
+
+
+def _matching(tensors: dict, prefix: str, expected: dict, where: str) -> dict:
+    """The checkpoint's tensors under `prefix`, refused unless they are exactly `expected`'s names, shapes, dtypes."""
+    got = {k[len(prefix):]: v for k, v in tensors.items() if k.startswith(prefix)}
+    if set(got) != set(expected):
+        odd = sorted(set(got) ^ set(expected))[:3]
+        raise CheckpointError(f"{where}: the checkpoint does not hold this model's tensors (differs in {odd})")
+    for name, want in expected.items():
+        if got[name].shape != want.shape or got[name].dtype != want.dtype:
+            raise CheckpointError(f"{where}: tensor {name!r} is {tuple(got[name].shape)} {got[name].dtype}, this "
+                                  f"model's is {tuple(want.shape)} {want.dtype}")
+    return got
+
+
+def _optimizer_state(tensors: dict, opt: torch.optim.Optimizer, where: str) -> dict:
+    """Adam's state_dict: the structure and hyperparameters of `opt` (this run's own: nothing of the file's but
+    numbers), the moments and step counts of the file, each checked against its parameter."""
+    own = opt.state_dict()
+    params = [p for g in opt.param_groups for p in g["params"]]
+    state = {}
+    for i, p in enumerate(params):
+        entry = {k.split(".")[-1]: v for k, v in tensors.items() if k.startswith(f"optimizer.{i}.")}
+        if not entry:
+            continue
+        want = {"step": torch.zeros((), dtype=torch.float32), "exp_avg": p.detach().cpu(),
+                "exp_avg_sq": p.detach().cpu()}
+        state[i] = _matching({f"{k}": v for k, v in entry.items()}, "", want, where)
+    if any(int(k.split(".")[1]) >= len(params) for k in tensors if k.startswith("optimizer.")):
+        raise CheckpointError(f"{where}: optimizer state for a parameter this model does not have")
+    return {"state": state, "param_groups": own["param_groups"]}
 
 
 class EncodingPhases:
@@ -433,6 +456,8 @@ def _training_data(model, bvh, tracer, cfg, ck, device, plan, rng, events):
         cut = _TreeCutHook(tree_cut, model, events)
     leaf_errors = LeafErrors(bvh.n_leaves, cfg.leaf_floor) if cfg.leaf_sampling == "loss" or cut else None
     if leaf_errors is not None and ck.get("leaf_errors") is not None:
+        if ck["leaf_errors"].shape != leaf_errors.error.shape or ck["leaf_errors"].dtype != leaf_errors.error.dtype:
+            raise CheckpointError(f"the checkpoint's leaf errors do not fit this BVH ({bvh.n_leaves} leaves)")
         leaf_errors.error = ck["leaf_errors"].clone()
     batches = Batches(bvh, tracer, cfg, rng, prefetch=prefetch, resume=ck.get("numpy_rng"),
                       leaf_errors=leaf_errors if cfg.leaf_sampling == "loss" else None)

@@ -90,15 +90,25 @@ def test_early_stop_asks_only_after_ten_percent_every_period_and_when_ready():
     assert not EarlyStop(None, TrainConfig(), 0.0).reached(None, 0.9, 100.0, True)
 
 
+_EXTRA = {"settings": {}, "mesh": {"triangles": 1}}
+
+
+def _state(step: int) -> dict:
+    return {"model": {"w": torch.ones(2)}, "step": step, "torch_rng": torch.get_rng_state(), "history": [(1, 0.5)]}
+
+
 def test_checkpoints_are_due_by_steps_or_seconds_and_atomic(tmp_path):
+    from nbvh_core.checkpoint import read_checkpoint
+
     path = tmp_path / "ck"
     saved = []
-    ck = Checkpoints(path, TrainConfig(checkpoint_every=10, checkpoint_every_s=30.0), {"who": "test"}, 0.0)
+    ck = Checkpoints(path, TrainConfig(checkpoint_every=10, checkpoint_every_s=30.0), _EXTRA, 0.0)
     for step, now in ((5, 1.0), (10, 2.0), (11, 40.0), (12, 45.0)):
-        ck.maybe_save(step, now, lambda: saved.append(step) or {"step": step})
+        ck.maybe_save(step, now, lambda: saved.append(step) or _state(step))
     assert saved == [10, 11]  # step 10 by count, step 11 by time (30 s since the last)
-    data = torch.load(path, weights_only=False)
-    assert data["step"] == 11 and data["extra"] == {"who": "test"} and data["train_config"]["checkpoint_every"] == 10
+    data = read_checkpoint(path)
+    assert data.header["step"] == 11 and data.header["extra"] == _EXTRA
+    assert data.header["train_config"]["checkpoint_every"] == 10
     assert list(tmp_path.iterdir()) == [path]  # no temporary left
     Checkpoints(None, TrainConfig(checkpoint_every=1), None, 0.0).maybe_save(1, 1.0, lambda: {"x": 1})  # no path
 
@@ -216,44 +226,6 @@ def test_outcome_maps_every_way_a_run_ends():
     assert outcome(ValueError("bad mesh"))[:2] == (2, "input") and outcome(OSError("disk"))[0] == 2
     assert outcome(ZeroDivisionError("bug"))[:2] == (1, "crash")
     assert math.isclose(outcome(KeyError("name"))[0], 2)
-
-
-def test_a_checkpoint_with_logits_for_every_index_entry_resumes_compact(blob, tmp_path):
-    """Soft-phase checkpoints written while the logits (and their Adam moments) covered all L x H entries load into
-    the compact layout held now (the reachable entries' only), the same values."""
-    from nbvh_core.train import load_checkpoint
-
-    _, bvh, _, _ = blob
-    enc = dict(VQAD, n_min=4, n_max=8)  # level 0 is dense: 6^3 = 216 of its 256 entries reachable
-    model = _model(bvh, enc)
-    reach = model.encoding.reachable_entries()
-    assert reach[0] < model.encoding.cfg.index_size
-    opt = make_optimizer(model, TrainConfig(), kernels.plan(model))
-    for p in model.parameters():
-        p.grad = torch.randn_like(p)
-    opt.step()
-    starts = model.encoding.code_starts()
-
-    def full(compact):  # the old layout: every entry, the unreachable ones holding anything
-        out = torch.randn(len(reach), model.encoding.cfg.index_size, compact.shape[1])
-        for level, n in enumerate(reach):
-            out[level, :n] = compact[starts[level]:starts[level + 1]]
-        return out
-
-    state, opt_state = model.state_dict(), opt.state_dict()
-    logits_id = opt_state["param_groups"][1]["params"][0]
-    moments = {k: v.clone() for k, v in opt_state["state"][logits_id].items() if k.startswith("exp_avg")}
-    state["encoding.logits"] = full(state["encoding.logits"])
-    for k in moments:
-        opt_state["state"][logits_id][k] = full(moments[k])
-    path = tmp_path / "old.ckpt"
-    torch.save({"model": state, "optimizer": opt_state, "torch_rng": torch.get_rng_state()}, path)
-    fresh = _model(bvh, enc)
-    fresh_opt = make_optimizer(fresh, TrainConfig(), kernels.plan(fresh))
-    load_checkpoint(path, fresh, fresh_opt, torch.device("cpu"))
-    assert torch.equal(fresh.encoding.logits, model.encoding.logits)
-    got = fresh_opt.state[fresh.encoding.logits]
-    assert moments and all(torch.equal(got[k], v) for k, v in moments.items())
 
 
 def test_the_freeze_point_follows_the_settings_and_bad_fractions_are_refused(blob):
