@@ -138,7 +138,7 @@ def load_result(obj, result: dict, scene) -> dict:
     files = result["files"]
     neural = load_image(files["preview"], f"{obj.name} (neural)")
     reference = load_image(files["reference"], f"{obj.name} (mesh)")
-    points = np.load(files["points"])
+    points = np.load(files["points"], allow_pickle=False)
     proxy = make_proxy(obj, points, scene)
     link_model(obj, result.get("path") or files.get("model"))
     return {"image": neural.name, "reference_image": reference.name, "proxy": proxy.name,

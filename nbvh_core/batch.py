@@ -122,6 +122,10 @@ def _asset_name(path: Path, root: Path, keep_suffix: bool = False) -> str:
     return text.replace(os.sep, "__")
 
 
+#: A library list file names one asset per line: 16 MB is ~100,000 paths.
+MAX_LIST_BYTES = 16 << 20
+
+
 def discover(library: Path, work_dir: Path, blender: str | None = None) -> list[Asset]:
     """The assets of `library` (a folder or a list file, see the module docstring), in a stable order; .blend files
     are exported into `work_dir/blend/`. Raises ValueError when LIBRARY does not exist or lists nothing."""
@@ -132,6 +136,8 @@ def discover(library: Path, work_dir: Path, blender: str | None = None) -> list[
         root, files = library, sorted(p for p in library.rglob("*") if p.is_file() and not p.name.startswith("."))
         files = [p for p in files if _is_mesh_file(p) or p.suffix.lower() == BLEND_EXTENSION]
     elif library.is_file():
+        if library.stat().st_size > MAX_LIST_BYTES:
+            raise ValueError(f"{library}: a library list is at most {MAX_LIST_BYTES} bytes (one path per line)")
         root = library.parent
         lines = [ln.strip() for ln in library.read_text().splitlines()]
         files = [(root / ln) if not Path(ln).is_absolute() else Path(ln) for ln in lines if ln and not ln.startswith("#")]
@@ -162,7 +168,7 @@ def load_asset(path: str, name: str):
 
     if path.lower().endswith(ARRAY_EXTENSION):
         try:
-            with np.load(path) as arrays:
+            with np.load(path, allow_pickle=False) as arrays:
                 return mesh_from_arrays(arrays["vertices"], arrays["faces"], name=name)
         except (OSError, KeyError, ValueError) as exc:
             if isinstance(exc, MeshError):
@@ -309,8 +315,11 @@ def _cached(out: Path, key: str) -> dict | None:
     folder = out / "assets" / key
     try:
         result = json.loads((folder / "result.json").read_text())
-        model = folder / result["files"]["model"]
-        return result if model.stat().st_size == result["model_bytes"] else None
+        name = result["files"]["model"]
+        if not isinstance(name, str) or Path(name).name != name or not name.endswith(".nbvh"):
+            return None  # a result names its model inside its own folder; anything else is not ours
+        model = folder / name
+        return result if model.is_file() and model.stat().st_size == result["model_bytes"] else None
     except (OSError, ValueError, KeyError, TypeError):
         return None
 

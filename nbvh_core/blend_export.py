@@ -41,7 +41,10 @@ def export_blend(blend: Path, out_dir: Path, blender: str | None = None, timeout
     if blender is None:
         raise ValueError(f"{blend}: a .blend needs a `blender` binary (none on PATH; set NBVH_BLENDER)")
     out_dir.mkdir(parents=True, exist_ok=True)
-    cmd = [blender, "-b", "--factory-startup", str(blend), "--python", str(export_script()), "--", str(out_dir)]
+    # --disable-autoexec: a .blend's own scripts (registered text blocks, drivers) never run, whatever the user's
+    # preferences say; the file is read as data and only our export script runs.
+    cmd = [blender, "-b", "--factory-startup", "--disable-autoexec", str(blend), "--python", str(export_script()),
+           "--", str(out_dir)]
     try:
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s)
     except subprocess.TimeoutExpired:

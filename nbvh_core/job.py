@@ -89,6 +89,41 @@ class _LoadedResult:
         return dict(self._summary)
 
 
+#: The request's fields and their JSON types (the request file is data: anything else is refused in one line).
+REQUEST_FIELDS = {"kind": str, "name": str, "mesh": str, "out_dir": str, "settings": dict, "camera": dict,
+                  "proxy_points": int, "resume": str, "force": bool, "model": str, "scene": dict, "library": str,
+                  "measure_only": bool, "address": str}
+MAX_REQUEST_BYTES = 1 << 20
+
+
+def check_request(request, where: str = "request") -> dict:
+    """Refuse (ValueError, one line) a request that is not an object of REQUEST_FIELDS with their types, whose name
+    is not a plain object name, or whose settings are not valid settings (`settings.settings_from_dict`)."""
+    from .settings import preset, settings_from_dict
+
+    if not isinstance(request, dict):
+        raise ValueError(f"{where}: a job request must be a JSON object")
+    for key, value in request.items():
+        want = REQUEST_FIELDS.get(key)
+        if want is None:
+            raise ValueError(f"{where}: unknown request field {str(key)[:40]!r}")
+        if value is not None and (not isinstance(value, want) or (want is int and isinstance(value, bool))):
+            raise ValueError(f"{where}: request field {key!r} must be a {want.__name__}")
+    missing = [k for k in (("name", "library", "out_dir") if request.get("kind") == "batch"
+                           else ("name", "mesh", "out_dir")) if not request.get(k)]
+    if missing or request.get("kind") not in (None, "batch"):
+        raise ValueError(f"{where}: the request needs {', '.join(missing) or 'a known kind'}")
+    name = request["name"]
+    if len(name) > 255 or any(c in name for c in "/\\\0") or name in (".", ".."):
+        raise ValueError(f"{where}: {name[:40]!r} is not a plain object name")
+    if not 0 <= int(request.get("proxy_points") or 0) <= 10_000_000:
+        raise ValueError(f"{where}: proxy_points must be in [0, 10000000]")
+    spec = dict(request.get("settings") or {})
+    base = preset(str(spec.pop("preset", "default")))
+    settings_from_dict({**base.to_dict(), **spec}, f"{where}: settings")
+    return request
+
+
 def run_batch_job(request: dict, events, should_cancel) -> dict:
     """A library request ({"kind": "batch", "name", "library": folder or list file, "out_dir", "settings",
     "measure_only": bool, "address": optional}): `batch.run_batch`, whose events (progress with the fraction of
@@ -115,7 +150,7 @@ def run_job(request: dict, events, should_cancel) -> dict:
     name = request["name"]
     out_dir = Path(request["out_dir"])
     out_dir.mkdir(parents=True, exist_ok=True)
-    with np.load(request["mesh"]) as arrays:
+    with np.load(request["mesh"], allow_pickle=False) as arrays:  # data only: object arrays are refused
         mesh = mesh_from_arrays(arrays["vertices"], arrays["faces"], name=name)
     for msg in mesh.repairs:
         events({"event": "warning", "message": msg})
@@ -219,7 +254,7 @@ def _scene_share(scene: dict, settings, events):
 
     meshes = []
     for path in scene["meshes"]:
-        with np.load(path) as arrays:
+        with np.load(path, allow_pickle=False) as arrays:
             meshes.append(mesh_from_arrays(arrays["vertices"], arrays["faces"]))
     names = scene.get("names") or [str(k) for k in range(len(meshes))]
     plan = plan_scene(meshes, float(scene["budget_kb"]) * 1024, settings, scene.get("weights"), names)
@@ -246,8 +281,10 @@ def main(argv: list[str]) -> int:
     events = json_lines(sys.stdout)
     should_cancel = install_cancel_handlers()
     try:
-        request = json.loads(Path(argv[0]).read_text())
-        run_job(request, events, should_cancel)
+        path = Path(argv[0])
+        if path.stat().st_size > MAX_REQUEST_BYTES:
+            raise ValueError(f"{path}: a job request is at most {MAX_REQUEST_BYTES} bytes")
+        run_job(check_request(json.loads(path.read_text()), str(path)), events, should_cancel)
         return 0
     except (Exception, KeyboardInterrupt) as exc:
         end = outcome(exc)

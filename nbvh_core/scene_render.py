@@ -173,7 +173,7 @@ def load_shape(path: str, kind: str):
     from .mesh import mesh_from_arrays
 
     try:
-        with np.load(path) as data:
+        with np.load(path, allow_pickle=False) as data:
             vertices, faces = data["vertices"], data["faces"]
     except (KeyError, ValueError, EOFError) as exc:
         raise ValueError(f"{path}: not a mesh archive (vertices, faces): {exc}") from None
