@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
 import socket
 import time
@@ -164,17 +165,41 @@ def discover(library: Path, work_dir: Path, blender: str | None = None) -> list[
 
 def load_asset(path: str, name: str):
     """The asset's mesh (a mesh file, or an .npz with `vertices` and `faces`). Raises ValueError (MeshError)."""
-    from .mesh import MeshError, load_mesh, mesh_from_arrays
+    from .mesh import load_mesh, mesh_from_arrays
 
     if path.lower().endswith(ARRAY_EXTENSION):
-        try:
-            with np.load(path, allow_pickle=False) as arrays:
-                return mesh_from_arrays(arrays["vertices"], arrays["faces"], name=name)
-        except (OSError, KeyError, ValueError) as exc:
-            if isinstance(exc, MeshError):
-                raise
-            raise MeshError(f"{path}: not a mesh array file ({type(exc).__name__}: {exc})") from None
+        arrays = read_mesh_arrays(path)
+        return mesh_from_arrays(arrays["vertices"], arrays["faces"], name=name)
     return load_mesh(path)
+
+
+def read_mesh_arrays(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """`vertices` and `faces` of a mesh .npz as data: each member's .npy header is read first and refused unless it
+    is a numeric array whose declared size fits the member's own bytes (no pickles, nothing allocated beyond the
+    file). Raises MeshError (one line)."""
+    import zipfile
+
+    from .mesh import MeshError
+
+    out = {}
+    try:
+        with zipfile.ZipFile(path) as z:
+            for key in ("vertices", "faces"):
+                info = z.getinfo(f"{key}.npy")
+                with z.open(info) as f:
+                    version = np.lib.format.read_magic(f)
+                    shape, fortran, dtype = np.lib.format._read_array_header(f, version)
+                    if dtype.hasobject or dtype.kind not in "iuf":
+                        raise MeshError(f"{path}: {key} must be a numeric array, not {dtype}")
+                    if math.prod(shape) * dtype.itemsize > info.file_size:
+                        raise MeshError(f"{path}: {key} declares {shape} but holds {info.file_size} bytes")
+                with z.open(info) as f:
+                    out[key] = np.lib.format.read_array(f, allow_pickle=False)
+    except MeshError:
+        raise
+    except Exception as exc:  # zipfile, numpy's header parser and reader raise many kinds for a damaged file
+        raise MeshError(f"{path}: not a mesh array file ({type(exc).__name__}: {str(exc)[:100]})") from None
+    return out
 
 
 # -------------------------------------------------------------------------------------------- the two tasks

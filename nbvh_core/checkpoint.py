@@ -113,7 +113,7 @@ def read_checkpoint(path: str | os.PathLike) -> Checkpoint:
     if size > MAX_BYTES:
         raise CheckpointError(f"{path}: {size} bytes is larger than any checkpoint ({MAX_BYTES} at most)")
     with open(path, "rb") as f:
-        data = f.read(MAX_BYTES + 1)
+        data = f.read(size + 1)  # the size just read (a file that grew since is refused by its table)
     return decode_checkpoint(data, str(path))
 
 
@@ -169,7 +169,7 @@ def _check_entry(name, entry, payload: int, where: str) -> tuple[int, int]:
     if not isinstance(entry, dict) or set(entry) != {"dtype", "shape", "data_offsets"}:
         raise CheckpointError(f"{where}: damaged tensor table entry {name!r}")
     dtype, shape, offsets = entry["dtype"], entry["shape"], entry["data_offsets"]
-    if dtype not in _DTYPES:
+    if not isinstance(dtype, str) or dtype not in _DTYPES:
         raise CheckpointError(f"{where}: tensor {name!r} has an unsupported dtype {str(dtype)[:20]!r}")
     if (not isinstance(shape, list) or len(shape) > 4
             or not all(isinstance(n, int) and not isinstance(n, bool) and 0 <= n <= payload for n in shape)):

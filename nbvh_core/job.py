@@ -142,6 +142,7 @@ def run_job(request: dict, events, should_cancel) -> dict:
     """Run one request (see module docstring); returns the `result` event it emits."""
     if request.get("kind") == "batch":
         return run_batch_job(request, events, should_cancel)
+    from .batch import read_mesh_arrays
     from .mesh import mesh_from_arrays
     from .outputs import OutputLock, OutputSet, check_outputs
     from .pipeline import resume_settings
@@ -150,8 +151,8 @@ def run_job(request: dict, events, should_cancel) -> dict:
     name = request["name"]
     out_dir = Path(request["out_dir"])
     out_dir.mkdir(parents=True, exist_ok=True)
-    with np.load(request["mesh"], allow_pickle=False) as arrays:  # data only: object arrays are refused
-        mesh = mesh_from_arrays(arrays["vertices"], arrays["faces"], name=name)
+    arrays = read_mesh_arrays(request["mesh"])  # data only: pickled or oversized arrays are refused
+    mesh = mesh_from_arrays(arrays["vertices"], arrays["faces"], name=name)
     for msg in mesh.repairs:
         events({"event": "warning", "message": msg})
     spec = dict(request.get("settings") or {})
@@ -249,13 +250,14 @@ def _scene_share(scene: dict, settings, events):
     compressing) keeps the smallest size: its verdict then ends its job before training."""
     import dataclasses
 
+    from .batch import read_mesh_arrays
     from .mesh import mesh_from_arrays
     from .sizing import plan_scene
 
     meshes = []
     for path in scene["meshes"]:
-        with np.load(path, allow_pickle=False) as arrays:
-            meshes.append(mesh_from_arrays(arrays["vertices"], arrays["faces"]))
+        arrays = read_mesh_arrays(path)
+        meshes.append(mesh_from_arrays(arrays["vertices"], arrays["faces"]))
     names = scene.get("names") or [str(k) for k in range(len(meshes))]
     plan = plan_scene(meshes, float(scene["budget_kb"]) * 1024, settings, scene.get("weights"), names)
     i = int(scene["index"])

@@ -26,6 +26,11 @@ MAX_MESH_BYTES = 8 << 30
 MAX_GZIP_RATIO = 200
 
 
+#: The largest |coordinate| accepted: squares of extents and areas stay finite in float64 far beyond it, and no
+#: real asset comes near it (1e15 m is 7,000 astronomical units).
+MAX_COORDINATE = 1e15
+
+
 class MeshError(ValueError):
     """A mesh that cannot be used: the message says what is wrong and with which input."""
 
@@ -131,6 +136,10 @@ def mesh_from_arrays(vertices: np.ndarray, faces: np.ndarray, name: str = "mesh"
         first = int(np.flatnonzero(bad)[0])
         raise MeshError(f"{name}: {int(bad.sum())} of {len(v)} vertices have NaN or infinite coordinates "
                         f"(first: vertex {first} = {v[first].tolist()})")
+    big = float(np.abs(v).max())
+    if big > MAX_COORDINATE:
+        raise MeshError(f"{name}: coordinates reach {big:.3g}; beyond +-{MAX_COORDINATE:g} areas and extents overflow "
+                        "(rescale the mesh)")
     f = f.astype(np.int64)
     lo, hi = int(f.min()), int(f.max())
     if lo < 0 or hi >= len(v):

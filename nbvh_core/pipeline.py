@@ -13,9 +13,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, NamedTuple
 
+import numpy as np
 import torch
 
-from .bvh import build_bvh
+from .bvh import NODE_DTYPE, build_bvh
 from .events import EventSink, null_sink
 from .exact import ExactTracer
 from .fileformat import component_bytes, encode_nbvh, write_atomic
@@ -88,10 +89,21 @@ def resume_settings(checkpoint_path: str | Path, mesh: Mesh) -> Settings:
     from .checkpoint import read_checkpoint
     from .settings import settings_from_dict
 
-    extra = read_checkpoint(checkpoint_path).header["extra"]
+    ck = read_checkpoint(checkpoint_path)
+    extra = ck.header["extra"]
     if not isinstance(extra.get("settings"), dict) or not isinstance(extra.get("mesh"), dict):
         raise ValueError(f"{checkpoint_path}: the checkpoint names no settings or mesh (not a compress run's)")
     settings = settings_from_dict(extra["settings"], f"{checkpoint_path}: checkpoint settings")
+    # The model the settings describe must be the one whose tensors the file holds: sized on the meta device
+    # (nothing allocated), so settings crafted to ask for a huge model are refused before it is built.
+    with torch.device("meta"):
+        meta_model = NeuralBVH(np.zeros(settings.nodes, NODE_DTYPE), settings.model_config())
+    # HashVQAD's index logits go at the freeze: the table and the network are in every checkpoint
+    wanted = sum(p.numel() * p.element_size() for n, p in meta_model.named_parameters() if not n.endswith("logits"))
+    held = sum(t.numel() * t.element_size() for k, t in ck.tensors.items() if k.startswith("model."))
+    if wanted > held:
+        raise ValueError(f"{checkpoint_path}: the checkpoint's settings describe a {wanted} B model but it holds "
+                         f"{held} B of model tensors")
     if extra.get("mesh") != mesh_identity(mesh):
         triangles = extra["mesh"].get("triangles")
         raise ValueError(f"{checkpoint_path}: the checkpoint was made for another mesh "
