@@ -64,12 +64,22 @@ def _worker() -> render_client.RenderWorker:
 
 # ---------------------------------------------------------------------------------------------- scene
 def model_path(obj) -> str | None:
-    """The object's .nbvh model as an absolute path, or None when it has none (or the file is missing)."""
+    """The object's .nbvh model as an absolute path, or None when it has none or it is not one (`model_problem`)."""
     rel = getattr(obj, "nbvh_model", "") or ""
-    if not rel:
-        return None
+    return None if not rel or model_problem(rel) else str(Path(bpy.path.abspath(rel)).resolve())
+
+
+def model_problem(rel: str) -> str | None:
+    """Why a stored model path is not drawn from, or None. A .blend shared between studios carries these paths:
+    only a regular file named .nbvh is handed to the worker, whose reader validates it as data (a pipe, a device
+    or another kind of file never reaches it). Paths outside the project are allowed: models may live in a library
+    folder, and reading one cannot run code."""
     path = Path(bpy.path.abspath(rel))
-    return str(path.resolve()) if path.is_file() else None
+    if path.suffix.lower() != ".nbvh":
+        return "Not an .nbvh file: the NBVH engine draws the mesh"
+    if not path.is_file():
+        return "The file is missing: the NBVH engine draws the mesh"
+    return None
 
 
 def object_color(obj) -> list[float]:
@@ -380,8 +390,9 @@ class OBJECT_PT_nbvh_model(bpy.types.Panel):
     def draw(self, context):
         obj = context.object
         self.layout.prop(obj, "nbvh_model", text="Model")
-        if obj.nbvh_model and model_path(obj) is None:
-            self.layout.label(text="The file is missing: the NBVH engine draws the mesh", icon="ERROR")
+        problem = model_problem(obj.nbvh_model) if obj.nbvh_model else None
+        if problem:
+            self.layout.label(text=problem, icon="ERROR")
 
 
 def _model_property():

@@ -9,7 +9,7 @@ model its settings describe, `train.load_checkpoint` into it); a mesh case throu
 format `load_mesh` reads, and the job's .npz arrays). Outcomes: read (a usable result), refused (a ValueError,
 one line), other (any other exception: a reader bug), crash (the process died of a signal), hang (past the time
 cap), executed (a payload created the canary file), over_memory (peak resident memory grew by more than
-64 MB + 20 x the input's size). The run passes when the last five are all 0.
+128 MB + 20 x the input's size: a forked reader pages in ~60 MB of shared code on its first read). The run passes when the last five are all 0.
 """
 from __future__ import annotations
 
@@ -259,13 +259,21 @@ def read_mesh_case(path: Path, mesh) -> str:
 
 
 # --------------------------------------------------------------------------------------------------- the runner
+def _status_kb(field: str) -> int:
+    for line in open("/proc/self/status"):
+        if line.startswith(field + ":"):
+            return int(line.split()[1])
+    return 0
+
+
 def run_case(reader, path: Path, data: bytes, mesh, canary: Path) -> tuple[str, int, str]:
-    """(outcome, peak KB the case added, detail) of one case, read in a forked child."""
-    base_kb = int(open("/proc/self/statm").read().split()[1]) * os.sysconf("SC_PAGE_SIZE") // 1024  # resident now
+    """(outcome, peak KB the case added to its process, detail) of one case, read in a forked child. The growth is
+    the child's peak resident size (its own wait4 rusage) less its resident size when it started."""
     r, w = os.pipe()
     pid = os.fork()
     if pid == 0:  # the child: read, report one line, exit without cleanup
         os.close(r)
+        os.write(w, (json.dumps({"start_kb": _status_kb("VmRSS")}) + "\n").encode())
         soft, hard = resource.getrlimit(resource.RLIMIT_AS)
         vm = int(open("/proc/self/statm").read().split()[0]) * os.sysconf("SC_PAGE_SIZE")
         resource.setrlimit(resource.RLIMIT_AS, (vm + MEMORY_CAP, hard))
@@ -286,15 +294,17 @@ def run_case(reader, path: Path, data: bytes, mesh, canary: Path) -> tuple[str, 
     while chunk := os.read(r, 65536):
         reply += chunk
     os.close(r)
-    grown = max(0, usage.ru_maxrss - base_kb)
+    lines = reply.decode().splitlines()
+    start_kb = json.loads(lines[0])["start_kb"] if lines else 0
+    grown = max(0, usage.ru_maxrss - start_kb)
     if os.WIFSIGNALED(status):
         sig = os.WTERMSIG(status)
         return ("hang" if sig == signal.SIGALRM else "crash"), grown, f"signal {sig}"
-    result = json.loads(reply or b'{"out": "crash", "detail": "no reply"}')
+    result = json.loads(lines[1]) if len(lines) > 1 else {"out": "crash", "detail": "no reply"}
     if canary.exists():
         canary.unlink()
         return "executed", grown, result["detail"]
-    if grown > 64 * 1024 + 20 * len(data) // 1024:
+    if grown > 128 * 1024 + 20 * len(data) // 1024:
         return "over_memory", grown, result["detail"]
     return result["out"], grown, result["detail"]
 

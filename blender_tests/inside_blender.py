@@ -236,6 +236,52 @@ def test_cancel_stops_running_job_and_leaves_nothing():
     assert bpy.data.objects.get("Blob_nbvh_proxy") is None
 
 
+def test_resume_refuses_a_crafted_checkpoint_and_runs_nothing():
+    """A checkpoint dropped into a shared project folder is data: the job refuses it in one line (the CLI's
+    message) and the pickle's payload never runs."""
+    import pickle
+    import zipfile
+
+    out = Path(ARGS.work) / "crafted_out"
+    out.mkdir(parents=True, exist_ok=True)
+    canary = Path(ARGS.work) / "pwned"
+
+    class Payload:
+        def __reduce__(self):
+            return os.system, (f"touch {canary}",)
+
+    checkpoint = out / ".Blob.nbvh.checkpoint"
+    with zipfile.ZipFile(checkpoint, "w") as z:  # the layout torch.save writes, with the attacker's pickle inside
+        z.writestr("archive/data.pkl", pickle.dumps({"model": Payload()}, protocol=2))
+    if bpy.data.objects.get("Blob") is None:
+        setup_scene()
+    props = bpy.context.scene.nbvh_props
+    props.output_dir = str(out)
+    props.preset = "preview"
+    select("Blob")
+    bpy.context.view_layer.objects.active = bpy.data.objects["Blob"]
+    assert ADDON["engine"].checkpoint_path(str(out), "Blob") is not None  # the panel offers "Resume training"
+    assert bpy.ops.nbvh.compress(resume=True) == {"FINISHED"}
+    run_operator_until_done()
+    assert props.phase != "done" and "pickled checkpoint" in props.last_error, (props.phase, props.last_error)
+    assert "without --resume" in props.last_error and "\n" not in props.last_error
+    assert not canary.exists(), "the crafted checkpoint's payload ran"
+    assert not (out / "Blob.nbvh").exists() and checkpoint.exists()  # nothing written, the user's file kept
+
+
+def test_stored_model_paths_only_name_regular_nbvh_files():
+    render_engine = importlib.import_module(ADDON["module"].__name__ + ".render_engine")
+    work = Path(ARGS.work)
+    fifo = work / "pipe.nbvh"
+    if not fifo.exists():
+        os.mkfifo(fifo)
+    obj = bpy.data.objects.get("Blob") or setup_scene()
+    for path, problem in ((fifo, "missing"), (Path("/etc/hostname"), "Not an .nbvh"), (work / "none.nbvh", "missing")):
+        obj.nbvh_model = str(path)
+        assert render_engine.model_path(obj) is None and problem in render_engine.model_problem(obj.nbvh_model)
+    obj.nbvh_model = ""
+
+
 def test_bad_selections_refused_with_names():
     engine = ADDON["engine"]
     req = engine.Request(preset="tiny", out_dir=str(Path(ARGS.work) / "bad_out"))
