@@ -317,3 +317,18 @@ def test_a_blend_file_s_own_scripts_never_run_on_export(tmp_path):
     canary.unlink()
     exported = export_blend(blend, tmp_path / "out")
     assert [name for name, _ in exported] == ["T"] and not canary.exists()
+
+
+# ------------------------------------------------------------------------------------------------ the fuzz harness
+@pytest.mark.parametrize("kind, cases", [("checkpoint", 14), ("mesh", 12)])
+def test_the_fuzz_harness_runs_and_finds_no_failure_in_a_short_run(tmp_path, kind, cases):
+    """bench/fuzz_files.py at a tiny budget (the long runs' results are in bench/results/fuzz_files.csv)."""
+    import csv
+
+    out = tmp_path / "fuzz.csv"
+    r = subprocess.run([sys.executable, str(ROOT / "bench" / "fuzz_files.py"), "--kind", kind, "--cases", str(cases),
+                        "--out", str(out)], capture_output=True, text=True, timeout=600, cwd=str(ROOT))
+    assert r.returncode == 0, r.stderr[-2000:]
+    row = next(csv.DictReader(out.open()))
+    assert int(row["read"]) + int(row["refused"]) == cases, row
+    assert all(row[k] == "0" for k in ("other", "crash", "hang", "executed", "over_memory")), row
