@@ -67,3 +67,12 @@ def test_cancel_stops_the_running_step_at_once():
     t0 = time.monotonic()
     inst.cancel()
     assert inst.state == "cancelled" and time.monotonic() - t0 < 5 and inst._proc.poll() is not None
+
+
+def test_the_add_on_installs_exactly_the_pins_the_project_declares():
+    """requirements.txt (what the add-on's installer pins) lists pyproject.toml's dependencies, no more, no less."""
+    import tomllib
+
+    declared = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["dependencies"]
+    listed = [ln.strip() for ln in REQ.read_text().splitlines() if ln.strip() and not ln.startswith("#")]
+    assert sorted(listed) == sorted(declared)
