@@ -188,8 +188,6 @@ def decode_compact(data: bytes) -> CompactMesh:
 def compact_mesh(mesh: Mesh, tree=None) -> tuple[int, Mesh]:
     """(exact bytes of `mesh` in the compact layout, the decoded triangles as a Mesh in the same normalised
     coordinates, for measuring the image error of what the layout holds)."""
-    from .sizing import mesh_like
-
     data = encode_compact(mesh, tree)
     dec = decode_compact(data)
-    return len(data), mesh_like(mesh, dec.vertices, dec.faces)
+    return len(data), Mesh(vertices=dec.vertices, faces=dec.faces, transform=mesh.transform, name=mesh.name)

@@ -393,11 +393,29 @@ def decimate(mesh: Mesh, triangles: int) -> Mesh:
     return mesh_like(mesh, v, f)
 
 
+def _compact_entry(dec: Mesh, tracer, transform, views: int, resolution: int, measure: bool) -> dict:
+    """The decimation as a compact ray-traceable mesh (`compact_mesh`): its exact bytes, and with `measure` the
+    image MSE of what the layout holds (the decoded triangles, same metric)."""
+    from .compact_mesh import compact_mesh
+    from .exact import ExactTracer
+    from .metrics import evaluate_renderer
+    from .render import render_reference
+
+    nbytes, decoded = compact_mesh(dec)
+    out = {"compact_bytes": nbytes}
+    if measure:
+        dec_tracer = ExactTracer(decoded)
+        q, _ = evaluate_renderer(lambda cam, w, h: render_reference(dec_tracer, cam, w, h), tracer, transform,
+                                 views, resolution)
+        out["compact_mse"] = q.mse
+    return out
+
+
 def alternatives(mesh: Mesh, target_mse: float | None, views: int = 8, resolution: int = 96,
                  tracer=None) -> dict:
     """What a user could ship instead, measured: Draco (11-bit, storage bytes) of the mesh, and the smallest
     quadric decimation (fast-simplification) whose image MSE (same metric, Embree) meets `target_mse`, with its
-    resident and Draco bytes. Missing optional packages give a note instead of numbers. `tracer`: the mesh's
+    resident, compact-mesh (`compact_mesh`, and the decoded compact mesh's MSE) and Draco bytes. Missing optional packages give a note instead of numbers. `tracer`: the mesh's
     ExactTracer when the caller has one (else one is built)."""
     out: dict = {}
     try:
@@ -430,6 +448,7 @@ def alternatives(mesh: Mesh, target_mse: float | None, views: int = 8, resolutio
         q, _ = evaluate_renderer(lambda cam, w, h: render_reference(dec_tracer, cam, w, h), tracer, mesh.transform,
                                  views, resolution)
         entry = {"triangles": dec.n_triangles, "mse": q.mse, "resident_bytes": mesh_resident_bytes(dec)["total"]}
+        entry.update(_compact_entry(dec, tracer, mesh.transform, views, resolution, q.mse <= target_mse))
         if DracoPy is not None:
             entry["draco11_bytes"] = len(DracoPy.encode(dec.vertices, dec.faces, quantization_bits=11,
                                                         compression_level=7))
@@ -445,6 +464,7 @@ def alternatives(mesh: Mesh, target_mse: float | None, views: int = 8, resolutio
 @dataclass
 class Assessment:
     """model_bytes: the .nbvh size (exact payload + typical header); resident: `mesh_resident_bytes(mesh)`;
+    compact_bytes: the mesh in the compact ray-traceable layout;
     alternatives: `alternatives(...)` when measured; recommendation: what to use ('neural', 'mesh', 'decimate')."""
 
     model_bytes: int
@@ -453,6 +473,8 @@ class Assessment:
     message: str
     alternatives: dict = field(default_factory=dict)
     recommendation: str = "neural"
+    #: The whole mesh as a compact ray-traceable mesh (`compact_mesh.encode_compact`), exact bytes.
+    compact_bytes: int | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -462,9 +484,13 @@ def assess(mesh: Mesh, settings, measure_alternatives: bool = False, tracer=None
     """Compare the model `settings` (already resolved) would write with the mesh's resident
     bytes and its Draco size, and, with `measure_alternatives` and a target MSE, with a decimation that meets it.
     worth_compressing is False when either is not larger than the model."""
+    from .compact_mesh import encode_compact
+
     model = estimate_file_bytes(settings)
-    resident_bytes = mesh_resident_bytes(mesh)
+    tree = build_full_tree(mesh)
+    resident_bytes = mesh_resident_bytes(mesh, tree)
     resident = resident_bytes["total"]
+    compact = len(encode_compact(mesh, tree))
     # The Draco size always (cheap: shows which tool wins for storage alone); decimations only with a target.
     alt = alternatives(mesh, settings.target_mse if measure_alternatives else None, tracer=tracer)
     dec = alt.get("decimation")
@@ -480,12 +506,14 @@ def assess(mesh: Mesh, settings, measure_alternatives: bool = False, tracer=None
                f"the full mesh: {resident:,} B){draco}")
     else:
         rec = "neural"
-        msg = f"model ~{model:,} B vs the mesh as a ray tracer holds it {resident:,} B ({resident / model:.1f}x smaller)"
+        msg = (f"model ~{model:,} B vs the mesh as a ray tracer holds it {resident:,} B ({resident / model:.1f}x smaller;"
+               f" as a compact mesh {compact:,} B)")
         if dec is not None:
-            msg += f"; the smallest decimation meeting the target holds {dec['resident_bytes']:,} B"
+            msg += (f"; the smallest decimation meeting the target holds {dec['resident_bytes']:,} B "
+                    f"({dec['compact_bytes']:,} B as a compact mesh: {dec['compact_bytes'] / model:.2f}x the model)")
         msg += draco
     return Assessment(model_bytes=model, resident=resident_bytes, worth_compressing=rec == "neural", message=msg,
-                      alternatives=alt, recommendation=rec)
+                      alternatives=alt, recommendation=rec, compact_bytes=compact)
 
 
 # ------------------------------------------------------------------------------------------------------ scenes

@@ -1,0 +1,83 @@
+"""Neural model vs the equal-MSE decimation held as a compact ray-traceable mesh (`nbvh_core/compact_mesh.py`):
+for each model row of bench/results/pays.csv (a preset trained at its own budget, its image MSE, and the quadric
+decimation found to meet that MSE), the decimation is rebuilt (deterministic), encoded compactly, decoded, and scored
+with the same metric (16 views, 128 px, Embree reference).
+
+    .venv/bin/python bench/bench_compact.py [--storage "t8/w8/n8 n_max=auto:64"]   # -> bench/results/compact.csv
+
+Columns: the model's file bytes and MSE (from pays.csv), the decimation's triangles, plain resident bytes (~44 B per
+triangle), compact bytes (exact) and bytes per triangle, the decoded compact mesh's MSE, and the ratios
+plain / model file and compact / model file (above 1: the model is smaller).
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "bench" / "results"
+
+
+def _stamp() -> dict:
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True)
+    return {"commit": commit.stdout.strip(), "machine": f"{platform.node()} {platform.machine()} cpus={os.cpu_count()}",
+            "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]])}
+
+
+def compact_row(pays: dict) -> dict:
+    """One pays.csv row -> its compact-mesh comparison."""
+    sys.path[:0] = [str(ROOT), str(ROOT / "bench")]
+    from bench_meshes import bench_mesh
+    from nbvh_core.compact_mesh import compact_mesh
+    from nbvh_core.exact import ExactTracer
+    from nbvh_core.metrics import evaluate_renderer
+    from nbvh_core.render import render_reference
+    from nbvh_core.sizing import decimate, mesh_resident_bytes
+
+    mesh = bench_mesh(pays["mesh"])
+    t0 = time.perf_counter()
+    dec = decimate(mesh, int(pays["equal_mse_decimation_triangles"]))
+    nbytes, decoded = compact_mesh(dec)
+    tracer = ExactTracer(decoded)
+    q, _ = evaluate_renderer(lambda cam, w, h: render_reference(tracer, cam, w, h), ExactTracer(mesh),
+                             mesh.transform, 16, 128)
+    file_bytes = int(pays["file_bytes"])
+    plain = mesh_resident_bytes(dec)["total"]
+    return {"mesh": pays["mesh"], "triangles": mesh.n_triangles, "preset": pays["preset"], "storage": pays["storage"],
+            "model_file_bytes": file_bytes, "model_mse": float(pays["mse"]), "decimation_triangles": dec.n_triangles,
+            "plain_bytes": plain, "compact_bytes": nbytes, "compact_bytes_per_triangle": round(nbytes / dec.n_triangles, 2),
+            "compact_mse": round(q.mse, 6), "ratio_plain_to_model": round(plain / file_bytes, 2),
+            "ratio_compact_to_model": round(nbytes / file_bytes, 2),
+            "draco11_decimation_bytes": pays.get("equal_mse_decimation_draco11_bytes"),
+            "seconds": round(time.perf_counter() - t0, 1)}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--storage", default="t8/w8/n8 n_max=auto:64", help="the pays.csv rows to compare (storage column)")
+    ap.add_argument("--out", default=str(RESULTS / "compact.csv"))
+    args = ap.parse_args()
+    rows = [r for r in csv.DictReader(open(RESULTS / "pays.csv")) if r["storage"] == args.storage]
+    out = Path(args.out)
+    done = {(r["mesh"], r["preset"]) for r in csv.DictReader(open(out))} if out.exists() else set()
+    for pays in rows:
+        if (pays["mesh"], pays["preset"]) in done:
+            continue
+        row = {**_stamp(), **compact_row(pays)}
+        print(row, flush=True)
+        new = not out.exists()
+        with open(out, "a", newline="") as f:  # one row as it lands: a rerun resumes
+            w = csv.DictWriter(f, fieldnames=list(row))
+            if new:
+                w.writeheader()
+            w.writerow(row)
+
+
+if __name__ == "__main__":
+    main()
