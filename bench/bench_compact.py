@@ -65,9 +65,9 @@ def main() -> None:
     args = ap.parse_args()
     rows = [r for r in csv.DictReader(open(RESULTS / "pays.csv")) if r["storage"] == args.storage]
     out = Path(args.out)
-    done = {(r["mesh"], r["preset"]) for r in csv.DictReader(open(out))} if out.exists() else set()
+    done = {(r["mesh"], r["preset"], r["storage"]) for r in csv.DictReader(open(out))} if out.exists() else set()
     for pays in rows:
-        if (pays["mesh"], pays["preset"]) in done:
+        if (pays["mesh"], pays["preset"], pays["storage"]) in done:
             continue
         row = {**_stamp(), **compact_row(pays)}
         print(row, flush=True)
