@@ -138,6 +138,29 @@ def cmd_compress(args: argparse.Namespace) -> int:
         raise
 
 
+def _write_winning_decimation(mesh, assessment, path: Path, mesh_path: Path, args, sink) -> None:
+    """When the verdict is a decimation, the user gets it: NAME.decimated.ply beside where the model would have gone
+    (original coordinates; written atomically; an existing file only with --overwrite)."""
+    from .outputs import check_outputs, write_atomic
+    from .sizing import mesh_file_bytes, winning_decimation
+
+    dec = winning_decimation(mesh, assessment)
+    if dec is None:
+        return
+    try:
+        check_outputs([path], [mesh_path], overwrite=args.overwrite)
+    except ValueError as exc:  # an earlier decimation there: kept unless --overwrite
+        print(f"the winning decimation was not written: {exc}", file=sys.stderr)
+        return
+    write_atomic(path, mesh_file_bytes(dec))
+    entry = assessment.alternatives["decimation"]
+    if args.events:
+        sink({"event": "written", "files": [str(path)], "kind": "decimation", "triangles": dec.n_triangles})
+    print(f"kept as a mesh: wrote the decimation that meets the target to {path} ({dec.n_triangles:,} triangles, "
+          f"MSE {entry['mse']:.4g}, {entry['resident_bytes']:,} B resident, {entry['compact_bytes']:,} B as a compact "
+          "mesh)", file=sys.stderr)
+
+
 def _compress_locked(args, mesh, mesh_path, out, stem, outputs, sink, staged) -> int:
     from .outputs import checkpoint_for
     from .pipeline import compress_mesh, resume_settings
@@ -168,8 +191,11 @@ def _compress_locked(args, mesh, mesh_path, out, stem, outputs, sink, staged) ->
     try:
         result = compress_mesh(mesh, settings, None, events=sink, should_cancel=install_cancel_handlers(),
                                checkpoint_path=checkpoint, resume_from=args.resume)
-    except BaseException as exc:
-        if checkpoint.exists() and not isinstance(exc, NotWorthCompressing):
+    except NotWorthCompressing as exc:
+        _write_winning_decimation(mesh, exc.assessment, Path(f"{stem}.decimated.ply"), mesh_path, args, sink)
+        raise
+    except BaseException:
+        if checkpoint.exists():
             print(f"\ntraining state kept in {checkpoint}: continue with "
                   f"`nbvh compress {args.mesh} -o {out} --resume {checkpoint}`", file=sys.stderr)
         raise
@@ -546,7 +572,7 @@ def main(argv: list[str] | None = None) -> int:
         if isinstance(exc, Cancelled):
             print(f"\ncancelled: {exc}; nothing was written", file=sys.stderr)
         elif isinstance(exc, NotWorthCompressing):
-            print(f"{exc}\nnothing was trained or written; --force trains anyway", file=sys.stderr)
+            print(f"{exc}\nno model was trained or written; --force trains anyway", file=sys.stderr)
         elif end.kind == "diverged":
             print(f"\nerror: {end.message}; nothing was written", file=sys.stderr)
         else:

@@ -447,7 +447,8 @@ def alternatives(mesh: Mesh, target_mse: float | None, views: int = 8, resolutio
         dec_tracer = ExactTracer(dec)
         q, _ = evaluate_renderer(lambda cam, w, h: render_reference(dec_tracer, cam, w, h), tracer, mesh.transform,
                                  views, resolution)
-        entry = {"triangles": dec.n_triangles, "mse": q.mse, "resident_bytes": mesh_resident_bytes(dec)["total"]}
+        entry = {"triangles": dec.n_triangles, "requested_triangles": count, "mse": q.mse,
+                 "resident_bytes": mesh_resident_bytes(dec)["total"]}
         entry.update(_compact_entry(dec, tracer, mesh.transform, views, resolution, q.mse <= target_mse))
         if DracoPy is not None:
             entry["draco11_bytes"] = len(DracoPy.encode(dec.vertices, dec.faces, quantization_bits=11,
@@ -458,6 +459,23 @@ def alternatives(mesh: Mesh, target_mse: float | None, views: int = 8, resolutio
             break
     out["decimations_tried"] = tried
     return out
+
+
+def winning_decimation(mesh: Mesh, assessment: "Assessment") -> Mesh | None:
+    """The decimation the verdict recommends instead of a model (rebuilt exactly: quadric decimation is
+    deterministic), or None when the verdict is not 'decimate'."""
+    dec = assessment.alternatives.get("decimation")
+    if assessment.recommendation != "decimate" or not dec:
+        return None
+    return decimate(mesh, int(dec["requested_triangles"]))
+
+
+def mesh_file_bytes(mesh: Mesh) -> bytes:
+    """`mesh` in its original coordinates as a binary PLY (what a user imports back into Blender)."""
+    import trimesh
+
+    original = mesh.transform.to_original(mesh.vertices)
+    return trimesh.Trimesh(original, mesh.faces, process=False).export(file_type="ply", encoding="binary")
 
 
 # ---------------------------------------------------------------------------------------------------- verdict

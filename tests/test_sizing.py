@@ -253,3 +253,21 @@ def test_grid_resolution_follows_the_measured_detail():
     assert resolve(auto)[0].n_max == PAPER_N_MAX
     assert resolve(preset("tiny"), bumpy)[0].n_max == preset("tiny").n_max
     assert estimate_file_bytes(auto) == estimate_file_bytes(chosen)  # the bytes do not depend on it
+
+
+def test_a_decimation_verdict_writes_the_decimation_beside_the_output(tmp_path, capsys):
+    """The user gets the mesh that wins: NAME.decimated.ply, in the original coordinates, meeting the target."""
+    from nbvh_core.cli import main
+    from nbvh_core.mesh import load_mesh
+    from nbvh_core.samples_dir import sample_path
+
+    assert main(["compress", "bunny", "-o", str(tmp_path) + "/", "--target-mse", "0.01"]) == 4
+    written = tmp_path / "bunny.decimated.ply"
+    assert "kept as a mesh" in capsys.readouterr().err and not (tmp_path / "bunny.nbvh").exists()
+    dec, full = load_mesh(written), load_mesh(sample_path("bunny"))
+    assert 0 < dec.n_triangles < full.n_triangles / 20
+    # original coordinates: the same box as the source (a decimation keeps the silhouette's extent)
+    assert np.allclose(dec.transform.scale, full.transform.scale, rtol=0.05)
+    before = written.read_bytes()
+    assert main(["compress", "bunny", "-o", str(tmp_path) + "/", "--target-mse", "0.01"]) == 4
+    assert written.read_bytes() == before and "not written" in capsys.readouterr().err  # kept without --overwrite
