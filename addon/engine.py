@@ -41,6 +41,8 @@ class Session:
     loaded: dict = field(default_factory=dict)  # object name -> load_result dict
     failures: dict = field(default_factory=dict)  # object name -> message
     kept_as_mesh: dict = field(default_factory=dict)  # object name -> the "not worth compressing" verdict
+    decimations: dict = field(default_factory=dict)  # object name -> the decimation that wins (`decimation_offer`)
+    triangles: dict = field(default_factory=dict)  # object name -> exported triangles
     out_dir: str = ""
     scene_dir: str = ""  # shared meshes of a scene budget (every job reads all of them); removed by end_session
 
@@ -81,6 +83,7 @@ def start(context, objects, req: Request, python: str | None = None) -> tuple[Se
         try:
             # Bytes of the mesh as Blender stores it: the evaluated one, so modifiers count.
             verts, tris, session.blender_bytes[obj.name] = export.evaluated_triangles(obj, depsgraph)
+            session.triangles[obj.name] = len(tris)
         except export.ExportError as exc:
             refusals.append(str(exc))
             continue
@@ -162,8 +165,19 @@ def finish_done(session: Session, scene) -> None:
             session.loaded[obj_name]["result"] = job.result
         elif job.state == "skipped":
             session.kept_as_mesh[obj_name] = job.verdict
+            if job.decimation:
+                session.decimations[obj_name] = decimation_offer(job.decimation, session.triangles.get(obj_name, 0))
         elif job.state in ("failed", "cancelled"):
             session.failures[obj_name] = job.error or job.state
+
+
+def decimation_offer(decimation: dict, source_triangles: int) -> dict:
+    """What the panel offers for an object kept as a mesh: a Decimate modifier (collapse) whose ratio gives the
+    verdict's decimation, with its triangles, image MSE and bytes (plain and as a compact mesh)."""
+    ratio = min(1.0, decimation["triangles"] / max(source_triangles, 1))
+    return {"ratio": ratio, "triangles": int(decimation["triangles"]), "mse": float(decimation["mse"]),
+            "resident_bytes": int(decimation["resident_bytes"]),
+            "compact_bytes": int(decimation.get("compact_bytes") or 0)}
 
 
 def write_scene_report(session: Session) -> tuple[Path, Path] | None:
@@ -173,6 +187,6 @@ def write_scene_report(session: Session) -> tuple[Path, Path] | None:
         entries.append(report.object_entry(obj_name, session.blender_bytes[obj_name], job_report))
     if not entries and not session.kept_as_mesh:
         return None
-    kept = [{"name": n, "blender_mesh_bytes": session.blender_bytes[n], "verdict": v}
-            for n, v in session.kept_as_mesh.items()]
+    kept = [{"name": n, "blender_mesh_bytes": session.blender_bytes[n], "verdict": v,
+             "decimation": session.decimations.get(n)} for n, v in session.kept_as_mesh.items()]
     return report.write_report(report.build_report(entries, kept), session.out_dir)

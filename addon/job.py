@@ -94,6 +94,7 @@ class Job:
     result: dict | None = None
     error: str | None = None
     verdict: str | None = None
+    decimation: dict | None = None  # the verdict's winning decimation (triangles, mse, resident and compact bytes)
     log: list = field(default_factory=list)
     started: float | None = None
     clock: "JobClock" = field(default_factory=lambda: JobClock())
@@ -136,6 +137,10 @@ class Job:
                 self.progress.update({k: v for k, v in ev.items() if k != "event"})
             elif kind == "result":
                 self.result = ev
+            elif kind == "verdict":  # the decimation that meets the level, when it is what wins
+                assessment = ev.get("assessment") or {}
+                if assessment.get("recommendation") == "decimate":
+                    self.decimation = (assessment.get("alternatives") or {}).get("decimation")
             elif kind == "error" and ev.get("kind") == "not_worth":
                 self.verdict = ev.get("message", "not worth compressing")
             elif kind == "error":

@@ -92,6 +92,7 @@ def _tick():
         props.phase = "done" if not session.failures else "finished with errors"
         props.last_error = "; ".join(f"{k}: {v}" for k, v in session.failures.items())
         props.last_note = "; ".join(f"{k} kept as a mesh: {v}" for k, v in session.kept_as_mesh.items())
+        props.decimations = json.dumps(session.decimations)
         _state["session"] = None
         if props.show_image and session.loaded:
             previews.show_image(bpy.data.images.get(next(iter(session.loaded.values()))["image"]))
@@ -528,7 +529,39 @@ class NBVH_OT_cancel_library(bpy.types.Operator):
         return {"FINISHED"}
 
 
-CLASSES = (NBVH_OT_compress, NBVH_OT_cancel, NBVH_OT_toggle_preview, NBVH_OT_open_report, NBVH_OT_open_folder,
+def decimation_offers(context) -> dict:
+    """{object name: offer} of the selected objects the last verdicts kept as meshes with a winning decimation."""
+    try:
+        offers = json.loads(context.scene.nbvh_props.decimations or "{}")
+    except ValueError:
+        return {}
+    selected = {o.name for o in context.selected_objects}
+    return {n: o for n, o in offers.items() if n in selected and isinstance(o, dict) and "ratio" in o}
+
+
+class NBVH_OT_apply_decimation(bpy.types.Operator):
+    """Add a Decimate modifier that gives the decimation the verdict found (it meets the quality level with fewer
+    bytes than a model): non-destructive, undoable, the mesh data untouched"""
+
+    bl_idname = "nbvh.apply_decimation"
+    bl_label = "Use the decimation"
+    bl_options = {"REGISTER", "UNDO"}
+
+    object_name: bpy.props.StringProperty()
+    ratio: bpy.props.FloatProperty(min=0.0, max=1.0)
+
+    def execute(self, context):
+        obj = bpy.data.objects.get(self.object_name)
+        if obj is None or obj.type != "MESH":
+            self.report({"ERROR"}, f"{self.object_name!r} is not a mesh object")
+            return {"CANCELLED"}
+        mod = obj.modifiers.get("NBVH decimation") or obj.modifiers.new("NBVH decimation", "DECIMATE")
+        mod.decimate_type, mod.ratio = "COLLAPSE", self.ratio
+        self.report({"INFO"}, f"{obj.name}: Decimate modifier, ratio {self.ratio:.4f}")
+        return {"FINISHED"}
+
+
+CLASSES = (NBVH_OT_compress, NBVH_OT_apply_decimation, NBVH_OT_cancel, NBVH_OT_toggle_preview, NBVH_OT_open_report, NBVH_OT_open_folder,
            NBVH_OT_remove_result,
            NBVH_OT_install_dependencies, NBVH_OT_cancel_install, NBVH_OT_check_python, NBVH_OT_scene_report, NBVH_OT_compress_library,
            NBVH_OT_cancel_library)

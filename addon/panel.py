@@ -72,6 +72,7 @@ class NBVH_Props(bpy.types.PropertyGroup):
     eta: bpy.props.StringProperty()
     last_error: bpy.props.StringProperty()
     last_note: bpy.props.StringProperty()  # verdicts: objects kept as meshes (not worth compressing)
+    decimations: bpy.props.StringProperty()  # JSON {object name: engine.decimation_offer}: one click each
     warnings: bpy.props.StringProperty()  # the jobs' warning events (a target missed, a restart after divergence)
     message_selection: bpy.props.StringProperty()  # the selection last_error / last_note are about
     report_html: bpy.props.StringProperty(subtype="FILE_PATH")
@@ -160,6 +161,10 @@ class NBVH_PT_panel(bpy.types.Panel):
             _wrapped(layout, props.last_error, "ERROR", context, lines=6)
         if props.last_note and current:
             _wrapped(layout, props.last_note, "INFO", context, lines=6)
+        for name, offer in operators.decimation_offers(context).items():
+            op = layout.operator("nbvh.apply_decimation", icon="MOD_DECIM",
+                                 text=f"Decimate {name[:24]} to {offer['triangles']:,} triangles")
+            op.object_name, op.ratio = name, offer["ratio"]
         out = engine.output_dir(props.output_dir)
         row = layout.row()
         row.label(text=f"Output: {_short_path(out, context)}", icon="FILE_FOLDER")

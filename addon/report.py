@@ -47,7 +47,8 @@ def object_entry(name: str, blender_bytes: dict, job_report: dict) -> dict:
 
 def build_report(entries: list[dict], kept_as_mesh: list[dict] | None = None) -> dict:
     """The scene report: trained `entries` (object_entry), and the objects whose verdict kept them as meshes
-    ({name, blender_mesh_bytes, verdict}: nothing was trained for them)."""
+    ({name, blender_mesh_bytes, verdict, decimation}: nothing was trained for them; decimation: the one that wins,
+    engine.decimation_offer, or None)."""
     totals = {"blender_mesh_bytes": sum(e["blender_mesh_bytes"]["total"] for e in entries),
               "ray_tracing_resident_bytes": sum(e["ray_tracing_resident_bytes"]["total"] for e in entries),
               "nbvh_bytes": sum(e["nbvh_bytes"] for e in entries)}
@@ -63,6 +64,15 @@ def _img_tag(path: str | None, alt: str) -> str:
         return f"<em>no {html.escape(alt)}</em>"
     data = base64.b64encode(Path(path).read_bytes()).decode()
     return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{data}">'
+
+
+def _decimation_text(offer: dict | None) -> str:
+    """The winning decimation of an object kept as a mesh (engine.decimation_offer), as the report states it."""
+    if not offer:
+        return ""
+    return (f"use a decimation: {offer['triangles']:,} triangles (Decimate ratio {offer['ratio']:.4f}, MSE "
+            f"{offer['mse']:.4g}): {_kb(offer['resident_bytes'])} resident, {_kb(offer['compact_bytes'])} as a "
+            "compact mesh")
 
 
 def _alternatives_text(alt: dict) -> str:
@@ -125,7 +135,8 @@ def write_report(report: dict, out_dir: str | Path, stem: str = "nbvh_report") -
     if kept:
         split_html += ("<h2>Kept as meshes (not worth compressing; nothing trained)</h2><table>" + "".join(
             f"<tr><th>{html.escape(k['name'])}</th><td>{_kb(k['blender_mesh_bytes']['total'])} in Blender</td>"
-            f"<td>{html.escape(k['verdict'] or '')}</td></tr>" for k in kept) + "</table>")
+            f"<td>{html.escape(k['verdict'] or '')}</td><td>{_decimation_text(k.get('decimation'))}</td></tr>"
+            for k in kept) + "</table>")
     page = f"""<!doctype html><meta charset="utf-8"><title>NBVH asset memory report</title>
 <style>body{{font-family:sans-serif;max-width:60em;margin:2em auto}}th{{text-align:left;padding-right:1em}}
 img{{width:256px;image-rendering:pixelated;background:#000}}.pair{{display:flex;gap:1em}}</style>

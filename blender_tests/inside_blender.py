@@ -269,6 +269,30 @@ def test_resume_refuses_a_crafted_checkpoint_and_runs_nothing():
     assert not (out / "Blob.nbvh").exists() and checkpoint.exists()  # nothing written, the user's file kept
 
 
+def test_a_decimation_verdict_is_offered_as_one_click():
+    """With a quality target the blob's verdict is a decimation: the panel offers it, the report lists it, and one
+    click adds a Decimate modifier with the found ratio; the mesh data stays as it was."""
+    blob = bpy.data.objects.get("Blob") or setup_scene()
+    before = mesh_fingerprint(blob)
+    props = bpy.context.scene.nbvh_props
+    props.output_dir = str(Path(ARGS.work) / "decimation_out")
+    props.mode, props.target, props.force = "TARGET", "STANDARD", False
+    select("Blob")
+    bpy.context.view_layer.objects.active = blob
+    assert bpy.ops.nbvh.compress() == {"FINISHED"}
+    run_operator_until_done()
+    props.mode = "PRESET"
+    offers = ADDON["operators"].decimation_offers(bpy.context)
+    assert "Blob" in offers and 0 < offers["Blob"]["ratio"] < 0.5, (props.last_note, props.last_error, offers)
+    scene_json = json.loads(Path(props.report_html).with_suffix(".json").read_text())
+    assert scene_json["kept_as_mesh"][0]["decimation"]["triangles"] == offers["Blob"]["triangles"]
+    assert bpy.ops.nbvh.apply_decimation(object_name="Blob", ratio=offers["Blob"]["ratio"]) == {"FINISHED"}
+    mod = blob.modifiers["NBVH decimation"]
+    assert mod.type == "DECIMATE" and abs(mod.ratio - offers["Blob"]["ratio"]) < 1e-6
+    assert mesh_fingerprint(blob) == before  # a modifier: the mesh data and transform untouched
+    blob.modifiers.remove(mod)
+
+
 def test_stored_model_paths_only_name_regular_nbvh_files():
     render_engine = importlib.import_module(ADDON["module"].__name__ + ".render_engine")
     work = Path(ARGS.work)
