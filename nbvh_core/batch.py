@@ -70,6 +70,9 @@ class Row:
     triangles: int | None = None
     mesh_resident_bytes: int | None = None
     draco_bytes: int | None = None
+    compact_bytes: int | None = None  # the mesh as a compact ray-traceable mesh (compact_mesh)
+    decimation_triangles: int | None = None  # the verdict's winning decimation (written beside the results)
+    decimation_compact_bytes: int | None = None
     predicted_model_bytes: int | None = None
     verdict: str | None = None
     recommendation: str | None = None
@@ -230,7 +233,7 @@ def measure_asset(asset: dict, spec: dict) -> dict:
     from .exact import ExactTracer
     from .pipeline import mesh_identity
     from .render import orbit_cameras, png_bytes, render_reference
-    from .sizing import assess, resolve
+    from .sizing import assess, mesh_file_bytes, resolve, winning_decimation
 
     t0 = time.perf_counter()
     out = {"name": asset["name"], "worker": _worker_id()}
@@ -245,7 +248,12 @@ def measure_asset(asset: dict, spec: dict) -> dict:
         out.update(status="measured" if a.worth_compressing else "not_worth", triangles=mesh.n_triangles,
                    mesh_resident_bytes=a.resident["total"], draco_bytes=a.alternatives.get("draco11_bytes"),
                    predicted_model_bytes=a.model_bytes, verdict=a.message, recommendation=a.recommendation,
-                   key=settings_key(mesh_identity(mesh)["sha256"], spec), thumb=png_bytes(thumb))
+                   key=settings_key(mesh_identity(mesh)["sha256"], spec), thumb=png_bytes(thumb),
+                   compact_bytes=a.compact_bytes)
+        dec = winning_decimation(mesh, a)
+        if dec is not None:  # the mesh that wins, as a file the head writes (workers may not share its disk)
+            out.update(decimation_triangles=dec.n_triangles, decimation_ply=mesh_file_bytes(dec),
+                       decimation_compact_bytes=a.alternatives["decimation"].get("compact_bytes"))
     except Exception as exc:  # a bad asset is a row with its error, never the end of the run
         out.update(status="failed", error=f"{type(exc).__name__}: {exc}")
     out["measure_seconds"] = round(time.perf_counter() - t0, 3)
@@ -404,10 +412,18 @@ class _Library:
     def measured(self, name: str, r: dict) -> None:
         row = self.rows[name]
         for k in ("status", "error", "triangles", "mesh_resident_bytes", "draco_bytes", "predicted_model_bytes",
-                  "verdict", "recommendation", "key", "measure_seconds", "worker"):
+                  "verdict", "recommendation", "key", "measure_seconds", "worker", "compact_bytes",
+                  "decimation_triangles", "decimation_compact_bytes"):
             if k in r:
                 setattr(row, k, r[k])
         row.thumb_original = self.thumb(name, "original", r.get("thumb"))
+        if r.get("decimation_ply"):
+            from .outputs import write_atomic
+
+            path = self.out / "assets" / row.key / f"{_safe(name)}.decimated.ply"
+            path.parent.mkdir(parents=True, exist_ok=True)
+            write_atomic(path, r["decimation_ply"])
+            row.files["decimation"] = str(path.relative_to(self.out))
         self.events({"event": "asset", "phase": "measure", **_event_fields(row)})
 
     def trained(self, name: str, r: dict) -> None:

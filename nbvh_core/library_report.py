@@ -11,7 +11,7 @@ import json
 from pathlib import Path
 
 CSV_COLUMNS = ("name", "source", "status", "verdict", "triangles", "mesh_resident_bytes", "draco_bytes",
-               "predicted_model_bytes", "model_bytes", "model_resident_bytes", "saved_bytes", "mse", "iou",
+               "compact_bytes", "decimation_triangles", "decimation_compact_bytes", "predicted_model_bytes", "model_bytes", "model_resident_bytes", "saved_bytes", "mse", "iou",
                "train_seconds", "measure_seconds", "worker", "error")
 
 
@@ -89,17 +89,19 @@ def _row_html(r) -> str:
             + _cell(r.mesh_resident_bytes, _fmt_bytes(r.mesh_resident_bytes))
             + _cell(r.model_resident_bytes, _fmt_bytes(r.model_resident_bytes))
             + _cell(r.model_bytes, _fmt_bytes(r.model_bytes)) + _cell(r.draco_bytes, _fmt_bytes(r.draco_bytes))
+            + _cell(r.compact_bytes, _fmt_bytes(r.compact_bytes))
             + _cell(r.saved_bytes, _fmt_bytes(r.saved_bytes)) + _cell(r.mse, mse)
             + _cell(r.iou, "" if r.iou is None else f"{r.iou:.4f}")
             + _cell(r.train_seconds, "" if r.train_seconds is None else f"{r.train_seconds:.0f} s")
-            + _cell(r.error or r.verdict or "") + "</tr>")
+            + _cell(r.error or r.verdict or "", (r.error or r.verdict or "") + (
+                f" Written: {r.files['decimation']}" if r.files.get("decimation") else "")) + "</tr>")
 
 
 def html_report(rows: list, info: dict, t: dict | None = None) -> str:
     """The report page (self-contained but for the thumbnails in thumbs/); t: `totals(rows)` when computed."""
     t = t if t is not None else totals(rows)
     head = ("<tr><th>original</th><th>neural</th><th>asset</th><th>status</th><th>triangles</th>"
-            "<th>resident (mesh)</th><th>resident (model)</th><th>.nbvh file</th><th>Draco 11-bit</th>"
+            "<th>resident (mesh)</th><th>resident (model)</th><th>.nbvh file</th><th>Draco 11-bit</th><th>compact mesh</th>"
             "<th>saved</th><th>MSE</th><th>IoU</th><th>train</th><th>verdict / error</th></tr>")
     status = ", ".join(f"{k} {v}" for k, v in sorted(t["by_status"].items()))
     state = "final" if info.get("final") else "in progress"

@@ -16,6 +16,7 @@ import pytest
 
 from meshes import icosphere
 from nbvh_core.batch import Row, _cached, discover, run_batch, task_resources
+from nbvh_core.mesh import load_mesh
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = {"preset": "tiny"}
@@ -221,3 +222,23 @@ def test_without_ray_the_batch_says_what_to_install(monkeypatch, tmp_path):
     monkeypatch.setitem(sys.modules, "ray", None)  # import ray -> ImportError
     with pytest.raises(ValueError, match="pip install ray==2.60.0"):
         run_batch(tmp_path, tmp_path / "out", TINY)
+
+
+def test_a_decimation_verdict_writes_the_decimation_and_the_report_lists_it(tmp_path):
+    """With a quality target the blob's verdict is a decimation: the head writes it beside the results, the report
+    row names it with its triangles and compact bytes (measure only: nothing trained)."""
+    import csv
+
+    from nbvh_core.samples_dir import sample_path
+
+    lib = tmp_path / "lib"
+    lib.mkdir()
+    shutil.copy(sample_path("blob"), lib / "blob.ply.gz")
+    out = tmp_path / "out"
+    run_batch(lib, out, {"preset": "preview", "target_mse": 0.01}, num_cpus=2, measure_only=True)
+    row = next(csv.DictReader(open(out / "report.csv")))
+    assert row["status"] == "not_worth" and int(row["decimation_triangles"]) > 0, row
+    assert 0 < int(row["decimation_compact_bytes"]) < int(row["compact_bytes"]) < int(row["mesh_resident_bytes"])
+    written = list(out.glob("assets/*/blob.decimated.ply"))
+    assert len(written) == 1 and load_mesh(written[0]).n_triangles == int(row["decimation_triangles"])
+    assert "blob.decimated.ply" in (out / "report.html").read_text()
