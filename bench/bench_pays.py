@@ -96,7 +96,7 @@ def write_md(rows: list[dict]) -> None:
 def row_variant(row: dict) -> tuple[bool, bool]:
     """(current, earlier) of a pays.csv row: current = the preset as it is now (no --set overrides, the grid chosen
     from the mesh, the network's own normal targets, and the file the preset's sizes make today, within a header's
-    few hundred bytes: a row of an earlier preset with the same tags is not current); earlier = the stop 14-15 rows
+    few hundred bytes: a row of an earlier preset with the same tags is not current); earlier = the facing-normal rows
     (grid chosen from the mesh, facing normal targets, before the tag was written)."""
     tags = row["storage"].split(" ")
     overrides = [t for t in tags[1:] if not t.startswith(("n_max=", "normals="))]
@@ -211,7 +211,7 @@ def main() -> None:
                     storage += " " + " ".join(f"{k}={v}" for k, v in sorted(extra.items()))
                 if s.n_max is None:  # the grid chosen from the mesh: name it, so the row is not the 128 one
                     storage += f" n_max=auto:{choose_resolution(bench_grid(mesh_name), s.log2_table)[0]}"
-                storage += f" normals={s.resolved_normal_loss()}"  # rows without the tag: facing (stop 14-15)
+                storage += f" normals={s.resolved_normal_loss()}"  # rows without the tag: facing normals
                 if (mesh_name, preset_name, storage) in done:
                     continue
                 print(f"{mesh_name} {preset_name} {storage}: training {s.time_limit_s} s", flush=True)

@@ -11,11 +11,11 @@ default storage (8-bit tables, boxes and weight rows; `estimate_file_bytes`). Re
 (mesh, method, log2 T) in bench/results/table5.csv; table5.md is rewritten after every row. Every method trains
 with its network's own normal targets (`settings.NORMAL_LOSS_BY_NETWORK`: the MLP's as the mesh winds them, KMLP's
 facing the ray); `--normal-loss facing|oriented|unoriented` gives every method one loss, in its own CSV
-(table5_facing_loss.csv, table5_oriented_loss.csv, table5_unoriented_loss.csv); normal_loss.md compares stop 14's
+(table5_facing_loss.csv, table5_oriented_loss.csv, table5_unoriented_loss.csv); normal_loss.md compares the older
 three.
 `--n-max auto` (default) lets every method's grid be chosen from the mesh and its table (`sizing.choose_resolution`,
 as the user presets do; base and III alike), `--n-max 128` is the paper's fixed grid (stem suffix `_nmax128`).
-Stop 14's runs (KMLP normal weight 0.5, N_max 128) are kept as table5_stop14_{facing,oriented,unoriented}_loss.csv.
+Older runs (KMLP normal weight 0.5, N_max 128) are kept as table5_stop14_{facing,oriented,unoriented}_loss.csv.
 `--time-limit S` trains every model for S seconds instead of a step count (the default preset's 200 s is the users'
 budget; a slower step buys fewer steps), stem suffix `_time{S}`; needs an otherwise idle CPU.
 """

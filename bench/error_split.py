@@ -6,8 +6,7 @@ Trains one model (float32 storage, a fixed step count) and splits the shaded ima
 silhouette = pixels where exactly one of the reference and the model hits; of the pixels both hit, the normal part is
 what swapping the reference normal in removes, the depth part what is left (the hit point moves the light
 direction). Also the share of both-hit pixels whose normal is off by more than 18 degrees (cos < 0.95), both turned
-toward the viewer. Found KMLP's starved normal term (stop 15) and the facing targets' failure on open surfaces
-(stop 16).
+toward the viewer. Found KMLP's starved normal term and the facing targets' failure on open surfaces.
 """
 from __future__ import annotations
 

@@ -45,7 +45,7 @@ GRID = (8, 9, 10, 11, 12, 13)
 NODE_GRID = (1023, 2047, 4095)
 NODE_T = 11  # the table size the node count is varied at
 METHOD = "default"
-#: Rows of this grid measurement (grid2, stop 10: after the fused training step; grid3, stop 14: the presets' 8
+#: Rows of this grid measurement (grid2: after the fused training step; grid3: the presets' 8
 #: features, int8 weights and mesh-sized grid, with facing normal targets - its open surfaces (terrain, sheet) came
 #: out 4-15x worse than grid2's, which is how that loss's failure was found; grid4: the normals as wound).
 GRID_PART = "grid4"
