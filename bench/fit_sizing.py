@@ -223,7 +223,7 @@ def main() -> None:
     n_first_only = margin_scores[full.margin][1]
     L = [f"# Automatic sizing: predicted size, measured and corrected, vs grid search{' (quick)' if plan.quick else ''}\n",
          f"User preset (HashGrid + MLP + consistent, {base.nodes} nodes), T = 2^{GRID[0]}..2^{GRID[-1]}, trained "
-         f"{plan.train_s:g} s each on the 2-core CPU with this stop's fused training step, scored on {plan.views} views "
+         f"{plan.train_s:g} s each on the 2-core CPU with the fused training step, scored on {plan.views} views "
          f"at {plan.res} px (rows part={GRID_PART} in quality.csv). Fit (nbvh_core/sizing_fit.json): log MSE = c . "
          f"[1, log2 T, {', '.join(best_names) or 'no mesh feature'}]; coefficients "
          f"{', '.join(f'{c:.3f}' for c in full.coef)}. Feature subset chosen by leave-one-mesh-out RMS error in log "
