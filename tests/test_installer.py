@@ -76,3 +76,15 @@ def test_the_add_on_installs_exactly_the_pins_the_project_declares():
     declared = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["dependencies"]
     listed = [ln.strip() for ln in REQ.read_text().splitlines() if ln.strip() and not ln.startswith("#")]
     assert sorted(listed) == sorted(declared)
+
+
+def test_one_version_everywhere():
+    """pyproject.toml's version is the package's, the add-on's bl_info and its extension manifest's."""
+    import re
+    import tomllib
+
+    version = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["version"]
+    manifest = tomllib.loads((ROOT / "addon" / "blender_manifest.toml").read_text())["version"]
+    core = re.search(r'__version__ = "([^"]+)"', (ROOT / "nbvh_core" / "__init__.py").read_text()).group(1)
+    bl_info = re.search(r'"version": \((\d+), (\d+), (\d+)\)', (ROOT / "addon" / "__init__.py").read_text()).groups()
+    assert version == manifest == core == ".".join(bl_info)
