@@ -43,6 +43,7 @@ class Session:
     kept_as_mesh: dict = field(default_factory=dict)  # object name -> the "not worth compressing" verdict
     decimations: dict = field(default_factory=dict)  # object name -> the decimation that wins (`decimation_offer`)
     triangles: dict = field(default_factory=dict)  # object name -> exported triangles
+    textures: dict = field(default_factory=dict)  # object name -> export.asset_textures (images, material slots)
     out_dir: str = ""
     scene_dir: str = ""  # shared meshes of a scene budget (every job reads all of them); removed by end_session
 
@@ -84,6 +85,7 @@ def start(context, objects, req: Request, python: str | None = None) -> tuple[Se
             # Bytes of the mesh as Blender stores it: the evaluated one, so modifiers count.
             verts, tris, session.blender_bytes[obj.name] = export.evaluated_triangles(obj, depsgraph)
             session.triangles[obj.name] = len(tris)
+            session.textures[obj.name] = export.asset_textures(obj)
         except export.ExportError as exc:
             refusals.append(str(exc))
             continue
@@ -184,9 +186,11 @@ def write_scene_report(session: Session) -> tuple[Path, Path] | None:
     entries = []
     for obj_name, loaded in session.loaded.items():
         job_report = json.loads(Path(loaded["result"]["files"]["report"]).read_text())
-        entries.append(report.object_entry(obj_name, session.blender_bytes[obj_name], job_report))
+        images, slots = session.textures.get(obj_name, ({}, 0))
+        entries.append(report.object_entry(obj_name, session.blender_bytes[obj_name], job_report, images, slots))
     if not entries and not session.kept_as_mesh:
         return None
     kept = [{"name": n, "blender_mesh_bytes": session.blender_bytes[n], "verdict": v,
-             "decimation": session.decimations.get(n)} for n, v in session.kept_as_mesh.items()]
+             "decimation": session.decimations.get(n), "textures": session.textures.get(n, ({}, 0))[0]}
+            for n, v in session.kept_as_mesh.items()]
     return report.write_report(report.build_report(entries, kept), session.out_dir)

@@ -52,6 +52,24 @@ def evaluated_triangles(obj, depsgraph) -> tuple[np.ndarray, np.ndarray, dict]:
     return verts, tris.reshape(-1, 3), blender_bytes
 
 
+def asset_textures(obj) -> tuple[dict, int]:
+    """({image name: report.texture_bytes}, material slot count) of the images the object's materials read
+    through Image Texture nodes (each image once)."""
+    from .report import texture_bytes
+
+    images = {}
+    for slot in getattr(obj, "material_slots", []):
+        mat = slot.material
+        if mat is None or not mat.use_nodes or mat.node_tree is None:
+            continue
+        for node in mat.node_tree.nodes:
+            img = getattr(node, "image", None) if node.type == "TEX_IMAGE" else None
+            if img is not None and img.name not in images:
+                w, h = img.size
+                images[img.name] = texture_bytes(int(w), int(h), int(img.channels), bool(img.is_float))
+    return images, len(getattr(obj, "material_slots", []))
+
+
 def mesh_data_bytes(mesh) -> dict:
     """Bytes of a Blender mesh as Blender stores them: positions, edges, face corners, faces, normals, UVs and
     other attributes (by data type), so the report compares like with like."""

@@ -16,8 +16,33 @@ def _kb(n: float) -> str:
     return f"{n / 1024:,.1f} KB"
 
 
-def object_entry(name: str, blender_bytes: dict, job_report: dict) -> dict:
-    """One object's row: `blender_bytes` from export.mesh_data_bytes, `job_report` = NAME.report.json."""
+def texture_bytes(width: int, height: int, channels: int, is_float: bool) -> dict:
+    """One image's memory: as Blender holds it (width x height x channels x 1 or 4 bytes) and as a GPU would in BC7
+    (16 bytes per 4x4 block, the full mip chain)."""
+    bc7, w, h = 0, max(width, 1), max(height, 1)
+    while True:
+        bc7 += ((w + 3) // 4) * ((h + 3) // 4) * 16
+        if w == 1 and h == 1:
+            break
+        w, h = max(w // 2, 1), max(h // 2, 1)
+    return {"width": width, "height": height, "channels": channels, "float": is_float,
+            "blender_bytes": width * height * channels * (4 if is_float else 1), "bc7_bytes": bc7}
+
+
+def asset_memory(mesh_total: int, textures: dict, after_geometry: int) -> dict:
+    """The whole asset before and after: the mesh plus its textures, against the model plus the same textures
+    (a model carries geometry only, so the textures stay). textures: {image name: texture_bytes(...)}."""
+    tex = sum(t["blender_bytes"] for t in textures.values())
+    before, after = mesh_total + tex, after_geometry + tex
+    return {"texture_bytes": tex, "texture_bc7_bytes": sum(t["bc7_bytes"] for t in textures.values()),
+            "asset_bytes_before": before, "asset_bytes_after": after,
+            "ratio_asset": before / after if after else None}
+
+
+def object_entry(name: str, blender_bytes: dict, job_report: dict, textures: dict | None = None,
+                 materials: int = 0) -> dict:
+    """One object's row: `blender_bytes` from export.mesh_data_bytes, `job_report` = NAME.report.json, `textures`
+    {image name: texture_bytes} and the material slot count from export.asset_textures."""
     nbvh = job_report["file_bytes"]
     resident = job_report["mesh_resident_bytes"]
     q = job_report.get("quality") or {}
@@ -30,6 +55,8 @@ def object_entry(name: str, blender_bytes: dict, job_report: dict) -> dict:
         "nbvh_bytes": nbvh,
         "nbvh_components": job_report["components"],
         "ratio_blender_mesh_to_nbvh": blender_bytes["total"] / nbvh,
+        "materials": materials, "textures": textures or {},
+        **asset_memory(blender_bytes["total"], textures or {}, nbvh),
         "ratio_resident_to_nbvh": resident["total"] / nbvh,
         "mse": q.get("mse"), "silhouette_iou": q.get("silhouette_iou"), "depth_error": q.get("depth_error"),
         "eval_views": q.get("views"), "train_seconds": t.get("seconds"), "device": t.get("device"),
@@ -52,6 +79,10 @@ def build_report(entries: list[dict], kept_as_mesh: list[dict] | None = None) ->
     totals = {"blender_mesh_bytes": sum(e["blender_mesh_bytes"]["total"] for e in entries),
               "ray_tracing_resident_bytes": sum(e["ray_tracing_resident_bytes"]["total"] for e in entries),
               "nbvh_bytes": sum(e["nbvh_bytes"] for e in entries)}
+    # Textures once each, however many objects share them; kept objects keep their meshes and textures.
+    images = {n: t for e in [*entries, *(kept_as_mesh or [])] for n, t in (e.get("textures") or {}).items()}
+    kept_mesh = sum(k["blender_mesh_bytes"]["total"] for k in kept_as_mesh or [])
+    totals.update(asset_memory(totals["blender_mesh_bytes"] + kept_mesh, images, totals["nbvh_bytes"] + kept_mesh))
     if totals["nbvh_bytes"]:
         totals["ratio_blender_mesh_to_nbvh"] = totals["blender_mesh_bytes"] / totals["nbvh_bytes"]
         totals["ratio_resident_to_nbvh"] = totals["ray_tracing_resident_bytes"] / totals["nbvh_bytes"]
@@ -107,6 +138,8 @@ def write_report(report: dict, out_dir: str | Path, stem: str = "nbvh_report") -
 <tr><th>mesh as Blender stores it</th><td>{_kb(e['blender_mesh_bytes']['total'])}</td></tr>
 <tr><th>mesh as a ray tracer holds it (vertices, indices, normals, BVH)</th><td>{_kb(e['ray_tracing_resident_bytes']['total'])}</td></tr>
 <tr><th>.nbvh</th><td>{_kb(e['nbvh_bytes'])} ({html.escape(comps)})</td></tr>
+<tr><th>textures ({len(e.get('textures') or {})} images, {e.get('materials', 0)} material slots)</th><td>{_kb(e.get('texture_bytes', 0))} as Blender holds them, {_kb(e.get('texture_bc7_bytes', 0))} in BC7 on a GPU (kept: the model carries geometry only)</td></tr>
+<tr><th>whole asset (mesh + textures -> model + textures)</th><td>{_kb(e.get('asset_bytes_before', 0))} -> {_kb(e.get('asset_bytes_after', 0))} ({(e.get('ratio_asset') or 0):.2f}x)</td></tr>
 <tr><th>ratio (Blender mesh / .nbvh, resident / .nbvh)</th><td>{e['ratio_blender_mesh_to_nbvh']:.1f}x, {e['ratio_resident_to_nbvh']:.1f}x</td></tr>
 <tr><th>quality</th><td>image MSE {mse}, silhouette IoU {iou} over {e['eval_views']} views</td></tr>
 <tr><th>training</th><td>{e['train_seconds']} s on {html.escape(str(e['device']))}</td></tr>
@@ -142,7 +175,8 @@ def write_report(report: dict, out_dir: str | Path, stem: str = "nbvh_report") -
 img{{width:256px;image-rendering:pixelated;background:#000}}.pair{{display:flex;gap:1em}}</style>
 <h1>NBVH asset memory report</h1>
 <p>Scene totals: Blender meshes {_kb(t['blender_mesh_bytes'])}, ray-tracing resident {_kb(t['ray_tracing_resident_bytes'])},
-.nbvh {_kb(t['nbvh_bytes'])}.</p>
+.nbvh {_kb(t['nbvh_bytes'])}; textures {_kb(t['texture_bytes'])} as Blender holds them ({_kb(t['texture_bc7_bytes'])} in BC7).
+The whole scene's assets: {_kb(t['asset_bytes_before'])} -> {_kb(t['asset_bytes_after'])} ({(t['ratio_asset'] or 0):.2f}x).</p>
 {split_html}
 {''.join(rows)}"""
     htm = out_dir / f"{stem}.html"

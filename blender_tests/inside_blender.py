@@ -293,6 +293,27 @@ def test_a_decimation_verdict_is_offered_as_one_click():
     blob.modifiers.remove(mod)
 
 
+def test_textures_of_an_object_s_materials_are_counted():
+    """Image Texture nodes of every material slot, each image once: as Blender holds it and in BC7."""
+    export = ADDON["export"]
+    verts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], np.float32)
+    obj = make_mesh_object("Textured", verts, np.array([[0, 1, 2], [1, 3, 2]]))
+    image = bpy.data.images.new("nbvh-test-albedo", 256, 128, alpha=True)
+    for i in range(2):  # two slots, the same image in both: counted once
+        mat = bpy.data.materials.new(f"nbvh-test-mat{i}")
+        mat.use_nodes = True
+        tex = mat.node_tree.nodes.new("ShaderNodeTexImage")
+        tex.image = image
+        bsdf = next(n for n in mat.node_tree.nodes if n.type == "BSDF_PRINCIPLED")
+        mat.node_tree.links.new(tex.outputs["Color"], bsdf.inputs["Base Color"])
+        obj.data.materials.append(mat)
+    images, slots = export.asset_textures(obj)
+    assert slots == 2 and list(images) == ["nbvh-test-albedo"], (images, slots)
+    assert images["nbvh-test-albedo"]["blender_bytes"] == 256 * 128 * 4
+    assert images["nbvh-test-albedo"]["bc7_bytes"] >= 256 * 128
+    bpy.data.objects.remove(obj)
+
+
 def test_stored_model_paths_only_name_regular_nbvh_files():
     render_engine = importlib.import_module(ADDON["module"].__name__ + ".render_engine")
     work = Path(ARGS.work)
