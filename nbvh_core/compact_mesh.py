@@ -185,6 +185,20 @@ def decode_compact(data: bytes) -> CompactMesh:
     return CompactMesh(np.concatenate(vertices), np.concatenate(faces), lo, hi, links, np.concatenate(owner))
 
 
+def compact_bytes(mesh: Mesh, tree=None) -> int:
+    """len(encode_compact(mesh, tree)) without encoding: header, nodes, cluster records, each cluster's distinct
+    vertices (6 B) and triangles (3 B). Vectorised: a 3.3M-triangle mesh in seconds, for the verdict."""
+    tree = tree if tree is not None else build_full_tree(mesh)
+    order, is_cluster = _clusters(mesh, tree)
+    clusters = order[is_cluster]
+    owner = np.empty(mesh.n_triangles, np.int64)
+    for k, node in enumerate(clusters):  # tri_order ranges: one slice assignment per cluster
+        owner[tree.tri_order[tree.start[node]:tree.start[node] + tree.count[node]]] = k
+    pairs = np.unique(owner[:, None] * np.int64(mesh.n_vertices) + mesh.faces.astype(np.int64))
+    return _HEADER.size + NODE_BYTES * len(order) + CLUSTER_BYTES * len(clusters) + 6 * len(pairs) \
+        + 3 * mesh.n_triangles
+
+
 def compact_mesh(mesh: Mesh, tree=None) -> tuple[int, Mesh]:
     """(exact bytes of `mesh` in the compact layout, the decoded triangles as a Mesh in the same normalised
     coordinates, for measuring the image error of what the layout holds)."""

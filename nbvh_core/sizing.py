@@ -502,13 +502,13 @@ def assess(mesh: Mesh, settings, measure_alternatives: bool = False, tracer=None
     """Compare the model `settings` (already resolved) would write with the mesh's resident
     bytes and its Draco size, and, with `measure_alternatives` and a target MSE, with a decimation that meets it.
     worth_compressing is False when either is not larger than the model."""
-    from .compact_mesh import encode_compact
+    from .compact_mesh import compact_bytes
 
     model = estimate_file_bytes(settings)
     tree = build_full_tree(mesh)
     resident_bytes = mesh_resident_bytes(mesh, tree)
     resident = resident_bytes["total"]
-    compact = len(encode_compact(mesh, tree))
+    compact = compact_bytes(mesh, tree)
     # The Draco size always (cheap: shows which tool wins for storage alone); decimations only with a target.
     alt = alternatives(mesh, settings.target_mse if measure_alternatives else None, tracer=tracer)
     dec = alt.get("decimation")

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from nbvh_core.bvh import build_full_tree
-from nbvh_core.compact_mesh import (CLUSTER_TRIANGLES, LEAF_BIT, _clusters, compact_mesh, decode_compact,
-                                    encode_compact)
+from nbvh_core.compact_mesh import (CLUSTER_TRIANGLES, LEAF_BIT, _clusters, compact_bytes, compact_mesh,
+                                    decode_compact, encode_compact)
 
 
 @pytest.fixture(scope="module")
@@ -56,6 +56,7 @@ def test_bytes_are_the_layout_s_exact_size_and_far_below_a_plain_mesh(bunny):
     n_nodes, n_clusters = len(dec.node_link), int(dec.cluster_of_face.max()) + 1
     expected = 52 + 10 * n_nodes + 18 * n_clusters + 6 * len(dec.vertices) + 3 * len(dec.faces)
     assert len(data) == expected and len(dec.faces) == mesh.n_triangles
+    assert compact_bytes(mesh, tree) == len(data)  # the verdict's fast count is the encoder's exact size
     per_triangle = len(data) / mesh.n_triangles
     assert 4 < per_triangle < 12 and mesh_resident_bytes(mesh, tree)["total"] > 4 * len(data)
 
