@@ -204,4 +204,7 @@ def compact_mesh(mesh: Mesh, tree=None) -> tuple[int, Mesh]:
     coordinates, for measuring the image error of what the layout holds)."""
     data = encode_compact(mesh, tree)
     dec = decode_compact(data)
-    return len(data), Mesh(vertices=dec.vertices, faces=dec.faces, transform=mesh.transform, name=mesh.name)
+    # a sliver the 16-bit grid collapsed to zero area is never hit (Embree skips it) and has no normal: left out
+    tri = dec.vertices[dec.faces].astype(np.float64)
+    keep = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1) > 0
+    return len(data), Mesh(vertices=dec.vertices, faces=dec.faces[keep], transform=mesh.transform, name=mesh.name)
