@@ -7,7 +7,7 @@ preset's own report uses 8 views).
 
 Resumable: one row per (mesh, preset, seconds) in bench/results/preset_curves.csv, appended as it lands; the chart
 bench/results/preset_curves.png and preset_curves.md are rewritten after every row. Needs an otherwise idle CPU
-(a time budget buys fewer steps on a busy one). An older run (16-feature presets, facing normals) is preset_curves_stop12.*.
+(a time budget buys fewer steps on a busy one). An older run (16-feature presets, facing normals) is preset_curves_16features_facing.*.
 """
 from __future__ import annotations
 

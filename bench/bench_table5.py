@@ -15,7 +15,7 @@ facing the ray); `--normal-loss facing|oriented|unoriented` gives every method o
 three.
 `--n-max auto` (default) lets every method's grid be chosen from the mesh and its table (`sizing.choose_resolution`,
 as the user presets do; base and III alike), `--n-max 128` is the paper's fixed grid (stem suffix `_nmax128`).
-Older runs (KMLP normal weight 0.5, N_max 128) are kept as table5_stop14_{facing,oriented,unoriented}_loss.csv.
+Older runs (KMLP normal weight 0.5, N_max 128) are kept as table5_kmlp_weight05_{facing,oriented,unoriented}_loss.csv.
 `--time-limit S` trains every model for S seconds instead of a step count (the default preset's 200 s is the users'
 budget; a slower step buys fewer steps), stem suffix `_time{S}`; needs an otherwise idle CPU.
 """
