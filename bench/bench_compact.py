@@ -12,22 +12,12 @@ plain / model file and compact / model file (above 1: the model is smaller).
 from __future__ import annotations
 
 import argparse
-import csv
-import os
-import platform
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results"
-
-
-def _stamp() -> dict:
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True)
-    return {"commit": commit.stdout.strip(), "machine": f"{platform.node()} {platform.machine()} cpus={os.cpu_count()}",
-            "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]])}
 
 
 def compact_row(pays: dict) -> dict:
@@ -63,20 +53,17 @@ def main() -> None:
     ap.add_argument("--storage", default="t8/w8/n8 n_max=auto:64", help="the pays.csv rows to compare (storage column)")
     ap.add_argument("--out", default=str(RESULTS / "compact.csv"))
     args = ap.parse_args()
-    rows = [r for r in csv.DictReader(open(RESULTS / "pays.csv")) if r["storage"] == args.storage]
-    out = Path(args.out)
-    done = {(r["mesh"], r["preset"], r["storage"]) for r in csv.DictReader(open(out))} if out.exists() else set()
+    sys.path[:0] = [str(ROOT / "bench")]
+    from harness import append_rows, read_rows, stamp
+
+    rows = [r for r in read_rows(RESULTS / "pays.csv") if r["storage"] == args.storage]
+    done = {(r["mesh"], r["preset"], r["storage"]) for r in read_rows(args.out)}
     for pays in rows:
         if (pays["mesh"], pays["preset"], pays["storage"]) in done:
             continue
-        row = {**_stamp(), **compact_row(pays)}
+        row = {**stamp(), **compact_row(pays)}
         print(row, flush=True)
-        new = not out.exists()
-        with open(out, "a", newline="") as f:  # one row as it lands: a rerun resumes
-            w = csv.DictWriter(f, fieldnames=list(row))
-            if new:
-                w.writeheader()
-            w.writerow(row)
+        append_rows(args.out, [row])  # one row as it lands: a rerun resumes
 
 
 if __name__ == "__main__":

@@ -12,9 +12,7 @@ one checkpoint period, 60 s by default) and the steps redone.
 from __future__ import annotations
 
 import argparse
-import csv
 import json
-import platform
 import signal
 import subprocess
 import sys
@@ -24,11 +22,6 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results"
-
-
-def _commit() -> str:
-    r = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True)
-    return r.stdout.strip() or "unknown"
 
 
 def _compress(mesh: str, out: Path, preset: str, extra: list[str]) -> list[str]:
@@ -88,9 +81,11 @@ def main() -> None:
     ap.add_argument("--straight", type=int, default=2, help="uninterrupted runs (the noise)")
     ap.add_argument("--out", default=str(RESULTS / "kill_resume.csv"))
     args = ap.parse_args()
-    sys.path[:0] = [str(ROOT)]
-    stamp = {"commit": _commit(), "machine": f"{platform.node()} {platform.machine()} cpus={__import__('os').cpu_count()}",
-             "mesh": args.mesh, "preset": args.preset, "command": " ".join(sys.argv)}
+    sys.path[:0] = [str(ROOT), str(ROOT / "bench")]
+    from harness import append_rows
+    from harness import stamp as run_stamp
+
+    stamp = {**run_stamp(), "mesh": args.mesh, "preset": args.preset}
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
@@ -103,15 +98,7 @@ def main() -> None:
             print(rows[-1], flush=True)
         rows.append({**stamp, **killed_run(args.mesh, args.preset, args.at, folder)})
         print(rows[-1], flush=True)
-    path = Path(args.out)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fields = list(dict.fromkeys(k for r in rows for k in r))
-    new = not path.exists()
-    with open(path, "a", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=fields)
-        if new:
-            w.writeheader()
-        w.writerows(rows)
+    append_rows(args.out, rows)
 
 
 if __name__ == "__main__":

@@ -12,9 +12,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import os
-import platform
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -28,18 +25,13 @@ MESHES = ("bunny", "spiky", "gyroid", "knot", "terrain", "lattice")
 NEURAL_STORAGE = ("t8/w8/n8 n_max=auto:64 normals=oriented", "t8/w8/n8 n_max=auto:64")
 
 
-def _stamp() -> dict:
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True)
-    return {"commit": commit.stdout.strip(), "machine": f"{platform.node()} {platform.machine()} cpus={os.cpu_count()}",
-            "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]])}
-
-
 def measure(name: str, done: set) -> None:
     """Append the rows of one mesh's decimations not yet in the CSV."""
     sys.path[:0] = [str(ROOT), str(ROOT / "bench")]
     import DracoPy
 
     from bench_meshes import bench_mesh
+    from harness import append_rows, stamp
     from nbvh_core.compact_mesh import compact_mesh
     from nbvh_core.exact import ExactTracer
     from nbvh_core.metrics import evaluate_renderer
@@ -57,17 +49,12 @@ def measure(name: str, done: set) -> None:
         tracer = ExactTracer(decoded)
         q, _ = evaluate_renderer(lambda cam, w, h: render_reference(tracer, cam, w, h), reference, mesh.transform,
                                  16, 128)
-        row = {**_stamp(), "mesh": name, "requested": count, "triangles": dec.n_triangles, "compact_mse": q.mse,
+        row = {**stamp(), "mesh": name, "requested": count, "triangles": dec.n_triangles, "compact_mse": q.mse,
                "plain_bytes": mesh_resident_bytes(dec)["total"], "compact_bytes": nbytes,
                "draco11_bytes": len(DracoPy.encode(dec.vertices, dec.faces, quantization_bits=11,
                                                    compression_level=7)),
                "seconds": round(time.perf_counter() - t0, 1)}
-        new = not OUT.exists()
-        with open(OUT, "a", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=list(row))
-            if new:
-                w.writeheader()
-            w.writerow(row)
+        append_rows(OUT, [row])
         print(name, count, q.mse, nbytes, flush=True)
 
 

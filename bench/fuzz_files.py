@@ -14,16 +14,13 @@ cap), executed (a payload created the canary file), over_memory (peak resident m
 from __future__ import annotations
 
 import argparse
-import csv
 import gzip
 import io
 import json
 import os
 import pickle
-import platform
 import resource
 import signal
-import subprocess
 import sys
 import tempfile
 import time
@@ -37,7 +34,7 @@ import numpy as np
 os.environ["OMP_NUM_THREADS"] = "1"
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results"
-sys.path[:0] = [str(ROOT), str(ROOT / "tests")]
+sys.path[:0] = [str(ROOT), str(ROOT / "tests"), str(ROOT / "bench")]
 CASE_SECONDS = 20
 MEMORY_CAP = 4 << 30  # address space a case may add (a runaway allocation fails instead of swapping)
 
@@ -309,13 +306,6 @@ def run_case(reader, path: Path, data: bytes, mesh, canary: Path) -> tuple[str, 
     return result["out"], grown, result["detail"]
 
 
-def _stamp() -> dict:
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True)
-    return {"commit": commit.stdout.strip(), "machine": f"{platform.node()} {platform.machine()} "
-                                                         f"cpus={os.cpu_count()}",
-            "date": time.strftime("%Y-%m-%d %H:%M"), "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]])}
-
-
 def main() -> None:
     import warnings
 
@@ -354,7 +344,9 @@ def main() -> None:
                 failures.append({"i": i, "kind": kind, "file": name, "out": out, "detail": detail})
             if (i + 1) % 500 == 0:
                 print(f"{i + 1} cases: {counts}", flush=True)
-    row = {**_stamp(), "reader": args.kind, "cases": args.cases, "seed": args.seed,
+    from harness import append_rows, stamp
+
+    row = {**stamp(), "date": time.strftime("%Y-%m-%d %H:%M"), "reader": args.kind, "cases": args.cases, "seed": args.seed,
            **{k: counts.get(k, 0) for k in ("read", "refused", "other", "crash", "hang", "executed", "over_memory")},
            "max_added_rss_mb": round(peak / 1024, 1), "seconds": round(time.time() - t0, 1)}
     print(row)
@@ -362,14 +354,7 @@ def main() -> None:
         print(f)
     if args.failures:
         Path(args.failures).write_text("".join(json.dumps(f) + "\n" for f in failures))
-    path = Path(args.out)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    new = not path.exists()
-    with open(path, "a", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(row))
-        if new:
-            w.writeheader()
-        w.writerow(row)
+    append_rows(args.out, [row])
 
 
 if __name__ == "__main__":

@@ -17,7 +17,6 @@ from nbvh_core.checkpoint import CheckpointError, decode_checkpoint, encode_chec
 from nbvh_core.cli import main
 from nbvh_core.mesh import MeshError, load_mesh
 from nbvh_core.pipeline import compress_mesh, preset
-from nbvh_core.samples_dir import sample_path
 
 ROOT = Path(__file__).resolve().parent.parent
 
