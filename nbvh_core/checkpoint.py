@@ -122,7 +122,7 @@ def decode_checkpoint(data: bytes, where: str = "<bytes>") -> Checkpoint:
     if data[:4] in _PICKLE_MAGIC or data[:2] in _PICKLE_MAGIC:
         raise CheckpointError(f"{where}: a pickled checkpoint (an older version's format, which can run code when "
                               "loaded); it is never opened: run again without --resume")
-    entries, meta, payload_start = _parse_container(data, where)
+    entries, meta = _parse_container(data, where)
     header = _check_header(meta, where)
     from safetensors.torch import load
 
@@ -132,12 +132,12 @@ def decode_checkpoint(data: bytes, where: str = "<bytes>") -> Checkpoint:
         raise CheckpointError(f"{where}: damaged tensor data ({type(exc).__name__})") from None
     if set(tensors) != set(entries):
         raise CheckpointError(f"{where}: damaged tensor table")
-    _check_tensors(tensors, header, where)
+    _check_tensors(tensors, where)
     return Checkpoint(header, tensors)
 
 
-def _parse_container(data: bytes, where: str) -> tuple[dict, str, int]:
-    """The safetensors table checked against the file: (entries, the 'nbvh' metadata string, payload start)."""
+def _parse_container(data: bytes, where: str) -> tuple[dict, str]:
+    """The safetensors table checked against the file: (entries, the 'nbvh' metadata string)."""
     if len(data) < 8:
         raise CheckpointError(f"{where}: too short to be a checkpoint ({len(data)} bytes)")
     (hlen,) = struct.unpack_from("<Q", data, 0)
@@ -160,7 +160,7 @@ def _parse_container(data: bytes, where: str) -> tuple[dict, str, int]:
     spans.sort()
     if any(a[1] > b[0] for a, b in zip(spans, spans[1:])):
         raise CheckpointError(f"{where}: damaged tensor table (overlapping tensors)")
-    return table, meta, 8 + hlen
+    return table, meta
 
 
 def _check_entry(name, entry, payload: int, where: str) -> tuple[int, int]:
@@ -234,7 +234,7 @@ def _check_rng(rng, where: str) -> dict | None:
     return rng
 
 
-def _check_tensors(tensors: dict, header: dict, where: str) -> None:
+def _check_tensors(tensors: dict, where: str) -> None:
     """The tensors every checkpoint holds, with the dtypes and shapes that do not depend on the model."""
     expected_rng = torch.get_rng_state()
     rng = tensors.get("torch_rng")
