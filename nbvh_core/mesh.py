@@ -7,7 +7,6 @@ so distances, points and images can be reported in the user's units.
 """
 from __future__ import annotations
 
-import gzip
 import io
 import os
 import warnings
