@@ -83,7 +83,7 @@ def start(context, objects, req: Request, python: str | None = None) -> tuple[Se
     for obj in objects:
         try:
             # Bytes of the mesh as Blender stores it: the evaluated one, so modifiers count.
-            verts, tris, session.blender_bytes[obj.name] = export.evaluated_triangles(obj, depsgraph)
+            verts, tris, session.blender_bytes[obj.name], look = export.evaluated_triangles(obj, depsgraph)
             session.triangles[obj.name] = len(tris)
             session.textures[obj.name] = export.asset_textures(obj)
         except export.ExportError as exc:
@@ -103,7 +103,7 @@ def start(context, objects, req: Request, python: str | None = None) -> tuple[Se
             job_request["resume"] = str(checkpoint)
         job = session.queue.submit(name, job_request)
         mesh_path = job.workdir / "mesh.npz"
-        np.savez(mesh_path, vertices=verts, faces=tris)
+        np.savez(mesh_path, vertices=verts, faces=tris, **look)
         job.request["mesh"] = str(mesh_path)
         session.objects[job.id] = obj.name
     scene_jobs = [j for j in session.queue.jobs if j.id in session.objects]

@@ -14,9 +14,10 @@ class ExportError(ValueError):
     """The object cannot be compressed; the message names it and says why."""
 
 
-def evaluated_triangles(obj, depsgraph) -> tuple[np.ndarray, np.ndarray, dict]:
-    """(V, 3) float32 vertices, (F, 3) int32 triangle indices and `mesh_data_bytes` of `obj` as evaluated in
-    `depsgraph` (one evaluation serves both).
+def evaluated_triangles(obj, depsgraph) -> tuple[np.ndarray, np.ndarray, dict, dict]:
+    """(V, 3) float32 vertices, (F, 3) int32 triangle indices, `mesh_data_bytes` and the look's arrays
+    (`look_arrays`: slots, coordinates, materials; {} without material slots) of `obj` as evaluated in
+    `depsgraph` (one evaluation serves all).
 
     Coordinates are object-local (the world matrix is applied by the previews, so the result sits on the
     original). Raises ExportError for objects that have no surface.
@@ -43,13 +44,86 @@ def evaluated_triangles(obj, depsgraph) -> tuple[np.ndarray, np.ndarray, dict]:
         tris = np.empty(n_t * 3, np.int32)
         mesh.loop_triangles.foreach_get("vertices", tris)
         blender_bytes = mesh_data_bytes(mesh)
+        look = look_arrays(obj, mesh)
     finally:
         obj_eval.to_mesh_clear()
     verts = verts.reshape(-1, 3)
     if not np.isfinite(verts).all():
         raise ExportError(f"'{obj.name}' has {int((~np.isfinite(verts).all(1)).sum())} vertices with NaN or "
                           "infinite coordinates")
-    return verts, tris.reshape(-1, 3), blender_bytes
+    return verts, tris.reshape(-1, 3), blender_bytes, look
+
+
+def look_arrays(obj, mesh) -> dict:
+    """The .npz members of an object's look (nbvh_core.look.LOOK_MEMBERS): per-triangle material slot, per-corner
+    coordinates of the active UV map, per slot the base colour (linear RGBA) and the image feeding Base Color
+    (uint8, row 0 at the top). {} when the object has no material slots (it keeps its single colour)."""
+    slots = list(getattr(obj, "material_slots", []))
+    if not slots:
+        return {}
+    n_t = len(mesh.loop_triangles)
+    out = {}
+    mat_index = np.empty(n_t, np.int32)
+    mesh.loop_triangles.foreach_get("material_index", mat_index)
+    out["face_slots"] = np.clip(mat_index, 0, len(slots) - 1)
+    uv_layer = mesh.uv_layers.active if len(mesh.uv_layers) else None
+    if uv_layer is not None:
+        uv = np.empty(len(mesh.loops) * 2, np.float32)
+        uv_layer.data.foreach_get("uv", uv)
+        loops = np.empty(n_t * 3, np.int32)
+        mesh.loop_triangles.foreach_get("loops", loops)
+        out["corner_uvs"] = uv.reshape(-1, 2)[loops].reshape(n_t, 3, 2)
+    colors, names = [], []
+    for i, slot in enumerate(slots):
+        color, image = material_look(slot.material)
+        colors.append(color)
+        names.append(slot.material.name if slot.material is not None else f"slot{i}")
+        if image is not None:
+            out[f"image_{i}"] = image
+    out["base_colors"] = np.asarray(colors, np.float32)
+    out["material_names"] = np.array(names, dtype=str)
+    return out
+
+
+#: Largest image side exported with a look (bigger images are left out: the slot shows its base colour).
+MAX_EXPORT_SIDE = 8192
+
+
+def material_look(mat) -> tuple[list[float], np.ndarray | None]:
+    """(linear RGBA base colour, image (H, W, 4) uint8 sRGB or None) of a material: the Principled or Diffuse BSDF
+    feeding the output, its Base Color's value or the Image Texture linked to it; the viewport colour otherwise."""
+    if mat is None:
+        return [0.8, 0.8, 0.8, 1.0], None
+    color = list(mat.diffuse_color)
+    if not mat.use_nodes or mat.node_tree is None:
+        return color, None
+    bsdf = next((n for n in mat.node_tree.nodes if n.type in ("BSDF_PRINCIPLED", "BSDF_DIFFUSE")), None)
+    if bsdf is None:
+        return color, None
+    socket = bsdf.inputs.get("Base Color") or bsdf.inputs.get("Color")
+    if socket is None:
+        return color, None
+    if socket.is_linked and socket.links[0].from_node.type == "TEX_IMAGE":
+        img = socket.links[0].from_node.image
+        return list(socket.default_value), image_pixels(img)
+    return list(socket.default_value), None
+
+
+def image_pixels(img) -> np.ndarray | None:
+    """(H, W, 4) uint8 of a Blender image, row 0 at the top, sRGB-encoded (float images are encoded here); None
+    when it has no pixels or is over MAX_EXPORT_SIDE."""
+    if img is None:
+        return None
+    w, h = int(img.size[0]), int(img.size[1])
+    if not (0 < w <= MAX_EXPORT_SIDE and 0 < h <= MAX_EXPORT_SIDE):
+        return None
+    px = np.empty(w * h * 4, np.float32)
+    img.pixels.foreach_get(px)
+    px = px.reshape(h, w, 4)[::-1]
+    if img.is_float:
+        rgb = np.clip(px[..., :3], 0.0, 1.0)
+        px[..., :3] = np.where(rgb <= 0.0031308, rgb * 12.92, 1.055 * rgb ** (1 / 2.4) - 0.055)
+    return np.ascontiguousarray(np.clip(px * 255 + 0.5, 0, 255).astype(np.uint8))
 
 
 def asset_textures(obj) -> tuple[dict, int]:

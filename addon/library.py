@@ -51,12 +51,12 @@ def start_scene_report(context, out_dir: Path, settings: dict, python: str | Non
         if obj.type != "MESH":
             continue
         try:
-            verts, tris, _ = export.evaluated_triangles(obj, depsgraph)
+            verts, tris, _, look = export.evaluated_triangles(obj, depsgraph)
         except export.ExportError as exc:
             refusals.append(str(exc))
             continue
         stem = f"{len(lines):04d}_{''.join(c if c.isalnum() else '_' for c in obj.name)}"
-        np.savez(mesh_dir / f"{stem}.npz", vertices=verts, faces=tris)
+        np.savez(mesh_dir / f"{stem}.npz", vertices=verts, faces=tris, **look)
         lines.append(str(mesh_dir / f"{stem}.npz"))
         names[stem] = obj.name
     if not lines:

@@ -69,9 +69,9 @@ def _mesh_to_points_group(radius: float):
 
 
 def make_proxy(obj, points: np.ndarray, scene, radius: float | None = None):
-    """Point-cloud proxy from (P, 6) object-local points + normals; returns the new object.
-
-    radius: point radius in object-local units (default 0.4% of the points' bounding-box diagonal)."""
+    """Point-cloud proxy from (P, 6) object-local points + normals, or (P, 9) with each point's linear colour (the
+    model's look at the point: a colour attribute "nbvh_color" and a material that shows it); returns the new
+    object. radius: point radius in object-local units (default 0.4% of the points' bounding-box diagonal)."""
     name = f"{obj.name}{PROXY_SUFFIX}"
     remove_proxy(obj)
     coll = _collection_for(obj, scene)
@@ -98,10 +98,34 @@ def make_proxy(obj, points: np.ndarray, scene, radius: float | None = None):
         proxy = bpy.data.objects.new(name, mesh)
         mod = proxy.modifiers.new("NBVH points", "NODES")
         mod.node_group = _mesh_to_points_group(radius)
+    if points.ndim == 2 and points.shape[1] >= 9:
+        _colour_points(proxy, np.ascontiguousarray(points[:, 6:9], np.float32))
     proxy.matrix_world = beside_matrix(obj)
     proxy["nbvh_source"] = obj.name
     coll.objects.link(proxy)
     return proxy
+
+
+#: The point attribute that holds a proxy point's colour, and the material that shows it.
+COLOR_ATTRIBUTE = "nbvh_color"
+
+
+def _colour_points(proxy, colors: np.ndarray) -> None:
+    """Store per-point linear colours on the proxy's points and give it a material reading them (Attribute node
+    -> Base Color), so material preview, F12 and Cycles show the look the model learnt."""
+    data = proxy.data
+    attr = data.attributes.new(COLOR_ATTRIBUTE, "FLOAT_COLOR", "POINT")
+    rgba = np.concatenate([colors, np.ones((len(colors), 1), np.float32)], axis=1)
+    attr.data.foreach_set("color", rgba.ravel())
+    mat = bpy.data.materials.get("NBVH proxy colour") or bpy.data.materials.new("NBVH proxy colour")
+    mat.use_nodes = True
+    nodes = mat.node_tree.nodes
+    if not any(n.type == "ATTRIBUTE" for n in nodes):
+        bsdf = next(n for n in nodes if n.type == "BSDF_PRINCIPLED")
+        node = nodes.new("ShaderNodeAttribute")
+        node.attribute_name = COLOR_ATTRIBUTE
+        mat.node_tree.links.new(node.outputs["Color"], bsdf.inputs["Base Color"])
+    data.materials.append(mat)
 
 
 def find_proxy(obj):

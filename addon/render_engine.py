@@ -133,10 +133,10 @@ class MeshFiles:
     def path_for(self, obj, depsgraph) -> str:
         """The object's evaluated mesh as .npz (object-local). Raises export.ExportError."""
         if obj.name not in self.files:
-            verts, tris, _ = export.evaluated_triangles(obj, depsgraph)
+            verts, tris, _, look = export.evaluated_triangles(obj, depsgraph)
             self.version += 1
             path = self.dir / f"{self.version}.npz"
-            np.savez(path, vertices=verts, faces=tris)
+            np.savez(path, vertices=verts, faces=tris, **look)
             self.files[obj.name] = str(path)
         return self.files[obj.name]
 

@@ -459,7 +459,7 @@ def test_disabled_compress_says_why_and_the_report_opens_without_a_browser():
 
 def test_text_converts_to_mesh():
     export = ADDON["export"]
-    verts, tris, nbytes = export.evaluated_triangles(bpy.data.objects["Label"], bpy.context.evaluated_depsgraph_get())
+    verts, tris, nbytes, _ = export.evaluated_triangles(bpy.data.objects["Label"], bpy.context.evaluated_depsgraph_get())
     assert len(verts) > 10 and tris.shape[1] == 3 and tris.max() < len(verts)
     assert nbytes["positions"] == len(verts) * 12
 

@@ -71,7 +71,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     cam = Camera(position=np.array([0.5 + 1.25, 0.5 + 0.8, 0.5 + 1.25]), target=np.full(3, 0.5),
                  up=np.array([0.0, 1.0, 0.0]))
     ref = render_reference(tracer, cam, args.size, args.size)
-    save_png(out / "reference.png", ref.image)
+    save_png(out / "reference.png", ref.display)
     # Leaf colouring: owner leaf of the visible triangle, random colour per leaf, modulated by the shading.
     o, d = cam.rays(args.size, args.size)
     fh = tracer.first_hit(o, d)
@@ -107,6 +107,11 @@ def _load_mesh_reporting(arg: str):
     for w in caught:
         print(f"warning: {w.message}", file=sys.stderr)
     return mesh
+
+
+def _rgb(image: np.ndarray) -> np.ndarray:
+    """(H, W) grey or (H, W, 3) colour -> (H, W, 3), so a bare reference and a coloured model sit side by side."""
+    return image if image.ndim == 3 else np.repeat(image[..., None], 3, axis=2)
 
 
 def _fmt_bytes(n: int) -> str:
@@ -205,7 +210,7 @@ def _compress_locked(args, mesh, mesh_path, out, stem, outputs, sink, staged) ->
     cam = orbit_cameras(1)[0] if args.view is None else orbit_cameras(args.views or 16)[args.view]
     ref = render_reference(result.tracer, cam, args.size, args.size)
     neu = render_neural(result.model, cam, args.size, args.size)
-    png = png_bytes(np.concatenate([ref.image, neu.image], axis=1))
+    png = png_bytes(np.concatenate([_rgb(ref.display), _rgb(neu.display)], axis=1))
     staged.stage(out, result.data)
     staged.stage(outputs[1], json.dumps(summary, indent=2).encode())
     staged.stage(outputs[2], png)
@@ -252,7 +257,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     t = time.perf_counter()
     res = render_neural(model, cam, args.width, args.height or args.width)
     dt = time.perf_counter() - t
-    save_png(args.output, res.image)
+    save_png(args.output, res.display)
     n = res.image.size
     print(f"wrote {args.output} ({args.width}x{args.height or args.width}, {dt:.2f} s, {n / dt:,.0f} rays/s)")
     return 0

@@ -48,7 +48,9 @@ import torch
 
 from .bvh import MAX_NODES, NODE_DTYPE
 from .encodings import ENCODINGS, EncodingConfig
+from .appearance import AppearanceConfig, AppearanceHead
 from .encodings.base import code_width, level_vertex_counts
+from .look import MAX_SLOTS, MAX_TEXTURE_SIDE, LookError, Material, decode_png, encode_png
 from .mesh import Transform
 from .model import ModelConfig, NeuralBVH
 from .networks import NETWORKS, NetworkConfig
@@ -57,9 +59,16 @@ from .quantize import NONE16, StorageConfig, decode_nodes, encode_nodes, quantiz
 
 MAGIC = b"NBVH\x00\r\n\x1a"
 VERSION_MAJOR = 2
-VERSION_MINOR = 2  # 2.1: network_bits 8 (a 2.0 reader refuses such a file by its storage field); 2.2: HashVQAD's
-#                    index holds its reachable entries only (a 2.1 reader refuses such a file by the index's shape)
+VERSION_MINOR = 3  # 2.1: network_bits 8 (a 2.0 reader refuses such a file by its storage field); 2.2: HashVQAD's
+#                    index holds its reachable entries only (a 2.1 reader refuses such a file by the index's shape);
+#                    2.3: the asset's look (header `appearance`, tensors appearance.* and texture.*; a 2.2 reader
+#                    refuses such a file by its tensors)
 REACHABLE_INDEX_SINCE = (2, 2)
+APPEARANCE_SINCE = (2, 3)
+#: A texture's decoded pixels may be at most this many times its PNG's bytes (a flat 4k image compresses ~1300x)
+#: or MIN_TEXTURE_ALLOWANCE, whichever is larger: a crafted tiny PNG cannot ask for gigabytes.
+TEXTURE_INFLATION = 4096
+MIN_TEXTURE_ALLOWANCE = 16 << 20
 READABLE_MAJORS = (1, 2)
 _PREFIX = struct.Struct("<8sHHI")
 _ALIGN = 8
@@ -156,7 +165,42 @@ def _tensors(model: NeuralBVH, storage: StorageConfig) -> list[tuple[str, str, b
             out.append(("index", "index", pack_codes(full, enc.code_bits()), list(full.shape)))
     for name, arr in _network_arrays(model, storage.network_bits):
         out.append((f"network.{name}", "network", arr.tobytes(), list(arr.shape)))
+    return out + _look_tensors(model, storage)
+
+
+def _look_tensors(model: NeuralBVH, storage: StorageConfig) -> list[tuple[str, str, bytes, list[int]]]:
+    """The appearance head's table and network, then every slot image as PNG bytes (file format 2.3)."""
+    out = []
+    head = model.appearance
+    if head is not None:
+        enc = head.encoding
+        if storage.table_bits == 8:
+            if not enc.quantized:
+                raise ValueError("an 8-bit appearance table must be quantized first (appearance.finalize_head)")
+            out.append(("appearance.features", "appearance", enc.qcodes.cpu().numpy().tobytes(),
+                        list(enc.qcodes.shape)))
+            for part, t in (("offset", enc.qoffset), ("scale", enc.qscale)):
+                arr = t.detach().cpu().numpy().astype(np.float32)
+                out.append((f"appearance.features.{part}", "appearance", arr.tobytes(), list(arr.shape)))
+        else:
+            table = enc.float_rows().detach().cpu().numpy().astype(_float_dtype(storage.table_bits))
+            out.append(("appearance.features", "appearance", table.tobytes(), list(table.shape)))
+        fdt = np.float32 if storage.network_bits == 32 else np.float16
+        for name, p in head.network.state_dict().items():
+            arr = p.detach().cpu().numpy().astype(fdt)
+            out.append((f"appearance.network.{name}", "appearance", arr.tobytes(), list(arr.shape)))
+    for i, m in enumerate(model.materials):
+        if m.image is not None:
+            png = encode_png(m.image)
+            out.append((f"texture.{i}", "textures", png, [len(png)]))
     return out
+
+
+def _look_header(model: NeuralBVH) -> dict | None:
+    if not model.materials:
+        return None
+    return {"config": None if model.appearance is None else model.appearance.cfg.to_dict(),
+            "materials": [m.to_dict() for m in model.materials]}
 
 
 def _network_arrays(model: NeuralBVH, bits: int) -> list[tuple[str, np.ndarray]]:
@@ -191,6 +235,9 @@ def encode_nbvh(model: NeuralBVH, metadata: dict | None = None, storage: Storage
         offset += len(data) + (-len(data)) % _ALIGN
     header = {"format": "nbvh", "config": model.cfg.to_dict(), "transform": model.transform.to_dict(),
               "storage": storage.to_dict(), "tensors": table, "metadata": metadata or {}}
+    look = _look_header(model)
+    if look is not None:
+        header["appearance"] = look
     hdr = json.dumps(header, separators=(",", ":"), sort_keys=True, allow_nan=False).encode()
     hdr += b" " * ((-(_PREFIX.size + len(hdr))) % _ALIGN)  # align the payload
     parts = [_PREFIX.pack(MAGIC, VERSION_MAJOR, VERSION_MINOR, len(hdr)), hdr]
@@ -396,6 +443,8 @@ def _check_header(header: dict, payload: int, where: str) -> None:
     if node_tensor is None or len(node_tensor["shape"]) != 1 or not 1 <= node_tensor["shape"][0] <= MAX_NODES:
         raise NBVHFileError(f"{where}: the BVH tensor is missing or its node count is not in [1, {MAX_NODES}]")
     expected = _expected_tensors(cfg, storage, node_tensor["shape"][0], (header["_major"], header["_minor"]))
+    look = _look_spec(header, where)
+    expected.update(_look_expected(look, storage, by_name, where))
     if set(expected) != set(by_name):
         missing, extra = sorted(set(expected) - set(by_name)), sorted(set(by_name) - set(expected))
         raise NBVHFileError(f"{where}: tensors do not match the config (missing {missing[:3]}, unexpected "
@@ -410,6 +459,70 @@ def _check_header(header: dict, payload: int, where: str) -> None:
             raise NBVHFileError(f"{where}: tensor {t['name']!r} overlaps the one before it")
         end = t["offset"] + t["nbytes"]
     header["_config"], header["_storage"], header["_expected"] = cfg, storage, expected
+    header["_look"] = look
+
+
+def _look_spec(header: dict, where: str) -> tuple[AppearanceConfig | None, list[dict]] | None:
+    """The header's `appearance` (format 2.3), checked: (head config or None, materials), or None when absent."""
+    look = header.get("appearance")
+    if look is None:
+        return None
+    if (header["_major"], header["_minor"]) < APPEARANCE_SINCE:
+        raise NBVHFileError(f"{where}: an 'appearance' field in a format {header['_major']}.{header['_minor']} file")
+    if not isinstance(look, dict) or set(look) != {"config", "materials"}:
+        raise NBVHFileError(f"{where}: header field 'appearance' must hold exactly 'config' and 'materials'")
+    mats = look["materials"]
+    if not isinstance(mats, list) or not 1 <= len(mats) <= MAX_SLOTS:
+        raise NBVHFileError(f"{where}: appearance.materials must be a list of 1 to {MAX_SLOTS} materials")
+    for m in mats:
+        color = m.get("base_color") if isinstance(m, dict) else None
+        image = m.get("image") if isinstance(m, dict) else None
+        if (not isinstance(m, dict) or set(m) != {"name", "base_color", "image"} or not isinstance(m["name"], str)
+                or len(m["name"]) > 256 or not isinstance(color, list) or len(color) != 4
+                or not all(isinstance(c, (int, float)) and not isinstance(c, bool) and 0 <= c <= 1 for c in color)):
+            raise NBVHFileError(f"{where}: a material needs a name and a base_color of 4 numbers in [0, 1]")
+        if image is not None and not (isinstance(image, list) and len(image) == 3 and all(
+                isinstance(v, int) and not isinstance(v, bool) for v in image) and 1 <= image[0] <= MAX_TEXTURE_SIDE
+                and 1 <= image[1] <= MAX_TEXTURE_SIDE and image[2] in (3, 4)):
+            raise NBVHFileError(f"{where}: material {m['name'][:40]!r}: image must be [height, width, 3|4] with "
+                                f"sides up to {MAX_TEXTURE_SIDE}")
+    cfg = None
+    if look["config"] is not None:
+        cfg = _config_from(look["config"], AppearanceConfig, where, "appearance config")
+        if cfg.slots != (len(mats) if len(mats) > 1 else cfg.slots) or not 1 <= cfg.slots <= MAX_SLOTS \
+                or cfg.outputs == 0:
+            raise NBVHFileError(f"{where}: the appearance head's {cfg.slots} slots do not match {len(mats)} materials")
+    return cfg, mats
+
+
+def _look_expected(look, storage: StorageConfig, by_name: dict, where: str) -> dict[str, tuple[tuple, str]]:
+    """name -> (shape, dtype) of the appearance head's tensors and the textures (each PNG as long as its entry
+    says, its decoded size bounded by TEXTURE_INFLATION x its bytes)."""
+    if look is None:
+        return {}
+    cfg, mats = look
+    out: dict[str, tuple[tuple, str]] = {}
+    if cfg is not None:
+        L, T, F = cfg.levels, 1 << cfg.log2_table, cfg.features
+        if storage.table_bits == 8:
+            out.update({"appearance.features": ((L, T, F), "u1"), "appearance.features.offset": ((L, F), "<f4"),
+                        "appearance.features.scale": ((L, F), "<f4")})
+        else:
+            out["appearance.features"] = ((L, T, F), "<f2" if storage.table_bits == 16 else "<f4")
+        with torch.device("meta"):
+            head = AppearanceHead(cfg, inference=True)
+        fdt = "<f4" if storage.network_bits == 32 else "<f2"
+        out.update({f"appearance.network.{n}": (tuple(p.shape), fdt) for n, p in head.network.state_dict().items()})
+    for i, m in enumerate(mats):
+        if m["image"] is None:
+            continue
+        entry = by_name.get(f"texture.{i}")
+        nbytes = entry["nbytes"] if entry is not None else 0
+        h, w, c = m["image"]
+        if h * w * c > max(MIN_TEXTURE_ALLOWANCE, TEXTURE_INFLATION * nbytes):
+            raise NBVHFileError(f"{where}: texture {i} declares {w}x{h}x{c} pixels from {nbytes} bytes of PNG")
+        out[f"texture.{i}"] = ((nbytes,), "u1")
+    return out
 
 
 def _check_metadata(meta: dict, where: str) -> None:
@@ -523,9 +636,44 @@ def _decode(data: bytes, header: dict, where: str, device: str | torch.device = 
         _load_network(model, storage.network_bits, array, [n for n in expected if n.startswith("network.")])
         if compact is not None:
             model.hold_nodes_compact(compact)
+        if header.get("_look") is not None:
+            _load_look(model, header["_look"], storage.table_bits, array, where)
     model.metadata = header.get("metadata", {})
     model.storage = storage
     return model.to(device).eval()
+
+
+def _load_look(model: NeuralBVH, look: tuple, table_bits: int, array, where: str) -> None:
+    """The materials (textures decoded from their PNGs) and the appearance head, held as stored."""
+    cfg, mats = look
+    materials = []
+    for i, m in enumerate(mats):
+        image = None
+        if m["image"] is not None:
+            try:
+                image = decode_png(array(f"texture.{i}").tobytes(), tuple(m["image"]), where)
+            except LookError as exc:
+                raise NBVHFileError(str(exc)) from None
+        materials.append(Material(m["name"], np.asarray(m["base_color"], np.float32), image))
+    model.materials = materials
+    if cfg is None:
+        return
+    head = AppearanceHead(cfg, inference=True)
+    enc = head.encoding
+    if table_bits == 8:
+        scale = array("appearance.features.scale")
+        if (scale <= 0).any():
+            raise NBVHFileError(f"{where}: appearance feature scales must be > 0")
+        enc.set_quantized(torch.from_numpy(array("appearance.features")),
+                          torch.from_numpy(array("appearance.features.offset")), torch.from_numpy(scale))
+    else:
+        enc.table = torch.nn.Parameter(torch.from_numpy(array("appearance.features").astype(np.float32)),
+                                       requires_grad=False)
+    state = {n: torch.from_numpy(array(f"appearance.network.{n}").astype(np.float32))
+             for n in head.network.state_dict()}
+    head.network.load_state_dict(state)
+    head.requires_grad_(False)
+    model.appearance = head.eval()
 
 
 def _load_network(model: NeuralBVH, bits: int, array, names: list[str]) -> None:

@@ -37,7 +37,8 @@ from .process import Cancelled
 
 
 def proxy_points(model, n_points: int, seed: int = 0) -> np.ndarray:
-    """(P, 6) float32 points + unit normals on the model's surface, in the mesh's original coordinates.
+    """(P, 6) float32 points + unit normals on the model's surface, in the mesh's original coordinates; (P, 9)
+    with each point's linear RGB albedo (the model's look) when the model carries materials.
 
     Rays from a sphere around the asset toward random points of its box; every predicted hit is a point
     (P <= n_points). Computed from the neural model only (the mesh is not used), so the proxy shows what
@@ -57,11 +58,13 @@ def proxy_points(model, n_points: int, seed: int = 0) -> np.ndarray:
         hit = q.hit.cpu().numpy()
         p = o[hit] + q.t.cpu().numpy()[hit, None] * d[hit]
         n = q.normal.cpu().numpy()[hit]
-        pts.append(np.concatenate((model.transform.to_original(p), n), axis=1))
+        colour = model.albedo_at(np.clip(p, 0.0, 1.0))  # None for a bare shape
+        pts.append(np.concatenate((model.transform.to_original(p), n) + (() if colour is None else (colour,)),
+                                  axis=1))
         have += int(hit.sum())
         if have >= n_points:
             break
-    out = np.concatenate(pts)[:n_points] if pts else np.zeros((0, 6))
+    out = np.concatenate(pts)[:n_points] if pts else np.zeros((0, 9 if model.materials else 6))
     return out.astype(np.float32)
 
 
@@ -142,8 +145,7 @@ def run_job(request: dict, events, should_cancel) -> dict:
     """Run one request (see module docstring); returns the `result` event it emits."""
     if request.get("kind") == "batch":
         return run_batch_job(request, events, should_cancel)
-    from .batch import read_mesh_arrays
-    from .mesh import mesh_from_arrays
+    from .batch import mesh_from_npz
     from .outputs import OutputLock, OutputSet, check_outputs
     from .pipeline import resume_settings
     from .settings import preset
@@ -151,8 +153,7 @@ def run_job(request: dict, events, should_cancel) -> dict:
     name = request["name"]
     out_dir = Path(request["out_dir"])
     out_dir.mkdir(parents=True, exist_ok=True)
-    arrays = read_mesh_arrays(request["mesh"])  # data only: pickled or oversized arrays are refused
-    mesh = mesh_from_arrays(arrays["vertices"], arrays["faces"], name=name)
+    mesh = mesh_from_npz(request["mesh"], name)  # data only: pickled or oversized arrays are refused
     for msg in mesh.repairs:
         events({"event": "warning", "message": msg})
     spec = dict(request.get("settings") or {})
@@ -216,8 +217,8 @@ def _run_locked(request, events, should_cancel, mesh, settings, scene_split, fil
     events({"event": "phase", "phase": "preview", "message": f"{w}x{h} image, proxy points"})
     neural = render_neural(model, cam, w, h)
     reference = render_reference(result.tracer or ExactTracer(mesh), cam, w, h)
-    staged.stage(Path(files["preview"]), png_bytes(neural.image))
-    staged.stage(Path(files["reference"]), png_bytes(reference.image))
+    staged.stage(Path(files["preview"]), png_bytes(neural.display))
+    staged.stage(Path(files["reference"]), png_bytes(reference.display))
     import io
 
     buf = io.BytesIO()

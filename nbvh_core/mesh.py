@@ -15,6 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .look import Look, LookError, Material, check_look, image_from_pil
+
 #: File extensions `load_mesh` reads (a trailing `.gz` is decompressed first).
 SUPPORTED_EXTENSIONS = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf")
 #: The largest mesh file (or decompressed .gz, or file a glTF/OBJ refers to) `load_mesh` reads: a 20M-triangle
@@ -70,6 +72,7 @@ class Mesh:
     """A validated triangle mesh in normalised coordinates.
 
     vertices: (V, 3) float32 inside [0, 1]^3; faces: (F, 3) int32, every index in [0, V), no degenerate triangle.
+    look: the faces' material slots, texture coordinates and materials (`look.Look`), or None (a bare shape).
     """
 
     vertices: np.ndarray
@@ -78,6 +81,7 @@ class Mesh:
     name: str = "mesh"
     #: Repairs made while loading, as readable sentences (also emitted as `MeshWarning`).
     repairs: tuple[str, ...] = field(default=())
+    look: Look | None = None
 
     @property
     def n_triangles(self) -> int:
@@ -103,10 +107,12 @@ class Mesh:
         return float(0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum())
 
 
-def mesh_from_arrays(vertices: np.ndarray, faces: np.ndarray, name: str = "mesh") -> Mesh:
+def mesh_from_arrays(vertices: np.ndarray, faces: np.ndarray, name: str = "mesh", look: Look | None = None) -> Mesh:
     """Validate raw arrays and normalise them into the unit box.
 
-    vertices: (V, 3) float, any units; faces: (F, 3) integer indices into vertices.
+    vertices: (V, 3) float, any units; faces: (F, 3) integer indices into vertices; look: per-face slots,
+    per-corner texture coordinates and materials aligned with `faces` (checked; `LookError` is a `MeshError`'s
+    sibling ValueError naming the problem), kept aligned when faces are dropped.
     Raises `MeshError` for an empty mesh, NaN/inf coordinates, out-of-range indices or non-triangle faces.
     Degenerate triangles (repeated index or zero area) are dropped with a `MeshWarning` that gives the count.
     The input arrays are never modified.
@@ -146,6 +152,11 @@ def mesh_from_arrays(vertices: np.ndarray, faces: np.ndarray, name: str = "mesh"
         raise MeshError(f"{name}: {n_bad} faces index vertices out of range (indices span [{lo}, {hi}], "
                         f"but there are {len(v)} vertices)")
 
+    if look is not None:
+        try:
+            look = check_look(look, len(f), name)
+        except LookError as exc:
+            raise MeshError(str(exc)) from None
     repairs: list[str] = []
     tri = v[f]
     cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
@@ -161,6 +172,7 @@ def mesh_from_arrays(vertices: np.ndarray, faces: np.ndarray, name: str = "mesh"
         repairs.append(msg)
         warnings.warn(msg, MeshWarning, stacklevel=2)
         f = f[~degenerate]
+        look = look.subset(~degenerate) if look is not None else None
 
     used = v[np.unique(f)]
     box_lo, box_hi = used.min(axis=0), used.max(axis=0)
@@ -171,7 +183,14 @@ def mesh_from_arrays(vertices: np.ndarray, faces: np.ndarray, name: str = "mesh"
     offset = (box_lo + box_hi) / 2 - 0.5 * scale
     transform = Transform(scale, offset)
     vn = np.clip(transform.to_normalised(v), 0.0, 1.0).astype(np.float32)
-    return Mesh(vertices=vn, faces=f.astype(np.int32), transform=transform, name=name, repairs=tuple(repairs))
+    return Mesh(vertices=vn, faces=f.astype(np.int32), transform=transform, name=name, repairs=tuple(repairs),
+                look=None if look is None or _says_nothing(look) else look)
+
+
+def _says_nothing(look: Look) -> bool:
+    """One slot, no image, the default grey: what a file without materials loads as (kept as a bare shape)."""
+    m = look.materials[0]
+    return look.n_slots == 1 and m.image is None and np.allclose(m.base_color, Material().base_color, atol=0.02)
 
 
 def _read_bytes(path: Path) -> tuple[bytes, str]:
@@ -248,15 +267,61 @@ def load_mesh(path: str | os.PathLike) -> Mesh:
     try:
         # Plain files load by path so that glTF finds its external buffers; .gz ones from memory.
         if path.suffix.lower() == ".gz":
-            loaded = trimesh.load(io.BytesIO(data), file_type=ext[1:], force="mesh", process=False)
+            loaded = trimesh.load(io.BytesIO(data), file_type=ext[1:], process=False)
         else:
-            loaded = trimesh.load(io.BytesIO(data), file_type=ext[1:], force="mesh", process=False,
+            loaded = trimesh.load(io.BytesIO(data), file_type=ext[1:], process=False,
                                   resolver=_confined_resolver(path))
+        parts = [g for g in (loaded.dump(concatenate=False) if isinstance(loaded, trimesh.Scene) else [loaded])
+                 if isinstance(g, trimesh.Trimesh) and len(g.faces)]
     except Exception as exc:  # trimesh raises many types for broken files
         raise MeshError(f"{path}: could not read as {ext[1:].upper()}: {type(exc).__name__}: {exc}") from None
-    vertices = getattr(loaded, "vertices", None)
-    faces = getattr(loaded, "faces", None)
-    if vertices is None or faces is None or len(faces) == 0:
+    if not parts:
         raise MeshError(f"{path}: contains no triangles (a point cloud, lines or an empty scene?)")
+    vertices, faces, look = _joined(parts)
     name = path.name.split(".")[0]
-    return mesh_from_arrays(np.asarray(vertices), np.asarray(faces), name=name)
+    return mesh_from_arrays(vertices, faces, name=name, look=look)
+
+
+def _joined(parts: list) -> tuple[np.ndarray, np.ndarray, Look]:
+    """trimesh geometries (transforms applied) -> one vertex array, one face array and their look: one slot per
+    distinct material, texture coordinates where every part has them."""
+    vertices, faces, slots, uvs, materials, keys = [], [], [], [], [], {}
+    base = 0
+    for g in parts:
+        visual = getattr(g, "visual", None)
+        material = getattr(visual, "material", None)
+        key = id(material) if material is not None else None
+        if key not in keys:
+            keys[key] = len(materials)
+            materials.append(_material_of(material, len(materials)))
+        uv = getattr(visual, "uv", None)
+        uvs.append(np.asarray(uv, np.float32)[np.asarray(g.faces)] if uv is not None and len(uv) == len(g.vertices)
+                   else None)
+        vertices.append(np.asarray(g.vertices))
+        faces.append(np.asarray(g.faces) + base)
+        slots.append(np.full(len(g.faces), keys[key], np.int32))
+        base += len(g.vertices)
+    corner_uvs = np.concatenate(uvs) if all(u is not None for u in uvs) else None
+    return (np.concatenate(vertices), np.concatenate(faces),
+            Look(np.concatenate(slots), corner_uvs, materials))
+
+
+def _material_of(material, index: int) -> Material:
+    """A trimesh material (PBR from glTF, Simple from OBJ's MTL) -> `Material`: base colour (linear) and image."""
+    from .look import srgb_to_linear
+
+    if material is None:
+        return Material(name=f"slot{index}")
+    name = str(getattr(material, "name", None) or f"slot{index}")[:64]
+    color = getattr(material, "baseColorFactor", None)
+    image = getattr(material, "baseColorTexture", None)
+    if color is not None:  # glTF: the factor is linear, in 0..255 or 0..1 by trimesh version
+        c = np.asarray(color, np.float64)
+        c = c / 255.0 if c.max() > 1.0 else c
+    else:
+        d = getattr(material, "diffuse", None)  # MTL Kd is sRGB-ish 0..255 in trimesh
+        c = np.asarray(d if d is not None else [204, 204, 204, 255], np.float64) / 255.0
+        c = np.concatenate([srgb_to_linear(c[:3]), c[3:4] if len(c) > 3 else [1.0]])
+        image = getattr(material, "image", None)
+    c = np.resize(c, 4) if len(c) != 4 else c
+    return Material(name=name, base_color=np.clip(c, 0, 1).astype(np.float32), image=image_from_pil(image))

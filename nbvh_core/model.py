@@ -63,6 +63,11 @@ class NeuralBVH(nn.Module):
         self.network = make_network(self.encoding.out_dim, cfg.network)
         self._tree: TorchBVH | None = None
         self.metadata: dict = {}  # what the file's header carried (training, quality, source)
+        #: The asset's materials, one per slot (`look.Material`; empty: a bare shape, shaded grey).
+        self.materials: list = []
+        #: The appearance head (`appearance.AppearanceHead`): slot and texture coordinates per hit point; None
+        #: when the look needs none (one slot, no texture).
+        self.appearance = None
 
     @property
     def half_tables(self) -> bool:
@@ -206,6 +211,19 @@ class NeuralBVH(nn.Module):
         from .kernels import mlp
 
         return mlp.segments_first_hits(self, fused, rays_o, rays_d, ray, t_enter, t_exit)
+
+    @torch.no_grad()
+    def albedo_at(self, points: np.ndarray) -> np.ndarray | None:
+        """(N, 3) float32 linear albedo of hit points (N, 3) normalised (the slot's base colour or its image at the
+        predicted coordinates, `look.albedo`), or None for a bare shape (no materials)."""
+        from .look import albedo
+
+        if not self.materials:
+            return None
+        if self.appearance is None:
+            return albedo(self.materials, np.zeros(len(points), np.int64), None)
+        slot, uv = self.appearance.predict(torch.from_numpy(np.ascontiguousarray(points, np.float32)))
+        return albedo(self.materials, slot, uv)
 
     def stored_bytes(self, storage: StorageConfig | None = None) -> dict[str, int]:
         """Bytes of the stored tensors by component (no header) at `storage` (default float32 everywhere): bvh,

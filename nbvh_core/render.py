@@ -93,11 +93,30 @@ def shade(rays_o: np.ndarray, rays_d: np.ndarray, hit: np.ndarray, t: np.ndarray
 
 @dataclass
 class RenderResult:
-    """image: (H, W) float32 shading in [0, 1]; hit: (H, W) bool; depth: (H, W) float32 (inf where missed)."""
+    """image: (H, W) float32 shading in [0, 1]; hit: (H, W) bool; depth: (H, W) float32 (inf where missed);
+    colour: (H, W, 3) float32 sRGB-encoded shading x the asset's albedo, or None for a bare shape."""
 
     image: np.ndarray
     hit: np.ndarray
     depth: np.ndarray
+    colour: np.ndarray | None = None
+
+    @property
+    def display(self) -> np.ndarray:
+        """What a preview shows: the coloured image when the asset has a look, else the grey shading."""
+        return self.colour if self.colour is not None else self.image
+
+
+def coloured(shading: np.ndarray, hit: np.ndarray, albedo: np.ndarray | None, shape: tuple[int, int]
+             ) -> np.ndarray | None:
+    """(H, W, 3) sRGB image of per-ray shading (N,) times the albedo (hits, 3) linear; None without albedo."""
+    if albedo is None:
+        return None
+    from .look import linear_to_srgb
+
+    lin = np.zeros((hit.shape[0], 3), np.float32)
+    lin[hit] = albedo * shading[hit, None]
+    return linear_to_srgb(lin).reshape(*shape, 3)
 
 
 def render_reference(tracer, camera: Camera, width: int, height: int) -> RenderResult:
@@ -105,7 +124,16 @@ def render_reference(tracer, camera: Camera, width: int, height: int) -> RenderR
     o, d = camera.rays(width, height)
     fh = tracer.first_hit(o, d)
     img = shade(o, d, fh.hit, fh.t, fh.normal)
-    return RenderResult(img.reshape(height, width), fh.hit.reshape(height, width), fh.t.reshape(height, width))
+    mesh = getattr(tracer, "mesh", None)
+    albedo = None
+    if mesh is not None and mesh.look is not None:  # the exact look: the hit triangle's slot and coordinates
+        from .look import albedo as look_albedo, hit_labels
+
+        h = fh.hit
+        slot, uv = hit_labels(mesh.look, mesh.vertices, mesh.faces, fh.tri[h], o[h] + fh.t[h, None] * d[h])
+        albedo = look_albedo(mesh.look.materials, slot, uv)
+    return RenderResult(img.reshape(height, width), fh.hit.reshape(height, width), fh.t.reshape(height, width),
+                        coloured(img, fh.hit, albedo, (height, width)))
 
 
 def save_png(path, image: np.ndarray) -> None:
@@ -133,4 +161,6 @@ def render_neural(model, camera: Camera, width: int, height: int) -> RenderResul
     q = model.query(torch.from_numpy(o), torch.from_numpy(d))
     hit, t, normal = q.hit.cpu().numpy(), q.t.cpu().numpy(), q.normal.cpu().numpy()
     img = shade(o, d, hit, t, normal)
-    return RenderResult(img.reshape(height, width), hit.reshape(height, width), t.reshape(height, width))
+    albedo = model.albedo_at(np.clip(o[hit] + t[hit, None] * d[hit], 0.0, 1.0)) if hit.any() else None
+    return RenderResult(img.reshape(height, width), hit.reshape(height, width), t.reshape(height, width),
+                        coloured(img, hit, albedo, (height, width)))

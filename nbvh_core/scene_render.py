@@ -145,6 +145,10 @@ class NeuralShape:
         q = self.model.query(torch.from_numpy(rays_o), torch.from_numpy(rays_d))
         return q.hit.cpu().numpy(), q.t.cpu().numpy(), q.normal.cpu().numpy()
 
+    def albedo(self, rays_o: np.ndarray, rays_d: np.ndarray, t: np.ndarray) -> np.ndarray | None:
+        """(N, 3) linear albedo at the hits t (N,) of normalised rays (the model's look), or None (bare shape)."""
+        return self.model.albedo_at(np.clip(rays_o + t[:, None] * rays_d, 0.0, 1.0))
+
 
 class MeshShape:
     """A mesh traced exactly (Embree), in the same normalised frame as a model of it. kind = "mesh"."""
@@ -155,12 +159,28 @@ class MeshShape:
         from .exact import ExactTracer
 
         self.tracer = ExactTracer(mesh)
+        self.mesh = mesh
         self.transform = mesh.transform
         self.box = (mesh.vertices.min(0).astype(np.float64), mesh.vertices.max(0).astype(np.float64))
 
     def first_hit(self, rays_o: np.ndarray, rays_d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         fh = self.tracer.first_hit(rays_o, rays_d)
         return fh.hit, fh.t, fh.normal
+
+    def albedo(self, rays_o: np.ndarray, rays_d: np.ndarray, t: np.ndarray) -> np.ndarray | None:
+        """The exact look at the hits (the hit triangle's slot and interpolated coordinates), or None."""
+        from .look import albedo, hit_labels
+
+        look = self.mesh.look
+        if look is None:
+            return None
+        fh = self.tracer.first_hit(rays_o, rays_d)  # the triangles (traced again: only hit pixels, once a frame)
+        ok = fh.hit
+        out = np.tile(np.asarray(look.materials[0].base_color[:3], np.float32), (len(t), 1))
+        p = rays_o[ok] + fh.t[ok, None] * rays_d[ok]
+        slot, uv = hit_labels(look, self.mesh.vertices, self.mesh.faces, fh.tri[ok], p)
+        out[ok] = albedo(look.materials, slot, uv)
+        return out
 
 
 def load_shape(path: str, kind: str):
@@ -170,14 +190,9 @@ def load_shape(path: str, kind: str):
         from .fileformat import load_nbvh
 
         return NeuralShape(load_nbvh(path))
-    from .mesh import mesh_from_arrays
+    from .batch import mesh_from_npz
 
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            vertices, faces = data["vertices"], data["faces"]
-    except (KeyError, ValueError, EOFError) as exc:
-        raise ValueError(f"{path}: not a mesh archive (vertices, faces): {exc}") from None
-    return MeshShape(mesh_from_arrays(vertices, faces, Path(path).stem))
+    return MeshShape(mesh_from_npz(path, Path(path).stem))
 
 
 class Placed:
@@ -214,14 +229,27 @@ class Placed:
     def trace(self, rays_o: np.ndarray, rays_d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """World rays (N, 3) float64, unit directions -> hit (N,) bool, t (N,) world distance, normal (N, 3) unit
         world (as the shape gives it, not yet flipped toward the viewer)."""
-        o = rays_o @ self.to_shape[:3, :3].T + self.to_shape[:3, 3]
-        d = rays_d @ self.to_shape[:3, :3].T
-        length = np.linalg.norm(d, axis=1)
-        hit, t, normal = self.shape.first_hit(np.ascontiguousarray(o, np.float32),
-                                              np.ascontiguousarray(d / length[:, None], np.float32))
+        o, d, length = self._local(rays_o, rays_d)
+        hit, t, normal = self.shape.first_hit(o, d)
         n = normal.astype(np.float64) @ self.normal_to_world.T
         n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-20)
         return hit, np.where(hit, t / length, np.inf), n
+
+    def albedo(self, rays_o: np.ndarray, rays_d: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """(N, 3) linear albedo where world rays hit this object at world distances t (N,): the shape's look,
+        else the object's colour."""
+        o, d, length = self._local(rays_o, rays_d)
+        look = self.shape.albedo(o, d, (t * length).astype(np.float32))
+        return np.tile(self.color, (len(t), 1)) if look is None else look.astype(np.float64)
+
+    def _local(self, rays_o: np.ndarray, rays_d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """World rays -> the shape's normalised frame: origins, unit directions (float32) and the world-to-local
+        length factor."""
+        o = rays_o @ self.to_shape[:3, :3].T + self.to_shape[:3, 3]
+        d = rays_d @ self.to_shape[:3, :3].T
+        length = np.linalg.norm(d, axis=1)
+        return (np.ascontiguousarray(o, np.float32), np.ascontiguousarray(d / length[:, None], np.float32),
+                length)
 
 
 # ---------------------------------------------------------------------------------------------- cameras
@@ -375,10 +403,18 @@ class SceneRenderer:
         if spec.shading == "cosine":
             out[h, :3] = self._cosine(p, n, rays_o[h])[:, None]
         else:
-            albedo = np.stack([self.placed[i].color for i in range(len(self.placed))])[hits.obj[h]]
+            albedo = self._albedo(rays_o[h], rays_d[h], hits.t[h], hits.obj[h])
             bias = np.array([pl.bias for pl in self.placed])[hits.obj[h]]
             out[h, :3] = albedo * (spec.world + self._direct(p, n, bias, should_stop) / math.pi)
         out[h, 3] = 1.0
+        return out
+
+    def _albedo(self, rays_o: np.ndarray, rays_d: np.ndarray, t: np.ndarray, obj: np.ndarray) -> np.ndarray:
+        """(H, 3) linear albedo of H primary hits, each from the object it hit (its look, or its colour)."""
+        out = np.zeros((len(t), 3))
+        for i in np.unique(obj):
+            rows = np.nonzero(obj == i)[0]
+            out[rows] = self.placed[i].albedo(rays_o[rows], rays_d[rows], t[rows])
         return out
 
     def _cosine(self, p: np.ndarray, n: np.ndarray, eye: np.ndarray) -> np.ndarray:

@@ -96,6 +96,10 @@ class Settings:
     #: With a target MSE: seconds between quick quality checks during training (4 views, 64 px); training stops once
     #: the quick MSE is below EARLY_STOP_MARGIN x the target (the full evaluation after it confirms or not).
     target_check_every_s: float = 20.0
+    #: An asset with several material slots or a texture: the share of the time budget (or, without one, of the
+    #: geometry's training time, added) the appearance head trains in (`appearance.py`), and its table size.
+    appearance_share: float = 0.15
+    appearance_log2_table: int = 10
 
     def model_config(self) -> ModelConfig:
         normal_loss = self.resolved_normal_loss()
@@ -147,7 +151,8 @@ SETTING_LIMITS = {"nodes": (1, 65535), "log2_table": (1, 24), "levels": (1, 16),
                   "time_limit_s": (0.0, 1e7), "anneal_fraction": (0.0, 1.0), "finetune_fraction": (0.0, 1.0),
                   "qat_fraction": (0.0, 1.0), "budget_kb": (0.0, 1e9), "target_mse": (0.0, 10.0),
                   "checkpoint_every_s": (0.0, 1e9), "target_check_every_s": (0.0, 1e9),
-                  "normal_weight": (0.0, 1e6), "normal_unit_weight": (0.0, 1e6)}
+                  "normal_weight": (0.0, 1e6), "normal_unit_weight": (0.0, 1e6), "appearance_share": (0.0, 0.9),
+                  "appearance_log2_table": (4, 20)}
 #: The largest model any setting may ask for (the high preset's is under 1 MB).
 MAX_MODEL_BYTES = 1 << 30
 

@@ -1,0 +1,286 @@
+"""An asset's look: material slots, texture coordinates and the materials' base colours and images (no torch).
+
+A `Look` rides along a `Mesh`, aligned with its faces:
+
+* `face_slots`: (F,) int32, the material slot of every triangle (0 when the asset has one material);
+* `corner_uvs`: (F, 3, 2) float32, texture coordinates of every triangle corner (the active UV map), or None;
+* `materials`: one `Material` per slot: a linear RGBA base colour and, when an Image Texture feeds Base Color,
+  its image (H, W, C) uint8 sRGB, row 0 at the *top* (PNG order; `v = 0` is the image's bottom row, as in
+  Blender, OBJ and glTF after its flip).
+
+Shading reads a hit's slot and coordinates: `albedo` is the image sampled bilinearly (repeat wrap) at the
+coordinates, converted to linear, or the base colour where the slot has no image - what Blender shows for a
+Principled/Diffuse BSDF whose Base Color is an Image Texture or a plain value.
+"""
+from __future__ import annotations
+
+import io
+from dataclasses import dataclass, field
+
+import numpy as np
+
+#: Largest texture side a reader decodes (Blender's own limit is 65536; 16k covers film assets): an image's
+#: declared size is checked before its pixels are decoded.
+MAX_TEXTURE_SIDE = 16384
+#: Most material slots one asset may carry (Blender allows 32767; the slot head's logits grow with it).
+MAX_SLOTS = 256
+
+
+class LookError(ValueError):
+    """Materials or texture coordinates that cannot be used: the message says what and where."""
+
+
+@dataclass
+class Material:
+    """One slot's material. base_color: (4,) linear RGBA in [0, 1]; image: (H, W, 3|4) uint8 sRGB or None."""
+
+    name: str = "material"
+    base_color: np.ndarray = field(default_factory=lambda: np.array([0.8, 0.8, 0.8, 1.0], np.float32))
+    image: np.ndarray | None = None
+    _linear: np.ndarray | None = field(default=None, repr=False, compare=False)
+
+    def linear_image(self) -> np.ndarray | None:
+        """(H, W, 3) float32 linear RGB of the image (decoded once), or None."""
+        if self.image is None:
+            return None
+        if self._linear is None:
+            self._linear = srgb_to_linear(self.image[..., :3].astype(np.float32) / 255.0)
+        return self._linear
+
+    def to_dict(self) -> dict:
+        """The JSON part (the image travels separately)."""
+        return {"name": self.name, "base_color": [float(c) for c in self.base_color],
+                "image": None if self.image is None else list(self.image.shape)}
+
+
+@dataclass
+class Look:
+    """Per-face slots, per-corner texture coordinates and the slots' materials (see the module docstring)."""
+
+    face_slots: np.ndarray
+    corner_uvs: np.ndarray | None
+    materials: list[Material]
+
+    @property
+    def n_slots(self) -> int:
+        return len(self.materials)
+
+    @property
+    def textured(self) -> bool:
+        """True when some slot has an image and the faces have texture coordinates."""
+        return self.corner_uvs is not None and any(m.image is not None for m in self.materials)
+
+    @property
+    def plain(self) -> bool:
+        """One slot and nothing to look up per hit: the model needs no appearance head."""
+        return self.n_slots <= 1 and not self.textured
+
+    def subset(self, keep: np.ndarray) -> "Look":
+        """The look of the faces `keep` selects ((F,) bool or indices), e.g. after degenerate faces are dropped."""
+        uvs = None if self.corner_uvs is None else self.corner_uvs[keep]
+        return Look(self.face_slots[keep], uvs, self.materials)
+
+    def texture_bytes(self) -> int:
+        """Bytes of the slots' images as held in memory (W x H x channels x 1)."""
+        return int(sum(m.image.nbytes for m in self.materials if m.image is not None))
+
+
+def check_look(look: Look, n_faces: int, where: str) -> Look:
+    """`look` with arrays of the right shapes and types, every slot index in range, coordinates finite, colours
+    in [0, 1] and images of a sane size; raises `LookError` naming `where` and the problem."""
+    if not 1 <= len(look.materials) <= MAX_SLOTS:
+        raise LookError(f"{where}: {len(look.materials)} material slots (1 to {MAX_SLOTS} are supported)")
+    slots = np.asarray(look.face_slots)
+    if slots.shape != (n_faces,) or not np.issubdtype(slots.dtype, np.integer):
+        raise LookError(f"{where}: material slots must be ({n_faces},) integers, got {slots.shape} {slots.dtype}")
+    if n_faces and (slots.min() < 0 or slots.max() >= len(look.materials)):
+        raise LookError(f"{where}: material slot indices span [{slots.min()}, {slots.max()}] but there are "
+                        f"{len(look.materials)} materials")
+    uvs = look.corner_uvs
+    if uvs is not None:
+        uvs = np.asarray(uvs, np.float32)
+        if uvs.shape != (n_faces, 3, 2):
+            raise LookError(f"{where}: texture coordinates must be ({n_faces}, 3, 2), got {uvs.shape}")
+        if not np.isfinite(uvs).all():
+            raise LookError(f"{where}: texture coordinates hold NaN or infinite values")
+    for m in look.materials:
+        c = np.asarray(m.base_color, np.float32).reshape(-1)
+        if c.shape != (4,) or not np.isfinite(c).all():
+            raise LookError(f"{where}: material {m.name!r}: base colour must be 4 finite numbers")
+        m.base_color = np.clip(c, 0.0, 1.0)
+        if m.image is not None:
+            img = m.image
+            if (img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] not in (3, 4)
+                    or not (1 <= img.shape[0] <= MAX_TEXTURE_SIDE and 1 <= img.shape[1] <= MAX_TEXTURE_SIDE)):
+                raise LookError(f"{where}: material {m.name!r}: image must be (H, W, 3|4) uint8 with sides up to "
+                                f"{MAX_TEXTURE_SIDE}, got {img.shape} {img.dtype}")
+    return Look(slots.astype(np.int32), uvs, list(look.materials))
+
+
+# ------------------------------------------------------------------------------------------------ shading
+def srgb_to_linear(c: np.ndarray) -> np.ndarray:
+    """sRGB-encoded values in [0, 1] -> linear (the IEC 61966-2-1 curve Blender uses)."""
+    c = np.asarray(c, np.float32)
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4).astype(np.float32)
+
+
+def linear_to_srgb(c: np.ndarray) -> np.ndarray:
+    """Linear values -> sRGB-encoded in [0, 1] (clipped)."""
+    c = np.clip(np.asarray(c, np.float32), 0.0, 1.0)
+    return np.where(c <= 0.0031308, c * 12.92, 1.055 * c ** (1 / 2.4) - 0.055).astype(np.float32)
+
+
+def sample_bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Bilinear lookup with repeat wrap. image: (H, W, C) float32, row 0 at the top; uv: (N, 2), v = 0 at the
+    bottom -> (N, C) float32. Texel centres sit at (i + 0.5) / W, as in Blender and OpenGL."""
+    h, w = image.shape[:2]
+    x = np.asarray(uv[:, 0], np.float64) * w - 0.5
+    y = (1.0 - np.asarray(uv[:, 1], np.float64)) * h - 0.5
+    x0, y0 = np.floor(x), np.floor(y)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    x0, y0 = x0.astype(np.int64) % w, y0.astype(np.int64) % h
+    x1, y1 = (x0 + 1) % w, (y0 + 1) % h
+    top = image[y0, x0] * (1 - fx) + image[y0, x1] * fx
+    bottom = image[y1, x0] * (1 - fx) + image[y1, x1] * fx
+    return (top * (1 - fy) + bottom * fy).astype(np.float32)
+
+
+def albedo(materials: list[Material], slot: np.ndarray, uv: np.ndarray | None) -> np.ndarray:
+    """(N, 3) float32 linear albedo of N hits: slot (N,) int, uv (N, 2) or None (then base colours only)."""
+    slot = np.clip(np.asarray(slot, np.int64), 0, len(materials) - 1)
+    out = np.stack([m.base_color[:3] for m in materials]).astype(np.float32)[slot]
+    if uv is None:
+        return out
+    for i, m in enumerate(materials):
+        img = m.linear_image()
+        rows = np.nonzero(slot == i)[0]
+        if img is not None and len(rows):
+            out[rows] = sample_bilinear(img, uv[rows])
+    return out
+
+
+# ------------------------------------------------------------------------------------------------ labels
+def barycentrics(triangles: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(N, 3) barycentric weights of points (N, 3) on triangles (N, 3, 3) (projected onto each triangle's plane;
+    clipped to the triangle and renormalised, so float error at an edge never extrapolates)."""
+    a, b, c = (triangles[:, i].astype(np.float64) for i in range(3))
+    p = np.asarray(points, np.float64)
+    v0, v1, v2 = b - a, c - a, p - a
+    d00, d01, d11 = (v0 * v0).sum(1), (v0 * v1).sum(1), (v1 * v1).sum(1)
+    d20, d21 = (v2 * v0).sum(1), (v2 * v1).sum(1)
+    denom = np.where(np.abs(d00 * d11 - d01 * d01) > 0, d00 * d11 - d01 * d01, 1.0)
+    w1 = (d11 * d20 - d01 * d21) / denom
+    w2 = (d00 * d21 - d01 * d20) / denom
+    w = np.clip(np.stack([1 - w1 - w2, w1, w2], 1), 0.0, 1.0)
+    return (w / np.maximum(w.sum(1, keepdims=True), 1e-12)).astype(np.float32)
+
+
+def hit_labels(look: Look, vertices: np.ndarray, faces: np.ndarray, tri: np.ndarray, points: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray | None]:
+    """The exact look at hits: tri (N,) triangle indices (>= 0), points (N, 3) the hit points -> slot (N,) int32,
+    uv (N, 2) float32 interpolated from the triangle's corners (None when the look has no coordinates)."""
+    slot = look.face_slots[tri]
+    if look.corner_uvs is None:
+        return slot, None
+    w = barycentrics(vertices[faces[tri]], points)
+    return slot, np.einsum("nk,nkc->nc", w, look.corner_uvs[tri]).astype(np.float32)
+
+
+def uv_charts(faces: np.ndarray, corner_uvs: np.ndarray) -> np.ndarray:
+    """(F,) int chart id: faces joined across every edge whose two corners carry the same coordinates on both
+    sides (a UV island); an edge where they differ is a seam."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    n = len(faces)
+    e_faces = np.repeat(np.arange(n), 3)
+    a, b = faces[:, [0, 1, 2]].reshape(-1), faces[:, [1, 2, 0]].reshape(-1)
+    ua, ub = corner_uvs[:, [0, 1, 2]].reshape(-1, 2), corner_uvs[:, [1, 2, 0]].reshape(-1, 2)
+    swap = a > b  # each edge as (lower vertex, higher vertex), its coordinates in that order
+    lo, hi = np.where(swap, b, a), np.where(swap, a, b)
+    ulo, uhi = np.where(swap[:, None], ub, ua), np.where(swap[:, None], ua, ub)
+    order = np.lexsort((hi, lo))
+    lo, hi, e_faces, ulo, uhi = lo[order], hi[order], e_faces[order], ulo[order], uhi[order]
+    same_edge = (lo[1:] == lo[:-1]) & (hi[1:] == hi[:-1])
+    same_uv = (np.abs(ulo[1:] - ulo[:-1]).max(1) < 1e-6) & (np.abs(uhi[1:] - uhi[:-1]).max(1) < 1e-6)
+    j = np.nonzero(same_edge & same_uv)[0]
+    graph = coo_matrix((np.ones(len(j)), (e_faces[j], e_faces[j + 1])), shape=(n, n))
+    return connected_components(graph, directed=False)[1].astype(np.int32)
+
+
+# ------------------------------------------------------------------------------------------------ arrays
+#: The members of a mesh .npz (the add-on's export, library assets) that carry a look, beside vertices and faces:
+#: face_slots (F,) int, corner_uvs (F, 3, 2) float, base_colors (S, 4) float linear, material_names (S,) str,
+#: image_I (H, W, 3|4) uint8 sRGB (row 0 at the top) for every slot I with an image.
+LOOK_MEMBERS = ("face_slots", "corner_uvs", "base_colors", "material_names")
+
+
+def look_arrays(look: Look) -> dict[str, np.ndarray]:
+    """The .npz members that store `look` (see LOOK_MEMBERS)."""
+    out = {"face_slots": np.asarray(look.face_slots, np.int32),
+           "base_colors": np.stack([m.base_color for m in look.materials]).astype(np.float32),
+           "material_names": np.array([m.name for m in look.materials], dtype=str)}
+    if look.corner_uvs is not None:
+        out["corner_uvs"] = np.asarray(look.corner_uvs, np.float32)
+    for i, m in enumerate(look.materials):
+        if m.image is not None:
+            out[f"image_{i}"] = m.image
+    return out
+
+
+def look_from_arrays(arrays: dict, where: str) -> Look | None:
+    """The look stored in .npz members (see LOOK_MEMBERS), or None when they hold none; shapes are checked by
+    `check_look` when the mesh is built. Raises `LookError` for members that do not fit together."""
+    if "base_colors" not in arrays:
+        return None
+    colors = np.asarray(arrays["base_colors"], np.float32)
+    if colors.ndim != 2 or colors.shape[1] != 4 or not 1 <= len(colors) <= MAX_SLOTS:
+        raise LookError(f"{where}: base_colors must be (S, 4) with 1 to {MAX_SLOTS} slots, got {colors.shape}")
+    names = arrays.get("material_names")
+    names = [str(n)[:256] for n in names] if names is not None and len(names) == len(colors) else \
+        [f"slot{i}" for i in range(len(colors))]
+    materials = [Material(names[i], colors[i], arrays.get(f"image_{i}")) for i in range(len(colors))]
+    slots = arrays.get("face_slots")
+    if slots is None:
+        raise LookError(f"{where}: base_colors without face_slots")
+    return Look(np.asarray(slots), arrays.get("corner_uvs"), materials)
+
+
+# ------------------------------------------------------------------------------------------------ images
+def encode_png(image: np.ndarray) -> bytes:
+    """(H, W, 3|4) uint8 -> PNG bytes (lossless)."""
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(np.ascontiguousarray(image)).save(buf, format="PNG", optimize=False, compress_level=6)
+    return buf.getvalue()
+
+
+def decode_png(data: bytes, shape: tuple[int, int, int], where: str) -> np.ndarray:
+    """PNG bytes -> (H, W, C) uint8 of exactly `shape` (checked from the PNG's header before any pixel is
+    decoded); anything else (another format, another size, a damaged stream) raises `LookError`."""
+    from PIL import Image
+
+    if data[:8] != b"\x89PNG\r\n\x1a\n":
+        raise LookError(f"{where}: a texture is not a PNG image")
+    h, w, c = shape
+    if not (1 <= h <= MAX_TEXTURE_SIDE and 1 <= w <= MAX_TEXTURE_SIDE and c in (3, 4)):
+        raise LookError(f"{where}: texture shape {shape} out of range")
+    try:
+        with Image.open(io.BytesIO(data), formats=["PNG"]) as im:
+            if im.size != (w, h):
+                raise LookError(f"{where}: texture is {im.size[0]}x{im.size[1]}, its entry says {w}x{h}")
+            arr = np.asarray(im.convert("RGBA" if c == 4 else "RGB"))
+    except LookError:
+        raise
+    except Exception as exc:  # Pillow raises many types for a damaged stream
+        raise LookError(f"{where}: damaged texture: {type(exc).__name__}: {str(exc)[:80]}") from None
+    return np.ascontiguousarray(arr, np.uint8)
+
+
+def image_from_pil(image) -> np.ndarray | None:
+    """A PIL image (as trimesh gives a material's texture) -> (H, W, 3|4) uint8, or None when too large."""
+    if image is None or image.size[0] > MAX_TEXTURE_SIDE or image.size[1] > MAX_TEXTURE_SIDE:
+        return None
+    mode = "RGBA" if "A" in image.getbands() else "RGB"
+    return np.ascontiguousarray(np.asarray(image.convert(mode)), np.uint8)

@@ -1,0 +1,194 @@
+"""The asset's look: materials, slots and texture coordinates from loading to the file, the head, the renders."""
+import numpy as np
+import pytest
+import torch
+
+from nbvh_core import demo_assets
+from nbvh_core.appearance import AppearanceConfig, AppearanceHead, SurfaceLabels, finalize_head, head_config, train_head
+from nbvh_core.exact import ExactTracer
+from nbvh_core.fileformat import NBVHFileError, decode_nbvh, encode_nbvh, read_info
+from nbvh_core.look import (Look, Material, albedo, barycentrics, decode_png, encode_png, hit_labels, look_arrays,
+                            look_from_arrays, sample_bilinear, uv_charts)
+from nbvh_core.mesh import MeshError, load_mesh, mesh_from_arrays
+from nbvh_core.pipeline import compress_mesh, preset
+from nbvh_core.quantize import StorageConfig
+
+from meshes import icosphere
+
+
+def test_bilinear_lookup_hits_texel_centres_and_wraps():
+    img = np.arange(4 * 4 * 1, dtype=np.float32).reshape(4, 4, 1)
+    # texel (row 0, col 1) centre: u = 1.5 / 4, v = 1 - 0.5 / 4 (row 0 is the top)
+    assert sample_bilinear(img, np.array([[1.5 / 4, 1 - 0.5 / 4]]))[0, 0] == pytest.approx(1.0)
+    assert sample_bilinear(img, np.array([[1.5 / 4 + 3, 1 - 0.5 / 4 - 2]]))[0, 0] == pytest.approx(1.0)  # repeat
+    halfway = sample_bilinear(img, np.array([[2 / 4, 1 - 0.5 / 4]]))[0, 0]
+    assert halfway == pytest.approx(1.5)
+
+
+def test_hit_labels_interpolate_the_corners_coordinates():
+    verts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32)
+    faces = np.array([[0, 1, 2]])
+    look = Look(np.array([0], np.int32), np.array([[[0.1, 0.2], [0.9, 0.2], [0.1, 0.8]]], np.float32), [Material()])
+    w = barycentrics(verts[faces][[0, 0]], np.array([[0.25, 0.5, 0.0], [0.0, 0.0, 0.0]]))
+    assert np.allclose(w, [[0.25, 0.25, 0.5], [1, 0, 0]], atol=1e-6)
+    slot, uv = hit_labels(look, verts, faces, np.array([0]), np.array([[0.5, 0.0, 0.0]]))
+    assert slot[0] == 0 and np.allclose(uv[0], [0.5, 0.2], atol=1e-6)
+
+
+def test_a_look_follows_its_faces_when_degenerate_ones_are_dropped():
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float)
+    f = np.array([[0, 1, 2], [0, 1, 1], [0, 2, 3]])
+    look = Look(np.array([0, 1, 1], np.int32), None, [Material("a"), Material("b", np.array([1, 0, 0, 1.0]))])
+    with pytest.warns(Warning):
+        m = mesh_from_arrays(v, f, "t", look)
+    assert m.look.face_slots.tolist() == [0, 1]
+
+
+@pytest.mark.parametrize("bad, match", [
+    (dict(face_slots=np.array([0, 5])), "slot indices"),
+    (dict(corner_uvs=np.full((2, 3, 2), np.nan, np.float32)), "NaN"),
+    (dict(corner_uvs=np.zeros((1, 3, 2), np.float32)), "must be"),
+])
+def test_broken_looks_are_refused_in_one_line(bad, match):
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float)
+    f = np.array([[0, 1, 2], [0, 2, 3]])
+    kw = dict(face_slots=np.array([0, 1]), corner_uvs=None)
+    kw.update(bad)
+    look = Look(kw["face_slots"], kw["corner_uvs"], [Material("a"), Material("b")])
+    with pytest.raises(MeshError, match=match):
+        mesh_from_arrays(v, f, "t", look)
+
+
+def test_charts_split_at_seams_only():
+    m = demo_assets.crate(cells=2, texture=8)
+    assert uv_charts(m.faces, m.look.corner_uvs).max() + 1 == 6
+
+
+def test_png_round_trip_and_refusals():
+    img = demo_assets.pattern(32)
+    data = encode_png(img)
+    assert np.array_equal(decode_png(data, (32, 32, 3), "t"), img)
+    with pytest.raises(ValueError, match="entry says"):
+        decode_png(data, (16, 32, 3), "t")
+    with pytest.raises(ValueError, match="not a PNG"):
+        decode_png(b"GIF89a" + data, (32, 32, 3), "t")
+    with pytest.raises(ValueError, match="damaged"):
+        decode_png(data[:60], (32, 32, 3), "t")
+
+
+def test_npz_members_round_trip(tmp_path):
+    m = demo_assets.globe(16, 8, texture=16)
+    arrays = look_arrays(m.look)
+    np.savez(tmp_path / "a.npz", vertices=m.vertices, faces=m.faces, **arrays)
+    from nbvh_core.batch import mesh_from_npz
+
+    back = mesh_from_npz(tmp_path / "a.npz", "a")
+    assert back.look.n_slots == 2 and np.array_equal(back.look.face_slots, m.look.face_slots)
+    assert np.array_equal(back.look.materials[0].image, m.look.materials[0].image)
+    assert look_from_arrays({"vertices": 0}, "x") is None
+
+
+def test_obj_with_two_materials_and_a_texture_loads_its_look(tmp_path):
+    from PIL import Image
+
+    Image.fromarray(demo_assets.pattern(16)).save(tmp_path / "tex.png")
+    (tmp_path / "a.mtl").write_text("newmtl red\nKd 1 0 0\nnewmtl tex\nKd 1 1 1\nmap_Kd tex.png\n")
+    (tmp_path / "a.obj").write_text(
+        "mtllib a.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nvt 0 0\nvt 1 0\nvt 0 1\n"
+        "usemtl red\nf 1/1 2/2 3/3\nusemtl tex\nf 1/1 3/3 4/2\n")
+    m = load_mesh(tmp_path / "a.obj")
+    assert m.look is not None and m.look.n_slots == 2
+    assert sorted(m.look.face_slots.tolist()) == [0, 1]
+    textured = [mat for mat in m.look.materials if mat.image is not None]
+    assert len(textured) == 1 and textured[0].image.shape[:2] == (16, 16)
+    red = next(mat for mat in m.look.materials if mat.image is None)
+    assert red.base_color[0] > 0.9 and red.base_color[1] < 0.1
+
+
+def test_plain_meshes_load_as_bare_shapes(tmp_path):
+    m = icosphere(1)
+    assert m.look is None
+
+
+def test_the_head_learns_slots_and_coordinates():
+    torch.manual_seed(0)
+    m = demo_assets.crate(cells=4, texture=64)
+    tracer = ExactTracer(m)
+    cfg = head_config(m.look, AppearanceConfig(log2_table=10))
+    assert cfg.slots == 2 and cfg.uv
+    head = AppearanceHead(cfg)
+    labels = SurfaceLabels(m, tracer, np.random.default_rng(0))
+    before = head.loss(*[torch.from_numpy(a) for a in labels.draw(4096)]).item()
+    train_head(head, labels, seconds=60, max_steps=400, batch=4096, pool_size=1 << 15)
+    finalize_head(head, 8, 16)
+    p, s, uv = SurfaceLabels(m, tracer, np.random.default_rng(1)).draw(4096)
+    slot, puv = head.predict(torch.from_numpy(p))
+    assert (slot == s).mean() > 0.95
+    assert np.median(np.abs(puv - uv).max(1)) < 0.05
+    assert head.loss(torch.from_numpy(p), torch.from_numpy(s), torch.from_numpy(uv)).item() < 0.5 * before
+
+
+def _textured_model():
+    m = demo_assets.globe(16, 8, texture=32)
+    s = preset("tiny").with_overrides(force=True)
+    return m, compress_mesh(m, s, evaluate_quality=False)
+
+
+def test_file_round_trip_keeps_the_look_and_counts_its_bytes():
+    m, r = _textured_model()
+    model = r.model
+    assert model.appearance is not None and len(model.materials) == 2
+    assert r.components["appearance"] > 0 and r.components["textures"] > 0
+    back = decode_nbvh(r.data)
+    assert [x.name for x in back.materials] == ["painted", "blue"]
+    assert np.array_equal(back.materials[0].image, m.look.materials[0].image)
+    pts = np.random.default_rng(0).uniform(0.2, 0.8, (500, 3)).astype(np.float32)
+    assert np.allclose(back.albedo_at(pts), model.albedo_at(pts), atol=1e-5)
+    meta = decode_nbvh(r.data).metadata
+    assert meta["appearance"]["slots"] == 2 and meta["appearance"]["head"]["steps"] > 0
+
+
+def test_a_file_without_a_look_still_loads_as_geometry_only():
+    r = compress_mesh(icosphere(2), preset("tiny").with_overrides(force=True), evaluate_quality=False)
+    back = decode_nbvh(r.data)
+    assert back.materials == [] and back.appearance is None and back.albedo_at(np.zeros((3, 3))) is None
+
+
+def _patched(data: bytes, edit) -> bytes:
+    from fuzzing import craft, split
+
+    header, payload = split(data)
+    edit(header)
+    return craft(header, payload)
+
+
+@pytest.mark.parametrize("edit, match", [
+    (lambda h: h["appearance"]["materials"][0].update(image=[16000, 16000, 4]), "declares"),
+    (lambda h: h["appearance"]["materials"][0].update(image=[16, 32, 3]), "entry says|texture"),
+    (lambda h: h["appearance"]["materials"][1].update(base_color=[2, 0, 0, 1]), "base_color"),
+    (lambda h: h["appearance"]["config"].update(slots=7), "slots"),
+    (lambda h: h["appearance"].pop("materials"), "exactly"),
+])
+def test_crafted_look_headers_are_refused_in_one_line(edit, match):
+    _, r = _textured_model()
+    with pytest.raises(NBVHFileError, match=match):
+        decode_nbvh(_patched(r.data, edit), "crafted")
+
+
+def test_renders_show_the_look():
+    from nbvh_core.render import orbit_cameras, render_neural, render_reference
+
+    m, r = _textured_model()
+    cam = orbit_cameras(1)[0]
+    ref = render_reference(r.tracer, cam, 32, 32)
+    neu = render_neural(r.model, cam, 32, 32)
+    assert ref.colour.shape == (32, 32, 3) and neu.colour.shape == (32, 32, 3)
+    assert ref.colour[ref.hit].std(0).max() > 0.02  # colours differ across the asset (not grey clay)
+    bare = render_reference(ExactTracer(icosphere(1)), cam, 8, 8)
+    assert bare.colour is None and bare.display is bare.image
+
+
+def test_albedo_uses_images_where_slots_have_them():
+    mats = [Material("t", image=np.full((2, 2, 3), 255, np.uint8)), Material("b", np.array([0, 0, 1, 1.0]))]
+    out = albedo(mats, np.array([0, 1]), np.array([[0.5, 0.5], [0.5, 0.5]], np.float32))
+    assert np.allclose(out, [[1, 1, 1], [0, 0, 1]], atol=1e-6)
