@@ -48,7 +48,7 @@ import torch
 
 from .bvh import MAX_NODES, NODE_DTYPE
 from .encodings import ENCODINGS, EncodingConfig
-from .appearance import AppearanceConfig, AppearanceHead
+from .appearance import AppearanceConfig, AppearanceHead, map_width
 from .encodings.base import code_width, level_vertex_counts
 from .look import MAX_SLOTS, MAX_TEXTURE_SIDE, LookError, Material, decode_png, encode_png
 from .mesh import Transform
@@ -69,6 +69,8 @@ APPEARANCE_SINCE = (2, 3)
 #: or MIN_TEXTURE_ALLOWANCE, whichever is larger: a crafted tiny PNG cannot ask for gigabytes.
 TEXTURE_INFLATION = 4096
 MIN_TEXTURE_ALLOWANCE = 16 << 20
+#: Most patches an appearance head may tell apart (its slots are stored as uint16).
+MAX_PATCHES = 65535
 READABLE_MAJORS = (1, 2)
 _PREFIX = struct.Struct("<8sHHI")
 _ALIGN = 8
@@ -189,6 +191,10 @@ def _look_tensors(model: NeuralBVH, storage: StorageConfig) -> list[tuple[str, s
         for name, p in head.network.state_dict().items():
             arr = p.detach().cpu().numpy().astype(fdt)
             out.append((f"appearance.network.{name}", "appearance", arr.tobytes(), list(arr.shape)))
+        affine = head.affine.cpu().numpy().astype(np.float32)
+        patch_slot = head.patch_slot.cpu().numpy().astype(np.uint16)
+        out += [("appearance.affine", "appearance", affine.tobytes(), list(affine.shape)),
+                ("appearance.patch_slot", "appearance", patch_slot.tobytes(), list(patch_slot.shape))]
     for i, m in enumerate(model.materials):
         if m.image is not None:
             png = encode_png(m.image)
@@ -489,9 +495,10 @@ def _look_spec(header: dict, where: str) -> tuple[AppearanceConfig | None, list[
     cfg = None
     if look["config"] is not None:
         cfg = _config_from(look["config"], AppearanceConfig, where, "appearance config")
-        if cfg.slots != (len(mats) if len(mats) > 1 else cfg.slots) or not 1 <= cfg.slots <= MAX_SLOTS \
-                or cfg.outputs == 0:
-            raise NBVHFileError(f"{where}: the appearance head's {cfg.slots} slots do not match {len(mats)} materials")
+        if (cfg.slots != len(mats) or not 1 <= cfg.patches <= MAX_PATCHES or cfg.outputs == 0
+                or cfg.patch_degree not in (1, 2)):
+            raise NBVHFileError(f"{where}: the appearance head's {cfg.slots} slots and {cfg.patches} patches do not "
+                                f"match {len(mats)} materials (1 to {MAX_PATCHES} patches)")
     return cfg, mats
 
 
@@ -513,6 +520,7 @@ def _look_expected(look, storage: StorageConfig, by_name: dict, where: str) -> d
             head = AppearanceHead(cfg, inference=True)
         fdt = "<f4" if storage.network_bits == 32 else "<f2"
         out.update({f"appearance.network.{n}": (tuple(p.shape), fdt) for n, p in head.network.state_dict().items()})
+        out.update({"appearance.affine": ((cfg.patches, 2, map_width(cfg.patch_degree)), "<f4"), "appearance.patch_slot": ((cfg.patches,), "<u2")})
     for i, m in enumerate(mats):
         if m["image"] is None:
             continue
@@ -672,6 +680,11 @@ def _load_look(model: NeuralBVH, look: tuple, table_bits: int, array, where: str
     state = {n: torch.from_numpy(array(f"appearance.network.{n}").astype(np.float32))
              for n in head.network.state_dict()}
     head.network.load_state_dict(state)
+    patch_slot = array("appearance.patch_slot").astype(np.int64)
+    if (patch_slot >= len(materials)).any():
+        raise NBVHFileError(f"{where}: appearance patches name slots beyond the {len(materials)} materials")
+    head.affine.copy_(torch.from_numpy(array("appearance.affine")))
+    head.patch_slot.copy_(torch.from_numpy(patch_slot))
     head.requires_grad_(False)
     model.appearance = head.eval()
 

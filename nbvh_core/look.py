@@ -208,6 +208,120 @@ def uv_charts(faces: np.ndarray, corner_uvs: np.ndarray) -> np.ndarray:
     return connected_components(graph, directed=False)[1].astype(np.int32)
 
 
+def patch_basis(points, degree: int):
+    """(N, B) basis of a patch map at points (N, 3) (numpy or torch): degree 1: x, y, z, 1 (B = 4); degree 2: also
+    x^2, y^2, z^2, xy, yz, zx (B = 10)."""
+    x, y, z = points[:, 0], points[:, 1], points[:, 2]
+    cols = [x, y, z, x * 0 + 1]
+    if degree == 2:
+        cols += [x * x, y * y, z * z, x * y, y * z, z * x]
+    stack = getattr(points, "new_tensor", None)
+    if stack is not None:  # torch
+        import torch
+
+        return torch.stack(cols, 1)
+    return np.stack(cols, 1)
+
+
+def uv_patches(vertices: np.ndarray, faces: np.ndarray, look: Look, tolerance: float, max_patches: int,
+               degree: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Split the surface into patches on each of which the coordinates are a polynomial of position (`degree` 1:
+    affine, 2: quadratic).
+
+    Starts from one patch per (UV island, slot); while a patch's fit misses a corner's coordinates by more
+    than `tolerance` (and fewer than `max_patches` exist) the worst patch is cut in two at the median of its face
+    centres along its longest side. Islands made by planar projection (Blender's Smart UV Project, box and
+    cube maps) fit exactly and never split; curved maps split until they fit or the cap is reached.
+    Returns face_patch (F,) int32, maps (P, 2, B + 1) float32 (uv = maps[:, :, :B] @ patch_basis(p), p in
+    normalised coordinates; maps[:, :, B]: the fit's largest |error| per coordinate at a corner) and
+    patch_slot (P,) int32.
+    """
+    n = len(faces)
+    if look.corner_uvs is None:
+        slots = np.unique(look.face_slots)
+        face_patch = np.searchsorted(slots, look.face_slots).astype(np.int32)
+        return face_patch, np.zeros((len(slots), 2, 5 if degree == 1 else 11), np.float32), slots.astype(np.int32)
+    charts = uv_charts(faces, look.corner_uvs)
+    groups = np.unique(np.stack([charts, look.face_slots], 1), axis=0, return_inverse=True)[1].reshape(-1)
+    members = [np.nonzero(groups == g)[0] for g in range(groups.max() + 1)]
+    corners = np.asarray(vertices, np.float64)[faces]
+    centres = corners.mean(1)
+    fits = [_fit(corners[m], look.corner_uvs[m], degree) for m in members]
+    while len(members) < max_patches:
+        worst = int(np.argmax([f[1].max() for f in fits]))
+        if fits[worst][1].max() <= tolerance or len(members[worst]) < 2:
+            break
+        m = members[worst]
+        c = centres[m]
+        axis = int(np.argmax(c.max(0) - c.min(0)))
+        order = np.argsort(c[:, axis], kind="stable")
+        halves = [m[order[:len(m) // 2]], m[order[len(m) // 2:]]]
+        members[worst:worst + 1] = halves
+        fits[worst:worst + 1] = [_fit(corners[h], look.corner_uvs[h], degree) for h in halves]
+    face_patch = np.empty(n, np.int32)
+    for i, m in enumerate(members):
+        face_patch[m] = i
+    affine = np.stack([np.concatenate([f[0], f[1][:, None]], 1) for f in fits]).astype(np.float32)
+    patch_slot = np.array([look.face_slots[m[0]] for m in members], np.int32)
+    return face_patch, affine, patch_slot
+
+
+#: Corners are also fitted at this offset (normalised units) along their face's normal, with the same
+#: coordinates: a hit a little off the surface (a model's depth error) reads the coordinates of the surface below
+#: it, and a planar patch's fit is well-posed.
+NORMAL_OFFSET = 0.01
+
+
+def _fit(corners: np.ndarray, uvs: np.ndarray, degree: int) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares map (`patch_basis` of `degree`) from corner positions (K, 3, 3) to their coordinates
+    (K, 3, 2): (2, B) and the largest |error| per coordinate (2,) at a corner (on the surface)."""
+    nrm = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-30)
+    on = corners.reshape(-1, 3)
+    off = (corners + NORMAL_OFFSET * nrm[:, None]).reshape(-1, 3)
+    x = patch_basis(np.concatenate([on, off, 2 * on - off]), degree)
+    y = np.tile(np.asarray(uvs, np.float64).reshape(-1, 2), (3, 1))
+    sol = np.linalg.lstsq(x, y, rcond=None)[0]  # (4, 2)
+    err = np.abs(x[:len(on)] @ sol - y[:len(on)]).max(0) if len(on) else np.zeros(2)
+    return sol.T, err
+
+
+def seam_edges(vertices: np.ndarray, faces: np.ndarray, corner_uvs: np.ndarray) -> np.ndarray:
+    """(E, 2, 3) end points of every UV seam: an edge (vertices welded by position) whose two faces give its ends
+    different coordinates."""
+    key = np.round(np.asarray(vertices, np.float64) * 1e6).astype(np.int64)
+    weld = np.unique(key, axis=0, return_inverse=True)[1].reshape(-1)[faces]
+    a, b = weld[:, [0, 1, 2]].reshape(-1), weld[:, [1, 2, 0]].reshape(-1)
+    ca, cb = faces[:, [0, 1, 2]].reshape(-1), faces[:, [1, 2, 0]].reshape(-1)
+    ua, ub = corner_uvs[:, [0, 1, 2]].reshape(-1, 2), corner_uvs[:, [1, 2, 0]].reshape(-1, 2)
+    swap = a > b
+    lo, hi = np.where(swap, b, a), np.where(swap, a, b)
+    ulo, uhi = np.where(swap[:, None], ub, ua), np.where(swap[:, None], ua, ub)
+    clo = np.where(swap, cb, ca)
+    chi = np.where(swap, ca, cb)
+    order = np.lexsort((hi, lo))
+    lo, hi, ulo, uhi, clo, chi = lo[order], hi[order], ulo[order], uhi[order], clo[order], chi[order]
+    same_edge = (lo[1:] == lo[:-1]) & (hi[1:] == hi[:-1])
+    differs = (np.abs(ulo[1:] - ulo[:-1]).max(1) > 1e-6) | (np.abs(uhi[1:] - uhi[:-1]).max(1) > 1e-6)
+    j = np.nonzero(same_edge & differs)[0]
+    return np.stack([vertices[clo[j]], vertices[chi[j]]], axis=1).astype(np.float32)
+
+
+def seam_distance(points: np.ndarray, seams: np.ndarray, spacing: float = 1e-3) -> np.ndarray:
+    """(N,) distance (normalised units) from each point to the nearest seam (`seam_edges`), to within `spacing`;
+    inf when there is no seam."""
+    if len(seams) == 0:
+        return np.full(len(points), np.inf)
+    from scipy.spatial import cKDTree
+
+    length = np.linalg.norm(seams[:, 1] - seams[:, 0], axis=1)
+    n = np.maximum(2, np.ceil(length / spacing).astype(np.int64) + 1)
+    idx = np.repeat(np.arange(len(seams)), n)
+    frac = np.concatenate([np.linspace(0, 1, k) for k in n])[:, None]
+    samples = seams[idx, 0] * (1 - frac) + seams[idx, 1] * frac
+    return cKDTree(samples).query(np.asarray(points, np.float64))[0]
+
+
 # ------------------------------------------------------------------------------------------------ arrays
 #: The members of a mesh .npz (the add-on's export, library assets) that carry a look, beside vertices and faces:
 #: face_slots (F,) int, corner_uvs (F, 3, 2) float, base_colors (S, 4) float linear, material_names (S,) str,

@@ -16,7 +16,7 @@ from typing import Callable, NamedTuple
 import numpy as np
 import torch
 
-from .appearance import AppearanceConfig, AppearanceHead, SurfaceLabels, finalize_head, head_config, train_head
+from .appearance import AppearanceConfig, SurfaceLabels, finalize_head, make_head, train_head
 from .bvh import NODE_DTYPE, build_bvh
 from .events import EventSink, null_sink
 from .exact import ExactTracer
@@ -266,7 +266,7 @@ def _metadata(mesh: Mesh, settings: Settings, why: str, assessment, tr: TrainRes
             "torch": torch.__version__, "machine": platform.machine()}
 
 
-def _appearance(model: NeuralBVH, mesh: Mesh, tracer: ExactTracer, settings: Settings, cfg, tr: TrainResult,
+def _appearance(model: NeuralBVH, mesh: Mesh, tracer: ExactTracer, settings: Settings, made, tr: TrainResult,
                 events: EventSink, should_cancel, seconds: dict) -> dict:
     """Give the model the mesh's materials and, when its look needs one, train the appearance head (in
     `appearance_share` of the time budget, or that share of the geometry's training time when there is no budget)
@@ -274,17 +274,20 @@ def _appearance(model: NeuralBVH, mesh: Mesh, tracer: ExactTracer, settings: Set
     if mesh.look is None:
         return {}
     model.materials = list(mesh.look.materials)
-    if cfg is None:
+    if made is None:
         return {"slots": mesh.look.n_slots, "head": None}
+    head, face_patch = made
+    cfg = head.cfg
     share = settings.appearance_share
     budget = (settings.time_limit_s * share if settings.time_limit_s
               else max(1.0, tr.seconds * share / max(1 - share, 1e-6)))
     events({"event": "phase", "phase": "appearance",
-            "message": f"{cfg.slots} material slot(s){', texture coordinates' if cfg.uv else ''}: {budget:.0f} s"})
+            "message": f"{cfg.slots} material slot(s), {cfg.patches} patch(es)"
+                       f"{', texture coordinates' if cfg.uv else ''}: {budget:.0f} s"})
     t = time.perf_counter()
-    head = AppearanceHead(cfg).to(model.device)
+    head = head.to(model.device)
     torch.manual_seed(settings.seed)
-    labels = SurfaceLabels(mesh, tracer, np.random.default_rng(settings.seed + 1))
+    labels = SurfaceLabels(mesh, tracer, np.random.default_rng(settings.seed + 1), face_patch)
     result = train_head(head, labels, budget, should_stop=should_cancel,
                         pool_size=1 << 19 if settings.time_limit_s else 1 << 15)
     if should_cancel():
@@ -292,7 +295,7 @@ def _appearance(model: NeuralBVH, mesh: Mesh, tracer: ExactTracer, settings: Set
     finalize_head(head, settings.table_bits, settings.network_bits)
     model.appearance = head
     seconds["appearance"] = time.perf_counter() - t
-    return {"slots": cfg.slots, "head": {"steps": result.steps, "seconds": round(result.seconds, 2),
+    return {"slots": cfg.slots, "patches": cfg.patches, "head": {"steps": result.steps, "seconds": round(result.seconds, 2),
                                          "final_loss": result.final_loss}}
 
 
@@ -312,9 +315,9 @@ def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = 
     seconds: dict = {}
     tracer = ExactTracer(mesh)  # one Embree scene for the alternatives, the labels and the evaluation
     assessment = _verdict(mesh, settings, why, tracer, events, seconds)
-    head_cfg = head_config(mesh.look, AppearanceConfig(log2_table=settings.appearance_log2_table))
+    head = make_head(mesh, AppearanceConfig(log2_table=settings.appearance_log2_table))
     asked = settings
-    if head_cfg is not None and settings.time_limit_s and resume_from is None:  # the head's share of the budget
+    if head is not None and settings.time_limit_s and resume_from is None:  # the head's share of the budget
         settings = dataclasses.replace(settings, time_limit_s=settings.time_limit_s * (1 - settings.appearance_share))
     bvh = _training_bvh(mesh, settings, events, seconds)
     search = _SizeSearch(mesh, bvh, tracer, settings, why, events, should_cancel, checkpoint_path, resume_from,
@@ -322,9 +325,9 @@ def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = 
     chosen_log2, why = search.run()
     model, tr, settings, restart_notes, quality = search.trained[chosen_log2]
     why += restart_notes  # a restart at a lower learning rate, in the training kept
-    if head_cfg is not None and asked is not settings:
+    if head is not None and asked is not settings:
         settings = dataclasses.replace(settings, time_limit_s=asked.time_limit_s)
-    look_info = _appearance(model, mesh, tracer, settings, head_cfg, tr, events, should_cancel, seconds)
+    look_info = _appearance(model, mesh, tracer, settings, head, tr, events, should_cancel, seconds)
     metadata = _metadata(mesh, settings, why, assessment, tr, quality)
     if look_info:
         metadata["appearance"] = look_info

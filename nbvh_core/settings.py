@@ -99,7 +99,7 @@ class Settings:
     #: An asset with several material slots or a texture: the share of the time budget (or, without one, of the
     #: geometry's training time, added) the appearance head trains in (`appearance.py`), and its table size.
     appearance_share: float = 0.15
-    appearance_log2_table: int = 10
+    appearance_log2_table: int = 9
 
     def model_config(self) -> ModelConfig:
         normal_loss = self.resolved_normal_loss()

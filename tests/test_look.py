@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from nbvh_core import demo_assets
-from nbvh_core.appearance import AppearanceConfig, AppearanceHead, SurfaceLabels, finalize_head, head_config, train_head
+from nbvh_core.appearance import AppearanceConfig, SurfaceLabels, finalize_head, make_head, train_head
 from nbvh_core.exact import ExactTracer
 from nbvh_core.fileformat import NBVHFileError, decode_nbvh, encode_nbvh, read_info
 from nbvh_core.look import (Look, Material, albedo, barycentrics, decode_png, encode_png, hit_labels, look_arrays,
@@ -114,18 +114,18 @@ def test_the_head_learns_slots_and_coordinates():
     torch.manual_seed(0)
     m = demo_assets.crate(cells=4, texture=64)
     tracer = ExactTracer(m)
-    cfg = head_config(m.look, AppearanceConfig(log2_table=10))
-    assert cfg.slots == 2 and cfg.uv
-    head = AppearanceHead(cfg)
-    labels = SurfaceLabels(m, tracer, np.random.default_rng(0))
+    head, face_patch = make_head(m, AppearanceConfig(log2_table=10))
+    cfg = head.cfg
+    assert cfg.slots == 2 and cfg.uv and cfg.patches == 6  # the crate's six planar islands fit exactly
+    labels = SurfaceLabels(m, tracer, np.random.default_rng(0), face_patch)
     before = head.loss(*[torch.from_numpy(a) for a in labels.draw(4096)]).item()
     train_head(head, labels, seconds=60, max_steps=400, batch=4096, pool_size=1 << 15)
     finalize_head(head, 8, 16)
-    p, s, uv = SurfaceLabels(m, tracer, np.random.default_rng(1)).draw(4096)
+    p, patch, uv = SurfaceLabels(m, tracer, np.random.default_rng(1), face_patch).draw(4096)
     slot, puv = head.predict(torch.from_numpy(p))
-    assert (slot == s).mean() > 0.95
-    assert np.median(np.abs(puv - uv).max(1)) < 0.05
-    assert head.loss(torch.from_numpy(p), torch.from_numpy(s), torch.from_numpy(uv)).item() < 0.5 * before
+    assert (slot == head.patch_slot.numpy()[patch]).mean() > 0.95
+    assert np.median(np.abs(puv - uv).max(1)) < 0.5 / 512  # right patch: exact coordinates
+    assert head.loss(torch.from_numpy(p), torch.from_numpy(patch), torch.from_numpy(uv)).item() < 0.5 * before
 
 
 def _textured_model():
@@ -167,6 +167,7 @@ def _patched(data: bytes, edit) -> bytes:
     (lambda h: h["appearance"]["materials"][0].update(image=[16, 32, 3]), "entry says|texture"),
     (lambda h: h["appearance"]["materials"][1].update(base_color=[2, 0, 0, 1]), "base_color"),
     (lambda h: h["appearance"]["config"].update(slots=7), "slots"),
+    (lambda h: h["appearance"]["config"].update(patches=70000), "patches"),
     (lambda h: h["appearance"].pop("materials"), "exactly"),
 ])
 def test_crafted_look_headers_are_refused_in_one_line(edit, match):
