@@ -8,8 +8,9 @@ against Cycles: FLIP (NVIDIA, `flip-evaluator`), MSE, and each material's mean c
 
     .venv/bin/python bench/look_suzanne.py bench/results/look_suzanne [--seconds 60] [--size 512]
 
-Writes OUT/scene.blend, OUT/suzanne.nbvh, OUT/nbvh.png, OUT/cycles.png, OUT/figure.png (NBVH | Cycles) and one row
-in bench/results/look_suzanne.csv.
+Writes OUT/figure.png (NBVH | Cycles) and one row in bench/results/look_suzanne.csv; OUT/scene.blend,
+OUT/suzanne.{nbvh,npz} (the add-on's export, for `bench_look.py --npz`), OUT/{nbvh,cycles,masks}.png stay
+uncommitted (.gitignore).
 """
 from __future__ import annotations
 
@@ -106,6 +107,7 @@ def compress(obj, out: Path, seconds: float) -> tuple[Path, dict]:
     from nbvh_core.pipeline import compress_mesh, preset
 
     verts, tris, _, look = export.evaluated_triangles(obj, bpy.context.evaluated_depsgraph_get())
+    np.savez(out / "suzanne.npz", vertices=verts, faces=tris, **look)  # for bench_look.py --npz
     mesh = mesh_from_arrays(verts, tris, "suzanne", look_from_arrays(look, "suzanne"))
     path = out / "suzanne.nbvh"
     t = time.perf_counter()

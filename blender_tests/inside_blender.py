@@ -314,6 +314,58 @@ def test_textures_of_an_object_s_materials_are_counted():
     bpy.data.objects.remove(obj)
 
 
+def test_export_carries_slots_coordinates_and_the_base_colour_image():
+    """The look the add-on exports: per-triangle slot, per-corner coordinates of the active UV map, each slot's
+    base colour and the image feeding Base Color (rows top first, as PNG); nbvh_core reads them back."""
+    export = ADDON["export"]
+    verts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], np.float32)
+    obj = make_mesh_object("Looked", verts, np.array([[0, 1, 2], [1, 3, 2]]))
+    uv_layer = obj.data.uv_layers.new(name="UVMap")
+    uv = np.array([[0, 0], [1, 0], [0, 1], [1, 0], [1, 1], [0, 1]], np.float32)  # per loop, in face order
+    uv_layer.data.foreach_set("uv", uv.ravel())
+    image = bpy.data.images.new("nbvh-test-look", 4, 2)
+    px = np.zeros((2, 4, 4), np.float32)
+    px[1, :, 0] = 1.0  # the top row (Blender's last) red
+    px[..., 3] = 1.0
+    image.pixels.foreach_set(px.ravel())
+    textured = bpy.data.materials.new("nbvh-look-tex")
+    textured.use_nodes = True
+    tex = textured.node_tree.nodes.new("ShaderNodeTexImage")
+    tex.image = image
+    bsdf = next(n for n in textured.node_tree.nodes if n.type == "BSDF_PRINCIPLED")
+    textured.node_tree.links.new(tex.outputs["Color"], bsdf.inputs["Base Color"])
+    plain = bpy.data.materials.new("nbvh-look-plain")
+    plain.use_nodes = True
+    bsdf = next(n for n in plain.node_tree.nodes if n.type == "BSDF_PRINCIPLED")
+    bsdf.inputs["Base Color"].default_value = (0.1, 0.2, 0.9, 1.0)
+    obj.data.materials.append(textured)
+    obj.data.materials.append(plain)
+    obj.data.polygons[1].material_index = 1
+    _, tris, _, look = export.evaluated_triangles(obj, bpy.context.evaluated_depsgraph_get())
+    assert look["face_slots"].tolist() == [0, 1], look["face_slots"]
+    assert look["corner_uvs"].shape == (2, 3, 2)
+    assert np.allclose(sorted(map(tuple, look["corner_uvs"].reshape(-1, 2).tolist())), sorted(map(tuple, uv.tolist())))
+    assert np.allclose(look["base_colors"][1], [0.1, 0.2, 0.9, 1.0], atol=1e-6)
+    img = look["image_0"]
+    assert img.shape == (2, 4, 4) and img[0, :, 0].min() == 255 and img[1, :, 0].max() == 0  # top row first
+    assert "image_1" not in look and list(look["material_names"]) == ["nbvh-look-tex", "nbvh-look-plain"]
+    look_module = importlib.import_module(ADDON["module"].__name__ + ".nbvh_core.look")  # torch-free
+    back = look_module.look_from_arrays(look, "Looked")
+    assert back.n_slots == 2 and back.textured
+    plain_obj = make_mesh_object("Unpainted", verts, np.array([[0, 1, 2]]))
+    assert export.evaluated_triangles(plain_obj, bpy.context.evaluated_depsgraph_get())[3] == {}
+    previews = importlib.import_module(ADDON["module"].__name__ + ".previews")
+    points = np.concatenate([np.random.default_rng(0).random((50, 6)), np.tile([[1.0, 0.0, 0.0]], (50, 1))], 1)
+    proxy = previews.make_proxy(obj, points.astype(np.float32), bpy.context.scene)
+    colour = proxy.data.attributes[previews.COLOR_ATTRIBUTE]
+    got = np.empty(len(colour.data) * 4, np.float32)
+    colour.data.foreach_get("color", got)
+    assert np.allclose(got.reshape(-1, 4)[:, :3], [1, 0, 0]) and proxy.data.materials[0] is not None
+    previews.remove_proxy(obj)
+    for o in (obj, plain_obj):
+        bpy.data.objects.remove(o)
+
+
 def test_stored_model_paths_only_name_regular_nbvh_files():
     render_engine = importlib.import_module(ADDON["module"].__name__ + ".render_engine")
     work = Path(ARGS.work)

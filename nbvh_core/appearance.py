@@ -32,7 +32,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .encodings import EncodingConfig, make_encoding
-from .look import Look, hit_labels
+from .look import hit_labels
 from .mesh import Mesh
 
 

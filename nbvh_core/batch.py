@@ -71,6 +71,7 @@ class Row:
     mesh_resident_bytes: int | None = None
     draco_bytes: int | None = None
     compact_bytes: int | None = None  # the mesh as a compact ray-traceable mesh (compact_mesh)
+    texture_bytes: int | None = None  # the asset's images as held (width x height x channels), kept either way
     decimation_triangles: int | None = None  # the verdict's winning decimation (written beside the results)
     decimation_compact_bytes: int | None = None
     predicted_model_bytes: int | None = None
@@ -168,7 +169,7 @@ def discover(library: Path, work_dir: Path, blender: str | None = None) -> list[
 
 def load_asset(path: str, name: str):
     """The asset's mesh (a mesh file, or an .npz with `vertices` and `faces`). Raises ValueError (MeshError)."""
-    from .mesh import load_mesh, mesh_from_arrays
+    from .mesh import load_mesh
 
     if path.lower().endswith(ARRAY_EXTENSION):
         return mesh_from_npz(path, name)
@@ -262,12 +263,12 @@ def measure_asset(asset: dict, spec: dict) -> dict:
         settings, _ = resolve(_settings(spec), mesh)
         tracer = ExactTracer(mesh)
         a = assess(mesh, settings, measure_alternatives=settings.target_mse is not None, tracer=tracer)
-        thumb = render_reference(tracer, orbit_cameras(1)[0], THUMBNAIL_PX, THUMBNAIL_PX).image
+        thumb = render_reference(tracer, orbit_cameras(1)[0], THUMBNAIL_PX, THUMBNAIL_PX).display
         out.update(status="measured" if a.worth_compressing else "not_worth", triangles=mesh.n_triangles,
                    mesh_resident_bytes=a.resident["total"], draco_bytes=a.alternatives.get("draco11_bytes"),
                    predicted_model_bytes=a.model_bytes, verdict=a.message, recommendation=a.recommendation,
                    key=settings_key(mesh_identity(mesh)["sha256"], spec), thumb=png_bytes(thumb),
-                   compact_bytes=a.compact_bytes)
+                   compact_bytes=a.compact_bytes, texture_bytes=mesh.look.texture_bytes() if mesh.look else 0)
         dec = winning_decimation(mesh, a)
         if dec is not None:  # the mesh that wins, as a file the head writes (workers may not share its disk)
             out.update(decimation_triangles=dec.n_triangles, decimation_ply=mesh_file_bytes(dec),
@@ -294,7 +295,7 @@ def compress_asset(asset: dict, spec: dict) -> dict:
         kernels.keep_freed_memory()
         mesh = load_asset(asset["path"], asset["name"])
         res = compress_mesh(mesh, _settings(spec).with_overrides(force=True))
-        thumb = render_neural(res.model, orbit_cameras(1)[0], THUMBNAIL_PX, THUMBNAIL_PX).image
+        thumb = render_neural(res.model, orbit_cameras(1)[0], THUMBNAIL_PX, THUMBNAIL_PX).display
         out.update(status="done", data=res.data, summary=res.summary(), thumb=png_bytes(thumb),
                    model_bytes=res.file_bytes, model_resident_bytes=sum(res.model.resident_bytes().values()),
                    mse=res.quality.mse if res.quality else None, iou=res.quality.silhouette_iou if res.quality else None,
@@ -430,7 +431,7 @@ class _Library:
     def measured(self, name: str, r: dict) -> None:
         row = self.rows[name]
         for k in ("status", "error", "triangles", "mesh_resident_bytes", "draco_bytes", "predicted_model_bytes",
-                  "verdict", "recommendation", "key", "measure_seconds", "worker", "compact_bytes",
+                  "verdict", "recommendation", "key", "measure_seconds", "worker", "compact_bytes", "texture_bytes",
                   "decimation_triangles", "decimation_compact_bytes"):
             if k in r:
                 setattr(row, k, r[k])

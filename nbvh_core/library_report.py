@@ -11,7 +11,7 @@ import json
 from pathlib import Path
 
 CSV_COLUMNS = ("name", "source", "status", "verdict", "triangles", "mesh_resident_bytes", "draco_bytes",
-               "compact_bytes", "decimation_triangles", "decimation_compact_bytes", "predicted_model_bytes", "model_bytes", "model_resident_bytes", "saved_bytes", "mse", "iou",
+               "compact_bytes", "texture_bytes", "decimation_triangles", "decimation_compact_bytes", "predicted_model_bytes", "model_bytes", "model_resident_bytes", "saved_bytes", "mse", "iou",
                "train_seconds", "measure_seconds", "worker", "error")
 
 
@@ -23,7 +23,8 @@ def totals(rows: list) -> dict:
         by_status[r.status] = by_status.get(r.status, 0) + 1
     before = sum(r.mesh_resident_bytes or 0 for r in rows)
     saved = sum(r.saved_bytes for r in rows)
-    return {"assets": len(rows), "by_status": by_status, "resident_before_bytes": before,
+    textures = sum(r.texture_bytes or 0 for r in rows)
+    return {"assets": len(rows), "by_status": by_status, "resident_before_bytes": before, "texture_bytes": textures,
             "resident_after_bytes": before - saved, "saved_bytes": saved,
             "model_storage_bytes": sum(r.model_bytes or 0 for r in rows if r.status in ("done", "cached")),
             "predicted_savings_bytes": sum(r.predicted_savings for r in rows),
@@ -90,6 +91,7 @@ def _row_html(r) -> str:
             + _cell(r.model_resident_bytes, _fmt_bytes(r.model_resident_bytes))
             + _cell(r.model_bytes, _fmt_bytes(r.model_bytes)) + _cell(r.draco_bytes, _fmt_bytes(r.draco_bytes))
             + _cell(r.compact_bytes, _fmt_bytes(r.compact_bytes))
+            + _cell(r.texture_bytes, _fmt_bytes(r.texture_bytes))
             + _cell(r.saved_bytes, _fmt_bytes(r.saved_bytes)) + _cell(r.mse, mse)
             + _cell(r.iou, "" if r.iou is None else f"{r.iou:.4f}")
             + _cell(r.train_seconds, "" if r.train_seconds is None else f"{r.train_seconds:.0f} s")
@@ -102,7 +104,7 @@ def html_report(rows: list, info: dict, t: dict | None = None) -> str:
     t = t if t is not None else totals(rows)
     head = ("<tr><th>original</th><th>neural</th><th>asset</th><th>status</th><th>triangles</th>"
             "<th>resident (mesh)</th><th>resident (model)</th><th>.nbvh file</th><th>Draco 11-bit</th><th>compact mesh</th>"
-            "<th>saved</th><th>MSE</th><th>IoU</th><th>train</th><th>verdict / error</th></tr>")
+            "<th>textures</th><th>saved</th><th>MSE</th><th>IoU</th><th>train</th><th>verdict / error</th></tr>")
     status = ", ".join(f"{k} {v}" for k, v in sorted(t["by_status"].items()))
     state = "final" if info.get("final") else "in progress"
     return f"""<!doctype html><html><head><meta charset="utf-8"><title>NBVH library report</title>
@@ -114,6 +116,8 @@ td,th{{border:1px solid #ccc;padding:3px 6px}} th{{cursor:pointer;background:#ee
 Resident memory as a ray tracer holds it: <b>{_fmt_bytes(t["resident_before_bytes"])}</b> before,
 <b>{_fmt_bytes(t["resident_after_bytes"])}</b> after (saved {_fmt_bytes(t["saved_bytes"])}; predicted for the
 assets worth compressing {_fmt_bytes(t["predicted_savings_bytes"])}). Model files {_fmt_bytes(t["model_storage_bytes"])}.
+Textures, kept either way: {_fmt_bytes(t["texture_bytes"])}; whole assets (geometry + textures)
+{_fmt_bytes(t["resident_before_bytes"] + t["texture_bytes"])} before, {_fmt_bytes(t["resident_after_bytes"] + t["texture_bytes"])} after.
 Compute: {t["train_seconds"]:.0f} s training, {t["measure_seconds"]:.0f} s measuring; wall {info.get("wall_s", "?")} s
 on {info.get("cluster", {}).get("nodes", "?")} node(s), {info.get("cluster", {}).get("CPU", "?")} CPUs.
 Click a column to sort.</p>

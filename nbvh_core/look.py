@@ -215,12 +215,12 @@ def patch_basis(points, degree: int):
     cols = [x, y, z, x * 0 + 1]
     if degree == 2:
         cols += [x * x, y * y, z * z, x * y, y * z, z * x]
-    stack = getattr(points, "new_tensor", None)
-    if stack is not None:  # torch
-        import torch
-
-        return torch.stack(cols, 1)
-    return np.stack(cols, 1)
+    shape = (points.shape[0], len(cols))
+    # torch tensors fill a tensor of their own kind (this module stays free of torch for the add-on)
+    out = points.new_empty(shape) if hasattr(points, "new_empty") else np.empty(shape, np.float64)
+    for i, c in enumerate(cols):
+        out[:, i] = c
+    return out
 
 
 def uv_patches(vertices: np.ndarray, faces: np.ndarray, look: Look, tolerance: float, max_patches: int,

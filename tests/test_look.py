@@ -6,12 +6,11 @@ import torch
 from nbvh_core import demo_assets
 from nbvh_core.appearance import AppearanceConfig, SurfaceLabels, finalize_head, make_head, train_head
 from nbvh_core.exact import ExactTracer
-from nbvh_core.fileformat import NBVHFileError, decode_nbvh, encode_nbvh, read_info
+from nbvh_core.fileformat import NBVHFileError, decode_nbvh
 from nbvh_core.look import (Look, Material, albedo, barycentrics, decode_png, encode_png, hit_labels, look_arrays,
                             look_from_arrays, sample_bilinear, uv_charts)
 from nbvh_core.mesh import MeshError, load_mesh, mesh_from_arrays
 from nbvh_core.pipeline import compress_mesh, preset
-from nbvh_core.quantize import StorageConfig
 
 from meshes import icosphere
 

@@ -15,7 +15,8 @@ MAX_FUNCTION_LINES = 80
 #: Functions allowed past MAX_FUNCTION_LINES, with the reason (none today; an entry needs one).
 LONG_FUNCTIONS: dict[str, str] = {}
 #: The core modules the add-on imports inside Blender's process (addon/job.py), which has no torch.
-TORCH_FREE = ("nbvh_core.events", "nbvh_core.outputs", "nbvh_core.quality_levels", "nbvh_core.process")
+TORCH_FREE = ("nbvh_core.events", "nbvh_core.outputs", "nbvh_core.quality_levels", "nbvh_core.process",
+              "nbvh_core.look")
 
 
 def _module_name(path: Path) -> str:
