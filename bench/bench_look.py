@@ -12,6 +12,10 @@ the Smart-UV Suzanne `bench/look_suzanne.py` exports) compress with a preset at 
 * bytes: the whole file, its appearance head, its textures; seconds: geometry training and the head's.
 
     .venv/bin/python bench/bench_look.py [--preset preview] [--assets globe,crate,ring,patchwork] [--npz X.npz]
+                                         [--target coordinates|colour]
+
+--target colour: the head learns the textured colour itself and the file keeps no image (the alternative to
+coordinates + images); rows then have no slot or coordinate scores, the bytes and FLIP compare the two.
 
 Rows append to bench/results/look.csv (stamped); a rerun skips rows it already has for the same commit.
 """
@@ -54,6 +58,8 @@ def score_views(mesh, model, tracer, views: int, size: int) -> dict:
         p_model = np.clip(o[both] + q.t.numpy()[both, None] * d[both], 0, 1)
         slot, uv = hit_labels(mesh.look, mesh.vertices, mesh.faces, fh.tri[both], p_exact)
         for tag, pts in (("exact", p_exact), ("model", p_model)):
+            if model.appearance.cfg.target == "colour":
+                continue
             ps, puv = model.appearance.predict(torch.from_numpy(pts.astype(np.float32)))
             acc[f"slot_{tag}"].append(ps == slot)
             if uv is not None:
@@ -64,8 +70,10 @@ def score_views(mesh, model, tracer, views: int, size: int) -> dict:
         acc["flip"].append(float(flip_evaluator.evaluate(ref, neu, "LDR", applyMagma=False)[1]))
         acc["mse"].append(float(((ref - neu) ** 2).mean()))
     away = np.concatenate(acc["away"])
-    out = {"slot_exact": np.concatenate(acc["slot_exact"]).mean(), "slot_model": np.concatenate(acc["slot_model"]).mean(),
-           "away_fraction": away.mean(), "flip": np.mean(acc["flip"]), "colour_mse": np.mean(acc["mse"])}
+    out = {"away_fraction": away.mean(), "flip": np.mean(acc["flip"]), "colour_mse": np.mean(acc["mse"])}
+    if acc["slot_exact"]:
+        out.update(slot_exact=np.concatenate(acc["slot_exact"]).mean(),
+                   slot_model=np.concatenate(acc["slot_model"]).mean())
     for tag in ("exact", "model"):
         if acc[f"uv_{tag}"]:
             e = np.concatenate(acc[f"uv_{tag}"])[away]
@@ -74,11 +82,11 @@ def score_views(mesh, model, tracer, views: int, size: int) -> dict:
     return {k: round(float(v), 4) for k, v in out.items()}
 
 
-def run_asset(name: str, mesh, preset_name: str, views: int, size: int) -> dict:
-    s = preset(preset_name).with_overrides(force=True)
+def run_asset(name: str, mesh, preset_name: str, views: int, size: int, target: str) -> dict:
+    s = preset(preset_name).with_overrides(force=True, appearance_target=target)
     r = compress_mesh(mesh, s)
     head = r.model.appearance
-    row = {**stamp(), "asset": name, "preset": preset_name, "triangles": mesh.n_triangles,
+    row = {**stamp(), "asset": name, "preset": preset_name, "target": target, "triangles": mesh.n_triangles,
            "slots": mesh.look.n_slots, "patches": head.cfg.patches if head else 0,
            "file_bytes": r.file_bytes, "appearance_bytes": r.components.get("appearance", 0),
            "texture_bytes": r.components.get("textures", 0),
@@ -98,14 +106,16 @@ def main() -> None:
     ap.add_argument("--npz", action="append", default=[], type=Path)
     ap.add_argument("--views", type=int, default=4)
     ap.add_argument("--size", type=int, default=512)
+    ap.add_argument("--target", choices=["coordinates", "colour"], default="coordinates")
     args = ap.parse_args()
-    done = {(r["asset"], r["preset"]) for r in read_rows(OUT) if r["commit"] == stamp()["commit"]}
+    done = {(r["asset"], r["preset"], r.get("target") or "coordinates") for r in read_rows(OUT)
+            if r["commit"] == stamp()["commit"]}
     jobs = [(a, lambda a=a: demo_assets.ASSETS[a]()) for a in args.assets.split(",") if a]
     jobs += [(p.stem, lambda p=p: mesh_from_npz(p, p.stem)) for p in args.npz]
     for name, make in jobs:
-        if (name, args.preset) in done:
+        if (name, args.preset, args.target) in done:
             continue
-        row = run_asset(name, make(), args.preset, args.views, args.size)
+        row = run_asset(name, make(), args.preset, args.views, args.size, args.target)
         append_rows(OUT, [row])
         print(row, flush=True)
 

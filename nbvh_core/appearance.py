@@ -32,7 +32,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .encodings import EncodingConfig, make_encoding
-from .look import hit_labels
+from .look import albedo, hit_labels, linear_to_srgb
 from .mesh import Mesh
 
 
@@ -42,8 +42,10 @@ class AppearanceConfig:
     (`look.uv_patches`; at most max_patches unless the islands alone are more); uv: whether it regresses
     coordinates; levels x 2^log2_table rows of `features` floats at resolutions n_min..n_max; `hidden` layers of
     `width`. patch_tolerance: the affine fit a curved island is cut to (normalised UV units; 1/2048 = a quarter
-    texel at 512 px)."""
+    texel at 512 px). target: "coordinates" (slot and texture coordinates; the images stay in the file) or
+    "colour" (the textured colour itself, sRGB, regressed per point: no images stored, no patches)."""
 
+    target: str = "coordinates"
     slots: int = 1
     patches: int = 1
     uv: bool = True
@@ -56,7 +58,7 @@ class AppearanceConfig:
     n_min: int = 16
     n_max: int = 1024
     features: int = 2
-    log2_table: int = 12
+    log2_table: int = 9
     hidden: int = 2
     width: int = 32
     uv_weight: float = 10.0
@@ -68,11 +70,11 @@ class AppearanceConfig:
     @property
     def classes(self) -> int:
         """Logits the head outputs (0 with a single patch)."""
-        return self.patches if self.patches > 1 else 0
+        return self.patches if self.patches > 1 and self.target == "coordinates" else 0
 
     @property
     def outputs(self) -> int:
-        return self.classes + (2 if self.uv else 0)
+        return 3 if self.target == "colour" else self.classes + (2 if self.uv else 0)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -99,12 +101,21 @@ class AppearanceHead(nn.Module):
         self.network = nn.Sequential(*layers)
 
     def forward(self, points: torch.Tensor) -> tuple[torch.Tensor | None, torch.Tensor | None]:
-        """points (N, 3) float32 -> patch logits (N, P) or None (one patch), residual (N, 2) or None."""
+        """points (N, 3) float32 -> patch logits (N, P) or None (one patch), and residual (N, 2) or None; for
+        the colour target (None, sRGB colour (N, 3) in [0, 1])."""
         feats = self.encoding(points)
         x = torch.cat([feats, points * 2 - 1], dim=1)
         out = self.network(x.to(self.network[0].weight.dtype)).float()
+        if self.cfg.target == "colour":
+            return None, torch.sigmoid(out)
         c = self.cfg.classes
         return (out[:, :c] if c else None), (out[:, c:c + 2] if self.cfg.uv else None)
+
+    @torch.no_grad()
+    def colour(self, points: torch.Tensor, batch: int = 1 << 16) -> np.ndarray:
+        """points (N, 3) normalised -> (N, 3) float32 sRGB colour (the colour target)."""
+        return np.concatenate([self(points[a:a + batch].to(self.affine.device, torch.float32))[1].cpu().numpy()
+                               for a in range(0, points.shape[0], batch)] or [np.zeros((0, 3), np.float32)])
 
     def patch_map(self, points: torch.Tensor, patch: torch.Tensor, residual: torch.Tensor | None = None
                   ) -> torch.Tensor:
@@ -134,8 +145,11 @@ class AppearanceHead(nn.Module):
 
     def loss(self, points: torch.Tensor, patch: torch.Tensor, uv: torch.Tensor | None) -> torch.Tensor:
         """Cross-entropy of the patch + uv_weight x L1 of the coordinates on the true patch, averaged (the L1 is
-        scaled by 1 / the mean fit error, so a curved map's small residual still steers the network)."""
+        scaled by 1 / the mean fit error, so a curved map's small residual still steers the network). The colour
+        target: L1 of the sRGB colour (`uv` holds the target colours (N, 3))."""
         logits, residual = self(points)
+        if self.cfg.target == "colour":
+            return (residual - uv).abs().sum(1).mean()
         total = points.new_zeros(())
         if logits is not None:
             total = total + F.cross_entropy(logits, patch)
@@ -155,9 +169,15 @@ def make_head(mesh: Mesh, base: AppearanceConfig | None = None) -> tuple[Appeara
     if look is None or look.plain:
         return None
     cfg = AppearanceConfig(**(base.to_dict() if base is not None else {}))
-    face_patch, affine, patch_slot = uv_patches(mesh.vertices, mesh.faces, look, cfg.patch_tolerance,
-                                                cfg.max_patches, cfg.patch_degree)
-    cfg.slots, cfg.patches, cfg.uv = look.n_slots, len(affine), look.textured
+    if cfg.target not in TARGETS:
+        raise ValueError(f"unknown appearance target {cfg.target!r}; choose from {', '.join(TARGETS)}")
+    if cfg.target == "colour":  # one patch: the network answers the colour itself
+        face_patch = np.zeros(len(mesh.faces), np.int32)
+        affine, patch_slot = np.zeros((1, 2, map_width(cfg.patch_degree)), np.float32), np.zeros(1, np.int32)
+    else:
+        face_patch, affine, patch_slot = uv_patches(mesh.vertices, mesh.faces, look, cfg.patch_tolerance,
+                                                    cfg.max_patches, cfg.patch_degree)
+    cfg.slots, cfg.patches, cfg.uv = look.n_slots, len(affine), look.textured and cfg.target == "coordinates"
     head = AppearanceHead(cfg)
     with torch.no_grad():
         head.affine.copy_(torch.from_numpy(affine))
@@ -165,13 +185,18 @@ def make_head(mesh: Mesh, base: AppearanceConfig | None = None) -> tuple[Appeara
     return head, face_patch
 
 
+#: What an appearance head answers (AppearanceConfig.target).
+TARGETS = ("coordinates", "colour")
+
+
 class SurfaceLabels:
     """Exact labelled surface points: first hits of training-distribution rays on the mesh, each with its patch
     (`face_patch` (F,), default: its slot) and interpolated coordinates. draw(n) -> points (n, 3) float32,
-    patch (n,) int64, uv (n, 2) float32 | None."""
+    patch (n,) int64, uv (n, 2) float32 | None; with colour=True the third is the textured sRGB colour (n, 3)."""
 
-    def __init__(self, mesh: Mesh, tracer, rng: np.random.Generator, face_patch: np.ndarray | None = None):
-        self.mesh, self.tracer, self.rng = mesh, tracer, rng
+    def __init__(self, mesh: Mesh, tracer, rng: np.random.Generator, face_patch: np.ndarray | None = None,
+                 colour: bool = False):
+        self.mesh, self.tracer, self.rng, self.want_colour = mesh, tracer, rng, colour
         self.face_patch = face_patch if face_patch is not None else mesh.look.face_slots
         self.lo, self.hi = mesh.vertices.min(0), mesh.vertices.max(0)
 
@@ -184,7 +209,9 @@ class SurfaceLabels:
             fh = self.tracer.first_hit(o, d)
             h = np.nonzero(fh.hit)[0]
             p = o[h] + fh.t[h, None] * d[h]
-            _, uv = hit_labels(self.mesh.look, self.mesh.vertices, self.mesh.faces, fh.tri[h], p)
+            slot, uv = hit_labels(self.mesh.look, self.mesh.vertices, self.mesh.faces, fh.tri[h], p)
+            if self.want_colour:
+                uv = linear_to_srgb(albedo(self.mesh.look.materials, slot, uv))
             pts.append(p.astype(np.float32))
             slots.append(self.face_patch[fh.tri[h]])
             uvs.append(uv)

@@ -187,6 +187,7 @@ def _compress_locked(args, mesh, mesh_path, out, stem, outputs, sink, staged) ->
             node_bits=args.node_bits, rays_per_step=args.rays_per_step, budget_kb=args.budget_kb,
             leaf_sampling=args.leaf_sampling, tree_cut=True if args.tree_cut else None, normal_loss=args.normal_loss,
             n_max=args.n_max, index_factor=args.index_factor, finetune_fraction=args.finetune_fraction,
+            appearance_target=args.appearance,
             target_mse=QUALITY_LEVELS[args.quality] if args.quality else args.target_mse)
         if args.steps is not None and args.time_limit is None:
             settings.time_limit_s = None
@@ -428,6 +429,9 @@ def _add_compress_parser(sub) -> None:
     c.add_argument("--n-max", type=int, help="the grid's finest resolution (default: chosen from the mesh and T)")
     c.add_argument("--index-factor", type=int, help="HashVQAD's index entries per feature row, H / T (default: the "
                    "paper's 128)")
+    c.add_argument("--appearance", choices=["coordinates", "colour"],
+                   help="textured assets: 'coordinates' (default: the head answers slot and texture coordinates, the "
+                        "images are kept) or 'colour' (it learns the textured colour, no image stored)")
     c.add_argument("--finetune-fraction", type=float,
                    help="HashVQAD: the last fraction of training on its frozen codes (default 0.1)")
     c.add_argument("--normal-loss", choices=["facing", "oriented", "unoriented"],

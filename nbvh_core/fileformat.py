@@ -48,7 +48,7 @@ import torch
 
 from .bvh import MAX_NODES, NODE_DTYPE
 from .encodings import ENCODINGS, EncodingConfig
-from .appearance import AppearanceConfig, AppearanceHead, map_width
+from .appearance import TARGETS, AppearanceConfig, AppearanceHead, map_width
 from .encodings.base import code_width, level_vertex_counts
 from .look import MAX_SLOTS, MAX_TEXTURE_SIDE, LookError, Material, decode_png, encode_png
 from .mesh import Transform
@@ -496,7 +496,7 @@ def _look_spec(header: dict, where: str) -> tuple[AppearanceConfig | None, list[
     if look["config"] is not None:
         cfg = _config_from(look["config"], AppearanceConfig, where, "appearance config")
         if (cfg.slots != len(mats) or not 1 <= cfg.patches <= MAX_PATCHES or cfg.outputs == 0
-                or cfg.patch_degree not in (1, 2)):
+                or cfg.patch_degree not in (1, 2) or cfg.target not in TARGETS):
             raise NBVHFileError(f"{where}: the appearance head's {cfg.slots} slots and {cfg.patches} patches do not "
                                 f"match {len(mats)} materials (1 to {MAX_PATCHES} patches)")
     return cfg, mats

@@ -216,13 +216,16 @@ class NeuralBVH(nn.Module):
     def albedo_at(self, points: np.ndarray) -> np.ndarray | None:
         """(N, 3) float32 linear albedo of hit points (N, 3) normalised (the slot's base colour or its image at the
         predicted coordinates, `look.albedo`), or None for a bare shape (no materials)."""
-        from .look import albedo
+        from .look import albedo, srgb_to_linear
 
         if not self.materials:
             return None
         if self.appearance is None:
             return albedo(self.materials, np.zeros(len(points), np.int64), None)
-        slot, uv = self.appearance.predict(torch.from_numpy(np.ascontiguousarray(points, np.float32)))
+        pts = torch.from_numpy(np.ascontiguousarray(points, np.float32))
+        if self.appearance.cfg.target == "colour":
+            return srgb_to_linear(self.appearance.colour(pts))
+        slot, uv = self.appearance.predict(pts)
         return albedo(self.materials, slot, uv)
 
     def stored_bytes(self, storage: StorageConfig | None = None) -> dict[str, int]:

@@ -274,6 +274,8 @@ def _appearance(model: NeuralBVH, mesh: Mesh, tracer: ExactTracer, settings: Set
     if mesh.look is None:
         return {}
     model.materials = list(mesh.look.materials)
+    if made is not None and made[0].cfg.target == "colour":  # the colour is learnt: the images are not kept
+        model.materials = [dataclasses.replace(m, image=None, _linear=None) for m in model.materials]
     if made is None:
         return {"slots": mesh.look.n_slots, "head": None}
     head, face_patch = made
@@ -287,7 +289,8 @@ def _appearance(model: NeuralBVH, mesh: Mesh, tracer: ExactTracer, settings: Set
     t = time.perf_counter()
     head = head.to(model.device)
     torch.manual_seed(settings.seed)
-    labels = SurfaceLabels(mesh, tracer, np.random.default_rng(settings.seed + 1), face_patch)
+    labels = SurfaceLabels(mesh, tracer, np.random.default_rng(settings.seed + 1), face_patch,
+                           colour=cfg.target == "colour")
     result = train_head(head, labels, budget, should_stop=should_cancel,
                         pool_size=1 << 19 if settings.time_limit_s else 1 << 15)
     if should_cancel():
@@ -315,7 +318,8 @@ def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = 
     seconds: dict = {}
     tracer = ExactTracer(mesh)  # one Embree scene for the alternatives, the labels and the evaluation
     assessment = _verdict(mesh, settings, why, tracer, events, seconds)
-    head = make_head(mesh, AppearanceConfig(log2_table=settings.appearance_log2_table))
+    head = make_head(mesh, AppearanceConfig(target=settings.appearance_target,
+                                            log2_table=settings.appearance_log2_table))
     asked = settings
     if head is not None and settings.time_limit_s and resume_from is None:  # the head's share of the budget
         settings = dataclasses.replace(settings, time_limit_s=settings.time_limit_s * (1 - settings.appearance_share))

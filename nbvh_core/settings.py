@@ -100,6 +100,9 @@ class Settings:
     #: geometry's training time, added) the appearance head trains in (`appearance.py`), and its table size.
     appearance_share: float = 0.15
     appearance_log2_table: int = 9
+    #: "coordinates": the head answers slot and texture coordinates, the images are kept in the file; "colour": it
+    #: learns the textured colour itself and no image is stored (appearance.py; bench/bench_look.py compares them).
+    appearance_target: str = "coordinates"
 
     def model_config(self) -> ModelConfig:
         normal_loss = self.resolved_normal_loss()

@@ -192,3 +192,16 @@ def test_albedo_uses_images_where_slots_have_them():
     mats = [Material("t", image=np.full((2, 2, 3), 255, np.uint8)), Material("b", np.array([0, 0, 1, 1.0]))]
     out = albedo(mats, np.array([0, 1]), np.array([[0.5, 0.5], [0.5, 0.5]], np.float32))
     assert np.allclose(out, [[1, 1, 1], [0, 0, 1]], atol=1e-6)
+
+
+def test_the_colour_target_learns_colours_and_stores_no_image():
+    m = demo_assets.globe(16, 8, texture=32)
+    s = preset("tiny").with_overrides(force=True, appearance_target="colour")
+    r = compress_mesh(m, s, evaluate_quality=False)
+    assert r.model.appearance.cfg.target == "colour" and "textures" not in r.components
+    back = decode_nbvh(r.data)
+    assert all(mat.image is None for mat in back.materials) and back.appearance.cfg.target == "colour"
+    pts = np.random.default_rng(0).uniform(0.2, 0.8, (100, 3)).astype(np.float32)
+    colour = back.albedo_at(pts)
+    assert colour.shape == (100, 3) and np.isfinite(colour).all() and np.allclose(colour, r.model.albedo_at(pts),
+                                                                                   atol=1e-5)
