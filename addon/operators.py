@@ -27,7 +27,8 @@ def _python(context) -> str:
 
 def request_from_props(props) -> engine.Request:
     """Panel settings -> engine.Request (preset, or target quality, or byte budget; time limit; device)."""
-    overrides = {"time_limit_s": float(props.time_limit), "device": props.device.lower(), "steps": None}
+    overrides = {"time_limit_s": float(props.time_limit), "device": props.device.lower(), "steps": None,
+                 "appearance_target": props.look.lower()}
     if props.force:
         overrides["force"] = True
     preset = props.preset

@@ -57,6 +57,11 @@ class NBVH_Props(bpy.types.PropertyGroup):
     time_limit: bpy.props.IntProperty(name="Time limit (s)", default=180, min=5, max=24 * 3600)
     device: bpy.props.EnumProperty(name="Device", items=[("AUTO", "Auto", "CUDA when available"),
                                                          ("CPU", "CPU", ""), ("CUDA", "CUDA", "")], default="AUTO")
+    look: bpy.props.EnumProperty(name="Look", items=[
+        ("COORDINATES", "Slots + textures", "Each hit's material slot and texture coordinates: the images are kept "
+                                            "and sampled as Blender does"),
+        ("COLOUR", "Baked colour", "The model learns the textured colour itself; no image is kept")],
+        default="COORDINATES")
     output_dir: bpy.props.StringProperty(name="Folder", subtype="DIR_PATH",
                                          description="Where .nbvh files go (empty: //nbvh beside the .blend)")
     force: bpy.props.BoolProperty(
@@ -130,6 +135,7 @@ class NBVH_PT_panel(bpy.types.Panel):
         if props.mode == "TARGET":
             col.label(text=f"per training: a target search trains up to {engine.TARGET_TRAININGS} times", icon="INFO")
         col.prop(props, "device")
+        col.prop(props, "look")
         col.prop(props, "output_dir")
         col.prop(props, "force")
         col.prop(props, "show_image")
