@@ -272,7 +272,8 @@ def cmd_info(args: argparse.Namespace) -> int:
     meta = info.metadata
     out = {"path": info.path, "bytes": info.total_bytes, "components": info.components,
            "config": info.header["config"], "storage": info.storage.to_dict(),
-           "source": meta.get("source"), "training": meta.get("training"), "quality": meta.get("quality")}
+           "source": meta.get("source"), "training": meta.get("training"), "quality": meta.get("quality"),
+           "appearance": info.header.get("appearance")}
     if args.mesh:
         mesh = _load_mesh_reporting(args.mesh)
         res = mesh_resident_bytes(mesh)
@@ -290,6 +291,13 @@ def cmd_info(args: argparse.Namespace) -> int:
     st = info.storage
     print(f"  model: {c['encoding']['kind']} T=2^{c['encoding']['log2_table']}, {c['network']['kind']} k={c['network']['k']}; "
           f"stored with {st.table_bits}-bit features, {st.network_bits}-bit weights, {st.node_bits}-bit boxes")
+    look = info.header.get("appearance")
+    if look:
+        mats = ", ".join(f"{m['name']}" + (f" ({m['image'][1]}x{m['image'][0]} image)" if m["image"] else "")
+                         for m in look["materials"])
+        head = look["config"]
+        print(f"  look: {len(look['materials'])} slot(s): {mats}; "
+              + (f"head: {head.get('target', 'coordinates')}, {head.get('patches', 1)} patch(es)" if head else "no head (one plain slot)"))
     if meta.get("source"):
         s = meta["source"]
         print(f"  source: {s['name']}, {s['triangles']:,} triangles")

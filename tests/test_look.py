@@ -205,3 +205,14 @@ def test_the_colour_target_learns_colours_and_stores_no_image():
     colour = back.albedo_at(pts)
     assert colour.shape == (100, 3) and np.isfinite(colour).all() and np.allclose(colour, r.model.albedo_at(pts),
                                                                                    atol=1e-5)
+
+
+def test_info_lists_the_look_and_its_bytes(tmp_path, capsys):
+    from nbvh_core.cli import main
+
+    _, r = _textured_model()
+    path = tmp_path / "globe.nbvh"
+    path.write_bytes(r.data)
+    assert main(["info", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "appearance" in out and "textures" in out and "painted (32x32 image), blue" in out and "patch" in out
