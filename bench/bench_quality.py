@@ -312,9 +312,9 @@ def interp_bytes_for_mse(points: list[tuple[float, float]], target: float) -> fl
 
 
 def report(plan: Plan) -> str:
+    """quality.md from the CSVs: method steps, III against base, the baselines, stability, failure subsets,
+    divergence."""
     rows = [r for r in read_rows(plan.csv("quality")) if not r.get("diverged")]
-    base = read_rows(plan.csv("baselines"))
-    div = read_rows(plan.csv("divergence"))
     order = {m: i for i, m in enumerate(BENCH_MESHES)}
     sweep = sorted((r for r in rows if r["part"] == "sweep"),
                    key=lambda r: (order.get(r["mesh"], 99), METHODS.index(r["method"]), int(r["log2_table"]), int(r["seed"])))
@@ -323,17 +323,35 @@ def report(plan: Plan) -> str:
          f"wall-clock (fast path), scored on {plan.views} orbit views at {plan.res} px (image MSE of the paper's "
          "shading, silhouette IoU). Bytes are real .nbvh file sizes. Command: `.venv/bin/python bench/bench_quality.py"
          + (" --quick" if plan.quick else "") + "`.\n"]
-    # Main table: seed 0, middle sizes.
-    L += ["## Method steps at the middle size (seed 0)\n",
-          "| mesh | triangles | method | T | .nbvh bytes | MSE | IoU | steps | train samples/s | neural rays/s | Embree rays/s |",
-          "|---|---|---|---|---|---|---|---|---|---|---|"]
+    L += _steps_lines(sweep) + _reach_lines(plan, sweep)
+    L += _baseline_lines(plan, sweep, read_rows(plan.csv("baselines")))
+    L += _stability_lines(plan, sweep) + _failure_lines(sweep)
+    L += _divergence_lines(plan, read_rows(plan.csv("divergence")))
+    text = "\n".join(L) + "\n"
+    (RESULTS / f"quality{plan.suffix}.md").write_text(text)
+    return text
+
+
+def _middle(r) -> bool:
+    return int(r["log2_table"]) == SIZES[r["encoding"]][1]
+
+
+def _steps_lines(sweep: list) -> list[str]:
+    """Main table: seed 0, middle sizes."""
+    L = ["## Method steps at the middle size (seed 0)\n",
+         "| mesh | triangles | method | T | .nbvh bytes | MSE | IoU | steps | train samples/s | neural rays/s | Embree rays/s |",
+         "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in sweep:
-        if r["seed"] == "0" and int(r["log2_table"]) == SIZES[r["encoding"]][1]:
+        if r["seed"] == "0" and _middle(r):
             L.append(f"| {r['mesh']} | {int(r['triangles']):,} | {r['method']} | 2^{r['log2_table']} | {int(r['file_bytes']):,} | "
                      f"{num(r, 'mse'):.5f} | {num(r, 'iou'):.3f} | {r['steps']} | {int(r['samples_per_s']):,} | "
                      f"{int(r['neural_rays_per_s']):,} | {int(r['embree_rays_per_s']):,} |")
-    # Paper ordering: bytes III needs to reach base's MSE at base's middle size.
-    L += ["\n## Does III reach base quality at a fraction of its bytes?\n",
+    return L
+
+
+def _reach_lines(plan: Plan, sweep: list) -> list[str]:
+    """Paper ordering: bytes III needs to reach base's MSE at base's middle size."""
+    L = ["\n## Does III reach base quality at a fraction of its bytes?\n",
           "For each mesh: base's MSE at its middle size (T=2^10), and the bytes III needs for that MSE (log-log "
           "interpolation along III's sizes; 'not reached' when even its largest size is worse).\n",
           "| mesh | base bytes | base MSE | III bytes for that MSE | ratio III / base |", "|---|---|---|---|---|"]
@@ -355,8 +373,12 @@ def report(plan: Plan) -> str:
     n_mesh = len([m for m in plan.meshes if any(r["mesh"] == m for r in sweep)])
     L.append(f"\nIII reached base's quality on {len(ratios)} of {n_mesh} meshes"
              + (f", at {np.median(ratios):.2f}x base's bytes (median)." if ratios else "."))
-    # Baselines vs neural at matched bytes.
-    L += ["\n## Against the baselines (storage and resident bytes)\n",
+    return L
+
+
+def _baseline_lines(plan: Plan, sweep: list, base: list) -> list[str]:
+    """Baselines vs neural at matched bytes."""
+    L = ["\n## Against the baselines (storage and resident bytes)\n",
           "Neural: the best seed-0 model per mesh. Draco 11-bit: the original mesh's file. Decimation + Draco: the "
           "smallest decimation whose MSE is at most the neural model's. Resident = what a ray tracer holds (the "
           "neural model is traced as stored).\n",
@@ -382,8 +404,12 @@ def report(plan: Plan) -> str:
                   else f"{num(dec[0], 'resident_bytes') / nb:.1f}x smaller" if dec else "-")
         L.append(f"| {mesh_name} | {nb:,.0f} | {nm:.5f} ({best['method']}, T=2^{best['log2_table']}) | {d11s} | {decs} | "
                  f"{orig:,.0f} | {vs_d} | {vs_r} | {vs_dec} |")
-    # Stability over seeds.
-    L += ["\n## Stability: 3 seeds (middle size), mean +- std\n",
+    return L
+
+
+def _stability_lines(plan: Plan, sweep: list) -> list[str]:
+    """Stability over seeds."""
+    L = ["\n## Stability: 3 seeds (middle size), mean +- std\n",
           "| mesh | method | MSE | IoU | " + " | ".join(f"{s} hit err % / depth err" for s in SUBSETS) + " |",
           "|---|---|---|---|" + "---|" * len(SUBSETS)]
     for mesh_name in plan.seed_meshes:
@@ -399,8 +425,12 @@ def report(plan: Plan) -> str:
 
             L.append(f"| {mesh_name} | {method} (n={len(rs)}) | {ms('mse')} | {ms('iou')} | "
                      + " | ".join(f"{ms(s + '_hit_err')} / {ms(s + '_depth_err')}" for s in SUBSETS) + " |")
-    # Failure subsets by method over all meshes.
-    L += ["\n## Where methods fail: failure subsets, all meshes, seed 0, middle size (mean over meshes)\n",
+    return L
+
+
+def _failure_lines(sweep: list) -> list[str]:
+    """Failure subsets by method over all meshes, and open against closed surfaces."""
+    L = ["\n## Where methods fail: failure subsets, all meshes, seed 0, middle size (mean over meshes)\n",
           "| method | " + " | ".join(f"{s} hit err %" for s in SUBSETS) + " | " + " | ".join(f"{s} depth err" for s in SUBSETS) + " |",
           "|---|" + "---|" * (2 * len(SUBSETS))]
     for method in METHODS:
@@ -415,6 +445,12 @@ def report(plan: Plan) -> str:
         if r["seed"] == "0" and int(r["log2_table"]) == SIZES[r["encoding"]][1]:
             L.append(f"| {r['mesh']} | {r['method']} | {num(r, 'all_hit_err'):.2f} | {num(r, 'late_hit_err'):.2f} | "
                      f"{num(r, 'near_start_hit_err'):.2f} | {num(r, 'mse'):.5f} |")
+    return L
+
+
+def _divergence_lines(plan: Plan, div: list) -> list[str]:
+    """The divergence runs (learning rate 100x) and diverged runs in the sweep."""
+    L = []
     if div:
         L += ["\n## Divergence: learning rate 100x the preset's\n",
               "Training raises `TrainingDiverged` on a NaN/inf loss or parameter, a loss that jumps 50x above its running "
@@ -428,9 +464,7 @@ def report(plan: Plan) -> str:
     L.append(f"\nDiverged runs in the sweep itself: {len(diverged)}"
              + ("" if not diverged else ": " + "; ".join(f"{r['mesh']} {r['method']} T=2^{r['log2_table']} seed "
                                                        f"{r['seed']}: {r['diverged']}" for r in diverged)))
-    text = "\n".join(L) + "\n"
-    (RESULTS / f"quality{plan.suffix}.md").write_text(text)
-    return text
+    return L
 
 
 def _log_axes(ax, xlabel: str, ylabel: str, title: str) -> None:
