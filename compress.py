@@ -27,13 +27,13 @@ if str(HERE) not in sys.path:
 
 
 def engine_quality_levels() -> dict:
-    from nbvh_core.quality_levels import QUALITY_LEVELS  # plain Python: no torch in Blender's process
+    from nbvh_core.protocol.quality_levels import QUALITY_LEVELS  # plain Python: no torch in Blender's process
 
     return QUALITY_LEVELS
 
 
 def describe_levels() -> str:
-    from nbvh_core.quality_levels import describe
+    from nbvh_core.protocol.quality_levels import describe
 
     return describe()
 

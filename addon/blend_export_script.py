@@ -1,4 +1,4 @@
-"""Run by nbvh_core/blend_export.py inside Blender (`blender -b FILE.blend --python THIS -- OUT_DIR`; 2.8+ API,
+"""Run by nbvh_core/app/blend_export.py inside Blender (`blender -b FILE.blend --python THIS -- OUT_DIR`; 2.8+ API,
 tested on 3.4 and 5.0): every mesh object, evaluated (modifiers applied) and triangulated, in object-local
 coordinates, to OUT_DIR/<object>.npz (`vertices` (V, 3) float32, `faces` (F, 3) int32); the last line printed is
 "NBVH_EXPORT " + JSON [[object name, path], ...]. Blender-side code, so it lives with the add-on, not in nbvh_core.

@@ -55,7 +55,7 @@ def evaluated_triangles(obj, depsgraph) -> tuple[np.ndarray, np.ndarray, dict, d
 
 
 def look_arrays(obj, mesh) -> dict:
-    """The .npz members of an object's look (nbvh_core.look.LOOK_MEMBERS): per-triangle material slot, per-corner
+    """The .npz members of an object's look (nbvh_core.geometry.look.LOOK_MEMBERS): per-triangle material slot, per-corner
     coordinates of the active UV map, per slot the base colour (linear RGBA) and the image feeding Base Color
     (uint8, row 0 at the top). {} when the object has no material slots (it keeps its single colour)."""
     slots = list(getattr(obj, "material_slots", []))

@@ -1,4 +1,4 @@
-"""Library and scene-wide runs from Blender: one background job running `nbvh_core.batch` (no torch here).
+"""Library and scene-wide runs from Blender: one background job running `nbvh_core.app.library_batch` (no torch here).
 
 * `start_scene_report(context, ...)`: every mesh object of the open scene exported (evaluated, modifiers applied),
   then measured and given its verdict without training (the batch's first step): triangles, resident bytes,

@@ -158,7 +158,7 @@ def remove_all(obj_name: str) -> None:
 
 
 def load_result(obj, result: dict, scene) -> dict:
-    """Images + proxy of a finished job (`result` event of nbvh_core.job). Returns the names it created."""
+    """Images + proxy of a finished job (`result` event of nbvh_core.app.job). Returns the names it created."""
     files = result["files"]
     neural = load_image(files["preview"], f"{obj.name} (neural)")
     reference = load_image(files["reference"], f"{obj.name} (mesh)")

@@ -1,4 +1,4 @@
-"""The Blender side of the render worker (`nbvh_core.render_worker`): starts it, sends scenes and camera requests,
+"""The Blender side of the render worker (`nbvh_core.app.render_worker`): starts it, sends scenes and camera requests,
 collects its frames. No bpy and no torch here (tested outside Blender); a reader thread turns the worker's output
 into events, so nothing here ever blocks Blender's UI except `wait`, which the final render calls on purpose.
 
@@ -131,7 +131,7 @@ class RenderWorker:
 
     # -- requests -----------------------------------------------------------------------------------------
     def set_scene(self, scene: dict) -> int:
-        """Send a scene (`nbvh_core.scene_render` JSON form); returns its id (`scene_done` reaches it)."""
+        """Send a scene (`nbvh_core.rendering.scene_render` JSON form); returns its id (`scene_done` reaches it)."""
         self.scene_id += 1
         self.send({"op": "scene", "id": self.scene_id, "scene": scene})
         return self.scene_id

@@ -1,6 +1,6 @@
 """The NBVH render engine (Render Properties > Render Engine > NBVH): the scene's compressed objects drawn from
 their .nbvh models, each at its object's transform, the others from their meshes (exact, Embree), all in one
-worker process (`render_client`, `nbvh_core.render_worker`), so a shot mixes neural and exact geometry correctly.
+worker process (`render_client`, `nbvh_core.app.render_worker`), so a shot mixes neural and exact geometry correctly.
 
 * Viewport (Rendered shading): `view_update` sends the scene when it changes (objects, transforms, lights,
   settings), `view_draw` asks for the current view and draws the newest frame it has; frames come coarse first
@@ -142,7 +142,7 @@ class MeshFiles:
 
 
 def scene_description(depsgraph, meshes: MeshFiles) -> tuple[dict, list[str]]:
-    """The worker's scene (`nbvh_core.scene_render` JSON) for what `depsgraph` shows, and notes about objects
+    """The worker's scene (`nbvh_core.rendering.scene_render` JSON) for what `depsgraph` shows, and notes about objects
     left out (no surface, no model and no mesh)."""
     scene = depsgraph.scene
     settings = scene.nbvh_render

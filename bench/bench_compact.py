@@ -1,4 +1,4 @@
-"""Neural model vs the equal-MSE decimation held as a compact ray-traceable mesh (`nbvh_core/compact_mesh.py`):
+"""Neural model vs the equal-MSE decimation held as a compact ray-traceable mesh (`nbvh_core/geometry/compact_mesh.py`):
 for each model row of bench/results/pays.csv (a preset trained at its own budget, its image MSE, and the quadric
 decimation found to meet that MSE), the decimation is rebuilt (deterministic), encoded compactly, decoded, and scored
 with the same metric (16 views, 128 px, Embree reference).
@@ -24,11 +24,11 @@ def compact_row(pays: dict) -> dict:
     """One pays.csv row -> its compact-mesh comparison."""
     sys.path[:0] = [str(ROOT), str(ROOT / "bench")]
     from bench_meshes import bench_mesh
-    from nbvh_core.compact_mesh import compact_mesh
-    from nbvh_core.exact import ExactTracer
-    from nbvh_core.metrics import evaluate_renderer
-    from nbvh_core.render import render_reference
-    from nbvh_core.sizing import decimate, mesh_resident_bytes
+    from nbvh_core.geometry.compact_mesh import compact_mesh
+    from nbvh_core.geometry.exact import ExactTracer
+    from nbvh_core.rendering.metrics import evaluate_renderer
+    from nbvh_core.rendering.render import render_reference
+    from nbvh_core.planning.sizing import decimate, mesh_resident_bytes
 
     mesh = bench_mesh(pays["mesh"])
     t0 = time.perf_counter()

@@ -25,7 +25,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from addon.render_client import RenderWorker  # noqa: E402
-from nbvh_core.scene_render import look_at, perspective, view_projection  # noqa: E402
+from nbvh_core.rendering.scene_render import look_at, perspective, view_projection  # noqa: E402
 
 PLACES = {"bunny": (0.0, 0.0), "blob": (-1.4, 0.0), "studs": (1.4, 0.0)}
 

@@ -21,13 +21,13 @@ import torch
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from nbvh_core.bvh import build_full_tree, cut_tree  # noqa: E402
-from nbvh_core.exact import ExactTracer  # noqa: E402
-from nbvh_core.mesh import load_mesh  # noqa: E402
-from nbvh_core.render import orbit_cameras  # noqa: E402
-from nbvh_core.samples import RayConfig, label_samples, root_box, sample_rays  # noqa: E402
-from nbvh_core.samples_dir import SAMPLE_NAMES, sample_path  # noqa: E402
-from nbvh_core.traversal import LeafStream, TorchBVH, leaves_along_rays  # noqa: E402
+from nbvh_core.geometry.bvh import build_full_tree, cut_tree  # noqa: E402
+from nbvh_core.geometry.exact import ExactTracer  # noqa: E402
+from nbvh_core.geometry.mesh import load_mesh  # noqa: E402
+from nbvh_core.rendering.render import orbit_cameras  # noqa: E402
+from nbvh_core.training.rays import RayConfig, label_samples, root_box, sample_rays  # noqa: E402
+from nbvh_core.geometry.bundled_samples import SAMPLE_NAMES, sample_path  # noqa: E402
+from nbvh_core.geometry.traversal import LeafStream, TorchBVH, leaves_along_rays  # noqa: E402
 
 
 def best_of(fn, repeat: int = 3) -> float:

@@ -15,14 +15,14 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from nbvh_core.bvh import build_bvh  # noqa: E402
-from nbvh_core.exact import ExactTracer  # noqa: E402
-from nbvh_core.mesh import load_mesh  # noqa: E402
-from nbvh_core.metrics import evaluate  # noqa: E402
-from nbvh_core.model import NeuralBVH  # noqa: E402
-from nbvh_core.pipeline import preset  # noqa: E402
-from nbvh_core.samples_dir import sample_path  # noqa: E402
-from nbvh_core.train import train  # noqa: E402
+from nbvh_core.geometry.bvh import build_bvh  # noqa: E402
+from nbvh_core.geometry.exact import ExactTracer  # noqa: E402
+from nbvh_core.geometry.mesh import load_mesh  # noqa: E402
+from nbvh_core.rendering.metrics import evaluate  # noqa: E402
+from nbvh_core.neural.model import NeuralBVH  # noqa: E402
+from nbvh_core.app.pipeline import preset  # noqa: E402
+from nbvh_core.geometry.bundled_samples import sample_path  # noqa: E402
+from nbvh_core.training.train import train  # noqa: E402
 
 
 def main() -> None:

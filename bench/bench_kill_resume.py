@@ -31,7 +31,7 @@ def _compress(mesh: str, out: Path, preset: str, extra: list[str]) -> list[str]:
 
 def _quality(out: Path) -> dict:
     sys.path[:0] = [str(ROOT)]
-    from nbvh_core.fileformat import load_nbvh
+    from nbvh_core.storage.fileformat import load_nbvh
 
     meta = load_nbvh(out).metadata
     q, t = meta["quality"], meta["training"]
@@ -57,7 +57,7 @@ def killed_run(mesh: str, preset: str, at: float, folder: Path) -> dict:
     proc.wait()
     if killed_at is None or not ck.exists():
         raise SystemExit(f"the run ended before {at:.0%} or left no checkpoint")
-    from nbvh_core.checkpoint import read_checkpoint
+    from nbvh_core.storage.checkpoint import read_checkpoint
 
     header = read_checkpoint(ck).header
     kill_s = float(killed_at["elapsed_s"])

@@ -27,7 +27,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
 import bench_quality as bq  # noqa: E402
-from nbvh_core.pipeline import compress_mesh, preset  # noqa: E402
+from nbvh_core.app.pipeline import compress_mesh, preset  # noqa: E402
 
 MESHES = ("bunny", "studs", "gyroid", "spiky", "knot", "sheet")
 VARIANTS = {"loss": ("leaf_sampling", "loss"), "tree_cut": ("tree_cut", True)}

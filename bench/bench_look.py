@@ -1,6 +1,6 @@
 """The look of textured, multi-material assets through their models: slots, coordinates, colour images, bytes.
 
-For each asset (the generated ones of `nbvh_core.demo_assets`, plus any mesh .npz with a look given by --npz, e.g.
+For each asset (the generated ones of `nbvh_core.geometry.demo_assets`, plus any mesh .npz with a look given by --npz, e.g.
 the Smart-UV Suzanne `bench/look_suzanne.py` exports) compress with a preset at its own time budget, then from
 `--views` orbit views at `--size` px:
 
@@ -32,11 +32,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from bench.harness import append_rows, read_rows, stamp  # noqa: E402
-from nbvh_core import demo_assets  # noqa: E402
-from nbvh_core.batch import mesh_from_npz  # noqa: E402
-from nbvh_core.look import hit_labels, seam_distance, seam_edges  # noqa: E402
-from nbvh_core.pipeline import compress_mesh, preset  # noqa: E402
-from nbvh_core.render import orbit_cameras, render_neural, render_reference  # noqa: E402
+from nbvh_core.geometry import demo_assets  # noqa: E402
+from nbvh_core.geometry.mesh_arrays import mesh_from_npz  # noqa: E402
+from nbvh_core.geometry.look import hit_labels, seam_distance, seam_edges  # noqa: E402
+from nbvh_core.app.pipeline import compress_mesh, preset  # noqa: E402
+from nbvh_core.rendering.render import orbit_cameras, render_neural, render_reference  # noqa: E402
 
 OUT = ROOT / "bench" / "results" / "look.csv"
 TEXELS = 512

@@ -20,8 +20,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from nbvh_core.mesh import Mesh, load_mesh, mesh_from_arrays  # noqa: E402
-from nbvh_core.samples_dir import SAMPLE_NAMES, sample_path  # noqa: E402
+from nbvh_core.geometry.mesh import Mesh, load_mesh, mesh_from_arrays  # noqa: E402
+from nbvh_core.geometry.bundled_samples import SAMPLE_NAMES, sample_path  # noqa: E402
 
 MADE = ("knot", "spiky", "sheet", "lattice")
 BENCH_MESHES = tuple(SAMPLE_NAMES) + ("knot", "spiky", "sheet")  # the heavy lattice only where named
@@ -119,7 +119,7 @@ def bench_mesh(name: str) -> Mesh:
 def bench_grid(name: str):
     """The bench mesh's grid measures (`sizing.grid_measures`), taken once per process: loading and measuring the
     3.3M-triangle lattice takes seconds, and several benches choose a grid per (mesh, table size)."""
-    from nbvh_core.sizing import grid_measures
+    from nbvh_core.planning.sizing import grid_measures
 
     return grid_measures(bench_mesh(name))
 

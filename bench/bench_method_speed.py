@@ -21,14 +21,14 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from nbvh_core import kernels  # noqa: E402
-from nbvh_core.bvh import build_bvh  # noqa: E402
-from nbvh_core.exact import ExactTracer  # noqa: E402
-from nbvh_core.mesh import load_mesh  # noqa: E402
-from nbvh_core.model import NeuralBVH  # noqa: E402
-from nbvh_core.pipeline import preset  # noqa: E402
-from nbvh_core.render import orbit_cameras, render_neural  # noqa: E402
-from nbvh_core.samples_dir import sample_path  # noqa: E402
-from nbvh_core.train import train  # noqa: E402
+from nbvh_core.geometry.bvh import build_bvh  # noqa: E402
+from nbvh_core.geometry.exact import ExactTracer  # noqa: E402
+from nbvh_core.geometry.mesh import load_mesh  # noqa: E402
+from nbvh_core.neural.model import NeuralBVH  # noqa: E402
+from nbvh_core.app.pipeline import preset  # noqa: E402
+from nbvh_core.rendering.render import orbit_cameras, render_neural  # noqa: E402
+from nbvh_core.geometry.bundled_samples import sample_path  # noqa: E402
+from nbvh_core.training.train import train  # noqa: E402
 
 sys.path.insert(0, str(ROOT / "bench"))
 from bench_quality import write_rows  # noqa: E402

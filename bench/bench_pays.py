@@ -25,12 +25,12 @@ import numpy as np  # noqa: E402
 from bench_meshes import bench_grid, bench_mesh  # noqa: E402
 from bench_quality import append_row, read_rows  # noqa: E402
 from nbvh_core import kernels  # noqa: E402
-from nbvh_core.exact import ExactTracer  # noqa: E402
-from nbvh_core.metrics import evaluate_renderer  # noqa: E402
-from nbvh_core.pipeline import compress_mesh, estimate_file_bytes, preset  # noqa: E402
-from nbvh_core.render import render_reference  # noqa: E402
-from nbvh_core.settings import NORMAL_LOSS_BY_NETWORK  # noqa: E402
-from nbvh_core.sizing import choose_resolution, decimate, mesh_resident_bytes  # noqa: E402
+from nbvh_core.geometry.exact import ExactTracer  # noqa: E402
+from nbvh_core.rendering.metrics import evaluate_renderer  # noqa: E402
+from nbvh_core.app.pipeline import compress_mesh, estimate_file_bytes, preset  # noqa: E402
+from nbvh_core.rendering.render import render_reference  # noqa: E402
+from nbvh_core.planning.settings import NORMAL_LOSS_BY_NETWORK  # noqa: E402
+from nbvh_core.planning.sizing import choose_resolution, decimate, mesh_resident_bytes  # noqa: E402
 
 RESULTS = ROOT / "bench" / "results"
 FIELDS = ["mesh", "triangles", "preset", "storage", "train_s", "steps", "file_bytes", "model_resident_bytes",

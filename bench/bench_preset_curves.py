@@ -24,8 +24,8 @@ from bench_meshes import bench_mesh  # noqa: E402
 from bench_pays import equal_mse_decimation  # noqa: E402
 from bench_quality import append_row, read_rows  # noqa: E402
 from nbvh_core import kernels  # noqa: E402
-from nbvh_core.exact import ExactTracer  # noqa: E402
-from nbvh_core.pipeline import compress_mesh, preset  # noqa: E402
+from nbvh_core.geometry.exact import ExactTracer  # noqa: E402
+from nbvh_core.app.pipeline import compress_mesh, preset  # noqa: E402
 
 RESULTS = ROOT / "bench" / "results"
 DEFAULT_BUDGETS = {"preview": [15, 30, 60], "default": [25, 50, 100, 200], "high": [100, 300, 600]}

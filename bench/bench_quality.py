@@ -45,16 +45,16 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 from bench_meshes import BENCH_MESHES, bench_mesh  # noqa: E402
 from nbvh_core import kernels  # noqa: E402
-from nbvh_core.bvh import build_bvh  # noqa: E402
-from nbvh_core.exact import ExactTracer  # noqa: E402
-from nbvh_core.mesh import Mesh  # noqa: E402
-from nbvh_core.metrics import evaluate_renderer  # noqa: E402
-from nbvh_core.pipeline import compress_mesh, preset  # noqa: E402
-from nbvh_core.render import render_reference  # noqa: E402
-from nbvh_core.samples import RayConfig, root_box, sample_rays  # noqa: E402
-from nbvh_core.sizing import decimate, mesh_like, mesh_resident_bytes  # noqa: E402
-from nbvh_core.train import TrainingDiverged  # noqa: E402
-from nbvh_core.traversal import TorchBVH, leaves_along_rays  # noqa: E402
+from nbvh_core.geometry.bvh import build_bvh  # noqa: E402
+from nbvh_core.geometry.exact import ExactTracer  # noqa: E402
+from nbvh_core.geometry.mesh import Mesh  # noqa: E402
+from nbvh_core.rendering.metrics import evaluate_renderer  # noqa: E402
+from nbvh_core.app.pipeline import compress_mesh, preset  # noqa: E402
+from nbvh_core.rendering.render import render_reference  # noqa: E402
+from nbvh_core.training.rays import RayConfig, root_box, sample_rays  # noqa: E402
+from nbvh_core.planning.sizing import decimate, mesh_like, mesh_resident_bytes  # noqa: E402
+from nbvh_core.training.train import TrainingDiverged  # noqa: E402
+from nbvh_core.geometry.traversal import TorchBVH, leaves_along_rays  # noqa: E402
 
 RESULTS = ROOT / "bench" / "results"
 METHODS = ("base", "I", "II", "III", "default")  # the paper's steps + the user preset (HashGrid + MLP + consistent)

@@ -1,5 +1,5 @@
 """Bytes against image error for every contender on the bench meshes: quadric decimations at several triangle
-counts, each held plainly (~44 B per triangle), as a compact ray-traceable mesh (`nbvh_core/compact_mesh.py`,
+counts, each held plainly (~44 B per triangle), as a compact ray-traceable mesh (`nbvh_core/geometry/compact_mesh.py`,
 scored on its decoded triangles) and as Draco 11-bit (storage only), beside the neural models of pays.csv (each
 preset trained at its own budget). One metric for all: 16 orbit views at 128 px against the full mesh (Embree).
 
@@ -32,11 +32,11 @@ def measure(name: str, done: set) -> None:
 
     from bench_meshes import bench_mesh
     from harness import append_rows, stamp
-    from nbvh_core.compact_mesh import compact_mesh
-    from nbvh_core.exact import ExactTracer
-    from nbvh_core.metrics import evaluate_renderer
-    from nbvh_core.render import render_reference
-    from nbvh_core.sizing import decimate, mesh_resident_bytes
+    from nbvh_core.geometry.compact_mesh import compact_mesh
+    from nbvh_core.geometry.exact import ExactTracer
+    from nbvh_core.rendering.metrics import evaluate_renderer
+    from nbvh_core.rendering.render import render_reference
+    from nbvh_core.planning.sizing import decimate, mesh_resident_bytes
 
     mesh = bench_mesh(name)
     reference = ExactTracer(mesh)

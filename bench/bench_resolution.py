@@ -28,8 +28,8 @@ sys.path[:0] = [str(ROOT), str(ROOT / "bench")]
 from bench_meshes import bench_grid, bench_mesh  # noqa: E402
 from bench_quality import append_row, read_rows  # noqa: E402
 from nbvh_core import kernels  # noqa: E402
-from nbvh_core.pipeline import compress_mesh, preset  # noqa: E402
-from nbvh_core.sizing import TABLE_LOAD, choose_resolution  # noqa: E402
+from nbvh_core.app.pipeline import compress_mesh, preset  # noqa: E402
+from nbvh_core.planning.sizing import TABLE_LOAD, choose_resolution  # noqa: E402
 
 RESULTS = ROOT / "bench" / "results"
 FIELDS = ["mesh", "preset", "log2_table", "n_max", "steps", "train_s", "mse", "iou", "surface_cells", "created"]

@@ -19,7 +19,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from nbvh_core.samples_dir import SAMPLE_NAMES  # noqa: E402
+from nbvh_core.geometry.bundled_samples import SAMPLE_NAMES  # noqa: E402
 
 
 def summarise(folder: Path, preset: str, wall: dict) -> None:

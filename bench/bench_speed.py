@@ -28,14 +28,14 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from nbvh_core import kernels  # noqa: E402
-from nbvh_core.bvh import build_bvh  # noqa: E402
-from nbvh_core.exact import ExactTracer  # noqa: E402
-from nbvh_core.mesh import load_mesh  # noqa: E402
-from nbvh_core.model import NeuralBVH  # noqa: E402
-from nbvh_core.pipeline import preset  # noqa: E402
-from nbvh_core.render import orbit_cameras  # noqa: E402
-from nbvh_core.samples_dir import sample_path  # noqa: E402
-from nbvh_core.train import train  # noqa: E402
+from nbvh_core.geometry.bvh import build_bvh  # noqa: E402
+from nbvh_core.geometry.exact import ExactTracer  # noqa: E402
+from nbvh_core.geometry.mesh import load_mesh  # noqa: E402
+from nbvh_core.neural.model import NeuralBVH  # noqa: E402
+from nbvh_core.app.pipeline import preset  # noqa: E402
+from nbvh_core.rendering.render import orbit_cameras  # noqa: E402
+from nbvh_core.geometry.bundled_samples import sample_path  # noqa: E402
+from nbvh_core.training.train import train  # noqa: E402
 
 
 def matmul_peak_gflops(device: torch.device, n: int = 4096, repeat: int = 5) -> float:
@@ -142,7 +142,7 @@ def main() -> None:
         rows.append({"what": "render", "path": "Embree (embreex, CPU)", "size": size, "seconds": best,
                      "items": size * size, "per_s": size * size / best, "unit": "rays/s", "hits": int(fh.hit.sum())})
         print(rows[-1], flush=True)
-    from nbvh_core.metrics import evaluate
+    from nbvh_core.rendering.metrics import evaluate
 
     q32, _ = evaluate(model, tracer, 16, 128)
     model.half_tables = True

@@ -33,7 +33,7 @@ sys.path[:0] = [str(ROOT), str(ROOT / "bench")]
 from bench_meshes import bench_mesh  # noqa: E402
 from bench_quality import append_row, read_rows  # noqa: E402
 from nbvh_core import kernels  # noqa: E402
-from nbvh_core.pipeline import compress_mesh, estimate_file_bytes, preset  # noqa: E402
+from nbvh_core.app.pipeline import compress_mesh, estimate_file_bytes, preset  # noqa: E402
 
 RESULTS = ROOT / "bench" / "results"
 PLAN = [("base", 11), ("I", 9), ("I", 10), ("II", 9), ("II", 10), ("III", 8), ("III", 9)]

@@ -22,8 +22,8 @@ import torch  # noqa: E402
 
 from bench_meshes import bench_mesh  # noqa: E402
 from nbvh_core import kernels  # noqa: E402
-from nbvh_core.pipeline import compress_mesh, preset  # noqa: E402
-from nbvh_core.render import orbit_cameras, shade  # noqa: E402
+from nbvh_core.app.pipeline import compress_mesh, preset  # noqa: E402
+from nbvh_core.rendering.render import orbit_cameras, shade  # noqa: E402
 
 
 def parse_value(text: str):

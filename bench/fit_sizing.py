@@ -1,4 +1,4 @@
-"""Fit the size predictor (nbvh_core/sizing.py) on the benchmark meshes and check it against a grid search.
+"""Fit the size predictor (nbvh_core/planning/sizing.py) on the benchmark meshes and check it against a grid search.
 
     .venv/bin/python bench/fit_sizing.py            # runs the missing grid points, fits, writes the results
     .venv/bin/python bench/fit_sizing.py --no-run   # fit and tables from what bench/results/quality.csv has
@@ -13,7 +13,7 @@ leave-one-mesh-out: for each mesh, the fit without it serves three targets (the 
 high) the way compress_mesh does: the predictor's first choice, then `sizing.search_size` (train, measure,
 calibrate, step) with the grid's measured MSE standing in for each training; compared with the smallest grid
 configuration whose measured MSE meets the target.
-Writes nbvh_core/sizing_fit.json (fit on all meshes), bench/results/sizing.csv and sizing.md.
+Writes nbvh_core/planning/sizing_fit.json (fit on all meshes), bench/results/sizing.csv and sizing.md.
 """
 from __future__ import annotations
 
@@ -35,8 +35,8 @@ sys.path.insert(0, str(ROOT / "bench"))
 import bench_quality as bq  # noqa: E402
 from bench_meshes import bench_mesh  # noqa: E402
 from nbvh_core import kernels  # noqa: E402
-from nbvh_core.pipeline import estimate_file_bytes, preset  # noqa: E402
-from nbvh_core.sizing import (FEATURE_NAMES, FIT_PATH, QUALITY_LEVELS,  # noqa: E402
+from nbvh_core.app.pipeline import estimate_file_bytes, preset  # noqa: E402
+from nbvh_core.planning.sizing import (FEATURE_NAMES, FIT_PATH, QUALITY_LEVELS,  # noqa: E402
                               TARGET_TRAININGS, choose_table_and_nodes, fit_size_model, mesh_features, search_size)
 
 #: From the smallest table the search may choose (2^8: a size the grid lacks would end a simulated search
@@ -235,7 +235,7 @@ def report(study: Study, table: list[dict]) -> list[str]:
     L = [f"# Automatic sizing: predicted size, measured and corrected, vs grid search{' (quick)' if plan.quick else ''}\n",
          f"User preset (HashGrid + MLP + consistent, {study.base.nodes} nodes), T = 2^{GRID[0]}..2^{GRID[-1]}, trained "
          f"{plan.train_s:g} s each on the 2-core CPU with the fused training step, scored on {plan.views} views "
-         f"at {plan.res} px (rows part={GRID_PART} in quality.csv). Fit (nbvh_core/sizing_fit.json): log MSE = c . "
+         f"at {plan.res} px (rows part={GRID_PART} in quality.csv). Fit (nbvh_core/planning/sizing_fit.json): log MSE = c . "
          f"[1, log2 T, {', '.join(study.best_names) or 'no mesh feature'}]; coefficients "
          f"{', '.join(f'{c:.3f}' for c in full.coef)}. Feature subset chosen by leave-one-mesh-out RMS error in log "
          "space (" + "; ".join(f"[{', '.join(n) or 'T only'}] {e:.2f}" for e, n in scored[:4]) + "; the full set "

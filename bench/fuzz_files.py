@@ -78,9 +78,9 @@ def _flip(data: bytes, rng) -> bytes:
 # --------------------------------------------------------------------------------------------------- checkpoints
 def checkpoint_seed(folder: Path):
     """A real checkpoint of a tiny compress run on the blob, and the mesh it belongs to."""
-    from nbvh_core.mesh import load_mesh
-    from nbvh_core.pipeline import compress_mesh, preset
-    from nbvh_core.samples_dir import sample_path
+    from nbvh_core.geometry.mesh import load_mesh
+    from nbvh_core.app.pipeline import compress_mesh, preset
+    from nbvh_core.geometry.bundled_samples import sample_path
 
     mesh = load_mesh(sample_path("blob"))
     path = folder / "seed.ckpt"
@@ -155,10 +155,10 @@ def read_checkpoint_case(path: Path, mesh) -> str:
     import torch
 
     from nbvh_core import kernels
-    from nbvh_core.bvh import build_bvh
-    from nbvh_core.model import NeuralBVH
-    from nbvh_core.pipeline import resume_settings
-    from nbvh_core.train import load_checkpoint, make_optimizer
+    from nbvh_core.geometry.bvh import build_bvh
+    from nbvh_core.neural.model import NeuralBVH
+    from nbvh_core.app.pipeline import resume_settings
+    from nbvh_core.training.train import load_checkpoint, make_optimizer
 
     settings = resume_settings(path, mesh)
     bvh = build_bvh(mesh, settings.nodes)
@@ -173,8 +173,8 @@ def mesh_seeds(folder: Path) -> dict[str, bytes]:
     """The blob in every format the readers take: {file name: bytes} (a glTF's .bin is written beside it)."""
     import trimesh
 
-    from nbvh_core.mesh import load_mesh
-    from nbvh_core.samples_dir import sample_path
+    from nbvh_core.geometry.mesh import load_mesh
+    from nbvh_core.geometry.bundled_samples import sample_path
 
     m = load_mesh(sample_path("blob"))
     tm = trimesh.Trimesh(m.vertices, m.faces, process=False)
@@ -249,7 +249,7 @@ def _text_mutation(name: str, data: bytes, rng, counts: bool) -> bytes:
 
 
 def read_mesh_case(path: Path, mesh) -> str:
-    from nbvh_core.batch import load_asset
+    from nbvh_core.app.library_batch import load_asset
 
     load_asset(str(path), "m")
     return "read"

@@ -41,9 +41,9 @@ for i, (kind, blob) in enumerate(fuzz_cases(data, stop, seed)):
 
 
 def make_model(folder: Path) -> Path:
-    from nbvh_core.pipeline import compress_mesh, preset
-    from nbvh_core.samples_dir import sample_path
-    from nbvh_core.mesh import load_mesh
+    from nbvh_core.app.pipeline import compress_mesh, preset
+    from nbvh_core.geometry.bundled_samples import sample_path
+    from nbvh_core.geometry.mesh import load_mesh
 
     path = folder / "fuzz.nbvh"
     compress_mesh(load_mesh(sample_path("blob")), preset("tiny").with_overrides(encoding="hashgrid", network="mlp",

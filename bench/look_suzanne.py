@@ -31,7 +31,7 @@ from bench.harness import append_rows, stamp  # noqa: E402
 
 def build_scene(size: int):
     """The asset, its materials, lights and camera in an empty scene; returns (scene, object)."""
-    from nbvh_core.demo_assets import pattern
+    from nbvh_core.geometry.demo_assets import pattern
 
     bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene
@@ -102,9 +102,9 @@ def _material(name: str, color, image):
 def compress(obj, out: Path, seconds: float) -> tuple[Path, dict]:
     """The add-on's export of `obj`, compressed with the preview preset in `seconds`; the model path and facts."""
     from addon import export
-    from nbvh_core.look import look_from_arrays
-    from nbvh_core.mesh import mesh_from_arrays
-    from nbvh_core.pipeline import compress_mesh, preset
+    from nbvh_core.geometry.look import look_from_arrays
+    from nbvh_core.geometry.mesh import mesh_from_arrays
+    from nbvh_core.app.pipeline import compress_mesh, preset
 
     verts, tris, _, look = export.evaluated_triangles(obj, bpy.context.evaluated_depsgraph_get())
     np.savez(out / "suzanne.npz", vertices=verts, faces=tris, **look)  # for bench_look.py --npz

@@ -15,15 +15,15 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from nbvh_core import kernels  # noqa: E402
-from nbvh_core.bvh import build_bvh  # noqa: E402
-from nbvh_core.encodings import hashvqad  # noqa: E402
-from nbvh_core.exact import ExactTracer  # noqa: E402
-from nbvh_core.kernels import mlp  # noqa: E402
-from nbvh_core.mesh import load_mesh  # noqa: E402
-from nbvh_core.model import NeuralBVH  # noqa: E402
-from nbvh_core.pipeline import preset  # noqa: E402
-from nbvh_core.samples import label_samples, root_box, sample_rays  # noqa: E402
-from nbvh_core.samples_dir import sample_path  # noqa: E402
+from nbvh_core.geometry.bvh import build_bvh  # noqa: E402
+from nbvh_core.neural.encodings import hashvqad  # noqa: E402
+from nbvh_core.geometry.exact import ExactTracer  # noqa: E402
+from nbvh_core.neural import fused_mlp as mlp  # noqa: E402
+from nbvh_core.geometry.mesh import load_mesh  # noqa: E402
+from nbvh_core.neural.model import NeuralBVH  # noqa: E402
+from nbvh_core.app.pipeline import preset  # noqa: E402
+from nbvh_core.training.rays import label_samples, root_box, sample_rays  # noqa: E402
+from nbvh_core.geometry.bundled_samples import sample_path  # noqa: E402
 
 parts: dict[str, list[float]] = defaultdict(list)
 

@@ -5,7 +5,7 @@
 Training step stages: ray sampling + exact labelling (Embree, traversal), encoding forward, network forward +
 loss, backward (all of it), optimizer step. Render stages: traversal (LeafStream.next), segment points +
 encoding, network, bookkeeping (the rest). On the fast path an MLP model also gets a "fused" row: what training and
-`NeuralBVH.query` really run there (kernels/mlp.py: encoding, network, loss and backward in one kernel call, so
+`NeuralBVH.query` really run there (neural/fused_mlp.py: encoding, network, loss and backward in one kernel call, so
 those stages are one number). Medians of several repeats. Writes bench/results/profile.md.
 """
 from __future__ import annotations
@@ -23,15 +23,15 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from nbvh_core import kernels  # noqa: E402
-from nbvh_core.bvh import build_bvh  # noqa: E402
-from nbvh_core.exact import ExactTracer  # noqa: E402
-from nbvh_core.mesh import load_mesh  # noqa: E402
-from nbvh_core.model import NeuralBVH  # noqa: E402
-from nbvh_core.pipeline import preset  # noqa: E402
-from nbvh_core.render import orbit_cameras  # noqa: E402
-from nbvh_core.samples import RayConfig, label_samples, root_box, sample_rays  # noqa: E402
-from nbvh_core.samples_dir import sample_path  # noqa: E402
-from nbvh_core.traversal import LeafStream, TorchBVH  # noqa: E402
+from nbvh_core.geometry.bvh import build_bvh  # noqa: E402
+from nbvh_core.geometry.exact import ExactTracer  # noqa: E402
+from nbvh_core.geometry.mesh import load_mesh  # noqa: E402
+from nbvh_core.neural.model import NeuralBVH  # noqa: E402
+from nbvh_core.app.pipeline import preset  # noqa: E402
+from nbvh_core.rendering.render import orbit_cameras  # noqa: E402
+from nbvh_core.training.rays import RayConfig, label_samples, root_box, sample_rays  # noqa: E402
+from nbvh_core.geometry.bundled_samples import sample_path  # noqa: E402
+from nbvh_core.geometry.traversal import LeafStream, TorchBVH  # noqa: E402
 
 CONFIGS = [("hashgrid", "mlp", 11), ("hashgrid", "kmlp", 11), ("hashvqad", "mlp", 10), ("hashvqad", "kmlp", 10)]
 
@@ -43,9 +43,9 @@ def timed(fn):
 
 
 def profile_train(model, bvh, tracer, tree, n_rays, repeat=5, fused=False):
-    """Median seconds per stage of a training step. fused: the fused step (kernels.mlp.train_step: encoding,
+    """Median seconds per stage of a training step. fused: the fused step (fused_mlp.train_step: encoding,
     network, loss and backward in one call; torch's fused Adam as train() uses there)."""
-    from nbvh_core.kernels import mlp
+    from nbvh_core.neural import fused_mlp as mlp
 
     rng = np.random.default_rng(0)
     lo, hi = root_box(bvh)

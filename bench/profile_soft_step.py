@@ -13,15 +13,15 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from collections import defaultdict
 from nbvh_core import kernels
-from nbvh_core.bvh import build_bvh
-from nbvh_core.exact import ExactTracer
-from nbvh_core.mesh import load_mesh
-from nbvh_core.model import NeuralBVH
-from nbvh_core.pipeline import preset
-from nbvh_core.samples_dir import sample_path
-from nbvh_core.train import train
-from nbvh_core.encodings import hashvqad as HV
-from nbvh_core.kernels import mlp as KM
+from nbvh_core.geometry.bvh import build_bvh
+from nbvh_core.geometry.exact import ExactTracer
+from nbvh_core.geometry.mesh import load_mesh
+from nbvh_core.neural.model import NeuralBVH
+from nbvh_core.app.pipeline import preset
+from nbvh_core.geometry.bundled_samples import sample_path
+from nbvh_core.training.train import train
+from nbvh_core.neural.encodings import hashvqad as HV
+from nbvh_core.neural import fused_mlp as KM
 acc = defaultdict(float)
 def wrap(obj, name, key):
     f = getattr(obj, name)

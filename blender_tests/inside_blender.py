@@ -349,7 +349,7 @@ def test_export_carries_slots_coordinates_and_the_base_colour_image():
     img = look["image_0"]
     assert img.shape == (2, 4, 4) and img[0, :, 0].min() == 255 and img[1, :, 0].max() == 0  # top row first
     assert "image_1" not in look and list(look["material_names"]) == ["nbvh-look-tex", "nbvh-look-plain"]
-    look_module = importlib.import_module(ADDON["module"].__name__ + ".nbvh_core.look")  # torch-free
+    look_module = importlib.import_module(ADDON["module"].__name__ + ".nbvh_core.geometry.look")  # torch-free
     back = look_module.look_from_arrays(look, "Looked")
     assert back.n_slots == 2 and back.textured
     plain_obj = make_mesh_object("Unpainted", verts, np.array([[0, 1, 2]]))

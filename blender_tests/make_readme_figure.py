@@ -17,8 +17,8 @@ sys.path.insert(0, str(ROOT))
 
 from addon import engine  # noqa: E402
 from addon.job import default_python  # noqa: E402
-from nbvh_core.mesh import load_mesh  # noqa: E402
-from nbvh_core.samples_dir import sample_path  # noqa: E402
+from nbvh_core.geometry.mesh import load_mesh  # noqa: E402
+from nbvh_core.geometry.bundled_samples import sample_path  # noqa: E402
 
 model_path, sample, out_png = sys.argv[1], sys.argv[2], Path(sys.argv[3])
 for o in list(bpy.data.objects):

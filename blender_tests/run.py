@@ -53,7 +53,7 @@ def script_cmd(prefix: list[str], script: Path, args: list[str], blend: Path | N
 
 
 def blob_npz(work: Path) -> Path:
-    from nbvh_core.mesh import load_mesh
+    from nbvh_core.geometry.mesh import load_mesh
 
     mesh = load_mesh(ROOT / "assets" / "blob.ply.gz")
     path = work / "blob.npz"
@@ -65,9 +65,9 @@ def blob_npz(work: Path) -> Path:
 def engine_models(work: Path) -> Path:
     """Three bundled samples as object-local meshes (.npz) and quickly trained models (.nbvh) of them, for the
     render-engine tests (trained once for both Blender flavours)."""
-    from nbvh_core.mesh import load_mesh
-    from nbvh_core.pipeline import compress_mesh
-    from nbvh_core.settings import preset
+    from nbvh_core.geometry.mesh import load_mesh
+    from nbvh_core.app.pipeline import compress_mesh
+    from nbvh_core.planning.settings import preset
 
     folder = work / "engine_models"
     folder.mkdir()

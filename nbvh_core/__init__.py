@@ -2,7 +2,7 @@
 
 Data flows one way: mesh -> BVH -> training samples -> model -> .nbvh file -> render / points / report.
 """
-from .mesh import Mesh, MeshError, MeshWarning, Transform, load_mesh, mesh_from_arrays
+from .geometry.mesh import Mesh, MeshError, MeshWarning, Transform, load_mesh, mesh_from_arrays
 
 __all__ = ["Mesh", "MeshError", "MeshWarning", "Transform", "load_mesh", "mesh_from_arrays"]
 __version__ = "0.1.0"

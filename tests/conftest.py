@@ -1,9 +1,9 @@
 import pytest
 
-from nbvh_core.bvh import build_bvh
-from nbvh_core.exact import ExactTracer
-from nbvh_core.mesh import load_mesh
-from nbvh_core.samples_dir import SAMPLE_NAMES, sample_path
+from nbvh_core.geometry.bvh import build_bvh
+from nbvh_core.geometry.exact import ExactTracer
+from nbvh_core.geometry.mesh import load_mesh
+from nbvh_core.geometry.bundled_samples import SAMPLE_NAMES, sample_path
 from meshes import icosphere
 
 

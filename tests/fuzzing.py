@@ -11,8 +11,8 @@ import zlib
 
 import numpy as np
 
-from nbvh_core.fileformat import _PREFIX, VERSION_MAJOR, VERSION_MINOR, NBVHFileError, decode_nbvh
-from nbvh_core.render import orbit_cameras, render_neural
+from nbvh_core.storage.fileformat import _PREFIX, VERSION_MAJOR, VERSION_MINOR, NBVHFileError, decode_nbvh
+from nbvh_core.rendering.render import orbit_cameras, render_neural
 
 
 def split(data: bytes) -> tuple[dict, bytes]:

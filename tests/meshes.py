@@ -1,7 +1,7 @@
 """Small meshes made in code for tests."""
 import numpy as np
 
-from nbvh_core.mesh import mesh_from_arrays
+from nbvh_core.geometry.mesh import mesh_from_arrays
 
 
 def icosphere(subdivisions=3, noise=0.0, seed=0):

@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 
 from meshes import icosphere
-from nbvh_core.batch import Row, _cached, discover, run_batch, task_resources
-from nbvh_core.mesh import load_mesh
+from nbvh_core.app.library_batch import Row, _cached, discover, run_batch, task_resources
+from nbvh_core.geometry.mesh import load_mesh
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = {"preset": "tiny"}
@@ -157,7 +157,7 @@ def test_a_killed_worker_is_retried_and_the_result_is_complete(tmp_path):
     row = next(r for r in json.loads((out / "report.json").read_text())["rows"] if r["name"] == "blob")
     assert row["status"] == "done" and int(row["worker"].rsplit(":", 1)[1]) != killed  # another worker finished it
     assert (out / row["files"]["model"]).stat().st_size == row["model_bytes"]
-    from nbvh_core.fileformat import load_nbvh
+    from nbvh_core.storage.fileformat import load_nbvh
 
     assert load_nbvh(out / row["files"]["model"]).metadata["training"]["steps"] == 1500  # the whole budget, rerun
     assert not list(out.rglob("*.partial-*"))
@@ -229,7 +229,7 @@ def test_a_decimation_verdict_writes_the_decimation_and_the_report_lists_it(tmp_
     row names it with its triangles and compact bytes (measure only: nothing trained)."""
     import csv
 
-    from nbvh_core.samples_dir import sample_path
+    from nbvh_core.geometry.bundled_samples import sample_path
 
     lib = tmp_path / "lib"
     lib.mkdir()

@@ -3,7 +3,7 @@ import time
 import numpy as np
 import pytest
 
-from nbvh_core.bvh import NODE_DTYPE, BVH, build_bvh, build_full_tree, cut_tree, resident_bvh_nodes
+from nbvh_core.geometry.bvh import NODE_DTYPE, BVH, build_bvh, build_full_tree, cut_tree, resident_bvh_nodes
 
 from meshes import icosphere
 
@@ -76,7 +76,7 @@ def test_sah_beats_median_split_cost():
     """On unevenly spread triangles, the SAH tree's cost (sum of area x triangles) beats object-median splits."""
     import trimesh
 
-    from nbvh_core.mesh import mesh_from_arrays
+    from nbvh_core.geometry.mesh import mesh_from_arrays
 
     big, small = trimesh.creation.icosphere(2), trimesh.creation.icosphere(4)
     v = np.vstack([big.vertices, small.vertices * 0.05 + [3, 0, 0]])
@@ -117,7 +117,7 @@ def test_build_is_fast_on_large_mesh(sample_meshes):
 
 
 def test_tree_cut_refinement_splits_the_worst_leaves_up_to_the_budget(sample_meshes):
-    from nbvh_core.bvh import coarse_cut, refine_cut
+    from nbvh_core.geometry.bvh import coarse_cut, refine_cut
 
     full = build_bvh(sample_meshes["blob"], 255)
     coarse = coarse_cut(full, 64)

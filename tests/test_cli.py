@@ -4,7 +4,7 @@ import sys
 
 import pytest
 
-from nbvh_core.cli import main
+from nbvh_core.app.cli import main
 
 
 def run_cli(*args):

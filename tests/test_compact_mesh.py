@@ -1,10 +1,10 @@
-"""The compact ray-traceable mesh (nbvh_core/compact_mesh.py): exact bytes, crack-free 16-bit positions, 8-bit
+"""The compact ray-traceable mesh (nbvh_core/geometry/compact_mesh.py): exact bytes, crack-free 16-bit positions, 8-bit
 indices, conservative 8-bit child boxes."""
 import numpy as np
 import pytest
 
-from nbvh_core.bvh import build_full_tree
-from nbvh_core.compact_mesh import (CLUSTER_TRIANGLES, LEAF_BIT, _clusters, compact_bytes, compact_mesh,
+from nbvh_core.geometry.bvh import build_full_tree
+from nbvh_core.geometry.compact_mesh import (CLUSTER_TRIANGLES, LEAF_BIT, _clusters, compact_bytes, compact_mesh,
                                     decode_compact, encode_compact)
 
 
@@ -49,7 +49,7 @@ def test_clusters_hold_at_most_64_triangles_and_boxes_contain_what_is_below(bunn
 
 
 def test_bytes_are_the_layout_s_exact_size_and_far_below_a_plain_mesh(bunny):
-    from nbvh_core.sizing import mesh_resident_bytes
+    from nbvh_core.planning.sizing import mesh_resident_bytes
 
     mesh, tree, data = bunny
     dec = decode_compact(data)
@@ -62,9 +62,9 @@ def test_bytes_are_the_layout_s_exact_size_and_far_below_a_plain_mesh(bunny):
 
 
 def test_the_decoded_mesh_renders_like_the_original(sample_meshes):
-    from nbvh_core.exact import ExactTracer
-    from nbvh_core.metrics import evaluate_renderer
-    from nbvh_core.render import render_reference
+    from nbvh_core.geometry.exact import ExactTracer
+    from nbvh_core.rendering.metrics import evaluate_renderer
+    from nbvh_core.rendering.render import render_reference
 
     mesh = sample_meshes["blob"]
     nbytes, decoded = compact_mesh(mesh)

@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from nbvh_core.exact import ExactTracer
-from nbvh_core.samples import RayConfig, root_box, sample_rays
+from nbvh_core.geometry.exact import ExactTracer
+from nbvh_core.training.rays import RayConfig, root_box, sample_rays
 
 from meshes import icosphere
 

@@ -13,13 +13,13 @@ import pytest
 import torch
 
 from nbvh_core import kernels
-from nbvh_core.bvh import build_bvh
-from nbvh_core.encodings import EncodingConfig, make_encoding
-from nbvh_core.model import ModelConfig, NeuralBVH
-from nbvh_core.networks import NetworkConfig
-from nbvh_core.samples import root_box, sample_rays
-from nbvh_core.train import TrainConfig, train
-from nbvh_core.traversal import LeafStream, TorchBVH, leaves_along_rays
+from nbvh_core.geometry.bvh import build_bvh
+from nbvh_core.neural.encodings import EncodingConfig, make_encoding
+from nbvh_core.neural.model import ModelConfig, NeuralBVH
+from nbvh_core.neural.networks import NetworkConfig
+from nbvh_core.training.rays import root_box, sample_rays
+from nbvh_core.training.train import TrainConfig, train
+from nbvh_core.geometry.traversal import LeafStream, TorchBVH, leaves_along_rays
 
 
 def test_kernels_build_here():
@@ -111,7 +111,7 @@ def test_leaf_streams_are_identical(bunny_rays):
 
 @pytest.fixture(scope="module")
 def blob_model(sample_meshes):
-    from nbvh_core.exact import ExactTracer
+    from nbvh_core.geometry.exact import ExactTracer
 
     mesh = sample_meshes["blob"]
     bvh = build_bvh(mesh, 255)
@@ -136,7 +136,7 @@ def test_training_follows_the_same_loss_curve_and_renders_the_same(blob_model):
     # Same data (same seed): only float rounding differs, so the curves stay together.
     assert np.max(np.abs(loss_f - loss_r) / loss_r) < 0.02, np.max(np.abs(loss_f - loss_r) / loss_r)
     # One model queried both ways: same hits, distances and normals.
-    from nbvh_core.render import orbit_cameras
+    from nbvh_core.rendering.render import orbit_cameras
 
     o, d = (torch.from_numpy(a) for a in orbit_cameras(3)[1].rays(64, 64))
     with kernels.using_path("reference"):
@@ -151,7 +151,7 @@ def test_training_follows_the_same_loss_curve_and_renders_the_same(blob_model):
 
 def test_without_kernels_everything_runs_on_the_reference_path(tmp_path):
     code = ("from nbvh_core import kernels; import torch;"
-            "from nbvh_core.encodings import EncodingConfig, make_encoding;"
+            "from nbvh_core.neural.encodings import EncodingConfig, make_encoding;"
             "e = make_encoding(EncodingConfig(kind='hashgrid', log2_table=6, levels=2, features=4));"
             "print(kernels.describe(), e(torch.rand(10, 3)).shape)")
     env = dict(os.environ, NBVH_NO_KERNELS="1")
@@ -166,7 +166,7 @@ def test_float16_tables_give_the_same_image_within_rounding(blob_model):
     model = NeuralBVH(bvh.nodes, cfg, mesh.transform)
     train(model, bvh, tracer, TrainConfig(steps=30, rays_per_step=1024, lr=5e-3, seed=2))
     model.eval()
-    from nbvh_core.render import orbit_cameras
+    from nbvh_core.rendering.render import orbit_cameras
 
     o, d = (torch.from_numpy(a) for a in orbit_cameras(3)[2].rays(64, 64))
     q32 = model.query(o, d)
@@ -305,10 +305,10 @@ def test_fused_inference_is_not_used_where_it_does_not_apply(sample_meshes):
     (dict(kind="hashgrid", log2_table=6, levels=2, features=8), dict(kind="mlp", k=4, normal_unit_weight=0.7)),
     (dict(kind="hashgrid", log2_table=6, levels=2, features=8), dict(kind="kmlp", k=4, normal_unit_weight=0.0))])
 def test_fused_training_step_gives_the_loss_and_gradients_of_autograd(enc_kw, net_kw, sample_meshes):
-    from nbvh_core.exact import ExactTracer
-    from nbvh_core.kernels import mlp
-    from nbvh_core.samples import label_samples
-    from nbvh_core.train import samples_loss
+    from nbvh_core.geometry.exact import ExactTracer
+    from nbvh_core.neural import fused_mlp as mlp
+    from nbvh_core.training.rays import label_samples
+    from nbvh_core.training.train import samples_loss
 
     mesh = sample_meshes["blob"]
     bvh = build_bvh(mesh, 63)
@@ -342,7 +342,7 @@ def test_fused_training_step_gives_the_loss_and_gradients_of_autograd(enc_kw, ne
 def test_fused_soft_hashvqad_table_matches_the_reference(tau, index_factor):
     """HashVQAD's soft row table (softmax over t candidates) and its backward into the logits and the rows; with
     H = 128 T the coarsest level is dense and reaches 17^3 of its 8,192 entries: only those have logits and rows."""
-    from nbvh_core.encodings import HashVQAD
+    from nbvh_core.neural.encodings import HashVQAD
 
     torch.manual_seed(1)
     enc = HashVQAD(EncodingConfig(kind="hashvqad", log2_table=6, levels=3, features=8, index_factor=index_factor,
@@ -373,13 +373,13 @@ def test_fused_soft_hashvqad_table_matches_the_reference(tau, index_factor):
 
 
 def test_a_soft_step_computes_exactly_the_entries_its_batch_reads(sample_meshes, monkeypatch):
-    """`kernels.mlp.entries_read` marks the soft-table entries of every corner of every segment point (the reference
+    """`fused_mlp.entries_read` marks the soft-table entries of every corner of every segment point (the reference
     lookup's indices), the soft table computes those rows only (the others zero), and a step on it gives the same
     loss and gradients as on the full table."""
-    from nbvh_core.encodings.base import corner_indices
-    from nbvh_core.exact import ExactTracer
-    from nbvh_core.kernels import mlp
-    from nbvh_core.samples import label_samples
+    from nbvh_core.neural.encodings.base import corner_indices
+    from nbvh_core.geometry.exact import ExactTracer
+    from nbvh_core.neural import fused_mlp as mlp
+    from nbvh_core.training.rays import label_samples
 
     mesh = sample_meshes["blob"]
     bvh = build_bvh(mesh, 63)
@@ -420,7 +420,7 @@ def test_a_soft_step_computes_exactly_the_entries_its_batch_reads(sample_meshes,
 def test_fused_queries_read_the_node_records_in_place(sample_meshes):
     """A model answering rays on the fast path holds its nodes once: the traversal reads model.nodes' own memory
     (the 32-byte records resident_bytes counts), and no int64 link copies are made."""
-    from nbvh_core.render import orbit_cameras
+    from nbvh_core.rendering.render import orbit_cameras
 
     torch.manual_seed(0)
     model = NeuralBVH(build_bvh(sample_meshes["blob"], 255).nodes,
@@ -441,9 +441,9 @@ def test_the_stored_8bit_nodes_are_traversed_as_held(sample_meshes, tmp_path):
     boxes on the way down, bit-identical to the decoded nodes (same leaves, same t), and the reference path decodes."""
     import copy
 
-    from nbvh_core.fileformat import load_nbvh, save_nbvh
-    from nbvh_core.quantize import StorageConfig, snap_nodes, stored_node_bytes
-    from nbvh_core.render import orbit_cameras
+    from nbvh_core.storage.fileformat import load_nbvh, save_nbvh
+    from nbvh_core.neural.quantize import StorageConfig, snap_nodes, stored_node_bytes
+    from nbvh_core.rendering.render import orbit_cameras
 
     torch.manual_seed(0)
     nodes = snap_nodes(build_bvh(sample_meshes["bunny"], 511).nodes)

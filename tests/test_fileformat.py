@@ -2,11 +2,11 @@ import numpy as np
 import pytest
 import torch
 
-from nbvh_core.fileformat import (MAGIC, NBVHFileError, component_bytes, load_nbvh, pack_codes, read_info,
+from nbvh_core.storage.fileformat import (MAGIC, NBVHFileError, component_bytes, load_nbvh, pack_codes, read_info,
                                   save_nbvh, unpack_codes)
-from nbvh_core.pipeline import compress_mesh, preset
-from nbvh_core.quantize import StorageConfig
-from nbvh_core.render import orbit_cameras, render_neural
+from nbvh_core.app.pipeline import compress_mesh, preset
+from nbvh_core.neural.quantize import StorageConfig
+from nbvh_core.rendering.render import orbit_cameras, render_neural
 
 
 @pytest.fixture(scope="module")
@@ -57,7 +57,7 @@ def test_file_size_equals_component_bytes(trained, enc):
 def test_hashvqad_file_keeps_the_reachable_codes_and_full_index_files_still_load(trained, tmp_path, monkeypatch):
     """Format 2.2 stores the codes of the index entries a vertex can select (the tiny grid's dense coarse level
     reaches 17^3 of its 8,192); a 2.1 file, which stored all L x H, loads to the same model."""
-    import nbvh_core.fileformat as fileformat
+    import nbvh_core.storage.fileformat as fileformat
 
     path, res = trained["hashvqad"]
     enc = res.model.encoding
@@ -84,10 +84,10 @@ def test_hashvqad_file_keeps_the_reachable_codes_and_full_index_files_still_load
 def test_a_hashvqad_file_with_more_codes_than_payload_bytes_loads(sample_meshes, tmp_path):
     """Packed codes can outnumber the file's bytes (4 bits each): a small table and network with a large index
     (H = 1024 T) must still pass the reader's shape checks (a 200 s HashVQAD run at T=2^9 once failed them)."""
-    from nbvh_core.bvh import build_bvh
-    from nbvh_core.encodings import EncodingConfig
-    from nbvh_core.model import ModelConfig, NeuralBVH
-    from nbvh_core.networks import NetworkConfig
+    from nbvh_core.geometry.bvh import build_bvh
+    from nbvh_core.neural.encodings import EncodingConfig
+    from nbvh_core.neural.model import ModelConfig, NeuralBVH
+    from nbvh_core.neural.networks import NetworkConfig
 
     torch.manual_seed(0)
     cfg = ModelConfig(EncodingConfig(kind="hashvqad", log2_table=4, levels=2, features=2, n_max=32,
@@ -138,7 +138,7 @@ def test_failed_save_keeps_existing_file(trained, tmp_path, monkeypatch):
     path, res = trained["hashgrid"]
     target = tmp_path / "keep.nbvh"
     target.write_bytes(b"previous result")
-    import nbvh_core.fileformat as ff
+    import nbvh_core.storage.fileformat as ff
 
     def full_disk(*a, **k):
         raise OSError(28, "No space left on device")
@@ -157,7 +157,7 @@ def test_component_bytes_of_encoded_data(trained):
 
 
 def test_quantize_rows_is_symmetric_per_row_and_exact_at_the_largest_weight():
-    from nbvh_core.quantize import dequantize_rows, quantize_rows
+    from nbvh_core.neural.quantize import dequantize_rows, quantize_rows
 
     w = np.random.default_rng(1).normal(size=(37, 53)).astype(np.float32) * np.linspace(0.01, 3, 37)[:, None]
     w[5] = 0.0  # a zero row

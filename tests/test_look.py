@@ -3,14 +3,15 @@ import numpy as np
 import pytest
 import torch
 
-from nbvh_core import demo_assets
-from nbvh_core.appearance import AppearanceConfig, SurfaceLabels, finalize_head, make_head, train_head
-from nbvh_core.exact import ExactTracer
-from nbvh_core.fileformat import NBVHFileError, decode_nbvh
-from nbvh_core.look import (Look, Material, albedo, barycentrics, decode_png, encode_png, hit_labels, look_arrays,
+from nbvh_core.geometry import demo_assets
+from nbvh_core.neural.appearance import AppearanceConfig, finalize_head, make_head
+from nbvh_core.training.appearance_training import SurfaceLabels, train_head
+from nbvh_core.geometry.exact import ExactTracer
+from nbvh_core.storage.fileformat import NBVHFileError, decode_nbvh
+from nbvh_core.geometry.look import (Look, Material, albedo, barycentrics, decode_png, encode_png, hit_labels, look_arrays,
                             look_from_arrays, sample_bilinear, uv_charts)
-from nbvh_core.mesh import MeshError, load_mesh, mesh_from_arrays
-from nbvh_core.pipeline import compress_mesh, preset
+from nbvh_core.geometry.mesh import MeshError, load_mesh, mesh_from_arrays
+from nbvh_core.app.pipeline import compress_mesh, preset
 
 from meshes import icosphere
 
@@ -79,7 +80,7 @@ def test_npz_members_round_trip(tmp_path):
     m = demo_assets.globe(16, 8, texture=16)
     arrays = look_arrays(m.look)
     np.savez(tmp_path / "a.npz", vertices=m.vertices, faces=m.faces, **arrays)
-    from nbvh_core.batch import mesh_from_npz
+    from nbvh_core.geometry.mesh_arrays import mesh_from_npz
 
     back = mesh_from_npz(tmp_path / "a.npz", "a")
     assert back.look.n_slots == 2 and np.array_equal(back.look.face_slots, m.look.face_slots)
@@ -176,7 +177,7 @@ def test_crafted_look_headers_are_refused_in_one_line(edit, match):
 
 
 def test_renders_show_the_look():
-    from nbvh_core.render import orbit_cameras, render_neural, render_reference
+    from nbvh_core.rendering.render import orbit_cameras, render_neural, render_reference
 
     m, r = _textured_model()
     cam = orbit_cameras(1)[0]
@@ -208,7 +209,7 @@ def test_the_colour_target_learns_colours_and_stores_no_image():
 
 
 def test_info_lists_the_look_and_its_bytes(tmp_path, capsys):
-    from nbvh_core.cli import main
+    from nbvh_core.app.cli import main
 
     _, r = _textured_model()
     path = tmp_path / "globe.nbvh"

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from nbvh_core.mesh import MeshError, MeshWarning, load_mesh, mesh_from_arrays
+from nbvh_core.geometry.mesh import MeshError, MeshWarning, load_mesh, mesh_from_arrays
 
 TET_V = np.array([[0, 0, 0], [2, 0, 0], [0, 3, 0], [0, 0, 4]], float)
 TET_F = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])

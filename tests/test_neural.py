@@ -6,16 +6,16 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from nbvh_core.bvh import build_bvh
-from nbvh_core.encodings import EncodingConfig, HashGrid, HashVQAD
-from nbvh_core.encodings.base import gather_weighted_sum
-from nbvh_core.encodings.hashvqad import candidate_rows
-from nbvh_core.exact import ExactTracer
-from nbvh_core.model import ModelConfig, NeuralBVH
-from nbvh_core.networks import KMLP, MLP, NetworkConfig
-from nbvh_core.pipeline import compress_mesh, preset
-from nbvh_core.render import orbit_cameras, render_neural
-from nbvh_core.train import Cancelled, TrainConfig, TrainingDiverged, train
+from nbvh_core.geometry.bvh import build_bvh
+from nbvh_core.neural.encodings import EncodingConfig, HashGrid, HashVQAD
+from nbvh_core.neural.encodings.base import gather_weighted_sum
+from nbvh_core.neural.encodings.hashvqad import candidate_rows
+from nbvh_core.geometry.exact import ExactTracer
+from nbvh_core.neural.model import ModelConfig, NeuralBVH
+from nbvh_core.neural.networks import KMLP, MLP, NetworkConfig
+from nbvh_core.app.pipeline import compress_mesh, preset
+from nbvh_core.rendering.render import orbit_cameras, render_neural
+from nbvh_core.training.train import Cancelled, TrainConfig, TrainingDiverged, train
 
 SMALL = dict(levels=2, n_min=4, n_max=8, features=2, log2_table=4, index_factor=4, candidates=4)
 
@@ -212,8 +212,8 @@ def test_every_config_trains_and_renders(blob_setup, encoding, network, labels):
     torch.manual_seed(0)  # the initial weights must not depend on which tests ran before
     model = NeuralBVH(bvh.nodes, cfg, mesh.transform)
     # One fixed held-out batch: single 256-ray training batches vary by more than 6 steps can learn.
-    from nbvh_core.samples import generate_training_samples
-    from nbvh_core.train import samples_loss
+    from nbvh_core.training.rays import generate_training_samples
+    from nbvh_core.training.train import samples_loss
 
     held_out = generate_training_samples(bvh, tracer, 2048, labels, seed=99,
                                          facing_normals=TrainConfig().facing_normals)  # the targets it trains on
@@ -268,7 +268,7 @@ def test_cancel_leaves_nothing_and_resume_continues_identically(blob_setup, tmp_
 def test_divergence_is_detected_and_nothing_saved(blob_setup, tmp_path, monkeypatch):
     mesh, bvh, tracer = blob_setup
     settings = preset("tiny").with_overrides(encoding="hashgrid", network="mlp")
-    import nbvh_core.networks as networks
+    import nbvh_core.neural.networks as networks
 
     real_loss = networks.MLP.loss
 
@@ -277,7 +277,7 @@ def test_divergence_is_detected_and_nothing_saved(blob_setup, tmp_path, monkeypa
         return total * float("nan"), parts
 
     monkeypatch.setattr(networks.MLP, "loss", poisoned)
-    import nbvh_core.kernels.mlp as fused_mlp  # the fast path's fused step computes the same loss itself
+    import nbvh_core.neural.fused_mlp as fused_mlp  # the fast path's fused step computes the same loss itself
 
     real_step = fused_mlp.train_step
     monkeypatch.setattr(fused_mlp, "train_step",

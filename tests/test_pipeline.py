@@ -1,7 +1,7 @@
 import pytest
 
-from nbvh_core.pipeline import PRESETS, estimate_file_bytes, preset, resolve, compress_mesh
-from nbvh_core.sizing import LOG2_RANGE
+from nbvh_core.app.pipeline import PRESETS, estimate_file_bytes, preset, resolve, compress_mesh
+from nbvh_core.planning.sizing import LOG2_RANGE
 
 
 def test_presets_are_complete_and_distinct():
@@ -43,7 +43,7 @@ def test_target_maps_to_a_preset_and_is_checked(sample_meshes, tmp_path):
 
 
 def test_small_mesh_is_reported_not_worth_compressing(sample_meshes):
-    from nbvh_core.sizing import assess, mesh_resident_bytes
+    from nbvh_core.planning.sizing import assess, mesh_resident_bytes
 
     from meshes import icosphere
 
@@ -59,7 +59,7 @@ def test_verdict_ends_the_run_unless_forced(tmp_path):
     import time
 
     from meshes import icosphere
-    from nbvh_core.pipeline import NotWorthCompressing
+    from nbvh_core.app.pipeline import NotWorthCompressing
 
     events = []
     t0 = time.monotonic()
@@ -83,10 +83,10 @@ def test_training_stops_once_the_target_is_met(sample_meshes):
     assert res.training.stopped_early and res.training.seconds < 60
     assert res.target_met and "the target being met" in res.why
     # A target not met keeps training through every check, to the end of the budget.
-    from nbvh_core.bvh import build_bvh
-    from nbvh_core.exact import ExactTracer
-    from nbvh_core.model import NeuralBVH
-    from nbvh_core.train import train
+    from nbvh_core.geometry.bvh import build_bvh
+    from nbvh_core.geometry.exact import ExactTracer
+    from nbvh_core.neural.model import NeuralBVH
+    from nbvh_core.training.train import train
 
     s = preset("tiny").with_overrides(encoding="hashgrid", network="mlp", steps=300, target_check_every_s=0.02)
     bvh = build_bvh(sample_meshes["blob"], 63)
@@ -103,7 +103,7 @@ def test_training_stops_once_the_target_is_met(sample_meshes):
 def test_normal_targets_are_each_networks_own_unless_set():
     """MLP presets train on normals as the mesh winds them, KMLP ones on normals facing the ray (measured:
     settings.NORMAL_LOSS_BY_NETWORK); an explicit normal_loss wins, a wrong one is refused."""
-    from nbvh_core.settings import NORMAL_LOSS_BY_NETWORK
+    from nbvh_core.planning.settings import NORMAL_LOSS_BY_NETWORK
 
     assert NORMAL_LOSS_BY_NETWORK == {"mlp": "oriented", "kmlp": "facing"}
     for name, facing in (("default", False), ("preview", False), ("base", False), ("I", True), ("III", True)):

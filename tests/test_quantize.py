@@ -4,9 +4,9 @@ float32."""
 import numpy as np
 import pytest
 
-from nbvh_core.bvh import NODE_DTYPE
-from nbvh_core.pipeline import compress_mesh, preset
-from nbvh_core.quantize import decode_nodes, encode_nodes, snap_nodes
+from nbvh_core.geometry.bvh import NODE_DTYPE
+from nbvh_core.app.pipeline import compress_mesh, preset
+from nbvh_core.neural.quantize import decode_nodes, encode_nodes, snap_nodes
 
 
 def _random_tree(rng: np.random.Generator, internal: int, span: float) -> np.ndarray:

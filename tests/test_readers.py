@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 import torch
 
-from nbvh_core.checkpoint import CheckpointError, decode_checkpoint, encode_checkpoint, read_checkpoint
-from nbvh_core.cli import main
-from nbvh_core.mesh import MeshError, load_mesh
-from nbvh_core.pipeline import compress_mesh, preset
+from nbvh_core.storage.checkpoint import CheckpointError, decode_checkpoint, encode_checkpoint, read_checkpoint
+from nbvh_core.app.cli import main
+from nbvh_core.geometry.mesh import MeshError, load_mesh
+from nbvh_core.app.pipeline import compress_mesh, preset
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -269,14 +269,14 @@ def test_huge_declared_counts_are_refused_without_allocating_them(tmp_path, text
     ({"name": "a", "out_dir": "o"}, "needs mesh"),
 ])
 def test_job_requests_are_checked_before_anything_runs(request_, message):
-    from nbvh_core.job import check_request
+    from nbvh_core.app.job import check_request
 
     with pytest.raises(ValueError, match=message):
         check_request(request_)
 
 
 def test_a_job_mesh_with_pickled_arrays_is_refused(tmp_path, capsys):
-    from nbvh_core.job import main as job_main
+    from nbvh_core.app.job import main as job_main
 
     canary = tmp_path / "pwned"
     mesh = tmp_path / "m.npz"
@@ -288,7 +288,7 @@ def test_a_job_mesh_with_pickled_arrays_is_refused(tmp_path, capsys):
 
 
 def test_a_cached_batch_result_naming_a_file_elsewhere_is_not_trusted(tmp_path):
-    from nbvh_core.batch import _cached
+    from nbvh_core.app.library_batch import _cached
 
     folder = tmp_path / "assets" / "a"
     folder.mkdir(parents=True)
@@ -319,7 +319,7 @@ bpy.ops.wm.save_as_mainfile(filepath=sys.argv[-2])
 
 @pytest.mark.skipif(shutil.which("blender") is None, reason="needs Debian's blender binary")
 def test_a_blend_file_s_own_scripts_never_run_on_export(tmp_path):
-    from nbvh_core.blend_export import export_blend
+    from nbvh_core.app.blend_export import export_blend
 
     blend, canary = tmp_path / "evil.blend", tmp_path / "pwned"
     script = tmp_path / "make.py"

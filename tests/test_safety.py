@@ -14,11 +14,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from nbvh_core.cli import main
-from nbvh_core.fileformat import NBVHFileError, load_nbvh
-from nbvh_core.outputs import OutputError, OutputLock, OutputSet, resolve_output
-from nbvh_core.pipeline import compress_mesh, preset
-from nbvh_core.render import orbit_cameras, render_neural
+from nbvh_core.app.cli import main
+from nbvh_core.storage.fileformat import NBVHFileError, load_nbvh
+from nbvh_core.protocol.outputs import OutputError, OutputLock, OutputSet, resolve_output
+from nbvh_core.app.pipeline import compress_mesh, preset
+from nbvh_core.rendering.render import orbit_cameras, render_neural
 
 from fuzzing import check_case, craft, fuzz_cases, split
 
@@ -117,7 +117,7 @@ def test_bvh_cycle_is_refused(model_file):
     left[internal[-1]] = 0 + 2  # a deep internal node points back at the root's children: a cycle
     data = craft(header, patch_payload(payload, t["offset"], left.tobytes()))
     with pytest.raises(NBVHFileError, match="cycle"):
-        from nbvh_core.fileformat import decode_nbvh
+        from nbvh_core.storage.fileformat import decode_nbvh
 
         decode_nbvh(data)
 
@@ -127,8 +127,8 @@ def test_bvh_cycle_is_refused(model_file):
 def test_crafted_headers_and_nodes_refused_by_the_cli(model_file, tmp_path, case, capsys):
     header, payload = split(model_file.read_bytes())
     if case == "child_1e8":  # a 32-bit node file whose root points far outside the node array
-        from nbvh_core.fileformat import encode_nbvh
-        from nbvh_core.quantize import StorageConfig
+        from nbvh_core.storage.fileformat import encode_nbvh
+        from nbvh_core.neural.quantize import StorageConfig
 
         header, payload = split(encode_nbvh(load_nbvh(model_file), {}, StorageConfig(8, 16, 32)))
         t = tensor(header, "bvh")
@@ -167,8 +167,8 @@ def test_crafted_headers_and_nodes_refused_by_the_cli(model_file, tmp_path, case
 
 def test_format_1_files_still_load(model_file, sample_meshes, tmp_path, monkeypatch):
     """A file as the previous release wrote it (format 1.0: float32 nodes, tables and weights) loads and renders."""
-    import nbvh_core.fileformat as fileformat
-    from nbvh_core.fileformat import encode_nbvh
+    import nbvh_core.storage.fileformat as fileformat
+    from nbvh_core.storage.fileformat import encode_nbvh
 
     model = load_nbvh(model_file)
     monkeypatch.setattr(fileformat, "VERSION_MINOR", 1)  # HashVQAD's index for all L x H entries, as 1.0 had it
@@ -199,7 +199,7 @@ def test_kill_loses_at_most_one_checkpoint_period_and_resume_finishes(tmp_path):
     proc.send_signal(signal.SIGKILL)  # no handler runs: only the periodic checkpoint survives
     proc.wait()
     assert ck.exists() and not out.exists()
-    from nbvh_core.checkpoint import read_checkpoint
+    from nbvh_core.storage.checkpoint import read_checkpoint
 
     step = read_checkpoint(ck).header["step"]
     assert step > 0

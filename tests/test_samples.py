@@ -2,10 +2,10 @@ import numpy as np
 import pytest
 import torch
 
-from nbvh_core.bvh import build_bvh
-from nbvh_core.exact import ExactTracer
-from nbvh_core.mesh import mesh_from_arrays
-from nbvh_core.samples import (SEGMENT_EPS, RayConfig, generate_training_samples, label_samples, root_box,
+from nbvh_core.geometry.bvh import build_bvh
+from nbvh_core.geometry.exact import ExactTracer
+from nbvh_core.geometry.mesh import mesh_from_arrays
+from nbvh_core.training.rays import (SEGMENT_EPS, RayConfig, generate_training_samples, label_samples, root_box,
                                sample_rays)
 
 EPS = 2 * SEGMENT_EPS
@@ -113,7 +113,7 @@ def test_bad_mode():
 
 
 def test_rays_in_leaves_start_in_the_leaves_drawn_by_weight(sample_bvhs):
-    from nbvh_core.samples import sample_rays_in_leaves
+    from nbvh_core.training.rays import sample_rays_in_leaves
 
     bvh = sample_bvhs["blob"]
     lo, hi = bvh.leaf_boxes()
@@ -130,7 +130,7 @@ def test_rays_in_leaves_start_in_the_leaves_drawn_by_weight(sample_bvhs):
 def test_leaf_errors_follow_the_batches_and_keep_a_floor():
     import torch
 
-    from nbvh_core.train import LeafErrors
+    from nbvh_core.training.train import LeafErrors
 
     le = LeafErrors(4, floor=0.1)
     leaf = torch.tensor([0, 0, 1, 3])

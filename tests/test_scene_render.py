@@ -1,4 +1,4 @@
-"""The render engine's compute (nbvh_core.scene_render), its worker process (nbvh_core.render_worker) and the
+"""The render engine's compute (nbvh_core.rendering.scene_render), its worker process (nbvh_core.app.render_worker) and the
 add-on's torch-free client (addon/render_client.py), outside Blender."""
 import math
 import sys
@@ -8,12 +8,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from nbvh_core import scene_render as sr
-from nbvh_core.scene_render import look_at, perspective
-from nbvh_core.exact import ExactTracer
-from nbvh_core.mesh import mesh_from_arrays
-from nbvh_core.pipeline import compress_mesh
-from nbvh_core.settings import preset
+from nbvh_core.rendering import scene_render as sr
+from nbvh_core.rendering.scene_render import look_at, perspective
+from nbvh_core.geometry.exact import ExactTracer
+from nbvh_core.geometry.mesh import mesh_from_arrays
+from nbvh_core.app.pipeline import compress_mesh
+from nbvh_core.planning.settings import preset
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from meshes import icosphere
-from nbvh_core.cli import main as cli_main
-from nbvh_core.mesh import mesh_from_arrays
-from nbvh_core.pipeline import compress_mesh, estimate_file_bytes, preset, resolve
-from nbvh_core.sizing import (LOG2_RANGE, QUALITY_LEVELS, MeshFeatures, SizeFit, assess, choose_size,
+from nbvh_core.app.cli import main as cli_main
+from nbvh_core.geometry.mesh import mesh_from_arrays
+from nbvh_core.app.pipeline import compress_mesh, estimate_file_bytes, preset, resolve
+from nbvh_core.planning.sizing import (LOG2_RANGE, QUALITY_LEVELS, MeshFeatures, SizeFit, assess, choose_size,
                               fit_size_model, load_fit, mesh_features, search_size, split_budget)
 
 
@@ -150,7 +150,7 @@ def test_search_without_a_fit_steps_up_once_per_miss_and_respects_the_limit():
 
 
 def test_compress_mesh_retrains_at_the_size_the_measurement_calls_for(sample_meshes, monkeypatch):
-    import nbvh_core.sizing as sizing
+    import nbvh_core.planning.sizing as sizing
 
     # A fit that thinks this mesh is easy (predicted MSE 0.0067 at 2^8): it picks 2^8 for 0.008; the 20-step tiny
     # model misses that by far, the calibrated prediction finds no size that meets it, and the search takes the
@@ -182,7 +182,7 @@ def test_cli_quality_level_and_plan(tmp_path, capsys):
 
 
 def test_table_and_node_choice_is_the_smallest_file_meeting_the_target():
-    from nbvh_core.sizing import NODE_CHOICES, choose_table_and_nodes, predict_mse
+    from nbvh_core.planning.sizing import NODE_CHOICES, choose_table_and_nodes, predict_mse
 
     fit = SizeFit(method="default", train_s=15.0, coef=[-1.0, -0.4, 0.0, 0.0, 0.0, 0.0], residual_std=0.3,
                   nodes_coef=-0.3, nodes_ref=2047, margin=0.5)
@@ -203,7 +203,7 @@ def test_table_and_node_choice_is_the_smallest_file_meeting_the_target():
 
 def test_cli_plan_and_the_jobs_share_one_scene_plan(tmp_path, capsys, sample_meshes):
     """`nbvh plan` and every job of a scene budget (job._scene_share) take their sizes from sizing.plan_scene."""
-    from nbvh_core.job import _scene_share
+    from nbvh_core.app.job import _scene_share
 
     names = ["blob", "studs"]
     paths = []
@@ -222,8 +222,8 @@ def test_cli_plan_and_the_jobs_share_one_scene_plan(tmp_path, capsys, sample_mes
 
 
 def test_grid_resolution_follows_the_measured_detail():
-    from nbvh_core.settings import PAPER_N_MAX
-    from nbvh_core.sizing import N_MAX_RANGE, TABLE_LOAD, choose_resolution, grid_measures, roughness_at
+    from nbvh_core.planning.settings import PAPER_N_MAX
+    from nbvh_core.planning.sizing import N_MAX_RANGE, TABLE_LOAD, choose_resolution, grid_measures, roughness_at
 
     smooth = icosphere(5)
     sphere = icosphere(6)
@@ -257,9 +257,9 @@ def test_grid_resolution_follows_the_measured_detail():
 
 def test_a_decimation_verdict_writes_the_decimation_beside_the_output(tmp_path, capsys):
     """The user gets the mesh that wins: NAME.decimated.ply, in the original coordinates, meeting the target."""
-    from nbvh_core.cli import main
-    from nbvh_core.mesh import load_mesh
-    from nbvh_core.samples_dir import sample_path
+    from nbvh_core.app.cli import main
+    from nbvh_core.geometry.mesh import load_mesh
+    from nbvh_core.geometry.bundled_samples import sample_path
 
     assert main(["compress", "bunny", "-o", str(tmp_path) + "/", "--target-mse", "0.01"]) == 4
     written = tmp_path / "bunny.decimated.ply"

@@ -15,19 +15,23 @@ MAX_FUNCTION_LINES = 80
 #: Functions allowed past MAX_FUNCTION_LINES, with the reason (none today; an entry needs one).
 LONG_FUNCTIONS: dict[str, str] = {}
 #: The core modules the add-on imports inside Blender's process (addon/job.py), which has no torch.
-TORCH_FREE = ("nbvh_core.events", "nbvh_core.outputs", "nbvh_core.quality_levels", "nbvh_core.process",
-              "nbvh_core.look")
+TORCH_FREE = ("nbvh_core.protocol.events", "nbvh_core.protocol.outputs", "nbvh_core.protocol.quality_levels",
+              "nbvh_core.protocol.process", "nbvh_core.geometry.look")
+#: nbvh_core's layers, lowest first, in the order data flows: a module imports from its own layer or below only
+#: (function-local imports included). The package's __init__ and __main__ are entry points above them all.
+LAYERS = ("protocol", "kernels", "geometry", "neural", "storage", "training", "rendering", "planning", "app")
+ENTRY_POINTS = ("nbvh_core", "nbvh_core.__main__")
 
 
-def _module_name(path: Path) -> str:
-    parts = list(path.relative_to(ROOT).with_suffix("").parts)
+def _module_name(path: Path, root: Path = ROOT) -> str:
+    parts = list(path.relative_to(root).with_suffix("").parts)
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
 
-def _imports(path: Path) -> set[str]:
+def _imports(path: Path, root: Path = ROOT) -> set[str]:
     """Every module `path` imports anywhere (top level or inside functions), as absolute dotted names; a
     `from pkg import name` counts as pkg.name when that is a module, else as pkg."""
-    mod = _module_name(path)
+    mod = _module_name(path, root)
     package = mod if path.name == "__init__.py" else mod.rpartition(".")[0]
     out = set()
     for node in ast.walk(ast.parse(path.read_text())):
@@ -44,9 +48,49 @@ def _imports(path: Path) -> set[str]:
     return out
 
 
-def _core_graph() -> dict[str, set[str]]:
-    files = {_module_name(p): p for p in CORE.rglob("*.py")}
-    return {m: {d for d in _imports(p) if d in files and d != m} for m, p in files.items()}
+def _core_graph(root: Path = ROOT) -> dict[str, set[str]]:
+    files = {_module_name(p, root): p for p in (root / "nbvh_core").rglob("*.py")}
+    return {m: {d for d in _imports(p, root) if d in files and d != m} for m, p in files.items()}
+
+
+def _layer(module: str) -> int | None:
+    parts = module.split(".")
+    return LAYERS.index(parts[1]) if len(parts) > 1 and parts[1] in LAYERS else None
+
+
+def layer_violations(graph: dict[str, set[str]]) -> list[str]:
+    """'module -> dependency' for every import of a higher layer (and every module in no layer)."""
+    out = []
+    for m, deps in sorted(graph.items()):
+        if m in ENTRY_POINTS:
+            continue
+        if _layer(m) is None:
+            out.append(f"{m} is in no layer of {LAYERS}")
+            continue
+        out += [f"{m} -> {d}" for d in sorted(deps) if _layer(d) is not None and _layer(d) > _layer(m)]
+    return out
+
+
+def test_nbvh_core_layers_import_downward_only():
+    assert not layer_violations(_core_graph())
+
+
+def test_a_planted_upward_import_fails_the_layer_rule(tmp_path):
+    import shutil
+
+    shutil.copytree(CORE, tmp_path / "nbvh_core", ignore=shutil.ignore_patterns("__pycache__", "*.so"))
+    mesh = tmp_path / "nbvh_core" / "geometry" / "mesh.py"
+    mesh.write_text(mesh.read_text() + "\n\ndef _planted():\n    from ..app import pipeline  # noqa\n")
+    assert layer_violations(_core_graph(tmp_path)) == ["nbvh_core.geometry.mesh -> nbvh_core.app",
+                                                       "nbvh_core.geometry.mesh -> nbvh_core.app.pipeline"]
+
+
+def test_the_addon_imports_only_the_protocol_layer():
+    for p in list((ROOT / "addon").rglob("*.py")) + [ROOT / "compress.py"]:
+        for i in _imports(p):
+            core = i[i.index("nbvh_core"):] if "nbvh_core" in i.split(".") else None
+            assert core is None or core in ("nbvh_core", "nbvh_core.protocol") or \
+                core.startswith("nbvh_core.protocol."), f"{p.name} imports {i}"
 
 
 def _find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
@@ -94,7 +138,8 @@ def test_core_modules_the_addon_loads_are_torch_free_all_the_way_down():
     graph = _core_graph()
     files = {_module_name(p): p for p in CORE.rglob("*.py")}
     for start in TORCH_FREE:
-        seen, todo = set(), [start, "nbvh_core"]  # importing a submodule runs the package's __init__ first
+        parents = [".".join(start.split(".")[:k]) for k in range(1, start.count(".") + 1)]
+        seen, todo = set(), [start, *parents]  # importing a submodule runs its packages' __init__ first
         while todo:
             m = todo.pop()
             if m in seen:

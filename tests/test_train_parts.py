@@ -10,14 +10,14 @@ import pytest
 import torch
 
 from nbvh_core import kernels
-from nbvh_core.bvh import build_bvh
-from nbvh_core.encodings import EncodingConfig
-from nbvh_core.exact import ExactTracer
-from nbvh_core.model import ModelConfig, NeuralBVH
-from nbvh_core.networks import NetworkConfig
-from nbvh_core.process import Cancelled, NotWorthCompressing, TrainingDiverged, outcome
-from nbvh_core.samples import label_samples, root_box, sample_rays
-from nbvh_core.train import (Checkpoints, DivergenceGuard, EarlyStop, EncodingPhases, Schedule, TrainConfig,
+from nbvh_core.geometry.bvh import build_bvh
+from nbvh_core.neural.encodings import EncodingConfig
+from nbvh_core.geometry.exact import ExactTracer
+from nbvh_core.neural.model import ModelConfig, NeuralBVH
+from nbvh_core.neural.networks import NetworkConfig
+from nbvh_core.protocol.process import Cancelled, NotWorthCompressing, TrainingDiverged, outcome
+from nbvh_core.training.rays import label_samples, root_box, sample_rays
+from nbvh_core.training.train import (Checkpoints, DivergenceGuard, EarlyStop, EncodingPhases, Schedule, TrainConfig,
                              make_optimizer, make_step, train)
 
 VQAD = dict(kind="hashvqad", log2_table=6, levels=2, features=4, index_factor=4, candidates=4)
@@ -98,7 +98,7 @@ def _state(step: int) -> dict:
 
 
 def test_checkpoints_are_due_by_steps_or_seconds_and_atomic(tmp_path):
-    from nbvh_core.checkpoint import read_checkpoint
+    from nbvh_core.storage.checkpoint import read_checkpoint
 
     path = tmp_path / "ck"
     saved = []
@@ -229,7 +229,7 @@ def test_outcome_maps_every_way_a_run_ends():
 
 
 def test_the_freeze_point_follows_the_settings_and_bad_fractions_are_refused(blob):
-    from nbvh_core.settings import preset
+    from nbvh_core.planning.settings import preset
 
     _, bvh, tracer, _ = blob
     cfg = preset("III").with_overrides(finetune_fraction=0.4).train_config()

@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 import torch
 
-from nbvh_core.samples import RayConfig, root_box, sample_rays
-from nbvh_core.traversal import LeafStream, TorchBVH, leaves_along_rays
+from nbvh_core.training.rays import RayConfig, root_box, sample_rays
+from nbvh_core.geometry.traversal import LeafStream, TorchBVH, leaves_along_rays
 
 
 def brute_force_leaves(bvh, rays_o, rays_d, chunk=4096):

@@ -9,7 +9,7 @@ The kernels:
 * `stream_next` - `traversal.LeafStream.next` per ray with a real per-ray stack loop (the reference advances all
   rays one pop at a time with tensor ops).
 * `leaves_traverse` / `leaves_collect` - the complete sorted leaf list per ray (training labels), one traversal.
-* `net_segments` / `net_train` (used through `kernels.mlp`; MLP or KMLP) - inference / one training step of a whole
+* `net_segments` / `net_train` (used through `neural.fused_mlp`; MLP or KMLP) - inference / one training step of a whole
   model per (ray, leaf) segment: points, encoding and every Linear layer (AVX2 6x16 register-blocked micro-kernel,
   bias and ReLU fused) on a tile of 48 segments that stays in the cache; the reference writes (B, k*L*F) features to
   memory and runs torch's layers over them.

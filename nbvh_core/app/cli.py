@@ -1,0 +1,600 @@
+"""Command line: `python -m nbvh_core COMMAND ...` (also installed as `nbvh`).
+
+Commands:
+  compress MESH -o OUT.nbvh     train a neural model (presets + every knob), write the file, preview and numbers
+  render OUT.nbvh -o IMG.png    render a model (orbit view or explicit camera)
+  info OUT.nbvh [--json]        bytes per component, settings, training and quality recorded in the file
+  eval MESH OUT.nbvh [--json]   the paper's metric against the mesh: MSE, silhouette IoU, depth error
+  inspect MESH --out DIR        BVH + labelled training rays of a mesh: report and images (no training)
+  plan MESH... --budget-kb N    share one byte budget among several meshes by need
+  batch LIBRARY -o OUT          a library on Ray: measure and decide every asset, train the worth ones, report
+  samples                       list the bundled sample meshes
+
+MESH is a mesh file (OBJ/PLY/STL/OFF/GLB/glTF, optionally .gz) or a bundled sample name.
+Exit codes: 0 ok, 2 bad input (mesh, file, option, output location), 3 training diverged, 4 not worth compressing
+(nothing trained; --force trains anyway), 130 cancelled (Ctrl-C / SIGTERM).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+
+def _resolve_mesh(arg: str) -> Path:
+    from ..geometry.bundled_samples import SAMPLE_NAMES, sample_path
+
+    if arg in SAMPLE_NAMES:
+        return sample_path(arg)
+    return Path(arg)
+
+
+def cmd_inspect(args: argparse.Namespace) -> int:
+    import torch
+
+    from ..geometry.bvh import build_full_tree, cut_tree
+    from ..geometry.exact import ExactTracer
+    from ..rendering.render import Camera, render_reference, save_png
+    from ..training.rays import generate_training_samples
+    from ..planning.sizing import mesh_resident_bytes
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    mesh = _load_mesh_reporting(args.mesh)
+    t_load = time.perf_counter() - t0
+    print(f"{mesh.name}: {mesh.n_vertices} vertices, {mesh.n_triangles} triangles (loaded in {t_load:.2f} s)")
+
+    t0 = time.perf_counter()
+    tree = build_full_tree(mesh)
+    bvh = cut_tree(tree, args.nodes)
+    t_bvh = time.perf_counter() - t0
+    print(f"BVH: {bvh.n_nodes} nodes ({bvh.nbytes} B), {bvh.n_leaves} leaves, depth {bvh.max_depth}, "
+          f"built in {t_bvh:.2f} s")
+
+    tracer = ExactTracer(mesh)
+    sample_stats = {}
+    for mode in ("ownership", "consistent"):
+        t0 = time.perf_counter()
+        s = generate_training_samples(bvh, tracer, args.rays, mode, seed=args.seed)
+        dt = time.perf_counter() - t0
+        sample_stats[mode] = dict(s.stats, seconds=round(dt, 3), samples_per_s=round(len(s) / dt),
+                                  mean_leaves_per_ray=round(len(s) / args.rays, 2))
+        print(f"training rays ({mode}): {args.rays} rays -> {len(s)} samples, {int(s.hit.sum())} hits, "
+              f"{len(s) / dt:,.0f} samples/s")
+
+    cam = Camera(position=np.array([0.5 + 1.25, 0.5 + 0.8, 0.5 + 1.25]), target=np.full(3, 0.5),
+                 up=np.array([0.0, 1.0, 0.0]))
+    ref = render_reference(tracer, cam, args.size, args.size)
+    save_png(out / "reference.png", ref.display)
+    # Leaf colouring: owner leaf of the visible triangle, random colour per leaf, modulated by the shading.
+    o, d = cam.rays(args.size, args.size)
+    fh = tracer.first_hit(o, d)
+    palette = np.random.default_rng(1).uniform(0.25, 1.0, size=(bvh.n_leaves, 3))
+    colour = np.zeros((len(o), 3))
+    colour[fh.hit] = palette[bvh.tri_leaf[fh.tri[fh.hit]]] * (0.3 + 0.7 * ref.image.reshape(-1)[fh.hit, None])
+    save_png(out / "leaves.png", colour.reshape(args.size, args.size, 3))
+
+    report = {
+        "mesh": {"name": mesh.name, "vertices": mesh.n_vertices, "triangles": mesh.n_triangles,
+                 "repairs": list(mesh.repairs), "transform": mesh.transform.to_dict(),
+                 "surface_area_normalised": round(mesh.surface_area(), 4), "load_seconds": round(t_load, 3)},
+        "bvh": {"budget": args.nodes, "nodes": bvh.n_nodes, "leaves": bvh.n_leaves, "bytes": bvh.nbytes,
+                "max_depth": bvh.max_depth, "build_seconds": round(t_bvh, 3),
+                "triangles_per_leaf": {"min": int(bvh.leaf_tri_count.min()), "max": int(bvh.leaf_tri_count.max()),
+                                       "mean": round(float(bvh.leaf_tri_count.mean()), 2)}},
+        "resident_mesh_bytes": mesh_resident_bytes(mesh, tree),
+        "training_samples": sample_stats,
+        "exact_backend": tracer.backend,
+        "torch": torch.__version__,
+    }
+    (out / "report.json").write_text(json.dumps(report, indent=2))
+    print(f"wrote {out / 'report.json'}, {out / 'reference.png'}, {out / 'leaves.png'}")
+    return 0
+
+
+def _load_mesh_reporting(arg: str):
+    from ..geometry.mesh import load_mesh
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        mesh = load_mesh(_resolve_mesh(arg))
+    for w in caught:
+        print(f"warning: {w.message}", file=sys.stderr)
+    return mesh
+
+
+def _rgb(image: np.ndarray) -> np.ndarray:
+    """(H, W) grey or (H, W, 3) colour -> (H, W, 3), so a bare reference and a coloured model sit side by side."""
+    return image if image.ndim == 3 else np.repeat(image[..., None], 3, axis=2)
+
+
+def _fmt_bytes(n: int) -> str:
+    return f"{n / 1024:,.1f} KB" if n < 1024 ** 2 else f"{n / 1024 ** 2:,.2f} MB"
+
+
+def cmd_compress(args: argparse.Namespace) -> int:
+    """Train, then write the model, its JSON report and its preview as one unit (outputs.OutputSet): checked before
+    training (never over the input, never over a finished result without --overwrite, writable), one run per
+    output (outputs.OutputLock), checkpoints every --checkpoint-every seconds (resume with --resume)."""
+    from ..protocol.events import json_lines, progress_bar
+    from ..protocol.outputs import OutputLock, OutputSet, check_outputs, resolve_output
+    from ..protocol.process import outcome
+
+    sink = json_lines(sys.stdout) if args.events else progress_bar(sys.stderr)
+    try:
+        mesh_path = _resolve_mesh(args.mesh)
+        mesh = _load_mesh_reporting(args.mesh)
+        out = resolve_output(args.output, mesh.name)
+        stem = out.with_suffix("")
+        outputs = [out, Path(f"{stem}.json"), Path(f"{stem}.preview.png")]
+        inputs = [mesh_path] + ([Path(args.resume)] if args.resume else [])
+        check_outputs(outputs, inputs, overwrite=args.overwrite)
+        with OutputLock(out):
+            return _compress_locked(args, mesh, mesh_path, out, stem, outputs, sink, OutputSet())
+    except BaseException as exc:  # the event stream says how the run ended, whatever ended it
+        if args.events:
+            sink({"event": "error", "kind": outcome(exc).kind, "message": str(exc)})
+        raise
+
+
+def _write_winning_decimation(mesh, assessment, path: Path, mesh_path: Path, args, sink) -> None:
+    """When the verdict is a decimation, the user gets it: NAME.decimated.ply beside where the model would have gone
+    (original coordinates; written atomically; an existing file only with --overwrite)."""
+    from ..protocol.outputs import check_outputs, write_atomic
+    from ..planning.sizing import mesh_file_bytes, winning_decimation
+
+    dec = winning_decimation(mesh, assessment)
+    if dec is None:
+        return
+    try:
+        check_outputs([path], [mesh_path], overwrite=args.overwrite)
+    except ValueError as exc:  # an earlier decimation there: kept unless --overwrite
+        print(f"the winning decimation was not written: {exc}", file=sys.stderr)
+        return
+    write_atomic(path, mesh_file_bytes(dec))
+    entry = assessment.alternatives["decimation"]
+    if args.events:
+        sink({"event": "written", "files": [str(path)], "kind": "decimation", "triangles": dec.n_triangles})
+    print(f"kept as a mesh: wrote the decimation that meets the target to {path} ({dec.n_triangles:,} triangles, "
+          f"MSE {entry['mse']:.4g}, {entry['resident_bytes']:,} B resident, {entry['compact_bytes']:,} B as a compact "
+          "mesh)", file=sys.stderr)
+
+
+def _compress_locked(args, mesh, mesh_path, out, stem, outputs, sink, staged) -> int:
+    from ..protocol.outputs import checkpoint_for
+    from .pipeline import compress_mesh, resume_settings
+    from ..protocol.process import NotWorthCompressing, install_cancel_handlers
+    from ..planning.settings import preset
+    from ..rendering.render import orbit_cameras, png_bytes, render_neural, render_reference
+    from ..protocol.quality_levels import QUALITY_LEVELS
+
+    if args.resume:
+        settings = resume_settings(args.resume, mesh)
+        print(f"resuming {args.resume}: T=2^{settings.log2_table}, {settings.nodes} nodes, "
+              f"{settings.encoding}+{settings.network}", file=sys.stderr)
+    else:
+        settings = preset(args.preset).with_overrides(
+            nodes=args.nodes, encoding=args.encoding, log2_table=args.log2_table, network=args.network, k=args.k,
+            labels=args.labels, lr=args.lr, steps=args.steps, time_limit_s=args.time_limit, seed=args.seed,
+            device=args.device, eval_views=args.views,
+            table_bits=16 if args.float16 else args.table_bits, network_bits=16 if args.float16 else args.network_bits,
+            node_bits=args.node_bits, rays_per_step=args.rays_per_step, budget_kb=args.budget_kb,
+            leaf_sampling=args.leaf_sampling, tree_cut=True if args.tree_cut else None, normal_loss=args.normal_loss,
+            n_max=args.n_max, index_factor=args.index_factor, finetune_fraction=args.finetune_fraction,
+            appearance_target=args.appearance,
+            target_mse=QUALITY_LEVELS[args.quality] if args.quality else args.target_mse)
+        if args.steps is not None and args.time_limit is None:
+            settings.time_limit_s = None
+    settings = settings.with_overrides(force=True if args.force else None, checkpoint_every_s=args.checkpoint_every)
+    default_ck = checkpoint_for(out)
+    checkpoint = Path(args.checkpoint) if args.checkpoint else default_ck
+    try:
+        result = compress_mesh(mesh, settings, None, events=sink, should_cancel=install_cancel_handlers(),
+                               checkpoint_path=checkpoint, resume_from=args.resume)
+    except NotWorthCompressing as exc:
+        _write_winning_decimation(mesh, exc.assessment, Path(f"{stem}.decimated.ply"), mesh_path, args, sink)
+        raise
+    except BaseException:
+        if checkpoint.exists():
+            print(f"\ntraining state kept in {checkpoint}: continue with "
+                  f"`nbvh compress {args.mesh} -o {out} --resume {checkpoint}`", file=sys.stderr)
+        raise
+    summary = result.summary()
+    summary["mesh_resident_bytes"] = result.assessment["resident"]
+    summary["source_file_bytes"] = mesh_path.stat().st_size
+    cam = orbit_cameras(1)[0] if args.view is None else orbit_cameras(args.views or 16)[args.view]
+    ref = render_reference(result.tracer, cam, args.size, args.size)
+    neu = render_neural(result.model, cam, args.size, args.size)
+    png = png_bytes(np.concatenate([_rgb(ref.display), _rgb(neu.display)], axis=1))
+    staged.stage(out, result.data)
+    staged.stage(outputs[1], json.dumps(summary, indent=2).encode())
+    staged.stage(outputs[2], png)
+    staged.commit()  # the model, its report and its preview appear together, or the previous ones stay
+    if checkpoint == default_ck or args.resume == str(checkpoint):
+        checkpoint.unlink(missing_ok=True)
+    if args.events:
+        sink({"event": "written", "files": [str(p) for p in outputs]})
+    else:
+        q = result.quality
+        print(f"\nwrote {out} ({_fmt_bytes(result.file_bytes)}), {stem}.json, {stem}.preview.png (left: mesh, right: neural)")
+        print("bytes: " + ", ".join(f"{k} {v:,}" for k, v in result.components.items()))
+        resident = summary['mesh_resident_bytes']['total']
+        ratio = (f"{resident / result.file_bytes:.1f}x smaller" if resident >= result.file_bytes
+                 else f"{result.file_bytes / resident:.1f}x LARGER")
+        print(f"mesh as a ray tracer holds it: {resident:,} B -> the model is {ratio}")
+        draco = result.assessment.get("alternatives", {}).get("draco11_bytes")
+        if draco:
+            print(f"the mesh as a Draco 11-bit file (storage and transfer only; decoded before tracing): {draco:,} B")
+        if q:
+            print(f"quality ({q.views} views, {q.resolution}px): MSE {q.mse:.5f}, silhouette IoU {q.silhouette_iou:.4f},"
+                  f" depth error {q.depth_error:.5f} (unit box)")
+        t = result.training
+        print(f"training: {t.steps} steps, {t.seconds:.1f} s, {t.samples_per_s:,.0f} samples/s on {t.device}")
+        print(f"why: {result.why}")
+        if result.target_met is not None:
+            print(f"target {'met' if result.target_met else 'MISSED'}: MSE {q.mse:.5f} vs {result.settings.target_mse:g}")
+        if not result.assessment["worth_compressing"]:
+            print(f"note: {result.assessment['message']}")
+    return 0
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    from ..storage.fileformat import load_nbvh
+    from ..rendering.render import Camera, orbit_cameras, render_neural, save_png
+
+    model = load_nbvh(args.model)
+    model.half_tables = args.half
+    if args.position is not None:
+        cam = Camera(position=np.asarray(args.position, float), target=np.asarray(args.target, float),
+                     up=np.array([0.0, 1.0, 0.0]), fov_deg=args.fov)
+    else:
+        cam = orbit_cameras(max(args.views, args.view + 1), fov_deg=args.fov)[args.view]
+    t = time.perf_counter()
+    res = render_neural(model, cam, args.width, args.height or args.width)
+    dt = time.perf_counter() - t
+    save_png(args.output, res.display)
+    n = res.image.size
+    print(f"wrote {args.output} ({args.width}x{args.height or args.width}, {dt:.2f} s, {n / dt:,.0f} rays/s)")
+    return 0
+
+
+def cmd_info(args: argparse.Namespace) -> int:
+    from ..storage.fileformat import read_info
+    from ..planning.sizing import mesh_resident_bytes
+
+    info = read_info(args.model)
+    meta = info.metadata
+    out = {"path": info.path, "bytes": info.total_bytes, "components": info.components,
+           "config": info.header["config"], "storage": info.storage.to_dict(),
+           "source": meta.get("source"), "training": meta.get("training"), "quality": meta.get("quality"),
+           "appearance": info.header.get("appearance")}
+    if args.mesh:
+        mesh = _load_mesh_reporting(args.mesh)
+        res = mesh_resident_bytes(mesh)
+        out["mesh_resident_bytes"] = res
+        out["ratio_resident_mesh_to_nbvh"] = res["total"] / info.total_bytes
+        out["source_file_bytes"] = _resolve_mesh(args.mesh).stat().st_size
+        out["ratio_source_file_to_nbvh"] = out["source_file_bytes"] / info.total_bytes
+    if args.json:
+        print(json.dumps(out, indent=2))
+        return 0
+    print(f"{info.path}: {_fmt_bytes(info.total_bytes)} ({info.total_bytes:,} B)")
+    for k, v in info.components.items():
+        print(f"  {k:10s} {v:>10,} B  {100 * v / info.total_bytes:5.1f}%")
+    c = info.header["config"]
+    st = info.storage
+    print(f"  model: {c['encoding']['kind']} T=2^{c['encoding']['log2_table']}, {c['network']['kind']} k={c['network']['k']}; "
+          f"stored with {st.table_bits}-bit features, {st.network_bits}-bit weights, {st.node_bits}-bit boxes")
+    look = info.header.get("appearance")
+    if look:
+        mats = ", ".join(f"{m['name']}" + (f" ({m['image'][1]}x{m['image'][0]} image)" if m["image"] else "")
+                         for m in look["materials"])
+        head = look["config"]
+        print(f"  look: {len(look['materials'])} slot(s): {mats}; "
+              + (f"head: {head.get('target', 'coordinates')}, {head.get('patches', 1)} patch(es)" if head else "no head (one plain slot)"))
+    if meta.get("source"):
+        s = meta["source"]
+        print(f"  source: {s['name']}, {s['triangles']:,} triangles")
+    if meta.get("quality"):
+        q = meta["quality"]
+        print(f"  quality: MSE {q['mse']:.5f}, IoU {q['silhouette_iou']:.4f}")
+    if "mesh_resident_bytes" in out:
+        print(f"  vs the mesh as a ray tracer holds it ({out['mesh_resident_bytes']['total']:,} B): "
+              f"{out['ratio_resident_mesh_to_nbvh']:.1f}x; vs its file ({out['source_file_bytes']:,} B): "
+              f"{out['ratio_source_file_to_nbvh']:.1f}x")
+    return 0
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    from ..geometry.exact import ExactTracer
+    from ..storage.fileformat import load_nbvh
+    from ..rendering.metrics import evaluate
+
+    model = load_nbvh(args.model)
+    mesh = _load_mesh_reporting(args.mesh)
+    src = model.metadata.get("source", {})
+    if src and src.get("triangles") not in (None, mesh.n_triangles):
+        print(f"warning: the model was trained on a mesh of {src['triangles']} triangles, this one has "
+              f"{mesh.n_triangles}", file=sys.stderr)
+    q, _ = evaluate(model, ExactTracer(mesh), args.views, args.resolution)
+    d = q.to_dict()
+    if args.json:
+        print(json.dumps(d, indent=2))
+    else:
+        print(f"MSE {q.mse:.6f}  silhouette IoU {q.silhouette_iou:.4f}  depth error {q.depth_error:.6f} (unit box), "
+              f"{q.depth_error_original_units:.6g} (mesh units)  over {q.views} views at {q.resolution}px; "
+              f"neural {q.neural_rays_per_s:,.0f} rays/s, Embree {q.reference_rays_per_s:,.0f} rays/s")
+    return 0
+
+
+def cmd_samples(args: argparse.Namespace) -> int:
+    from ..geometry.bundled_samples import SAMPLE_NAMES, sample_path
+
+    for name, what in SAMPLE_NAMES.items():
+        p = sample_path(name)
+        print(f"{name:8s} {what:45s} {p}")
+    return 0
+
+
+def cmd_plan(args: argparse.Namespace) -> int:
+    """Share one byte budget among several meshes by need (sizing.plan_scene) and print the split."""
+    from ..planning.settings import preset
+    from ..planning.sizing import plan_scene
+
+    meshes = [_load_mesh_reporting(m) for m in args.meshes]
+    plan = plan_scene(meshes, args.budget_kb * 1024, preset(args.preset), args.weights)
+    rows = [{"mesh": r["name"], **{k: v for k, v in r.items() if k != "name"}} for r in plan["objects"]]
+    for r in rows:
+        r["predicted_mse"] = None if r["predicted_mse"] is None else round(r["predicted_mse"], 6)
+    if args.json:
+        skip = ("features", "objects", "base")
+        print(json.dumps({**{k: v for k, v in plan.items() if k not in skip}, "objects": rows}, indent=2))
+        return 0
+    level = "-" if plan["level"] is None else f"{plan['level']:.4g}"
+    print(f"budget {args.budget_kb:g} KB shared by need: common quality level MSE {level} "
+          f"(each mesh aims at level / weight), total {plan['total'] / 1024:.0f} KB")
+    for r in rows:
+        if r["excluded"]:
+            print(f"  {r['mesh']}: {r['triangles']:,} triangles -> nothing: its mesh is smaller than any model "
+                  f"(keep the mesh)")
+            continue
+        print(f"  {r['mesh']}: {r['triangles']:,} triangles, weight {r['weight']:g} -> T=2^{r['log2_table']}, "
+              f"{r['bytes'] / 1024:.0f} KB, predicted MSE {r['predicted_mse']:.4g}")
+    return 0
+
+
+def cmd_batch(args: argparse.Namespace) -> int:
+    """Compress a library on Ray (batch.run_batch): measure and decide every asset, train the worth ones."""
+    from .library_batch import run_batch
+    from ..protocol.events import json_lines, progress_bar
+    from ..protocol.process import install_cancel_handlers
+    from ..protocol.quality_levels import QUALITY_LEVELS
+
+    spec = {"preset": args.preset}
+    target = QUALITY_LEVELS[args.quality] if args.quality else args.target_mse
+    for key, value in (("target_mse", target), ("budget_kb", args.budget_kb), ("time_limit_s", args.time_limit),
+                       ("steps", args.steps)):
+        if value is not None:
+            spec[key] = value
+    if args.steps is not None and args.time_limit is None:
+        spec["time_limit_s"] = 0  # steps only
+    sink = json_lines(sys.stdout) if args.events else progress_bar(sys.stderr)
+    summary = run_batch(args.library, args.output, spec, sink, install_cancel_handlers(), address=args.address,
+                        num_cpus=args.num_cpus, measure_only=args.measure_only, blender=args.blender)
+    if not args.events:
+        t = summary["totals"]
+        print(f"\n{t['assets']} assets: " + ", ".join(f"{k} {v}" for k, v in sorted(t["by_status"].items())))
+        print(f"resident memory {_fmt_bytes(t['resident_before_bytes'])} -> {_fmt_bytes(t['resident_after_bytes'])} "
+              f"(saved {_fmt_bytes(t['saved_bytes'])}); model files {_fmt_bytes(t['model_storage_bytes'])}")
+        print(f"report: {summary['html']} (+ report.csv, report.json)")
+    return 0
+
+
+def _add_inspect_parser(sub) -> None:
+    q = sub.add_parser("inspect", help="BVH + training rays of a mesh: report and images")
+    q.add_argument("mesh", help="mesh file (OBJ/PLY/STL/OFF/GLB/glTF, optionally .gz) or a bundled sample name")
+    q.add_argument("--out", required=True, help="output folder")
+    q.add_argument("--nodes", type=int, default=4096, help="BVH node budget (1..65535, default 4096)")
+    q.add_argument("--rays", type=int, default=50_000, help="training rays to generate per label mode")
+    q.add_argument("--seed", type=int, default=0)
+    q.add_argument("--size", type=int, default=384, help="image size in pixels")
+    q.set_defaults(func=cmd_inspect)
+
+
+def _add_compress_parser(sub) -> None:
+    from ..protocol.quality_levels import QUALITY_LEVELS
+    from ..protocol.quality_levels import describe as describe_levels
+    from ..planning.settings import PRESETS
+
+    c = sub.add_parser("compress", help="train a neural model of a mesh and write OUT.nbvh")
+    c.add_argument("mesh")
+    c.add_argument("-o", "--output", required=True, help="output .nbvh file (+ .json report, .preview.png)")
+    c.add_argument("--preset", default="default", choices=list(PRESETS),
+                   help="named settings (default: default); the options below override single fields")
+    size = c.add_mutually_exclusive_group()
+    size.add_argument("--budget-kb", type=float, help="size the model to fit this many KB")
+    size.add_argument("--target-mse", type=float, help="size the model for this image MSE (checked after training)")
+    size.add_argument("--quality", choices=list(QUALITY_LEVELS),
+                      help=f"a named target: {describe_levels()}")
+    c.add_argument("--encoding", choices=["hashgrid", "hashvqad"])
+    c.add_argument("--network", choices=["mlp", "kmlp"])
+    c.add_argument("--labels", choices=["ownership", "consistent"])
+    c.add_argument("--nodes", type=int, help="BVH node budget (1..65535)")
+    c.add_argument("--log2-table", type=int, help="log2 of T, feature rows per level")
+    c.add_argument("--k", type=int, help="points per leaf segment")
+    c.add_argument("--lr", type=float)
+    c.add_argument("--steps", type=int, help="step budget (with no --time-limit: steps only)")
+    c.add_argument("--time-limit", type=float, help="training wall-clock budget in seconds")
+    c.add_argument("--rays-per-step", type=int)
+    c.add_argument("--leaf-sampling", choices=["uniform", "loss"],
+                   help="'loss': half of each batch starts in leaves drawn by their running error (N-BVH's resampling)")
+    c.add_argument("--n-max", type=int, help="the grid's finest resolution (default: chosen from the mesh and T)")
+    c.add_argument("--index-factor", type=int, help="HashVQAD's index entries per feature row, H / T (default: the "
+                   "paper's 128)")
+    c.add_argument("--appearance", choices=["coordinates", "colour"],
+                   help="textured assets: 'coordinates' (default: the head answers slot and texture coordinates, the "
+                        "images are kept) or 'colour' (it learns the textured colour, no image stored)")
+    c.add_argument("--finetune-fraction", type=float,
+                   help="HashVQAD: the last fraction of training on its frozen codes (default 0.1)")
+    c.add_argument("--normal-loss", choices=["facing", "oriented", "unoriented"],
+                   help="normal targets: 'oriented' (the paper's, as the mesh winds them), 'facing' (turned toward "
+                        "the ray), 'unoriented' (either sign); default: the network's own (MLP oriented, KMLP "
+                        "facing, as measured)")
+    c.add_argument("--tree-cut", action="store_true",
+                   help="start from half the BVH leaves and split the worst ones during training (N-BVH's tree cut)")
+    c.add_argument("--seed", type=int)
+    c.add_argument("--device", choices=["auto", "cpu", "cuda"])
+    c.add_argument("--float16", action="store_true", help="store tables and weights as float16 (= --table-bits 16)")
+    c.add_argument("--table-bits", type=int, choices=[32, 16, 8],
+                   help="bits per stored feature value (default 8: per level/feature affine codes)")
+    c.add_argument("--network-bits", type=int, choices=[32, 16, 8],
+                   help="bits per stored network weight (8: int8 rows with a float16 scale each; default: the preset's)")
+    c.add_argument("--node-bits", type=int, choices=[32, 8],
+                   help="bits per BVH box coordinate (default 8: relative to the parent box, conservative)")
+    c.add_argument("--views", type=int, help="evaluation views (default from the preset)")
+    c.add_argument("--view", type=int, help="orbit view index of the preview image")
+    c.add_argument("--size", type=int, default=256, help="preview image size")
+    c.add_argument("--checkpoint", help="checkpoint file written during training (default: .OUT.nbvh.checkpoint "
+                                        "beside the output, removed when the run finishes)")
+    c.add_argument("--checkpoint-every", type=float, help="seconds between checkpoints (default 60)")
+    c.add_argument("--resume", metavar="CHECKPOINT", help="continue the training a checkpoint holds (same mesh; its "
+                                                         "settings are used)")
+    c.add_argument("--overwrite", action="store_true", help="replace an existing result at -o")
+    c.add_argument("--force", action="store_true", help="train even when the verdict is 'not worth compressing'")
+    c.add_argument("--events", action="store_true", help="print JSON-line events on stdout instead of a bar")
+    c.set_defaults(func=cmd_compress)
+
+
+def _add_render_parser(sub) -> None:
+    r = sub.add_parser("render", help="render a .nbvh model to PNG")
+    r.add_argument("model")
+    r.add_argument("-o", "--output", required=True)
+    r.add_argument("--width", type=int, default=512)
+    r.add_argument("--height", type=int)
+    r.add_argument("--view", type=int, default=0, help="orbit view index")
+    r.add_argument("--views", type=int, default=16, help="orbit views the index counts in")
+    r.add_argument("--position", type=float, nargs=3, help="camera position (unit-box coordinates)")
+    r.add_argument("--target", type=float, nargs=3, default=[0.5, 0.5, 0.5])
+    r.add_argument("--fov", type=float, default=40.0)
+    r.add_argument("--half", action="store_true", help="float16 feature rows while rendering (faster on the CPU)")
+    r.set_defaults(func=cmd_render)
+
+
+def _add_info_parser(sub) -> None:
+    i = sub.add_parser("info", help="bytes per component and recorded numbers of a .nbvh file")
+    i.add_argument("model")
+    i.add_argument("--mesh", help="source mesh: also report the ratio to it")
+    i.add_argument("--json", action="store_true")
+    i.set_defaults(func=cmd_info)
+
+
+def _add_eval_parser(sub) -> None:
+    e = sub.add_parser("eval", help="the paper's metric of a .nbvh model against its mesh")
+    e.add_argument("mesh")
+    e.add_argument("model")
+    e.add_argument("--views", type=int, default=16)
+    e.add_argument("--resolution", type=int, default=256)
+    e.add_argument("--json", action="store_true")
+    e.set_defaults(func=cmd_eval)
+
+
+def _add_plan_parser(sub) -> None:
+    from ..planning.settings import PRESETS
+
+    pl = sub.add_parser("plan", help="share one byte budget among several meshes by need")
+    pl.add_argument("meshes", nargs="+")
+    pl.add_argument("--budget-kb", type=float, required=True)
+    pl.add_argument("--weights", type=float, nargs="+", help="per mesh, e.g. its share of the screen (default 1)")
+    pl.add_argument("--preset", default="default", choices=list(PRESETS),
+                    help="the settings each object's model is sized with (its T comes from the split)")
+    pl.add_argument("--json", action="store_true")
+    pl.set_defaults(func=cmd_plan)
+
+
+def _add_samples_parser(sub) -> None:
+    s = sub.add_parser("samples", help="list the bundled sample meshes")
+    s.set_defaults(func=cmd_samples)
+
+
+def _add_batch_parser(sub) -> None:
+    from ..protocol.quality_levels import QUALITY_LEVELS
+    from ..planning.settings import PRESETS
+
+    b = sub.add_parser("batch", help="compress a library of assets on Ray (one machine or a cluster)")
+    b.add_argument("library", help="a folder (searched recursively: mesh files, .npz arrays, .blend files) or a "
+                                   "list file with one path per line")
+    b.add_argument("-o", "--output", required=True, help="output folder: report.html/.csv/.json, assets/, thumbs/")
+    b.add_argument("--preset", default="default", choices=list(PRESETS))
+    size = b.add_mutually_exclusive_group()
+    size.add_argument("--quality", choices=list(QUALITY_LEVELS), help="a named target for every asset")
+    size.add_argument("--target-mse", type=float, help="image MSE every asset's model must reach")
+    size.add_argument("--budget-kb", type=float, help="the largest model file per asset")
+    b.add_argument("--time-limit", type=float, help="training seconds per asset (default from the preset)")
+    b.add_argument("--steps", type=int, help="training steps per asset (with no --time-limit: steps only)")
+    b.add_argument("--address", help="join a Ray cluster ('auto' or HOST:PORT, started with `ray start`); "
+                                     "default: an embedded Ray on this machine")
+    b.add_argument("--num-cpus", type=int, help="CPUs of the embedded Ray (default: all of this machine's)")
+    b.add_argument("--measure-only", action="store_true", help="measure and decide every asset; train nothing")
+    b.add_argument("--blender", help="Blender binary for .blend files (default: $NBVH_BLENDER or `blender`)")
+    b.add_argument("--events", action="store_true", help="JSON-line events on stdout instead of a progress bar")
+    b.set_defaults(func=cmd_batch)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="nbvh", description="Neural BVH geometry compression")
+    p.add_argument("--path", choices=["fast", "reference"],
+                   help="compute path: fused C++ kernels (fast, default) or pure torch (reference); "
+                        "also env NBVH_PATH")
+    sub = p.add_subparsers(dest="command", required=True)
+    _add_inspect_parser(sub)
+    _add_compress_parser(sub)
+    _add_render_parser(sub)
+    _add_info_parser(sub)
+    _add_eval_parser(sub)
+    _add_plan_parser(sub)
+    _add_batch_parser(sub)
+    _add_samples_parser(sub)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    from .. import kernels
+    from ..protocol.process import Cancelled, NotWorthCompressing, outcome
+
+    argv = sys.argv[1:] if argv is None else argv
+    kernels.keep_freed_memory()  # this process trains or renders: keep its freed blocks (see the function)
+    if argv[:1] == ["job"]:  # the background job protocol (see job.py): JSON events on stdout
+        from .job import main as job_main
+
+        return job_main(argv[1:])
+    if argv[:1] == ["render-worker"]:  # the render engine's worker (see render_worker.py): JSON lines both ways
+        from .render_worker import main as worker_main
+
+        return worker_main(argv[1:])
+    args = build_parser().parse_args(argv)
+    if args.path:
+        kernels.set_path(args.path)
+    try:
+        return args.func(args)
+    except Exception as exc:  # the exit code says how it ended (process.outcome); a crash keeps its traceback
+        end = outcome(exc)
+        if end.code == 1:
+            raise
+        if isinstance(exc, Cancelled):
+            print(f"\ncancelled: {exc}; nothing was written", file=sys.stderr)
+        elif isinstance(exc, NotWorthCompressing):
+            print(f"{exc}\nno model was trained or written; --force trains anyway", file=sys.stderr)
+        elif end.kind == "diverged":
+            print(f"\nerror: {end.message}; nothing was written", file=sys.stderr)
+        else:
+            print(f"error: {end.message}", file=sys.stderr)
+        return end.code
+    except KeyboardInterrupt:
+        print("\ncancelled; nothing was written", file=sys.stderr)
+        return 130

@@ -1,0 +1,301 @@
+"""A background compression job: the process the Blender add-on (or compress.py) starts and watches.
+
+    python -m nbvh_core job REQUEST.json
+
+REQUEST.json (written by the add-on):
+  {"name": str, "mesh": "mesh.npz" (arrays `vertices` (V, 3) float32 and `faces` (F, 3) int32, object-local
+   coordinates), "out_dir": str, "settings": {preset: str, overrides...},
+   "camera": {"position": [3], "target": [3], "up": [3], "fov_deg": float, "width": int, "height": int}
+             (object-local coordinates; optional), "proxy_points": int}
+
+Outputs in out_dir, staged and renamed into place together at the very end (`outputs.OutputSet`: a failed,
+cancelled or killed re-run leaves the previous result of the object exactly as it was), and named in the final
+`result` event (the only marker of a finished job):
+  NAME.nbvh            the model
+  NAME.preview.png     neural rendering from the camera (or an orbit view)
+  NAME.reference.png   the mesh from the same camera (Embree), for the side-by-side report
+  NAME.points.npy      (P, 6) float32 proxy points and normals from the model's own ray hits, object-local
+  NAME.report.json     sizes by component, the mesh's resident bytes, quality, training, settings
+Training writes `.NAME.nbvh.checkpoint` in out_dir every 60 s (`outputs.checkpoint_for`); a request with "resume": PATH continues it (the
+add-on offers this after a crash). "force": true trains even when the verdict is "not worth compressing"
+(otherwise the job ends in seconds with a `verdict` event and an `error` event of kind "not_worth", exit 4).
+Events are JSON lines on stdout (see `events.py`); errors end with an `error` event and exit code != 0.
+A request with "kind": "batch" runs a library (`run_batch_job`: the add-on's scene memory report and "Compress
+library...").
+"""
+from __future__ import annotations
+
+import json
+import sys
+import traceback
+from pathlib import Path
+
+import numpy as np
+
+from ..protocol.events import json_lines
+from ..protocol.process import Cancelled
+
+
+def proxy_points(model, n_points: int, seed: int = 0) -> np.ndarray:
+    """(P, 6) float32 points + unit normals on the model's surface, in the mesh's original coordinates; (P, 9)
+    with each point's linear RGB albedo (the model's look) when the model carries materials.
+
+    Rays from a sphere around the asset toward random points of its box; every predicted hit is a point
+    (P <= n_points). Computed from the neural model only (the mesh is not used), so the proxy shows what
+    the model learned.
+    """
+    import torch
+
+    from ..training.rays import RayConfig, sample_rays
+
+    rng = np.random.default_rng(seed)
+    lo, hi = model.nodes["lo"][0], model.nodes["hi"][0]
+    pts = []
+    have = 0
+    for _ in range(8):
+        o, d = sample_rays(lo, hi, max(2 * (n_points - have), 1024), rng, RayConfig(outside_fraction=1.0))
+        q = model.query(torch.from_numpy(o), torch.from_numpy(d))
+        hit = q.hit.cpu().numpy()
+        p = o[hit] + q.t.cpu().numpy()[hit, None] * d[hit]
+        n = q.normal.cpu().numpy()[hit]
+        colour = model.albedo_at(np.clip(p, 0.0, 1.0))  # None for a bare shape
+        pts.append(np.concatenate((model.transform.to_original(p), n) + (() if colour is None else (colour,)),
+                                  axis=1))
+        have += int(hit.sum())
+        if have >= n_points:
+            break
+    out = np.concatenate(pts)[:n_points] if pts else np.zeros((0, 9 if model.materials else 6))
+    return out.astype(np.float32)
+
+
+class _LoadedResult:
+    """The parts of pipeline.CompressResult a loaded (not trained) model can offer."""
+
+    def __init__(self, model, info, path: str):
+        from ..training.train import TrainResult
+
+        self.model = model
+        self.tracer = None  # no mesh was traced for a loaded model
+        self.assessment = None
+        self.file_bytes = info.total_bytes
+        self.components = info.components
+        meta = info.metadata
+        tr = meta.get("training") or {}
+        self.training = TrainResult(steps=tr.get("steps", 0), seconds=tr.get("seconds", 0.0), samples=tr.get("samples", 0),
+                                    samples_per_s=tr.get("samples_per_s", 0.0), final_loss=tr.get("final_loss", 0.0),
+                                    device=tr.get("device", "?"))
+        self._summary = {"path": path, "file_bytes": info.total_bytes, "components": info.components,
+                         "quality": meta.get("quality"), "training": tr, "settings": meta.get("settings"),
+                         "seconds": {}, "why": "loaded from file", "target_met": meta.get("target_met")}
+
+    def summary(self) -> dict:
+        return dict(self._summary)
+
+
+#: The request's fields and their JSON types (the request file is data: anything else is refused in one line).
+REQUEST_FIELDS = {"kind": str, "name": str, "mesh": str, "out_dir": str, "settings": dict, "camera": dict,
+                  "proxy_points": int, "resume": str, "force": bool, "model": str, "scene": dict, "library": str,
+                  "measure_only": bool, "address": str}
+MAX_REQUEST_BYTES = 1 << 20
+
+
+def check_request(request, where: str = "request") -> dict:
+    """Refuse (ValueError, one line) a request that is not an object of REQUEST_FIELDS with their types, whose name
+    is not a plain object name, or whose settings are not valid settings (`settings.settings_from_dict`)."""
+    from ..planning.settings import preset, settings_from_dict
+
+    if not isinstance(request, dict):
+        raise ValueError(f"{where}: a job request must be a JSON object")
+    for key, value in request.items():
+        want = REQUEST_FIELDS.get(key)
+        if want is None:
+            raise ValueError(f"{where}: unknown request field {str(key)[:40]!r}")
+        if value is not None and (not isinstance(value, want) or (want is int and isinstance(value, bool))):
+            raise ValueError(f"{where}: request field {key!r} must be a {want.__name__}")
+    missing = [k for k in (("name", "library", "out_dir") if request.get("kind") == "batch"
+                           else ("name", "mesh", "out_dir")) if not request.get(k)]
+    if missing or request.get("kind") not in (None, "batch"):
+        raise ValueError(f"{where}: the request needs {', '.join(missing) or 'a known kind'}")
+    name = request["name"]
+    if len(name) > 255 or any(c in name for c in "/\\\0") or name in (".", ".."):
+        raise ValueError(f"{where}: {name[:40]!r} is not a plain object name")
+    if not 0 <= int(request.get("proxy_points") or 0) <= 10_000_000:
+        raise ValueError(f"{where}: proxy_points must be in [0, 10000000]")
+    spec = dict(request.get("settings") or {})
+    base = preset(str(spec.pop("preset", "default")))
+    settings_from_dict({**base.to_dict(), **spec}, f"{where}: settings")
+    return request
+
+
+def run_batch_job(request: dict, events, should_cancel) -> dict:
+    """A library request ({"kind": "batch", "name", "library": folder or list file, "out_dir", "settings",
+    "measure_only": bool, "address": optional}): `batch.run_batch`, whose events (progress with the fraction of
+    assets done, one `asset` event per row) reach the add-on; the `result` event names the report."""
+    from .library_batch import run_batch
+
+    summary = run_batch(request["library"], request["out_dir"], dict(request.get("settings") or {}), events,
+                        should_cancel, address=request.get("address"), measure_only=bool(request.get("measure_only")))
+    event = {"event": "result", "name": request["name"], "path": summary["html"], "report": summary["html"],
+             "json": summary["json"], "totals": summary["totals"]}
+    events(event)
+    return event
+
+
+def run_job(request: dict, events, should_cancel) -> dict:
+    """Run one request (see module docstring); returns the `result` event it emits."""
+    if request.get("kind") == "batch":
+        return run_batch_job(request, events, should_cancel)
+    from ..geometry.mesh_arrays import mesh_from_npz
+    from ..protocol.outputs import OutputLock, OutputSet, check_outputs
+    from .pipeline import resume_settings
+    from ..planning.settings import preset
+
+    name = request["name"]
+    out_dir = Path(request["out_dir"])
+    out_dir.mkdir(parents=True, exist_ok=True)
+    mesh = mesh_from_npz(request["mesh"], name)  # data only: pickled or oversized arrays are refused
+    for msg in mesh.repairs:
+        events({"event": "warning", "message": msg})
+    spec = dict(request.get("settings") or {})
+    steps_only = spec.get("time_limit_s") == 0  # 0 = no wall-clock limit (budget in steps)
+    settings = preset(spec.pop("preset", "default")).with_overrides(**spec)
+    if steps_only:
+        settings.time_limit_s = None
+    scene_split = None
+    if request.get("scene"):
+        settings, scene_split = _scene_share(request["scene"], settings, events)
+    if request.get("resume"):
+        settings = resume_settings(request["resume"], mesh)
+    if request.get("force"):
+        settings = settings.with_overrides(force=True)
+    model_path = out_dir / f"{name}.nbvh"
+    files = {"model": str(model_path), "preview": str(out_dir / f"{name}.preview.png"),
+             "reference": str(out_dir / f"{name}.reference.png"), "points": str(out_dir / f"{name}.points.npy"),
+             "report": str(out_dir / f"{name}.report.json")}
+    if request.get("model"):
+        files["model"] = str(request["model"])  # loaded, never rewritten
+    # A re-run replaces the object's previous result (only once the new one is complete); an input never.
+    inputs = [Path(request["mesh"])] + ([Path(request["model"])] if request.get("model") else [])
+    check_outputs([Path(p) for k, p in files.items() if not (k == "model" and request.get("model"))], inputs,
+                  overwrite=True)
+    with OutputLock(model_path):
+        return _run_locked(request, events, should_cancel, mesh, settings, scene_split, files, out_dir, name,
+                           OutputSet())
+
+
+def _run_locked(request, events, should_cancel, mesh, settings, scene_split, files, out_dir, name, staged) -> dict:
+    from ..geometry.exact import ExactTracer
+    from ..protocol.outputs import checkpoint_for
+    from .pipeline import compress_mesh
+    from ..rendering.render import Camera, orbit_cameras, png_bytes, render_neural, render_reference
+    from ..planning.sizing import mesh_resident_bytes
+
+    model_path = Path(files["model"])
+    if request.get("model"):
+        # Load an existing model instead of training (a damaged file fails here with NBVHFileError).
+        from ..storage.fileformat import load_nbvh, read_info
+
+        events({"event": "phase", "phase": "load", "message": request["model"]})
+        model = load_nbvh(request["model"])
+        info = read_info(request["model"])
+        result = _LoadedResult(model, info, str(request["model"]))
+    else:
+        result = compress_mesh(mesh, settings, None, events=events, should_cancel=should_cancel,
+                               checkpoint_path=checkpoint_for(model_path), resume_from=request.get("resume"))
+        model = result.model
+        staged.stage(model_path, result.data)
+    cam_spec = request.get("camera")
+    if cam_spec:
+        tf = mesh.transform
+        pos = tf.to_normalised(np.asarray([cam_spec["position"]], float))[0]
+        tgt = tf.to_normalised(np.asarray([cam_spec["target"]], float))[0]
+        cam = Camera(position=pos, target=tgt, up=np.asarray(cam_spec.get("up", [0, 0, 1]), float),
+                     fov_deg=float(cam_spec.get("fov_deg", 40.0)))
+        w, h = int(cam_spec.get("width", 256)), int(cam_spec.get("height", 256))
+    else:
+        cam, w, h = orbit_cameras(1)[0], 256, 256
+    events({"event": "phase", "phase": "preview", "message": f"{w}x{h} image, proxy points"})
+    neural = render_neural(model, cam, w, h)
+    reference = render_reference(result.tracer or ExactTracer(mesh), cam, w, h)
+    staged.stage(Path(files["preview"]), png_bytes(neural.display))
+    staged.stage(Path(files["reference"]), png_bytes(reference.display))
+    import io
+
+    buf = io.BytesIO()
+    np.save(buf, proxy_points(model, int(request.get("proxy_points", 20000)), seed=settings.seed))
+    staged.stage(Path(files["points"]), buf.getvalue())
+    report = result.summary()
+    report["name"] = name
+    report["mesh_resident_bytes"] = result.assessment["resident"] if result.assessment else mesh_resident_bytes(mesh)
+    report["files"] = files
+    if scene_split is not None:
+        report["scene_split"] = scene_split
+    staged.stage(Path(files["report"]), json.dumps(report, indent=2).encode())
+    if should_cancel():
+        staged.discard()
+        raise Cancelled("cancelled before the results were written")
+    staged.commit()  # everything appears together (or the previous result stays)
+    if not request.get("model"):
+        checkpoint_for(model_path).unlink(missing_ok=True)
+    event = {"event": "result", "name": name, "path": str(model_path), "bytes": result.file_bytes,
+             "files": files, "quality": report["quality"], "train_seconds": round(float(result.training.seconds), 2),
+             "device": result.training.device}
+    events(event)
+    return event
+
+
+def _scene_share(scene: dict, settings, events):
+    """This object's share of a scene budget: {"budget_kb", "meshes": [npz paths, all objects, in order], "names",
+    "weights", "index"}. Every job computes the same plan (sizing.plan_scene, deterministic) and takes entry
+    `index`; returns (settings with that size, the split for the report). An object the split excludes (never worth
+    compressing) keeps the smallest size: its verdict then ends its job before training."""
+    import dataclasses
+
+    from ..geometry.mesh_arrays import read_mesh_arrays
+    from ..geometry.mesh import mesh_from_arrays
+    from ..planning.sizing import plan_scene
+
+    meshes = []
+    for path in scene["meshes"]:
+        arrays = read_mesh_arrays(path)
+        meshes.append(mesh_from_arrays(arrays["vertices"], arrays["faces"]))
+    names = scene.get("names") or [str(k) for k in range(len(meshes))]
+    plan = plan_scene(meshes, float(scene["budget_kb"]) * 1024, settings, scene.get("weights"), names)
+    i = int(scene["index"])
+    split = {"budget_kb": scene["budget_kb"], "level_mse": plan["level"], "total_bytes": plan["total"],
+             "objects": plan["objects"]}
+    base = plan["base"]
+    if i in plan["excluded"]:
+        events({"event": "phase", "phase": "plan", "message": "scene budget: this object gets nothing (its mesh is "
+                                                               "smaller than any model)"})
+        return dataclasses.replace(base, log2_table=5), split
+    events({"event": "phase", "phase": "plan",
+            "message": f"scene budget {scene['budget_kb']:g} KB shared by need over {len(meshes) - len(plan['excluded'])}"
+                       f" objects: this one gets T=2^{plan['log2'][i]} (~{plan['bytes'][i] / 1024:.0f} KB, predicted "
+                       f"MSE {plan['predicted_mse'][i]:.4g})"})
+    return dataclasses.replace(base, log2_table=plan["log2"][i]), split
+
+
+def main(argv: list[str]) -> int:
+    """Entry of `python -m nbvh_core job REQUEST.json`: the exit code and the final `error` event's kind come from
+    `process.outcome`, as the CLI's do; a crash's event carries its traceback."""
+    from ..protocol.process import install_cancel_handlers, outcome
+
+    events = json_lines(sys.stdout)
+    should_cancel = install_cancel_handlers()
+    try:
+        path = Path(argv[0])
+        if path.stat().st_size > MAX_REQUEST_BYTES:
+            raise ValueError(f"{path}: a job request is at most {MAX_REQUEST_BYTES} bytes")
+        run_job(check_request(json.loads(path.read_text()), str(path)), events, should_cancel)
+        return 0
+    except (Exception, KeyboardInterrupt) as exc:
+        end = outcome(exc)
+        event = {"event": "error", "kind": end.kind,
+                 "message": f"{type(exc).__name__}: {exc}" if end.kind == "input" else end.message}
+        if end.kind == "crash":
+            event["traceback"] = traceback.format_exc()
+        events(event)
+        return end.code
+    finally:
+        sys.stdout.flush()

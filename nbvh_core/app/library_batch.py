@@ -1,0 +1,517 @@
+"""Compress an asset library on Ray: decide first, train second, resumable, robust to bad assets and dead workers.
+
+    nbvh batch LIBRARY -o OUT [--quality Q | --target-mse X | --budget-kb N] [--address auto|HOST:PORT]
+
+* **Assets** (`discover`): LIBRARY is a folder (searched recursively for every mesh format the CLI reads, .npz
+  arrays, and .blend files - each mesh object one asset, exported by a `blender` binary, `blend_export.py`) or a
+  list file (one path per line, relative to the list). A file that cannot be read becomes a failed row, not a stop.
+* **Decide first** (`measure_asset`, one Ray task per asset): triangles, resident bytes as a ray tracer holds the
+  mesh, its Draco size, the verdict of `sizing.assess` and a thumbnail, before any training; the first report is
+  written as soon as every asset is measured.
+* **Train second** (`compress_asset`): only assets worth compressing, largest predicted savings first, each one task
+  sized by its need (CPUs and memory from the triangle count, a GPU when the cluster has one). A task returns its
+  results as bytes; the driver writes them (`outputs.OutputSet`: all files of an asset appear together), so a
+  worker that dies leaves nothing behind, and Ray retries it (`max_retries`). An asset's failure (bad mesh,
+  divergence) is its row's error; the run goes on.
+* **Resume**: each trained asset lives in OUT/assets/KEY/, KEY = hash of the mesh's content and the settings; a
+  rerun finds KEY/result.json and trains nothing again. Ctrl-C / SIGTERM cancels the tasks and keeps what finished.
+* **Cluster**: without `address` an embedded Ray starts with this machine's cores (`ray.init()`); `address`
+  ('auto' or HOST:PORT) joins a cluster started with `ray start --head` / `ray start --address HOST:PORT`.
+
+Events (JSON lines with `--events`, for the add-on): `progress` (phase measure|train, done, total, fraction, eta_s),
+`asset` (one per finished row), `warning`, and a final `result` with the report's paths.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import socket
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable
+
+from ..protocol.events import EventSink, null_sink
+from ..geometry.mesh import SUPPORTED_EXTENSIONS
+from ..geometry.mesh_arrays import mesh_from_npz
+
+#: Files a folder library is searched for (plus .gz variants of the mesh formats).
+ARRAY_EXTENSION = ".npz"
+BLEND_EXTENSION = ".blend"
+#: Ray retries a task whose worker died this many times (an exception inside a task is a result, not retried).
+MAX_RETRIES = 2
+THUMBNAIL_PX = 96
+
+
+@dataclass
+class Asset:
+    """One library entry. name: unique in the library (its path relative to LIBRARY, '/' -> '__', and for a
+    .blend object ':OBJECT'); path: the mesh file (or the exported .npz); source: what the user has (the file, or
+    'FILE.blend:OBJECT')."""
+
+    name: str
+    path: str
+    source: str
+    error: str | None = None  # set when the asset could not even be listed (a .blend without Blender)
+
+
+@dataclass
+class Row:
+    """A library report row: what was measured, decided and (for worth assets) trained. status: measured |
+    not_worth | done | cached | failed | cancelled."""
+
+    name: str
+    source: str
+    status: str = "measured"
+    error: str | None = None
+    triangles: int | None = None
+    mesh_resident_bytes: int | None = None
+    draco_bytes: int | None = None
+    compact_bytes: int | None = None  # the mesh as a compact ray-traceable mesh (compact_mesh)
+    texture_bytes: int | None = None  # the asset's images as held (width x height x channels), kept either way
+    decimation_triangles: int | None = None  # the verdict's winning decimation (written beside the results)
+    decimation_compact_bytes: int | None = None
+    predicted_model_bytes: int | None = None
+    verdict: str | None = None
+    recommendation: str | None = None
+    key: str | None = None
+    model_bytes: int | None = None  # the .nbvh file (stored and resident as traced)
+    model_resident_bytes: int | None = None
+    mse: float | None = None
+    iou: float | None = None
+    train_seconds: float | None = None
+    measure_seconds: float | None = None
+    worker: str | None = None  # host:pid of the worker that produced the result
+    thumb_original: str | None = None  # PNG file name inside OUT/thumbs
+    thumb_neural: str | None = None
+    files: dict = field(default_factory=dict)
+
+    @property
+    def saved_bytes(self) -> int:
+        """Resident bytes saved by using the model instead of the mesh (0 when not compressed)."""
+        if self.status in ("done", "cached") and self.mesh_resident_bytes and self.model_resident_bytes:
+            return self.mesh_resident_bytes - self.model_resident_bytes
+        return 0
+
+    @property
+    def predicted_savings(self) -> int:
+        if self.recommendation == "neural" and self.mesh_resident_bytes and self.predicted_model_bytes:
+            return self.mesh_resident_bytes - self.predicted_model_bytes
+        return 0
+
+    def to_dict(self) -> dict:
+        return {**asdict(self), "saved_bytes": self.saved_bytes, "predicted_savings": self.predicted_savings}
+
+
+# ------------------------------------------------------------------------------------------------ discovery
+def _is_mesh_file(p: Path) -> bool:
+    suffixes = [s.lower() for s in p.suffixes]
+    if suffixes and suffixes[-1] == ".gz":
+        suffixes = suffixes[:-1]
+    return bool(suffixes) and suffixes[-1] in SUPPORTED_EXTENSIONS + (ARRAY_EXTENSION,)
+
+
+def _asset_name(path: Path, root: Path, keep_suffix: bool = False) -> str:
+    """The path relative to the library, '/' -> '__', without its format suffixes (.ply.gz) unless asked."""
+    try:
+        rel = path.relative_to(root)
+    except ValueError:
+        rel = Path(path.name)
+    text = str(rel)
+    if not keep_suffix:
+        stem = rel.name.split(".")[0] or rel.name
+        text = str(rel.with_name(stem))
+    return text.replace(os.sep, "__")
+
+
+#: A library list file names one asset per line: 16 MB is ~100,000 paths.
+MAX_LIST_BYTES = 16 << 20
+
+
+def discover(library: Path, work_dir: Path, blender: str | None = None) -> list[Asset]:
+    """The assets of `library` (a folder or a list file, see the module docstring), in a stable order; .blend files
+    are exported into `work_dir/blend/`. Raises ValueError when LIBRARY does not exist or lists nothing."""
+    from .blend_export import export_blend
+
+    library = Path(library)
+    if library.is_dir():
+        root, files = library, sorted(p for p in library.rglob("*") if p.is_file() and not p.name.startswith("."))
+        files = [p for p in files if _is_mesh_file(p) or p.suffix.lower() == BLEND_EXTENSION]
+    elif library.is_file():
+        if library.stat().st_size > MAX_LIST_BYTES:
+            raise ValueError(f"{library}: a library list is at most {MAX_LIST_BYTES} bytes (one path per line)")
+        root = library.parent
+        lines = [ln.strip() for ln in library.read_text().splitlines()]
+        files = [(root / ln) if not Path(ln).is_absolute() else Path(ln) for ln in lines if ln and not ln.startswith("#")]
+    else:
+        raise ValueError(f"{library}: no such folder or list file")
+    assets = []
+    stems = [_asset_name(p, root) for p in files]
+    for p, stem in zip(files, stems):
+        name = stem if stems.count(stem) == 1 else _asset_name(p, root, keep_suffix=True)  # blob.ply beside blob.obj
+        if p.suffix.lower() != BLEND_EXTENSION:
+            assets.append(Asset(name=name, path=str(p), source=str(p)))
+            continue
+        try:
+            digest = hashlib.sha256(str(p.resolve()).encode()).hexdigest()[:10]
+            for obj, npz in export_blend(p, work_dir / "blend" / f"{p.stem}-{digest}", blender):
+                assets.append(Asset(name=f"{name}:{obj}", path=str(npz), source=f"{p}:{obj}"))
+        except ValueError as exc:
+            assets.append(Asset(name=name, path=str(p), source=str(p), error=str(exc)))
+    if not assets:
+        raise ValueError(f"{library}: no mesh files found (looked for {', '.join(SUPPORTED_EXTENSIONS)}, "
+                         f"{ARRAY_EXTENSION}, {BLEND_EXTENSION})")
+    return assets
+
+
+def load_asset(path: str, name: str):
+    """The asset's mesh (a mesh file, or an .npz with `vertices` and `faces`). Raises ValueError (MeshError)."""
+    from ..geometry.mesh import load_mesh
+
+    if path.lower().endswith(ARRAY_EXTENSION):
+        return mesh_from_npz(path, name)
+    return load_mesh(path)
+
+
+# -------------------------------------------------------------------------------------------- the two tasks
+def _settings(spec: dict):
+    from ..planning.settings import preset
+
+    spec = dict(spec)
+    steps_only = spec.get("time_limit_s") == 0
+    s = preset(spec.pop("preset", "default")).with_overrides(**spec)
+    if steps_only:
+        s.time_limit_s = None
+    return s
+
+
+def settings_key(mesh_sha256: str, spec: dict) -> str:
+    """An asset's result folder name: the mesh's content and the settings asked for (a rerun with either changed
+    trains again; a renamed or moved file does not)."""
+    blob = json.dumps({"mesh": mesh_sha256, "settings": spec}, sort_keys=True).encode()
+    return hashlib.sha256(blob).hexdigest()[:16]
+
+
+def _worker_id() -> str:
+    return f"{socket.gethostname()}:{os.getpid()}"
+
+
+def measure_asset(asset: dict, spec: dict) -> dict:
+    """Ray task: measure one asset and decide (see the module docstring). Never raises: a failure is a row."""
+    from ..geometry.exact import ExactTracer
+    from .pipeline import mesh_identity
+    from ..rendering.render import orbit_cameras, png_bytes, render_reference
+    from ..planning.sizing import assess, mesh_file_bytes, resolve, winning_decimation
+
+    t0 = time.perf_counter()
+    out = {"name": asset["name"], "worker": _worker_id()}
+    try:
+        if asset.get("error"):
+            raise ValueError(asset["error"])
+        mesh = load_asset(asset["path"], asset["name"])
+        settings, _ = resolve(_settings(spec), mesh)
+        tracer = ExactTracer(mesh)
+        a = assess(mesh, settings, measure_alternatives=settings.target_mse is not None, tracer=tracer)
+        thumb = render_reference(tracer, orbit_cameras(1)[0], THUMBNAIL_PX, THUMBNAIL_PX).display
+        out.update(status="measured" if a.worth_compressing else "not_worth", triangles=mesh.n_triangles,
+                   mesh_resident_bytes=a.resident["total"], draco_bytes=a.alternatives.get("draco11_bytes"),
+                   predicted_model_bytes=a.model_bytes, verdict=a.message, recommendation=a.recommendation,
+                   key=settings_key(mesh_identity(mesh)["sha256"], spec), thumb=png_bytes(thumb),
+                   compact_bytes=a.compact_bytes, texture_bytes=mesh.look.texture_bytes() if mesh.look else 0)
+        dec = winning_decimation(mesh, a)
+        if dec is not None:  # the mesh that wins, as a file the head writes (workers may not share its disk)
+            out.update(decimation_triangles=dec.n_triangles, decimation_ply=mesh_file_bytes(dec),
+                       decimation_compact_bytes=a.alternatives["decimation"].get("compact_bytes"))
+    except Exception as exc:  # a bad asset is a row with its error, never the end of the run
+        out.update(status="failed", error=f"{type(exc).__name__}: {exc}")
+    out["measure_seconds"] = round(time.perf_counter() - t0, 3)
+    return out
+
+
+def compress_asset(asset: dict, spec: dict) -> dict:
+    """Ray task: train one asset's model (verdict already given: forced past a borderline one), render its
+    thumbnail; returns the file's bytes and the numbers. Never raises for the asset's own failures."""
+    from .. import kernels
+    from .pipeline import compress_mesh
+    from ..rendering.render import orbit_cameras, png_bytes, render_neural
+
+    t0 = time.perf_counter()
+    out = {"name": asset["name"], "worker": _worker_id()}
+    try:
+        import torch
+
+        torch.set_num_threads(max(1, int(os.environ.get("OMP_NUM_THREADS", torch.get_num_threads()))))
+        kernels.keep_freed_memory()
+        mesh = load_asset(asset["path"], asset["name"])
+        res = compress_mesh(mesh, _settings(spec).with_overrides(force=True))
+        thumb = render_neural(res.model, orbit_cameras(1)[0], THUMBNAIL_PX, THUMBNAIL_PX).display
+        out.update(status="done", data=res.data, summary=res.summary(), thumb=png_bytes(thumb),
+                   model_bytes=res.file_bytes, model_resident_bytes=sum(res.model.resident_bytes().values()),
+                   mse=res.quality.mse if res.quality else None, iou=res.quality.silhouette_iou if res.quality else None,
+                   train_seconds=round(res.training.seconds, 2))
+    except Exception as exc:
+        out.update(status="failed", error=f"{type(exc).__name__}: {exc}")
+    out["task_seconds"] = round(time.perf_counter() - t0, 2)
+    return out
+
+
+def task_resources(triangles: int, cluster: dict) -> dict:
+    """Ray resources of one training task: 1 CPU below 300k triangles, 2 above (at most what one node has), memory
+    ~1 GB + 3 KB per triangle (the Embree scene, the labels, the model), a GPU when the cluster has one."""
+    max_cpus = max(1, int(cluster.get("max_node_cpus", 1)))
+    cpus = min(max_cpus, 1 if triangles < 300_000 else 2)
+    memory = int(1e9 + 3e3 * triangles)
+    memory = min(memory, int(cluster.get("max_node_memory", memory)))
+    res = {"num_cpus": cpus, "memory": memory}
+    if cluster.get("GPU", 0) >= 1:
+        res["num_gpus"] = 1
+    return res
+
+
+# ------------------------------------------------------------------------------------------------ the driver
+def _safe(name: str) -> str:
+    import re
+
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", name)[:120]
+
+
+def require_ray():
+    """The ray module, or a clear ValueError naming the pinned version to install (exit code 2, not a crash)."""
+    try:
+        import ray
+    except ImportError:
+        raise ValueError("nbvh batch runs on Ray, which is not installed in this Python: "
+                         "pip install ray==2.60.0 (or rerun the add-on's Install Dependencies)") from None
+    return ray
+
+
+def _start_ray(address: str | None, num_cpus: int | None) -> bool:
+    """Connect to `address` or start an embedded Ray; True when this call started it (and must shut it down)."""
+    ray = require_ray()
+
+    if ray.is_initialized():
+        return False
+    kw = dict(include_dashboard=False, log_to_driver=False, configure_logging=False)
+    if address:
+        ray.init(address=address, **kw)
+    else:
+        ray.init(num_cpus=num_cpus, **kw)
+    return True
+
+
+def cluster_info() -> dict:
+    """The cluster's totals (CPU, GPU, memory) and the largest node's CPUs and memory (a task must fit one node)."""
+    import ray
+
+    total = ray.cluster_resources()
+    nodes = [n for n in ray.nodes() if n.get("Alive")]
+    res = [n.get("Resources", {}) for n in nodes]
+    return {"CPU": total.get("CPU", 1), "GPU": total.get("GPU", 0), "nodes": len(nodes),
+            "max_node_cpus": max((r.get("CPU", 0) for r in res), default=1),
+            "max_node_memory": max((r.get("memory", 0) for r in res), default=0) or int(4e9)}
+
+
+def _cached(out: Path, key: str) -> dict | None:
+    """The finished result in OUT/assets/KEY, or None (missing, damaged or incomplete: trained again)."""
+    folder = out / "assets" / key
+    try:
+        result = json.loads((folder / "result.json").read_text())
+        name = result["files"]["model"]
+        if not isinstance(name, str) or Path(name).name != name or not name.endswith(".nbvh"):
+            return None  # a result names its model inside its own folder; anything else is not ours
+        model = folder / name
+        return result if model.is_file() and model.stat().st_size == result["model_bytes"] else None
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def _run_tasks(remote, jobs: list[tuple[str, tuple, dict]], phase: str, on_result, events: EventSink,
+               should_cancel: Callable[[], bool]) -> None:
+    """Submit `jobs` [(row name, args, ray options)] in order; call on_result(name, result dict) as each ends (a
+    task whose worker died more than MAX_RETRIES times ends as a failure); progress events with an ETA; raises
+    process.Cancelled (after cancelling what is left) when should_cancel() turns true."""
+    import ray
+
+    from ..protocol.process import Cancelled
+
+    pending = {remote.options(max_retries=MAX_RETRIES, **opts).remote(*args): name for name, args, opts in jobs}
+    total, done, t0 = len(jobs), 0, time.perf_counter()
+    while pending:
+        if should_cancel():
+            for ref in pending:
+                ray.cancel(ref, force=True)
+            raise Cancelled(f"cancelled in the {phase} phase with {total - done} of {total} assets left")
+        ready, _ = ray.wait(list(pending), num_returns=1, timeout=0.5)
+        for ref in ready:
+            name = pending.pop(ref)
+            try:
+                result = ray.get(ref)
+            except ray.exceptions.RayError as exc:  # the worker died on every try, or the task was lost
+                result = {"name": name, "status": "failed", "error": f"{type(exc).__name__}: {str(exc)[:300]}"}
+            done += 1
+            on_result(name, result)
+        elapsed = time.perf_counter() - t0
+        eta = elapsed / done * (total - done) if done else None
+        events({"event": "progress", "phase": phase, "done": done, "total": total,
+                "fraction": round(done / total, 4) if total else 1.0, "elapsed_s": round(elapsed, 1),
+                "eta_s": None if eta is None else round(eta, 1)})
+
+
+class _Library:
+    """The driver's state: the rows, where results go, and the report written after every change."""
+
+    def __init__(self, out: Path, assets: list[Asset], spec: dict, events: EventSink, info: dict):
+        from ..protocol.outputs import write_atomic
+
+        self.out, self.spec, self.events, self.info = out, spec, events, info
+        self.assets = {a.name: a for a in assets}
+        self.rows = {a.name: Row(name=a.name, source=a.source) for a in assets}
+        self.copies: dict[str, list[str]] = {}  # row trained -> rows with the same mesh and settings
+        self.write_atomic = write_atomic
+        (out / "thumbs").mkdir(parents=True, exist_ok=True)
+
+    def thumb(self, name: str, kind: str, png: bytes | None) -> str | None:
+        if not png:
+            return None
+        file = f"{_safe(name)}.{kind}.png"
+        self.write_atomic(self.out / "thumbs" / file, png)
+        return file
+
+    def measured(self, name: str, r: dict) -> None:
+        row = self.rows[name]
+        for k in ("status", "error", "triangles", "mesh_resident_bytes", "draco_bytes", "predicted_model_bytes",
+                  "verdict", "recommendation", "key", "measure_seconds", "worker", "compact_bytes", "texture_bytes",
+                  "decimation_triangles", "decimation_compact_bytes"):
+            if k in r:
+                setattr(row, k, r[k])
+        row.thumb_original = self.thumb(name, "original", r.get("thumb"))
+        if r.get("decimation_ply"):
+            from ..protocol.outputs import write_atomic
+
+            path = self.out / "assets" / row.key / f"{_safe(name)}.decimated.ply"
+            path.parent.mkdir(parents=True, exist_ok=True)
+            write_atomic(path, r["decimation_ply"])
+            row.files["decimation"] = str(path.relative_to(self.out))
+        self.events({"event": "asset", "phase": "measure", **_event_fields(row)})
+
+    def trained(self, name: str, r: dict) -> None:
+        from ..protocol.outputs import OutputSet
+
+        row = self.rows[name]
+        row.worker, row.status, row.error = r.get("worker"), r["status"], r.get("error")
+        if r["status"] == "done":
+            folder = self.out / "assets" / row.key
+            folder.mkdir(parents=True, exist_ok=True)
+            model = f"{_safe(name)}.nbvh"
+            for k in ("model_bytes", "model_resident_bytes", "mse", "iou", "train_seconds"):
+                setattr(row, k, r.get(k))
+            row.thumb_neural = self.thumb(name, "neural", r.get("thumb"))
+            row.files = {"model": str(Path("assets") / row.key / model)}
+            staged = OutputSet()
+            staged.stage(folder / model, r["data"])
+            record = {**row.to_dict(), "files": {"model": model}, "summary": r.get("summary")}
+            staged.stage(folder / "result.json", json.dumps(record, indent=2, default=str).encode())
+            staged.commit()  # the model and its record appear together; result.json marks the asset finished
+        self.events({"event": "asset", "phase": "train", **_event_fields(row)})
+        for other in self.copies.get(name, []):
+            if row.status == "done":
+                self.from_cache(other, {**row.to_dict(), "files": {"model": Path(row.files["model"]).name}})
+            else:
+                self.rows[other].status, self.rows[other].error = row.status, row.error
+            self.events({"event": "asset", "phase": "train", **_event_fields(self.rows[other])})
+        self.write_report()
+
+    def from_cache(self, name: str, record: dict) -> None:
+        row = self.rows[name]
+        for k in ("model_bytes", "model_resident_bytes", "mse", "iou", "train_seconds", "worker", "thumb_neural"):
+            setattr(row, k, record.get(k))
+        row.status = "cached"
+        row.files = {"model": str(Path("assets") / row.key / record["files"]["model"])}
+
+    def write_report(self, final: bool = False) -> dict:
+        from .library_report import write_report
+
+        return write_report(self.out, [self.rows[n] for n in self.rows], {**self.info, "final": final})
+
+
+def _event_fields(row: Row) -> dict:
+    return {k: v for k, v in row.to_dict().items() if k in ("name", "status", "error", "triangles",
+                                                             "mesh_resident_bytes", "model_bytes", "mse",
+                                                             "saved_bytes", "predicted_savings")}
+
+
+def run_batch(library: str | os.PathLike, out: str | os.PathLike, spec: dict, events: EventSink = null_sink,
+              should_cancel: Callable[[], bool] = lambda: False, address: str | None = None,
+              num_cpus: int | None = None, measure_only: bool = False, blender: str | None = None) -> dict:
+    """Run the whole library (see the module docstring). spec: preset name + Settings overrides, as the job
+    request's "settings". Returns the report's summary (paths, totals, rows). Raises process.Cancelled (the
+    report then holds what finished), ValueError for a LIBRARY that lists nothing."""
+    from ..protocol.outputs import OutputLock
+
+    require_ray()
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    with OutputLock(out / "report.html"):  # one batch per output folder at a time
+        return _run_locked(Path(library), out, spec, events, should_cancel, address, num_cpus, measure_only, blender)
+
+
+def _run_locked(library: Path, out: Path, spec: dict, events: EventSink, should_cancel, address, num_cpus,
+                measure_only: bool, blender: str | None) -> dict:
+    import ray
+
+    t0 = time.time()
+    assets = discover(library, out / ".work", blender)
+    started = _start_ray(address, num_cpus)
+    try:
+        cluster = cluster_info()
+        lib = _Library(out, assets, spec, events, {"library": str(library), "settings": spec, "cluster": cluster,
+                                                   "started": time.strftime("%Y-%m-%dT%H:%M:%S")})
+        events({"event": "phase", "phase": "measure", "message": f"{len(assets)} assets on {cluster['nodes']} node(s),"
+                                                                 f" {cluster['CPU']:g} CPUs: measuring"})
+        _run_tasks(ray.remote(measure_asset), [(a.name, (asdict(a), spec), {"num_cpus": 1}) for a in assets],
+                   "measure", lib.measured, events, should_cancel)
+        lib.info["measured_s"] = round(time.time() - t0, 1)
+        lib.write_report()  # the first version: every verdict, before any training
+        if not measure_only:
+            _train_worth(lib, cluster, spec, events, should_cancel)
+        lib.info["wall_s"] = round(time.time() - t0, 1)
+        summary = lib.write_report(final=True)
+    except BaseException:
+        if "lib" in locals():
+            for row in lib.rows.values():
+                if row.status == "measured" and row.recommendation == "neural" and not measure_only:
+                    row.status = "cancelled"
+            lib.info["wall_s"] = round(time.time() - t0, 1)
+            lib.write_report(final=True)
+        raise
+    finally:
+        if started:
+            ray.shutdown()
+    events({"event": "result", "report": summary["html"], "json": summary["json"], "csv": summary["csv"],
+            "totals": summary["totals"]})
+    return summary
+
+
+def _train_worth(lib: _Library, cluster: dict, spec: dict, events: EventSink, should_cancel) -> None:
+    """The training phase: worth assets, largest predicted savings first; finished ones (by KEY) are reused."""
+    import ray
+
+    worth = sorted((r for r in lib.rows.values() if r.status == "measured" and r.recommendation == "neural"),
+                   key=lambda r: -r.predicted_savings)
+    jobs, first_of_key = [], {}
+    for row in worth:
+        record = _cached(lib.out, row.key)
+        if record is not None:
+            lib.from_cache(row.name, record)
+        elif row.key in first_of_key:  # the same mesh twice in the library: trained once, shared
+            lib.copies.setdefault(first_of_key[row.key], []).append(row.name)
+        else:
+            first_of_key[row.key] = row.name
+            jobs.append((row.name, (asdict(lib.assets[row.name]), spec), task_resources(row.triangles, cluster)))
+    if len(jobs) < len(worth) - sum(len(v) for v in lib.copies.values()):
+        events({"event": "phase", "phase": "train", "message": f"{len(worth) - len(jobs)} assets already finished "
+                                                               "in an earlier run (same mesh and settings): kept"})
+    events({"event": "phase", "phase": "train", "message": f"training {len(jobs)} of {len(lib.rows)} assets "
+                                                           "(the ones worth compressing), largest savings first"})
+    _run_tasks(ray.remote(compress_asset), jobs, "train", lib.trained, events, should_cancel)

@@ -1,0 +1,1 @@
+"""Meshes and their looks, BVHs, traversal, exact ray queries, compact meshes, bundled and generated assets."""

@@ -1,0 +1,1 @@
+"""The model: encodings, networks, the appearance head, quantized storage forms, fused inference."""

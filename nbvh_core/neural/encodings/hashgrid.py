@@ -1,0 +1,171 @@
+"""HashGrid: Instant-NGP's multiresolution hash encoding (L levels, T rows of F floats each, trilinear)."""
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from ... import kernels
+from .base import Encoding, EncodingConfig, corner_indices, gather_weighted_sum, level_scales
+from .fused import FusedLookup, GridSpec, fused_encode, fused_encode_half, fused_encode_u8
+
+
+class HashGrid(Encoding):
+    """points (N, 3) in [0, 1]^3 -> features (N, L * F), level-major.
+
+    Parameters: `table` (L, T, F). After `quantize_()` the rows live as uint8 codes (buffers `qcodes` (L, T, F),
+    `qoffset`, `qscale` (L, F): value = offset + code * scale) and `table` is empty: the fast path reads the codes
+    directly; the reference path (and CUDA) dequantizes per call. The 8 corner lookups and the trilinear sum of all levels run as one
+    `gather_weighted_sum` (gather + weighted sum; its backward scatters with index_add_, no sort) on the reference
+    path, and as one fused C++ pass (`fused.fused_encode`) on the fast path (`nbvh_core.kernels`).
+    """
+
+    grid_lookup = True
+
+    def __init__(self, cfg: EncodingConfig, inference: bool = False):
+        super().__init__()
+        self.cfg = cfg
+        self.scales = level_scales(cfg)
+        t = cfg.table_size
+        if inference:  # to be filled by the file reader (float rows or uint8 codes): nothing allocated here
+            self.table = nn.Parameter(torch.zeros(0), requires_grad=False)
+        else:
+            self.table = nn.Parameter(torch.empty(cfg.levels, t, cfg.features).uniform_(-cfg.init_scale,
+                                                                                        cfg.init_scale))
+        self.register_buffer("qcodes", torch.zeros(0, dtype=torch.uint8), persistent=False)
+        self.register_buffer("qoffset", torch.zeros(0), persistent=False)
+        self.register_buffer("qscale", torch.zeros(0), persistent=False)
+        #: (offset, scale) (L, F) float32 numpy the quantization-aware phase snapped the table to (train.py).
+        self.qat_affine: tuple | None = None
+        self._spec: GridSpec | None = None
+        #: Inference with a float16 copy of the feature rows (fast path, no grad): half the bytes to gather.
+        self.half_tables = False
+        self._half: tuple | None = None
+
+    @property
+    def out_dim(self) -> int:
+        return self.cfg.out_dim
+
+    @property
+    def quantized(self) -> bool:
+        """True when the rows are held as uint8 codes (see `quantize_`)."""
+        return self.qcodes.numel() > 0
+
+    def float_rows(self) -> torch.Tensor:
+        """(L, T, F) float32 feature rows (dequantized when quantized: a transient copy)."""
+        if self.quantized:
+            return self.qoffset[:, None, :] + self.qcodes.to(torch.float32) * self.qscale[:, None, :]
+        return self.table
+
+    @torch.no_grad()
+    def quantize_(self, bits: int = 8) -> None:
+        """Hold the rows as `bits`-bit codes from now on (inference only; irreversible). Uses the affine map the
+        quantization-aware phase trained with when there was one (then the codes reproduce the trained values)."""
+        from ..quantize import quantize_table, table_affine
+
+        if self.quantized:
+            return
+        table = self.table.detach().cpu().numpy()
+        offset, scale = self.qat_affine if self.qat_affine is not None else table_affine(table, bits)
+        codes = quantize_table(table, offset, scale, bits)
+        self.set_quantized(torch.from_numpy(codes), torch.from_numpy(offset), torch.from_numpy(scale))
+
+    def set_quantized(self, codes: torch.Tensor, offset: torch.Tensor, scale: torch.Tensor) -> None:
+        """Install uint8 codes (L, T, F) and their (L, F) float32 offset/scale; drops the float table."""
+        dev = self.table.device
+        self.qcodes = codes.to(dev, torch.uint8).contiguous()
+        self.qoffset = offset.to(dev, torch.float32).contiguous()
+        self.qscale = scale.to(dev, torch.float32).contiguous()
+        self.table = nn.Parameter(torch.zeros(0, device=dev), requires_grad=False)
+        self._half = None
+
+    def row_table(self) -> torch.Tensor:
+        """(L, T, F): the feature rows that vertices look up (for HashGrid, the table itself; see
+        `level_row_offsets` for a table held in another layout)."""
+        return self.float_rows()
+
+    def vertex_rows(self, idx: torch.Tensor) -> torch.Tensor:
+        """Map per-level vertex indices (N, L, 8) to rows of `row_table()` (identity for HashGrid)."""
+        return idx
+
+    def forward(self, points: torch.Tensor) -> torch.Tensor:
+        if kernels.encoding_kernel(self, points.device) != "torch":
+            return self._fused_forward(points)
+        return self.reference_forward(points)
+
+    def _fused_forward(self, points: torch.Tensor) -> torch.Tensor:
+        look = self.fused_lookup()
+        if look.kind == "f16":
+            return fused_encode_half(points, look.rows, look.spec, look.codes, look.code_rows)
+        if look.kind == "u8":
+            return fused_encode_u8(points, look)
+        return fused_encode(points, look.rows, look.spec, look.codes, look.code_rows)
+
+    def fused_lookup(self) -> FusedLookup:
+        """What a fused kernel reads (see `FusedLookup`)."""
+        rows, codes, code_rows = self._fused_rows()
+        codes = None if codes is None else codes.contiguous()
+        spec = self.grid_spec()
+        if self.quantized:
+            return FusedLookup(self.qcodes, "u8", spec, codes, code_rows, self.qoffset, self.qscale)
+        if self.uses_half_rows():
+            return FusedLookup(self._half_table(), "f16", spec, codes, code_rows)
+        return FusedLookup(rows, "f32", spec, codes, code_rows)
+
+    def uses_half_rows(self) -> bool:
+        """True when inference reads the float16 copy of the rows (`half_tables`, no grad); the copy is of the
+        stored rows only (a soft HashVQAD table is recomputed every step)."""
+        return self.half_tables and not self.quantized and not torch.is_grad_enabled() and self._reads_table()
+
+    def _reads_table(self) -> bool:
+        """True when the kernels read `table` itself (not rows computed from it)."""
+        return True
+
+    def grid_spec(self) -> GridSpec:
+        """The constant level geometry the fused kernels read (built once)."""
+        if self._spec is None:
+            self._spec = GridSpec(self.cfg, self._vertex_table_size())
+        return self._spec
+
+    def _fused_rows(self, needed: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor | None, int]:
+        """What the kernel reads: the rows ((L, R, F), or (R, F) reachable rows level after level: `fused.level_rows`),
+        the frozen codes (or None) and the rows codes select from. needed: the entries of a computed row table that
+        will be read (`HashVQAD.row_table`); a stored table ignores it."""
+        return self.table, None, 0
+
+    def _half_table(self) -> torch.Tensor:
+        """float16 copy of `table`, refreshed whenever the table changes (its version counter)."""
+        key = (self.table.data_ptr(), self.table._version)
+        if self._half is None or self._half[0] != key:
+            self._half = (key, self.table.detach().to(torch.float16).contiguous())
+        return self._half[1]
+
+    def reference_forward(self, points: torch.Tensor) -> torch.Tensor:
+        """The pure torch lookup (the reference the fused kernel is tested against)."""
+        cfg = self.cfg
+        idx, w = corner_indices(points, self.scales, self._vertex_table_size())
+        rows = self.vertex_rows(idx)
+        table = self.row_table()
+        flat_rows = rows + self.level_row_offsets(table).to(rows.device)[None, :, None]
+        out = gather_weighted_sum(table.reshape(-1, cfg.features), flat_rows.reshape(-1, 8),
+                                  w.reshape(-1, 8).to(table.dtype))
+        return out.reshape(points.shape[0], cfg.levels * cfg.features)
+
+    def level_row_offsets(self, table: torch.Tensor) -> torch.Tensor:
+        """(L,) int64: the first row of each level in `table` (L, R, F) viewed as (L * R, F)."""
+        return torch.arange(self.cfg.levels, device=table.device) * table.shape[1]
+
+    def _vertex_table_size(self) -> int:
+        return self.cfg.table_size
+
+    def stored_bytes(self, table_bits: int = 32) -> dict[str, int]:
+        """Bytes of the stored tensors: {'features': L * T * F * bits / 8 (+ the (L, F) offset and scale float32
+        pairs of an 8-bit table)}."""
+        return {"features": table_features_bytes(self.cfg, table_bits)}
+
+
+def table_features_bytes(cfg: EncodingConfig, table_bits: int) -> int:
+    """Stored bytes of a (L, T, F) table at `table_bits` per value (8 bits adds the per (level, feature) offset
+    and scale, float32)."""
+    n = cfg.levels * cfg.table_size * cfg.features
+    extra = 2 * 4 * cfg.levels * cfg.features if table_bits == 8 else 0
+    return n * table_bits // 8 + extra

@@ -1,0 +1,1 @@
+"""What a run is asked to do (settings, presets) and how big a model it needs (sizing, verdicts)."""

@@ -1,0 +1,631 @@
+"""Model no more than a mesh needs: what it replaces, what it will cost, and which size to train.
+
+* **What it replaces** (`mesh_resident_bytes`): a ray tracer keeps float32 vertices, int32 indices, float32
+  vertex normals and a BVH with <= 4 triangles per leaf (32-byte nodes) resident before it traces one ray; the
+  .nbvh model is traced as stored. `alternatives` also measures the smallest quadric decimation that meets a
+  quality target (rendered with Embree, scored with the same metric) and the Draco size of the mesh (storage).
+* **Cheap predictor** (`mesh_features`, `predict_mse`): image MSE after training as a linear function in log
+  space of the table size log2 T and properties of the mesh (surface area, how much of the box the surface
+  fills, how much its normals vary locally, triangle count), fitted on the benchmark meshes by
+  bench/fit_sizing.py (data and leave-one-mesh-out errors in bench/results/sizing*.{csv,md}); coefficients in
+  sizing_fit.json. It is calibrated at the benchmark's training budget; longer training only lowers the MSE.
+* **Choice** (`resolve`, `choose_table_and_nodes`): a byte budget or a quality target turned into sizes: the
+  (T, node count) of fewest file bytes whose predicted MSE meets the target; `pipeline.compress_mesh` trains it,
+  measures and corrects (`search_size`: up to TARGET_TRAININGS trainings, calibrated by each measurement).
+  `choose_size` is the same over T alone (scenes).
+* **Verdict** (`assess`): when the mesh as it is, or a decimation of it that meets the target, is smaller
+  resident than the model, compressing is not worth it; the result says so with all sizes (a user can still
+  force the model).
+* **Scenes** (`plan_scene`, `split_budget`): one byte budget over several meshes, shared by need: every mesh gets the
+  smallest T that meets a common quality level (scaled by its weight, e.g. its size on screen), with the level
+  set as strict as the budget allows.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..geometry.bvh import build_full_tree, resident_bvh_nodes
+from ..geometry.mesh import Mesh
+from ..protocol.quality_levels import QUALITY_LEVELS, TARGET_TRAININGS  # noqa: F401  (QUALITY_LEVELS re-exported)
+from .settings import PAPER_N_MAX, PRESETS, Settings, estimate_file_bytes
+
+FIT_PATH = Path(__file__).with_name("sizing_fit.json")
+#: Table sizes the chooser considers (log2 T): the range the predictor was fitted on (bench/fit_sizing.py, 2^8..2^12
+#: at 16 features per level), one step more since the user presets hold 8 features with twice the rows (the same
+#: bytes at T=2^13 as 16 features at 2^12). The fit has not been refitted on 8 features: its first guess is off by
+#: about a constant factor, which the search's calibration by each measurement absorbs.
+LOG2_RANGE = range(8, 14)
+#: BVH node counts the chooser considers (the node effect is fitted at these counts).
+NODE_CHOICES = (1023, 2047, 4095)
+FEATURE_NAMES = ("log_area", "occupancy", "roughness", "log10_triangles")
+
+
+def mesh_resident_bytes(mesh: Mesh, tree=None) -> dict:
+    """Bytes a ray tracer holds for `mesh`: vertices, indices, normals (float32 / int32, 12 B per vertex or
+    triangle each), bvh (32-byte nodes, <= 4 triangles per leaf), total. tree: the mesh's `bvh.build_full_tree`
+    when the caller has one (else it is built)."""
+    nodes = resident_bvh_nodes(tree if tree is not None else build_full_tree(mesh), 4)
+    out = {"vertices": mesh.n_vertices * 12, "indices": mesh.n_triangles * 12, "normals": mesh.n_vertices * 12,
+           "bvh": nodes * 32}
+    out["total"] = sum(out.values())
+    return out
+
+
+# ------------------------------------------------------------------------------------------------ mesh features
+@dataclass
+class MeshFeatures:
+    """Cheap shape measures (normalised unit box). area: surface area; occupancy: fraction of the 32^3 cells of the
+    box the surface passes through; roughness: area-weighted mean over occupied cells of 1 - |mean normal| (0 for
+    a flat patch per cell, near 1 for detail that turns within a cell); triangles: count."""
+
+    triangles: int
+    area: float
+    occupancy: float
+    roughness: float
+
+    def vector(self, names: tuple | list = FEATURE_NAMES) -> np.ndarray:
+        """The predictor's inputs besides log2 T, by name (FEATURE_NAMES)."""
+        values = {"log_area": math.log(max(self.area, 1e-6)), "occupancy": self.occupancy,
+                  "roughness": self.roughness, "log10_triangles": math.log10(max(self.triangles, 1))}
+        return np.array([values[n] for n in names])
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def mesh_features(mesh: Mesh, cells: int = 32) -> MeshFeatures:
+    """Measure `mesh` (see MeshFeatures). Linear in the triangle count; ~0.1 s for 100k triangles."""
+    tri, area, normal = _triangle_areas_normals(mesh)
+    roughness, occupied = _cell_roughness(tri.mean(axis=1), area, normal, cells)
+    return MeshFeatures(triangles=mesh.n_triangles, area=float(area.sum()), occupancy=occupied / cells ** 3,
+                        roughness=roughness)
+
+
+def _triangle_areas_normals(mesh: Mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The mesh's triangles (T, 3, 3) float64 in its normalised frame, their areas (T,) and unit normals (T, 3)."""
+    tri = mesh.triangles().astype(np.float64)
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    area = 0.5 * np.linalg.norm(cross, axis=1)
+    return tri, area, cross / np.maximum(2 * area, 1e-30)[:, None]
+
+
+def _cell_roughness(centre: np.ndarray, area: np.ndarray, normal: np.ndarray, r: int) -> tuple[float, int]:
+    """Triangles binned by centre into r^3 cells of the unit box: (area-weighted mean over occupied cells of
+    1 - |mean normal|, occupied cells)."""
+    cell = np.clip((centre * r).astype(np.int64), 0, r - 1)
+    _, cid = np.unique((cell[:, 0] * r + cell[:, 1]) * r + cell[:, 2], return_inverse=True)
+    cell_area = np.bincount(cid, weights=area)
+    summed = np.stack([np.bincount(cid, weights=area * normal[:, a]) for a in range(3)], 1)
+    occupied = cell_area > 0
+    coherence = np.linalg.norm(summed[occupied], axis=1) / cell_area[occupied]
+    return float(np.sum((1 - coherence) * cell_area[occupied]) / max(cell_area.sum(), 1e-30)), int(occupied.sum())
+
+
+# ------------------------------------------------------------------------------------------ grid resolution
+#: Resolutions (cells across the unit box) at which the surface is measured, and the range N_max is chosen in.
+DETAIL_RESOLUTIONS = (16, 32, 64, 128, 256, 512, 1024)
+N_MAX_RANGE = (64, 1024)
+#: A surface is "resolved" at the first resolution whose cells are this close to flat (area-weighted mean of
+#: 1 - |mean normal| per cell; 0.01 ~ normals within ~8 degrees of their cell's mean); no level needs to be finer
+#: than DETAIL_FACTOR x that.
+RESOLVED_ROUGHNESS = 0.01
+DETAIL_FACTOR = 2
+#: The finest level may touch at most TABLE_LOAD x T surface cells: beyond that its vertices collide in the T rows
+#: faster than they add detail. Measured (bench/results/resolution.md; default preset, T=2^12, 1,500 steps, image
+#: MSE at N_max 32 / 64 / 128 / 256): bunny 0.00123 / 0.00120 / 0.00138 / 0.00171 (surface cells at 64: 3.1 T, at
+#: 128: 11 T), knot - / 0.00074 / 0.00079 / - (1.4 T, 5.2 T), gyroid 0.0095 / 0.0096 / 0.0114 / -, blob - / 0.00040 /
+#: 0.00059 / -, studs - / 0.0168 / 0.0172 / 0.0225, lattice - / 0.0545 / 0.0595 / 0.0596: every mesh measured, the
+#: 3.3M-triangle lattice of fine detail included, is best at 64 at this table size, and 128 loses from 5.2 T on.
+TABLE_LOAD = 4.0
+#: Surface samples (area-weighted) for counting the cells the surface passes through.
+SURFACE_SAMPLES = 200_000
+
+
+def surface_cells(mesh: Mesh, resolutions: tuple[int, ...] = DETAIL_RESOLUTIONS,
+                  samples: int = SURFACE_SAMPLES) -> dict[int, int]:
+    """{cells across the unit box: cells of the normalised frame the surface passes through}, counted from
+    `samples` area-weighted points on the triangles (fixed seed: the same mesh always gives the same counts; the
+    count saturates near `samples` at fine resolutions, where every choice is already far over any table)."""
+    tri, area, _ = _triangle_areas_normals(mesh)
+    if not area.sum() > 0:
+        return {r: 0 for r in resolutions}
+    rng = np.random.default_rng(0)
+    pick = rng.choice(len(tri), samples, p=area / area.sum())
+    uv = rng.random((samples, 2))
+    uv = np.where(uv.sum(1, keepdims=True) > 1, 1 - uv, uv)
+    t = tri[pick]
+    points = t[:, 0] + uv[:, :1] * (t[:, 1] - t[:, 0]) + uv[:, 1:] * (t[:, 2] - t[:, 0])
+    out = {}
+    for r in resolutions:
+        cell = np.clip((points * r).astype(np.int64), 0, r - 1)
+        out[r] = int(len(np.unique((cell[:, 0] * r + cell[:, 1]) * r + cell[:, 2])))
+    return out
+
+
+def roughness_at(mesh: Mesh, resolutions: tuple[int, ...] = DETAIL_RESOLUTIONS) -> dict[int, float]:
+    """{cells across the unit box: area-weighted mean over occupied cells of 1 - |mean normal|} of the mesh in its
+    normalised frame (triangles binned by centroid). It falls as cells shrink toward the scale below which the
+    surface is flat; it is 0 once a cell holds one triangle. Linear in triangles (~4 s for 3.3M)."""
+    tri, area, normal = _triangle_areas_normals(mesh)
+    centre = tri.mean(axis=1)
+    return {r: max(0.0, _cell_roughness(centre, area, normal, r)[0]) for r in resolutions}
+
+
+@dataclass
+class GridMeasures:
+    """What the grid choice reads: roughness and surface cells by resolution (see the functions above)."""
+
+    roughness: dict
+    cells: dict
+
+
+def grid_measures(mesh: Mesh) -> GridMeasures:
+    return GridMeasures(roughness_at(mesh), surface_cells(mesh))
+
+
+def choose_resolution(mesh: Mesh | GridMeasures, log2_table: int) -> tuple[int, str]:
+    """The grid's finest resolution N_max for this mesh and table size T = 2^log2_table, and why: the finest
+    resolution whose surface cells fit TABLE_LOAD x T (the table's capacity), no finer than DETAIL_FACTOR x the
+    resolution at which the surface is flat within cells (the detail's need), in N_MAX_RANGE. The paper fixes 128
+    for every model; here the default preset's T=2^12 gives 64 on every benchmark mesh (measured better there), a
+    larger table finer grids where the surface is small (the knot at T=2^13: 128)."""
+    m = mesh if isinstance(mesh, GridMeasures) else grid_measures(mesh)
+    table = 1 << log2_table
+    resolved = next((r for r, v in m.roughness.items() if v <= RESOLVED_ROUGHNESS), max(m.roughness))
+    detail_cap = DETAIL_FACTOR * resolved
+    fits = [r for r, c in m.cells.items() if c <= TABLE_LOAD * table]
+    table_cap = max(fits) if fits else min(m.cells)
+    n_max = int(min(max(min(detail_cap, table_cap), N_MAX_RANGE[0]), N_MAX_RANGE[1]))
+    return n_max, (f"grid N_max {n_max}: the surface is flat within cells from {resolved} across (need <= "
+                   f"{detail_cap}); at {table_cap} it touches {m.cells.get(table_cap, 0):,} cells, within "
+                   f"{TABLE_LOAD:g} x T={table:,} rows (table capacity)")
+
+
+# -------------------------------------------------------------------------------------------------- predictor
+@dataclass
+class SizeFit:
+    """log(MSE) = coef . [1, log2 T, *features] for one method at one training budget; `features` names the
+    mesh measures used (a subset of FEATURE_NAMES, chosen by leave-one-mesh-out error in bench/fit_sizing.py).
+    residual_std: spread of the fit in log space (leave-one-mesh-out); margin: how many residual_stds below the
+    target the chooser aims (a safety factor exp(margin * std))."""
+
+    method: str
+    train_s: float
+    coef: list
+    residual_std: float
+    features: list = field(default_factory=lambda: list(FEATURE_NAMES))
+    margin: float = 0.5
+    meshes: list = field(default_factory=list)
+    #: Node count: log MSE changes by nodes_coef per doubling of the node count relative to nodes_ref (fitted at a
+    #: fixed T, see bench/fit_sizing.py); 0 = not fitted (the node count stays at nodes_ref).
+    nodes_coef: float = 0.0
+    nodes_ref: int = 2047
+
+    def predict_log_mse(self, log2_table: int, features: MeshFeatures, nodes: int | None = None) -> float:
+        x = np.concatenate([[1.0, float(log2_table)], features.vector(self.features)])
+        out = float(np.dot(self.coef, x))
+        if nodes is not None and self.nodes_coef:
+            out += self.nodes_coef * (math.log2(nodes + 1) - math.log2(self.nodes_ref + 1))
+        return out
+
+
+def fit_size_model(rows: list[tuple[int, MeshFeatures, float]], method: str, train_s: float,
+                   ridge: float = 1e-3, features: tuple | list = FEATURE_NAMES) -> SizeFit:
+    """Least squares (slightly ridged) of log MSE on [1, log2 T, features] over (log2 T, features, mse) rows."""
+    x = np.array([np.concatenate([[1.0, float(l2)], f.vector(features)]) for l2, f, _ in rows])
+    y = np.log(np.array([m for _, _, m in rows]))
+    a = x.T @ x + ridge * np.eye(x.shape[1])
+    coef = np.linalg.solve(a, x.T @ y)
+    resid = y - x @ coef
+    return SizeFit(method=method, train_s=train_s, coef=coef.tolist(), residual_std=float(np.std(resid)),
+                   features=list(features))
+
+
+def load_fit(path: Path = FIT_PATH) -> SizeFit | None:
+    """The shipped fit (bench/fit_sizing.py writes it); None when missing or unreadable."""
+    try:
+        return SizeFit(**json.loads(Path(path).read_text()))
+    except (OSError, ValueError, TypeError):
+        return None
+
+
+def predict_mse(fit: SizeFit, log2_table: int, features: MeshFeatures, nodes: int | None = None) -> float:
+    return math.exp(fit.predict_log_mse(log2_table, features, nodes))
+
+
+def choose_size(fit: SizeFit, features: MeshFeatures, target_mse: float) -> tuple[int, float, bool]:
+    """`choose_table_and_nodes` over T alone (the fitted node count): the smallest log2 T in LOG2_RANGE whose
+    predicted MSE x exp(margin x residual_std) <= target. Returns (log2 T, predicted MSE, reachable)."""
+    l2, _, pred, reachable = choose_table_and_nodes(dataclasses.replace(fit, nodes_coef=0.0), features, target_mse,
+                                                    lambda log2, nodes: log2)  # file bytes grow with T
+    return l2, pred, reachable
+
+
+def choose_table_and_nodes(fit: SizeFit, features: MeshFeatures, target_mse: float,
+                           size_of) -> tuple[int, int, float, bool]:
+    """The (log2 T, node count) of smallest file bytes `size_of(log2, nodes)` whose predicted MSE (with the safety
+    factor) meets the target, over LOG2_RANGE x NODE_CHOICES (only the fitted node count without a node fit).
+    Returns (log2 T, nodes, predicted MSE, reachable); unreachable: the largest T and node count."""
+    safety = math.exp(fit.margin * fit.residual_std)
+    node_choices = NODE_CHOICES if fit.nodes_coef else (fit.nodes_ref,)
+    ok = [(size_of(l2, n), l2, n) for l2 in LOG2_RANGE for n in node_choices
+          if predict_mse(fit, l2, features, n) * safety <= target_mse]
+    if ok:
+        _, l2, n = min(ok)
+        return l2, n, predict_mse(fit, l2, features, n), True
+    l2, n = LOG2_RANGE[-1], max(node_choices)
+    return l2, n, predict_mse(fit, l2, features, n), False
+
+
+
+
+def next_size(fit: SizeFit | None, features: MeshFeatures | None, target_mse: float,
+              measured: dict[int, float], nodes: int | None = None) -> int | None:
+    """The next log2 T to train after measuring `measured` {log2 T: image MSE}, or None to stop.
+
+    The fit's error for this mesh is mostly an offset (its residuals are per-mesh), so each measurement calibrates
+    the prediction: calibrated(T) = predicted(T) x measured(T0) / predicted(T0), T0 the last size trained.
+    * Target missed everywhere so far: the smallest larger T whose calibrated MSE meets it (the largest in
+      LOG2_RANGE when none is predicted to); None at the top of the range.
+    * Target met: one step down (the largest smaller T, not yet trained) if its calibrated MSE meets it, else
+      None; a smaller size that then misses ends the search (the smallest size that met is kept).
+    Without a fit: one step up when missed, no step down.
+    """
+    last = list(measured)[-1]
+    met = [l2 for l2, mse in measured.items() if mse <= target_mse]
+    if fit is None or features is None:
+        return last + 1 if not met and last + 1 <= LOG2_RANGE[-1] else None
+    offset = math.log(measured[last]) - fit.predict_log_mse(last, features, nodes)
+
+    def calibrated_ok(l2: int) -> bool:
+        return fit.predict_log_mse(l2, features, nodes) + offset <= math.log(target_mse)
+
+    if not met:
+        larger = [l2 for l2 in LOG2_RANGE if l2 > max(measured)]
+        if not larger:
+            return None
+        # The smallest predicted to meet it; none predicted: the largest (the best chance there is).
+        return next((l2 for l2 in larger if calibrated_ok(l2)), larger[-1])
+    if measured[last] > target_mse:  # a step down missed: keep the smallest that met
+        return None
+    smaller = min(met) - 1
+    if smaller < LOG2_RANGE[0] or smaller in measured or not calibrated_ok(smaller):
+        return None
+    return smaller
+
+
+def search_size(fit: SizeFit | None, features: MeshFeatures | None, target_mse: float, first_log2: int,
+                measure, max_trainings: int = TARGET_TRAININGS, nodes: int | None = None) -> tuple[int, dict]:
+    """Train-and-measure search for the smallest log2 T meeting `target_mse`: `measure(log2) -> MSE` trains and
+    scores one size (the expensive part); starts at `first_log2` (the predictor's choice) and follows `next_size`
+    for at most `max_trainings` measurements. Returns (chosen log2 T, {log2 T: MSE} in the order measured): the
+    smallest measured size that met the target, else the largest measured."""
+    measured: dict[int, float] = {}
+    l2: int | None = first_log2
+    while l2 is not None and len(measured) < max_trainings:
+        measured[l2] = measure(l2)
+        l2 = next_size(fit, features, target_mse, measured, nodes)
+    met = [t for t, mse in measured.items() if mse <= target_mse]
+    return (min(met) if met else max(measured)), measured
+
+
+def resolve(s: Settings, mesh: Mesh | None = None, grid: GridMeasures | None = None) -> tuple[Settings, str]:
+    """Turn a byte budget or a quality target into concrete sizes; returns (settings, why).
+
+    Budget: the largest (T, nodes) of the grid T in 2^5..2^13, nodes in 255..8191 whose file fits the budget
+    (largest file first, ties to more nodes). Target (with the mesh): the method the size predictor was fitted
+    for (sizing_fit.json: HashGrid + MLP + consistent labels) at the smallest T whose predicted MSE meets the
+    target (`sizing.choose_table_and_nodes`); `compress_mesh` then measures and corrects (`sizing.search_size`).
+    n_max None: the grid's finest resolution is chosen for the mesh and the chosen T (`choose_resolution`; `grid`:
+    its measures when the caller has them).
+    """
+    if s.n_max is None:
+        if mesh is None:
+            s, grid_why = dataclasses.replace(s, n_max=PAPER_N_MAX), f"grid N_max {PAPER_N_MAX} (no mesh to measure)"
+        else:
+            chosen, why = resolve(dataclasses.replace(s, n_max=PAPER_N_MAX), mesh)  # sizes first, then their grid
+            n_max, grid_why = choose_resolution(grid or mesh, chosen.log2_table)
+            return dataclasses.replace(chosen, n_max=n_max), f"{why}; {grid_why}"
+        chosen, why = resolve(s, mesh)
+        return chosen, f"{why}; {grid_why}"
+    if s.budget_kb is not None:
+        budget = s.budget_kb * 1024
+        best = None
+        for log2 in range(LOG2_RANGE[-1], 4, -1):
+            for nodes in (8191, 4095, 2047, 1023, 511, 255):
+                cand = dataclasses.replace(s, log2_table=log2, nodes=nodes, budget_kb=None)
+                size = estimate_file_bytes(cand)
+                if size <= budget and (best is None or size > best[0]):
+                    best = (size, cand)
+        if best is None:
+            raise ValueError(f"a budget of {s.budget_kb:g} KB is too small for any model "
+                             f"(the smallest needs {estimate_file_bytes(dataclasses.replace(s, log2_table=5, nodes=255)) / 1024:.0f} KB)")
+        size, chosen = best
+        return chosen, (f"budget {s.budget_kb:g} KB: chose T=2^{chosen.log2_table}, {chosen.nodes} nodes "
+                        f"(estimated {size / 1024:.1f} KB), the largest grid point that fits")
+    if s.target_mse is not None:
+        if s.target_mse <= 0:
+            raise ValueError(f"target MSE must be > 0, got {s.target_mse:g}")
+        fit = load_fit()
+        if fit is None or mesh is None:
+            base = PRESETS["high" if s.target_mse < 0.01 else "default" if s.target_mse < 0.02 else "preview"]
+            chosen = dataclasses.replace(s, nodes=base.nodes, log2_table=base.log2_table)
+            return chosen, (f"target MSE {s.target_mse:g}: no size predictor available, used preset sizes "
+                            f"(T=2^{base.log2_table}, {base.nodes} nodes)")
+        feats = mesh_features(mesh)
+        fitted = PRESETS[fit.method]
+        base = dataclasses.replace(s, encoding=fitted.encoding, network=fitted.network, labels=fitted.labels)
+        l2, nodes, pred, reachable = choose_table_and_nodes(
+            fit, feats, s.target_mse,
+            lambda lt, n: estimate_file_bytes(dataclasses.replace(base, log2_table=lt, nodes=n)))
+        chosen = dataclasses.replace(base, nodes=nodes, log2_table=l2)
+        why = (f"target MSE {s.target_mse:g}: predicted MSE {pred:.4g} at T=2^{l2}, {nodes} nodes "
+               f"({fitted.encoding}+{fitted.network}; mesh area {feats.area:.2f}, occupancy {feats.occupancy:.3f}, "
+               f"roughness {feats.roughness:.3f}, {feats.triangles:,} triangles), the smallest file predicted to "
+               f"meet it with a {math.exp(fit.margin * fit.residual_std):.2f}x safety factor")
+        if not reachable:
+            why += "; the target is beyond every size the predictor knows: using the largest"
+        return chosen, why
+    return s, "fixed settings"
+
+
+# ----------------------------------------------------------------------------------------------- alternatives
+def mesh_like(mesh: Mesh, vertices: np.ndarray, faces: np.ndarray) -> Mesh:
+    """Another triangulation of `mesh` (a decimation, a Draco-decoded copy) in the same normalised coordinates:
+    no re-normalisation, triangles with a repeated index dropped."""
+    f = np.asarray(faces, np.int32).reshape(-1, 3)
+    keep = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])
+    return Mesh(vertices=np.asarray(vertices, np.float32), faces=f[keep], transform=mesh.transform, name=mesh.name)
+
+
+def decimate(mesh: Mesh, triangles: int) -> Mesh:
+    """Quadric decimation (fast-simplification) of `mesh` to about `triangles` triangles (< mesh.n_triangles)."""
+    import fast_simplification
+
+    v, f = fast_simplification.simplify(mesh.vertices.astype(np.float64), mesh.faces,
+                                        target_reduction=1 - triangles / mesh.n_triangles)
+    return mesh_like(mesh, v, f)
+
+
+def _compact_entry(dec: Mesh, tracer, transform, views: int, resolution: int, measure: bool) -> dict:
+    """The decimation as a compact ray-traceable mesh (`compact_mesh`): its exact bytes, and with `measure` the
+    image MSE of what the layout holds (the decoded triangles, same metric)."""
+    from ..geometry.compact_mesh import compact_mesh
+    from ..geometry.exact import ExactTracer
+    from ..rendering.metrics import evaluate_renderer
+    from ..rendering.render import render_reference
+
+    nbytes, decoded = compact_mesh(dec)
+    out = {"compact_bytes": nbytes}
+    if measure:
+        dec_tracer = ExactTracer(decoded)
+        q, _ = evaluate_renderer(lambda cam, w, h: render_reference(dec_tracer, cam, w, h), tracer, transform,
+                                 views, resolution)
+        out["compact_mse"] = q.mse
+    return out
+
+
+def alternatives(mesh: Mesh, target_mse: float | None, views: int = 8, resolution: int = 96,
+                 tracer=None) -> dict:
+    """What a user could ship instead, measured: Draco (11-bit, storage bytes) of the mesh, and the smallest
+    quadric decimation (fast-simplification) whose image MSE (same metric, Embree) meets `target_mse`, with its
+    resident, compact-mesh (`compact_mesh`, and the decoded compact mesh's MSE) and Draco bytes. Missing optional packages give a note instead of numbers. `tracer`: the mesh's
+    ExactTracer when the caller has one (else one is built)."""
+    out: dict = {}
+    try:
+        import DracoPy
+    except ImportError:
+        DracoPy = None
+        out["note"] = "DracoPy not installed: no Draco sizes"
+    if DracoPy is not None:
+        out["draco11_bytes"] = len(DracoPy.encode(mesh.vertices, mesh.faces, quantization_bits=11, compression_level=7))
+    if target_mse is None:
+        return out
+    try:
+        import fast_simplification  # noqa: F401  (decimate's dependency)
+    except ImportError:
+        out["note"] = (out.get("note", "") + "; " if "note" in out else "") + "fast-simplification not installed"
+        return out
+    from ..geometry.exact import ExactTracer
+    from ..rendering.metrics import evaluate_renderer
+    from ..rendering.render import render_reference
+
+    tracer = tracer or ExactTracer(mesh)
+    tried = []
+    for count in (250, 1000, 4000, 16000, 64000):
+        if count >= mesh.n_triangles * 0.7:
+            break
+        dec = decimate(mesh, count)
+        if dec.n_triangles == 0:
+            continue
+        dec_tracer = ExactTracer(dec)
+        q, _ = evaluate_renderer(lambda cam, w, h: render_reference(dec_tracer, cam, w, h), tracer, mesh.transform,
+                                 views, resolution)
+        entry = {"triangles": dec.n_triangles, "requested_triangles": count, "mse": q.mse,
+                 "resident_bytes": mesh_resident_bytes(dec)["total"]}
+        entry.update(_compact_entry(dec, tracer, mesh.transform, views, resolution, q.mse <= target_mse))
+        if DracoPy is not None:
+            entry["draco11_bytes"] = len(DracoPy.encode(dec.vertices, dec.faces, quantization_bits=11,
+                                                        compression_level=7))
+        tried.append(entry)
+        if q.mse <= target_mse:
+            out["decimation"] = entry
+            break
+    out["decimations_tried"] = tried
+    return out
+
+
+def winning_decimation(mesh: Mesh, assessment: "Assessment") -> Mesh | None:
+    """The decimation the verdict recommends instead of a model (rebuilt exactly: quadric decimation is
+    deterministic), or None when the verdict is not 'decimate'."""
+    dec = assessment.alternatives.get("decimation")
+    if assessment.recommendation != "decimate" or not dec:
+        return None
+    return decimate(mesh, int(dec["requested_triangles"]))
+
+
+def mesh_file_bytes(mesh: Mesh) -> bytes:
+    """`mesh` in its original coordinates as a binary PLY (what a user imports back into Blender)."""
+    import trimesh
+
+    original = mesh.transform.to_original(mesh.vertices)
+    return trimesh.Trimesh(original, mesh.faces, process=False).export(file_type="ply", encoding="binary")
+
+
+# ---------------------------------------------------------------------------------------------------- verdict
+@dataclass
+class Assessment:
+    """model_bytes: the .nbvh size (exact payload + typical header); resident: `mesh_resident_bytes(mesh)`;
+    compact_bytes: the mesh in the compact ray-traceable layout;
+    alternatives: `alternatives(...)` when measured; recommendation: what to use ('neural', 'mesh', 'decimate')."""
+
+    model_bytes: int
+    resident: dict
+    worth_compressing: bool
+    message: str
+    alternatives: dict = field(default_factory=dict)
+    recommendation: str = "neural"
+    #: The whole mesh as a compact ray-traceable mesh (`compact_mesh.encode_compact`), exact bytes.
+    compact_bytes: int | None = None
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def assess(mesh: Mesh, settings, measure_alternatives: bool = False, tracer=None) -> Assessment:
+    """Compare the model `settings` (already resolved) would write with the mesh's resident
+    bytes and its Draco size, and, with `measure_alternatives` and a target MSE, with a decimation that meets it.
+    worth_compressing is False when either is not larger than the model."""
+    from ..geometry.compact_mesh import compact_bytes
+
+    model = estimate_file_bytes(settings)
+    tree = build_full_tree(mesh)
+    resident_bytes = mesh_resident_bytes(mesh, tree)
+    resident = resident_bytes["total"]
+    compact = compact_bytes(mesh, tree)
+    # The Draco size always (cheap: shows which tool wins for storage alone); decimations only with a target.
+    alt = alternatives(mesh, settings.target_mse if measure_alternatives else None, tracer=tracer)
+    dec = alt.get("decimation")
+    draco = f"; Draco 11-bit of the mesh: {alt['draco11_bytes']:,} B for storage" if "draco11_bytes" in alt else ""
+    if resident <= model:
+        rec = "mesh"
+        msg = (f"not worth compressing: the mesh as a ray tracer holds it ({resident:,} B) is already smaller than "
+               f"this model (~{model:,} B); keep the mesh, or ask for a smaller model (--budget-kb){draco}")
+    elif dec is not None and dec["resident_bytes"] <= model:
+        rec = "decimate"
+        msg = (f"not worth compressing: a decimation to {dec['triangles']:,} triangles meets the target (MSE "
+               f"{dec['mse']:.4g}) and holds {dec['resident_bytes']:,} B resident, less than this model (~{model:,} B; "
+               f"the full mesh: {resident:,} B){draco}")
+    else:
+        rec = "neural"
+        msg = (f"model ~{model:,} B vs the mesh as a ray tracer holds it {resident:,} B ({resident / model:.1f}x smaller;"
+               f" as a compact mesh {compact:,} B)")
+        if dec is not None:
+            msg += (f"; the smallest decimation meeting the target holds {dec['resident_bytes']:,} B "
+                    f"({dec['compact_bytes']:,} B as a compact mesh: {dec['compact_bytes'] / model:.2f}x the model)")
+        msg += draco
+    return Assessment(model_bytes=model, resident=resident_bytes, worth_compressing=rec == "neural", message=msg,
+                      alternatives=alt, recommendation=rec, compact_bytes=compact)
+
+
+# ------------------------------------------------------------------------------------------------------ scenes
+def split_budget(features: list[MeshFeatures], budget_bytes: float, fit: SizeFit, bytes_for_log2,
+                 weights: list[float] | None = None) -> dict:
+    """Share `budget_bytes` among meshes by need. Every mesh i gets the smallest log2 T whose predicted MSE meets
+    level / w_i (w_i: weight, e.g. share of the screen; bigger = needs to look better), with the common level as
+    strict as the budget allows (bisection in log space). bytes_for_log2(i, log2) -> file bytes of mesh i's model.
+    Returns {'level': MSE level, 'log2': [...], 'bytes': [...], 'predicted_mse': [...], 'total': bytes}; raises
+    ValueError when even the smallest models do not fit the budget."""
+    n = len(features)
+    weights = [1.0] * n if weights is None else [max(float(w), 1e-6) for w in weights]
+
+    def plan(level: float):
+        l2s, sizes, preds = [], [], []
+        for i, f in enumerate(features):
+            l2, pred, _ = choose_size(fit, f, level / weights[i])
+            l2s.append(l2)
+            sizes.append(bytes_for_log2(i, l2))
+            preds.append(pred)
+        return l2s, sizes, preds
+
+    lo, hi = math.log(1e-6), math.log(1.0)  # strict .. loose
+    best = None
+    for _ in range(40):
+        mid = (lo + hi) / 2
+        l2s, sizes, preds = plan(math.exp(mid))
+        if sum(sizes) <= budget_bytes:
+            best = (math.exp(mid), l2s, sizes, preds)
+            hi = mid  # fits: try stricter
+        else:
+            lo = mid
+    if best is None:  # even the loosest level (every mesh at its smallest size) does not fit
+        smallest = sum(plan(1.0)[1])
+        raise ValueError(f"a budget of {budget_bytes / 1024:g} KB is too small for these {n} meshes: the smallest "
+                         f"models need {smallest / 1024:.0f} KB together")
+    level, l2s, sizes, preds = best
+    return {"level": level, "log2": l2s, "bytes": sizes, "predicted_mse": preds, "total": int(sum(sizes)),
+            "weights": weights, "budget": budget_bytes}
+
+
+def split_scene(meshes: list[Mesh], budget_bytes: float, fit: SizeFit, bytes_for_log2,
+                weights: list[float] | None = None) -> dict:
+    """The one scene-budget split (CLI `plan`, the add-on's jobs): objects whose mesh as a ray tracer holds it is no
+    larger than their smallest model can never be worth compressing; they get nothing (log2 None, 0 bytes) and the
+    budget is shared by need among the others (`split_budget`). Returns split_budget's dict over all meshes, in
+    order, plus 'excluded': [indices] and 'features'."""
+    feats = [mesh_features(m) for m in meshes]
+    weights = [1.0] * len(meshes) if weights is None else list(weights)
+    smallest = bytes_for_log2(0, 5)
+    keep = [i for i, m in enumerate(meshes) if mesh_resident_bytes(m)["total"] > smallest]
+    out = {"level": None, "log2": [None] * len(meshes), "bytes": [0] * len(meshes),
+           "predicted_mse": [None] * len(meshes), "total": 0, "weights": weights, "budget": budget_bytes}
+    if keep:
+        plan = split_budget([feats[i] for i in keep], budget_bytes, fit, lambda j, l2: bytes_for_log2(keep[j], l2),
+                            [weights[i] for i in keep])
+        for j, i in enumerate(keep):
+            out["log2"][i], out["bytes"][i], out["predicted_mse"][i] = (plan["log2"][j], plan["bytes"][j],
+                                                                        plan["predicted_mse"][j])
+        out["level"], out["total"] = plan["level"], plan["total"]
+    out["excluded"] = [i for i in range(len(meshes)) if i not in keep]
+    out["features"] = feats
+    return out
+
+
+def scene_base(settings: Settings, fit: SizeFit) -> Settings:
+    """The settings every object of a scene budget is sized with: `settings` with the method and node count the
+    size predictor was fitted for (only its predictions are comparable across objects) and no size request."""
+    fitted = PRESETS[fit.method]
+    return dataclasses.replace(settings, encoding=fitted.encoding, network=fitted.network, labels=fitted.labels,
+                               nodes=fitted.nodes, budget_kb=None, target_mse=None)
+
+
+def plan_scene(meshes: list[Mesh], budget_bytes: float, settings: Settings, weights: list[float] | None = None,
+               names: list[str] | None = None, fit: SizeFit | None = None) -> dict:
+    """The one scene-budget plan (CLI `plan`, the add-on's jobs): `split_scene` over `meshes` with every model's
+    bytes from `scene_base(settings)`. Returns split_scene's dict plus 'objects': one row per mesh (name, weight,
+    triangles, log2_table, bytes, predicted_mse, excluded) and 'base': the settings each share applies to
+    (`dataclasses.replace(plan['base'], log2_table=row['log2_table'])`). Raises ValueError without a size
+    predictor or when the budget is too small."""
+    fit = fit or load_fit()
+    if fit is None:
+        raise ValueError("a scene budget needs the size predictor (nbvh_core/planning/sizing_fit.json), which is missing; "
+                         "run bench/fit_sizing.py")
+    weights = [1.0] * len(meshes) if weights is None else list(weights)
+    if len(weights) != len(meshes):
+        raise ValueError(f"{len(weights)} weights for {len(meshes)} meshes")
+    base = scene_base(settings, fit)
+    plan = split_scene(meshes, budget_bytes, fit,
+                       lambda i, l2: estimate_file_bytes(dataclasses.replace(base, log2_table=l2)), weights)
+    names = names or [m.name or str(i) for i, m in enumerate(meshes)]
+    plan["objects"] = [{"name": n, "weight": w, "triangles": f.triangles, "log2_table": l2, "bytes": b,
+                        "predicted_mse": p, "excluded": i in plan["excluded"]}
+                       for i, (n, w, l2, b, p, f) in enumerate(zip(names, plan["weights"], plan["log2"], plan["bytes"],
+                                                                   plan["predicted_mse"], plan["features"]))]
+    plan["base"] = base
+    return plan

@@ -1,0 +1,1 @@
+"""Cameras, shading, metrics, the render engine's scene renderer."""

@@ -1,0 +1,1 @@
+"""Files the product writes and reads back: the .nbvh model, training checkpoints."""

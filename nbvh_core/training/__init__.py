@@ -1,0 +1,1 @@
+"""Training rays and their labels, batches, the training loop."""

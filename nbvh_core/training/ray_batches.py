@@ -1,0 +1,212 @@
+"""Fresh labelled training rays for every step (`Batches`), and the per-leaf state that steers them: the running
+per-leaf error (`LeafErrors`, for loss-proportional leaf sampling) and N-BVH's tree-cut refinement (`TreeCut`).
+Used by the training loop (train.py); data only, no optimisation here."""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from ..geometry.bvh import BVH, refine_cut
+from ..geometry.exact import ExactTracer
+from .rays import (TrainingSamples, label_samples, root_box, sample_rays, sample_rays_in_leaves,
+                      split_samples)
+from ..geometry.traversal import TorchBVH
+
+
+class LeafErrors:
+    """Running mean error per leaf (exponential, per batch) and the sampling weights drawn from it."""
+
+    def __init__(self, n_leaves: int, floor: float, decay: float = 0.9):
+        self.error = torch.ones(n_leaves, dtype=torch.float64)  # untrained: every leaf alike
+        self.floor, self.decay = floor, decay
+
+    def update(self, leaf: torch.Tensor, errors: torch.Tensor) -> None:
+        """leaf (S,) leaf ordinals, errors (S,) per-sample errors of one batch."""
+        n = self.error.shape[0]
+        total = torch.zeros(n, dtype=torch.float64).index_add_(0, leaf, errors.to(torch.float64))
+        count = torch.bincount(leaf, minlength=n).to(torch.float64)
+        seen = count > 0
+        self.error[seen] = self.decay * self.error[seen] + (1 - self.decay) * total[seen] / count[seen]
+
+    def weights(self) -> np.ndarray:
+        e = self.error.numpy()
+        return np.maximum(e, self.floor * e.mean())
+
+
+class Batches:
+    """Fresh labelled rays for every step, from one seeded generator.
+
+    Rays for `cfg.label_steps` steps are drawn and labelled together (one chunk) and split by ray into per-step
+    batches. With `prefetch`, a background thread makes the next chunks while the current step trains (Embree,
+    numpy and the kernels release the GIL), in the same order from the same generator, so the batches are the ones
+    a synchronous run would see. `rng_state()` says where the last batch handed out came from (the generator's
+    state before its chunk and its index in the chunk): what a checkpoint stores to resume exactly.
+    """
+
+    def __init__(self, bvh: BVH, tracer: ExactTracer, cfg, rng: np.random.Generator,
+                 prefetch: bool = False, resume: dict | None = None, leaf_errors: LeafErrors | None = None):
+        self.bvh, self.tracer, self.cfg, self.rng = bvh, tracer, cfg, rng
+        self.lo, self.hi = root_box(bvh)
+        self.tree = TorchBVH.from_bvh(bvh)
+        self._pending: list = []  # batches of the current chunk not yet handed out
+        self._pool = None  # ray-drawing threads, made on first use
+        self.leaf_errors = leaf_errors  # loss-proportional leaf sampling: the running per-leaf errors
+        self._leaf_boxes = bvh.leaf_boxes() if leaf_errors is not None else None
+        self._state = {"chunk_state": rng.bit_generator.state, "index": -1}
+        skip = 0
+        self._weights_override = None  # the leaf weights the resumed chunk was drawn with
+        if resume is not None:
+            rng.bit_generator.state = resume["chunk_state"]
+            skip = resume["index"] + 1
+            self._weights_override = resume.get("leaf_weights")
+            w = self._weights_override
+            if w is not None and (leaf_errors is None or w.shape != (bvh.n_leaves,) or not w.sum() > 0):
+                raise ValueError(f"the resumed leaf weights do not fit this BVH ({bvh.n_leaves} leaves)")
+            if not 0 <= skip <= max(1, cfg.label_steps):
+                raise ValueError(f"the resumed batch index {skip - 1} is outside a labelling pass")
+        self._queue = None
+        if prefetch:
+            import queue
+            import threading
+
+            self._queue = queue.Queue(maxsize=2)
+            self._stop = threading.Event()
+            self._thread = threading.Thread(target=self._produce, daemon=True)
+            self._thread.start()
+        for _ in range(skip):  # the resumed chunk's batches already trained on
+            self.next()
+
+    def _make(self):
+        """One chunk: [(batch, {'chunk_state', 'index'}), ...] for label_steps steps."""
+        chunk_state = self.rng.bit_generator.state
+        n_steps = max(1, self.cfg.label_steps)
+        per = self.cfg.rays_per_step
+        weights = None
+        if self.leaf_errors is not None:
+            weights = self._weights_override if self._weights_override is not None else self.leaf_errors.weights()
+            self._weights_override = None
+        o, d = self._draw(per * n_steps, weights)
+        chunk = label_samples(self.bvh, self.tracer, o, d, self.cfg.labels, tree=self.tree,
+                              facing_normals=self.cfg.facing_normals)
+        return [(part, {"chunk_state": chunk_state, "index": i, "leaf_weights": weights})
+                for i, part in enumerate(split_samples(chunk, per))]
+
+    def set_bvh(self, bvh: BVH) -> None:
+        """Label with a refined cut from now on: the rest of the current labelling pass (labelled with the old cut)
+        is dropped, and the next pass starts from the generator's current state (recorded for checkpoints)."""
+        self.bvh, self.tree = bvh, TorchBVH.from_bvh(bvh)
+        if self._leaf_boxes is not None:
+            self._leaf_boxes = bvh.leaf_boxes()
+        self._pending = []
+        self._state = {"chunk_state": self.rng.bit_generator.state, "index": -1}
+
+    def _draw(self, n: int, leaf_weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """n rays: all from `sample_rays`, or with leaf weights `leaf_ray_fraction` of them from
+        `sample_rays_in_leaves` (mixed by a permutation)."""
+        if leaf_weights is not None:  # loss-proportional: part of the rays start in the worst leaves
+            n_leaf = int(round(n * self.cfg.leaf_ray_fraction))
+            o_u, d_u = self._draw_uniform(n - n_leaf)
+            o_l, d_l = sample_rays_in_leaves(*self._leaf_boxes, leaf_weights, n_leaf, self.rng)
+            perm = self.rng.permutation(n)
+            return np.concatenate((o_u, o_l))[perm], np.concatenate((d_u, d_l))[perm]
+        return self._draw_uniform(n)
+
+    def _draw_uniform(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """n rays of `sample_rays` in two halves drawn by two threads (numpy's generators and ufuncs release the
+        GIL), each from a generator seeded by the main one: deterministic, and resumable from its state."""
+        seeds = self.rng.integers(0, 2 ** 63, size=2)
+        sizes = (n // 2, n - n // 2)
+        if self._pool is None:
+            from concurrent.futures import ThreadPoolExecutor
+
+            self._pool = ThreadPoolExecutor(max_workers=2, thread_name_prefix="nbvh-rays")
+        halves = list(self._pool.map(
+            lambda i: sample_rays(self.lo, self.hi, sizes[i], np.random.default_rng(seeds[i]), self.cfg.ray_config),
+            range(2)))
+        return np.concatenate([h[0] for h in halves]), np.concatenate([h[1] for h in halves])
+
+    def _produce(self) -> None:
+        import queue
+
+        while not self._stop.is_set():
+            try:
+                item = self._make()
+            except Exception as exc:  # handed to the consumer, raised there
+                item = (exc, None)
+            while not self._stop.is_set():
+                try:
+                    self._queue.put(item, timeout=0.1)
+                    break
+                except queue.Full:
+                    continue
+            if isinstance(item[0], Exception):
+                return
+
+    def next(self) -> TrainingSamples:
+        if not self._pending:
+            chunk = self._queue.get() if self._queue is not None else self._make()
+            if isinstance(chunk[0], Exception):
+                raise chunk[0]
+            self._pending = list(chunk)
+        batch, self._state = self._pending.pop(0)
+        return batch
+
+    def rng_state(self) -> dict:
+        return self._state
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=False)
+        if self._queue is not None:
+            self._stop.set()
+            self._thread.join(timeout=5)
+
+
+def check_cut(tree, cut: list, max_leaves: int) -> None:
+    """Raise ValueError unless `cut` (full-tree node ids) is a cut of `tree` of at most `max_leaves` leaves: every
+    triangle under exactly one of its nodes (the nodes' triangle ranges are nested, so disjoint ranges that cover
+    all triangles are exactly that)."""
+    ids = np.asarray(cut, dtype=np.int64)
+    if not 1 <= len(ids) <= max_leaves or ids.min() < 0 or ids.max() >= tree.n_nodes:
+        raise ValueError(f"the resumed tree cut names {len(ids)} nodes outside the tree's {tree.n_nodes}")
+    start, count = tree.start[ids], tree.count[ids]
+    order = np.argsort(start, kind="stable")
+    start, end = start[order], start[order] + count[order]
+    if (count <= 0).any() or start[0] != 0 or end[-1] != len(tree.tri_order) or (start[1:] != end[:-1]).any():
+        raise ValueError("the resumed tree cut is not a cut of this mesh's tree")
+
+
+class TreeCut:
+    """N-BVH's tree-cut splitting during training (TrainConfig.tree_cut): `start` is the coarse cut training begins
+    on (or the cut a checkpoint stopped at); `refine` splits the leaves with the highest running error in
+    cfg.tree_cut_rounds rounds spread over the first cfg.tree_cut_until of the budget, up to bvh's node budget."""
+
+    def __init__(self, bvh: BVH, cfg, resumed_cut: list | None = None, rounds_done: int = 0):
+        from ..geometry.bvh import coarse_cut, layout_cut
+
+        self.cfg = cfg
+        self.final_leaves = bvh.n_leaves
+        self.rounds_done = rounds_done
+        if resumed_cut is not None:
+            check_cut(bvh.full, resumed_cut, self.final_leaves)
+        self.start = (layout_cut(bvh.full, {int(n) for n in resumed_cut}, bvh.budget, final=False)
+                      if resumed_cut is not None else
+                      coarse_cut(bvh, max(2, int(self.final_leaves * cfg.tree_cut_start))))
+
+    def refine(self, frac: float, current: BVH, leaf_errors: LeafErrors) -> BVH | None:
+        """The refined cut when a round is due at training fraction `frac` (leaf_errors follow the split: children
+        inherit their parent's error), else None."""
+        cfg = self.cfg
+        due = min(cfg.tree_cut_rounds, int(frac / cfg.tree_cut_until * cfg.tree_cut_rounds)) \
+            if cfg.tree_cut_until > 0 else 0
+        if current.n_leaves >= self.final_leaves or self.rounds_done >= due:
+            return None
+        self.rounds_done = due
+        # Leaves still to add, shared over the rounds left (the last round reaches the budget).
+        per_round = -(-(self.final_leaves - current.n_leaves) // max(1, cfg.tree_cut_rounds - due + 1))
+        refined, parent = refine_cut(current, leaf_errors.error.numpy(), per_round)
+        if refined.n_leaves == current.n_leaves:  # nothing left to split
+            self.final_leaves = refined.n_leaves
+            return None
+        leaf_errors.error = leaf_errors.error[torch.from_numpy(parent)]
+        return refined
