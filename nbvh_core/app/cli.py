@@ -170,7 +170,7 @@ def _compress_locked(args, mesh, mesh_path, out, stem, outputs, sink, staged) ->
     from ..protocol.outputs import checkpoint_for
     from .pipeline import compress_mesh, resume_settings
     from ..protocol.process import NotWorthCompressing, install_cancel_handlers
-    from ..planning.settings import preset
+    from ..planning.settings import settings_from_request
     from ..rendering.render import orbit_cameras, png_bytes, render_neural, render_reference
     from ..protocol.quality_levels import QUALITY_LEVELS
 
@@ -179,18 +179,18 @@ def _compress_locked(args, mesh, mesh_path, out, stem, outputs, sink, staged) ->
         print(f"resuming {args.resume}: T=2^{settings.log2_table}, {settings.nodes} nodes, "
               f"{settings.encoding}+{settings.network}", file=sys.stderr)
     else:
-        settings = preset(args.preset).with_overrides(
-            nodes=args.nodes, encoding=args.encoding, log2_table=args.log2_table, network=args.network, k=args.k,
-            labels=args.labels, lr=args.lr, steps=args.steps, time_limit_s=args.time_limit, seed=args.seed,
-            device=args.device, eval_views=args.views,
-            table_bits=16 if args.float16 else args.table_bits, network_bits=16 if args.float16 else args.network_bits,
-            node_bits=args.node_bits, rays_per_step=args.rays_per_step, budget_kb=args.budget_kb,
-            leaf_sampling=args.leaf_sampling, tree_cut=True if args.tree_cut else None, normal_loss=args.normal_loss,
-            n_max=args.n_max, index_factor=args.index_factor, finetune_fraction=args.finetune_fraction,
+        steps_only = args.steps is not None and args.time_limit is None
+        settings = settings_from_request(dict(
+            preset=args.preset, nodes=args.nodes, encoding=args.encoding, log2_table=args.log2_table,
+            network=args.network, k=args.k, labels=args.labels, lr=args.lr, steps=args.steps,
+            time_limit_s=0 if steps_only else args.time_limit, seed=args.seed, device=args.device,
+            eval_views=args.views, table_bits=16 if args.float16 else args.table_bits,
+            network_bits=16 if args.float16 else args.network_bits, node_bits=args.node_bits,
+            rays_per_step=args.rays_per_step, budget_kb=args.budget_kb, leaf_sampling=args.leaf_sampling,
+            tree_cut=True if args.tree_cut else None, normal_loss=args.normal_loss, n_max=args.n_max,
+            index_factor=args.index_factor, finetune_fraction=args.finetune_fraction,
             appearance_target=args.appearance,
-            target_mse=QUALITY_LEVELS[args.quality] if args.quality else args.target_mse)
-        if args.steps is not None and args.time_limit is None:
-            settings.time_limit_s = None
+            target_mse=QUALITY_LEVELS[args.quality] if args.quality else args.target_mse))
     settings = settings.with_overrides(force=True if args.force else None, checkpoint_every_s=args.checkpoint_every)
     default_ck = checkpoint_for(out)
     checkpoint = Path(args.checkpoint) if args.checkpoint else default_ck

@@ -148,7 +148,7 @@ def run_job(request: dict, events, should_cancel) -> dict:
     from ..geometry.mesh_arrays import mesh_from_npz
     from ..protocol.outputs import OutputLock, OutputSet, check_outputs
     from .pipeline import resume_settings
-    from ..planning.settings import preset
+    from ..planning.settings import settings_from_request
 
     name = request["name"]
     out_dir = Path(request["out_dir"])
@@ -156,11 +156,7 @@ def run_job(request: dict, events, should_cancel) -> dict:
     mesh = mesh_from_npz(request["mesh"], name)  # data only: pickled or oversized arrays are refused
     for msg in mesh.repairs:
         events({"event": "warning", "message": msg})
-    spec = dict(request.get("settings") or {})
-    steps_only = spec.get("time_limit_s") == 0  # 0 = no wall-clock limit (budget in steps)
-    settings = preset(spec.pop("preset", "default")).with_overrides(**spec)
-    if steps_only:
-        settings.time_limit_s = None
+    settings = settings_from_request(request.get("settings") or {})
     scene_split = None
     if request.get("scene"):
         settings, scene_split = _scene_share(request["scene"], settings, events)

@@ -35,6 +35,7 @@ from typing import Callable
 from ..protocol.events import EventSink, null_sink
 from ..geometry.mesh import SUPPORTED_EXTENSIONS
 from ..geometry.mesh_arrays import mesh_from_npz
+from ..planning.settings import settings_from_request
 
 #: Files a folder library is searched for (plus .gz variants of the mesh formats).
 ARRAY_EXTENSION = ".npz"
@@ -175,17 +176,6 @@ def load_asset(path: str, name: str):
 
 
 # -------------------------------------------------------------------------------------------- the two tasks
-def _settings(spec: dict):
-    from ..planning.settings import preset
-
-    spec = dict(spec)
-    steps_only = spec.get("time_limit_s") == 0
-    s = preset(spec.pop("preset", "default")).with_overrides(**spec)
-    if steps_only:
-        s.time_limit_s = None
-    return s
-
-
 def settings_key(mesh_sha256: str, spec: dict) -> str:
     """An asset's result folder name: the mesh's content and the settings asked for (a rerun with either changed
     trains again; a renamed or moved file does not)."""
@@ -210,7 +200,7 @@ def measure_asset(asset: dict, spec: dict) -> dict:
         if asset.get("error"):
             raise ValueError(asset["error"])
         mesh = load_asset(asset["path"], asset["name"])
-        settings, _ = resolve(_settings(spec), mesh)
+        settings, _ = resolve(settings_from_request(spec), mesh)
         tracer = ExactTracer(mesh)
         a = assess(mesh, settings, measure_alternatives=settings.target_mse is not None, tracer=tracer)
         thumb = render_reference(tracer, orbit_cameras(1)[0], THUMBNAIL_PX, THUMBNAIL_PX).display
@@ -244,7 +234,7 @@ def compress_asset(asset: dict, spec: dict) -> dict:
         torch.set_num_threads(max(1, int(os.environ.get("OMP_NUM_THREADS", torch.get_num_threads()))))
         kernels.keep_freed_memory()
         mesh = load_asset(asset["path"], asset["name"])
-        res = compress_mesh(mesh, _settings(spec).with_overrides(force=True))
+        res = compress_mesh(mesh, settings_from_request(spec).with_overrides(force=True))
         thumb = render_neural(res.model, orbit_cameras(1)[0], THUMBNAIL_PX, THUMBNAIL_PX).display
         out.update(status="done", data=res.data, summary=res.summary(), thumb=png_bytes(thumb),
                    model_bytes=res.file_bytes, model_resident_bytes=sum(res.model.resident_bytes().values()),

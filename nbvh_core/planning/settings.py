@@ -240,3 +240,15 @@ def preset(name: str) -> Settings:
     if name not in PRESETS:
         raise ValueError(f"unknown preset {name!r}; choose from {', '.join(PRESETS)}")
     return dataclasses.replace(PRESETS[name])
+
+
+def settings_from_request(spec: dict) -> Settings:
+    """The Settings a run is asked for, the one route the command line, the add-on's job and library batches take:
+    spec = {"preset": name (default "default"), any Settings field: value (None: the preset's)}; time_limit_s 0
+    means a budget in steps only (no wall-clock limit). Raises ValueError for an unknown preset or field."""
+    spec = dict(spec)
+    steps_only = spec.get("time_limit_s") == 0
+    settings = preset(spec.pop("preset", None) or "default").with_overrides(**spec)
+    if steps_only:
+        settings.time_limit_s = None
+    return settings
