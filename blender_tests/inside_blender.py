@@ -138,7 +138,7 @@ def test_addon_installed_and_registered():
     assert bpy.types.NBVH_PT_panel.bl_category == "NBVH"
     assert hasattr(bpy.ops.nbvh, "compress") and hasattr(bpy.ops.nbvh, "cancel")
     # The zip carries nbvh_core; the add-on itself never imported torch.
-    assert (Path(mod.__file__).parent / "nbvh_core" / "pipeline.py").exists()
+    assert (Path(mod.__file__).parent / "nbvh_core" / "app" / "pipeline.py").exists()
     assert "torch" not in sys.modules
     prefs = bpy.context.preferences.addons[name].preferences
     prefs.python_path = ARGS.python
