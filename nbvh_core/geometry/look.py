@@ -186,6 +186,29 @@ def hit_labels(look: Look, vertices: np.ndarray, faces: np.ndarray, tri: np.ndar
     return slot, np.einsum("nk,nkc->nc", w, look.corner_uvs[tri]).astype(np.float32)
 
 
+def hit_albedo(look: Look, vertices: np.ndarray, faces: np.ndarray, tri: np.ndarray, points: np.ndarray
+               ) -> np.ndarray:
+    """(N, 3) float32 linear albedo of exact hits (tri (N,) >= 0, points (N, 3)): `hit_labels`, then `albedo`."""
+    slot, uv = hit_labels(look, vertices, faces, tri, points)
+    return albedo(look.materials, slot, uv)
+
+
+def _edge_pairs(ends: np.ndarray, corner_uvs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where two triangles share an edge. ends (F, 3): a key per corner (vertex index, or welded position);
+    half-edge k runs from corner k % 3 to corner (k + 1) % 3 of triangle k // 3. Returns (i, j, gap): the two
+    half-edges of each shared edge and the largest difference of the coordinates their ends carry."""
+    a, b = ends[:, [0, 1, 2]].reshape(-1), ends[:, [1, 2, 0]].reshape(-1)
+    ua, ub = corner_uvs[:, [0, 1, 2]].reshape(-1, 2), corner_uvs[:, [1, 2, 0]].reshape(-1, 2)
+    swap = a > b  # each edge as (lower key, higher key), its coordinates in that order
+    lo, hi = np.where(swap, b, a), np.where(swap, a, b)
+    ulo, uhi = np.where(swap[:, None], ub, ua), np.where(swap[:, None], ua, ub)
+    order = np.lexsort((hi, lo))
+    k = np.nonzero((lo[order][1:] == lo[order][:-1]) & (hi[order][1:] == hi[order][:-1]))[0]
+    i, j = order[k], order[k + 1]
+    gap = np.maximum(np.abs(ulo[i] - ulo[j]).max(1), np.abs(uhi[i] - uhi[j]).max(1))
+    return i, j, gap
+
+
 def uv_charts(faces: np.ndarray, corner_uvs: np.ndarray) -> np.ndarray:
     """(F,) int chart id: faces joined across every edge whose two corners carry the same coordinates on both
     sides (a UV island); an edge where they differ is a seam."""
@@ -193,18 +216,9 @@ def uv_charts(faces: np.ndarray, corner_uvs: np.ndarray) -> np.ndarray:
     from scipy.sparse.csgraph import connected_components
 
     n = len(faces)
-    e_faces = np.repeat(np.arange(n), 3)
-    a, b = faces[:, [0, 1, 2]].reshape(-1), faces[:, [1, 2, 0]].reshape(-1)
-    ua, ub = corner_uvs[:, [0, 1, 2]].reshape(-1, 2), corner_uvs[:, [1, 2, 0]].reshape(-1, 2)
-    swap = a > b  # each edge as (lower vertex, higher vertex), its coordinates in that order
-    lo, hi = np.where(swap, b, a), np.where(swap, a, b)
-    ulo, uhi = np.where(swap[:, None], ub, ua), np.where(swap[:, None], ua, ub)
-    order = np.lexsort((hi, lo))
-    lo, hi, e_faces, ulo, uhi = lo[order], hi[order], e_faces[order], ulo[order], uhi[order]
-    same_edge = (lo[1:] == lo[:-1]) & (hi[1:] == hi[:-1])
-    same_uv = (np.abs(ulo[1:] - ulo[:-1]).max(1) < 1e-6) & (np.abs(uhi[1:] - uhi[:-1]).max(1) < 1e-6)
-    j = np.nonzero(same_edge & same_uv)[0]
-    graph = coo_matrix((np.ones(len(j)), (e_faces[j], e_faces[j + 1])), shape=(n, n))
+    i, j, gap = _edge_pairs(faces, corner_uvs)
+    joined = gap < 1e-6
+    graph = coo_matrix((np.ones(int(joined.sum())), (i[joined] // 3, j[joined] // 3)), shape=(n, n))
     return connected_components(graph, directed=False)[1].astype(np.int32)
 
 
@@ -291,20 +305,10 @@ def seam_edges(vertices: np.ndarray, faces: np.ndarray, corner_uvs: np.ndarray) 
     different coordinates."""
     key = np.round(np.asarray(vertices, np.float64) * 1e6).astype(np.int64)
     weld = np.unique(key, axis=0, return_inverse=True)[1].reshape(-1)[faces]
-    a, b = weld[:, [0, 1, 2]].reshape(-1), weld[:, [1, 2, 0]].reshape(-1)
-    ca, cb = faces[:, [0, 1, 2]].reshape(-1), faces[:, [1, 2, 0]].reshape(-1)
-    ua, ub = corner_uvs[:, [0, 1, 2]].reshape(-1, 2), corner_uvs[:, [1, 2, 0]].reshape(-1, 2)
-    swap = a > b
-    lo, hi = np.where(swap, b, a), np.where(swap, a, b)
-    ulo, uhi = np.where(swap[:, None], ub, ua), np.where(swap[:, None], ua, ub)
-    clo = np.where(swap, cb, ca)
-    chi = np.where(swap, ca, cb)
-    order = np.lexsort((hi, lo))
-    lo, hi, ulo, uhi, clo, chi = lo[order], hi[order], ulo[order], uhi[order], clo[order], chi[order]
-    same_edge = (lo[1:] == lo[:-1]) & (hi[1:] == hi[:-1])
-    differs = (np.abs(ulo[1:] - ulo[:-1]).max(1) > 1e-6) | (np.abs(uhi[1:] - uhi[:-1]).max(1) > 1e-6)
-    j = np.nonzero(same_edge & differs)[0]
-    return np.stack([vertices[clo[j]], vertices[chi[j]]], axis=1).astype(np.float32)
+    i, _, gap = _edge_pairs(weld, corner_uvs)
+    seam = i[gap > 1e-6]
+    start, end = faces[:, [0, 1, 2]].reshape(-1)[seam], faces[:, [1, 2, 0]].reshape(-1)[seam]
+    return np.stack([vertices[start], vertices[end]], axis=1).astype(np.float32)
 
 
 def seam_distance(points: np.ndarray, seams: np.ndarray, spacing: float = 1e-3) -> np.ndarray:

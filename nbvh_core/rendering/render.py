@@ -127,11 +127,10 @@ def render_reference(tracer, camera: Camera, width: int, height: int) -> RenderR
     mesh = getattr(tracer, "mesh", None)
     albedo = None
     if mesh is not None and mesh.look is not None:  # the exact look: the hit triangle's slot and coordinates
-        from ..geometry.look import albedo as look_albedo, hit_labels
+        from ..geometry.look import hit_albedo
 
         h = fh.hit
-        slot, uv = hit_labels(mesh.look, mesh.vertices, mesh.faces, fh.tri[h], o[h] + fh.t[h, None] * d[h])
-        albedo = look_albedo(mesh.look.materials, slot, uv)
+        albedo = hit_albedo(mesh.look, mesh.vertices, mesh.faces, fh.tri[h], o[h] + fh.t[h, None] * d[h])
     return RenderResult(img.reshape(height, width), fh.hit.reshape(height, width), fh.t.reshape(height, width),
                         coloured(img, fh.hit, albedo, (height, width)))
 

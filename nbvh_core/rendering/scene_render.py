@@ -169,7 +169,7 @@ class MeshShape:
 
     def albedo(self, rays_o: np.ndarray, rays_d: np.ndarray, t: np.ndarray) -> np.ndarray | None:
         """The exact look at the hits (the hit triangle's slot and interpolated coordinates), or None."""
-        from ..geometry.look import albedo, hit_labels
+        from ..geometry.look import hit_albedo
 
         look = self.mesh.look
         if look is None:
@@ -178,8 +178,7 @@ class MeshShape:
         ok = fh.hit
         out = np.tile(np.asarray(look.materials[0].base_color[:3], np.float32), (len(t), 1))
         p = rays_o[ok] + fh.t[ok, None] * rays_d[ok]
-        slot, uv = hit_labels(look, self.mesh.vertices, self.mesh.faces, fh.tri[ok], p)
-        out[ok] = albedo(look.materials, slot, uv)
+        out[ok] = hit_albedo(look, self.mesh.vertices, self.mesh.faces, fh.tri[ok], p)
         return out
 
 
