@@ -146,17 +146,7 @@ def _tensors(model: NeuralBVH, storage: StorageConfig) -> list[tuple[str, str, b
         for part in ("root", "boxes", "left", "leaf"):
             arr = packed[part]
             out.append((f"bvh.{part}", "bvh", arr.tobytes(), list(arr.shape)))
-    if storage.table_bits == 8:
-        if not enc.quantized:
-            raise ValueError("an 8-bit table must be quantized first (model.finalize_storage)")
-        out.append(("features", "features", enc.qcodes.cpu().numpy().tobytes(), list(enc.qcodes.shape)))
-        for part, t in (("offset", enc.qoffset), ("scale", enc.qscale)):
-            arr = t.detach().cpu().numpy().astype(np.float32)
-            out.append((f"features.{part}", "features", arr.tobytes(), list(arr.shape)))
-    else:
-        table = enc.float_rows().detach().cpu().numpy()
-        out.append(("features", "features", table.astype(_float_dtype(storage.table_bits)).tobytes(),
-                    list(table.shape)))
+    out += _table_tensors(enc, "features", "features", storage.table_bits, "model.finalize_storage")
     if enc.learned_index:
         if not enc.frozen:
             raise ValueError("HashVQAD must be frozen (argmax codes) before saving")
@@ -175,18 +165,8 @@ def _look_tensors(model: NeuralBVH, storage: StorageConfig) -> list[tuple[str, s
     out = []
     head = model.appearance
     if head is not None:
-        enc = head.encoding
-        if storage.table_bits == 8:
-            if not enc.quantized:
-                raise ValueError("an 8-bit appearance table must be quantized first (appearance.finalize_head)")
-            out.append(("appearance.features", "appearance", enc.qcodes.cpu().numpy().tobytes(),
-                        list(enc.qcodes.shape)))
-            for part, t in (("offset", enc.qoffset), ("scale", enc.qscale)):
-                arr = t.detach().cpu().numpy().astype(np.float32)
-                out.append((f"appearance.features.{part}", "appearance", arr.tobytes(), list(arr.shape)))
-        else:
-            table = enc.float_rows().detach().cpu().numpy().astype(_float_dtype(storage.table_bits))
-            out.append(("appearance.features", "appearance", table.tobytes(), list(table.shape)))
+        out += _table_tensors(head.encoding, "appearance.features", "appearance", storage.table_bits,
+                              "appearance.finalize_head")
         fdt = np.float32 if storage.network_bits == 32 else np.float16
         for name, p in head.network.state_dict().items():
             arr = p.detach().cpu().numpy().astype(fdt)
@@ -207,6 +187,21 @@ def _look_header(model: NeuralBVH) -> dict | None:
         return None
     return {"config": None if model.appearance is None else model.appearance.cfg.to_dict(),
             "materials": [m.to_dict() for m in model.materials]}
+
+
+def _table_tensors(enc, name: str, component: str, bits: int, how: str) -> list[tuple[str, str, bytes, list[int]]]:
+    """A feature table's stored tensors: at 8 bits its uint8 codes `name` and float32 `name.offset`, `name.scale`
+    (the encoding must hold codes already: `how` says what makes it so); else its rows at `bits`."""
+    if bits == 8:
+        if not enc.quantized:
+            raise ValueError(f"an 8-bit table must be quantized first ({how})")
+        out = [(name, component, enc.qcodes.cpu().numpy().tobytes(), list(enc.qcodes.shape))]
+        for part, t in (("offset", enc.qoffset), ("scale", enc.qscale)):
+            arr = t.detach().cpu().numpy().astype(np.float32)
+            out.append((f"{name}.{part}", component, arr.tobytes(), list(arr.shape)))
+        return out
+    table = enc.float_rows().detach().cpu().numpy()
+    return [(name, component, table.astype(_float_dtype(bits)).tobytes(), list(table.shape))]
 
 
 def _network_arrays(model: NeuralBVH, bits: int) -> list[tuple[str, np.ndarray]]:
@@ -354,11 +349,7 @@ def _expected_tensors(cfg: ModelConfig, storage: StorageConfig, n_nodes: int,
                     "bvh.leaf": ((n_nodes,), "<u2")})
     else:
         out["bvh"] = ((n_nodes,), "node")
-    if storage.table_bits == 8:
-        out.update({"features": ((L, T, F), "u1"), "features.offset": ((L, F), "<f4"),
-                    "features.scale": ((L, F), "<f4")})
-    else:
-        out["features"] = ((L, T, F), "<f2" if storage.table_bits == 16 else "<f4")
+    out.update(_table_shapes("features", L, T, F, storage.table_bits))
     if enc.kind == "hashvqad":
         shape = ((sum(level_vertex_counts(enc, enc.index_size)),) if version >= REACHABLE_INDEX_SINCE
                  else (L, enc.index_size))
@@ -371,6 +362,14 @@ def _expected_tensors(cfg: ModelConfig, storage: StorageConfig, n_nodes: int,
         else:
             out[f"network.{name}"] = (shape, fdt)
     return out
+
+
+def _table_shapes(name: str, levels: int, rows: int, features: int, bits: int) -> dict[str, tuple[tuple, str]]:
+    """name -> (shape, dtype) of a feature table's stored tensors (see `_table_tensors`)."""
+    if bits == 8:
+        return {name: ((levels, rows, features), "u1"), f"{name}.offset": ((levels, features), "<f4"),
+                f"{name}.scale": ((levels, features), "<f4")}
+    return {name: ((levels, rows, features), "<f2" if bits == 16 else "<f4")}
 
 
 def _nbytes(shape: tuple, kind: str) -> int:
@@ -510,12 +509,8 @@ def _look_expected(look, storage: StorageConfig, by_name: dict, where: str) -> d
     cfg, mats = look
     out: dict[str, tuple[tuple, str]] = {}
     if cfg is not None:
-        L, T, F = cfg.levels, 1 << cfg.log2_table, cfg.features
-        if storage.table_bits == 8:
-            out.update({"appearance.features": ((L, T, F), "u1"), "appearance.features.offset": ((L, F), "<f4"),
-                        "appearance.features.scale": ((L, F), "<f4")})
-        else:
-            out["appearance.features"] = ((L, T, F), "<f2" if storage.table_bits == 16 else "<f4")
+        out.update(_table_shapes("appearance.features", cfg.levels, 1 << cfg.log2_table, cfg.features,
+                                 storage.table_bits))
         with torch.device("meta"):
             head = AppearanceHead(cfg, inference=True)
         fdt = "<f4" if storage.network_bits == 32 else "<f2"
@@ -625,15 +620,7 @@ def _decode(data: bytes, header: dict, where: str, device: str | torch.device = 
         raise NBVHFileError(f"{where}: inconsistent .nbvh contents: {exc}") from None
     enc = model.encoding
     with torch.no_grad():
-        if storage.table_bits == 8:
-            scale = array("features.scale")
-            if (scale <= 0).any():
-                raise NBVHFileError(f"{where}: feature scales must be > 0")
-            enc.set_quantized(torch.from_numpy(array("features")), torch.from_numpy(array("features.offset")),
-                              torch.from_numpy(scale))
-        else:
-            enc.table = torch.nn.Parameter(torch.from_numpy(array("features").astype(np.float32)),
-                                           requires_grad=False)
+        _load_table(enc, "features", storage.table_bits, array, f"{where}: feature scales must be > 0")
         if cfg.encoding.kind == "hashvqad":
             codes = array("index")
             if (codes >= cfg.encoding.candidates).any():
@@ -649,6 +636,19 @@ def _decode(data: bytes, header: dict, where: str, device: str | torch.device = 
     model.metadata = header.get("metadata", {})
     model.storage = storage
     return model.to(device).eval()
+
+
+def _load_table(enc, name: str, bits: int, array, bad_scale: str) -> None:
+    """Fill an encoding's feature table from the file's `name` tensors (see `_table_tensors`): codes with their
+    affine at 8 bits (held as codes; a scale <= 0 raises NBVHFileError(bad_scale)), else float rows."""
+    if bits == 8:
+        scale = array(f"{name}.scale")
+        if (scale <= 0).any():
+            raise NBVHFileError(bad_scale)
+        enc.set_quantized(torch.from_numpy(array(name)), torch.from_numpy(array(f"{name}.offset")),
+                          torch.from_numpy(scale))
+    else:
+        enc.table = torch.nn.Parameter(torch.from_numpy(array(name).astype(np.float32)), requires_grad=False)
 
 
 def _load_look(model: NeuralBVH, look: tuple, table_bits: int, array, where: str) -> None:
@@ -667,16 +667,8 @@ def _load_look(model: NeuralBVH, look: tuple, table_bits: int, array, where: str
     if cfg is None:
         return
     head = AppearanceHead(cfg, inference=True)
-    enc = head.encoding
-    if table_bits == 8:
-        scale = array("appearance.features.scale")
-        if (scale <= 0).any():
-            raise NBVHFileError(f"{where}: appearance feature scales must be > 0")
-        enc.set_quantized(torch.from_numpy(array("appearance.features")),
-                          torch.from_numpy(array("appearance.features.offset")), torch.from_numpy(scale))
-    else:
-        enc.table = torch.nn.Parameter(torch.from_numpy(array("appearance.features").astype(np.float32)),
-                                       requires_grad=False)
+    _load_table(head.encoding, "appearance.features", table_bits, array,
+                f"{where}: appearance feature scales must be > 0")
     state = {n: torch.from_numpy(array(f"appearance.network.{n}").astype(np.float32))
              for n in head.network.state_dict()}
     head.network.load_state_dict(state)
