@@ -190,10 +190,7 @@ TARGETS = ("coordinates", "colour")
 def finalize_head(head: AppearanceHead, table_bits: int, network_bits: int) -> None:
     """Hold the head as a file at these widths stores it: table as uint8 codes (8) or float16-rounded (16);
     network weights rounded to float16 (16 or 8: the head is small, so it is never stored below 16 bits)."""
-    if table_bits == 8:
-        head.encoding.quantize_(8)
-    elif table_bits == 16:
-        head.encoding.table.copy_(head.encoding.table.half().float())
+    head.encoding.hold_as_stored(table_bits)
     if network_bits < 32:
         for p in head.network.parameters():
             p.copy_(p.half().float())

@@ -256,10 +256,7 @@ class NeuralBVH(nn.Module):
         (8 bits) or rounded to float16, the network's weights held in float16 (16 bits), the nodes held in the
         8-bit format (8 bits; the pipeline trained on exactly these boxes: `quantize.snap_nodes`). Irreversible;
         inference only afterwards."""
-        if storage.table_bits == 8:
-            self.encoding.quantize_(8)
-        elif storage.table_bits == 16 and not self.encoding.quantized:
-            self.encoding.table.copy_(self.encoding.table.half().float())
+        self.encoding.hold_as_stored(storage.table_bits)
         if storage.network_bits == 16:
             self.hold_network_half()
         elif storage.network_bits == 8:

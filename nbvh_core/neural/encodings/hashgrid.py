@@ -69,6 +69,15 @@ class HashGrid(Encoding):
         codes = quantize_table(table, offset, scale, bits)
         self.set_quantized(torch.from_numpy(codes), torch.from_numpy(offset), torch.from_numpy(scale))
 
+    @torch.no_grad()
+    def hold_as_stored(self, bits: int) -> None:
+        """Hold the rows as a file with `bits`-bit features stores them: uint8 codes (8), rows rounded to float16
+        (16, unless already codes), as they are (32). Inference only; irreversible."""
+        if bits == 8:
+            self.quantize_(8)
+        elif bits == 16 and not self.quantized:
+            self.table.copy_(self.table.half().float())
+
     def set_quantized(self, codes: torch.Tensor, offset: torch.Tensor, scale: torch.Tensor) -> None:
         """Install uint8 codes (L, T, F) and their (L, F) float32 offset/scale; drops the float table."""
         dev = self.table.device
