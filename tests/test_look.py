@@ -217,3 +217,11 @@ def test_info_lists_the_look_and_its_bytes(tmp_path, capsys):
     assert main(["info", str(path)]) == 0
     out = capsys.readouterr().out
     assert "appearance" in out and "textures" in out and "painted (32x32 image), blue" in out and "patch" in out
+
+
+def test_checking_a_look_leaves_the_callers_materials_as_they_were():
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], float)
+    mat = Material("hot", np.array([2.0, 0.5, -1.0, 1.0], np.float32))
+    m = mesh_from_arrays(v, np.array([[0, 1, 2]]), "t", Look(np.array([0]), None, [mat]))
+    assert np.allclose(m.look.materials[0].base_color, [1, 0.5, 0, 1])
+    assert np.allclose(mat.base_color, [2.0, 0.5, -1.0, 1.0])

@@ -15,7 +15,7 @@ Principled/Diffuse BSDF whose Base Color is an Image Texture or a plain value.
 from __future__ import annotations
 
 import io
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -103,18 +103,19 @@ def check_look(look: Look, n_faces: int, where: str) -> Look:
             raise LookError(f"{where}: texture coordinates must be ({n_faces}, 3, 2), got {uvs.shape}")
         if not np.isfinite(uvs).all():
             raise LookError(f"{where}: texture coordinates hold NaN or infinite values")
+    materials = []
     for m in look.materials:
         c = np.asarray(m.base_color, np.float32).reshape(-1)
         if c.shape != (4,) or not np.isfinite(c).all():
             raise LookError(f"{where}: material {m.name!r}: base colour must be 4 finite numbers")
-        m.base_color = np.clip(c, 0.0, 1.0)
+        materials.append(replace(m, base_color=np.clip(c, 0.0, 1.0)))  # the caller's material stays as it was
         if m.image is not None:
             img = m.image
             if (img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] not in (3, 4)
                     or not (1 <= img.shape[0] <= MAX_TEXTURE_SIDE and 1 <= img.shape[1] <= MAX_TEXTURE_SIDE)):
                 raise LookError(f"{where}: material {m.name!r}: image must be (H, W, 3|4) uint8 with sides up to "
                                 f"{MAX_TEXTURE_SIDE}, got {img.shape} {img.dtype}")
-    return Look(slots.astype(np.int32), uvs, list(look.materials))
+    return Look(slots.astype(np.int32), uvs, materials)
 
 
 # ------------------------------------------------------------------------------------------------ shading
