@@ -109,6 +109,12 @@ def material_look(mat) -> tuple[list[float], np.ndarray | None]:
     return list(socket.default_value), None
 
 
+def linear_to_srgb(rgb: np.ndarray) -> np.ndarray:
+    """Linear values, clipped to [0, 1], sRGB-encoded (the standard transfer curve)."""
+    rgb = np.clip(rgb, 0.0, 1.0)
+    return np.where(rgb <= 0.0031308, 12.92 * rgb, 1.055 * np.power(rgb, 1 / 2.4) - 0.055)
+
+
 def image_pixels(img) -> np.ndarray | None:
     """(H, W, 4) uint8 of a Blender image, row 0 at the top, sRGB-encoded (float images are encoded here); None
     when it has no pixels or is over MAX_EXPORT_SIDE."""
@@ -121,8 +127,7 @@ def image_pixels(img) -> np.ndarray | None:
     img.pixels.foreach_get(px)
     px = px.reshape(h, w, 4)[::-1]
     if img.is_float:
-        rgb = np.clip(px[..., :3], 0.0, 1.0)
-        px[..., :3] = np.where(rgb <= 0.0031308, rgb * 12.92, 1.055 * rgb ** (1 / 2.4) - 0.055)
+        px[..., :3] = linear_to_srgb(px[..., :3])
     return np.ascontiguousarray(np.clip(px * 255 + 0.5, 0, 255).astype(np.uint8))
 
 

@@ -186,8 +186,7 @@ def final_camera(depsgraph, width: int, height: int) -> np.ndarray:
 def to_display(pixels: np.ndarray, exposure: float = 0.0) -> np.ndarray:
     """Linear RGBA -> sRGB-encoded RGBA for the viewport texture (the standard view transform; the final render
     goes through Blender's own colour management)."""
-    rgb = np.clip(pixels[..., :3] * (2.0 ** exposure), 0.0, 1.0)
-    srgb = np.where(rgb <= 0.0031308, 12.92 * rgb, 1.055 * np.power(rgb, 1 / 2.4) - 0.055)
+    srgb = export.linear_to_srgb(pixels[..., :3] * (2.0 ** exposure))
     return np.concatenate([srgb, pixels[..., 3:4]], axis=-1).astype(np.float32)
 
 
