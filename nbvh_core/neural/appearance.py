@@ -197,21 +197,6 @@ def finalize_head(head: AppearanceHead, table_bits: int, network_bits: int) -> N
     head.eval()
 
 
-def head_stored_bytes(cfg: AppearanceConfig, table_bits: int, network_bits: int) -> dict[str, int]:
-    """Bytes the file holds for a head: appearance.features (+ 8 bytes per level and feature of affine at 8 bits),
-    appearance.network (float16 unless network_bits is 32) and appearance.patches (10 float32 + a uint16 slot
-    each)."""
-    rows = cfg.levels * (1 << cfg.log2_table) * cfg.features
-    feats = rows * table_bits // 8 + (8 * cfg.levels * cfg.features if table_bits == 8 else 0)
-    d, params = cfg.levels * cfg.features + 3, 0
-    for _ in range(cfg.hidden):
-        params += d * cfg.width + cfg.width
-        d = cfg.width
-    params += d * cfg.outputs + cfg.outputs
-    return {"appearance.features": feats, "appearance.network": params * (4 if network_bits == 32 else 2),
-            "appearance.patches": cfg.patches * (2 * map_width(cfg.patch_degree) * 4 + 2)}
-
-
 def map_width(degree: int) -> int:
     """Numbers per coordinate of a patch map: the basis (4 or 10) and the fit error."""
     return 5 if degree == 1 else 11
