@@ -4,10 +4,8 @@ are torch-free all the way down), no function in nbvh_core over 80 lines, and ev
 from __future__ import annotations
 
 import ast
-import ctypes
 from pathlib import Path
 
-import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 CORE = ROOT / "nbvh_core"
@@ -167,23 +165,31 @@ def test_no_function_in_the_repository_is_longer_than_80_lines():
     assert not long, long
 
 
-def test_c_signatures_are_read_from_the_source_and_bind_the_library():
-    from nbvh_core import kernels
+def _calls_the_library(tree: ast.AST) -> list[str]:
+    """What in a module reaches the compiled library directly: a `nbvh_*` attribute (a C entry), a raw address
+    (`data_ptr`, `.ctypes.data`) or the library handle (`load()` of kernels)."""
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Attribute) and (node.attr.startswith("nbvh_") or node.attr == "data_ptr"
+                                                or node.attr == "data" and isinstance(node.value, ast.Attribute)
+                                                and node.value.attr == "ctypes"):
+            found.append(f"line {node.lineno}: .{node.attr}")
+        if isinstance(node, ast.ImportFrom) and (node.module or "").endswith("kernels.library"):
+            found.append(f"line {node.lineno}: imports kernels.library")
+        if (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "load"
+                and isinstance(node.func.value, ast.Name) and node.func.value.id == "kernels"):
+            found.append(f"line {node.lineno}: kernels.load()")
+    return found
 
-    sigs = kernels.c_signatures()
-    assert {"nbvh_encode_forward", "nbvh_net_train", "nbvh_vqad_soft_backward", "nbvh_leaves_traverse"} <= set(sigs)
-    restype, argtypes, names = sigs["nbvh_encode_forward"]
-    assert restype is None and names[:3] == ["points", "n", "table"]
-    assert argtypes[:3] == [ctypes.c_void_p, ctypes.c_int64, ctypes.c_void_p] and argtypes[-1] is ctypes.c_int
-    assert sigs["nbvh_leaves_traverse"][0] is ctypes.c_void_p
-    assert kernels.abi_version() == kernels.abi_version(kernels.SOURCE.read_text()) > 0
-    # A made-up declaration is parsed the same way (the parser, not a table, is the source of truth).
-    fake = 'extern "C" {\nvoid nbvh_x(const float* a, int64_t n,\n            double w, uint8_t* out) {\n}\n}'
-    assert kernels.c_signatures(fake)["nbvh_x"][1] == [ctypes.c_void_p, ctypes.c_int64, ctypes.c_double,
-                                                         ctypes.c_void_p]
-    lib = kernels.load()
-    if lib is None:
-        pytest.skip(kernels.describe())
-    assert lib.nbvh_encode_forward.argtypes == argtypes
-    with pytest.raises(TypeError):  # a call site with a missing argument fails loudly, not in C
-        lib.nbvh_encode_forward(0, 0)
+
+def test_only_the_bindings_module_calls_the_compiled_library():
+    allowed = {"nbvh_core.kernels.bindings", "nbvh_core.kernels.library", "nbvh_core.kernels"}
+    offenders = {}
+    for p in sorted(CORE.rglob("*.py")):
+        name = _module_name(p)
+        if name not in allowed and (found := _calls_the_library(ast.parse(p.read_text()))):
+            offenders[name] = found
+    assert not offenders, offenders
+    planted = "from ..kernels import load\nx = load().nbvh_encode_forward(t.data_ptr())\n"
+    assert len(_calls_the_library(ast.parse(planted))) == 2
+

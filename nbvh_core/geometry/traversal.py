@@ -17,7 +17,6 @@ t_enter <= t_max. Rays that start inside a box get t_enter = 0. Division by a ze
 """
 from __future__ import annotations
 
-import ctypes
 
 from dataclasses import dataclass
 
@@ -25,6 +24,7 @@ import numpy as np
 import torch
 
 from .. import kernels
+from ..kernels import bindings
 from .bvh import BVH
 
 
@@ -107,10 +107,6 @@ class CompactBVH:
     @property
     def device(self) -> torch.device:
         return torch.device("cpu")
-
-    def pointers(self) -> tuple[int, int, int]:
-        """(codes, left, leaf) addresses for the kernel."""
-        return (self.packed["boxes"].ctypes.data, self.packed["left"].ctypes.data, self.packed["leaf"].ctypes.data)
 
 
 def ray_box(rays_o: torch.Tensor, inv_d: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor,
@@ -212,7 +208,6 @@ def leaves_along_rays(tree: TorchBVH, rays_o: torch.Tensor, rays_d: torch.Tensor
 def _leaves_along_rays_fast(tree: TorchBVH, rays_o: torch.Tensor, rays_d: torch.Tensor,
                             t_max: torch.Tensor | None) -> LeafHits:
     """`leaves_along_rays` by the C++ kernel: one per-ray stack loop into per-thread lists, then copied out."""
-    lib, p = kernels.load(), kernels.ptr
     n = rays_o.shape[0]
     o = rays_o.to(torch.float32).contiguous()
     inv = _inverse(rays_d.to(torch.float32)).contiguous()
@@ -220,14 +215,14 @@ def _leaves_along_rays_fast(tree: TorchBVH, rays_o: torch.Tensor, rays_d: torch.
     left, leaf = tree.int32_arrays()
     lo, hi = tree.lo.contiguous(), tree.hi.contiguous()
     counts = torch.empty(n, dtype=torch.int64)
-    total = ctypes.c_int64(0)
-    handle = lib.nbvh_leaves_traverse(p(o), p(inv), n, p(tm), p(lo), p(hi), p(left), p(leaf), tree.max_depth + 2,
-                                      p(counts), ctypes.byref(total), kernels.threads())
-    k = total.value
+    total = torch.zeros(1, dtype=torch.int64)
+    handle = bindings.leaves_traverse(rays_o=o, inv_d=inv, n=n, t_max_arr=tm, node_lo=lo, node_hi=hi, node_left=left,
+                                      node_leaf=leaf, depth=tree.max_depth + 2, counts=counts, total=total)
+    k = int(total)
     node = torch.empty(k, dtype=torch.int64)
     t_enter = torch.empty(k, dtype=torch.float32)
     t_exit = torch.empty(k, dtype=torch.float32)
-    lib.nbvh_leaves_collect(handle, p(node), p(t_enter), p(t_exit))
+    bindings.leaves_collect(handle=handle, out_node=node, out_te=t_enter, out_tx=t_exit)
     offsets = torch.zeros(n + 1, dtype=torch.int64)
     offsets[1:] = torch.cumsum(counts, 0)
     ray = torch.repeat_interleave(torch.arange(n), counts)
@@ -352,21 +347,20 @@ class LeafStream:
 
     def _next_fast(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """`next()` by the C++ kernel: each live ray pops its own stack until its next leaf (same order)."""
-        lib, p = kernels.load(), kernels.ptr
         tree = self.tree
         n = self.sp.shape[0]
         self.t_max = self.t_max.contiguous()
         if self.compact:
-            codes, left, leaf = tree.pointers()
-            lib.nbvh_stream_next_q(p(self._o), p(self._inv), n, codes, left, leaf, p(self.stack_node),
-                                   p(self.stack_t), p(self.stack_box), p(self.sp), p(self.t_max),
-                                   self.stack_node.shape[1], p(self._out_leaf), p(self._out_te), p(self._out_tx),
-                                   kernels.threads())
+            bindings.stream_next_q(rays_o=self._o, inv_d=self._inv, n=n, codes=tree.packed["boxes"],
+                                   node_left=tree.packed["left"], node_leaf=tree.packed["leaf"],
+                                   stack_node=self.stack_node, stack_t=self.stack_t, stack_box=self.stack_box,
+                                   sp_arr=self.sp, t_max_arr=self.t_max, depth=self.stack_node.shape[1],
+                                   out_leaf=self._out_leaf, out_te=self._out_te, out_tx=self._out_tx)
             ray = torch.nonzero(self._out_leaf >= 0).squeeze(1)
             return ray, self._out_leaf[ray].to(torch.int64), self._out_te[ray], self._out_tx[ray]
-        lib.nbvh_stream_next(p(self._o), p(self._inv), n, p(tree.records),  # the node records, read in place
-                             p(self.stack_node), p(self.stack_t), p(self.sp), p(self.t_max),
-                             self.stack_node.shape[1], p(self._out_leaf), p(self._out_te), p(self._out_tx),
-                             kernels.threads())
+        bindings.stream_next(rays_o=self._o, inv_d=self._inv, n=n, records=tree.records,  # read in place
+                             stack_node=self.stack_node, stack_t=self.stack_t, sp_arr=self.sp, t_max_arr=self.t_max,
+                             depth=self.stack_node.shape[1], out_leaf=self._out_leaf, out_te=self._out_te,
+                             out_tx=self._out_tx)
         ray = torch.nonzero(self._out_leaf >= 0).squeeze(1)
         return ray, self._out_leaf[ray].to(torch.int64), self._out_te[ray], self._out_tx[ray]

@@ -1,5 +1,7 @@
-"""The fast path: fused C++ CPU kernels (`nbvh_kernels.cpp`, plain C ABI through ctypes, OpenMP), the switch
-between them and the reference torch code (`library.py`), and the plan of which one runs each stage (`plan.py`).
+"""The fast path: fused C++ CPU kernels (`native/`: one source per component, their C ABI declared once in
+`nbvh_kernels.h`; OpenMP), built and switched against the reference torch code by `library.py`, called only
+through `bindings.py` (keyword arguments checked against the header), and the plan of which path runs each stage
+(`plan.py`).
 
 The kernels:
 * `encode` - hash-grid / HashVQAD lookup fused per point: cell, hash, trilinear weights and the 8-row weighted sum
@@ -16,12 +18,12 @@ The kernels:
 * `vqad_soft_forward` / `vqad_soft_backward` - HashVQAD's soft row table (softmax over t candidates) and its
   backward into the rows and the logits.
 """
-from .library import (PATHS, SOURCE, abi_version, build, c_signatures, current_path, describe, fast_enabled,
-                      keep_freed_memory, library_path, load, ptr, set_path, threads, using_path)
+from .library import (HEADER, PATHS, abi_hash, build, current_path, describe, fast_enabled, keep_freed_memory,
+                      library_path, load, set_path, threads, using_path)
 from .plan import (KernelPlan, encoding_kernel, network_kernel, optimizer_kernel, plan, soft_table_kernel,
                    train_step_kernel, traversal_kernel)
 
-__all__ = ["PATHS", "SOURCE", "abi_version", "build", "c_signatures", "current_path", "describe", "fast_enabled",
-           "keep_freed_memory", "library_path", "load", "ptr", "set_path", "threads", "using_path", "KernelPlan",
+__all__ = ["HEADER", "PATHS", "abi_hash", "build", "current_path", "describe", "fast_enabled",
+           "keep_freed_memory", "library_path", "load", "set_path", "threads", "using_path", "KernelPlan",
            "encoding_kernel", "network_kernel", "optimizer_kernel", "plan", "soft_table_kernel", "train_step_kernel",
            "traversal_kernel"]

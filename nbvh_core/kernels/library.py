@@ -7,8 +7,8 @@ CPU where they build, reference code otherwise and on CUDA), or 'reference' (pur
 **The library**: built at install (`python -m nbvh_core.kernels build`, run by scripts/ensure_venv.sh) or on
 first use, with g++ -O3 -march=native -ffp-contract=off -fopenmp, into a cache folder keyed by the source, the
 compiler flags and the CPU; no compiler (or a failed build) means the reference path, with the reason in
-`describe()`. Every C signature is declared once, in the C++ source's `extern "C"` block; `c_signatures` reads
-the ctypes argument types from it.
+`describe()`. The C entry points are declared once, in `native/nbvh_kernels.h`, and called only through
+`bindings.py`; the ABI version is that header's hash (`abi_hash`).
 """
 from __future__ import annotations
 
@@ -25,14 +25,27 @@ from pathlib import Path
 
 import torch
 
-SOURCE = Path(__file__).with_name("nbvh_kernels.cpp")
-FLAGS = ["-O3", "-march=native", "-ffp-contract=off", "-fopenmp", "-shared", "-fPIC", "-std=c++17"]
+NATIVE = Path(__file__).with_name("native")
+HEADER = NATIVE / "nbvh_kernels.h"
+FLAGS = ["-O3", "-march=native", "-ffp-contract=off", "-fopenmp", "-fPIC", "-std=c++17"]
 PATHS = ("fast", "reference")
 
 _path = os.environ.get("NBVH_PATH", "fast")
 _lib: ctypes.CDLL | None = None
 _load_error: str | None = None
 _tried = False
+
+
+def sources() -> list[Path]:
+    """The C++ translation units, one per component (encode, networks, vqad, traversal, abi)."""
+    return sorted(NATIVE.glob("*.cpp"))
+
+
+def abi_hash(header: bytes | None = None) -> int:
+    """The ABI version: the first 64 bits of the header's SHA-256. Built into the library (`nbvh_abi_hash`), so a
+    library built against another header is refused, and nobody edits a version number by hand."""
+    data = header if header is not None else HEADER.read_bytes()
+    return int.from_bytes(hashlib.sha256(data).digest()[:8], "little")
 
 
 def set_path(name: str) -> None:
@@ -93,15 +106,17 @@ def _cpu_key() -> str:
 
 
 def library_path() -> Path:
-    """Where the built library lives: $NBVH_CACHE or ~/.cache/nbvh, keyed by source, flags, compiler, CPU."""
-    key = hashlib.sha256(SOURCE.read_bytes() + " ".join(FLAGS).encode() + _cpu_key().encode()
-                         + (shutil.which("g++") or "").encode()).hexdigest()[:16]
+    """Where the built library lives: $NBVH_CACHE or ~/.cache/nbvh, keyed by sources, flags, compiler, CPU."""
+    digest = hashlib.sha256(" ".join(FLAGS).encode() + _cpu_key().encode() + (shutil.which("g++") or "").encode())
+    for path in sorted(NATIVE.glob("*.[ch]*")):
+        digest.update(path.name.encode() + path.read_bytes())
     root = Path(os.environ.get("NBVH_CACHE") or Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "nbvh")
-    return root / f"nbvh_kernels-{key}.so"
+    return root / f"nbvh_kernels-{digest.hexdigest()[:16]}.so"
 
 
 def build(verbose: bool = False) -> Path:
-    """Compile the kernels (atomically: a temp file renamed into place). Raises RuntimeError on failure."""
+    """Compile the kernels: the translation units in parallel, then one link; the library appears atomically (a temp
+    file renamed into place). Raises RuntimeError on failure."""
     target = library_path()
     if target.exists():
         return target
@@ -109,16 +124,21 @@ def build(verbose: bool = False) -> Path:
     if compiler is None:
         raise RuntimeError("no C++ compiler (g++) found")
     target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(suffix=".so", dir=target.parent)
-    os.close(fd)
-    cmd = [compiler, *FLAGS, str(SOURCE), "-o", tmp]
-    proc = subprocess.run(cmd, capture_output=True, text=True)
-    if proc.returncode != 0:
-        os.unlink(tmp)
-        raise RuntimeError(f"compiling the kernels failed: {' '.join(cmd)}\n{proc.stderr[-2000:]}")
-    if verbose:
-        print(" ".join(cmd), file=sys.stderr)
-    os.replace(tmp, target)
+    with tempfile.TemporaryDirectory(dir=target.parent) as tmp:
+        flags = [*FLAGS, f"-DNBVH_ABI_HASH={abi_hash()}ULL"]
+        objects = [Path(tmp) / f"{src.stem}.o" for src in sources()]
+        cmds = [[compiler, *flags, "-c", str(src), "-o", str(obj)] for src, obj in zip(sources(), objects)]
+        cmds.append([compiler, *FLAGS, "-shared", *map(str, objects), "-o", str(Path(tmp) / "lib.so")])
+        for group in (cmds[:-1], cmds[-1:]):
+            procs = [(cmd, subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
+                     for cmd in group]
+            for cmd, proc in procs:
+                _, err = proc.communicate()
+                if proc.returncode != 0:
+                    raise RuntimeError(f"compiling the kernels failed: {' '.join(cmd)}\n{err[-2000:]}")
+                if verbose:
+                    print(" ".join(cmd), file=sys.stderr)
+        os.replace(Path(tmp) / "lib.so", target)
     return target
 
 
@@ -133,49 +153,14 @@ def load() -> ctypes.CDLL | None:
         return None
     try:
         lib = ctypes.CDLL(str(build()))
-        lib.nbvh_abi_version.restype = ctypes.c_int
-        if lib.nbvh_abi_version() != abi_version():
-            raise RuntimeError("stale kernel library (ABI version mismatch)")
-    except (OSError, RuntimeError) as exc:
+        lib.nbvh_abi_hash.restype = ctypes.c_uint64
+        if lib.nbvh_abi_hash() != abi_hash():
+            raise RuntimeError("stale kernel library (built against another nbvh_kernels.h)")
+    except (OSError, RuntimeError, AttributeError) as exc:
         _load_error = str(exc).splitlines()[0]
         return None
-    for name, (restype, argtypes, _) in c_signatures().items():
-        fn = getattr(lib, name)
-        fn.restype, fn.argtypes = restype, argtypes
     _lib = lib
     return lib
-
-
-_C_TYPES = {"int": ctypes.c_int, "int32_t": ctypes.c_int32, "int64_t": ctypes.c_int64, "float": ctypes.c_float,
-            "double": ctypes.c_double, "void": None}
-
-
-def c_signatures(source: str | None = None) -> dict[str, tuple]:
-    """{name: (restype, argtypes, argument names)} of every function in the source's `extern "C"` block, read from
-    the C++ definitions themselves: the one place a signature is declared (a pointer of any type is a c_void_p;
-    ctypes then checks every call's argument count and kinds)."""
-    import re
-
-    text = source if source is not None else SOURCE.read_text()
-    block = text[text.index('extern "C" {'):]
-    out = {}
-    for m in re.finditer(r"^(void\s*\*|int|void)\s+(nbvh_\w+)\(([^)]*)\)\s*\{", block, re.M):
-        ret, name, params = m.group(1).replace(" ", ""), m.group(2), m.group(3)
-        argtypes, names = [], []
-        for param in filter(None, (p.strip() for p in params.replace("\n", " ").split(","))):
-            ctype, arg = param.rsplit(None, 1) if "*" not in param else (param[:param.rindex("*") + 1], param[param.rindex("*") + 1:])
-            names.append(arg.strip())
-            argtypes.append(ctypes.c_void_p if "*" in ctype else _C_TYPES[ctype.replace("const", "").strip()])
-        out[name] = (ctypes.c_void_p if ret == "void*" else _C_TYPES[ret], argtypes, names)
-    return out
-
-
-def abi_version(source: str | None = None) -> int:
-    """The ABI version the source declares (`nbvh_abi_version`); a library built from other source is refused."""
-    import re
-
-    text = source if source is not None else SOURCE.read_text()
-    return int(re.search(r"int nbvh_abi_version\(\)\s*\{\s*return (\d+);", text).group(1))
 
 
 def keep_freed_memory() -> bool:
@@ -189,12 +174,3 @@ def keep_freed_memory() -> bool:
         return bool(libc.mallopt(m_mmap_threshold, 32 << 20)) and bool(libc.mallopt(m_trim_threshold, 512 << 20))
     except (OSError, AttributeError):
         return False
-
-
-def ptr(t: torch.Tensor | None) -> int | None:
-    """Address of a contiguous CPU tensor's data (None for None)."""
-    if t is None:
-        return None
-    assert t.is_contiguous() and t.device.type == "cpu", "kernels take contiguous CPU tensors"
-    return t.data_ptr()
-

@@ -6,7 +6,7 @@ pairs into the first hit in the kernel (`segments_first_hits`: `networks.KMLP.de
 skipped); training adds `networks.KMLP.loss` (the first-hit combination in log space) and its backward in the kernel,
 and the overlapping windows' input gradients add up per point before the encoding backward.
 
-`nbvh_net_segments` and `nbvh_net_train` (nbvh_kernels.cpp) compute, per tile of 48 segments kept in the cache,
+`nbvh_net_segments` and `nbvh_net_train` (kernels/native/networks.cpp) compute, per tile of 48 segments kept in the cache,
 the segment points, the grid lookup and every Linear layer (bias and ReLU fused; AVX2 register-blocked
 micro-kernels); training adds `networks.MLP.loss` and its backward (the Linear layers' gradients, then the table's
 through the encoding backward kernel). The reference is the layer-by-layer torch model; tests/test_fastpath.py
@@ -17,7 +17,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from ..kernels.library import load, ptr, threads
+from ..kernels import bindings
 from ..kernels.plan import network_kernel, train_step_kernel
 from .encodings.fused import level_rows
 from .networks import linear_weight
@@ -55,8 +55,10 @@ def pack(model) -> tuple[torch.Tensor, torch.Tensor]:
     return dims, params.contiguous()
 
 
-def _grid_args(spec, table, codes, code_rows) -> tuple:
-    return spec.args(level_rows(table), codes, code_rows)[:-1]  # without the thread count (passed last)
+def _segments(samples) -> dict:
+    """The segment arguments of a kernel call: rays (N, 3), and per segment its ray, t_enter, t_exit (B,)."""
+    return dict(rays_o=samples.rays_o.contiguous(), rays_d=samples.rays_d.contiguous(), ray=samples.ray.contiguous(),
+                te=samples.t_enter.contiguous(), tx=samples.t_exit.contiguous(), b=len(samples))
 
 
 def segments_raw(model, packed: tuple[torch.Tensor, torch.Tensor], rays_o: torch.Tensor, rays_d: torch.Tensor,
@@ -90,12 +92,12 @@ def _net_segments(model, packed, rays_o, rays_d, ray, t_enter, t_exit, out: torc
     look = model.encoding.fused_lookup()
     k = model.cfg.network.k
     frac = torch.linspace(0.0, 1.0, k, dtype=torch.float32)
-    ray, t_enter, t_exit = ray.contiguous(), t_enter.contiguous(), t_exit.contiguous()
-    load().nbvh_net_segments(
-        ptr(rays_o.contiguous()), ptr(rays_d.contiguous()), ptr(ray), ptr(t_enter), ptr(t_exit), ray.numel(), k,
-        ptr(frac), *look.kernel_args(), *_grid_args(look.spec, look.rows, look.codes, look.code_rows),
-        int(_is_kmlp(model)), int(decode), len(dims) - 1, ptr(dims), ptr(params), int(params.dtype == torch.float16),
-        ptr(out), threads())
+    bindings.net_segments(
+        rays_o=rays_o.contiguous(), rays_d=rays_d.contiguous(), ray=ray.contiguous(), te=t_enter.contiguous(),
+        tx=t_exit.contiguous(), b=ray.numel(), k=k, frac=frac, **look.kernel_args(),
+        **look.spec.args(level_rows(look.rows), look.codes, look.code_rows), kmlp=int(_is_kmlp(model)),
+        decode=int(decode), n_layers=len(dims) - 1, dims=dims, params=params,
+        weight_kind=int(params.dtype == torch.float16), out=out)
     return out
 
 
@@ -120,10 +122,7 @@ def entries_read(model, samples, frac: torch.Tensor) -> torch.Tensor | None:
         return None
     needed = torch.zeros(sum(enc.reachable_entries()), dtype=torch.uint8)
     spec = enc.grid_spec()
-    load().nbvh_mark_entries(
-        ptr(samples.rays_o.contiguous()), ptr(samples.rays_d.contiguous()), ptr(samples.ray.contiguous()),
-        ptr(samples.t_enter.contiguous()), ptr(samples.t_exit.contiguous()), len(samples), frac.numel(), ptr(frac),
-        *spec.args(0, None, 0)[:-1], ptr(needed), threads())
+    bindings.mark_entries(**_segments(samples), k=frac.numel(), frac=frac, **spec.args(0, None, 0), needed=needed)
     return needed
 
 
@@ -131,7 +130,6 @@ def train_step(model, samples, want_raw: bool = False) -> tuple[float, dict]:
     """Loss of `model` on labelled `samples` (as `train.samples_loss` + `MLP.loss`) and its gradients, in one
     kernel call; sets `.grad` of every parameter (call after `zero_grad(set_to_none=True)`). Returns the total
     loss and its parts (bce, depth_l1, normal_l1; with want_raw also 'raw': the (B, 5) network outputs)."""
-    lib = load()
     net_cfg = model.cfg.network
     dims, params = pack(model)
     assert params.dtype == torch.float32, "training runs on float32 weights"
@@ -153,13 +151,12 @@ def train_step(model, samples, want_raw: bool = False) -> tuple[float, dict]:
     points, dx = _scratch(model, b, k, feat_width)
     raw = (torch.empty((b, k - 1, 5) if kmlp else (b, 5), dtype=torch.float32)) if want_raw else None
     loss_parts = torch.zeros(5 if kmlp else 4, dtype=torch.float64)
-    lib.nbvh_net_train(
-        ptr(samples.rays_o.contiguous()), ptr(samples.rays_d.contiguous()), ptr(samples.ray.contiguous()),
-        ptr(samples.t_enter.contiguous()), ptr(samples.t_exit.contiguous()), b, k, ptr(frac), ptr(table),
-        *_grid_args(spec, table, codes, code_rows), int(kmlp), len(dims) - 1, ptr(dims), ptr(params), ptr(hit),
-        ptr(local_t), ptr(normal), int(hit.sum()), float(net_cfg.depth_weight), float(net_cfg.normal_weight),
-        int(net_cfg.normal_loss == "unoriented"), float(net_cfg.normal_unit_weight),
-        ptr(loss_parts), ptr(grad_params), ptr(grad_table), ptr(points), ptr(dx), ptr(raw), threads())
+    bindings.net_train(
+        **_segments(samples), k=k, frac=frac, table=table, **spec.args(level_rows(table), codes, code_rows),
+        kmlp=int(kmlp), n_layers=len(dims) - 1, dims=dims, params=params, hit=hit, local_t=local_t, normal=normal,
+        hit_count=int(hit.sum()), w_t=float(net_cfg.depth_weight), w_n=float(net_cfg.normal_weight),
+        unoriented=int(net_cfg.normal_loss == "unoriented"), w_unit=float(net_cfg.normal_unit_weight),
+        loss_out=loss_parts, grad_params=grad_params, grad_table=grad_table, points=points, dx=dx, out_raw=raw)
     # Unpack the Linear gradients (stored transposed, like the parameters).
     pos = 0
     for m in linears:

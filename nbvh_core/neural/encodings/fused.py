@@ -5,12 +5,11 @@ Same answer as `corner_indices` + `gather_weighted_sum` (tested in tests/test_fa
 """
 from __future__ import annotations
 
-import ctypes
 from dataclasses import dataclass
 
 import torch
 
-from ... import kernels
+from ...kernels import bindings
 from .base import EncodingConfig, code_width, level_scales, vertex_resolution
 
 
@@ -31,11 +30,12 @@ class GridSpec:
         self.dense = torch.tensor([r ** 3 <= vertex_table for r in res], dtype=torch.uint8)
         self.code_bits = code_width(cfg.candidates)  # of frozen HashVQAD codes, when a lookup has them
 
-    def args(self, rows: int, codes: torch.Tensor | None, code_rows: int) -> tuple:
-        p = kernels.ptr
-        return (self.cfg.levels, self.cfg.features, p(self.scales), p(self.res), p(self.dense),
-                ctypes.c_int64(self.vertex_table), ctypes.c_int64(rows), p(codes), ctypes.c_int64(code_rows),
-                self.code_bits, kernels.threads())
+    def args(self, rows: int, codes: torch.Tensor | None, code_rows: int) -> dict:
+        """The grid's keyword arguments of a kernel call (nbvh_kernels.h): `rows` per level of the table (0: a
+        soft table of the reachable entries), frozen `codes` or None and the `code_rows` they select from."""
+        return dict(levels=self.cfg.levels, features=self.cfg.features, scales=self.scales, res=self.res,
+                    dense=self.dense, vertex_table=self.vertex_table, rows=rows, codes=codes, code_rows=code_rows,
+                    code_bits=self.code_bits)
 
 
 def level_rows(table: torch.Tensor) -> int:
@@ -61,22 +61,20 @@ class FusedLookup:
     #: The kernels' table type argument.
     KIND_ARG = {"f32": 0, "f16": 1, "u8": 2}
 
-    def kernel_args(self) -> tuple:
-        """(rows, kind, offset, scale) pointers/ints as nbvh_net_segments takes them."""
-        p = kernels.ptr
-        return (p(self.rows), self.KIND_ARG[self.kind], p(self.offset), p(self.scale))
+    def kernel_args(self) -> dict:
+        """The table's keyword arguments of nbvh_net_segments."""
+        return dict(table=self.rows, table_kind=self.KIND_ARG[self.kind], qoffset=self.offset, qscale=self.scale)
 
 
 class _FusedEncode(torch.autograd.Function):
     @staticmethod
     def forward(ctx, points, table, spec, codes, code_rows):
-        lib = kernels.load()
         levels, feats = spec.cfg.levels, table.shape[-1]
         points = points.detach().contiguous()
         table_c = table.detach().contiguous()
         out = torch.empty((points.shape[0], levels * feats), dtype=torch.float32)
         args = spec.args(level_rows(table), codes, code_rows)
-        lib.nbvh_encode_forward(points.data_ptr(), points.shape[0], table_c.data_ptr(), out.data_ptr(), *args)
+        bindings.encode_forward(points=points, n=points.shape[0], table=table_c, out=out, **args)
         ctx.save_for_backward(points)
         ctx.spec, ctx.codes, ctx.code_rows, ctx.table_shape = spec, codes, code_rows, table.shape
         return out
@@ -89,8 +87,7 @@ class _FusedEncode(torch.autograd.Function):
         grad = grad.contiguous()
         g_table = torch.zeros(ctx.table_shape, dtype=torch.float32)
         args = ctx.spec.args(level_rows(g_table), ctx.codes, ctx.code_rows)
-        kernels.load().nbvh_encode_backward(points.data_ptr(), points.shape[0], grad.data_ptr(), g_table.data_ptr(),
-                                            *args)
+        bindings.encode_backward(points=points, n=points.shape[0], grad_out=grad, grad_table=g_table, **args)
         return None, g_table, None, None, None
 
 
@@ -112,8 +109,8 @@ def fused_encode_half(points: torch.Tensor, table_half: torch.Tensor, spec: Grid
     points = points.to(torch.float32).contiguous()
     out = torch.empty((points.shape[0], table_half.shape[0] * table_half.shape[2]), dtype=torch.float32)
     codes = None if codes is None else codes.contiguous()
-    kernels.load().nbvh_encode_forward_f16(points.data_ptr(), points.shape[0], table_half.data_ptr(), out.data_ptr(),
-                                           *spec.args(table_half.shape[1], codes, code_rows))
+    bindings.encode_forward_f16(points=points, n=points.shape[0], table=table_half, out=out,
+                                **spec.args(table_half.shape[1], codes, code_rows))
     return out
 
 
@@ -124,7 +121,6 @@ def fused_encode_u8(points: torch.Tensor, look: FusedLookup) -> torch.Tensor:
     points = points.to(torch.float32).contiguous()
     levels, rows, feats = look.rows.shape
     out = torch.empty((points.shape[0], levels * feats), dtype=torch.float32)
-    kernels.load().nbvh_encode_forward_u8(points.data_ptr(), points.shape[0], look.rows.data_ptr(),
-                                          kernels.ptr(look.offset), kernels.ptr(look.scale), out.data_ptr(),
-                                          *look.spec.args(rows, look.codes, look.code_rows))
+    bindings.encode_forward_u8(points=points, n=points.shape[0], table=look.rows, qoffset=look.offset,
+                               qscale=look.scale, out=out, **look.spec.args(rows, look.codes, look.code_rows))
     return out

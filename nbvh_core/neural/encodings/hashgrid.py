@@ -143,10 +143,10 @@ class HashGrid(Encoding):
 
     def _half_table(self) -> torch.Tensor:
         """float16 copy of `table`, refreshed whenever the table changes (its version counter)."""
-        key = (self.table.data_ptr(), self.table._version)
-        if self._half is None or self._half[0] != key:
-            self._half = (key, self.table.detach().to(torch.float16).contiguous())
-        return self._half[1]
+        table = self.table
+        if self._half is None or self._half[0] is not table or self._half[1] != table._version:
+            self._half = (table, table._version, table.detach().to(torch.float16).contiguous())
+        return self._half[2]
 
     def reference_forward(self, points: torch.Tensor) -> torch.Tensor:
         """The pure torch lookup (the reference the fused kernel is tested against)."""

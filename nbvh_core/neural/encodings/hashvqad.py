@@ -28,6 +28,7 @@ import torch
 from torch import nn
 
 from ... import kernels
+from ...kernels import bindings
 from .base import MASK32, PRIMES, EncodingConfig, code_width, level_vertex_counts
 from .hashgrid import HashGrid, table_features_bytes
 
@@ -47,16 +48,14 @@ class _SoftTable(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, logits, table, cand, reach, tau, index_size, needed=None):
-        lib = kernels.load()
         t = logits.shape[1]
         L, T, F = table.shape
         H = index_size
         logits_c, table_c = logits.detach().contiguous(), table.detach().contiguous()
         probs = torch.empty_like(logits_c)
         soft = torch.empty((logits.shape[0], F), dtype=torch.float32)
-        lib.nbvh_vqad_soft_forward(logits_c.data_ptr(), table_c.data_ptr(), cand.data_ptr(), reach.data_ptr(), L, H,
-                                   T, t, F, 1.0 / tau, kernels.ptr(needed), probs.data_ptr(), soft.data_ptr(),
-                                   kernels.threads())
+        bindings.vqad_soft_forward(logits=logits_c, table=table_c, cand=cand, reach=reach, levels=L, H=H, T=T, t=t,
+                                   F=F, inv_tau=1.0 / tau, needed=needed, probs=probs, soft=soft)
         ctx.save_for_backward(probs, table_c, cand, reach)
         ctx.tau, ctx.index_size = tau, index_size
         return soft
@@ -70,9 +69,9 @@ class _SoftTable(torch.autograd.Function):
         grad_soft = grad_soft.contiguous()
         g_table = torch.zeros_like(table)
         g_logits = torch.empty_like(probs)
-        kernels.load().nbvh_vqad_soft_backward(probs.data_ptr(), table.data_ptr(), cand.data_ptr(), reach.data_ptr(),
-                                               grad_soft.data_ptr(), L, H, T, t, F, 1.0 / ctx.tau,
-                                               g_table.data_ptr(), g_logits.data_ptr(), kernels.threads())
+        bindings.vqad_soft_backward(probs=probs, table=table, cand=cand, reach=reach, grad_soft=grad_soft, levels=L,
+                                    H=H, T=T, t=t, F=F, inv_tau=1.0 / ctx.tau, grad_table=g_table,
+                                    grad_logits=g_logits)
         return g_logits, g_table, None, None, None, None, None
 
 
