@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The main job on a bundled sample: compress it into neural geometry and write the model, its report and a
-# preview (mesh left, neural right) to out/<name>/.
+# previews (the model and the mesh from the same view) to out/<name>/.
 # Usage: scripts/demo.sh [SAMPLE or MESH FILE] [compress options, e.g. --preset preview]   (default: bunny)
 set -euo pipefail
 source "$(dirname "${BASH_SOURCE[0]}")/ensure_venv.sh"

@@ -91,6 +91,11 @@ def test_batch_accounts_for_every_asset_and_a_rerun_trains_nothing(library, tmp_
         r = rows[name]
         assert r["status"] == "done" and r["model_bytes"] > 0 and 0 < r["saved_bytes"] < r["mesh_resident_bytes"]
         assert (out / r["files"]["model"]).stat().st_size == r["model_bytes"]
+        # The same result bundle as `compress` and the add-on's job write (result_bundle): report and preview.
+        stem = str(out / r["files"]["model"])[:-len(".nbvh")]
+        bundle_report = json.loads(Path(f"{stem}.report.json").read_text())
+        assert bundle_report["file_bytes"] == r["model_bytes"] and bundle_report["mesh_resident_bytes"]["total"] > 0
+        assert Path(f"{stem}.preview.png").read_bytes() == (out / "thumbs" / r["thumb_neural"]).read_bytes()
         assert (out / "thumbs" / r["thumb_original"]).exists() and (out / "thumbs" / r["thumb_neural"]).exists()
     # The copy has the blob's content: trained once, shared.
     assert rows["props__blob_copy"]["status"] == "cached" and rows["props__blob_copy"]["key"] == rows["blob"]["key"]

@@ -1,7 +1,9 @@
 import json
 import subprocess
 import sys
+from pathlib import Path
 
+import numpy as np
 import pytest
 
 from nbvh_core.app.cli import main
@@ -19,16 +21,23 @@ def tiny_model(tmp_path_factory):
     events = [json.loads(line) for line in r.stdout.splitlines() if line.startswith("{")]
     result = next(e for e in events if e["event"] == "result")
     assert result["bytes"] == out.stat().st_size
-    assert events[-1] == {"event": "written", "files": [str(out), str(out.with_suffix(".json")),
-                                                        str(out.with_suffix(".preview.png"))]}
+    stem = out.with_suffix("")
+    assert events[-1] == {"event": "written", "files": [str(out)] + [f"{stem}.{kind}" for kind in
+                                                                      ("report.json", "preview.png", "reference.png")]}
     return out
 
 
-def test_compress_writes_model_report_and_preview(tiny_model):
-    report = json.loads(tiny_model.with_suffix(".json").read_text())
-    assert report["file_bytes"] == tiny_model.stat().st_size
+def test_compress_writes_the_result_bundle(tiny_model):
+    from PIL import Image
+
+    stem = tiny_model.with_suffix("")
+    report = json.loads(Path(f"{stem}.report.json").read_text())
+    assert report["file_bytes"] == tiny_model.stat().st_size and report["texture_bytes"] == 0
     assert report["mesh_resident_bytes"]["total"] > 0 and report["quality"]["views"] == 2
-    assert tiny_model.with_suffix(".preview.png").exists()
+    assert report["source_file_bytes"] > 0
+    preview, reference = (np.asarray(Image.open(f"{stem}.{k}.png")) for k in ("preview", "reference"))
+    assert preview.shape[:2] == reference.shape[:2] == (32, 32)
+    assert preview.std() > 0 and reference.std() > 0  # the object, not an empty frame
 
 
 def test_info_eval_render(tiny_model, tmp_path):

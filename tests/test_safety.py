@@ -229,7 +229,7 @@ def test_unwritable_output_fails_before_training(tmp_path, capsys):
 
 
 def test_result_files_appear_together_or_not_at_all(tmp_path, monkeypatch):
-    targets = [tmp_path / n for n in ("m.nbvh", "m.json", "m.preview.png")]
+    targets = [tmp_path / n for n in ("m.nbvh", "m.report.json", "m.preview.png")]
     for t in targets:
         t.write_bytes(b"old " + t.name.encode())
     # A full disk while staging the preview: nothing replaced, no partial file left.

@@ -170,7 +170,7 @@ def test_cli_quality_level_and_plan(tmp_path, capsys):
     out = tmp_path / "blob.nbvh"
     rc = cli_main(["compress", "blob", "-o", str(out), "--preset", "tiny", "--quality", "preview", "--force"])
     assert rc == 0 and out.exists()
-    summary = json.loads((tmp_path / "blob.json").read_text())
+    summary = json.loads((tmp_path / "blob.report.json").read_text())
     assert summary["settings"]["target_mse"] == QUALITY_LEVELS["preview"] and summary["target_met"] is not None
     capsys.readouterr()
     rc = cli_main(["plan", "blob", "studs", "--budget-kb", "1200", "--json"])

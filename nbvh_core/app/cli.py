@@ -109,34 +109,30 @@ def _load_mesh_reporting(arg: str):
     return mesh
 
 
-def _rgb(image: np.ndarray) -> np.ndarray:
-    """(H, W) grey or (H, W, 3) colour -> (H, W, 3), so a bare reference and a coloured model sit side by side."""
-    return image if image.ndim == 3 else np.repeat(image[..., None], 3, axis=2)
-
-
 def _fmt_bytes(n: int) -> str:
     return f"{n / 1024:,.1f} KB" if n < 1024 ** 2 else f"{n / 1024 ** 2:,.2f} MB"
 
 
 def cmd_compress(args: argparse.Namespace) -> int:
-    """Train, then write the model, its JSON report and its preview as one unit (outputs.OutputSet): checked before
-    training (never over the input, never over a finished result without --overwrite, writable), one run per
-    output (outputs.OutputLock), checkpoints every --checkpoint-every seconds (resume with --resume)."""
+    """Train, then write the result bundle (result_bundle: the model, its report, its preview and the mesh's from the
+    same view) as one unit: checked before training (never over the input, never over a finished result without
+    --overwrite, writable), one run per output (outputs.OutputLock), checkpoints every --checkpoint-every seconds
+    (resume with --resume)."""
     from ..protocol.events import json_lines, progress_bar
-    from ..protocol.outputs import OutputLock, OutputSet, check_outputs, resolve_output
+    from ..protocol.outputs import OutputLock, check_outputs, resolve_output
     from ..protocol.process import outcome
+    from .result_bundle import bundle_paths
 
     sink = json_lines(sys.stdout) if args.events else progress_bar(sys.stderr)
     try:
         mesh_path = _resolve_mesh(args.mesh)
         mesh = _load_mesh_reporting(args.mesh)
         out = resolve_output(args.output, mesh.name)
-        stem = out.with_suffix("")
-        outputs = [out, Path(f"{stem}.json"), Path(f"{stem}.preview.png")]
+        paths = bundle_paths(out, ("model", "report", "preview", "reference"))
         inputs = [mesh_path] + ([Path(args.resume)] if args.resume else [])
-        check_outputs(outputs, inputs, overwrite=args.overwrite)
+        check_outputs(list(paths.values()), inputs, overwrite=args.overwrite)
         with OutputLock(out):
-            return _compress_locked(args, mesh, mesh_path, out, stem, outputs, sink, OutputSet())
+            return _compress_locked(args, mesh, mesh_path, paths, sink)
     except BaseException as exc:  # the event stream says how the run ended, whatever ended it
         if args.events:
             sink({"event": "error", "kind": outcome(exc).kind, "message": str(exc)})
@@ -166,13 +162,17 @@ def _write_winning_decimation(mesh, assessment, path: Path, mesh_path: Path, arg
           "mesh)", file=sys.stderr)
 
 
-def _compress_locked(args, mesh, mesh_path, out, stem, outputs, sink, staged) -> int:
+def _compress_locked(args, mesh, mesh_path, paths, sink) -> int:
     from ..protocol.outputs import checkpoint_for
     from .pipeline import compress_mesh, resume_settings
     from ..protocol.process import NotWorthCompressing, install_cancel_handlers
     from ..planning.settings import settings_from_request
-    from ..rendering.render import orbit_cameras, png_bytes, render_neural, render_reference
+    from ..rendering.render import orbit_cameras
     from ..protocol.quality_levels import QUALITY_LEVELS
+    from .result_bundle import View, make_bundle, write_bundle
+
+    out = paths["model"]
+    stem = out.with_suffix("")
 
     if args.resume:
         settings = resume_settings(args.resume, mesh)
@@ -205,24 +205,19 @@ def _compress_locked(args, mesh, mesh_path, out, stem, outputs, sink, staged) ->
             print(f"\ntraining state kept in {checkpoint}: continue with "
                   f"`nbvh compress {args.mesh} -o {out} --resume {checkpoint}`", file=sys.stderr)
         raise
-    summary = result.summary()
-    summary["mesh_resident_bytes"] = result.assessment["resident"]
-    summary["source_file_bytes"] = mesh_path.stat().st_size
     cam = orbit_cameras(1)[0] if args.view is None else orbit_cameras(args.views or 16)[args.view]
-    ref = render_reference(result.tracer, cam, args.size, args.size)
-    neu = render_neural(result.model, cam, args.size, args.size)
-    png = png_bytes(np.concatenate([_rgb(ref.display), _rgb(neu.display)], axis=1))
-    staged.stage(out, result.data)
-    staged.stage(outputs[1], json.dumps(summary, indent=2).encode())
-    staged.stage(outputs[2], png)
-    staged.commit()  # the model, its report and its preview appear together, or the previous ones stay
+    bundle = make_bundle(result, mesh, View(cam, args.size, args.size), tuple(paths),
+                         extra={"source_file_bytes": mesh_path.stat().st_size})
+    write_bundle(paths, bundle)  # the model, its report and its previews appear together, or the previous ones stay
+    summary = bundle.report
     if checkpoint == default_ck or args.resume == str(checkpoint):
         checkpoint.unlink(missing_ok=True)
     if args.events:
-        sink({"event": "written", "files": [str(p) for p in outputs]})
+        sink({"event": "written", "files": [str(p) for p in paths.values()]})
     else:
         q = result.quality
-        print(f"\nwrote {out} ({_fmt_bytes(result.file_bytes)}), {stem}.json, {stem}.preview.png (left: mesh, right: neural)")
+        print(f"\nwrote {out} ({_fmt_bytes(result.file_bytes)}) and, beside it, "
+              f"{', '.join(p.name for role, p in paths.items() if role != 'model')}")
         print("bytes: " + ", ".join(f"{k} {v:,}" for k, v in result.components.items()))
         resident = summary['mesh_resident_bytes']['total']
         ratio = (f"{resident / result.file_bytes:.1f}x smaller" if resident >= result.file_bytes

@@ -8,14 +8,10 @@ REQUEST.json (written by the add-on):
    "camera": {"position": [3], "target": [3], "up": [3], "fov_deg": float, "width": int, "height": int}
              (object-local coordinates; optional), "proxy_points": int}
 
-Outputs in out_dir, staged and renamed into place together at the very end (`outputs.OutputSet`: a failed,
-cancelled or killed re-run leaves the previous result of the object exactly as it was), and named in the final
-`result` event (the only marker of a finished job):
-  NAME.nbvh            the model
-  NAME.preview.png     neural rendering from the camera (or an orbit view)
-  NAME.reference.png   the mesh from the same camera (Embree), for the side-by-side report
-  NAME.points.npy      (P, 6) float32 proxy points and normals from the model's own ray hits, object-local
-  NAME.report.json     sizes by component, the mesh's resident bytes, quality, training, settings
+Outputs: the result bundle (`result_bundle`: NAME.nbvh, NAME.report.json, NAME.preview.png from the request's
+camera (or an orbit view), NAME.reference.png, NAME.points.npy object-local proxy points) in out_dir, renamed into
+place together at the very end (a failed, cancelled or killed re-run leaves the previous result of the object
+exactly as it was), and named in the final `result` event (the only marker of a finished job).
 Training writes `.NAME.nbvh.checkpoint` in out_dir every 60 s (`outputs.checkpoint_for`); a request with "resume": PATH continues it (the
 add-on offers this after a crash). "force": true trains even when the verdict is "not worth compressing"
 (otherwise the job ends in seconds with a `verdict` event and an `error` event of kind "not_worth", exit 4).
@@ -33,63 +29,6 @@ from pathlib import Path
 import numpy as np
 
 from ..protocol.events import json_lines
-from ..protocol.process import Cancelled
-
-
-def proxy_points(model, n_points: int, seed: int = 0) -> np.ndarray:
-    """(P, 6) float32 points + unit normals on the model's surface, in the mesh's original coordinates; (P, 9)
-    with each point's linear RGB albedo (the model's look) when the model carries materials.
-
-    Rays from a sphere around the asset toward random points of its box; every predicted hit is a point
-    (P <= n_points). Computed from the neural model only (the mesh is not used), so the proxy shows what
-    the model learned.
-    """
-    import torch
-
-    from ..training.rays import RayConfig, sample_rays
-
-    rng = np.random.default_rng(seed)
-    lo, hi = model.nodes["lo"][0], model.nodes["hi"][0]
-    pts = []
-    have = 0
-    for _ in range(8):
-        o, d = sample_rays(lo, hi, max(2 * (n_points - have), 1024), rng, RayConfig(outside_fraction=1.0))
-        q = model.query(torch.from_numpy(o), torch.from_numpy(d))
-        hit = q.hit.cpu().numpy()
-        p = o[hit] + q.t.cpu().numpy()[hit, None] * d[hit]
-        n = q.normal.cpu().numpy()[hit]
-        colour = model.albedo_at(np.clip(p, 0.0, 1.0))  # None for a bare shape
-        pts.append(np.concatenate((model.transform.to_original(p), n) + (() if colour is None else (colour,)),
-                                  axis=1))
-        have += int(hit.sum())
-        if have >= n_points:
-            break
-    out = np.concatenate(pts)[:n_points] if pts else np.zeros((0, 9 if model.materials else 6))
-    return out.astype(np.float32)
-
-
-class _LoadedResult:
-    """The parts of pipeline.CompressResult a loaded (not trained) model can offer."""
-
-    def __init__(self, model, info, path: str):
-        from ..training.train import TrainResult
-
-        self.model = model
-        self.tracer = None  # no mesh was traced for a loaded model
-        self.assessment = None
-        self.file_bytes = info.total_bytes
-        self.components = info.components
-        meta = info.metadata
-        tr = meta.get("training") or {}
-        self.training = TrainResult(steps=tr.get("steps", 0), seconds=tr.get("seconds", 0.0), samples=tr.get("samples", 0),
-                                    samples_per_s=tr.get("samples_per_s", 0.0), final_loss=tr.get("final_loss", 0.0),
-                                    device=tr.get("device", "?"))
-        self._summary = {"path": path, "file_bytes": info.total_bytes, "components": info.components,
-                         "quality": meta.get("quality"), "training": tr, "settings": meta.get("settings"),
-                         "seconds": {}, "why": "loaded from file", "target_met": meta.get("target_met")}
-
-    def summary(self) -> dict:
-        return dict(self._summary)
 
 
 #: The request's fields and their JSON types (the request file is data: anything else is refused in one line).
@@ -146,7 +85,7 @@ def run_job(request: dict, events, should_cancel) -> dict:
     if request.get("kind") == "batch":
         return run_batch_job(request, events, should_cancel)
     from ..geometry.mesh_arrays import mesh_from_npz
-    from ..protocol.outputs import OutputLock, OutputSet, check_outputs
+    from ..protocol.outputs import OutputLock, check_outputs
     from .pipeline import resume_settings
     from ..planning.settings import settings_from_request
 
@@ -175,16 +114,14 @@ def run_job(request: dict, events, should_cancel) -> dict:
     check_outputs([Path(p) for k, p in files.items() if not (k == "model" and request.get("model"))], inputs,
                   overwrite=True)
     with OutputLock(model_path):
-        return _run_locked(request, events, should_cancel, mesh, settings, scene_split, files, out_dir, name,
-                           OutputSet())
+        return _run_locked(request, events, should_cancel, mesh, settings, scene_split, files, name)
 
 
-def _run_locked(request, events, should_cancel, mesh, settings, scene_split, files, out_dir, name, staged) -> dict:
-    from ..geometry.exact import ExactTracer
+def _run_locked(request, events, should_cancel, mesh, settings, scene_split, files, name) -> dict:
     from ..protocol.outputs import checkpoint_for
     from .pipeline import compress_mesh
-    from ..rendering.render import Camera, orbit_cameras, png_bytes, render_neural, render_reference
-    from ..planning.sizing import mesh_resident_bytes
+    from .result_bundle import ROLES, LoadedResult, View, make_bundle, write_bundle
+    from ..rendering.render import Camera, orbit_cameras
 
     model_path = Path(files["model"])
     if request.get("model"):
@@ -194,45 +131,28 @@ def _run_locked(request, events, should_cancel, mesh, settings, scene_split, fil
         events({"event": "phase", "phase": "load", "message": request["model"]})
         model = load_nbvh(request["model"])
         info = read_info(request["model"])
-        result = _LoadedResult(model, info, str(request["model"]))
+        result = LoadedResult(model, info, str(request["model"]))
     else:
         result = compress_mesh(mesh, settings, None, events=events, should_cancel=should_cancel,
                                checkpoint_path=checkpoint_for(model_path), resume_from=request.get("resume"))
-        model = result.model
-        staged.stage(model_path, result.data)
     cam_spec = request.get("camera")
+    view = View(orbit_cameras(1)[0])
     if cam_spec:
         tf = mesh.transform
         pos = tf.to_normalised(np.asarray([cam_spec["position"]], float))[0]
         tgt = tf.to_normalised(np.asarray([cam_spec["target"]], float))[0]
-        cam = Camera(position=pos, target=tgt, up=np.asarray(cam_spec.get("up", [0, 0, 1]), float),
-                     fov_deg=float(cam_spec.get("fov_deg", 40.0)))
-        w, h = int(cam_spec.get("width", 256)), int(cam_spec.get("height", 256))
-    else:
-        cam, w, h = orbit_cameras(1)[0], 256, 256
-    events({"event": "phase", "phase": "preview", "message": f"{w}x{h} image, proxy points"})
-    neural = render_neural(model, cam, w, h)
-    reference = render_reference(result.tracer or ExactTracer(mesh), cam, w, h)
-    staged.stage(Path(files["preview"]), png_bytes(neural.display))
-    staged.stage(Path(files["reference"]), png_bytes(reference.display))
-    import io
-
-    buf = io.BytesIO()
-    np.save(buf, proxy_points(model, int(request.get("proxy_points", 20000)), seed=settings.seed))
-    staged.stage(Path(files["points"]), buf.getvalue())
-    report = result.summary()
-    report["name"] = name
-    report["mesh_resident_bytes"] = result.assessment["resident"] if result.assessment else mesh_resident_bytes(mesh)
-    report["files"] = files
-    if scene_split is not None:
-        report["scene_split"] = scene_split
-    staged.stage(Path(files["report"]), json.dumps(report, indent=2).encode())
-    if should_cancel():
-        staged.discard()
-        raise Cancelled("cancelled before the results were written")
-    staged.commit()  # everything appears together (or the previous result stays)
+        view = View(Camera(position=pos, target=tgt, up=np.asarray(cam_spec.get("up", [0, 0, 1]), float),
+                           fov_deg=float(cam_spec.get("fov_deg", 40.0))),
+                    int(cam_spec.get("width", 256)), int(cam_spec.get("height", 256)))
+    events({"event": "phase", "phase": "preview", "message": f"{view.width}x{view.height} image, proxy points"})
+    extra = {"name": name, "files": files, **({"scene_split": scene_split} if scene_split is not None else {})}
+    roles = tuple(r for r in ROLES if not (r == "model" and request.get("model")))
+    bundle = make_bundle(result, mesh, view, roles, proxy_points=int(request.get("proxy_points", 20000)),
+                         seed=settings.seed, extra=extra)
+    write_bundle({role: Path(p) for role, p in files.items()}, bundle, should_cancel=should_cancel)
     if not request.get("model"):
         checkpoint_for(model_path).unlink(missing_ok=True)
+    report = bundle.report
     event = {"event": "result", "name": name, "path": str(model_path), "bytes": result.file_bytes,
              "files": files, "quality": report["quality"], "train_seconds": round(float(result.training.seconds), 2),
              "device": result.training.device}

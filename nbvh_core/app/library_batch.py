@@ -224,7 +224,8 @@ def compress_asset(asset: dict, spec: dict) -> dict:
     thumbnail; returns the file's bytes and the numbers. Never raises for the asset's own failures."""
     from .. import kernels
     from .pipeline import compress_mesh
-    from ..rendering.render import orbit_cameras, png_bytes, render_neural
+    from ..rendering.render import orbit_cameras
+    from .result_bundle import View, make_bundle
 
     t0 = time.perf_counter()
     out = {"name": asset["name"], "worker": _worker_id()}
@@ -235,8 +236,9 @@ def compress_asset(asset: dict, spec: dict) -> dict:
         kernels.keep_freed_memory()
         mesh = load_asset(asset["path"], asset["name"])
         res = compress_mesh(mesh, settings_from_request(spec).with_overrides(force=True))
-        thumb = render_neural(res.model, orbit_cameras(1)[0], THUMBNAIL_PX, THUMBNAIL_PX).display
-        out.update(status="done", data=res.data, summary=res.summary(), thumb=png_bytes(thumb),
+        bundle = make_bundle(res, mesh, View(orbit_cameras(1)[0], THUMBNAIL_PX, THUMBNAIL_PX),
+                             ("model", "report", "preview"))
+        out.update(status="done", bundle_files=bundle.files, summary=bundle.report, thumb=bundle.files["preview"],
                    model_bytes=res.file_bytes, model_resident_bytes=sum(res.model.resident_bytes().values()),
                    mse=res.quality.mse if res.quality else None, iou=res.quality.silhouette_iou if res.quality else None,
                    train_seconds=round(res.training.seconds, 2))
@@ -386,7 +388,7 @@ class _Library:
         self.events({"event": "asset", "phase": "measure", **_event_fields(row)})
 
     def trained(self, name: str, r: dict) -> None:
-        from ..protocol.outputs import OutputSet
+        from .result_bundle import Bundle, bundle_paths, write_bundle
 
         row = self.rows[name]
         row.worker, row.status, row.error = r.get("worker"), r["status"], r.get("error")
@@ -398,11 +400,11 @@ class _Library:
                 setattr(row, k, r.get(k))
             row.thumb_neural = self.thumb(name, "neural", r.get("thumb"))
             row.files = {"model": str(Path("assets") / row.key / model)}
-            staged = OutputSet()
-            staged.stage(folder / model, r["data"])
             record = {**row.to_dict(), "files": {"model": model}, "summary": r.get("summary")}
-            staged.stage(folder / "result.json", json.dumps(record, indent=2, default=str).encode())
-            staged.commit()  # the model and its record appear together; result.json marks the asset finished
+            # The asset's result bundle and its library record appear together; result.json marks it finished.
+            write_bundle(bundle_paths(folder / model, ("model", "report", "preview")),
+                         Bundle(r["bundle_files"], r.get("summary") or {}),
+                         also={folder / "result.json": json.dumps(record, indent=2, default=str).encode()})
         self.events({"event": "asset", "phase": "train", **_event_fields(row)})
         for other in self.copies.get(name, []):
             if row.status == "done":

@@ -38,24 +38,26 @@ PAPER_N_MAX = 128
 
 @dataclass
 class Settings:
-    """Everything one compression run needs. Sizes: `nodes` BVH nodes, `log2_table` = log2 T."""
+    """Everything one compression run needs. Sizes: `nodes` BVH nodes, `log2_table` = log2 T. The model's shape
+    defaults are the encoding's and the network's own (EncodingConfig, NetworkConfig: the paper's); the presets
+    set what the product uses."""
 
     nodes: int = 2047
-    encoding: str = "hashvqad"
-    log2_table: int = 10
-    levels: int = 4
-    features: int = 16
+    encoding: str = EncodingConfig.kind
+    log2_table: int = EncodingConfig.log2_table
+    levels: int = EncodingConfig.levels
+    features: int = EncodingConfig.features
     #: The grid's coarsest and finest resolutions (cells across the unit box; EncodingConfig.n_min / n_max).
     #: n_max None: chosen from the mesh's measured detail (`sizing.choose_resolution`, in `sizing.resolve`).
-    n_min: int = 16
-    n_max: int | None = 128
+    n_min: int = EncodingConfig.n_min
+    n_max: int | None = EncodingConfig.n_max
     #: HashVQAD's index entries per feature row, H / T (the paper's 2^7; EncodingConfig.index_factor).
-    index_factor: int = 128
-    network: str = "kmlp"
-    k: int = 8
+    index_factor: int = EncodingConfig.index_factor
+    network: str = NetworkConfig.kind
+    k: int = NetworkConfig.k
     #: The network's hidden layers and their width (NetworkConfig).
-    hidden: int = 4
-    width: int = 64
+    hidden: int = NetworkConfig.hidden
+    width: int = NetworkConfig.width
     #: 'facing': normal targets flipped to face the ray (TrainConfig.facing_normals), L1 to them; 'oriented': the
     #: paper's L1 to the normal as the mesh winds it; 'unoriented': L1 to the nearer of +-normal
     #: (NetworkConfig.normal_loss); None: the network's own (NORMAL_LOSS_BY_NETWORK).
