@@ -26,20 +26,17 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "bench"))
 
-from bench_meshes import BENCH_MESHES, bench_mesh  # noqa: E402
-from bench_quality import write_rows  # noqa: E402
+from bench_meshes import BENCH_MESHES, bench_mesh
+from harness import RESULTS, write_markdown, write_rows
 
-RESULTS = ROOT / "bench" / "results"
 PORT = 6391
 RAY = str(Path(sys.executable).with_name("ray"))
 
 
-def write_library(folder: Path) -> None:
+def write_library(folder: Path, names: list[str]) -> None:
     folder.mkdir(parents=True, exist_ok=True)
-    for name in BENCH_MESHES:
+    for name in names:
         m = bench_mesh(name)
         np.savez(folder / f"{name}.npz", vertices=m.transform.to_original(m.vertices).astype(np.float32), faces=m.faces)
 
@@ -73,10 +70,11 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--time-limit", type=float, default=30.0)
     ap.add_argument("--preset", default="preview")
+    ap.add_argument("--assets", nargs="+", default=list(BENCH_MESHES), help="bench meshes in the library")
     args = ap.parse_args()
     work = Path(tempfile.mkdtemp(prefix="nbvh-batch-bench-"))
     lib = work / "library"
-    write_library(lib)
+    write_library(lib, args.assets)
     env = dict(os.environ, RAY_AUTH_MODE="disabled")
     wall_embedded = batch(lib, work / "embedded", args, env, ["--num-cpus", "2"])
     print(f"embedded: {wall_embedded:.1f} s", flush=True)
@@ -88,7 +86,7 @@ def main() -> None:
     print(f"cluster: {wall_cluster:.1f} s", flush=True)
     emb, clu = rows_of(work / "embedded"), rows_of(work / "cluster")
     out_rows = []
-    for name in BENCH_MESHES:
+    for name in args.assets:
         e, c = emb[name], clu[name]
         out_rows.append({"asset": name, "triangles": e["triangles"], "status_embedded": e["status"],
                          "status_cluster": c["status"], "bytes_embedded": e["model_bytes"],
@@ -97,7 +95,7 @@ def main() -> None:
                          "train_s_cluster": c["train_seconds"]})
     write_rows(RESULTS / "batch_cluster.csv", out_rows)
     lines = ["# Library batch: local 3-node Ray cluster vs embedded Ray (bench/bench_batch_cluster.py)", "",
-             f"8 assets (bench_meshes.py), preset `{args.preset}`, {args.time_limit:g} s training each, one run on "
+             f"{len(args.assets)} assets (bench_meshes.py), preset `{args.preset}`, {args.time_limit:g} s training each, one run on "
              "this 2-core CPU. Embedded: `nbvh batch LIB -o OUT --num-cpus 2`. Cluster: `ray start --head "
              f"--num-cpus 0 --port {PORT}` + 2 x `ray start --address 127.0.0.1:{PORT} --num-cpus 1`, then "
              f"`nbvh batch LIB -o OUT --address 127.0.0.1:{PORT}`.", "",
@@ -111,7 +109,7 @@ def main() -> None:
         b = (f"{r['bytes_embedded']:,} / {r['bytes_cluster']:,}" if r["bytes_embedded"] else "- / -")
         lines.append(f"| {r['asset']} | {r['triangles']:,} | {r['status_embedded']} / {r['status_cluster']} | {b} | "
                      f"{mse} | {r['worker_cluster'] or '-'} |")
-    (RESULTS / "batch_cluster.md").write_text("\n".join(lines) + "\n")
+    write_markdown(RESULTS / "batch_cluster.md", lines)
     shutil.rmtree(work, ignore_errors=True)
 
 

@@ -12,17 +12,15 @@ plain / model file and compact / model file (above 1: the model is smaller).
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
+from harness import RESULTS
 
 ROOT = Path(__file__).resolve().parents[1]
-RESULTS = ROOT / "bench" / "results"
 
 
 def compact_row(pays: dict) -> dict:
     """One pays.csv row -> its compact-mesh comparison."""
-    sys.path[:0] = [str(ROOT), str(ROOT / "bench")]
     from bench_meshes import bench_mesh
     from nbvh_core.geometry.compact_mesh import compact_mesh
     from nbvh_core.geometry.exact import ExactTracer
@@ -53,7 +51,6 @@ def main() -> None:
     ap.add_argument("--storage", default="t8/w8/n8 n_max=auto:64", help="the pays.csv rows to compare (storage column)")
     ap.add_argument("--out", default=str(RESULTS / "compact.csv"))
     args = ap.parse_args()
-    sys.path[:0] = [str(ROOT / "bench")]
     from harness import append_rows, read_rows, stamp
 
     rows = [r for r in read_rows(RESULTS / "pays.csv") if r["storage"] == args.storage]

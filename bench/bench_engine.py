@@ -5,13 +5,12 @@ the same scene drawn from the meshes by Embree in the same worker (geometry "mes
 
     .venv/bin/python bench/bench_engine.py MODELS_DIR [--frames 12]
 
-MODELS_DIR: blob/bunny/studs .npz + .nbvh (blender_tests/engine_scene.py's layout). Writes bench/results/engine.csv
-and engine.md.
+MODELS_DIR: blob/bunny/studs .npz + .nbvh (blender_tests/engine_scene.py's layout; made there with the `tiny` preset
+when missing). Writes bench/results/engine.csv and engine.md.
 """
 from __future__ import annotations
 
 import argparse
-import csv
 import math
 import platform
 import statistics
@@ -21,11 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-
-from addon.render_client import RenderWorker  # noqa: E402
-from nbvh_core.rendering.scene_render import look_at, perspective, view_projection  # noqa: E402
+from harness import RESULTS, SMOKE, write_markdown, write_rows
+from nbvh_core.rendering.scene_render import look_at, perspective, view_projection
+from addon.render_client import RenderWorker  # after harness: the add-on package is reached through the repository root
 
 PLACES = {"bunny": (0.0, 0.0), "blob": (-1.4, 0.0), "studs": (1.4, 0.0)}
 
@@ -47,7 +44,7 @@ def scene(models: Path, names: list[str], geometry: str) -> dict:
 def orbit(i: int, n: int, width: int, height: int) -> np.ndarray:
     a = 2 * math.pi * i / n
     eye = (4.5 * math.sin(a), -4.5 * math.cos(a), 2.0)
-    return view_projection(look_at(eye), perspective(math.radians(40), width / height))
+    return view_projection(look_at(eye, (0.0, 0.0, 0.3)), perspective(math.radians(40), width / height))
 
 
 def timed_frames(worker: RenderWorker, n: int, width: int, height: int, levels) -> tuple[list[float], list[float]]:
@@ -71,12 +68,30 @@ def timed_frames(worker: RenderWorker, n: int, width: int, height: int, levels) 
     return full, first
 
 
+def make_models(folder: Path) -> None:
+    """blob/bunny/studs .npz + .nbvh with the tiny preset, for a run without trained models (the smoke test)."""
+    from nbvh_core.app.pipeline import compress_mesh, preset
+    from nbvh_core.geometry.bundled_samples import sample_path
+    from nbvh_core.geometry.mesh import load_mesh
+
+    folder.mkdir(parents=True, exist_ok=True)
+    for name in PLACES:
+        if (folder / f"{name}.nbvh").exists():
+            continue
+        mesh = load_mesh(sample_path(name))
+        np.savez(folder / f"{name}.npz", vertices=mesh.transform.to_original(mesh.vertices).astype(np.float32),
+                 faces=mesh.faces)
+        compress_mesh(mesh, preset("tiny").with_overrides(force=True), folder / f"{name}.nbvh", evaluate_quality=False)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("models", type=Path)
     ap.add_argument("--frames", type=int, default=12)
-    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results")
+    ap.add_argument("--out", type=Path, default=RESULTS)
     args = ap.parse_args()
+    make_models(args.models)
+    final_w, final_h = (192, 108) if SMOKE else (1920, 1080)
     rows = []
     worker = RenderWorker(sys.executable)
     try:
@@ -89,11 +104,13 @@ def main() -> int:
                 full, _ = timed_frames(worker, args.frames, 480, 270, (1,))
                 prog, first = timed_frames(worker, args.frames, 480, 270, (4, 2, 1))
                 t0 = time.perf_counter()
-                worker.request("final", orbit(0, 1, 1920, 1080), 1920, 1080, levels=(1,), samples=1, bands=16)
+                worker.request("final", orbit(0, 1, final_w, final_h), final_w, final_h, levels=(1,), samples=1,
+                               bands=16)
                 worker.wait(lambda: not worker.channels["final"].pending, timeout=1200)
                 final1 = time.perf_counter() - t0
                 t0 = time.perf_counter()
-                worker.request("final", orbit(0, 1, 1920, 1080), 1920, 1080, levels=(1,), samples=4, bands=16)
+                worker.request("final", orbit(0, 1, final_w, final_h), final_w, final_h, levels=(1,), samples=4,
+                               bands=16)
                 worker.wait(lambda: not worker.channels["final"].pending, timeout=2400)
                 final4 = time.perf_counter() - t0
                 row = {"objects": len(names), "geometry": geometry,
@@ -106,10 +123,7 @@ def main() -> int:
     finally:
         worker.stop()
     args.out.mkdir(parents=True, exist_ok=True)
-    with open(args.out / "engine.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
+    write_rows(args.out / "engine.csv", rows)
     lines = ["# NBVH render engine speed (bench/bench_engine.py)", "",
              f"Through the render worker process and its protocol, on {platform.processor() or platform.machine()} "
              f"({__import__('os').cpu_count()} cores), one run. Shadows from one sun; the camera orbits; "
@@ -121,7 +135,7 @@ def main() -> int:
         lines.append(f"| {r['objects']} | {r['geometry']} | {r['viewport_fps_480x270']} | "
                      f"{r['progressive_first_frame_ms']} | {r['progressive_full_s']} | {r['final_1920x1080_1spp_s']} | "
                      f"{r['final_1920x1080_4spp_s']} |")
-    (args.out / "engine.md").write_text("\n".join(lines) + "\n")
+    write_markdown(args.out / "engine.md", lines)
     print(f"wrote {args.out / 'engine.md'}")
     return 0
 

@@ -8,10 +8,8 @@ same machine, so the ratios (ours / Embree) are what to compare across machines.
 from __future__ import annotations
 
 import argparse
-import csv
 import os
 import platform
-import sys
 import time
 from pathlib import Path
 
@@ -19,15 +17,15 @@ import numpy as np
 import torch
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
 
-from nbvh_core.geometry.bvh import build_full_tree, cut_tree  # noqa: E402
-from nbvh_core.geometry.exact import ExactTracer  # noqa: E402
-from nbvh_core.geometry.mesh import load_mesh  # noqa: E402
-from nbvh_core.rendering.render import orbit_cameras  # noqa: E402
-from nbvh_core.training.rays import RayConfig, label_samples, root_box, sample_rays  # noqa: E402
-from nbvh_core.geometry.bundled_samples import SAMPLE_NAMES, sample_path  # noqa: E402
-from nbvh_core.geometry.traversal import LeafStream, TorchBVH, leaves_along_rays  # noqa: E402
+from nbvh_core.geometry.bvh import build_full_tree, cut_tree
+from nbvh_core.geometry.exact import ExactTracer
+from nbvh_core.geometry.mesh import load_mesh
+from nbvh_core.rendering.render import orbit_cameras
+from nbvh_core.training.rays import RayConfig, label_samples, root_box, sample_rays
+from nbvh_core.geometry.bundled_samples import SAMPLE_NAMES, sample_path
+from nbvh_core.geometry.traversal import LeafStream, TorchBVH, leaves_along_rays
+from harness import RESULTS, write_markdown, write_rows
 
 
 def best_of(fn, repeat: int = 3) -> float:
@@ -89,7 +87,7 @@ def main() -> None:
     ap.add_argument("--rays", type=int, default=200_000)
     ap.add_argument("--nodes", type=int, default=4096)
     ap.add_argument("--quick", action="store_true", help="20k rays, one repeat (smoke run)")
-    ap.add_argument("--out", default=str(ROOT / "bench" / "results"))
+    ap.add_argument("--out", default=str(RESULTS))
     args = ap.parse_args()
     n_rays, repeat = (20_000, 1) if args.quick else (args.rays, 3)
     rows = []
@@ -99,10 +97,7 @@ def main() -> None:
         rows.append(row)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    with open(out / "foundation.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
+    write_rows(out / "foundation.csv", rows)
     cols = ["asset", "triangles", "full_build_s", "cut_s", "leaf_pairs_per_ray", "traversal_rays_per_s",
             "stream_rays_per_s", "ownership_samples_per_s", "consistent_samples_per_s",
             "embree_random_rays_per_s", "embree_primary_rays_per_s", "traversal_vs_embree_random"]
@@ -112,7 +107,7 @@ def main() -> None:
              "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     for r in rows:
         lines.append("| " + " | ".join(f"{r[c]:,}" if isinstance(r[c], int) else str(r[c]) for c in cols) + " |")
-    (out / "foundation.md").write_text("\n".join(lines) + "\n")
+    write_markdown(out / "foundation.md", lines)
     print(f"wrote {out / 'foundation.csv'} and {out / 'foundation.md'}")
 
 

@@ -9,20 +9,19 @@ bench/results/freeze.md.
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
 
-from nbvh_core.geometry.bvh import build_bvh  # noqa: E402
-from nbvh_core.geometry.exact import ExactTracer  # noqa: E402
-from nbvh_core.geometry.mesh import load_mesh  # noqa: E402
-from nbvh_core.rendering.metrics import evaluate  # noqa: E402
-from nbvh_core.neural.model import NeuralBVH  # noqa: E402
-from nbvh_core.app.pipeline import preset  # noqa: E402
-from nbvh_core.geometry.bundled_samples import sample_path  # noqa: E402
-from nbvh_core.training.train import train  # noqa: E402
+from nbvh_core.geometry.bvh import build_bvh
+from nbvh_core.geometry.exact import ExactTracer
+from nbvh_core.geometry.mesh import load_mesh
+from nbvh_core.rendering.metrics import evaluate
+from nbvh_core.neural.model import NeuralBVH
+from nbvh_core.app.pipeline import preset
+from nbvh_core.geometry.bundled_samples import sample_path
+from nbvh_core.training.train import train
+from harness import RESULTS, write_markdown
 
 
 def main() -> None:
@@ -61,8 +60,8 @@ def main() -> None:
              "|---|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(f"| {r[0]} | {r[1]} | {r[2]:.3f} | {r[3]:.5f} | {r[4]:.5f} | {100 * r[5]:+.1f}% | {r[6]:.4f} | {r[7]:.4f} |")
-    out = ROOT / "bench" / "results" / "freeze.md"
-    out.write_text("\n".join(lines) + "\n")
+    out = RESULTS / "freeze.md"
+    write_markdown(out, lines)
     print(f"wrote {out}")
 
 

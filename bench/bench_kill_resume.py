@@ -19,18 +19,21 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from harness import RESULTS
 
 ROOT = Path(__file__).resolve().parents[1]
-RESULTS = ROOT / "bench" / "results"
+
+
+#: compress options every run of this benchmark takes (--time-limit, --checkpoint-every for a short run)
+RUN_OPTIONS: list[str] = []
 
 
 def _compress(mesh: str, out: Path, preset: str, extra: list[str]) -> list[str]:
     return [sys.executable, "-m", "nbvh_core", "compress", mesh, "-o", str(out), "--preset", preset, "--force",
-            "--overwrite", "--events", *extra]
+            "--overwrite", "--events", *RUN_OPTIONS, *extra]
 
 
 def _quality(out: Path) -> dict:
-    sys.path[:0] = [str(ROOT)]
     from nbvh_core.storage.fileformat import load_nbvh
 
     meta = load_nbvh(out).metadata
@@ -80,11 +83,15 @@ def main() -> None:
     ap.add_argument("--at", type=float, default=0.7, help="training fraction at which the run is killed")
     ap.add_argument("--straight", type=int, default=2, help="uninterrupted runs (the noise)")
     ap.add_argument("--out", default=str(RESULTS / "kill_resume.csv"))
+    ap.add_argument("--time-limit", type=float, help="override the preset's budget (s; not for headline numbers)")
+    ap.add_argument("--checkpoint-every", type=float, help="seconds between checkpoints (default: the product's)")
     args = ap.parse_args()
-    sys.path[:0] = [str(ROOT), str(ROOT / "bench")]
     from harness import append_rows
     from harness import stamp as run_stamp
 
+    for flag, value in (("--time-limit", args.time_limit), ("--checkpoint-every", args.checkpoint_every)):
+        if value is not None:
+            RUN_OPTIONS.extend([flag, f"{value:g}"])
     stamp = {**run_stamp(), "mesh": args.mesh, "preset": args.preset}
     rows = []
     with tempfile.TemporaryDirectory() as tmp:

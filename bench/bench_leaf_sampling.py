@@ -15,19 +15,16 @@ grazing rays). Writes bench/results/leaf_sampling.md and .csv.
 from __future__ import annotations
 
 import argparse
-import csv
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "bench"))
 
-import bench_quality as bq  # noqa: E402
-from nbvh_core.app.pipeline import compress_mesh, preset  # noqa: E402
+import rd_runs as rd
+from harness import RESULTS, write_markdown, write_rows
+from nbvh_core.app.pipeline import compress_mesh, preset
 
 MESHES = ("bunny", "studs", "gyroid", "spiky", "knot", "sheet")
 VARIANTS = {"loss": ("leaf_sampling", "loss"), "tree_cut": ("tree_cut", True)}
@@ -43,11 +40,11 @@ def main() -> None:
     from nbvh_core import kernels
 
     kernels.keep_freed_memory()
-    plan = bq.Plan(args.quick)
+    plan = rd.Plan(args.quick)
     meshes = MESHES[:2] if args.quick else MESHES
     train_s = 3.0 if args.quick else args.train_s
     seeds = 1 if args.quick else args.seeds
-    cache = bq.MeshCache(plan)
+    cache = rd.MeshCache(plan)
     key, value = VARIANTS[args.variant]
     modes = ("uniform", args.variant)
     name_out = "leaf_sampling" if args.variant == "loss" else args.variant
@@ -60,17 +57,14 @@ def main() -> None:
                                                      eval_resolution=plan.res, **({key: value} if mode != "uniform" else {}))
                 t0 = time.perf_counter()
                 res = compress_mesh(mesh, s)
-                fail = bq.failure_errors(res.model, fr)
+                fail = rd.failure_errors(res.model, fr)
                 row = {"mesh": name, "mode": mode, "nodes": int(res.model.nodes.shape[0]), "seed": seed, "train_s": train_s, "steps": res.training.steps,
                        "mse": res.quality.mse, "iou": res.quality.silhouette_iou, **fail,
                        "wall_s": round(time.perf_counter() - t0, 1)}
                 rows.append(row)
                 print({k: (round(v, 5) if isinstance(v, float) else v) for k, v in row.items()}, flush=True)
-    out = bq.RESULTS / f"{name_out}{plan.suffix}.csv"
-    with open(out, "w", newline="") as fh:
-        w = csv.DictWriter(fh, list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
+    out = RESULTS / f"{name_out}{plan.suffix}.csv"
+    write_rows(out, rows)
     fail_keys = [k for k in rows[0] if k.endswith("_hit_err")]  # % of failure-subset rays with the wrong hit
     v = args.variant
     what = ("'loss': half of every batch starts inside leaf boxes drawn in proportion to the running per-leaf error "
@@ -100,7 +94,7 @@ def main() -> None:
     L.append(f"\nGeometric mean MSE ratio ({v} / uniform): {gm:.2f}; '{v}' has the lower mean MSE on {better} of "
              f"{len(ratios)} meshes (means over the seeds; the seed-to-seed spread of one mode is ~10% on the bunny, "
              "see quality.md).")
-    (bq.RESULTS / f"{name_out}{plan.suffix}.md").write_text("\n".join(L) + "\n")
+    write_markdown(RESULTS / f"{name_out}{plan.suffix}.md", L)
     print("\n".join(L))
 
 

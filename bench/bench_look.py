@@ -22,23 +22,22 @@ Rows append to bench/results/look.csv (stamped); a rerun skips rows it already h
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 import numpy as np
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
-from bench.harness import append_rows, read_rows, stamp  # noqa: E402
-from nbvh_core.geometry import demo_assets  # noqa: E402
-from nbvh_core.geometry.mesh_arrays import mesh_from_npz  # noqa: E402
-from nbvh_core.geometry.look import hit_labels, seam_distance, seam_edges  # noqa: E402
-from nbvh_core.app.pipeline import compress_mesh, preset  # noqa: E402
-from nbvh_core.rendering.render import orbit_cameras, render_neural, render_reference  # noqa: E402
+from harness import append_rows, read_rows, stamp
+from nbvh_core.geometry import demo_assets
+from nbvh_core.geometry.mesh_arrays import mesh_from_npz
+from nbvh_core.geometry.look import hit_labels, seam_distance, seam_edges
+from nbvh_core.app.pipeline import compress_mesh, preset
+from nbvh_core.rendering.render import orbit_cameras, render_neural, render_reference
+from harness import RESULTS
 
-OUT = ROOT / "bench" / "results" / "look.csv"
+OUT = RESULTS / "look.csv"
 TEXELS = 512
 
 

@@ -12,16 +12,14 @@ field) and bunny (a real scan with holes), they span detail levels, thin parts a
 from __future__ import annotations
 
 import functools
-import sys
 from pathlib import Path
 
 import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
 
-from nbvh_core.geometry.mesh import Mesh, load_mesh, mesh_from_arrays  # noqa: E402
-from nbvh_core.geometry.bundled_samples import SAMPLE_NAMES, sample_path  # noqa: E402
+from nbvh_core.geometry.mesh import Mesh, load_mesh, mesh_from_arrays
+from nbvh_core.geometry.bundled_samples import SAMPLE_NAMES, sample_path
 
 MADE = ("knot", "spiky", "sheet", "lattice")
 BENCH_MESHES = tuple(SAMPLE_NAMES) + ("knot", "spiky", "sheet")  # the heavy lattice only where named

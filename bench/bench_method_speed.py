@@ -13,27 +13,23 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import sys
 import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
-from nbvh_core import kernels  # noqa: E402
-from nbvh_core.geometry.bvh import build_bvh  # noqa: E402
-from nbvh_core.geometry.exact import ExactTracer  # noqa: E402
-from nbvh_core.geometry.mesh import load_mesh  # noqa: E402
-from nbvh_core.neural.model import NeuralBVH  # noqa: E402
-from nbvh_core.app.pipeline import preset  # noqa: E402
-from nbvh_core.rendering.render import orbit_cameras, render_neural  # noqa: E402
-from nbvh_core.geometry.bundled_samples import sample_path  # noqa: E402
-from nbvh_core.training.train import train  # noqa: E402
+from nbvh_core import kernels
+from nbvh_core.geometry.bvh import build_bvh
+from nbvh_core.geometry.exact import ExactTracer
+from nbvh_core.geometry.mesh import load_mesh
+from nbvh_core.neural.model import NeuralBVH
+from nbvh_core.app.pipeline import preset
+from nbvh_core.rendering.render import orbit_cameras, render_neural
+from nbvh_core.geometry.bundled_samples import sample_path
+from nbvh_core.training.train import train
 
-sys.path.insert(0, str(ROOT / "bench"))
-from bench_quality import write_rows  # noqa: E402
+from harness import RESULTS, write_markdown, write_rows
 
-RESULTS = ROOT / "bench" / "results"
 # The paper's sizes (16 features, Table 5's T), written out: the default preset's own sizes are not the paper's.
 PAPER = {"features": 16, "n_max": 64}
 METHODS = [("HashGrid T=2^11 + MLP (base)", {"log2_table": 11}),
@@ -109,7 +105,7 @@ def main() -> None:
         lines.append(f"| {r['method']} | {r['train_samples_per_s']:,} ({r['train_samples_per_s_min']:,}-"
                      f"{r['train_samples_per_s_max']:,}) | {r['train_slowdown_vs_base']} | "
                      f"{r['render_512_s']} | {r['render_slowdown_vs_base']} |")
-    (RESULTS / "method_speed.md").write_text("\n".join(lines) + "\n")
+    write_markdown(RESULTS / "method_speed.md", lines)
 
 
 if __name__ == "__main__":

@@ -12,27 +12,23 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "bench"))
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-from bench_meshes import bench_grid, bench_mesh  # noqa: E402
-from bench_quality import append_row, read_rows  # noqa: E402
-from nbvh_core import kernels  # noqa: E402
-from nbvh_core.geometry.exact import ExactTracer  # noqa: E402
-from nbvh_core.rendering.metrics import evaluate_renderer  # noqa: E402
-from nbvh_core.app.pipeline import compress_mesh, estimate_file_bytes, preset  # noqa: E402
-from nbvh_core.rendering.render import render_reference  # noqa: E402
-from nbvh_core.planning.settings import NORMAL_LOSS_BY_NETWORK  # noqa: E402
-from nbvh_core.planning.sizing import choose_resolution, decimate, mesh_resident_bytes  # noqa: E402
+from bench_meshes import bench_grid, bench_mesh
+from harness import RESULTS, append_row, read_rows, write_markdown
+from nbvh_core import kernels
+from nbvh_core.geometry.exact import ExactTracer
+from nbvh_core.rendering.metrics import evaluate_renderer
+from nbvh_core.app.pipeline import compress_mesh, estimate_file_bytes, preset
+from nbvh_core.rendering.render import render_reference
+from nbvh_core.planning.settings import NORMAL_LOSS_BY_NETWORK
+from nbvh_core.planning.sizing import choose_resolution, decimate, mesh_resident_bytes
 
-RESULTS = ROOT / "bench" / "results"
 FIELDS = ["mesh", "triangles", "preset", "storage", "train_s", "steps", "file_bytes", "model_resident_bytes",
           "mse", "mse_float32", "iou", "mesh_resident_bytes", "equal_mse_decimation_triangles",
           "equal_mse_decimation_resident_bytes", "ratio_resident_decimation_to_model",
@@ -90,7 +86,7 @@ def write_md(rows: list[dict]) -> None:
                      f"{float(r['ratio_resident_decimation_to_model']):.2f}x | "
                      f"{float(r['ratio_resident_decimation_to_file']):.2f}x | {r['draco11_bytes']} | "
                      f"{r['equal_mse_decimation_draco11_bytes']} |")
-    (RESULTS / "pays.md").write_text("\n".join(lines) + "\n")
+    write_markdown(RESULTS / "pays.md", lines)
 
 
 def row_variant(row: dict) -> tuple[bool, bool]:

@@ -12,22 +12,18 @@ bench/results/preset_curves.png and preset_curves.md are rewritten after every r
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "bench"))
 
-from bench_meshes import bench_mesh  # noqa: E402
-from bench_pays import equal_mse_decimation  # noqa: E402
-from bench_quality import append_row, read_rows  # noqa: E402
-from nbvh_core import kernels  # noqa: E402
-from nbvh_core.geometry.exact import ExactTracer  # noqa: E402
-from nbvh_core.app.pipeline import compress_mesh, preset  # noqa: E402
+from bench_meshes import bench_mesh
+from bench_pays import equal_mse_decimation
+from harness import RESULTS, append_row, read_rows, write_markdown
+from nbvh_core import kernels
+from nbvh_core.geometry.exact import ExactTracer
+from nbvh_core.app.pipeline import compress_mesh, preset
 
-RESULTS = ROOT / "bench" / "results"
 DEFAULT_BUDGETS = {"preview": [15, 30, 60], "default": [25, 50, 100, 200], "high": [100, 300, 600]}
 VIEWS, RESOLUTION = 16, 128
 
@@ -78,7 +74,7 @@ def write_outputs(rows: list[dict]) -> None:
                      f"{float(r['iou']):.4f} | {int(r['equal_mse_decimation_triangles']):,}, "
                      f"{int(r['equal_mse_decimation_resident_bytes']):,} | "
                      f"{float(r['ratio_resident_decimation_to_model']):.2f}x | {int(float(r['neural_rays_per_s'])):,} |")
-    (RESULTS / "preset_curves.md").write_text("\n".join(lines) + "\n")
+    write_markdown(RESULTS / "preset_curves.md", lines)
 
 
 def main() -> None:

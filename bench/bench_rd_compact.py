@@ -11,13 +11,11 @@ Resumable: one CSV row per (mesh, triangles), appended as it lands.
 from __future__ import annotations
 
 import argparse
-import csv
-import sys
 import time
 from pathlib import Path
+from harness import RESULTS, read_rows
 
 ROOT = Path(__file__).resolve().parents[1]
-RESULTS = ROOT / "bench" / "results"
 OUT = RESULTS / "rd_compact.csv"
 COUNTS = (1000, 4000, 16000, 64000, 256000)
 MESHES = ("bunny", "spiky", "gyroid", "knot", "terrain", "lattice")
@@ -27,7 +25,6 @@ NEURAL_STORAGE = ("t8/w8/n8 n_max=auto:64 normals=oriented", "t8/w8/n8 n_max=aut
 
 def measure(name: str, done: set) -> None:
     """Append the rows of one mesh's decimations not yet in the CSV."""
-    sys.path[:0] = [str(ROOT), str(ROOT / "bench")]
     import DracoPy
 
     from bench_meshes import bench_mesh
@@ -65,8 +62,8 @@ def chart(path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    rows = list(csv.DictReader(open(OUT)))
-    neural = [r for r in csv.DictReader(open(RESULTS / "pays.csv")) if r["storage"] in NEURAL_STORAGE]
+    rows = read_rows(OUT)
+    neural = [r for r in read_rows(RESULTS / "pays.csv") if r["storage"] in NEURAL_STORAGE]
     meshes = [m for m in MESHES if any(r["mesh"] == m for r in rows)]
     fig, axes = plt.subplots(2, 3, figsize=(13, 8))
     for ax, name in zip(axes.ravel(), meshes):
@@ -100,7 +97,7 @@ def main() -> None:
     ap.add_argument("--chart", action="store_true", help="only redraw the chart from the CSV")
     args = ap.parse_args()
     if not args.chart:
-        done = {(r["mesh"], r["requested"]) for r in csv.DictReader(open(OUT))} if OUT.exists() else set()
+        done = {(r["mesh"], r["requested"]) for r in read_rows(OUT)}
         for name in args.meshes:
             measure(name, done)
     chart(RESULTS / "rd_compact.png")

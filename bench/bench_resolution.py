@@ -18,20 +18,17 @@ does: the question equal steps leaves open, since a step's cost grows with L); o
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path[:0] = [str(ROOT), str(ROOT / "bench")]
 
-from bench_meshes import bench_grid, bench_mesh  # noqa: E402
-from bench_quality import append_row, read_rows  # noqa: E402
-from nbvh_core import kernels  # noqa: E402
-from nbvh_core.app.pipeline import compress_mesh, preset  # noqa: E402
-from nbvh_core.planning.sizing import TABLE_LOAD, choose_resolution  # noqa: E402
+from bench_meshes import bench_grid, bench_mesh
+from harness import RESULTS, append_row, read_rows, write_markdown
+from nbvh_core import kernels
+from nbvh_core.app.pipeline import compress_mesh, preset
+from nbvh_core.planning.sizing import TABLE_LOAD, choose_resolution
 
-RESULTS = ROOT / "bench" / "results"
 FIELDS = ["mesh", "preset", "log2_table", "n_max", "steps", "train_s", "mse", "iou", "surface_cells", "created"]
 
 
@@ -53,7 +50,7 @@ def write_md(rows: list[dict]) -> None:
         best = min(mine, key=lambda r: float(r["mse"]))
         pick = choose_resolution(bench_grid(mesh), int(log2))[0]
         lines.append(f"| {mesh} | 2^{log2} | {steps} | {best['n_max']} (MSE {float(best['mse']):.5f}) | {pick} |")
-    (RESULTS / "resolution.md").write_text("\n".join(lines) + "\n")
+    write_markdown(RESULTS / "resolution.md", lines)
 
 
 LEVEL_FIELDS = ["mesh", "preset", "levels", "steps", "log2_table", "n_max", "train_s", "mse", "iou", "created",
@@ -74,7 +71,7 @@ def write_levels_md(rows: list[dict]) -> None:
         lines.append(f"| {r['mesh']} | {r['preset']} | {budget(r)} | {r['levels']} | 2^{r['log2_table']} | "
                      f"{r['n_max']} | {r['steps']} | {float(r['mse']):.5f} | {float(r['iou']):.4f} | "
                      f"{float(r['train_s']):.0f} |")
-    (RESULTS / "levels.md").write_text("\n".join(lines) + "\n")
+    write_markdown(RESULTS / "levels.md", lines)
 
 
 def equal_steps(mesh, base, steps: int, **overrides):

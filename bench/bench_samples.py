@@ -1,15 +1,14 @@
 """Compress every bundled sample with one preset and tabulate size, quality, time and speed.
 
     .venv/bin/python bench/bench_samples.py [--preset default] [--out out/samples]
-    .venv/bin/python bench/bench_samples.py --summarise out/default     # only tabulate existing NAME.json reports
+    .venv/bin/python bench/bench_samples.py --summarise out/default     # only tabulate existing NAME.report.json reports
 
 Each sample goes through `python -m nbvh_core compress` (the CLI users run), which writes NAME.nbvh,
-NAME.json and NAME.preview.png. Writes bench/results/samples_<preset>.md and .csv.
+NAME.report.json, NAME.preview.png and NAME.reference.png. Writes bench/results/samples_<preset>.md and .csv.
 """
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import subprocess
 import sys
@@ -17,15 +16,15 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
 
-from nbvh_core.geometry.bundled_samples import SAMPLE_NAMES  # noqa: E402
+from nbvh_core.geometry.bundled_samples import SAMPLE_NAMES
+from harness import RESULTS, write_markdown, write_rows
 
 
 def summarise(folder: Path, preset: str, wall: dict) -> None:
     rows = []
     for name in SAMPLE_NAMES:
-        path = folder / f"{name}.json"
+        path = folder / f"{name}.report.json"
         if not path.exists():
             continue
         r = json.loads(path.read_text())
@@ -42,12 +41,9 @@ def summarise(folder: Path, preset: str, wall: dict) -> None:
         })
     if not rows:
         raise SystemExit(f"no reports in {folder}")
-    out = ROOT / "bench" / "results" / f"samples_{preset}.csv"
-    with open(out, "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
-    s = json.loads((folder / f"{rows[0]['asset']}.json").read_text())["settings"]
+    out = RESULTS / f"samples_{preset}.csv"
+    write_rows(out, rows)
+    s = json.loads((folder / f"{rows[0]['asset']}.report.json").read_text())["settings"]
     lines = [f"# Bundled samples, preset `{preset}`\n",
              f"Settings: {s['encoding']} (T=2^{s['log2_table']}) + {s['network']} (k={s['k']}), {s['labels']} labels, "
              f"{s['nodes']} BVH nodes, lr {s['lr']}, {s['time_limit_s']} s training; quality over {s['eval_views']} orbit "
@@ -60,7 +56,7 @@ def summarise(folder: Path, preset: str, wall: dict) -> None:
                      f"{r['ratio_resident']}x | {r['mse']} | {r['silhouette_iou']} | {r['depth_error']} | {r['train_s']} s | "
                      f"{r['steps']} | {r['train_samples_per_s']:,} | {r['neural_rays_per_s']:,} | {r['embree_rays_per_s']:,} | "
                      f"{r['wall_s']} s | {'yes' if r['meets_targets'] else 'no'} |")
-    (out.with_suffix(".md")).write_text("\n".join(lines) + "\n")
+    write_markdown(out.with_suffix(".md"), lines)
     print("\n".join(lines))
 
 
@@ -68,7 +64,7 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--preset", default="default")
     ap.add_argument("--out", default=str(ROOT / "out" / "samples"))
-    ap.add_argument("--summarise", help="tabulate the NAME.json reports in this folder instead of compressing")
+    ap.add_argument("--summarise", help="tabulate the NAME.report.json reports in this folder instead of compressing")
     args = ap.parse_args()
     if args.summarise:
         folder = Path(args.summarise)

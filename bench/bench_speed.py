@@ -15,9 +15,7 @@ Writes bench/results/speed.md, speed.csv, speed.png (or speed_quick.* with --qui
 from __future__ import annotations
 
 import argparse
-import csv
 import platform
-import sys
 import time
 from pathlib import Path
 
@@ -25,17 +23,17 @@ import numpy as np
 import torch
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
 
-from nbvh_core import kernels  # noqa: E402
-from nbvh_core.geometry.bvh import build_bvh  # noqa: E402
-from nbvh_core.geometry.exact import ExactTracer  # noqa: E402
-from nbvh_core.geometry.mesh import load_mesh  # noqa: E402
-from nbvh_core.neural.model import NeuralBVH  # noqa: E402
-from nbvh_core.app.pipeline import preset  # noqa: E402
-from nbvh_core.rendering.render import orbit_cameras  # noqa: E402
-from nbvh_core.geometry.bundled_samples import sample_path  # noqa: E402
-from nbvh_core.training.train import train  # noqa: E402
+from nbvh_core import kernels
+from nbvh_core.geometry.bvh import build_bvh
+from nbvh_core.geometry.exact import ExactTracer
+from nbvh_core.geometry.mesh import load_mesh
+from nbvh_core.neural.model import NeuralBVH
+from nbvh_core.app.pipeline import preset
+from nbvh_core.rendering.render import orbit_cameras
+from nbvh_core.geometry.bundled_samples import sample_path
+from nbvh_core.training.train import train
+from harness import RESULTS, write_markdown, write_rows
 
 
 def matmul_peak_gflops(device: torch.device, n: int = 4096, repeat: int = 5) -> float:
@@ -157,14 +155,10 @@ def main() -> None:
 
 def write(rows, args, mesh, s, tr, flops, peak, device, half_note: str = "") -> None:
     suffix = "_quick" if args.quick else ""
-    out = ROOT / "bench" / "results"
+    out = RESULTS
     out.mkdir(parents=True, exist_ok=True)
     keys = ["what", "path", "size", "seconds", "items", "per_s", "unit", "segments", "segments_per_s", "gflops", "hits"]
-    with open(out / f"speed{suffix}.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, keys)
-        w.writeheader()
-        for r in rows:
-            w.writerow({k: r.get(k, "") for k in keys})
+    write_rows(out / f"speed{suffix}.csv", [{k: r.get(k, "") for k in keys} for r in rows])
     per_seg = sum(flops.values())
     limit = peak * 1e9 / per_seg
     fast_train = next(r for r in rows if r["what"] == "train" and r["path"].startswith("fast"))
@@ -206,7 +200,7 @@ def write(rows, args, mesh, s, tr, flops, peak, device, half_note: str = "") -> 
               f"float32 matmul peak (torch.mm 4096^3, same run): {peak:.0f} GFLOP/s, so the limit is "
               f"{limit:,.0f} segments/s; the % column above is segments/s over that limit (whole query: traversal, "
               "encoding, network and bookkeeping included)."]
-    (out / f"speed{suffix}.md").write_text("\n".join(lines) + "\n")
+    write_markdown(out / f"speed{suffix}.md", lines)
     chart(rows, out / f"speed{suffix}.png")
     print("\n".join(lines))
 

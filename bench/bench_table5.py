@@ -23,19 +23,16 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import sys
 import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path[:0] = [str(ROOT), str(ROOT / "bench")]
 
-from bench_meshes import bench_mesh  # noqa: E402
-from bench_quality import append_row, read_rows  # noqa: E402
-from nbvh_core import kernels  # noqa: E402
-from nbvh_core.app.pipeline import compress_mesh, estimate_file_bytes, preset  # noqa: E402
+from bench_meshes import bench_mesh
+from harness import RESULTS, append_row, read_rows, write_markdown
+from nbvh_core import kernels
+from nbvh_core.app.pipeline import compress_mesh, estimate_file_bytes, preset
 
-RESULTS = ROOT / "bench" / "results"
 PLAN = [("base", 11), ("I", 9), ("I", 10), ("II", 9), ("II", 10), ("III", 8), ("III", 9)]
 FIELDS = ["mesh", "method", "log2_table", "seed", "n_max", "normal_weight", "steps", "train_s", "mse", "iou",
           "file_bytes_float32", "file_bytes_default_storage", "neural_rays_per_s", "created"]
@@ -106,7 +103,7 @@ def write_md(rows: list[dict], steps: int, stem: str = "table5", normal_loss: st
             cells.append("- (not run)" if not pts else "not reached" if b is None else f"{b / base_bytes:.3f}x")
         seeds = sorted({r.get("seed") or "0" for r in mine})
         lines.append(f"| {mesh} | {', '.join(seeds)} | {base_mse:.5f} | " + " | ".join(cells) + " |")
-    (RESULTS / f"{stem}.md").write_text("\n".join(lines) + "\n")
+    write_markdown(RESULTS / f"{stem}.md", lines)
 
 
 def main() -> None:

@@ -11,19 +11,17 @@ toward the viewer. Found KMLP's starved normal term and the facing targets' fail
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path[:0] = [str(ROOT), str(ROOT / "bench")]
 
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
+import numpy as np
+import torch
 
-from bench_meshes import bench_mesh  # noqa: E402
-from nbvh_core import kernels  # noqa: E402
-from nbvh_core.app.pipeline import compress_mesh, preset  # noqa: E402
-from nbvh_core.rendering.render import orbit_cameras, shade  # noqa: E402
+from bench_meshes import bench_mesh
+from nbvh_core import kernels
+from nbvh_core.app.pipeline import compress_mesh, preset
+from nbvh_core.rendering.render import orbit_cameras, shade
 
 
 def parse_value(text: str):

@@ -18,25 +18,22 @@ Writes nbvh_core/planning/sizing_fit.json (fit on all meshes), bench/results/siz
 from __future__ import annotations
 
 import argparse
-import csv
 import dataclasses
 import itertools
 import json
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "bench"))
 
-import bench_quality as bq  # noqa: E402
-from bench_meshes import bench_mesh  # noqa: E402
-from nbvh_core import kernels  # noqa: E402
-from nbvh_core.app.pipeline import estimate_file_bytes, preset  # noqa: E402
-from nbvh_core.planning.sizing import (FEATURE_NAMES, FIT_PATH, QUALITY_LEVELS,  # noqa: E402
+import rd_runs as rd
+from harness import RESULTS, read_rows, write_markdown, write_rows
+from bench_meshes import bench_mesh
+from nbvh_core import kernels
+from nbvh_core.app.pipeline import estimate_file_bytes, preset
+from nbvh_core.planning.sizing import (FEATURE_NAMES, FIT_PATH, QUALITY_LEVELS,
                               TARGET_TRAININGS, choose_table_and_nodes, fit_size_model, mesh_features, search_size)
 
 #: From the smallest table the search may choose (2^8: a size the grid lacks would end a simulated search
@@ -51,36 +48,36 @@ METHOD = "default"
 GRID_PART = "grid4"
 
 
-def grid_rows(plan: bq.Plan) -> dict:
+def grid_rows(plan: rd.Plan) -> dict:
     """{(mesh, log2): (mse, bytes)} of the user preset, seed 0, at the benchmark budget."""
     out = {}
-    for r in bq.read_rows(plan.csv("quality")):
+    for r in read_rows(plan.csv("quality")):
         if (r["method"] == METHOD and r["seed"] == "0" and r["part"] == GRID_PART and not r.get("diverged")
                 and float(r["train_s"]) == plan.train_s):
             out[(r["mesh"], int(r["log2_table"]))] = (float(r["mse"]), int(r["file_bytes"]))
     return out
 
 
-def run_missing(plan: bq.Plan) -> None:
+def run_missing(plan: rd.Plan) -> None:
     """Train the grid points quality.csv lacks (T grid at the preset's nodes; the node grid at NODE_T)."""
     done = {(r["part"], r["mesh"], r["method"], r["log2_table"], r["seed"], r["train_s"])
-            for r in bq.read_rows(plan.csv("quality"))}
+            for r in read_rows(plan.csv("quality"))}
     have = grid_rows(plan)
-    cache = bq.MeshCache(plan)
+    cache = rd.MeshCache(plan)
     for mesh_name in plan.meshes:
         for l2 in GRID:
             if (mesh_name, l2) not in have:
-                bq.run_neural(plan, cache, GRID_PART, mesh_name, METHOD, l2, 0, plan.train_s, done)
+                rd.run_neural(plan, cache, GRID_PART, mesh_name, METHOD, l2, 0, plan.train_s, done)
         for nodes in NODE_GRID:  # the node count, varied at the middle table size
             if nodes != preset(METHOD).nodes:
-                bq.run_neural(plan, cache, f"{GRID_PART}_n{nodes}", mesh_name, METHOD, NODE_T, 0, plan.train_s,
+                rd.run_neural(plan, cache, f"{GRID_PART}_n{nodes}", mesh_name, METHOD, NODE_T, 0, plan.train_s,
                               done, nodes=nodes)
 
 
 class Study:
     """The measured grid, the fits (all meshes, and each mesh left out) and how they serve the quality levels."""
 
-    def __init__(self, plan: bq.Plan):
+    def __init__(self, plan: rd.Plan):
         self.plan = plan
         self.data = grid_rows(plan)
         self.meshes = [m for m in plan.meshes if any((m, l2) in self.data for l2 in GRID)]
@@ -94,7 +91,7 @@ class Study:
 
     def _configs(self) -> dict:
         configs = {(m, l2, self.ref): v for (m, l2), v in self.data.items()}
-        for r in bq.read_rows(self.plan.csv("quality")):
+        for r in read_rows(self.plan.csv("quality")):
             if r["part"].startswith(f"{GRID_PART}_n") and r["method"] == METHOD and not r.get("diverged") \
                     and float(r["train_s"]) == self.plan.train_s:
                 configs[(r["mesh"], int(r["log2_table"]), int(r["nodes"]))] = (float(r["mse"]), int(r["file_bytes"]))
@@ -305,22 +302,19 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true")
     args = ap.parse_args()
     kernels.keep_freed_memory()  # as the CLI does: freed blocks stay in the heap (see the function)
-    plan = bq.Plan(args.quick)
+    plan = rd.Plan(args.quick)
     if not args.no_run:
         run_missing(plan)
     study = Study(plan)
     study.fit()
     study.choose_margin()
     table = study.table()
-    fit_out = FIT_PATH if not plan.quick else bq.RESULTS / "sizing_fit_quick.json"  # quick never replaces the fit
+    fit_out = FIT_PATH if not plan.quick else RESULTS / "sizing_fit_quick.json"  # quick never replaces the fit
     fit_out.write_text(json.dumps(dataclasses.asdict(study.full), indent=2) + "\n")
-    out = bq.RESULTS / f"sizing{plan.suffix}.csv"
-    with open(out, "w", newline="") as fh:
-        w = csv.DictWriter(fh, list(table[0]))
-        w.writeheader()
-        w.writerows(table)
+    out = RESULTS / f"sizing{plan.suffix}.csv"
+    write_rows(out, table)
     lines = report(study, table)
-    (bq.RESULTS / f"sizing{plan.suffix}.md").write_text("\n".join(lines) + "\n")
+    write_markdown(RESULTS / f"sizing{plan.suffix}.md", lines)
     print("\n".join(lines))
 
 

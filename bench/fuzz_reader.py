@@ -17,12 +17,11 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-RESULTS = ROOT / "bench" / "results"
+from harness import RESULTS, ROOT, append_rows, write_markdown
 
 WORKER = r"""
 import json, resource, sys
-sys.path[:0] = [sys.argv[1], sys.argv[1] + "/tests"]
+sys.path[:0] = [sys.argv[1] + "/tests"]  # the test suite's mutators (tests/fuzzing.py)
 from fuzzing import check_case, fuzz_cases
 data = open(sys.argv[2], "rb").read()
 start, stop, seed = int(sys.argv[3]), int(sys.argv[4]), int(sys.argv[5])
@@ -57,7 +56,6 @@ def main() -> None:
     ap.add_argument("--cases", type=int, default=2000)
     ap.add_argument("--seed", type=int, default=7)
     args = ap.parse_args()
-    sys.path[:0] = [str(ROOT)]
     counts = {"model": 0, "refused": 0, "crash": 0, "hang": 0, "exception": 0}
     examples: dict[str, list] = {}
     peak = 0
@@ -87,12 +85,7 @@ def main() -> None:
            "seconds": round(time.time() - t0, 1), "created": time.strftime("%Y-%m-%dT%H:%M:%S")}
     RESULTS.mkdir(parents=True, exist_ok=True)
     path = RESULTS / "fuzz.csv"
-    new = not path.exists()
-    with open(path, "a", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(row))
-        if new:
-            w.writeheader()
-        w.writerow(row)
+    append_rows(path, [row])
     lines = ["# Reader fuzz runs (bench/fuzz_reader.py)", "",
              "Truncations, bit flips (half with a recomputed checksum, so they reach the parser) and one-field header "
              "mutations of a real model; each case decoded and rendered (12x12) in a worker process.", "",
@@ -102,7 +95,7 @@ def main() -> None:
         for r in csv.DictReader(f):
             lines.append(f"| {r['cases']} | {r['seed']} | {r['model']} | {r['refused']} | {r['crash']} | {r['hang']} "
                          f"| {r['exception']} | {r['peak_rss_mb']} | {r['seconds']} |")
-    (RESULTS / "fuzz.md").write_text("\n".join(lines) + "\n")
+    write_markdown(RESULTS / "fuzz.md", lines)
     print(json.dumps(row))
     for key, rows in examples.items():
         print(key, rows[:5])

@@ -1,8 +1,22 @@
-"""What every benchmark's rows share: the stamp (commit, machine, command) and appending a row to a CSV as it lands
-(a rerun resumes; a CSV learns new columns without shifting old rows)."""
+"""What every benchmark shares: where results go, the stamp on every row, CSV rows that land as they are measured,
+Markdown tables, and the smoke switch.
+
+* `RESULTS`: bench/results, or $NBVH_BENCH_RESULTS (the smoke test writes into a temporary folder).
+* `stamp()`: commit, machine, kernel plan and command; every CSV row carries it (`append_rows` adds it to rows that
+  lack it), every Markdown report starts with it.
+* `append_rows`: rows appended as they land, so a long run is resumable and its partial CSV can be committed; a
+  CSV learns new columns without shifting old rows.
+* `SMOKE` ($NBVH_BENCH_SMOKE=1): tests/test_bench_smoke.py runs every benchmark at a tiny budget; a benchmark
+  reads it where its options cannot make a run tiny enough.
+
+Benchmarks run as scripts from the repository root (`.venv/bin/python bench/NAME.py ...`): nbvh_core is installed
+(editable) in the environment and this folder is the script's own; the add-on package (not installed: Blender
+loads it) is reached through the repository root, which this module puts on the path - the one place that does.
+"""
 from __future__ import annotations
 
 import csv
+import datetime
 import os
 import platform
 import subprocess
@@ -10,21 +24,54 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.append(str(ROOT))  # for `addon` (bench_engine); nbvh_core comes from the environment either way
+RESULTS = Path(os.environ.get("NBVH_BENCH_RESULTS") or ROOT / "bench" / "results")
+SMOKE = os.environ.get("NBVH_BENCH_SMOKE") == "1"
+STAMP_FIELDS = ("commit", "machine", "kernel_plan", "command")
 
 
 def stamp() -> dict:
-    """commit (short hash), machine (host, architecture, CPUs) and the command that made the row."""
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True)
-    return {"commit": commit.stdout.strip() or "unknown",
-            "machine": f"{platform.node()} {platform.machine()} cpus={os.cpu_count()}",
-            "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]])}
+    """commit (short hash, + '-dirty' with uncommitted changes), machine (host, architecture, CPUs, GPU), the kernel
+    plan (which path ran: `kernels.describe()`), the command that made the row, and when (UTC)."""
+    from nbvh_core import kernels
+
+    def git(*args: str) -> str:
+        out = subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True)
+        return out.stdout.strip() if out.returncode == 0 else ""
+
+    commit = git("rev-parse", "--short", "HEAD") or "unknown"
+    if git("status", "--porcelain", "--untracked-files=no"):
+        commit += "-dirty"
+    return {"commit": commit, "machine": machine(), "kernel_plan": kernels.describe(),
+            "command": " ".join([f"bench/{Path(sys.argv[0]).name}", *sys.argv[1:]]),
+            "utc": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M")}
 
 
-def append_rows(path: str | os.PathLike, rows: list[dict]) -> None:
-    """Append `rows` to the CSV at `path`; columns new to it are added (older rows get them empty)."""
+def machine() -> str:
+    """host, architecture, CPU count and the CUDA device when there is one."""
+    import torch
+
+    gpu = f" gpu={torch.cuda.get_device_name(0)}" if torch.cuda.is_available() else ""
+    return f"{platform.node()} {platform.machine()} cpus={os.cpu_count()}{gpu}"
+
+
+def result_path(name: str) -> Path:
+    """RESULTS / name, its folder made."""
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    return RESULTS / name
+
+
+def append_rows(path: str | os.PathLike, rows: list[dict], run_stamp: dict | None = None) -> None:
+    """Append `rows` to the CSV at `path`, each stamped (`run_stamp` or a fresh `stamp()`) where it has no stamp of
+    its own; columns new to the file are added (older rows get them empty)."""
+    if not rows:
+        return
+    st = run_stamp or stamp()
+    rows = [{**{k: st[k] for k in STAMP_FIELDS if k not in r}, **r} for r in rows]
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    old = list(csv.DictReader(open(path))) if path.exists() else []
+    old = read_rows(path)
     fields = list(dict.fromkeys([*(old[0].keys() if old else []), *(k for r in rows for k in r)]))
     if old and list(old[0].keys()) == fields:
         with open(path, "a", newline="") as f:
@@ -36,5 +83,50 @@ def append_rows(path: str | os.PathLike, rows: list[dict]) -> None:
         w.writerows([*old, *rows])
 
 
+def append_row(path: str | os.PathLike, row: dict) -> None:
+    append_rows(path, [row])
+
+
+def write_rows(path: str | os.PathLike, rows: list[dict], run_stamp: dict | None = None) -> None:
+    """Replace the CSV at `path` with `rows` (stamped like `append_rows`)."""
+    Path(path).unlink(missing_ok=True)
+    append_rows(path, rows, run_stamp)
+
+
 def read_rows(path: str | os.PathLike) -> list[dict]:
-    return list(csv.DictReader(open(path))) if Path(path).exists() else []
+    """The CSV's rows as dicts (strings); [] when there is no file."""
+    path = Path(path)
+    if not path.exists():
+        return []
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def num(row: dict, key: str) -> float:
+    """A CSV cell as a float (nan when empty or missing)."""
+    try:
+        return float(row.get(key) or "nan")
+    except ValueError:
+        return float("nan")
+
+
+def markdown_table(header: list[str], rows: list[list]) -> list[str]:
+    """A Markdown table's lines."""
+    cells = [[str(c) for c in r] for r in rows]
+    return ["| " + " | ".join(header) + " |", "|" + "---|" * len(header), *("| " + " | ".join(r) + " |" for r in cells)]
+
+
+def write_markdown(path: str | os.PathLike, lines: list[str], run_stamp: dict | None = None) -> Path:
+    """Write a Markdown report: `lines`, with the stamp (the command that made it, commit, machine, kernel plan,
+    time) after its title (a first line '# ...') or first."""
+    st = run_stamp or stamp()
+    note = [f"Made by `{st['command']}` at commit {st['commit']} on {st['machine']}; kernels: {st['kernel_plan']}; "
+            f"{st['utc']} UTC.", ""]
+    lines = list(lines)
+    split = 2 if lines and lines[0].startswith("# ") and len(lines) > 1 and not lines[1].strip() else \
+        1 if lines and lines[0].startswith("# ") else 0
+    text = lines[:split] + ([""] if split == 1 else []) + note + lines[split:]
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("\n".join(text).rstrip() + "\n")
+    return path

@@ -15,18 +15,17 @@ uncommitted (.gitignore).
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
-import bpy  # noqa: E402
+import bpy
 
-from bench.harness import append_rows, stamp  # noqa: E402
+from harness import append_rows, stamp
+from harness import RESULTS
 
 
 def build_scene(size: int):
@@ -185,7 +184,7 @@ def main() -> None:
            "flip": round(flip, 4), "mse": round(float(((nbvh - cycles) ** 2).mean()), 5),
            "mean_colour_error_textured": round(means[0], 4), "mean_colour_error_blue": round(means[1], 4),
            "nbvh_render_s": round(nbvh_s, 1), "cycles_render_s": round(cycles_s, 1)}
-    append_rows(ROOT / "bench" / "results" / "look_suzanne.csv", [row])
+    append_rows(RESULTS / "look_suzanne.csv", [row])
     print(row)
 
 

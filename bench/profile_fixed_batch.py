@@ -9,21 +9,20 @@ import statistics
 import sys
 import time
 from collections import defaultdict
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from nbvh_core import kernels  # noqa: E402
-from nbvh_core.geometry.bvh import build_bvh  # noqa: E402
-from nbvh_core.neural.encodings import hashvqad  # noqa: E402
-from nbvh_core.geometry.exact import ExactTracer  # noqa: E402
-from nbvh_core.neural import fused_mlp as mlp  # noqa: E402
-from nbvh_core.geometry.mesh import load_mesh  # noqa: E402
-from nbvh_core.neural.model import NeuralBVH  # noqa: E402
-from nbvh_core.app.pipeline import preset  # noqa: E402
-from nbvh_core.training.rays import label_samples, root_box, sample_rays  # noqa: E402
-from nbvh_core.geometry.bundled_samples import sample_path  # noqa: E402
+from nbvh_core import kernels
+from nbvh_core.geometry.bvh import build_bvh
+from nbvh_core.neural.encodings import hashvqad
+from nbvh_core.geometry.exact import ExactTracer
+from nbvh_core.kernels import bindings
+from nbvh_core.neural import fused_mlp as mlp
+from nbvh_core.geometry.mesh import load_mesh
+from nbvh_core.neural.model import NeuralBVH
+from nbvh_core.app.pipeline import preset
+from nbvh_core.training.rays import label_samples, root_box, sample_rays
+from nbvh_core.geometry.bundled_samples import sample_path
 
 parts: dict[str, list[float]] = defaultdict(list)
 
@@ -46,7 +45,7 @@ def main() -> None:
     timed(mlp, "entries_read", "mark entries")
     timed(hashvqad._SoftTable, "forward", "soft forward", static=True)
     timed(hashvqad._SoftTable, "backward", "soft backward", static=True)
-    timed(kernels.load(), "nbvh_net_train", "train kernel")
+    timed(bindings, "net_train", "train kernel")
     mesh = load_mesh(sample_path("bunny"))
     bvh = build_bvh(mesh, 2047)
     o, d = sample_rays(*root_box(bvh), 4096, np.random.default_rng(0))

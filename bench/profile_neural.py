@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import sys
 import time
 from pathlib import Path
 
@@ -20,18 +19,18 @@ import numpy as np
 import torch
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
 
-from nbvh_core import kernels  # noqa: E402
-from nbvh_core.geometry.bvh import build_bvh  # noqa: E402
-from nbvh_core.geometry.exact import ExactTracer  # noqa: E402
-from nbvh_core.geometry.mesh import load_mesh  # noqa: E402
-from nbvh_core.neural.model import NeuralBVH  # noqa: E402
-from nbvh_core.app.pipeline import preset  # noqa: E402
-from nbvh_core.rendering.render import orbit_cameras  # noqa: E402
-from nbvh_core.training.rays import RayConfig, label_samples, root_box, sample_rays  # noqa: E402
-from nbvh_core.geometry.bundled_samples import sample_path  # noqa: E402
-from nbvh_core.geometry.traversal import LeafStream, TorchBVH  # noqa: E402
+from nbvh_core import kernels
+from nbvh_core.geometry.bvh import build_bvh
+from nbvh_core.geometry.exact import ExactTracer
+from nbvh_core.geometry.mesh import load_mesh
+from nbvh_core.neural.model import NeuralBVH
+from nbvh_core.app.pipeline import preset
+from nbvh_core.rendering.render import orbit_cameras
+from nbvh_core.training.rays import RayConfig, label_samples, root_box, sample_rays
+from nbvh_core.geometry.bundled_samples import sample_path
+from nbvh_core.geometry.traversal import LeafStream, TorchBVH
+from harness import RESULTS, write_markdown
 
 CONFIGS = [("hashgrid", "mlp", 11), ("hashgrid", "kmlp", 11), ("hashvqad", "mlp", 10), ("hashvqad", "kmlp", 10)]
 
@@ -121,7 +120,7 @@ def main() -> None:
     ap.add_argument("--rays", type=int, default=4096)
     ap.add_argument("--size", type=int, default=256)
     ap.add_argument("--paths", default="reference,fast", help="comma-separated: reference, fast")
-    ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "profile.md"))
+    ap.add_argument("--out", default=str(RESULTS / "profile.md"))
     args = ap.parse_args()
     kernels.keep_freed_memory()  # as the CLI does: freed blocks stay in the heap (see the function)
     paths = args.paths.split(",")
@@ -178,7 +177,7 @@ def main() -> None:
                                     f"{args.size ** 2 / rt['total']:,.0f} | {segs / rt['total']:,.0f} |")
                 print(lines[-1], render_lines[-1], flush=True)
     out = Path(args.out)
-    out.write_text("\n".join(lines + render_lines) + "\n")
+    write_markdown(out, lines + render_lines)
     print(f"wrote {out}")
 
 

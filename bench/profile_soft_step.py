@@ -6,11 +6,9 @@ row table's forward and backward, the fused train step (which includes both), Ad
 """
 import sys
 import time
-from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from collections import defaultdict
 from nbvh_core import kernels
 from nbvh_core.geometry.bvh import build_bvh

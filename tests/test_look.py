@@ -128,6 +128,16 @@ def test_the_head_learns_slots_and_coordinates():
     assert head.loss(torch.from_numpy(p), torch.from_numpy(patch), torch.from_numpy(uv)).item() < 0.5 * before
 
 
+def test_a_budget_the_label_pool_used_up_still_trains_the_heads_minimum_steps():
+    """A zero budget (what a 2 s preview run leaves the head after drawing its labels) used to give a head with no
+    steps and a NaN loss the file header refused."""
+    m = demo_assets.crate(cells=2, texture=16)
+    head, face_patch = make_head(m, AppearanceConfig(log2_table=6))
+    labels = SurfaceLabels(m, ExactTracer(m), np.random.default_rng(0), face_patch)
+    result = train_head(head, labels, seconds=0.0, pool_size=1 << 12, min_steps=5)
+    assert result.steps == 5 and np.isfinite(result.final_loss)
+
+
 def _textured_model():
     m = demo_assets.globe(16, 8, texture=32)
     s = preset("tiny").with_overrides(force=True)

@@ -1,0 +1,92 @@
+"""Every benchmark still runs: each script at a tiny budget (its own options, and $NBVH_BENCH_SMOKE=1 where options
+cannot make it tiny), writing into a temporary results folder; every CSV row it writes carries the harness stamp.
+
+The numbers are not checked here (a smoke run's are meaningless); that the script ends cleanly and stamps its
+rows is."""
+from __future__ import annotations
+
+import csv
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+BENCH = ROOT / "bench"
+#: The shared modules of bench/ (not benchmarks themselves).
+LIBRARIES = {"harness.py", "rd_runs.py", "bench_meshes.py"}
+#: script -> its arguments at a tiny budget ({tmp}: the case's scratch folder).
+SMOKE = {
+    "bench_batch_cluster.py": ["--assets", "blob", "studs", "--preset", "tiny", "--time-limit", "1"],
+    "bench_compact.py": ["--storage", "smoke"],
+    "bench_engine.py": ["{tmp}/models", "--frames", "1"],
+    "bench_foundation.py": ["--quick", "--rays", "2000", "--nodes", "64"],
+    "bench_freeze.py": ["--assets", "blob", "--time", "3", "--views", "1"],
+    "bench_kill_resume.py": ["--mesh", "blob", "--preset", "preview", "--time-limit", "8", "--checkpoint-every", "1",
+                             "--straight", "1"],
+    "bench_leaf_sampling.py": ["--quick", "--train-s", "1"],
+    "bench_look.py": ["--preset", "tiny", "--assets", "crate", "--views", "1", "--size", "64"],
+    "bench_method_speed.py": ["--steps", "3", "--repeats", "1", "--renders", "1"],
+    "bench_pays.py": ["--meshes", "blob", "--presets", "tiny", "--time-limit", "1"],
+    "bench_preset_curves.py": ["--mesh", "blob", "--budgets", "tiny=1"],
+    "bench_quality.py": ["--quick"],
+    "bench_rd_compact.py": ["--meshes", "blob"],
+    "bench_resolution.py": ["--meshes", "blob", "--n-max", "32", "--preset", "tiny", "--steps", "5"],
+    "bench_samples.py": ["--preset", "tiny", "--out", "{tmp}/samples"],
+    "bench_speed.py": ["--quick", "--asset", "blob", "--train-s", "1", "--steps", "3"],
+    "bench_table5.py": ["--steps", "5", "--meshes", "blob", "--methods", "base", "III"],
+    "error_split.py": ["blob", "--preset", "tiny", "--steps", "5"],
+    "fit_sizing.py": ["--quick"],
+    "fuzz_files.py": ["--kind", "mesh", "--cases", "12"],
+    "fuzz_reader.py": ["--cases", "12"],
+    "look_suzanne.py": ["{tmp}/suzanne", "--seconds", "2", "--size", "48", "--cycles-samples", "1"],
+    "profile_fixed_batch.py": ["2"],
+    "profile_neural.py": ["--asset", "blob", "--rays", "256", "--size", "32", "--out", "{tmp}/profile.md"],
+    "profile_soft_step.py": ["2"],
+}
+#: CSVs a case reads, seeded into its results folder from bench/results: (file, column, the values kept).
+SEEDS = {"bench_compact.py": ("pays.csv", "mesh", {"bunny"})}
+
+
+def test_every_benchmark_has_a_smoke_run():
+    scripts = {p.name for p in BENCH.glob("*.py")} - LIBRARIES
+    assert scripts == set(SMOKE), f"no smoke run for {scripts - set(SMOKE)}; stale: {set(SMOKE) - scripts}"
+
+
+def _seed(name: str, results: Path) -> None:
+    if name not in SEEDS:
+        return
+    file, column, keep = SEEDS[name]
+    with open(BENCH / "results" / file, newline="") as f:
+        rows = [r for r in csv.DictReader(f) if r[column] in keep][:1]
+    assert rows, f"{file} has no row to seed {name}'s smoke run"
+    rows[0]["storage"] = "smoke"
+    with open(results / file, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+
+
+@pytest.mark.parametrize("name", sorted(SMOKE))
+def test_benchmark_runs_at_a_tiny_budget_and_stamps_its_rows(name, tmp_path):
+    results = tmp_path / "results"
+    results.mkdir()
+    _seed(name, results)
+    seeded = {p.name for p in results.iterdir()}
+    args = [a.replace("{tmp}", str(tmp_path)) for a in SMOKE[name]]
+    env = dict(os.environ, NBVH_BENCH_RESULTS=str(results), NBVH_BENCH_SMOKE="1", PYTHONDONTWRITEBYTECODE="1")
+    proc = subprocess.run([sys.executable, str(BENCH / name), *args], cwd=ROOT, env=env, capture_output=True,
+                          text=True, timeout=600)
+    assert proc.returncode == 0, f"{name} {' '.join(args)}:\n{proc.stdout[-1500:]}\n{proc.stderr[-3000:]}"
+    for path in results.rglob("*.csv"):
+        if path.name in seeded:
+            continue
+        with open(path, newline="") as f:
+            rows = list(csv.DictReader(f))
+        for field in ("commit", "machine", "kernel_plan", "command"):
+            assert rows and all(r.get(field) for r in rows), f"{path.name}: rows without {field}"
+        assert all(r["command"].startswith(f"bench/{name}") for r in rows)
+    shutil.rmtree(tmp_path, ignore_errors=True)
