@@ -189,7 +189,7 @@ def _compress_locked(args, mesh, mesh_path, paths, sink) -> int:
             rays_per_step=args.rays_per_step, budget_kb=args.budget_kb, leaf_sampling=args.leaf_sampling,
             tree_cut=True if args.tree_cut else None, normal_loss=args.normal_loss, n_max=args.n_max,
             index_factor=args.index_factor, finetune_fraction=args.finetune_fraction,
-            appearance_target=args.appearance,
+            appearance_target=args.appearance, size_search=args.size_search,
             target_mse=QUALITY_LEVELS[args.quality] if args.quality else args.target_mse))
     settings = settings.with_overrides(force=True if args.force else None, checkpoint_every_s=args.checkpoint_every)
     default_ck = checkpoint_for(out)
@@ -409,7 +409,8 @@ def _add_compress_parser(sub) -> None:
 
     c = sub.add_parser("compress", help="train a neural model of a mesh and write OUT.nbvh")
     c.add_argument("mesh")
-    c.add_argument("-o", "--output", required=True, help="output .nbvh file (+ .json report, .preview.png)")
+    c.add_argument("-o", "--output", required=True,
+                   help="output .nbvh file (+ .report.json, .preview.png, .reference.png beside it)")
     c.add_argument("--preset", default="default", choices=list(PRESETS),
                    help="named settings (default: default); the options below override single fields")
     size = c.add_mutually_exclusive_group()
@@ -417,6 +418,8 @@ def _add_compress_parser(sub) -> None:
     size.add_argument("--target-mse", type=float, help="size the model for this image MSE (checked after training)")
     size.add_argument("--quality", choices=list(QUALITY_LEVELS),
                       help=f"a named target: {describe_levels()}")
+    c.add_argument("--size-search", choices=["retrain", "grow"],
+                   help="with a target: retrain per size tried (default), or one training that grows its table")
     c.add_argument("--encoding", choices=["hashgrid", "hashvqad"])
     c.add_argument("--network", choices=["mlp", "kmlp"])
     c.add_argument("--labels", choices=["ownership", "consistent"])

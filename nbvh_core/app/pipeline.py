@@ -37,6 +37,12 @@ DIVERGENCE_RETRIES = 2
 #: Training with a target stops early once a quick check's MSE is below this fraction of the target (the quick
 #: check sees 4 views at 64 px, noisier than the 16 x 128 px evaluation that follows).
 EARLY_STOP_MARGIN = 0.7
+#: size_search "grow": the training starts this many table sizes below the predicted one; the table grows when a
+#: quick check's MSE fell by less than 1 - GROW_PLATEAU since the last check at the same size (a plateau above the
+#: target); the checks come every budget / GROW_CHECKS seconds (at most target_check_every_s).
+GROW_START_BELOW = 2
+GROW_PLATEAU = 0.85
+GROW_CHECKS = 12
 
 
 @dataclass
@@ -122,6 +128,22 @@ def _target_check(tracer, target: float):
     return reached
 
 
+def _grow_check(tracer, target: float, max_log2: int):
+    """The callback of a growing training (size_search "grow"): True once the quick MSE is below EARLY_STOP_MARGIN
+    x the target, "grow" when it plateaus above it at a size below 2^max_log2 (see GROW_PLATEAU)."""
+    last: dict[int, float] = {}
+
+    def decide(model) -> bool | str:
+        with torch.no_grad():
+            q, _ = evaluate(model, tracer, 4, 64)
+        if q.mse <= EARLY_STOP_MARGIN * target:
+            return True
+        log2 = model.cfg.encoding.log2_table
+        previous, last[log2] = last.get(log2), q.mse
+        return "grow" if previous is not None and q.mse > GROW_PLATEAU * previous and log2 < max_log2 else False
+    return decide
+
+
 def _train_with_restarts(mesh, bvh, tracer, settings, why, events, should_cancel, checkpoint_path, resume_from=None,
                          target_reached=None):
     """Train a fresh model (or resume `resume_from`); on divergence restart from scratch at a 10x lower learning rate
@@ -194,6 +216,10 @@ class _SizeSearch:
         if target is None or not self.evaluate_quality:
             self.train_and_measure(self.settings.log2_table)
             return self.settings.log2_table, self.why
+        if self.settings.size_search == "grow":
+            return self.grow()
+        if self.settings.size_search != "retrain":
+            raise ValueError(f"size_search must be 'retrain' or 'grow', got {self.settings.size_search!r}")
         fit = load_fit()
         feats = mesh_features(self.mesh) if fit is not None else None
         chosen, measured = search_size(fit, feats, target, self.settings.log2_table, self._measure_next)
@@ -202,6 +228,35 @@ class _SizeSearch:
             trail = ", ".join(f"T=2^{l2}: {mse:.4g}" for l2, mse in measured.items())
             why += f"; measured {trail} (target {target:g}): kept T=2^{chosen}"
         return chosen, why
+
+    def grow(self) -> tuple[int, str]:
+        """One training that starts GROW_START_BELOW sizes under the resolved T and grows its table until the quick
+        check meets the target (or one size above the resolved T); returns (the final log2 T, `why`)."""
+        s = self.settings
+        top = s.log2_table + 1
+        start = max(6, s.log2_table - GROW_START_BELOW)
+        budget = s.time_limit_s or 200.0
+        s_start = dataclasses.replace(s, log2_table=start,
+                                      target_check_every_s=min(s.target_check_every_s, budget / GROW_CHECKS))
+        model, tr, s_used, why_used = _train_with_restarts(
+            self.mesh, self.bvh, self.tracer, s_start, self.why, self.events, self.should_cancel,
+            self.checkpoint_path, self.resume_from, _grow_check(self.tracer, s.target_mse, top))
+        final = model.cfg.encoding.log2_table
+        s_used = dataclasses.replace(s_used, log2_table=final, target_check_every_s=s.target_check_every_s)
+        trail = ", ".join(f"T=2^{log2} at {sec:g} s" for _, sec, log2 in tr.grew) or "no growth"
+        why_used += (f"; one training from T=2^{start} growing its table to meet {s.target_mse:g}: {trail}"
+                     + (f"; stopped after {tr.seconds:.0f} s, the target met" if tr.stopped_early else ""))
+        self.seconds["train"] += tr.seconds
+        self._keep(final, model, tr, s_used, why_used)
+        return final, self.why
+
+    def _keep(self, log2_table: int, model, tr, s_used: Settings, why_used: str) -> None:
+        """Finalize a trained model to its stored precision, score it, keep it as `trained[log2_table]` (with the
+        notes `why_used` adds to `why`)."""
+        model.eval()
+        model.finalize_storage(s_used.storage())
+        quality = self._score(model, s_used) if self.evaluate_quality else None
+        self.trained[log2_table] = _Trained(model, tr, s_used, why_used[len(self.why):], quality)
 
     def _measure_next(self, log2_table: int) -> float:
         """A search step: says why this size comes next (after the first), then trains it."""

@@ -98,6 +98,11 @@ class Settings:
     #: With a target MSE: seconds between quick quality checks during training (4 views, 64 px); training stops once
     #: the quick MSE is below EARLY_STOP_MARGIN x the target (the full evaluation after it confirms or not).
     target_check_every_s: float = 20.0
+    #: With a target MSE, how the size is found: "retrain" - predict T, train, measure, correct (up to
+    #: TARGET_TRAININGS trainings); "grow" - one training that starts GROW_START_BELOW sizes under the predicted T
+    #: and doubles its table in place (the function unchanged: HashGrid.grow) whenever the quick check plateaus
+    #: above the target, up to one size above it.
+    size_search: str = "retrain"
     #: An asset with several material slots or a texture: the share of the time budget (or, without one, of the
     #: geometry's training time, added) the appearance head trains in (`appearance.py`), and its table size.
     appearance_share: float = 0.15

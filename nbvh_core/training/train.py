@@ -19,6 +19,7 @@ import gc
 import math
 import os
 import time
+import dataclasses
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -115,6 +116,8 @@ class TrainResult:
     compute_path: str = ""  # kernels.plan(...).describe(): which kernel ran each stage
     kernel_plan: dict = field(default_factory=dict)  # the same, as fields (kernels.KernelPlan)
     stopped_early: bool = False  # the target_reached callback ended training before the budget
+    #: (step, seconds, new log2 T) of each time the table grew (the target_reached callback asked for it)
+    grew: list = field(default_factory=list)
 
 
 def pick_device(name: str = "auto") -> torch.device:
@@ -398,17 +401,45 @@ class Progress:
 
 class EarlyStop:
     """Asks target_reached(model) every cfg.target_check_every_s once 10% of the budget has passed (and the
-    encoding is in its final form); True ends training (see TrainConfig.target_check_every_s)."""
+    encoding is in its final form): True ends training (see TrainConfig.target_check_every_s); "grow" asks for a
+    table twice as large (`grow_table`), honoured while the model can still be trained at its new size (before
+    GROW_UNTIL of the budget, a HashGrid not yet quantized)."""
+
+    #: No growth after this fraction of the budget: the larger table would get too little training to pay.
+    GROW_UNTIL = 0.8
 
     def __init__(self, target_reached, cfg: TrainConfig, last_s: float):
         self.target_reached, self.cfg, self.last_s = target_reached, cfg, last_s
 
-    def reached(self, model: NeuralBVH, fraction: float, elapsed: float, ready: bool) -> bool:
+    def reached(self, model: NeuralBVH, fraction: float, elapsed: float, ready: bool) -> bool | str:
         if (self.target_reached is None or fraction < 0.1 or not ready
                 or elapsed - self.last_s < self.cfg.target_check_every_s):
             return False
         self.last_s = elapsed
-        return bool(self.target_reached(model))
+        answer = self.target_reached(model)
+        if answer == "grow":
+            return "grow" if fraction < self.GROW_UNTIL and model.encoding.can_grow() else False
+        return bool(answer)
+
+
+def grow_table(model: NeuralBVH, opt: torch.optim.Optimizer, checkpoints: "Checkpoints") -> int:
+    """Double the model's table in place, the encoded function unchanged (`HashGrid.grow`), with Adam's moments
+    grown the same way so training goes on where it was; later checkpoints record the new size. Returns the new
+    log2 T."""
+    enc = model.encoding
+    old = enc.table
+    state = opt.state.pop(old, None) or {}
+    moments = {k: enc.grown_like(v) if torch.is_tensor(v) and v.shape == old.shape else v for k, v in state.items()}
+    new = enc.grow()
+    for group in opt.param_groups:
+        group["params"] = [new if p is old else p for p in group["params"]]
+    if moments:
+        opt.state[new] = moments
+    model.cfg = dataclasses.replace(model.cfg, encoding=enc.cfg)
+    settings = checkpoints.extra.get("settings")
+    if isinstance(settings, dict):
+        checkpoints.extra["settings"] = {**settings, "log2_table": enc.cfg.log2_table}
+    return enc.cfg.log2_table
 
 
 class _TreeCutHook:
@@ -494,7 +525,8 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
 
     before_freeze(model) is called once just before the HashVQAD freeze (e.g. to score the soft model).
     checkpoint_extra: stored in every checkpoint under 'extra' (the caller's settings and mesh identity).
-    target_reached(model) -> bool: polled every cfg.target_check_every_s seconds; True stops training early.
+    target_reached(model) -> bool | "grow": polled every cfg.target_check_every_s seconds; True stops training
+    early, "grow" doubles the table (`grow_table`) and training goes on.
     """
     check_config(cfg)
     device = pick_device(cfg.device)
@@ -520,11 +552,17 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
         return _checkpoint_state(model, opt, step, time.perf_counter() - t0, history, batches, leaf_errors, cut, phases)
 
     t0 = time.perf_counter() - elapsed_before
-    stopped_early, loss = False, float("nan")
+    stopped_early, loss, grew = False, float("nan"), []
     gc.freeze()  # what exists now (torch, the model, the data) lives on: full collections skip it (were ~8% of a step)
     try:
         while (frac := schedule.fraction(step, elapsed := time.perf_counter() - t0)) < 1.0:
-            if early.reached(model, frac, elapsed, phases.ready_to_stop):
+            decision = early.reached(model, frac, elapsed, phases.ready_to_stop)
+            if decision == "grow":
+                grown = grow_table(model, opt, checkpoints)
+                grew.append((step, round(elapsed, 1), grown))
+                events({"event": "phase", "phase": phases.phase, "message": f"target not in reach at this size: "
+                                                                            f"the table grows to T=2^{grown}"})
+            elif decision:
                 stopped_early = True
                 events({"event": "phase", "phase": phases.phase,
                         "message": f"target reached at step {step} ({elapsed:.0f} s): training stops"})
@@ -560,7 +598,7 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
                          samples_per_s=progress.samples_per_s(seconds),
                          final_loss=guard.ema if guard.ema is not None else loss, device=str(device),
                          history=history, compute_path=plan.describe(), kernel_plan=plan.to_dict(),
-                         stopped_early=stopped_early)
+                         stopped_early=stopped_early, grew=grew)
     progress.emit(phases.phase, step, 1.0, result.final_loss, seconds, 0.0)
     phases.finish(result)
     return result

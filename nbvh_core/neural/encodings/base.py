@@ -88,6 +88,10 @@ class Encoding(nn.Module):
     def freeze(self) -> None:
         pass
 
+    def can_grow(self) -> bool:
+        """True when the encoding can double its table without changing what it encodes (HashGrid.grow)."""
+        return False
+
     def stored_bytes(self, table_bits: int = 32) -> dict[str, int]:
         raise NotImplementedError
 

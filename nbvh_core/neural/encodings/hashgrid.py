@@ -5,7 +5,8 @@ import torch
 from torch import nn
 
 from ... import kernels
-from .base import Encoding, EncodingConfig, corner_indices, gather_weighted_sum, level_scales
+from .base import (Encoding, EncodingConfig, corner_indices, gather_weighted_sum, level_scales, spatial_hash,
+                   vertex_resolution)
 from .fused import FusedLookup, GridSpec, fused_encode, fused_encode_half, fused_encode_u8
 
 
@@ -86,6 +87,29 @@ class HashGrid(Encoding):
         self.qscale = scale.to(dev, torch.float32).contiguous()
         self.table = nn.Parameter(torch.zeros(0, device=dev), requires_grad=False)
         self._half = None
+
+    def can_grow(self) -> bool:
+        """True while the table can double without changing what it encodes (`grow`): a HashGrid's float rows
+        before quantization (HashVQAD's learned index, codes, or a quantization-aware table do not grow)."""
+        return type(self) is HashGrid and not self.quantized and self.qat_affine is None and self.table.dim() == 3
+
+    def grown_like(self, rows: torch.Tensor) -> torch.Tensor:
+        """`rows` laid out like the table (L, T, F), as the table twice as large lays them out (`grown_rows`)."""
+        return grown_rows(rows, self.scales, 2 * self.cfg.table_size)
+
+    @torch.no_grad()
+    def grow(self) -> nn.Parameter:
+        """Double T, every point encoded exactly as before (`grown_rows`): training continues with twice the rows.
+        Returns the new `table` parameter (the old one is no longer the encoding's)."""
+        import dataclasses
+
+        if not self.can_grow():
+            raise ValueError("only a HashGrid's float table can grow")
+        rows = self.grown_like(self.table.data)
+        self.cfg = dataclasses.replace(self.cfg, log2_table=self.cfg.log2_table + 1)
+        self.table = nn.Parameter(rows, requires_grad=self.table.requires_grad)
+        self._spec, self._half = None, None
+        return self.table
 
     def row_table(self) -> torch.Tensor:
         """(L, T, F): the feature rows that vertices look up (for HashGrid, the table itself; see
@@ -178,3 +202,27 @@ def table_features_bytes(cfg: EncodingConfig, table_bits: int) -> int:
     n = cfg.levels * cfg.table_size * cfg.features
     extra = 2 * 4 * cfg.levels * cfg.features if table_bits == 8 else 0
     return n * table_bits // 8 + extra
+
+
+@torch.no_grad()
+def grown_rows(rows: torch.Tensor, scales: list[float], new_table_size: int) -> torch.Tensor:
+    """The rows of the same grid with `new_table_size` (> T) rows per level that encode every point exactly as
+    `rows` (L, T, F) do: for each new row, the old row its vertices read. A hashed level that stays hashed reads
+    row hash mod T' = j, whose vertices read hash mod T = j mod T before (T' a multiple of T); a level the larger
+    table indexes densely gets each vertex's old row; a dense level keeps its rows. Returns (L, T', F), the rows no
+    vertex reads zero. Works on any tensor laid out like the table (Adam's moments too)."""
+    levels, old_size, features = rows.shape
+    if new_table_size <= old_size or new_table_size % old_size:
+        raise ValueError(f"a table grows to a multiple of its {old_size} rows, not {new_table_size}")
+    out = rows.new_zeros((levels, new_table_size, features))
+    for level, scale in enumerate(scales):
+        res = vertex_resolution(scale)
+        if res ** 3 <= old_size:  # dense before and after: the same rows
+            out[level, :res ** 3] = rows[level, :res ** 3]
+        elif res ** 3 <= new_table_size:  # dense from now on: each vertex's old (hashed) row
+            r = torch.arange(res, device=rows.device)
+            grid = torch.stack(torch.meshgrid(r, r, r, indexing="ij"), -1).reshape(-1, 3)[:, [2, 1, 0]]
+            out[level, :res ** 3] = rows[level, spatial_hash(grid) % old_size]
+        else:  # hashed before and after
+            out[level] = rows[level, torch.arange(new_table_size, device=rows.device) % old_size]
+    return out
