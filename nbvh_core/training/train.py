@@ -410,6 +410,22 @@ class EarlyStop:
 
     def __init__(self, target_reached, cfg: TrainConfig, last_s: float):
         self.target_reached, self.cfg, self.last_s = target_reached, cfg, last_s
+        self.grew: list[tuple[int, float, int]] = []  # (step, seconds, new log2 T) of each growth
+
+    def act(self, model: NeuralBVH, opt, checkpoints: "Checkpoints", events: EventSink, phases, step: int,
+            fraction: float, elapsed: float) -> bool:
+        """Ask (when due) and do what the answer says: grow the table, or return True to end training."""
+        decision = self.reached(model, fraction, elapsed, phases.ready_to_stop)
+        if decision == "grow":
+            grown = grow_table(model, opt, checkpoints)
+            self.grew.append((step, round(elapsed, 1), grown))
+            events({"event": "phase", "phase": phases.phase,
+                    "message": f"target not in reach at this size: the table grows to T=2^{grown}"})
+            return False
+        if decision:
+            events({"event": "phase", "phase": phases.phase,
+                    "message": f"target reached at step {step} ({elapsed:.0f} s): training stops"})
+        return bool(decision)
 
     def reached(self, model: NeuralBVH, fraction: float, elapsed: float, ready: bool) -> bool | str:
         if (self.target_reached is None or fraction < 0.1 or not ready
@@ -552,20 +568,12 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
         return _checkpoint_state(model, opt, step, time.perf_counter() - t0, history, batches, leaf_errors, cut, phases)
 
     t0 = time.perf_counter() - elapsed_before
-    stopped_early, loss, grew = False, float("nan"), []
+    stopped_early, loss = False, float("nan")
     gc.freeze()  # what exists now (torch, the model, the data) lives on: full collections skip it (were ~8% of a step)
     try:
         while (frac := schedule.fraction(step, elapsed := time.perf_counter() - t0)) < 1.0:
-            decision = early.reached(model, frac, elapsed, phases.ready_to_stop)
-            if decision == "grow":
-                grown = grow_table(model, opt, checkpoints)
-                grew.append((step, round(elapsed, 1), grown))
-                events({"event": "phase", "phase": phases.phase, "message": f"target not in reach at this size: "
-                                                                            f"the table grows to T=2^{grown}"})
-            elif decision:
+            if early.act(model, opt, checkpoints, events, phases, step, frac, elapsed):
                 stopped_early = True
-                events({"event": "phase", "phase": phases.phase,
-                        "message": f"target reached at step {step} ({elapsed:.0f} s): training stops"})
                 break
             if should_cancel():
                 checkpoints.save(state())
@@ -598,7 +606,7 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
                          samples_per_s=progress.samples_per_s(seconds),
                          final_loss=guard.ema if guard.ema is not None else loss, device=str(device),
                          history=history, compute_path=plan.describe(), kernel_plan=plan.to_dict(),
-                         stopped_early=stopped_early, grew=grew)
+                         stopped_early=stopped_early, grew=early.grew)
     progress.emit(phases.phase, step, 1.0, result.final_loss, seconds, 0.0)
     phases.finish(result)
     return result
