@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import webbrowser
+from dataclasses import dataclass
 from pathlib import Path
 
 import bpy
@@ -11,8 +12,22 @@ import bpy
 from . import engine, library, previews
 from .job import TARGET_TRAININGS, check_python, core_env, default_python
 
-# The session of the current Compress click (one at a time per Blender instance), and the library / scene-report run.
-_state = {"session": None, "messages": [], "library": None}
+@dataclass
+class AddonState:
+    """What the add-on holds between timer ticks (one Blender instance, one of each at a time)."""
+
+    session: object = None           # engine.Session of the current Compress click
+    library: object = None           # library.LibraryRun of the library batch or scene report
+    installer: object = None         # installer.Installer while dependencies install
+    installer_python: str = ""       # the Python the installer sets up
+
+
+STATE = AddonState()
+
+
+def installing() -> bool:
+    """True while the dependency installer runs (the panel shows its progress instead of the buttons)."""
+    return STATE.installer is not None
 
 
 def addon_prefs(context):
@@ -71,7 +86,7 @@ def _store_results(scene, session) -> None:
 
 def _tick():
     """Timer: advance the job queue, mirror progress into the panel, load finished results."""
-    session = _state["session"]
+    session = STATE.session
     if session is None:
         return None
     scene = bpy.context.scene
@@ -94,7 +109,7 @@ def _tick():
         props.last_error = "; ".join(f"{k}: {v}" for k, v in session.failures.items())
         props.last_note = "; ".join(f"{k} kept as a mesh: {v}" for k, v in session.kept_as_mesh.items())
         props.decimations = json.dumps(session.decimations)
-        _state["session"] = None
+        STATE.session = None
         if props.show_image and session.loaded:
             previews.show_image(bpy.data.images.get(next(iter(session.loaded.values()))["image"]))
         done = [f"{name}: {loaded['result']['bytes'] / 1024:,.1f} KB" for name, loaded in session.loaded.items()]
@@ -144,7 +159,7 @@ def notify(title: str, lines: list[str], icon: str = "INFO") -> None:
 
 def compress_disabled_reason(context) -> str:
     """Why Compress cannot run now ('' when it can): shown on the greyed-out button and in the panel."""
-    if _state["session"] is not None:
+    if STATE.session is not None:
         return "a compression is running (Cancel it, or wait for it to finish)"
     if not context.selected_objects:
         return "select one or more mesh objects to compress"
@@ -191,7 +206,7 @@ class NBVH_OT_compress(bpy.types.Operator):
         props.running, props.progress, props.phase, props.last_error = True, 0.0, "starting", ""
         props.last_note = props.warnings = ""
         props.message_selection = selection_key(context)
-        _state["session"] = session
+        STATE.session = session
         bpy.app.timers.register(_tick, first_interval=0.1)
         return {"FINISHED"}
 
@@ -203,13 +218,13 @@ class NBVH_OT_cancel(bpy.types.Operator):
     bl_label = "Cancel"
 
     def execute(self, context):
-        session = _state["session"]
+        session = STATE.session
         if session is not None:
             session.queue.cancel_all()
             engine.end_session(session)
         props = context.scene.nbvh_props
         props.running, props.phase = False, "cancelled"
-        _state["session"] = None
+        STATE.session = None
         self.report({"INFO"}, "NBVH: compression cancelled; earlier results are kept")
         return {"FINISHED"}
 
@@ -313,7 +328,7 @@ class NBVH_OT_remove_result(bpy.types.Operator):
 
 def _install_tick():
     """Timer: advance the dependency installer and mirror it into the preferences; done -> the new Python."""
-    inst = _state.get("installer")
+    inst = STATE.installer
     if inst is None:
         return None
     prefs = addon_prefs(bpy.context)
@@ -324,13 +339,13 @@ def _install_tick():
             "done": "installed: jobs run with the new environment", "cancelled": "install cancelled",
             "failed": (inst.error.splitlines() or ["failed"])[0][:200]}.get(state, state)
         if state == "done":
-            prefs.python_path = _state["installer_python"]
+            prefs.python_path = STATE.installer_python
     for window in bpy.context.window_manager.windows:
         for area in window.screen.areas:
             area.tag_redraw()
     if state == "running":
         return 0.25
-    _state["installer"] = None
+    STATE.installer = None
     return None
 
 
@@ -343,7 +358,7 @@ class NBVH_OT_install_dependencies(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        return _state.get("installer") is None
+        return STATE.installer is None
 
     def execute(self, context):
         from .installer import Installer, default_base_python, install_steps, venv_python
@@ -358,7 +373,7 @@ class NBVH_OT_install_dependencies(bpy.types.Operator):
             req = Path(__file__).resolve().parent.parent / "nbvh_core" / "requirements.txt"
         env = core_env()
         inst = Installer(install_steps(venv, default_base_python(), req), env=env)
-        _state["installer"], _state["installer_python"] = inst, str(venv_python(venv))
+        STATE.installer, STATE.installer_python = inst, str(venv_python(venv))
         inst.start()
         bpy.app.timers.register(_install_tick, first_interval=0.25)
         self.report({"INFO"}, f"installing into {venv} in the background")
@@ -372,7 +387,7 @@ class NBVH_OT_cancel_install(bpy.types.Operator):
     bl_label = "Cancel Install"
 
     def execute(self, context):
-        inst = _state.get("installer")
+        inst = STATE.installer
         if inst is not None:
             inst.cancel()
         return {"FINISHED"}
@@ -422,7 +437,7 @@ def store_library_rows(props, run) -> None:
 
 def _library_tick():
     """Timer: advance the library job, mirror its progress, list its rows when it ends."""
-    run = _state["library"]
+    run = STATE.library
     if run is None:
         return None
     props = bpy.context.scene.nbvh_props
@@ -441,17 +456,17 @@ def _library_tick():
             props.library_phase = f"{job.state}: {job.error or ''}"[:300]
             notify(f"NBVH: library run {job.state}", [props.library_phase], "ERROR")
         library.end_run(run)
-        _state["library"] = None
+        STATE.library = None
     for area in (bpy.context.screen.areas if bpy.context.screen else []):
         area.tag_redraw()
-    return None if _state["library"] is None else 0.25
+    return None if STATE.library is None else 0.25
 
 
 def start_library_run(props, run) -> None:
     props.library_running, props.library_progress, props.library_phase = True, 0.0, "starting"
     props.library_rows.clear()
     props.library_summary = ""
-    _state["library"] = run
+    STATE.library = run
     run.queue.step()  # starts the job now
     bpy.app.timers.register(_library_tick, first_interval=0.25)
 
@@ -465,7 +480,7 @@ class NBVH_OT_scene_report(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        return _state["library"] is None
+        return STATE.library is None
 
     def execute(self, context):
         props = context.scene.nbvh_props
@@ -492,7 +507,7 @@ class NBVH_OT_compress_library(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        return _state["library"] is None
+        return STATE.library is None
 
     def invoke(self, context, event):
         context.window_manager.fileselect_add(self)
@@ -519,13 +534,13 @@ class NBVH_OT_cancel_library(bpy.types.Operator):
     bl_label = "Cancel"
 
     def execute(self, context):
-        run = _state["library"]
+        run = STATE.library
         if run is not None:
             run.queue.cancel_all()
             library.end_run(run)
         props = context.scene.nbvh_props
         props.library_running, props.library_phase = False, "cancelled"
-        _state["library"] = None
+        STATE.library = None
         self.report({"INFO"}, "NBVH: library run cancelled; what finished stays in its report")
         return {"FINISHED"}
 

@@ -108,7 +108,7 @@ class NBVH_Preferences(bpy.types.AddonPreferences):
         row.operator("nbvh.install_dependencies")
         if self.install_status:
             col.label(text=self.install_status)
-            if operators._state.get("installer") is not None:
+            if operators.installing():
                 col.prop(self, "install_progress", text="", slider=True)
                 col.operator("nbvh.cancel_install", icon="CANCEL")
 

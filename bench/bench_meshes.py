@@ -3,6 +3,7 @@
     knot   - a tube around a (2, 3) torus knot: thin parts everywhere (tube radius 3% of the box), 28.8k triangles
     spiky  - a sphere with a high-frequency displacement: dense small detail on a closed surface, 81.9k triangles
     sheet  - an open wavy sheet with round holes: open surface, boundary edges, thin (zero-thickness), ~70k triangles
+    gear   - a CAD-like part: a 24-tooth spur gear with a bored hub, planar faces and sharp edges, 3.1k triangles
     lattice - the heavy one (like the paper's multi-million-triangle models): a cubic strut lattice with fine bumps
              on every strut, marching cubes at 320^3, >2M triangles (generated once, cached under ~/.cache/nbvh)
 
@@ -21,7 +22,7 @@ ROOT = Path(__file__).resolve().parent.parent
 from nbvh_core.geometry.mesh import Mesh, load_mesh, mesh_from_arrays
 from nbvh_core.geometry.bundled_samples import SAMPLE_NAMES, sample_path
 
-MADE = ("knot", "spiky", "sheet", "lattice")
+MADE = ("knot", "spiky", "sheet", "gear", "lattice")
 BENCH_MESHES = tuple(SAMPLE_NAMES) + ("knot", "spiky", "sheet")  # the heavy lattice only where named
 
 
@@ -75,6 +76,27 @@ def sheet(n: int = 200) -> Mesh:
     return mesh_from_arrays(verts, faces[d > 0.28], name="sheet")
 
 
+def gear(teeth: int = 24, per_tooth: int = 16, thickness: float = 0.25, bore: float = 0.3) -> Mesh:
+    """A spur gear as a CAD tool exports it: flat top and bottom, a toothed rim (trapezoidal teeth) and a round
+    bore, each a ring of quads between two closed loops sampled at the same angles (so the faces are planar and
+    the edges sharp, as a tessellated B-rep is)."""
+    n = teeth * per_tooth
+    ang = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    phase = (np.arange(n) % per_tooth) / per_tooth  # position within a tooth period
+    tooth = np.clip(np.minimum(phase, 1 - phase) * 4 - 0.5, 0, 1)  # 0 in the gap, 1 on the tip, ramps between
+    outer = 1.0 + 0.12 * tooth
+    loops = [np.stack([r * np.cos(ang), r * np.sin(ang), np.full(n, z)], 1)
+             for r, z in ((outer, 0.0), (outer, thickness), (np.full(n, bore), thickness), (np.full(n, bore), 0.0))]
+    verts = np.concatenate(loops)
+    faces = []
+    i = np.arange(n)
+    j = (i + 1) % n
+    for a, b in ((0, 1), (1, 2), (2, 3), (3, 0)):  # rim, top, bore, bottom: quads between consecutive loops
+        pa, pb = a * n, b * n
+        faces += [np.stack([pa + i, pa + j, pb + j], 1), np.stack([pa + i, pb + j, pb + i], 1)]
+    return mesh_from_arrays(verts, np.concatenate(faces), name="gear")
+
+
 def lattice(n: int = 320, period: float = 0.25, radius: float = 0.03) -> Mesh:
     """A cubic lattice of struts (every `period` along x, y and z inside a 1.8-wide box), each strut covered with
     bumps of 0.008 at a 0.05 wavelength: millions of triangles of fine, repeated detail. Cached (the marching
@@ -109,7 +131,7 @@ def lattice(n: int = 320, period: float = 0.25, radius: float = 0.03) -> Mesh:
 def bench_mesh(name: str) -> Mesh:
     """A benchmark mesh by name (see module docstring), normalised like every input."""
     if name in MADE:
-        return {"knot": knot, "spiky": spiky, "sheet": sheet, "lattice": lattice}[name]()
+        return {"knot": knot, "spiky": spiky, "sheet": sheet, "gear": gear, "lattice": lattice}[name]()
     return load_mesh(sample_path(name))
 
 

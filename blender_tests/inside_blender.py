@@ -120,7 +120,7 @@ def select(*names):
 def run_operator_until_done(timeout=300.0):
     ops = ADDON["operators"]
     t0 = time.monotonic()
-    while ops._state["session"] is not None:
+    while ops.STATE.session is not None:
         ops._tick()  # bpy.app.timers do not fire in background mode: drive the same function by hand
         if time.monotonic() - t0 > timeout:
             raise AssertionError("job did not finish in time")
@@ -216,7 +216,7 @@ def test_cancel_stops_running_job_and_leaves_nothing():
     props.time_limit = 600
     select("Blob")
     assert bpy.ops.nbvh.compress() == {"FINISHED"}
-    session = ADDON["operators"]._state["session"]
+    session = ADDON["operators"].STATE.session
     job = session.queue.jobs[0]
     t0 = time.monotonic()
     while job.progress.get("step", 0) < 1 and time.monotonic() - t0 < 180:
@@ -438,7 +438,7 @@ def test_scene_budget_is_split_by_need_and_suzanne_is_not_worth_it():
 def run_library_until_done(timeout=600.0):
     ops = ADDON["operators"]
     t0 = time.monotonic()
-    while ops._state["library"] is not None:
+    while ops.STATE.library is not None:
         ops._library_tick()  # timers do not fire in background mode
         if time.monotonic() - t0 > timeout:
             raise AssertionError("library job did not finish in time")
