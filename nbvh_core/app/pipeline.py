@@ -37,11 +37,13 @@ DIVERGENCE_RETRIES = 2
 #: Training with a target stops early once a quick check's MSE is below this fraction of the target (the quick
 #: check sees 4 views at 64 px, noisier than the 16 x 128 px evaluation that follows).
 EARLY_STOP_MARGIN = 0.7
-#: size_search "grow": the training starts this many table sizes below the predicted one; the table grows when a
-#: quick check's MSE fell by less than 1 - GROW_PLATEAU since the last check at the same size (a plateau above the
-#: target); the checks come every budget / GROW_CHECKS seconds (at most target_check_every_s).
-GROW_START_BELOW = 2
-GROW_PLATEAU = 0.85
+#: size_search "grow": the training starts this many table sizes below the predicted one; at each quick check (every
+#: budget / GROW_CHECKS seconds, at most target_check_every_s) the last two checks at the current size give a power
+#: law of MSE against training time, and the table grows when it does not reach EARLY_STOP_MARGIN x the target by
+#: the end of the budget. Measured on four meshes at the preview budget (bench/results/grow.md): starting 2 sizes
+#: below and growing on a plateau (MSE falling < 15% between checks) grew too late on the spiky sphere (2^9 reached
+#: at 36 s of 60, MSE 0.011 against 0.01).
+GROW_START_BELOW = 1
 GROW_CHECKS = 12
 
 
@@ -128,19 +130,31 @@ def _target_check(tracer, target: float):
     return reached
 
 
-def _grow_check(tracer, target: float, max_log2: int):
+def _grow_check(tracer, target: float, max_log2: int, budget_s: float):
     """The callback of a growing training (size_search "grow"): True once the quick MSE is below EARLY_STOP_MARGIN
-    x the target, "grow" when it plateaus above it at a size below 2^max_log2 (see GROW_PLATEAU)."""
-    last: dict[int, float] = {}
+    x the target; "grow" when, at a size below 2^max_log2, the power law through the last two checks at this size
+    (MSE against seconds since the callback was made, ~ since training started) misses that by the end of the
+    budget `budget_s`."""
+    start = time.perf_counter()
+    seen: dict[int, list[tuple[float, float]]] = {}
 
     def decide(model) -> bool | str:
         with torch.no_grad():
             q, _ = evaluate(model, tracer, 4, 64)
-        if q.mse <= EARLY_STOP_MARGIN * target:
+        goal = EARLY_STOP_MARGIN * target
+        if q.mse <= goal:
             return True
         log2 = model.cfg.encoding.log2_table
-        previous, last[log2] = last.get(log2), q.mse
-        return "grow" if previous is not None and q.mse > GROW_PLATEAU * previous and log2 < max_log2 else False
+        points = seen.setdefault(log2, [])
+        points.append((time.perf_counter() - start, q.mse))
+        if len(points) < 2 or log2 >= max_log2:
+            return False
+        (t1, m1), (t2, m2) = points[-2:]
+        if m2 >= m1:  # no progress at this size
+            return "grow"
+        slope = math.log(m2 / m1) / math.log(max(t2, 1e-6) / max(t1, 1e-6))
+        at_end = m2 * (max(budget_s, t2) / t2) ** slope
+        return "grow" if at_end > goal else False
     return decide
 
 
@@ -230,8 +244,9 @@ class _SizeSearch:
         return chosen, why
 
     def grow(self) -> tuple[int, str]:
-        """One training that starts GROW_START_BELOW sizes under the resolved T and grows its table until the quick
-        check meets the target (or one size above the resolved T); returns (the final log2 T, `why`)."""
+        """One training that starts GROW_START_BELOW sizes under the resolved T and grows its table while the quick
+        checks say the target is out of reach at its size (up to one size above the resolved T); returns (the final
+        log2 T, `why`)."""
         s = self.settings
         top = s.log2_table + 1
         start = max(6, s.log2_table - GROW_START_BELOW)
@@ -240,7 +255,7 @@ class _SizeSearch:
                                       target_check_every_s=min(s.target_check_every_s, budget / GROW_CHECKS))
         model, tr, s_used, why_used = _train_with_restarts(
             self.mesh, self.bvh, self.tracer, s_start, self.why, self.events, self.should_cancel,
-            self.checkpoint_path, self.resume_from, _grow_check(self.tracer, s.target_mse, top))
+            self.checkpoint_path, self.resume_from, _grow_check(self.tracer, s.target_mse, top, budget))
         final = model.cfg.encoding.log2_table
         s_used = dataclasses.replace(s_used, log2_table=final, target_check_every_s=s.target_check_every_s)
         trail = ", ".join(f"T=2^{log2} at {sec:g} s" for _, sec, log2 in tr.grew) or "no growth"

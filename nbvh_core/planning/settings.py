@@ -100,8 +100,8 @@ class Settings:
     target_check_every_s: float = 20.0
     #: With a target MSE, how the size is found: "retrain" - predict T, train, measure, correct (up to
     #: TARGET_TRAININGS trainings); "grow" - one training that starts GROW_START_BELOW sizes under the predicted T
-    #: and doubles its table in place (the function unchanged: HashGrid.grow) whenever the quick check plateaus
-    #: above the target, up to one size above it.
+    #: and doubles its table in place (the function unchanged: HashGrid.grow) whenever the quick checks project a
+    #: miss at its size by the end of the budget, up to one size above the predicted T (pipeline._grow_check).
     size_search: str = "retrain"
     #: An asset with several material slots or a texture: the share of the time budget (or, without one, of the
     #: geometry's training time, added) the appearance head trains in (`appearance.py`), and its table size.
