@@ -61,10 +61,8 @@ def report(args) -> None:
         best = min(met, key=lambda r: num(r, "file_bytes")) if met else None
         own_size = preset(args.preset).log2_table  # one training at the preset's own size: what a user waits today
         one = next((r for r in fixed if int(r["log2_table"]) == own_size), None)
-        for mode in ("grow", "retrain"):
-            r = next((x for x in own if x["mode"] == mode), None)
-            if r is None:
-                continue
+        for r in (x for x in own if not x["mode"].startswith("fixed")):
+            mode = r["mode"]
             ratio = f"{num(r, 'file_bytes') / num(best, 'file_bytes'):.2f}x" if best else "-"
             wall = f"{num(r, 'wall_s') / num(one, 'wall_s'):.2f}x" if one else "-"
             table.append([mesh_name, mode, f"2^{r['log2_table']}", f"{int(r['file_bytes']):,}", f"{num(r, 'mse'):.5f}",
