@@ -134,8 +134,8 @@ def _target_check(tracer, target: float):
 def _grow_check(tracer, target: float, max_log2: int, budget_s: float):
     """The callback of a growing training (size_search "grow"): True once the quick MSE is below EARLY_STOP_MARGIN
     x the target; "grow" when, at a size below 2^max_log2, the power law through the last two checks at this size
-    (MSE against seconds since the callback was made, ~ since training started) misses that by the end of the
-    budget `budget_s`."""
+    (MSE against seconds since the callback was made, ~ since training started) misses the target by the end of
+    the budget `budget_s`."""
     start = time.perf_counter()
     seen: dict[int, list[tuple[float, float]]] = {}
 
@@ -155,7 +155,9 @@ def _grow_check(tracer, target: float, max_log2: int, budget_s: float):
             return "grow"
         slope = math.log(m2 / m1) / math.log(max(t2, 1e-6) / max(t1, 1e-6))
         at_end = m2 * (max(budget_s, t2) / t2) ** slope
-        return "grow" if at_end > goal else False
+        # Grow only for a projected miss of the level itself: the margin is for stopping on a noisy check (aiming
+        # growth at it grew the gyroid and the studs past the size that met the level).
+        return "grow" if at_end > target else False
     return decide
 
 
