@@ -87,6 +87,7 @@ def run_job(request: dict, events, should_cancel) -> dict:
     from ..geometry.mesh_arrays import mesh_from_npz
     from ..protocol.outputs import OutputLock, check_outputs
     from .pipeline import resume_settings
+    from .result_bundle import bundle_paths
     from ..planning.settings import settings_from_request
 
     name = request["name"]
@@ -104,9 +105,7 @@ def run_job(request: dict, events, should_cancel) -> dict:
     if request.get("force"):
         settings = settings.with_overrides(force=True)
     model_path = out_dir / f"{name}.nbvh"
-    files = {"model": str(model_path), "preview": str(out_dir / f"{name}.preview.png"),
-             "reference": str(out_dir / f"{name}.reference.png"), "points": str(out_dir / f"{name}.points.npy"),
-             "report": str(out_dir / f"{name}.report.json")}
+    files = {role: str(path) for role, path in bundle_paths(model_path).items()}
     if request.get("model"):
         files["model"] = str(request["model"])  # loaded, never rewritten
     # A re-run replaces the object's previous result (only once the new one is complete); an input never.

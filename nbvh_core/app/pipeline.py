@@ -39,8 +39,8 @@ DIVERGENCE_RETRIES = 2
 EARLY_STOP_MARGIN = 0.7
 #: size_search "grow": the training starts this many table sizes below the predicted one; at each quick check (every
 #: budget / GROW_CHECKS seconds, at most target_check_every_s) the last two checks at the current size give a power
-#: law of MSE against training time, and the table grows when it does not reach EARLY_STOP_MARGIN x the target by
-#: the end of the budget. Measured on four meshes at the preview budget (bench/results/grow.md): growing on a
+#: law of MSE against training time, and the table grows when it does not reach the target by the end of the
+#: budget. Measured on four meshes at the preview budget (bench/results/grow.md): growing on a
 #: plateau (MSE falling < 15% between checks) grew too late on the spiky sphere (2^9 reached at 36 s of 60, MSE
 #: 0.011 against 0.01); starting one size below the prediction, the gyroid never grew and kept 2^12 where 2^11
 #: met the level (the predictor is pessimistic), so the start is two sizes below.
@@ -122,12 +122,16 @@ def resume_settings(checkpoint_path: str | Path, mesh: Mesh) -> Settings:
     return dataclasses.replace(settings, target_mse=None, budget_kb=None)
 
 
+def _quick_mse(model, tracer) -> float:
+    """The quick check's image MSE of the model as it is (4 views at 64 px)."""
+    with torch.no_grad():
+        return evaluate(model, tracer, 4, 64)[0].mse
+
+
 def _target_check(tracer, target: float):
     """The early-stop callback for a target MSE (see EARLY_STOP_MARGIN): a quick evaluation of the model as it is."""
     def reached(model) -> bool:
-        with torch.no_grad():
-            q, _ = evaluate(model, tracer, 4, 64)
-        return q.mse <= EARLY_STOP_MARGIN * target
+        return _quick_mse(model, tracer) <= EARLY_STOP_MARGIN * target
     return reached
 
 
@@ -140,14 +144,12 @@ def _grow_check(tracer, target: float, max_log2: int, budget_s: float):
     seen: dict[int, list[tuple[float, float]]] = {}
 
     def decide(model) -> bool | str:
-        with torch.no_grad():
-            q, _ = evaluate(model, tracer, 4, 64)
-        goal = EARLY_STOP_MARGIN * target
-        if q.mse <= goal:
+        mse = _quick_mse(model, tracer)
+        if mse <= EARLY_STOP_MARGIN * target:
             return True
         log2 = model.cfg.encoding.log2_table
         points = seen.setdefault(log2, [])
-        points.append((time.perf_counter() - start, q.mse))
+        points.append((time.perf_counter() - start, mse))
         if len(points) < 2 or log2 >= max_log2:
             return False
         (t1, m1), (t2, m2) = points[-2:]
@@ -250,6 +252,7 @@ class _SizeSearch:
         """One training that starts GROW_START_BELOW sizes under the resolved T and grows its table while the quick
         checks say the target is out of reach at its size (up to one size above the resolved T); returns (the final
         log2 T, `why`)."""
+        t = time.perf_counter()
         s = self.settings
         top = s.log2_table + 1
         start = max(6, s.log2_table - GROW_START_BELOW)
@@ -264,17 +267,20 @@ class _SizeSearch:
         trail = ", ".join(f"T=2^{log2} at {sec:g} s" for _, sec, log2 in tr.grew) or "no growth"
         why_used += (f"; one training from T=2^{start} growing its table to meet {s.target_mse:g}: {trail}"
                      + (f"; stopped after {tr.seconds:.0f} s, the target met" if tr.stopped_early else ""))
-        self.seconds["train"] += tr.seconds
+        self.seconds["train"] += time.perf_counter() - t
         self._keep(final, model, tr, s_used, why_used)
         return final, self.why
 
-    def _keep(self, log2_table: int, model, tr, s_used: Settings, why_used: str) -> None:
+    def _keep(self, log2_table: int, model, tr, s_used: Settings, why_used: str) -> Quality | None:
         """Finalize a trained model to its stored precision, score it, keep it as `trained[log2_table]` (with the
-        notes `why_used` adds to `why`)."""
+        notes `why_used` adds to `why`); returns its quality (None without an evaluation)."""
         model.eval()
-        model.finalize_storage(s_used.storage())
+        if self.compare_float32 and self.evaluate_quality:  # the same training before its storage is quantized
+            self.seconds["mse_float32"] = evaluate(model, self.tracer, s_used.eval_views, s_used.eval_resolution)[0].mse
+        model.finalize_storage(s_used.storage())  # measure the model the file stores, not its float32 original
         quality = self._score(model, s_used) if self.evaluate_quality else None
         self.trained[log2_table] = _Trained(model, tr, s_used, why_used[len(self.why):], quality)
+        return quality
 
     def _measure_next(self, log2_table: int) -> float:
         """A search step: says why this size comes next (after the first), then trains it."""
@@ -304,12 +310,7 @@ class _SizeSearch:
             why_used += (f"; T=2^{log2_table}: training stopped after {tr.seconds:.0f} s of the "
                          f"{s_try.time_limit_s or 0:.0f} s budget, the target being met")
         self.seconds["train"] += time.perf_counter() - t
-        model.eval()
-        if self.compare_float32 and self.evaluate_quality:  # the same training before its storage is quantized
-            self.seconds["mse_float32"] = evaluate(model, self.tracer, s_used.eval_views, s_used.eval_resolution)[0].mse
-        model.finalize_storage(s_used.storage())  # measure the model the file stores, not its float32 original
-        quality = self._score(model, s_used) if self.evaluate_quality else None
-        self.trained[log2_table] = _Trained(model, tr, s_used, why_used[len(self.why):], quality)
+        quality = self._keep(log2_table, model, tr, s_used, why_used)
         return quality.mse if quality is not None else math.inf
 
     def _score(self, model: NeuralBVH, s: Settings) -> Quality:

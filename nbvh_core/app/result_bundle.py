@@ -58,17 +58,16 @@ def report(result, mesh, extra: dict | None = None) -> dict:
     from ..planning.sizing import mesh_resident_bytes
 
     out = result.summary()
-    assessment = getattr(result, "assessment", None)
-    out["mesh_resident_bytes"] = assessment["resident"] if assessment else mesh_resident_bytes(mesh)
-    out["texture_bytes"] = mesh.look.texture_bytes() if getattr(mesh, "look", None) else 0
+    out["mesh_resident_bytes"] = result.assessment["resident"] if result.assessment else mesh_resident_bytes(mesh)
+    out["texture_bytes"] = mesh.look.texture_bytes() if mesh.look else 0
     out.update(extra or {})
     return out
 
 
-def make_bundle(result, mesh, view: View, roles: tuple[str, ...] = ROLES, *, tracer=None, proxy_points: int = 0,
+def make_bundle(result, mesh, view: View, roles: tuple[str, ...] = ROLES, *, proxy_points: int = 0,
                 seed: int = 0, extra: dict | None = None) -> Bundle:
-    """The bundle's files for `roles` ('points' only with proxy_points > 0; 'model' from result.data). tracer: the
-    mesh's ExactTracer when one is at hand (made from `mesh` otherwise)."""
+    """The bundle's files for `roles` ('points' only with proxy_points > 0; 'model' from result.data). The reference
+    image traces the result's own ExactTracer (one is made from `mesh` for a loaded model, which has none)."""
     from ..geometry.exact import ExactTracer
     from ..rendering.render import png_bytes, render_neural, render_reference
 
@@ -78,7 +77,7 @@ def make_bundle(result, mesh, view: View, roles: tuple[str, ...] = ROLES, *, tra
     if "preview" in roles:
         files["preview"] = png_bytes(render_neural(result.model, view.camera, view.width, view.height).display)
     if "reference" in roles:
-        tracer = tracer or getattr(result, "tracer", None) or ExactTracer(mesh)
+        tracer = result.tracer or ExactTracer(mesh)
         files["reference"] = png_bytes(render_reference(tracer, view.camera, view.width, view.height).display)
     if "points" in roles and proxy_points > 0:
         buf = io.BytesIO()

@@ -15,11 +15,11 @@ raises `Cancelled`. Checkpoints (model, optimizer, step, elapsed time, RNG state
 """
 from __future__ import annotations
 
+import dataclasses
 import gc
 import math
 import os
 import time
-import dataclasses
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable
