@@ -14,7 +14,7 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
-from harness import RESULTS
+from harness import RESULTS, append_rows, read_rows
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -51,14 +51,12 @@ def main() -> None:
     ap.add_argument("--storage", default="t8/w8/n8 n_max=auto:64", help="the pays.csv rows to compare (storage column)")
     ap.add_argument("--out", default=str(RESULTS / "compact.csv"))
     args = ap.parse_args()
-    from harness import append_rows, read_rows, stamp
-
     rows = [r for r in read_rows(RESULTS / "pays.csv") if r["storage"] == args.storage]
     done = {(r["mesh"], r["preset"], r["storage"]) for r in read_rows(args.out)}
     for pays in rows:
         if (pays["mesh"], pays["preset"], pays["storage"]) in done:
             continue
-        row = {**stamp(), **compact_row(pays)}
+        row = compact_row(pays)
         print(row, flush=True)
         append_rows(args.out, [row])  # one row as it lands: a rerun resumes
 

@@ -19,7 +19,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from harness import RESULTS
+from harness import RESULTS, append_rows
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -86,13 +86,11 @@ def main() -> None:
     ap.add_argument("--time-limit", type=float, help="override the preset's budget (s; not for headline numbers)")
     ap.add_argument("--checkpoint-every", type=float, help="seconds between checkpoints (default: the product's)")
     args = ap.parse_args()
-    from harness import append_rows
-    from harness import stamp as run_stamp
 
     for flag, value in (("--time-limit", args.time_limit), ("--checkpoint-every", args.checkpoint_every)):
         if value is not None:
             RUN_OPTIONS.extend([flag, f"{value:g}"])
-    stamp = {**run_stamp(), "mesh": args.mesh, "preset": args.preset}
+    asked = {"mesh": args.mesh, "preset": args.preset}
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
@@ -101,9 +99,9 @@ def main() -> None:
             r = subprocess.run(_compress(args.mesh, out, args.preset, []), cwd=ROOT, capture_output=True, text=True)
             if r.returncode != 0:
                 raise SystemExit(r.stderr.strip()[-300:])
-            rows.append({**stamp, "run": f"uninterrupted {i + 1}", **_quality(out)})
+            rows.append({**asked, "run": f"uninterrupted {i + 1}", **_quality(out)})
             print(rows[-1], flush=True)
-        rows.append({**stamp, **killed_run(args.mesh, args.preset, args.at, folder)})
+        rows.append({**asked, **killed_run(args.mesh, args.preset, args.at, folder)})
         print(rows[-1], flush=True)
     append_rows(args.out, rows)
 

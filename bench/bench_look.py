@@ -29,13 +29,12 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 
-from harness import append_rows, read_rows, stamp
+from harness import RESULTS, append_rows, read_rows, stamp
 from nbvh_core.geometry import demo_assets
 from nbvh_core.geometry.mesh_arrays import mesh_from_npz
 from nbvh_core.geometry.look import hit_labels, seam_distance, seam_edges
 from nbvh_core.app.pipeline import compress_mesh, preset
 from nbvh_core.rendering.render import orbit_cameras, render_neural, render_reference
-from harness import RESULTS
 
 OUT = RESULTS / "look.csv"
 TEXELS = 512
@@ -85,7 +84,7 @@ def run_asset(name: str, mesh, preset_name: str, views: int, size: int, target: 
     s = preset(preset_name).with_overrides(force=True, appearance_target=target)
     r = compress_mesh(mesh, s)
     head = r.model.appearance
-    row = {**stamp(), "asset": name, "preset": preset_name, "target": target, "triangles": mesh.n_triangles,
+    row = {"asset": name, "preset": preset_name, "target": target, "triangles": mesh.n_triangles,
            "slots": mesh.look.n_slots, "patches": head.cfg.patches if head else 0,
            "file_bytes": r.file_bytes, "appearance_bytes": r.components.get("appearance", 0),
            "texture_bytes": r.components.get("textures", 0),

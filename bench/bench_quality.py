@@ -37,7 +37,7 @@ import numpy as np
 import torch
 
 from bench_meshes import BENCH_MESHES, bench_mesh
-from harness import append_row, num, read_rows, write_markdown
+from harness import RESULTS, append_row, num, read_rows, write_markdown
 from nbvh_core import kernels
 from nbvh_core.app.pipeline import compress_mesh, preset
 from nbvh_core.geometry.exact import ExactTracer
@@ -46,7 +46,6 @@ from nbvh_core.rendering.metrics import evaluate_renderer
 from nbvh_core.rendering.render import render_reference
 from nbvh_core.training.train import TrainingDiverged
 from rd_runs import METHODS, SIZES, SUBSETS, MeshCache, Plan, interp_bytes_for_mse, run_neural
-from harness import RESULTS
 
 
 def run_sweep(plan: Plan) -> None:

@@ -13,7 +13,7 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
-from harness import RESULTS, read_rows
+from harness import RESULTS, append_rows, read_rows
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = RESULTS / "rd_compact.csv"
@@ -28,7 +28,6 @@ def measure(name: str, done: set) -> None:
     import DracoPy
 
     from bench_meshes import bench_mesh
-    from harness import append_rows, stamp
     from nbvh_core.geometry.compact_mesh import compact_mesh
     from nbvh_core.geometry.exact import ExactTracer
     from nbvh_core.rendering.metrics import evaluate_renderer
@@ -46,7 +45,7 @@ def measure(name: str, done: set) -> None:
         tracer = ExactTracer(decoded)
         q, _ = evaluate_renderer(lambda cam, w, h: render_reference(tracer, cam, w, h), reference, mesh.transform,
                                  16, 128)
-        row = {**stamp(), "mesh": name, "requested": count, "triangles": dec.n_triangles, "compact_mse": q.mse,
+        row = {"mesh": name, "requested": count, "triangles": dec.n_triangles, "compact_mse": q.mse,
                "plain_bytes": mesh_resident_bytes(dec)["total"], "compact_bytes": nbytes,
                "draco11_bytes": len(DracoPy.encode(dec.vertices, dec.faces, quantization_bits=11,
                                                    compression_level=7)),

@@ -28,7 +28,7 @@ import zipfile
 from pathlib import Path
 
 import numpy as np
-from harness import RESULTS
+from harness import RESULTS, append_rows
 
 # Every case runs in a forked child: a parent with OpenMP worker threads would hand its children locks no thread
 # will release (they hang), so the parent computes on one thread.
@@ -344,9 +344,8 @@ def main() -> None:
                 failures.append({"i": i, "kind": kind, "file": name, "out": out, "detail": detail})
             if (i + 1) % 500 == 0:
                 print(f"{i + 1} cases: {counts}", flush=True)
-    from harness import append_rows, stamp
 
-    row = {**stamp(), "date": time.strftime("%Y-%m-%d %H:%M"), "reader": args.kind, "cases": args.cases, "seed": args.seed,
+    row = {"date": time.strftime("%Y-%m-%d %H:%M"), "reader": args.kind, "cases": args.cases, "seed": args.seed,
            **{k: counts.get(k, 0) for k in ("read", "refused", "other", "crash", "hang", "executed", "over_memory")},
            "max_added_rss_mb": round(peak / 1024, 1), "seconds": round(time.time() - t0, 1)}
     print(row)

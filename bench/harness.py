@@ -28,7 +28,7 @@ if str(ROOT) not in sys.path:
     sys.path.append(str(ROOT))  # for `addon` (bench_engine); nbvh_core comes from the environment either way
 RESULTS = Path(os.environ.get("NBVH_BENCH_RESULTS") or ROOT / "bench" / "results")
 SMOKE = os.environ.get("NBVH_BENCH_SMOKE") == "1"
-STAMP_FIELDS = ("commit", "machine", "kernel_plan", "command")
+STAMP_FIELDS = ("commit", "machine", "kernel_plan", "command", "utc")
 
 
 def stamp() -> dict:

@@ -24,8 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 import bpy
 
-from harness import append_rows, stamp
-from harness import RESULTS
+from harness import RESULTS, append_rows
 
 
 def build_scene(size: int):
@@ -177,7 +176,7 @@ def main() -> None:
 
     gap = np.ones((args.size, 8, 3), np.float32)
     Image.fromarray((np.concatenate([nbvh, gap, cycles], 1) * 255 + 0.5).astype(np.uint8)).save(args.out / "figure.png")
-    row = {**stamp(), "size": args.size,
+    row = {"size": args.size,
            "seconds": args.seconds, "triangles": facts["triangles"], "file_bytes": facts["file_bytes"],
            "appearance_bytes": facts["appearance_bytes"], "texture_bytes": facts["texture_bytes"],
            "patches": facts["patches"], "geometry_mse": facts["mse"], "compress_wall_s": facts["wall_s"],
