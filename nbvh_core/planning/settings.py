@@ -95,14 +95,17 @@ class Settings:
     force: bool = False
     #: Seconds between checkpoints when a checkpoint path is given (a kill loses at most this much training).
     checkpoint_every_s: float = 60.0
-    #: With a target MSE: seconds between quick quality checks during training (4 views, 64 px); training stops once
-    #: the quick MSE is below EARLY_STOP_MARGIN x the target (the full evaluation after it confirms or not).
+    #: With a target MSE: seconds between quality checks during training (the evaluation's views and resolution);
+    #: training stops once the MSE is below EARLY_STOP_MARGIN x the target (the evaluation after it confirms or not).
     target_check_every_s: float = 20.0
     #: With a target MSE, how the size is found: "retrain" - predict T, train, measure, correct (up to
     #: TARGET_TRAININGS trainings); "grow" - one training that starts GROW_START_BELOW sizes under the predicted T
     #: and doubles its table in place (the function unchanged: HashGrid.grow) whenever the quick checks project a
     #: miss at its size by the end of the budget, up to one size above the predicted T (pipeline._grow_check).
-    size_search: str = "retrain"
+    size_search: str = "grow"
+    #: The mesh layout the verdict weighs the model against (MESH_LAYOUTS): "compact", the strongest ray-traceable
+    #: mesh (`compact_mesh`, ~8-9.5 B per triangle), or "plain", as Embree or Cycles hold it (~44 B per triangle).
+    mesh_layout: str = "compact"
     #: An asset with several material slots or a texture: the share of the time budget (or, without one, of the
     #: geometry's training time, added) the appearance head trains in (`appearance.py`), and its table size.
     appearance_share: float = 0.15
@@ -163,6 +166,10 @@ SETTING_LIMITS = {"nodes": (1, 65535), "log2_table": (1, 24), "levels": (1, 16),
                   "checkpoint_every_s": (0.0, 1e9), "target_check_every_s": (0.0, 1e9),
                   "normal_weight": (0.0, 1e6), "normal_unit_weight": (0.0, 1e6), "appearance_share": (0.0, 0.9),
                   "appearance_log2_table": (4, 20)}
+#: Settings whose value is one of a few names (checked in requests and files, like the limits above).
+MESH_LAYOUTS = ("compact", "plain")
+SIZE_SEARCHES = ("grow", "retrain")
+SETTING_CHOICES = {"size_search": SIZE_SEARCHES, "mesh_layout": MESH_LAYOUTS}
 #: The largest model any setting may ask for (the high preset's is under 1 MB).
 MAX_MODEL_BYTES = 1 << 30
 
@@ -186,6 +193,9 @@ def settings_from_dict(d, where: str = "settings") -> Settings:
         numeric = isinstance(value, (int, float)) and not isinstance(value, bool)
         ok = {"int": isinstance(value, int) and numeric, "float": numeric and math.isfinite(value),
               "str": isinstance(value, str) and len(value) <= 64, "bool": isinstance(value, bool)}[base]
+        if ok and name in SETTING_CHOICES and value not in SETTING_CHOICES[name]:
+            raise ValueError(f"{where}: setting {name!r} must be one of {', '.join(SETTING_CHOICES[name])}, "
+                             f"got {str(value)[:40]}")
         lo, hi = SETTING_LIMITS.get(name, (None, None))
         if not ok or (lo is not None and not lo <= value <= hi):
             rng = f" in [{lo}, {hi}]" if lo is not None else ""

@@ -33,7 +33,7 @@ import numpy as np
 from ..geometry.bvh import build_full_tree, resident_bvh_nodes
 from ..geometry.mesh import Mesh
 from ..protocol.quality_levels import QUALITY_LEVELS, TARGET_TRAININGS  # noqa: F401  (QUALITY_LEVELS re-exported)
-from .settings import PAPER_N_MAX, PRESETS, Settings, estimate_file_bytes
+from .settings import MESH_LAYOUTS, PAPER_N_MAX, PRESETS, Settings, estimate_file_bytes
 
 FIT_PATH = Path(__file__).with_name("sizing_fit.json")
 #: Table sizes the chooser considers (log2 T): the range the predictor was fitted on (bench/fit_sizing.py, 2^8..2^12
@@ -43,6 +43,18 @@ FIT_PATH = Path(__file__).with_name("sizing_fit.json")
 LOG2_RANGE = range(8, 14)
 #: BVH node counts the chooser considers (the node effect is fitted at these counts).
 NODE_CHOICES = (1023, 2047, 4095)
+#: A BVH leaf of the model should cover at least this many triangles: a 3k-triangle part at 2,047 nodes had ~3 per
+#: leaf, and its node bytes (8 bit: 10 B each) outweighed its table at small T.
+MIN_TRIANGLES_PER_LEAF = 8
+
+
+def max_nodes_for(triangles: int) -> int:
+    """The most BVH nodes a model of a `triangles`-triangle mesh needs: 2^k - 1 with 2^(k-1) leaves of at least
+    MIN_TRIANGLES_PER_LEAF triangles each, between 255 and 4,095."""
+    nodes = 255
+    while nodes < 4095 and (nodes + 1) * MIN_TRIANGLES_PER_LEAF <= triangles:
+        nodes = 2 * nodes + 1
+    return nodes
 FEATURE_NAMES = ("log_area", "occupancy", "roughness", "log10_triangles")
 
 
@@ -206,12 +218,22 @@ class SizeFit:
     #: fixed T, see bench/fit_sizing.py); 0 = not fitted (the node count stays at nodes_ref).
     nodes_coef: float = 0.0
     nodes_ref: int = 2047
+    #: The training budget's effect (bench/fit_budget.py): log MSE changes by a L + c (log2 T - 10) L with
+    #: L = ln(budget / train_s), [a, c] = budget_coef (a larger table gains more from a longer budget); [] = not
+    #: fitted (predictions are for train_s seconds).
+    budget_coef: list = field(default_factory=list)
 
-    def predict_log_mse(self, log2_table: int, features: MeshFeatures, nodes: int | None = None) -> float:
+    def predict_log_mse(self, log2_table: int, features: MeshFeatures, nodes: int | None = None,
+                        budget_s: float | None = None) -> float:
+        """ln of the image MSE a model of table 2^log2_table on a mesh with `features` reaches after `budget_s`
+        seconds of training (None: the fit's own train_s) at `nodes` BVH nodes (None: nodes_ref)."""
         x = np.concatenate([[1.0, float(log2_table)], features.vector(self.features)])
         out = float(np.dot(self.coef, x))
         if nodes is not None and self.nodes_coef:
             out += self.nodes_coef * (math.log2(nodes + 1) - math.log2(self.nodes_ref + 1))
+        if budget_s and self.budget_coef:
+            lb = math.log(budget_s / self.train_s)
+            out += self.budget_coef[0] * lb + self.budget_coef[1] * (log2_table - 10) * lb
         return out
 
 
@@ -235,38 +257,43 @@ def load_fit(path: Path = FIT_PATH) -> SizeFit | None:
         return None
 
 
-def predict_mse(fit: SizeFit, log2_table: int, features: MeshFeatures, nodes: int | None = None) -> float:
-    return math.exp(fit.predict_log_mse(log2_table, features, nodes))
+def predict_mse(fit: SizeFit, log2_table: int, features: MeshFeatures, nodes: int | None = None,
+                budget_s: float | None = None) -> float:
+    """exp(`SizeFit.predict_log_mse`)."""
+    return math.exp(fit.predict_log_mse(log2_table, features, nodes, budget_s))
 
 
-def choose_size(fit: SizeFit, features: MeshFeatures, target_mse: float) -> tuple[int, float, bool]:
+def choose_size(fit: SizeFit, features: MeshFeatures, target_mse: float,
+                budget_s: float | None = None) -> tuple[int, float, bool]:
     """`choose_table_and_nodes` over T alone (the fitted node count): the smallest log2 T in LOG2_RANGE whose
     predicted MSE x exp(margin x residual_std) <= target. Returns (log2 T, predicted MSE, reachable)."""
     l2, _, pred, reachable = choose_table_and_nodes(dataclasses.replace(fit, nodes_coef=0.0), features, target_mse,
-                                                    lambda log2, nodes: log2)  # file bytes grow with T
+                                                    lambda log2, nodes: log2, budget_s)  # file bytes grow with T
     return l2, pred, reachable
 
 
 def choose_table_and_nodes(fit: SizeFit, features: MeshFeatures, target_mse: float,
-                           size_of) -> tuple[int, int, float, bool]:
+                           size_of, budget_s: float | None = None) -> tuple[int, int, float, bool]:
     """The (log2 T, node count) of smallest file bytes `size_of(log2, nodes)` whose predicted MSE (with the safety
-    factor) meets the target, over LOG2_RANGE x NODE_CHOICES (only the fitted node count without a node fit).
-    Returns (log2 T, nodes, predicted MSE, reachable); unreachable: the largest T and node count."""
+    factor) meets the target, over LOG2_RANGE x NODE_CHOICES (only the fitted node count without a node fit), no
+    node count above `max_nodes_for(features.triangles)`. Returns (log2 T, nodes, predicted MSE, reachable);
+    unreachable: the largest T and node count."""
     safety = math.exp(fit.margin * fit.residual_std)
-    node_choices = NODE_CHOICES if fit.nodes_coef else (fit.nodes_ref,)
+    cap = max_nodes_for(features.triangles)
+    node_choices = tuple(min(n, cap) for n in (NODE_CHOICES if fit.nodes_coef else (fit.nodes_ref,)))
     ok = [(size_of(l2, n), l2, n) for l2 in LOG2_RANGE for n in node_choices
-          if predict_mse(fit, l2, features, n) * safety <= target_mse]
+          if predict_mse(fit, l2, features, n, budget_s) * safety <= target_mse]
     if ok:
         _, l2, n = min(ok)
-        return l2, n, predict_mse(fit, l2, features, n), True
+        return l2, n, predict_mse(fit, l2, features, n, budget_s), True
     l2, n = LOG2_RANGE[-1], max(node_choices)
-    return l2, n, predict_mse(fit, l2, features, n), False
+    return l2, n, predict_mse(fit, l2, features, n, budget_s), False
 
 
 
 
 def next_size(fit: SizeFit | None, features: MeshFeatures | None, target_mse: float,
-              measured: dict[int, float], nodes: int | None = None) -> int | None:
+              measured: dict[int, float], nodes: int | None = None, budget_s: float | None = None) -> int | None:
     """The next log2 T to train after measuring `measured` {log2 T: image MSE}, or None to stop.
 
     The fit's error for this mesh is mostly an offset (its residuals are per-mesh), so each measurement calibrates
@@ -281,10 +308,10 @@ def next_size(fit: SizeFit | None, features: MeshFeatures | None, target_mse: fl
     met = [l2 for l2, mse in measured.items() if mse <= target_mse]
     if fit is None or features is None:
         return last + 1 if not met and last + 1 <= LOG2_RANGE[-1] else None
-    offset = math.log(measured[last]) - fit.predict_log_mse(last, features, nodes)
+    offset = math.log(measured[last]) - fit.predict_log_mse(last, features, nodes, budget_s)
 
     def calibrated_ok(l2: int) -> bool:
-        return fit.predict_log_mse(l2, features, nodes) + offset <= math.log(target_mse)
+        return fit.predict_log_mse(l2, features, nodes, budget_s) + offset <= math.log(target_mse)
 
     if not met:
         larger = [l2 for l2 in LOG2_RANGE if l2 > max(measured)]
@@ -301,7 +328,8 @@ def next_size(fit: SizeFit | None, features: MeshFeatures | None, target_mse: fl
 
 
 def search_size(fit: SizeFit | None, features: MeshFeatures | None, target_mse: float, first_log2: int,
-                measure, max_trainings: int = TARGET_TRAININGS, nodes: int | None = None) -> tuple[int, dict]:
+                measure, max_trainings: int = TARGET_TRAININGS, nodes: int | None = None,
+                budget_s: float | None = None) -> tuple[int, dict]:
     """Train-and-measure search for the smallest log2 T meeting `target_mse`: `measure(log2) -> MSE` trains and
     scores one size (the expensive part); starts at `first_log2` (the predictor's choice) and follows `next_size`
     for at most `max_trainings` measurements. Returns (chosen log2 T, {log2 T: MSE} in the order measured): the
@@ -310,7 +338,7 @@ def search_size(fit: SizeFit | None, features: MeshFeatures | None, target_mse: 
     l2: int | None = first_log2
     while l2 is not None and len(measured) < max_trainings:
         measured[l2] = measure(l2)
-        l2 = next_size(fit, features, target_mse, measured, nodes)
+        l2 = next_size(fit, features, target_mse, measured, nodes, budget_s)
     met = [t for t, mse in measured.items() if mse <= target_mse]
     return (min(met) if met else max(measured)), measured
 
@@ -363,9 +391,10 @@ def resolve(s: Settings, mesh: Mesh | None = None, grid: GridMeasures | None = N
         base = dataclasses.replace(s, encoding=fitted.encoding, network=fitted.network, labels=fitted.labels)
         l2, nodes, pred, reachable = choose_table_and_nodes(
             fit, feats, s.target_mse,
-            lambda lt, n: estimate_file_bytes(dataclasses.replace(base, log2_table=lt, nodes=n)))
+            lambda lt, n: estimate_file_bytes(dataclasses.replace(base, log2_table=lt, nodes=n)), s.time_limit_s)
         chosen = dataclasses.replace(base, nodes=nodes, log2_table=l2)
-        why = (f"target MSE {s.target_mse:g}: predicted MSE {pred:.4g} at T=2^{l2}, {nodes} nodes "
+        why = (f"target MSE {s.target_mse:g}: predicted MSE {pred:.4g} at T=2^{l2}, {nodes} nodes, "
+               f"{s.time_limit_s or fit.train_s:g} s "
                f"({fitted.encoding}+{fitted.network}; mesh area {feats.area:.2f}, occupancy {feats.occupancy:.3f}, "
                f"roughness {feats.roughness:.3f}, {feats.triangles:,} triangles), the smallest file predicted to "
                f"meet it with a {math.exp(fit.margin * fit.residual_std):.2f}x safety factor")
@@ -411,12 +440,21 @@ def _compact_entry(dec: Mesh, tracer, transform, views: int, resolution: int, me
     return out
 
 
+#: Decimation sizes tried first (triangles, x4 apart; those >= DECIMATE_MAX_SHARE of the mesh are not tried), then
+#: DECIMATE_REFINE bisections (in log space) between the last that missed and the first that met: the decimation
+#: reported is within 2^(2 / 2^DECIMATE_REFINE) = 1.19x of the smallest that meets the target.
+DECIMATE_COUNTS = (250, 1000, 4000, 16000, 64000, 256000, 1024000)
+DECIMATE_MAX_SHARE = 0.7
+DECIMATE_REFINE = 3
+
+
 def alternatives(mesh: Mesh, target_mse: float | None, views: int = 8, resolution: int = 96,
                  tracer=None) -> dict:
     """What a user could ship instead, measured: Draco (11-bit, storage bytes) of the mesh, and the smallest
-    quadric decimation (fast-simplification) whose image MSE (same metric, Embree) meets `target_mse`, with its
-    resident, compact-mesh (`compact_mesh`, and the decoded compact mesh's MSE) and Draco bytes. Missing optional packages give a note instead of numbers. `tracer`: the mesh's
-    ExactTracer when the caller has one (else one is built)."""
+    quadric decimation (fast-simplification) whose image MSE (same metric, Embree) meets `target_mse` (see
+    DECIMATE_COUNTS), with its resident, compact-mesh (`compact_mesh`, and the decoded compact mesh's MSE) and Draco
+    bytes. Missing optional packages give a note instead of numbers. `tracer`: the mesh's ExactTracer when the
+    caller has one (else one is built)."""
     out: dict = {}
     try:
         import DracoPy
@@ -433,31 +471,49 @@ def alternatives(mesh: Mesh, target_mse: float | None, views: int = 8, resolutio
         out["note"] = (out.get("note", "") + "; " if "note" in out else "") + "fast-simplification not installed"
         return out
     from ..geometry.exact import ExactTracer
-    from ..rendering.metrics import evaluate_renderer
+    from ..rendering.metrics import evaluate_renderer, reference_views
     from ..rendering.render import render_reference
 
     tracer = tracer or ExactTracer(mesh)
-    tried = []
-    for count in (250, 1000, 4000, 16000, 64000):
-        if count >= mesh.n_triangles * 0.7:
-            break
+    reference = reference_views(tracer, views, resolution)
+    tried: dict[int, dict] = {}
+
+    def measure(count: int) -> dict:
         dec = decimate(mesh, count)
         if dec.n_triangles == 0:
-            continue
+            return {"triangles": 0, "requested_triangles": count, "mse": math.inf}
         dec_tracer = ExactTracer(dec)
         q, _ = evaluate_renderer(lambda cam, w, h: render_reference(dec_tracer, cam, w, h), tracer, mesh.transform,
-                                 views, resolution)
+                                 views, resolution, reference=reference)
         entry = {"triangles": dec.n_triangles, "requested_triangles": count, "mse": q.mse,
                  "resident_bytes": mesh_resident_bytes(dec)["total"]}
         entry.update(_compact_entry(dec, tracer, mesh.transform, views, resolution, q.mse <= target_mse))
         if DracoPy is not None:
             entry["draco11_bytes"] = len(DracoPy.encode(dec.vertices, dec.faces, quantization_bits=11,
                                                         compression_level=7))
-        tried.append(entry)
-        if q.mse <= target_mse:
-            out["decimation"] = entry
+        tried[count] = entry
+        return entry
+
+    missed, met = None, None
+    for count in DECIMATE_COUNTS:
+        if count >= mesh.n_triangles * DECIMATE_MAX_SHARE:
             break
-    out["decimations_tried"] = tried
+        if measure(count)["mse"] <= target_mse:
+            met = count
+            break
+        missed = count
+    if met is not None:
+        lo = missed if missed is not None else max(met // 4, 4)
+        for _ in range(DECIMATE_REFINE):
+            mid = int(round(math.sqrt(lo * met)))
+            if mid in (lo, met):
+                break
+            if measure(mid)["mse"] <= target_mse:
+                met = mid
+            else:
+                lo = mid
+        out["decimation"] = tried[met]
+    out["decimations_tried"] = [tried[c] for c in sorted(tried)]
     return out
 
 
@@ -482,8 +538,9 @@ def mesh_file_bytes(mesh: Mesh) -> bytes:
 @dataclass
 class Assessment:
     """model_bytes: the .nbvh size (exact payload + typical header); resident: `mesh_resident_bytes(mesh)`;
-    compact_bytes: the mesh in the compact ray-traceable layout;
-    alternatives: `alternatives(...)` when measured; recommendation: what to use ('neural', 'mesh', 'decimate')."""
+    compact_bytes: the mesh in the compact ray-traceable layout; layout: the one the model was weighed against
+    (MESH_LAYOUTS); alternatives: `alternatives(...)` when measured; recommendation: what to use ('neural',
+    'mesh': the mesh as it is, 'decimate': the decimation in alternatives['decimation'])."""
 
     model_bytes: int
     resident: dict
@@ -493,17 +550,28 @@ class Assessment:
     recommendation: str = "neural"
     #: The whole mesh as a compact ray-traceable mesh (`compact_mesh.encode_compact`), exact bytes.
     compact_bytes: int | None = None
+    layout: str = "compact"
 
     def to_dict(self) -> dict:
         return asdict(self)
 
 
+def _held(layout: str, plain: int, compact: int) -> str:
+    """'31,322 B as a compact mesh (135,392 B as a plain ray tracer holds it)', the verdict's layout first."""
+    a, b = f"{compact:,} B as a compact mesh", f"{plain:,} B as a plain ray tracer holds it"
+    return f"{a} ({b})" if layout == "compact" else f"{b} ({a})"
+
+
 def assess(mesh: Mesh, settings, measure_alternatives: bool = False, tracer=None) -> Assessment:
-    """Compare the model `settings` (already resolved) would write with the mesh's resident
-    bytes and its Draco size, and, with `measure_alternatives` and a target MSE, with a decimation that meets it.
-    worth_compressing is False when either is not larger than the model."""
+    """Weigh the model `settings` (already resolved) would write against the mesh and, with `measure_alternatives`
+    and a target MSE, against the smallest decimation that meets it, each held in `settings.mesh_layout` (see
+    MESH_LAYOUTS; both layouts are reported): 'mesh' when the whole mesh is no larger than the model, 'decimate'
+    when the decimation is not, else 'neural'. Draco's size (storage only) is reported beside."""
     from ..geometry.compact_mesh import compact_bytes
 
+    layout = settings.mesh_layout
+    if layout not in MESH_LAYOUTS:
+        raise ValueError(f"mesh_layout must be one of {', '.join(MESH_LAYOUTS)}, got {layout!r}")
     model = estimate_file_bytes(settings)
     tree = build_full_tree(mesh)
     resident_bytes = mesh_resident_bytes(mesh, tree)
@@ -512,26 +580,29 @@ def assess(mesh: Mesh, settings, measure_alternatives: bool = False, tracer=None
     # The Draco size always (cheap: shows which tool wins for storage alone); decimations only with a target.
     alt = alternatives(mesh, settings.target_mse if measure_alternatives else None, tracer=tracer)
     dec = alt.get("decimation")
+    held = (lambda plain, comp: comp) if layout == "compact" else (lambda plain, comp: plain)
     draco = f"; Draco 11-bit of the mesh: {alt['draco11_bytes']:,} B for storage" if "draco11_bytes" in alt else ""
-    if resident <= model:
+    if held(resident, compact) <= model:
         rec = "mesh"
-        msg = (f"not worth compressing: the mesh as a ray tracer holds it ({resident:,} B) is already smaller than "
-               f"this model (~{model:,} B); keep the mesh, or ask for a smaller model (--budget-kb){draco}")
-    elif dec is not None and dec["resident_bytes"] <= model:
+        msg = (f"not worth compressing: the mesh ({mesh.n_triangles:,} triangles) is already no larger than this "
+               f"model (~{model:,} B): {_held(layout, resident, compact)}; keep the mesh, or ask for a smaller model "
+               f"(--budget-kb){draco}")
+    elif dec is not None and held(dec["resident_bytes"], dec["compact_bytes"]) <= model:
         rec = "decimate"
         msg = (f"not worth compressing: a decimation to {dec['triangles']:,} triangles meets the target (MSE "
-               f"{dec['mse']:.4g}) and holds {dec['resident_bytes']:,} B resident, less than this model (~{model:,} B; "
-               f"the full mesh: {resident:,} B){draco}")
+               f"{dec['mse']:.4g}) in {_held(layout, dec['resident_bytes'], dec['compact_bytes'])}, no more than "
+               f"this model (~{model:,} B; the full mesh: {_held(layout, resident, compact)}){draco}")
     else:
         rec = "neural"
-        msg = (f"model ~{model:,} B vs the mesh as a ray tracer holds it {resident:,} B ({resident / model:.1f}x smaller;"
-               f" as a compact mesh {compact:,} B)")
+        msg = (f"model ~{model:,} B vs the mesh {_held(layout, resident, compact)}: "
+               f"{held(resident, compact) / model:.1f}x smaller")
         if dec is not None:
-            msg += (f"; the smallest decimation meeting the target holds {dec['resident_bytes']:,} B "
-                    f"({dec['compact_bytes']:,} B as a compact mesh: {dec['compact_bytes'] / model:.2f}x the model)")
+            msg += (f"; the smallest decimation meeting the target ({dec['triangles']:,} triangles) holds "
+                    f"{_held(layout, dec['resident_bytes'], dec['compact_bytes'])}: "
+                    f"{held(dec['resident_bytes'], dec['compact_bytes']) / model:.2f}x the model")
         msg += draco
     return Assessment(model_bytes=model, resident=resident_bytes, worth_compressing=rec == "neural", message=msg,
-                      alternatives=alt, recommendation=rec, compact_bytes=compact)
+                      alternatives=alt, recommendation=rec, compact_bytes=compact, layout=layout)
 
 
 # ------------------------------------------------------------------------------------------------------ scenes

@@ -33,27 +33,39 @@ class Quality:
         return asdict(self)
 
 
-def evaluate(model, tracer, n_views: int = 16, resolution: int = 256, keep_images: int = 0):
+def evaluate(model, tracer, n_views: int = 16, resolution: int = 256, keep_images: int = 0, reference=None):
     """Score `model` (NeuralBVH) against `tracer` (ExactTracer of the same mesh) on `n_views` orbit views.
 
     Returns (Quality, images): images is a list of (reference, neural) (H, W) arrays for the first
-    `keep_images` views.
+    `keep_images` views. `reference`: `reference_views(tracer, n_views, resolution)` when the same views are scored
+    repeatedly (a training's checks): the exact images are then rendered once.
     """
     return evaluate_renderer(lambda cam, w, h: render_neural(model, cam, w, h), tracer, model.transform, n_views,
-                             resolution, keep_images)
+                             resolution, keep_images, reference)
 
 
-def evaluate_renderer(render, tracer, transform, n_views: int = 16, resolution: int = 256, keep_images: int = 0):
+def reference_views(tracer, n_views: int, resolution: int) -> list:
+    """The exact images of the metric's `n_views` orbit views at `resolution` px (RenderResult each), to score many
+    models or checkpoints of one training against without rendering them again."""
+    return [render_reference(tracer, cam, resolution, resolution) for cam in orbit_cameras(n_views)]
+
+
+def evaluate_renderer(render, tracer, transform, n_views: int = 16, resolution: int = 256, keep_images: int = 0,
+                      reference=None):
     """The same metric for any renderer: `render(camera, width, height) -> RenderResult` (a neural model, or
-    Embree on a decimated / Draco-decoded mesh for the baselines) against `tracer`'s exact images.
+    Embree on a decimated / Draco-decoded mesh for the baselines) against `tracer`'s exact images (or
+    `reference`, those images from `reference_views` with the same views and resolution).
     `transform` (mesh.Transform) converts the depth error to original units."""
+    if reference is not None and (len(reference) != n_views or reference[0].image.shape != (resolution, resolution)):
+        raise ValueError(f"reference views are {len(reference)} at {reference[0].image.shape}, not {n_views} at "
+                         f"{resolution} px")
     inter = union = 0
     depth_sum, depth_n = 0.0, 0
     per_view, images = [], []
     t_neural = t_ref = 0.0
     for i, cam in enumerate(orbit_cameras(n_views)):
         t = time.perf_counter()
-        ref = render_reference(tracer, cam, resolution, resolution)
+        ref = reference[i] if reference is not None else render_reference(tracer, cam, resolution, resolution)
         t_ref += time.perf_counter() - t
         t = time.perf_counter()
         neu = render(cam, resolution, resolution)
