@@ -46,7 +46,8 @@ def parse(argv: list[str]) -> argparse.Namespace:
     which.add_argument("--all", action="store_true", help="every mesh object of the file")
     ap.add_argument("--out", required=True, help="output folder for .nbvh files, previews and the report")
     size = ap.add_mutually_exclusive_group()
-    size.add_argument("--preset", default="default")
+    size.add_argument("--preset", choices=["preview", "default", "high", "tiny"],
+                      help="named fixed sizes (default: each object sized to the quality level standard)")
     size.add_argument("--budget-kb", type=float)
     size.add_argument("--target-mse", type=float)
     size.add_argument("--quality", choices=list(engine_quality_levels()),
@@ -88,7 +89,7 @@ def run(argv: list[str]) -> int:
     if args.steps is not None and args.time_limit is None:
         overrides["time_limit_s"] = 0  # steps only (0 = no wall-clock limit, see job)
     overrides = {k: v for k, v in overrides.items() if v is not None}
-    req = engine.Request(preset=args.preset or "default", overrides=overrides, out_dir=str(Path(args.out).resolve()),
+    req = engine.Request(preset=args.preset, overrides=overrides, out_dir=str(Path(args.out).resolve()),
                          load_model=args.load, resume=args.resume)
     python = args.python or default_python()
     try:

@@ -15,14 +15,15 @@ import bpy
 import numpy as np
 
 from . import export, previews, report
-from .job import QUALITY_LEVELS, TARGET_TRAININGS, JobQueue, checkpoint_for, default_python  # noqa: F401  (for callers)
+from .job import DEFAULT_LEVEL, QUALITY_LEVELS, TARGET_TRAININGS, JobQueue, checkpoint_for, default_python  # noqa: F401  (for callers)
 
 
 @dataclass
 class Request:
-    """What the user asked for. preset: nbvh_core preset name; overrides: nbvh_core Settings fields."""
+    """What the user asked for. preset: nbvh_core preset name (None with no size in `overrides`: sized to the
+    default quality level, `settings.settings_from_request`); overrides: nbvh_core Settings fields."""
 
-    preset: str = "default"
+    preset: str | None = None
     overrides: dict = field(default_factory=dict)
     out_dir: str = ""
     proxy_points: int = 20000

@@ -33,11 +33,11 @@ CORE_PARENT = _HERE if (_HERE / "nbvh_core").is_dir() else _HERE.parent
 try:  # the installed add-on carries nbvh_core inside it; in the repository it sits beside addon/
     from .nbvh_core.protocol.events import parse_line as parse_event  # no torch: these modules are plain Python
     from .nbvh_core.protocol.outputs import checkpoint_for, lock_for  # noqa: F401  (checkpoint_for: for engine.py)
-    from .nbvh_core.protocol.quality_levels import QUALITY_LEVELS, TARGET_TRAININGS  # noqa: F401  (engine.py, the panel)
+    from .nbvh_core.protocol.quality_levels import DEFAULT_LEVEL, QUALITY_LEVELS, TARGET_TRAININGS  # noqa: F401  (engine.py, the panel)
 except ImportError:
     from nbvh_core.protocol.events import parse_line as parse_event
     from nbvh_core.protocol.outputs import checkpoint_for, lock_for  # noqa: F401
-    from nbvh_core.protocol.quality_levels import QUALITY_LEVELS, TARGET_TRAININGS  # noqa: F401
+    from nbvh_core.protocol.quality_levels import DEFAULT_LEVEL, QUALITY_LEVELS, TARGET_TRAININGS  # noqa: F401
 
 
 def core_env() -> dict:

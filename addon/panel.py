@@ -23,7 +23,7 @@ class NBVH_Result(bpy.types.PropertyGroup):
                                          "(positions, corners, faces, normals)")
     mse: bpy.props.FloatProperty(name="MSE", precision=5, description=(
         "Image mean squared error of the neural rendering against the exact one of the mesh, over 16 orbit views "
-        "(0 = identical; 0.01 is the 'standard' quality level)"))
+        f"(0 = identical; {engine.QUALITY_LEVELS['standard']:g} is the 'standard' quality level)"))
     iou: bpy.props.FloatProperty(name="IoU", precision=4, description=(
         "Silhouette intersection over union: the share of pixels covered by both renderings among those covered "
         "by either (1 = the same outline)"))
@@ -48,13 +48,13 @@ class NBVH_Props(bpy.types.PropertyGroup):
     mode: bpy.props.EnumProperty(name="Size by", items=[
         ("PRESET", "Preset", "A named quality preset"),
         ("TARGET", "Target quality", "The smallest model that reaches a quality level"),
-        ("BUDGET", "Byte budget", "The best model that fits a size")], default="PRESET")
+        ("BUDGET", "Byte budget", "The best model that fits a size")], default="TARGET")
     preset: bpy.props.EnumProperty(name="Preset", items=PRESET_ITEMS, default="default")
     target: bpy.props.EnumProperty(name="Quality", items=[
         (name.upper(), name.title(), f"image MSE <= {mse:g}") for name, mse in engine.QUALITY_LEVELS.items()],
-        default="STANDARD")
+        default=engine.DEFAULT_LEVEL.upper())
     budget_kb: bpy.props.IntProperty(name="Budget (KB)", default=400, min=16, max=100000)
-    time_limit: bpy.props.IntProperty(name="Time limit (s)", default=180, min=5, max=24 * 3600)
+    time_limit: bpy.props.IntProperty(name="Time limit (s)", default=200, min=5, max=24 * 3600)
     device: bpy.props.EnumProperty(name="Device", items=[("AUTO", "Auto", "CUDA when available"),
                                                          ("CPU", "CPU", ""), ("CUDA", "CUDA", "")], default="AUTO")
     look: bpy.props.EnumProperty(name="Look", items=[

@@ -77,7 +77,8 @@ def test_verdict_ends_the_run_unless_forced(tmp_path):
 
 def test_training_stops_once_the_target_is_met(sample_meshes):
     """No more than the asset needs: an easy target ends a 120 s budget early, and the result says so."""
-    s = preset("tiny").with_overrides(target_mse=0.5, force=True, time_limit_s=120.0, target_check_every_s=0.5)
+    s = preset("tiny").with_overrides(target_mse=0.5, force=True, time_limit_s=120.0, target_check_every_s=0.5,
+                                      size_search="retrain")
     s.steps = None
     res = compress_mesh(sample_meshes["blob"], s)
     assert res.training.stopped_early and res.training.seconds < 60

@@ -7,7 +7,29 @@ from nbvh_core.planning.settings import preset, settings_from_request
 def test_a_request_is_its_preset_with_the_fields_it_names():
     s = settings_from_request({"preset": "preview", "log2_table": 9, "seed": None})
     assert s.log2_table == 9 and s.nodes == preset("preview").nodes and s.seed == preset("preview").seed
-    assert settings_from_request({}) == preset("default")
+    assert settings_from_request({"preset": "default"}) == preset("default")
+
+
+def test_a_request_with_no_preset_and_no_size_is_sized_to_the_default_level():
+    from nbvh_core.protocol.quality_levels import DEFAULT_LEVEL, QUALITY_LEVELS
+
+    s = settings_from_request({})
+    assert s.target_mse == QUALITY_LEVELS[DEFAULT_LEVEL] and s.size_search == "grow"
+    assert s.time_limit_s == preset("default").time_limit_s and s.mesh_layout == "compact"
+    # Anything that fixes a size (or a named preset) keeps it fixed.
+    assert settings_from_request({"preset": "preview"}).target_mse is None
+    assert settings_from_request({"budget_kb": 100}).target_mse is None
+    assert settings_from_request({"log2_table": 9}).target_mse is None
+    assert settings_from_request({"target_mse": 0.003}).target_mse == 0.003
+
+
+def test_named_choices_are_checked_in_requests_and_files():
+    from nbvh_core.planning.settings import settings_from_dict
+
+    with pytest.raises(ValueError, match="size_search.*grow, retrain"):
+        settings_from_dict({"size_search": "bogus"})
+    with pytest.raises(ValueError, match="mesh_layout.*compact, plain"):
+        settings_from_dict({"mesh_layout": "dgf"})
 
 
 def test_time_limit_zero_means_a_budget_in_steps():

@@ -189,7 +189,7 @@ def _compress_locked(args, mesh, mesh_path, paths, sink) -> int:
             rays_per_step=args.rays_per_step, budget_kb=args.budget_kb, leaf_sampling=args.leaf_sampling,
             tree_cut=True if args.tree_cut else None, normal_loss=args.normal_loss, n_max=args.n_max,
             index_factor=args.index_factor, finetune_fraction=args.finetune_fraction,
-            appearance_target=args.appearance, size_search=args.size_search,
+            appearance_target=args.appearance, size_search=args.size_search, mesh_layout=args.mesh_layout,
             target_mse=QUALITY_LEVELS[args.quality] if args.quality else args.target_mse))
     settings = settings.with_overrides(force=True if args.force else None, checkpoint_every_s=args.checkpoint_every)
     default_ck = checkpoint_for(out)
@@ -411,15 +411,20 @@ def _add_compress_parser(sub) -> None:
     c.add_argument("mesh")
     c.add_argument("-o", "--output", required=True,
                    help="output .nbvh file (+ .report.json, .preview.png, .reference.png beside it)")
-    c.add_argument("--preset", default="default", choices=list(PRESETS),
-                   help="named settings (default: default); the options below override single fields")
+    c.add_argument("--preset", choices=list(PRESETS),
+                   help="named fixed settings (preview, default, high; the options below override single fields); "
+                        "without a preset or a size the run is sized to the quality level standard: the verdict "
+                        "first, then one training that grows its table until the level is met")
     size = c.add_mutually_exclusive_group()
     size.add_argument("--budget-kb", type=float, help="size the model to fit this many KB")
     size.add_argument("--target-mse", type=float, help="size the model for this image MSE (checked after training)")
     size.add_argument("--quality", choices=list(QUALITY_LEVELS),
                       help=f"a named target: {describe_levels()}")
-    c.add_argument("--size-search", choices=["retrain", "grow"],
-                   help="with a target: retrain per size tried (default), or one training that grows its table")
+    c.add_argument("--size-search", choices=["grow", "retrain"],
+                   help="with a target: one training that grows its table (default), or a training per size tried")
+    c.add_argument("--mesh-layout", choices=["compact", "plain"],
+                   help="what the verdict weighs the model against: the mesh as a compact ray-traceable mesh "
+                        "(default) or as a plain ray tracer holds it")
     c.add_argument("--encoding", choices=["hashgrid", "hashvqad"])
     c.add_argument("--network", choices=["mlp", "kmlp"])
     c.add_argument("--labels", choices=["ownership", "consistent"])
@@ -528,7 +533,8 @@ def _add_batch_parser(sub) -> None:
     b.add_argument("library", help="a folder (searched recursively: mesh files, .npz arrays, .blend files) or a "
                                    "list file with one path per line")
     b.add_argument("-o", "--output", required=True, help="output folder: report.html/.csv/.json, assets/, thumbs/")
-    b.add_argument("--preset", default="default", choices=list(PRESETS))
+    b.add_argument("--preset", choices=list(PRESETS),
+                   help="named fixed settings for every asset (default: each asset sized to the quality level standard)")
     size = b.add_mutually_exclusive_group()
     size.add_argument("--quality", choices=list(QUALITY_LEVELS), help="a named target for every asset")
     size.add_argument("--target-mse", type=float, help="image MSE every asset's model must reach")

@@ -61,7 +61,7 @@ def check_request(request, where: str = "request") -> dict:
     if not 0 <= int(request.get("proxy_points") or 0) <= 10_000_000:
         raise ValueError(f"{where}: proxy_points must be in [0, 10000000]")
     spec = dict(request.get("settings") or {})
-    base = preset(str(spec.pop("preset", "default")))
+    base = preset(str(spec.pop("preset", None) or "default"))
     settings_from_dict({**base.to_dict(), **spec}, f"{where}: settings")
     return request
 

@@ -259,13 +259,24 @@ def preset(name: str) -> Settings:
     return dataclasses.replace(PRESETS[name])
 
 
+#: What fixes a model's size in a request; a request with none of them (and no preset) is sized by need.
+SIZE_FIELDS = ("budget_kb", "target_mse", "log2_table", "nodes")
+
+
 def settings_from_request(spec: dict) -> Settings:
     """The Settings a run is asked for, the one route the command line, the add-on's job and library batches take:
-    spec = {"preset": name (default "default"), any Settings field: value (None: the preset's)}; time_limit_s 0
-    means a budget in steps only (no wall-clock limit). Raises ValueError for an unknown preset or field."""
+    spec = {"preset": name or None, any Settings field: value (None: the preset's)}; time_limit_s 0 means a budget
+    in steps only (no wall-clock limit). A named preset without a size is its fixed sizes; no preset and no size
+    (SIZE_FIELDS) is the need-driven default: the default preset's method and budget, sized to the quality level
+    DEFAULT_LEVEL (the verdict first, then one growing training). Raises ValueError for an unknown preset or field."""
+    from ..protocol.quality_levels import DEFAULT_LEVEL, QUALITY_LEVELS
+
     spec = dict(spec)
     steps_only = spec.get("time_limit_s") == 0
-    settings = preset(spec.pop("preset", None) or "default").with_overrides(**spec)
+    name = spec.pop("preset", None)
+    if name is None and all(spec.get(k) is None for k in SIZE_FIELDS):
+        spec["target_mse"] = QUALITY_LEVELS[DEFAULT_LEVEL]
+    settings = preset(name or "default").with_overrides(**spec)
     if steps_only:
         settings.time_limit_s = None
     return settings

@@ -382,7 +382,8 @@ def resolve(s: Settings, mesh: Mesh | None = None, grid: GridMeasures | None = N
             raise ValueError(f"target MSE must be > 0, got {s.target_mse:g}")
         fit = load_fit()
         if fit is None or mesh is None:
-            base = PRESETS["high" if s.target_mse < 0.01 else "default" if s.target_mse < 0.02 else "preview"]
+            base = PRESETS["high" if s.target_mse < QUALITY_LEVELS["standard"]
+                           else "default" if s.target_mse < QUALITY_LEVELS["preview"] else "preview"]
             chosen = dataclasses.replace(s, nodes=base.nodes, log2_table=base.log2_table)
             return chosen, (f"target MSE {s.target_mse:g}: no size predictor available, used preset sizes "
                             f"(T=2^{base.log2_table}, {base.nodes} nodes)")
