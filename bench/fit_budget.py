@@ -24,24 +24,26 @@ import math
 import numpy as np
 
 from bench_meshes import bench_mesh
-from harness import RESULTS, SMOKE, markdown_table, read_rows, write_markdown
+from harness import RESULTS, ROOT, SMOKE, markdown_table, read_rows, write_markdown
 from nbvh_core.planning.settings import PRESETS
 from nbvh_core.planning.sizing import FIT_PATH, SizeFit, load_fit, mesh_features
 
 BASE_S = 15.0
 GRID_PART = "grid4"
+#: The measurements are read from the committed results (a smoke run's results folder is empty).
+SOURCES = ROOT / "bench" / "results"
 
 
 def _rows() -> list[tuple[str, int, float, float]]:
     """(mesh, log2 T, budget s, measured MSE) from the three result files."""
     out = []
-    for r in read_rows(RESULTS / "quality.csv"):
+    for r in read_rows(SOURCES / "quality.csv"):
         if r["part"] == GRID_PART and r["method"] == "default" and r["seed"] == "0" and not r.get("diverged"):
             out.append((r["mesh"], int(r["log2_table"]), float(r["train_s"]), float(r["mse"])))
-    for r in read_rows(RESULTS / "grow.csv"):
+    for r in read_rows(SOURCES / "grow.csv"):
         if r["mode"].startswith("fixed"):
             out.append((r["mesh"], int(r["log2_table"]), float(PRESETS[r["preset"]].time_limit_s), float(r["mse"])))
-    for r in read_rows(RESULTS / "compact.csv"):
+    for r in read_rows(SOURCES / "compact.csv"):
         if "normals=oriented" in r["storage"] and r["preset"] in ("preview", "default", "high"):
             p = PRESETS[r["preset"]]
             out.append((r["mesh"], p.log2_table, float(p.time_limit_s), float(r["model_mse"])))

@@ -25,6 +25,8 @@ SMOKE = {
     "bench_engine.py": ["{tmp}/models", "--frames", "1"],
     "bench_foundation.py": ["--quick", "--rays", "2000", "--nodes", "64"],
     "bench_grow.py": ["--meshes", "blob", "--preset", "tiny", "--sizes", "7", "--time-limit", "2"],
+    "bench_need.py": ["--meshes", "gear", "--time-limit", "2"],
+    "fit_budget.py": [],
     "bench_freeze.py": ["--assets", "blob", "--time", "3", "--views", "1"],
     "bench_kill_resume.py": ["--mesh", "blob", "--preset", "preview", "--time-limit", "8", "--checkpoint-every", "1",
                              "--straight", "1"],

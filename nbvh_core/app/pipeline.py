@@ -29,7 +29,8 @@ from ..protocol.process import Cancelled, NotWorthCompressing, TrainingDiverged
 from ..neural.quantize import snap_nodes
 from ..planning.settings import PRESETS, Settings, estimate_file_bytes, preset  # noqa: F401  (re-exported)
 from ..planning import sizing
-from ..planning.sizing import assess, choose_resolution, grid_measures, load_fit, mesh_features, resolve, search_size
+from ..planning.sizing import (LOG2_RANGE, assess, choose_resolution, grid_measures, load_fit, mesh_features, resolve,
+                               search_size)
 from ..training.train import TrainResult, train
 
 #: A diverged training restarts from scratch at a 10x lower learning rate, at most this many times.
@@ -268,7 +269,7 @@ class _SizeSearch:
         log2 T, `why`)."""
         t = time.perf_counter()
         s = self.settings
-        top = s.log2_table + 1
+        top = min(s.log2_table + 1, LOG2_RANGE[-1])  # never past the sizes the predictor knows
         start = max(6, s.log2_table - GROW_START_BELOW)
         budget = s.time_limit_s or 200.0
         s_start = dataclasses.replace(s, log2_table=start,

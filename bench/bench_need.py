@@ -1,0 +1,145 @@
+"""The need-driven default against what a user could have fixed, through the command line as a user runs it.
+
+    .venv/bin/python bench/bench_need.py --meshes knot gear spiky sheet gyroid studs
+
+Per mesh (written to a PLY first, so every run reads a file like a user's):
+* `default`: `nbvh compress MESH -o OUT` with no options: the verdict, then (when a model is worth it) one training
+  that grows its table until the default quality level is met. A verdict of "keep as a mesh" must come in seconds
+  with the alternative written (NAME.decimated.ply when a decimation wins).
+* `preset default`: `--preset default --force`, one training of the default preset (T=2^12, 2,047 nodes, 200 s): the
+  wall time a user waited before.
+* `fixed 2^k`: `--preset default --log2-table k --nodes N --force` (N: the nodes the default run chose), from one
+  size below the default run's down to the first size that misses the level: the smallest fixed table that meets
+  it at the same budget.
+
+Rows land in bench/results/need.csv as they finish (a rerun resumes); need.md has the per-mesh comparison.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from bench_meshes import bench_mesh
+from harness import RESULTS, ROOT, SMOKE, append_row, markdown_table, num, read_rows, write_markdown
+from nbvh_core.planning.sizing import mesh_file_bytes
+from nbvh_core.protocol.quality_levels import DEFAULT_LEVEL, QUALITY_LEVELS
+
+CSV = RESULTS / ("need_smoke.csv" if SMOKE else "need.csv")
+
+
+def cli(mesh_file: Path, out: Path, extra: list[str]) -> tuple[int, float, dict]:
+    """One `nbvh compress` run: (exit code, wall seconds, its report or {})."""
+    t = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-m", "nbvh_core", "compress", str(mesh_file), "-o", str(out),
+                           "--overwrite", *extra], cwd=ROOT, capture_output=True, text=True)
+    wall = time.perf_counter() - t
+    report = out.with_suffix(".report.json")
+    data = json.loads(report.read_text()) if report.exists() and proc.returncode == 0 else {}
+    if proc.returncode not in (0, 4):
+        print(proc.stderr[-2000:], file=sys.stderr)
+    lines = proc.stderr.strip().splitlines()
+    data["stderr_tail"] = next((ln for ln in lines if ln.startswith("not worth compressing")), lines[-1] if lines
+                               else "")[:400]
+    return proc.returncode, wall, data
+
+
+def row_of(mesh: str, mode: str, rc: int, wall: float, data: dict, out: Path, level: float) -> dict:
+    q = data.get("quality") or {}
+    s = data.get("settings") or {}
+    dec = out.with_name(out.stem + ".decimated.ply")
+    return {"mesh": mesh, "mode": mode, "level": level, "exit_code": rc, "wall_s": round(wall, 1),
+            "log2_table": s.get("log2_table", ""), "nodes": s.get("nodes", ""), "file_bytes": data.get("file_bytes", ""),
+            "mse": q.get("mse", ""), "met": (q["mse"] <= level) if q else "",
+            "train_s": (data.get("training") or {}).get("seconds", ""),
+            "alternative_written": dec.name if dec.exists() else "",
+            "alternative_bytes": dec.stat().st_size if dec.exists() else "",
+            "verdict": data.get("stderr_tail", "") if rc == 4 else (data.get("why") or "")[-300:]}
+
+
+def measure(name: str, args, done: set, work: Path) -> None:
+    level = QUALITY_LEVELS[DEFAULT_LEVEL]
+    mesh_file = work / f"{name}.ply"
+    if not mesh_file.exists():
+        mesh_file.write_bytes(mesh_file_bytes(bench_mesh(name)))
+    tiny = ["--time-limit", str(args.time_limit)] if args.time_limit else []
+
+    def run(mode: str, extra: list[str]) -> dict:
+        prior = [r for r in read_rows(CSV) if r["mesh"] == name and r["mode"] == mode]
+        if prior:
+            return prior[-1]
+        out = work / mode.replace(" ", "_").replace("^", "") / f"{name}.nbvh"
+        out.parent.mkdir(exist_ok=True)
+        rc, wall, data = cli(mesh_file, out, extra + tiny)
+        row = row_of(name, mode, rc, wall, data, out, level)
+        append_row(CSV, row)
+        print({k: row[k] for k in ("mesh", "mode", "exit_code", "wall_s", "log2_table", "file_bytes", "mse", "met")},
+              flush=True)
+        return row
+
+    default = run("default", [])
+    if str(default["exit_code"]) != "0":
+        return  # the verdict: nothing trained, nothing to compare
+    run("preset default", ["--preset", "default", "--force"])
+    nodes, top = str(default["nodes"]), int(default["log2_table"])
+    for l2 in range(top - 1, 5, -1):
+        r = run(f"fixed 2^{l2}", ["--preset", "default", "--log2-table", str(l2), "--nodes", nodes, "--force"])
+        if r["met"] != "True" and r["met"] is not True:
+            break
+    if default["met"] not in ("True", True):  # the default missed: does a fixed run at its size meet?
+        run(f"fixed 2^{top}", ["--preset", "default", "--log2-table", str(top), "--nodes", nodes, "--force"])
+
+
+def report() -> None:
+    rows = read_rows(CSV)
+    table = []
+    for name in dict.fromkeys(r["mesh"] for r in rows):
+        own = {r["mode"]: r for r in rows if r["mesh"] == name}
+        d = own["default"]
+        if d["exit_code"] != "0":
+            table.append([name, "keep as a mesh", d["wall_s"], "-", "-", "-", d["alternative_written"] or "-", "-",
+                          d["verdict"][:160]])
+            continue
+        fixed = [r for m, r in own.items() if m.startswith("fixed") and r["met"] == "True"]
+        if d["met"] == "True":
+            fixed.append({**d, "mode": f"fixed 2^{d['log2_table']} (the default's own size)"})
+        best = min(fixed, key=lambda r: num(r, "file_bytes")) if fixed else None
+        one = own.get("preset default")
+        table.append([name, f"2^{d['log2_table']}, {int(d['file_bytes']):,} B, MSE {num(d, 'mse'):.5f}"
+                      + ("" if d["met"] == "True" else " (missed)"), d["wall_s"],
+                      f"{best['mode']}: {int(best['file_bytes']):,} B" if best else "none met",
+                      f"{num(d, 'file_bytes') / num(best, 'file_bytes'):.2f}x" if best else "-",
+                      f"{num(d, 'wall_s') / num(one, 'wall_s'):.2f}x" if one else "-",
+                      "-", f"{one['file_bytes']} B, MSE {num(one, 'mse'):.5f}" if one else "-", d["verdict"][-160:]])
+    lines = ["# The need-driven default against fixed sizes (bench/bench_need.py)", "",
+             f"Every run is `nbvh compress` on the mesh as a PLY; the default has no options (level {DEFAULT_LEVEL} = "
+             f"MSE {QUALITY_LEVELS[DEFAULT_LEVEL]:g}, the default preset's 200 s). File ratio: the default's file / the "
+             "smallest fixed size that met the level at the same budget (the default's own size counts only when "
+             "the fixed run one size below missed). Wall ratio: the default's wall time / one `--preset default` run.",
+             "", *markdown_table(["mesh", "default run", "wall s", "smallest fixed meeting the level", "file ratio",
+                                  "wall ratio", "alternative written", "one default-preset run", "verdict / why"],
+                                 table)]
+    write_markdown(RESULTS / ("need_smoke.md" if SMOKE else "need.md"), lines)
+    print("\n".join(lines))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--meshes", nargs="+", default=["knot", "gear", "spiky", "sheet", "gyroid", "studs"])
+    ap.add_argument("--work", help="scratch folder (default: a temporary one)")
+    ap.add_argument("--time-limit", type=float, help="override every run's budget (smoke runs only)")
+    args = ap.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(args.work or tmp)
+        work.mkdir(parents=True, exist_ok=True)
+        for name in args.meshes:
+            measure(name, args, set(), work)
+    report()
+
+
+if __name__ == "__main__":
+    main()
