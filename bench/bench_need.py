@@ -57,8 +57,20 @@ def row_of(mesh: str, mode: str, rc: int, wall: float, data: dict, out: Path, le
             "mse": q.get("mse", ""), "met": (q["mse"] <= level) if q else "",
             "train_s": (data.get("training") or {}).get("seconds", ""),
             "alternative_written": dec.name if dec.exists() else "",
+            "checks": json.dumps(_checks_with_bytes(data)),
             "alternative_bytes": dec.stat().st_size if dec.exists() else "",
             "verdict": data.get("stderr_tail", "") if rc == 4 else (data.get("why") or "")[-300:]}
+
+
+def _checks_with_bytes(data: dict) -> list:
+    """The run's quality checks as [seconds, log2 T, MSE, file bytes at that size] (a growing training's path)."""
+    from nbvh_core.planning.settings import estimate_file_bytes, settings_from_dict
+
+    checks = (data.get("training") or {}).get("checks") or []
+    if not checks:
+        return []
+    s = settings_from_dict(data["settings"])
+    return [[sec, l2, mse, estimate_file_bytes(s.with_overrides(log2_table=l2))] for sec, l2, mse in checks]
 
 
 def measure(name: str, args, done: set, work: Path) -> None:

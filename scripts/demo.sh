@@ -2,6 +2,7 @@
 # The main job on a bundled sample: compress it into neural geometry and write the model, its report and a
 # previews (the model and the mesh from the same view) to out/<name>/.
 # Usage: scripts/demo.sh [SAMPLE or MESH FILE] [compress options, e.g. --preset preview]   (default: bunny)
+#        (no options: --preset default; --need: the need-driven default, which may answer "keep as a mesh")
 set -euo pipefail
 source "$(dirname "${BASH_SOURCE[0]}")/ensure_venv.sh"
 cd "$NBVH_ROOT"
@@ -9,6 +10,17 @@ sample=${1:-bunny}
 shift || true
 name=$(basename "${sample%%.*}")
 mkdir -p "out/$name"
+if [ $# -eq 0 ]; then
+  set -- --preset default
+elif [ "$1" = "--need" ]; then
+  shift
+fi
 # --overwrite: the demo owns out/NAME and replaces its own earlier result (only once the new one is complete)
-"$NBVH_PY" -m nbvh_core compress "$sample" -o "out/$name/$name.nbvh" --overwrite "$@"
+rc=0
+"$NBVH_PY" -m nbvh_core compress "$sample" -o "out/$name/$name.nbvh" --overwrite "$@" || rc=$?
+if [ "$rc" -eq 4 ]; then  # the verdict: kept as a mesh (any decimation that wins is in out/NAME/)
+  exit 0
+elif [ "$rc" -ne 0 ]; then
+  exit "$rc"
+fi
 "$NBVH_PY" -m nbvh_core info "out/$name/$name.nbvh" --mesh "$sample"

@@ -86,5 +86,9 @@ def test_a_target_run_that_grows_ends_with_the_grown_table_in_its_file(tmp_path)
     final = grew[-1][2]
     assert final <= start + 3 and res.settings.log2_table == final
     assert res.why.count("growing its table") == 1
+    # Every check is recorded with the size it saw: the path of one training through its sizes.
+    checks = res.training.checks
+    assert checks and [c[1] for c in checks] == sorted(c[1] for c in checks) and checks[-1][1] == final
+    assert all(c[2] > 1e-9 for c in checks) and res.summary()["training"]["checks"] == checks
     loaded = load_nbvh(tmp_path / "blob.nbvh")
     assert loaded.cfg.encoding.log2_table == final and loaded.metadata["settings"]["log2_table"] == final

@@ -39,7 +39,7 @@ DIVERGENCE_RETRIES = 2
 #: float32 model, the file stores 8-bit tables and weights (0.2-1% higher MSE measured on the default preset), and
 #: the evaluation after it confirms or not.
 EARLY_STOP_MARGIN = 0.9
-#: size_search "grow": the training starts this many table sizes below the predicted one; at each quick check (every
+#: size_search "grow": the training starts this many table sizes below the predicted one; at each check (every
 #: budget / GROW_CHECKS seconds, at most target_check_every_s) the last two checks at the current size give a power
 #: law of MSE against training time, and the table grows when it does not reach the target by the end of the
 #: budget. Measured on four meshes at the preview budget (bench/results/grow.md): growing on a
@@ -149,7 +149,7 @@ def _target_check(check: _QualityCheck, target: float):
 
 
 def _grow_check(check: _QualityCheck, target: float, max_log2: int, budget_s: float):
-    """The callback of a growing training (size_search "grow"): True once the quick MSE is below EARLY_STOP_MARGIN
+    """The callback of a growing training (size_search "grow"): True once the check's MSE is below EARLY_STOP_MARGIN
     x the target; "grow" when, at a size below 2^max_log2, the power law through the last two checks at this size
     (MSE against seconds since the callback was made, ~ since training started) misses the target by the end of
     the budget `budget_s`."""
@@ -158,9 +158,10 @@ def _grow_check(check: _QualityCheck, target: float, max_log2: int, budget_s: fl
 
     def decide(model) -> bool | str:
         mse = check.mse(model)
+        log2 = model.cfg.encoding.log2_table
+        decide.history.append((round(time.perf_counter() - start, 2), log2, mse))
         if mse <= EARLY_STOP_MARGIN * target:
             return True
-        log2 = model.cfg.encoding.log2_table
         points = seen.setdefault(log2, [])
         points.append((time.perf_counter() - start, mse))
         if len(points) < 2 or log2 >= max_log2:
@@ -173,6 +174,7 @@ def _grow_check(check: _QualityCheck, target: float, max_log2: int, budget_s: fl
         # Grow only for a projected miss of the level itself: the margin is for stopping on a noisy check (aiming
         # growth at it grew the gyroid and the studs past the size that met the level).
         return "grow" if at_end > target else False
+    decide.history = []  # (seconds, log2 T, MSE) of every check: TrainResult.checks
     return decide
 
 
@@ -274,9 +276,11 @@ class _SizeSearch:
         budget = s.time_limit_s or 200.0
         s_start = dataclasses.replace(s, log2_table=start,
                                       target_check_every_s=min(s.target_check_every_s, budget / GROW_CHECKS))
+        decide = _grow_check(self.check, s.target_mse, top, budget)
         model, tr, s_used, why_used = _train_with_restarts(
             self.mesh, self.bvh, self.tracer, s_start, self.why, self.events, self.should_cancel,
-            self.checkpoint_path, self.resume_from, _grow_check(self.check, s.target_mse, top, budget))
+            self.checkpoint_path, self.resume_from, decide)
+        tr.checks = list(decide.history)
         final = model.cfg.encoding.log2_table
         s_used = dataclasses.replace(s_used, log2_table=final, target_check_every_s=s.target_check_every_s)
         trail = ", ".join(f"T=2^{log2} at {sec:g} s" for _, sec, log2 in tr.grew) or "no growth"

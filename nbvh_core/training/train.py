@@ -118,6 +118,9 @@ class TrainResult:
     stopped_early: bool = False  # the target_reached callback ended training before the budget
     #: (step, seconds, new log2 T) of each time the table grew (the target_reached callback asked for it)
     grew: list = field(default_factory=list)
+    #: (seconds since the start, log2 T, image MSE) of each quality check of a training with a target (the trajectory
+    #: of a growing training through its sizes; filled by the caller's check)
+    checks: list = field(default_factory=list)
 
 
 def pick_device(name: str = "auto") -> torch.device:
