@@ -33,11 +33,13 @@ CORE_PARENT = _HERE if (_HERE / "nbvh_core").is_dir() else _HERE.parent
 try:  # the installed add-on carries nbvh_core inside it; in the repository it sits beside addon/
     from .nbvh_core.protocol.events import parse_line as parse_event  # no torch: these modules are plain Python
     from .nbvh_core.protocol.outputs import checkpoint_for, lock_for  # noqa: F401  (checkpoint_for: for engine.py)
-    from .nbvh_core.protocol.quality_levels import DEFAULT_LEVEL, QUALITY_LEVELS, TARGET_TRAININGS  # noqa: F401  (engine.py, the panel)
+    from .nbvh_core.protocol.quality_levels import (DEFAULT_LEVEL, QUALITY_LEVELS,  # noqa: F401  (engine.py, the panel)
+                                                    TARGET_TRAININGS, most_trainings)
 except ImportError:
     from nbvh_core.protocol.events import parse_line as parse_event
     from nbvh_core.protocol.outputs import checkpoint_for, lock_for  # noqa: F401
-    from nbvh_core.protocol.quality_levels import DEFAULT_LEVEL, QUALITY_LEVELS, TARGET_TRAININGS  # noqa: F401
+    from nbvh_core.protocol.quality_levels import (DEFAULT_LEVEL, QUALITY_LEVELS,  # noqa: F401
+                                                   TARGET_TRAININGS, most_trainings)
 
 
 def core_env() -> dict:
@@ -248,7 +250,7 @@ class JobClock:
     def _limits(request: dict) -> tuple[float | None, int]:
         settings = request.get("settings") or {}
         limit = settings.get("time_limit_s")
-        most = TARGET_TRAININGS if settings.get("target_mse") is not None and not request.get("model") else 1
+        most = most_trainings(settings) if not request.get("model") else 1
         return (float(limit) if limit else None), (0 if request.get("model") else most)
 
     def estimate(self, request: dict) -> float | None:

@@ -10,7 +10,7 @@ from pathlib import Path
 import bpy
 
 from . import engine, library, previews
-from .job import TARGET_TRAININGS, check_python, core_env, default_python
+from .job import check_python, core_env, default_python, most_trainings
 
 @dataclass
 class AddonState:
@@ -43,7 +43,7 @@ def _python(context) -> str:
 def request_from_props(props) -> engine.Request:
     """Panel settings -> engine.Request (preset, or target quality, or byte budget; time limit; device)."""
     overrides = {"time_limit_s": float(props.time_limit), "device": props.device.lower(), "steps": None,
-                 "appearance_target": props.look.lower()}
+                 "appearance_target": props.look.lower(), "mesh_layout": props.compare_with.lower()}
     if props.force:
         overrides["force"] = True
     preset = props.preset
@@ -136,8 +136,8 @@ def format_eta(this_s: float | None, all_s: float | None, trainings: int, reques
     if all_s is not None and all_s > this_s + 1:
         text += f", all {fmt(all_s)}"
     settings = request.get("settings") or {}
-    if settings.get("target_mse") is not None and trainings < TARGET_TRAININGS:
-        text += f" (at most; a target search trains up to {TARGET_TRAININGS} times)"
+    if trainings < most_trainings(settings):
+        text += f" (at most; a target search trains up to {most_trainings(settings)} times)"
     return text
 
 
@@ -407,7 +407,8 @@ class NBVH_OT_check_python(bpy.types.Operator):
 
 def _library_settings(props) -> dict:
     """The batch's settings from the panel: the preset or target (a byte budget applies per asset), time limit."""
-    spec = {"preset": props.preset, "time_limit_s": float(props.time_limit), "device": props.device.lower()}
+    spec = {"preset": props.preset, "time_limit_s": float(props.time_limit), "device": props.device.lower(),
+            "mesh_layout": props.compare_with.lower()}
     if props.mode == "TARGET":
         spec["target_mse"] = engine.QUALITY_LEVELS[props.target.lower()]
     elif props.mode == "BUDGET":

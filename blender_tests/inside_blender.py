@@ -144,11 +144,23 @@ def test_addon_installed_and_registered():
     prefs.python_path = ARGS.python
 
 
+def test_the_panel_sizes_by_need_by_default():
+    """A new scene's panel: Size by Target quality at the default level, compared with a compact mesh; the request
+    it makes is sized to that level (one growing training) with the verdict against the compact layout."""
+    props = bpy.context.scene.nbvh_props
+    rna = type(props).bl_rna.properties
+    assert rna["mode"].default == "TARGET" and rna["target"].default == ADDON["engine"].DEFAULT_LEVEL.upper()
+    assert rna["compare_with"].default == "COMPACT"
+    req = ADDON["operators"].request_from_props(props)
+    assert req.overrides["target_mse"] == ADDON["engine"].QUALITY_LEVELS[ADDON["engine"].DEFAULT_LEVEL]
+    assert req.overrides["mesh_layout"] == "compact"
+
+
 def test_compress_via_operator_loads_image_proxy_report():
     blob = setup_scene()
     before = mesh_fingerprint(blob)
     props = bpy.context.scene.nbvh_props
-    props.preset = "preview"
+    props.mode, props.preset = "PRESET", "preview"
     props.output_dir = str(Path(ARGS.work) / "panel_out")
     props.time_limit = 8
     select("Blob")
@@ -212,7 +224,7 @@ def test_cancel_stops_running_job_and_leaves_nothing():
     out = Path(ARGS.work) / "cancel_out"
     props = bpy.context.scene.nbvh_props
     props.output_dir = str(out)
-    props.preset = "default"
+    props.mode, props.preset = "PRESET", "default"
     props.time_limit = 600
     select("Blob")
     assert bpy.ops.nbvh.compress() == {"FINISHED"}
@@ -412,6 +424,7 @@ def test_scene_budget_is_split_by_need_and_suzanne_is_not_worth_it():
     props.mode = "BUDGET"
     props.budget_kb = 1500
     props.time_limit = 5
+    props.compare_with = "PLAIN"  # the smooth blob is smaller than any model as a compact mesh: weigh it plainly
     props.output_dir = str(Path(ARGS.work) / "scene_out")
     select("Blob", "Suzanne")
     assert bpy.ops.nbvh.compress() == {"FINISHED"}
@@ -432,7 +445,7 @@ def test_scene_budget_is_split_by_need_and_suzanne_is_not_worth_it():
     page = Path(props.report_html).read_text()
     assert "Scene budget split" in page and "Kept as meshes" in page
     assert (mesh_fingerprint(blob), mesh_fingerprint(monkey)) == before
-    props.mode = "PRESET"
+    props.mode, props.compare_with = "PRESET", "COMPACT"
 
 
 def run_library_until_done(timeout=600.0):
@@ -450,7 +463,7 @@ def test_scene_memory_report_measures_every_mesh_object_without_training():
     monkey = _add_suzanne()
     before = (mesh_fingerprint(blob), mesh_fingerprint(monkey))
     props = bpy.context.scene.nbvh_props
-    props.mode, props.preset = "PRESET", "default"
+    props.mode, props.preset, props.compare_with = "PRESET", "default", "PLAIN"
     props.output_dir = str(Path(ARGS.work) / "report_out")
     assert bpy.ops.nbvh.scene_report() == {"FINISHED"}
     run_library_until_done()
@@ -463,6 +476,7 @@ def test_scene_memory_report_measures_every_mesh_object_without_training():
     assert "predicted savings" in props.library_summary and Path(props.library_report_html).exists()
     assert not (Path(props.output_dir) / "scene_report" / "assets").exists()  # nothing trained
     assert (mesh_fingerprint(blob), mesh_fingerprint(monkey)) == before
+    props.compare_with = "COMPACT"
 
 
 def test_compress_library_folder_with_a_blend_file():

@@ -98,10 +98,10 @@ class Settings:
     #: With a target MSE: seconds between quality checks during training (the evaluation's views and resolution);
     #: training stops once the MSE is below EARLY_STOP_MARGIN x the target (the evaluation after it confirms or not).
     target_check_every_s: float = 20.0
-    #: With a target MSE, how the size is found: "retrain" - predict T, train, measure, correct (up to
-    #: TARGET_TRAININGS trainings); "grow" - one training that starts GROW_START_BELOW sizes under the predicted T
-    #: and doubles its table in place (the function unchanged: HashGrid.grow) whenever the quick checks project a
-    #: miss at its size by the end of the budget, up to one size above the predicted T (pipeline._grow_check).
+    #: With a target MSE, how the size is found: "grow" (default) - one training that starts GROW_START_BELOW sizes
+    #: under the predicted T and doubles its table in place (the function unchanged: HashGrid.grow) whenever the
+    #: checks project a miss at its size by the end of the budget, up to one size above the predicted T
+    #: (pipeline._grow_check); "retrain" - predict T, train, measure, correct (up to TARGET_TRAININGS trainings).
     size_search: str = "grow"
     #: The mesh layout the verdict weighs the model against (MESH_LAYOUTS): "compact", the strongest ray-traceable
     #: mesh (`compact_mesh`, ~8-9.5 B per triangle), or "plain", as Embree or Cycles hold it (~44 B per triangle).

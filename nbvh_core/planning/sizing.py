@@ -5,17 +5,17 @@
   .nbvh model is traced as stored. `alternatives` also measures the smallest quadric decimation that meets a
   quality target (rendered with Embree, scored with the same metric) and the Draco size of the mesh (storage).
 * **Cheap predictor** (`mesh_features`, `predict_mse`): image MSE after training as a linear function in log
-  space of the table size log2 T and properties of the mesh (surface area, how much of the box the surface
-  fills, how much its normals vary locally, triangle count), fitted on the benchmark meshes by
-  bench/fit_sizing.py (data and leave-one-mesh-out errors in bench/results/sizing*.{csv,md}); coefficients in
-  sizing_fit.json. It is calibrated at the benchmark's training budget; longer training only lowers the MSE.
+  space of the table size log2 T, properties of the mesh (how much its normals vary locally, triangle count) and
+  the training budget (ln budget, and its product with log2 T: a larger table gains more from a longer budget),
+  fitted on 84 measurements at 15-600 s by bench/fit_budget.py (bench/results/sizing_budget.md: leave-one-mesh-out
+  errors); coefficients in sizing_fit.json.
 * **Choice** (`resolve`, `choose_table_and_nodes`): a byte budget or a quality target turned into sizes: the
   (T, node count) of fewest file bytes whose predicted MSE meets the target; `pipeline.compress_mesh` trains it,
   measures and corrects (`search_size`: up to TARGET_TRAININGS trainings, calibrated by each measurement).
   `choose_size` is the same over T alone (scenes).
-* **Verdict** (`assess`): when the mesh as it is, or a decimation of it that meets the target, is smaller
-  resident than the model, compressing is not worth it; the result says so with all sizes (a user can still
-  force the model).
+* **Verdict** (`assess`): when the mesh as it is, or the smallest decimation of it that meets the target, is no
+  larger than the model held as a compact ray-traceable mesh (or, with mesh_layout "plain", as a plain ray tracer
+  holds it), compressing is not worth it; the result says so with all sizes (a user can still force the model).
 * **Scenes** (`plan_scene`, `split_budget`): one byte budget over several meshes, shared by need: every mesh gets the
   smallest T that meets a common quality level (scaled by its weight, e.g. its size on screen), with the level
   set as strict as the budget allows.
@@ -583,12 +583,15 @@ def assess(mesh: Mesh, settings, measure_alternatives: bool = False, tracer=None
     dec = alt.get("decimation")
     held = (lambda plain, comp: comp) if layout == "compact" else (lambda plain, comp: plain)
     draco = f"; Draco 11-bit of the mesh: {alt['draco11_bytes']:,} B for storage" if "draco11_bytes" in alt else ""
-    if held(resident, compact) <= model:
+    # The smaller of the two alternatives wins the comparison (a decimation is offered even when the whole mesh
+    # is also smaller than the model: it is the least a user needs to ship).
+    dec_held = held(dec["resident_bytes"], dec["compact_bytes"]) if dec is not None else None
+    if held(resident, compact) <= model and (dec_held is None or held(resident, compact) <= dec_held):
         rec = "mesh"
         msg = (f"not worth compressing: the mesh ({mesh.n_triangles:,} triangles) is already no larger than this "
                f"model (~{model:,} B): {_held(layout, resident, compact)}; keep the mesh, or ask for a smaller model "
                f"(--budget-kb){draco}")
-    elif dec is not None and held(dec["resident_bytes"], dec["compact_bytes"]) <= model:
+    elif dec_held is not None and dec_held <= model:
         rec = "decimate"
         msg = (f"not worth compressing: a decimation to {dec['triangles']:,} triangles meets the target (MSE "
                f"{dec['mse']:.4g}) in {_held(layout, dec['resident_bytes'], dec['compact_bytes'])}, no more than "
@@ -645,16 +648,25 @@ def split_budget(features: list[MeshFeatures], budget_bytes: float, fit: SizeFit
             "weights": weights, "budget": budget_bytes}
 
 
+def mesh_bytes(mesh: Mesh, layout: str) -> int:
+    """`mesh` held in `layout` (MESH_LAYOUTS): the compact ray-traceable mesh's exact bytes, or plain resident."""
+    if layout == "compact":
+        from ..geometry.compact_mesh import compact_bytes
+
+        return compact_bytes(mesh)
+    return mesh_resident_bytes(mesh)["total"]
+
+
 def split_scene(meshes: list[Mesh], budget_bytes: float, fit: SizeFit, bytes_for_log2,
-                weights: list[float] | None = None) -> dict:
-    """The one scene-budget split (CLI `plan`, the add-on's jobs): objects whose mesh as a ray tracer holds it is no
-    larger than their smallest model can never be worth compressing; they get nothing (log2 None, 0 bytes) and the
-    budget is shared by need among the others (`split_budget`). Returns split_budget's dict over all meshes, in
-    order, plus 'excluded': [indices] and 'features'."""
+                weights: list[float] | None = None, layout: str = "compact") -> dict:
+    """The one scene-budget split (CLI `plan`, the add-on's jobs): objects whose mesh held in `layout`
+    (MESH_LAYOUTS) is no larger than their smallest model can never be worth compressing; they get nothing (log2
+    None, 0 bytes) and the budget is shared by need among the others (`split_budget`). Returns split_budget's dict
+    over all meshes, in order, plus 'excluded': [indices] and 'features'."""
     feats = [mesh_features(m) for m in meshes]
     weights = [1.0] * len(meshes) if weights is None else list(weights)
     smallest = bytes_for_log2(0, 5)
-    keep = [i for i, m in enumerate(meshes) if mesh_resident_bytes(m)["total"] > smallest]
+    keep = [i for i, m in enumerate(meshes) if mesh_bytes(m, layout) > smallest]
     out = {"level": None, "log2": [None] * len(meshes), "bytes": [0] * len(meshes),
            "predicted_mse": [None] * len(meshes), "total": 0, "weights": weights, "budget": budget_bytes}
     if keep:
@@ -693,7 +705,8 @@ def plan_scene(meshes: list[Mesh], budget_bytes: float, settings: Settings, weig
         raise ValueError(f"{len(weights)} weights for {len(meshes)} meshes")
     base = scene_base(settings, fit)
     plan = split_scene(meshes, budget_bytes, fit,
-                       lambda i, l2: estimate_file_bytes(dataclasses.replace(base, log2_table=l2)), weights)
+                       lambda i, l2: estimate_file_bytes(dataclasses.replace(base, log2_table=l2)), weights,
+                       settings.mesh_layout)
     names = names or [m.name or str(i) for i, m in enumerate(meshes)]
     plan["objects"] = [{"name": n, "weight": w, "triangles": f.triangles, "log2_table": l2, "bytes": b,
                         "predicted_mse": p, "excluded": i in plan["excluded"]}

@@ -16,6 +16,13 @@ DEFAULT_LEVEL = "standard"
 TARGET_TRAININGS = 3
 
 
+def most_trainings(settings: dict) -> int:
+    """How many trainings a run of these settings (a request's dict) may take: TARGET_TRAININGS for a target with
+    size_search "retrain", else 1 (a fixed size, a byte budget, or the default growing training)."""
+    retrain = settings.get("size_search") == "retrain"
+    return TARGET_TRAININGS if settings.get("target_mse") is not None and retrain else 1
+
+
 def describe() -> str:
     """'preview = MSE 0.001, standard = 0.0005, high = 0.00025' (for help texts)."""
     items = list(QUALITY_LEVELS.items())
