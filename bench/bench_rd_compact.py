@@ -18,7 +18,7 @@ from harness import RESULTS, append_rows, read_rows
 ROOT = Path(__file__).resolve().parents[1]
 OUT = RESULTS / "rd_compact.csv"
 COUNTS = (1000, 4000, 16000, 64000, 256000)
-MESHES = ("bunny", "spiky", "gyroid", "knot", "terrain", "lattice")
+MESHES = ("bunny", "spiky", "gyroid", "knot", "terrain", "lattice", "gear", "sheet")
 #: pays.csv rows of the current presets (wound normals for the MLP) and, for the knot, the earlier facing rows.
 NEURAL_STORAGE = ("t8/w8/n8 n_max=auto:64 normals=oriented", "t8/w8/n8 n_max=auto:64")
 
@@ -36,11 +36,19 @@ def measure(name: str, done: set) -> None:
 
     mesh = bench_mesh(name)
     reference = ExactTracer(mesh)
+    if (name, "full") not in done:  # the whole mesh: exact, drawn as its bytes (vertical lines)
+        nbytes, _ = compact_mesh(mesh)
+        append_rows(OUT, [{"mesh": name, "requested": "full", "triangles": mesh.n_triangles, "compact_mse": 0.0,
+                           "plain_bytes": mesh_resident_bytes(mesh)["total"], "compact_bytes": nbytes,
+                           "draco11_bytes": len(DracoPy.encode(mesh.vertices, mesh.faces, quantization_bits=11,
+                                                               compression_level=7)), "seconds": 0}])
     for count in COUNTS:
         if count >= 0.7 * mesh.n_triangles or (name, str(count)) in done:
             continue
         t0 = time.perf_counter()
         dec = decimate(mesh, count)
+        if dec.n_triangles > 0.9 * mesh.n_triangles:  # the simplifier kept (nearly) everything: no decimation
+            continue
         nbytes, decoded = compact_mesh(dec)
         tracer = ExactTracer(decoded)
         q, _ = evaluate_renderer(lambda cam, w, h: render_reference(tracer, cam, w, h), reference, mesh.transform,
@@ -63,10 +71,18 @@ def chart(path: Path) -> None:
 
     rows = read_rows(OUT)
     neural = [r for r in read_rows(RESULTS / "pays.csv") if r["storage"] in NEURAL_STORAGE]
+    need = read_rows(RESULTS / "need.csv") if (RESULTS / "need.csv").exists() else []
     meshes = [m for m in MESHES if any(r["mesh"] == m for r in rows)]
-    fig, axes = plt.subplots(2, 3, figsize=(13, 8))
+    fig, axes = plt.subplots(2, 4, figsize=(17, 8))
+    for ax in axes.ravel()[len(meshes):]:
+        ax.axis("off")
     for ax, name in zip(axes.ravel(), meshes):
-        dec = sorted((r for r in rows if r["mesh"] == name), key=lambda r: int(r["triangles"]))
+        full = next((r for r in rows if r["mesh"] == name and r["requested"] == "full"), None)
+        if full:
+            ax.axvline(int(full["plain_bytes"]), color="C0", ls=":", lw=1, label="whole mesh, plain")
+            ax.axvline(int(full["compact_bytes"]), color="C1", ls=":", lw=1, label="whole mesh, compact")
+        dec = sorted((r for r in rows if r["mesh"] == name and r["requested"] != "full"),
+                     key=lambda r: int(r["triangles"]))
         mse = [float(r["compact_mse"]) for r in dec]
         for key, label, style in (("plain_bytes", "decimation, plain (~44 B/tri)", "o-"),
                                   ("compact_bytes", "decimation, compact mesh", "s-"),
@@ -79,15 +95,39 @@ def chart(path: Path) -> None:
         for r in current:
             ax.annotate(r["preset"], (int(r["file_bytes"]), float(r["mse"])), fontsize=7, xytext=(4, 4),
                         textcoords="offset points")
+        _need_on(ax, [r for r in need if r["mesh"] == name])
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.set_title(name)
         ax.set_xlabel("bytes")
         ax.set_ylabel("image MSE (16 views, 128 px)")
         ax.grid(True, which="both", alpha=0.3)
-    axes.ravel()[0].legend(fontsize=7)
-    fig.tight_layout()
+    handles = {}
+    for ax in axes.ravel():
+        for h, label in zip(*ax.get_legend_handles_labels()):
+            handles.setdefault(label, h)
+    fig.legend(list(handles.values()), list(handles), loc="lower center", ncol=5, fontsize=8)
+    fig.tight_layout(rect=(0, 0.07, 1, 1))
     fig.savefig(path, dpi=110)
+
+
+def _need_on(ax, rows: list[dict]) -> None:
+    """bench_need's runs on one panel: the default run's path through its sizes (one training: each check's MSE at
+    the file bytes of the table it had), its final model, and the fixed sizes at the same budget."""
+    import json
+
+    default = next((r for r in rows if r["mode"] == "default" and r["exit_code"] == "0"), None)
+    if default:
+        path = json.loads(default.get("checks") or "[]")
+        if path:
+            ax.plot([c[3] for c in path], [c[2] for c in path], ".-", color="purple", lw=1, ms=4,
+                    label="neural, one growing training (its checks)")
+        ax.plot([int(default["file_bytes"])], [float(default["mse"])], "D", color="purple", ms=8,
+                label="neural, need-driven default")
+    fixed = [r for r in rows if r["mode"].startswith("fixed") or r["mode"] == "preset default"]
+    if fixed:
+        ax.plot([int(r["file_bytes"]) for r in fixed], [float(r["mse"]) for r in fixed], "x", color="k", ms=7,
+                label="neural, fixed sizes (200 s)")
 
 
 def main() -> None:
