@@ -96,6 +96,8 @@ def chart(path: Path) -> None:
             ax.annotate(r["preset"], (int(r["file_bytes"]), float(r["mse"])), fontsize=7, xytext=(4, 4),
                         textcoords="offset points")
         _need_on(ax, [r for r in need if r["mesh"] == name])
+        if not any(y > 0 for line in ax.get_lines() for y in line.get_ydata()[:1] if line.get_marker() != "None"):
+            ax.set_ylim(1e-5, 0.1)  # nothing measured yet but the whole mesh's bytes (exact: MSE 0)
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.set_title(name)
