@@ -36,13 +36,17 @@ from ..training.train import TrainResult, train
 #: A diverged training restarts from scratch at a 10x lower learning rate, at most this many times.
 DIVERGENCE_RETRIES = 2
 #: Training with a target stops early once a check's MSE is below this fraction of the target: the check scores the
-#: float32 model, the file stores 8-bit tables and weights (0.2-1% higher MSE measured on the default preset), and
-#: the evaluation after it confirms or not.
+#: float32 model, the file stores 8-bit tables and weights (the bunny at the default preset: MSE 0.000391 stored,
+#: 0.000393 in float32, docs/results.md), and the evaluation after it confirms or not.
 EARLY_STOP_MARGIN = 0.9
 #: size_search "grow": the training starts this many table sizes below the predicted one; at each check (every
-#: budget / GROW_CHECKS seconds, at most target_check_every_s) the last two checks at the current size give a power
-#: law of MSE against training time, and the table grows when it does not reach the target by the end of the
-#: budget. Measured on four meshes at the preview budget (bench/results/grow.md): growing on a
+#: budget / GROW_CHECKS seconds, at most target_check_every_s) the MSE is projected to the end of the budget with
+#: the size predictor's own budget exponent at this T (`SizeFit.budget_slope`), and the table grows when the
+#: projection misses the target. The exponent, not the slope between the last two checks: the learning rate decays
+#: over the budget, so a run's MSE falls faster at its end than mid-way (the spiky sphere at 2^12: 0.00062 and
+#: 0.00060 at 72 s and 89 s of 200 s, projected 0.00053 by those two, a miss; a fixed 2^12 run ends at 0.00042),
+#: and the two-point rule grew it to 2^13 (bench/results/need.csv). Measured on four meshes at the preview
+#: budget with a 4-view check (bench/results/grow.md): growing on a
 #: plateau (MSE falling < 15% between checks) grew too late on the spiky sphere (2^9 reached at 36 s of 60, MSE
 #: 0.011 against 0.01); starting one size below the prediction, the gyroid never grew and kept 2^12 where 2^11
 #: met the level (the predictor is pessimistic), so the start is two sizes below.
@@ -148,11 +152,12 @@ def _target_check(check: _QualityCheck, target: float):
     return reached
 
 
-def _grow_check(check: _QualityCheck, target: float, max_log2: int, budget_s: float):
+def _grow_check(check: _QualityCheck, target: float, max_log2: int, budget_s: float, budget_slope=None):
     """The callback of a growing training (size_search "grow"): True once the check's MSE is below EARLY_STOP_MARGIN
-    x the target; "grow" when, at a size below 2^max_log2, the power law through the last two checks at this size
-    (MSE against seconds since the callback was made, ~ since training started) misses the target by the end of
-    the budget `budget_s`."""
+    x the target; "grow" when, at a size below 2^max_log2, the MSE projected to the end of the budget `budget_s`
+    (seconds since the callback was made, ~ since training started) misses the target. The projection is
+    MSE x (budget / now)^budget_slope(log2 T) (the size predictor's exponent, see GROW_START_BELOW); without one,
+    the power law through the last two checks at this size."""
     start = time.perf_counter()
     seen: dict[int, list[tuple[float, float]]] = {}
 
@@ -164,12 +169,15 @@ def _grow_check(check: _QualityCheck, target: float, max_log2: int, budget_s: fl
             return True
         points = seen.setdefault(log2, [])
         points.append((time.perf_counter() - start, mse))
-        if len(points) < 2 or log2 >= max_log2:
+        if len(points) < (1 if budget_slope is not None else 2) or log2 >= max_log2:
             return False
-        (t1, m1), (t2, m2) = points[-2:]
-        if m2 >= m1:  # no progress at this size
+        (t1, m1), (t2, m2) = points[-2:] if len(points) > 1 else (points[-1], points[-1])
+        if budget_slope is not None:
+            slope = budget_slope(log2)
+        elif m2 >= m1:  # no progress at this size
             return "grow"
-        slope = math.log(m2 / m1) / math.log(max(t2, 1e-6) / max(t1, 1e-6))
+        else:
+            slope = math.log(m2 / m1) / math.log(max(t2, 1e-6) / max(t1, 1e-6))
         at_end = m2 * (max(budget_s, t2) / t2) ** slope
         # Grow only for a projected miss of the level itself: the margin is for stopping on a noisy check (aiming
         # growth at it grew the gyroid and the studs past the size that met the level).
@@ -276,7 +284,9 @@ class _SizeSearch:
         budget = s.time_limit_s or 200.0
         s_start = dataclasses.replace(s, log2_table=start,
                                       target_check_every_s=min(s.target_check_every_s, budget / GROW_CHECKS))
-        decide = _grow_check(self.check, s.target_mse, top, budget)
+        fit = load_fit()
+        slope = (lambda log2: fit.budget_slope(log2)) if fit is not None and fit.budget_coef else None
+        decide = _grow_check(self.check, s.target_mse, top, budget, slope)
         model, tr, s_used, why_used = _train_with_restarts(
             self.mesh, self.bvh, self.tracer, s_start, self.why, self.events, self.should_cancel,
             self.checkpoint_path, self.resume_from, decide)
