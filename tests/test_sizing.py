@@ -266,6 +266,16 @@ def test_a_decimation_verdict_writes_the_decimation_beside_the_output(tmp_path, 
     assert "kept as a mesh" in capsys.readouterr().err and not (tmp_path / "bunny.nbvh").exists()
     dec, full = load_mesh(written), load_mesh(sample_path("bunny"))
     assert 0 < dec.n_triangles < full.n_triangles / 20
+    # ... and as the compact mesh the verdict counted, decoding to the same triangles in the same place.
+    from nbvh_core.geometry.compact_mesh import decode_compact
+
+    report = json.loads((tmp_path / "bunny.report.json").read_text()) if (tmp_path / "bunny.report.json").exists() \
+        else None
+    cmsh = (tmp_path / "bunny.compact.cmsh").read_bytes()
+    decoded = decode_compact(cmsh)
+    assert len(decoded.faces) == dec.n_triangles and report is None
+    lo = dec.transform.to_original(dec.vertices).min(axis=0)  # original coordinates, like the PLY
+    assert np.allclose(decoded.vertices.min(axis=0), lo, atol=1e-3 * float(np.ptp(dec.transform.to_original(dec.vertices))))
     # original coordinates: the same box as the source (a decimation keeps the silhouette's extent)
     assert np.allclose(dec.transform.scale, full.transform.scale, rtol=0.05)
     before = written.read_bytes()

@@ -139,27 +139,39 @@ def cmd_compress(args: argparse.Namespace) -> int:
         raise
 
 
-def _write_winning_decimation(mesh, assessment, path: Path, mesh_path: Path, args, sink) -> None:
-    """When the verdict is a decimation, the user gets it: NAME.decimated.ply beside where the model would have gone
-    (original coordinates; written atomically; an existing file only with --overwrite)."""
+def _write_alternative(mesh, assessment, stem: Path, mesh_path: Path, args, sink) -> None:
+    """When the verdict keeps a mesh, the user gets the mesh that wins, beside where the model would have gone (original
+    coordinates; written atomically; an existing file only with --overwrite): a winning decimation as
+    NAME.decimated.ply, and, when the verdict weighed the compact layout, the winner (the decimation, or the whole
+    mesh) as NAME.compact.cmsh, the compact ray-traceable mesh whose bytes the verdict counted
+    (`compact_mesh.encode_compact`)."""
+    import dataclasses
+
+    from ..geometry.compact_mesh import encode_compact
     from ..protocol.outputs import check_outputs, write_atomic
     from ..planning.sizing import mesh_file_bytes, winning_decimation
 
     dec = winning_decimation(mesh, assessment)
-    if dec is None:
-        return
-    try:
-        check_outputs([path], [mesh_path], overwrite=args.overwrite)
-    except ValueError as exc:  # an earlier decimation there: kept unless --overwrite
-        print(f"the winning decimation was not written: {exc}", file=sys.stderr)
-        return
-    write_atomic(path, mesh_file_bytes(dec))
-    entry = assessment.alternatives["decimation"]
-    if args.events:
-        sink({"event": "written", "files": [str(path)], "kind": "decimation", "triangles": dec.n_triangles})
-    print(f"kept as a mesh: wrote the decimation that meets the target to {path} ({dec.n_triangles:,} triangles, "
-          f"MSE {entry['mse']:.4g}, {entry['resident_bytes']:,} B resident, {entry['compact_bytes']:,} B as a compact "
-          "mesh)", file=sys.stderr)
+    files: dict[Path, bytes] = {}
+    if dec is not None:
+        files[Path(f"{stem}.decimated.ply")] = mesh_file_bytes(dec)
+    if assessment.layout == "compact" and assessment.recommendation in ("mesh", "decimate"):
+        winner = dec if dec is not None else mesh
+        original = dataclasses.replace(winner, vertices=winner.transform.to_original(winner.vertices).astype("float32"))
+        files[Path(f"{stem}.compact.cmsh")] = encode_compact(original)
+    for path, data in files.items():
+        try:
+            check_outputs([path], [mesh_path], overwrite=args.overwrite)
+        except ValueError as exc:  # an earlier result there: kept unless --overwrite
+            print(f"the winning mesh was not written: {exc}", file=sys.stderr)
+            continue
+        write_atomic(path, data)
+        if args.events:
+            sink({"event": "written", "files": [str(path)], "kind": "decimation" if dec is not None else "mesh",
+                  "triangles": (dec or mesh).n_triangles})
+        what = (f"the decimation that meets the target ({dec.n_triangles:,} triangles, MSE "
+                f"{assessment.alternatives['decimation']['mse']:.4g})" if dec is not None else "the mesh")
+        print(f"kept as a mesh: wrote {what} to {path} ({len(data):,} B)", file=sys.stderr)
 
 
 def _compress_locked(args, mesh, mesh_path, paths, sink) -> int:
@@ -198,7 +210,7 @@ def _compress_locked(args, mesh, mesh_path, paths, sink) -> int:
         result = compress_mesh(mesh, settings, None, events=sink, should_cancel=install_cancel_handlers(),
                                checkpoint_path=checkpoint, resume_from=args.resume)
     except NotWorthCompressing as exc:
-        _write_winning_decimation(mesh, exc.assessment, Path(f"{stem}.decimated.ply"), mesh_path, args, sink)
+        _write_alternative(mesh, exc.assessment, stem, mesh_path, args, sink)
         raise
     except BaseException:
         if checkpoint.exists():
