@@ -96,6 +96,8 @@ def measure(name: str, args, done: set, work: Path) -> None:
     default = run("default", [])
     if str(default["exit_code"]) != "0":
         return  # the verdict: nothing trained, nothing to compare
+    if args.retrain:
+        run("retrain search", ["--size-search", "retrain"])
     one = run("preset default", ["--preset", "default", "--force"])
     nodes, top = str(default["nodes"]), int(default["log2_table"])
     for l2 in range(top - 1, 5, -1):
@@ -121,12 +123,17 @@ def report() -> None:
         one = own.get("preset default")
         fixed = [r for m, r in own.items() if (m.startswith("fixed") or m == "preset default") and r["met"] == "True"]
         best = min(fixed, key=lambda r: num(r, "file_bytes")) if fixed else None
-        table.append([name, f"2^{d['log2_table']}, {int(d['file_bytes']):,} B, MSE {num(d, 'mse'):.5f}"
-                      + ("" if d["met"] == "True" else " (missed)"), d["wall_s"],
-                      f"{best['mode']}: {int(best['file_bytes']):,} B" if best else "none met",
-                      f"{num(d, 'file_bytes') / num(best, 'file_bytes'):.2f}x" if best else "-",
-                      f"{num(d, 'wall_s') / num(one, 'wall_s'):.2f}x" if one else "-",
-                      "-", f"{one['file_bytes']} B, MSE {num(one, 'mse'):.5f}" if one else "-", d["verdict"][-160:]])
+        for r in (d, own.get("retrain search")):
+            if r is None:
+                continue
+            table.append([name, f"{'default' if r is d else 'retrain search'}: 2^{r['log2_table']}, "
+                                f"{int(r['file_bytes']):,} B, MSE {num(r, 'mse'):.5f}"
+                          + ("" if r["met"] == "True" else " (missed)"), r["wall_s"],
+                          f"{best['mode']}: {int(best['file_bytes']):,} B" if best else "none met",
+                          f"{num(r, 'file_bytes') / num(best, 'file_bytes'):.2f}x" if best else "-",
+                          f"{num(r, 'wall_s') / num(one, 'wall_s'):.2f}x" if one else "-",
+                          "-", f"{int(one['file_bytes']):,} B, MSE {num(one, 'mse'):.5f}" if one else "-",
+                          r["verdict"][-160:]])
     lines = ["# The need-driven default against fixed sizes (bench/bench_need.py)", "",
              f"Every run is `nbvh compress` on the mesh as a PLY; the default has no options (level {DEFAULT_LEVEL} = "
              f"MSE {QUALITY_LEVELS[DEFAULT_LEVEL]:g}, the default preset's 200 s). File ratio: the default's file / the "
@@ -144,6 +151,8 @@ def main() -> None:
     ap.add_argument("--meshes", nargs="+", default=["knot", "gear", "spiky", "sheet", "gyroid", "studs"])
     ap.add_argument("--work", help="scratch folder (default: a temporary one)")
     ap.add_argument("--time-limit", type=float, help="override every run's budget (smoke runs only)")
+    ap.add_argument("--retrain", action="store_true",
+                    help="also the retrain search (--size-search retrain: up to 3 trainings) at the default level")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(args.work or tmp)
