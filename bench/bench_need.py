@@ -115,7 +115,9 @@ def report() -> None:
     table = []
     for name in dict.fromkeys(r["mesh"] for r in rows):
         own = {r["mode"]: r for r in rows if r["mesh"] == name}
-        d = own["default"]
+        d = own.get("default")
+        if d is None:  # its default run not (yet) measured
+            continue
         if d["exit_code"] != "0":
             table.append([name, "keep as a mesh", d["wall_s"], "-", "-", "-", d["alternative_written"] or "-", "-",
                           d["verdict"][:160]])
