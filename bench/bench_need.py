@@ -79,6 +79,7 @@ def measure(name: str, args, done: set, work: Path) -> None:
     if not mesh_file.exists():
         mesh_file.write_bytes(mesh_file_bytes(bench_mesh(name)))
     tiny = ["--time-limit", str(args.time_limit)] if args.time_limit else []
+    tiny += ["--mesh-layout", args.mesh_layout] if args.mesh_layout else []
 
     def run(mode: str, extra: list[str]) -> dict:
         prior = [r for r in read_rows(CSV) if r["mesh"] == name and r["mode"] == mode]
@@ -87,7 +88,7 @@ def measure(name: str, args, done: set, work: Path) -> None:
         out = work / mode.replace(" ", "_").replace("^", "") / f"{name}.nbvh"
         out.parent.mkdir(exist_ok=True)
         rc, wall, data = cli(mesh_file, out, extra + tiny)
-        row = row_of(name, mode, rc, wall, data, out, level)
+        row = {**row_of(name, mode, rc, wall, data, out, level), "mesh_layout": args.mesh_layout or "compact"}
         append_row(CSV, row)
         print({k: row[k] for k in ("mesh", "mode", "exit_code", "wall_s", "log2_table", "file_bytes", "mse", "met")},
               flush=True)
@@ -153,6 +154,8 @@ def main() -> None:
     ap.add_argument("--meshes", nargs="+", default=["knot", "gear", "spiky", "sheet", "gyroid", "studs"])
     ap.add_argument("--work", help="scratch folder (default: a temporary one)")
     ap.add_argument("--time-limit", type=float, help="override every run's budget (smoke runs only)")
+    ap.add_argument("--mesh-layout", choices=["compact", "plain"],
+                    help="every run weighs the mesh in this layout (default: the product's default, compact)")
     ap.add_argument("--retrain", action="store_true",
                     help="also the retrain search (--size-search retrain: up to 3 trainings) at the default level")
     args = ap.parse_args()
