@@ -51,14 +51,15 @@ def cli(mesh_file: Path, out: Path, extra: list[str]) -> tuple[int, float, dict]
 def row_of(mesh: str, mode: str, rc: int, wall: float, data: dict, out: Path, level: float) -> dict:
     q = data.get("quality") or {}
     s = data.get("settings") or {}
-    dec = out.with_name(out.stem + ".decimated.ply")
+    alt = [p for p in (out.with_name(out.stem + ".decimated.ply"), out.with_name(out.stem + ".compact.cmsh"))
+           if p.exists()]
     return {"mesh": mesh, "mode": mode, "level": level, "exit_code": rc, "wall_s": round(wall, 1),
             "log2_table": s.get("log2_table", ""), "nodes": s.get("nodes", ""), "file_bytes": data.get("file_bytes", ""),
             "mse": q.get("mse", ""), "met": (q["mse"] <= level) if q else "",
             "train_s": (data.get("training") or {}).get("seconds", ""),
-            "alternative_written": dec.name if dec.exists() else "",
+            "alternative_written": " + ".join(p.name for p in alt),
             "checks": json.dumps(_checks_with_bytes(data)),
-            "alternative_bytes": dec.stat().st_size if dec.exists() else "",
+            "alternative_bytes": " + ".join(str(p.stat().st_size) for p in alt),
             "verdict": data.get("stderr_tail", "") if rc == 4 else (data.get("why") or "")[-300:]}
 
 
