@@ -54,7 +54,7 @@ def main() -> None:
         for seed in range(seeds):
             for mode in modes:
                 s = preset("default").with_overrides(time_limit_s=train_s, seed=seed, eval_views=plan.views,
-                                                     eval_resolution=plan.res, **({key: value} if mode != "uniform" else {}))
+                                                     eval_resolution=plan.res, force=True, **({key: value} if mode != "uniform" else {}))
                 t0 = time.perf_counter()
                 res = compress_mesh(mesh, s)
                 fail = rd.failure_errors(res.model, fr)

@@ -85,16 +85,17 @@ def test_damaged_model_and_bad_mesh_fail_with_message(tmp_path, sample_meshes):
 
 
 def test_job_eta_covers_every_phase_and_every_training_of_a_target_search(monkeypatch):
-    """The whole-job ETA: a target search may train TARGET_TRAININGS times, each its time limit, each followed by
-    an evaluation (timed in this job once seen), then the preview."""
+    """The whole-job ETA: a retrain target search may train TARGET_TRAININGS times, each its time limit, each followed
+    by an evaluation (timed in this job once seen), then the preview; the default growing search trains once."""
     import addon.job as job_mod
 
     now = [100.0]
     monkeypatch.setattr(job_mod.time, "monotonic", lambda: now[0])
-    req = {"settings": {"time_limit_s": 60, "target_mse": 0.01}}
+    req = {"settings": {"time_limit_s": 60, "target_mse": 0.01, "size_search": "retrain"}}
     clock = job_mod.JobClock()
     g, f = job_mod.EVAL_GUESS_S, job_mod.FINISH_GUESS_S
     assert clock.estimate(req) == 3 * (60 + g) + f
+    assert clock.estimate({"settings": {"time_limit_s": 60, "target_mse": 0.01}}) == 60 + g + f
     assert clock.estimate({"settings": {"time_limit_s": 60}}) == 60 + g + f
     assert clock.remaining(req) == 3 * (60 + g) + f  # planning: nothing trained yet
     clock.see({"event": "phase", "phase": "train", "message": "hashgrid+mlp"})
