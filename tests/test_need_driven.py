@@ -84,3 +84,49 @@ def test_a_check_with_cached_reference_images_scores_exactly_as_the_evaluation(s
     assert a.mse == b.mse and a.silhouette_iou == b.silhouette_iou and np.isfinite(a.mse)
     with pytest.raises(ValueError, match="reference views"):
         evaluate(model, tracer, 4, 32, reference=ref)
+
+
+class _ScriptedCheck:
+    """Stands in for pipeline._QualityCheck: returns the next scripted MSE."""
+
+    def __init__(self, values):
+        self.values = list(values)
+
+    def mse(self, model) -> float:
+        return self.values.pop(0)
+
+
+def _model_at(log2: int):
+    from types import SimpleNamespace
+
+    return SimpleNamespace(cfg=SimpleNamespace(encoding=SimpleNamespace(log2_table=log2)))
+
+
+def test_growth_follows_the_projection_to_the_end_of_the_budget(monkeypatch):
+    """With the predictor's budget exponent one check decides: MSE x (budget / now)^slope against the target; the
+    early stop is below EARLY_STOP_MARGIN x the target; nothing grows at the top size; without an exponent two
+    checks at a size give the power law, and a check without progress grows."""
+    import nbvh_core.app.pipeline as pl
+
+    now = [0.0]
+    monkeypatch.setattr(pl.time, "perf_counter", lambda: now[0])
+    target, budget = 1.0, 100.0
+    # slope -0.5: at 25 s of 100 s an MSE falls by (100 / 25)^-0.5 = 0.5 by the end
+    decide = pl._grow_check(_ScriptedCheck([1.9, 2.1, 0.5, 3.0]), target, 12, budget, lambda log2: -0.5)
+    now[0] = 25.0
+    assert decide(_model_at(10)) is False  # 0.95 at the end: met
+    assert decide(_model_at(10)) == "grow"  # 1.05 at the end: missed
+    assert decide(_model_at(11)) is True  # below 0.9 x the target now
+    assert decide(_model_at(12)) is False  # the top size: nothing to grow to
+    assert [c[1] for c in decide.history] == [10, 10, 11, 12]
+
+    now[0] = 0.0
+    two_point = pl._grow_check(_ScriptedCheck([4.0, 2.0, 2.0, 2.5]), target, 12, budget)
+    now[0] = 10.0
+    assert two_point(_model_at(10)) is False  # one check: no law yet
+    now[0] = 20.0
+    assert two_point(_model_at(10)) is False  # 4 -> 2 from 10 s to 20 s: slope -1, 0.4 at 100 s
+    now[0] = 30.0
+    assert two_point(_model_at(11)) is False  # the first check at the grown size
+    now[0] = 40.0
+    assert two_point(_model_at(11)) == "grow"  # worse than before: no progress at this size

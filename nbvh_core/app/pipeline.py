@@ -36,9 +36,9 @@ from ..training.train import TrainResult, train
 
 #: A diverged training restarts from scratch at a 10x lower learning rate, at most this many times.
 DIVERGENCE_RETRIES = 2
-#: Training with a target stops early once a check's MSE is below this fraction of the target: the check scores the
-#: float32 model, the file stores 8-bit tables and weights (the bunny at the default preset: MSE 0.000391 stored,
-#: 0.000393 in float32, docs/results.md), and the evaluation after it confirms or not.
+#: Training with a target stops early once a check's MSE (`_QualityCheck`: the evaluation's views, the model at its
+#: stored precision) is below this fraction of the target: the margin is for the training still moving between the
+#: check and the end, and the evaluation after it confirms or not.
 EARLY_STOP_MARGIN = 0.9
 #: size_search "grow": the training starts this many table sizes below the predicted one; at each check (every
 #: budget / GROW_CHECKS seconds, at most target_check_every_s) the MSE is projected to the end of the budget with
@@ -165,30 +165,34 @@ def _grow_check(check: _QualityCheck, target: float, max_log2: int, budget_s: fl
     MSE x (budget / now)^budget_slope(log2 T) (the size predictor's exponent, see GROW_START_BELOW); without one,
     the power law through the last two checks at this size."""
     start = time.perf_counter()
-    seen: dict[int, list[tuple[float, float]]] = {}
+
+    def projected(points: list[tuple[float, float]], log2: int) -> float | None:
+        """The MSE at the end of the budget from this size's checks [(seconds, MSE)]; None: not enough checks."""
+        t, m = max(points[-1][0], 1e-6), points[-1][1]
+        if budget_slope is not None:
+            slope = budget_slope(log2)
+        elif len(points) < 2:
+            return None
+        else:
+            t1, m1 = points[-2]
+            if m >= m1:  # no progress at this size
+                return math.inf
+            slope = math.log(m / m1) / math.log(max(t, 1e-6) / max(t1, 1e-6))
+        return m * (max(budget_s, t) / t) ** slope
 
     def decide(model) -> bool | str:
         mse = check.mse(model)
         log2 = model.cfg.encoding.log2_table
-        decide.history.append((round(time.perf_counter() - start, 2), log2, mse))
+        decide.history.append((time.perf_counter() - start, log2, mse))
         if mse <= EARLY_STOP_MARGIN * target:
             return True
-        points = seen.setdefault(log2, [])
-        points.append((time.perf_counter() - start, mse))
-        if len(points) < (1 if budget_slope is not None else 2) or log2 >= max_log2:
+        if log2 >= max_log2:
             return False
-        (t1, m1), (t2, m2) = points[-2:] if len(points) > 1 else (points[-1], points[-1])
-        if budget_slope is not None:
-            slope = budget_slope(log2)
-        elif m2 >= m1:  # no progress at this size
-            return "grow"
-        else:
-            slope = math.log(m2 / m1) / math.log(max(t2, 1e-6) / max(t1, 1e-6))
-        at_end = m2 * (max(budget_s, t2) / t2) ** slope
+        at_end = projected([(sec, m) for sec, l2, m in decide.history if l2 == log2], log2)
         # Grow only for a projected miss of the level itself: the margin is for stopping on a noisy check (aiming
         # growth at it grew the gyroid and the studs past the size that met the level).
-        return "grow" if at_end > target else False
-    decide.history = []  # (seconds, log2 T, MSE) of every check: TrainResult.checks
+        return "grow" if at_end is not None and at_end > target else False
+    decide.history = []  # (seconds, log2 T, MSE) of every check: TrainResult.checks (seconds rounded there)
     return decide
 
 
@@ -291,12 +295,12 @@ class _SizeSearch:
         s_start = dataclasses.replace(s, log2_table=start,
                                       target_check_every_s=min(s.target_check_every_s, budget / GROW_CHECKS))
         fit = load_fit()
-        slope = (lambda log2: fit.budget_slope(log2)) if fit is not None and fit.budget_coef else None
+        slope = fit.budget_slope if fit is not None and fit.budget_coef else None
         decide = _grow_check(self.check, s.target_mse, top, budget, slope)
         model, tr, s_used, why_used = _train_with_restarts(
             self.mesh, self.bvh, self.tracer, s_start, self.why, self.events, self.should_cancel,
             self.checkpoint_path, self.resume_from, decide)
-        tr.checks = list(decide.history)
+        tr.checks = [(round(sec, 2), log2, mse) for sec, log2, mse in decide.history]
         final = model.cfg.encoding.log2_table
         s_used = dataclasses.replace(s_used, log2_table=final, target_check_every_s=s.target_check_every_s)
         trail = ", ".join(f"T=2^{log2} at {sec:g} s" for _, sec, log2 in tr.grew) or "no growth"

@@ -36,10 +36,8 @@ from ..protocol.quality_levels import QUALITY_LEVELS, TARGET_TRAININGS  # noqa: 
 from .settings import MESH_LAYOUTS, PAPER_N_MAX, PRESETS, Settings, estimate_file_bytes
 
 FIT_PATH = Path(__file__).with_name("sizing_fit.json")
-#: Table sizes the chooser considers (log2 T): the range the predictor was fitted on (bench/fit_sizing.py, 2^8..2^12
-#: at 16 features per level), one step more since the user presets hold 8 features with twice the rows (the same
-#: bytes at T=2^13 as 16 features at 2^12). The fit has not been refitted on 8 features: its first guess is off by
-#: about a constant factor, which the search's calibration by each measurement absorbs.
+#: Table sizes the chooser considers (log2 T): the range the predictor was fitted on (bench/fit_budget.py: the
+#: default preset's method at 2^8..2^13).
 LOG2_RANGE = range(8, 14)
 #: BVH node counts the chooser considers (the node effect is fitted at these counts).
 NODE_CHOICES = (1023, 2047, 4095)
