@@ -46,8 +46,8 @@ def parse(argv: list[str]) -> argparse.Namespace:
     which.add_argument("--all", action="store_true", help="every mesh object of the file")
     ap.add_argument("--out", required=True, help="output folder for .nbvh files, previews and the report")
     size = ap.add_mutually_exclusive_group()
-    size.add_argument("--preset", choices=["preview", "default", "high", "tiny"],
-                      help="named fixed sizes (default: each object sized to the quality level standard)")
+    size.add_argument("--preset", help="named fixed sizes (nbvh_core's presets: preview, default, high, the paper's "
+                                       "base, I, II, III; default: each object sized to the quality level standard)")
     size.add_argument("--budget-kb", type=float)
     size.add_argument("--target-mse", type=float)
     size.add_argument("--quality", choices=list(engine_quality_levels()),
