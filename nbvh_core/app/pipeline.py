@@ -177,7 +177,7 @@ def _grow_check(check: _QualityCheck, target: float, max_log2: int, budget_s: fl
             t1, m1 = points[-2]
             if m >= m1:  # no progress at this size
                 return math.inf
-            slope = math.log(m / m1) / math.log(max(t, 1e-6) / max(t1, 1e-6))
+            slope = math.log(m / m1) / math.log(t / max(t1, 1e-6))  # t is already >= 1e-6
         return m * (max(budget_s, t) / t) ** slope
 
     def decide(model) -> bool | str:
