@@ -1,11 +1,12 @@
-"""The compact ray-traceable mesh (nbvh_core/geometry/compact_mesh.py): exact bytes, crack-free 16-bit positions, 8-bit
-indices, conservative 8-bit child boxes."""
+"""The compact ray-traceable mesh (nbvh_core/geometry/compact_mesh.py): exact bytes, a DGF-class size on a real scan,
+crack-free positions on one global grid, the source's triangles and winding, clusters decodable alone,
+conservative child boxes."""
 import numpy as np
 import pytest
 
 from nbvh_core.geometry.bvh import build_full_tree
-from nbvh_core.geometry.compact_mesh import (CLUSTER_TRIANGLES, LEAF_BIT, _clusters, compact_bytes, compact_mesh,
-                                    decode_compact, encode_compact)
+from nbvh_core.geometry.compact_mesh import (CLUSTER_BYTES, CLUSTER_TRIANGLES, LEAF_BIT, NODE_BYTES, compact_bytes,
+                                             compact_mesh, decode_cluster, decode_compact, encode_compact)
 
 
 @pytest.fixture(scope="module")
@@ -15,26 +16,49 @@ def bunny(sample_meshes):
     return mesh, tree, encode_compact(mesh, tree)
 
 
-def test_positions_decode_within_half_a_grid_step_and_shared_vertices_agree(bunny):
+def _canonical(tri: np.ndarray) -> np.ndarray:
+    """(F, 3, 3) int64 grid triangles -> (F, 3) int64 vertex keys, each triangle rotated to its smallest rotation
+    (winding kept), rows sorted: two meshes with the same triangles on the grid give equal arrays."""
+    keys = (tri[..., 0] << 42) | (tri[..., 1] << 21) | tri[..., 2]
+    best = keys
+    for r in (1, 2):
+        rot = np.roll(keys, -r, axis=1)
+        smaller = (rot[:, 0] < best[:, 0]) | ((rot[:, 0] == best[:, 0]) & (
+            (rot[:, 1] < best[:, 1]) | ((rot[:, 1] == best[:, 1]) & (rot[:, 2] < best[:, 2]))))
+        best = np.where(smaller[:, None], rot, best)
+    return best[np.lexsort(best.T[::-1])]
+
+
+def test_the_decoded_triangles_are_the_source_s_on_one_global_grid_with_their_winding(bunny):
+    """Crack-free: a vertex is one grid point in every cluster that holds it, so the decoded triangles are exactly
+    the source's triangles snapped to the grid (same corners, same winding), and each corner within half a step."""
+    mesh, _, data = bunny
+    dec = decode_compact(data)
+    origin = mesh.vertices.min(axis=0).astype(np.float32)
+    grid = np.rint((mesh.vertices.astype(np.float64) - origin) / dec.step).astype(np.int64)
+    assert np.array_equal(_canonical(grid[mesh.faces]), _canonical(dec.grid[dec.faces]))
+    err = np.abs(origin + grid * dec.step - mesh.vertices).max()
+    assert err <= 0.5 * dec.step * 1.001 + 1e-7 and dec.step < 1e-4 * float(np.ptp(mesh.vertices))
+
+
+def test_a_real_scan_is_at_most_6_bytes_per_triangle_with_its_bvh_and_the_count_is_exact(bunny):
     mesh, tree, data = bunny
     dec = decode_compact(data)
-    order, is_cluster = _clusters(mesh, tree)
-    perm = np.concatenate([tree.tri_order[tree.start[n]:tree.start[n] + tree.count[n]] for n in order[is_cluster]])
-    step = np.frombuffer(data, "<f4", 1, 24)[0]
-    err = np.abs(dec.vertices[dec.faces] - mesh.vertices[mesh.faces[perm]]).max()
-    assert err <= 0.5 * step * 1.01 + 1e-7 and step < 1e-4
-    # one original vertex, every copy in every cluster decodes to the same point: no cracks between clusters
-    corners = dec.vertices[dec.faces].reshape(-1, 3)
-    ids = mesh.faces[perm].ravel()
-    first = {}
-    for i, v in zip(ids[:20000], corners[:20000]):
-        assert np.array_equal(first.setdefault(int(i), v), v)
+    n_clusters = int(dec.cluster_of_face.max()) + 1
+    assert len(data) > 48 + NODE_BYTES * len(dec.node_link) + CLUSTER_BYTES * n_clusters
+    assert compact_bytes(mesh, tree) == len(data)  # what the verdict weighs is what compress writes
+    per_triangle = len(data) / mesh.n_triangles
+    assert per_triangle <= 6.0, per_triangle  # a DGF-class size: 4.1 B here (16-bit offsets, 8-bit indices: 8.5)
+    assert len(dec.faces) == mesh.n_triangles
 
 
-def test_clusters_hold_at_most_64_triangles_and_boxes_contain_what_is_below(bunny):
+def test_every_cluster_decodes_alone_and_boxes_contain_what_is_below(bunny):
     mesh, _, data = bunny
     dec = decode_compact(data)
     assert np.bincount(dec.cluster_of_face).max() <= CLUSTER_TRIANGLES
+    for k in (0, 7, int(dec.cluster_of_face.max())):  # random access: one cluster, nothing else decoded
+        pts, tris = decode_cluster(data, k)
+        assert np.array_equal(pts[tris], dec.grid[dec.faces[dec.cluster_of_face == k]])
     tri = dec.vertices[dec.faces]
     parent = np.full(len(dec.node_link), -1)
     for node, link in enumerate(dec.node_link.tolist()):
@@ -48,27 +72,25 @@ def test_clusters_hold_at_most_64_triangles_and_boxes_contain_what_is_below(bunn
                 node = parent[node]
 
 
-def test_bytes_are_the_layout_s_exact_size_and_far_below_a_plain_mesh(bunny):
-    from nbvh_core.planning.sizing import mesh_resident_bytes
-
-    mesh, tree, data = bunny
-    dec = decode_compact(data)
-    n_nodes, n_clusters = len(dec.node_link), int(dec.cluster_of_face.max()) + 1
-    expected = 52 + 10 * n_nodes + 18 * n_clusters + 6 * len(dec.vertices) + 3 * len(dec.faces)
-    assert len(data) == expected and len(dec.faces) == mesh.n_triangles
-    assert compact_bytes(mesh, tree) == len(data)  # the verdict's fast count is the encoder's exact size
-    per_triangle = len(data) / mesh.n_triangles
-    assert 4 < per_triangle < 12 and mesh_resident_bytes(mesh, tree)["total"] > 4 * len(data)
+def test_damaged_or_foreign_data_is_refused_in_one_line(bunny):
+    _, _, data = bunny
+    for bad in (b"", b"CMSH" + data[4:], data[:40]):
+        with pytest.raises(ValueError, match="compact mesh"):
+            decode_compact(bad)
+    with pytest.raises(ValueError, match="out of range"):
+        decode_cluster(data, 10 ** 6)
 
 
 def test_the_decoded_mesh_renders_like_the_original(sample_meshes):
+    """Traced against the source (Embree on both), 16 views at 256 px: the grid's error is far below any level
+    (measured 5.7e-6 on the bunny at 14 bits; 4e-5 at 12 bits)."""
     from nbvh_core.geometry.exact import ExactTracer
     from nbvh_core.rendering.metrics import evaluate_renderer
     from nbvh_core.rendering.render import render_reference
 
-    mesh = sample_meshes["blob"]
+    mesh = sample_meshes["bunny"]
     nbytes, decoded = compact_mesh(mesh)
     tracer = ExactTracer(decoded)
     q, _ = evaluate_renderer(lambda cam, w, h: render_reference(tracer, cam, w, h), ExactTracer(mesh),
-                             mesh.transform, 4, 64)
-    assert q.mse < 1e-5 and nbytes < 12 * mesh.n_triangles
+                             mesh.transform, 16, 256)
+    assert q.mse < 2e-5 and q.silhouette_iou > 0.995 and nbytes < 6 * mesh.n_triangles
