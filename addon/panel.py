@@ -56,7 +56,7 @@ class NBVH_Props(bpy.types.PropertyGroup):
     budget_kb: bpy.props.IntProperty(name="Budget (KB)", default=400, min=16, max=100000)
     compare_with: bpy.props.EnumProperty(name="Compare with", items=[
         ("COMPACT", "Compact mesh", "The verdict weighs the model against the mesh (or a decimation meeting the level) "
-                                    "as a compact ray-traceable mesh, ~8-9.5 B per triangle: the strongest mesh"),
+                                    "as a compact ray-traceable mesh, ~4 B per triangle: the strongest mesh"),
         ("PLAIN", "Mesh as Blender holds it", "The verdict weighs the model against the mesh as a plain ray tracer "
                                               "(Cycles, Embree) holds it, ~44 B per triangle")], default="COMPACT")
     time_limit: bpy.props.IntProperty(name="Time limit (s)", default=200, min=5, max=24 * 3600)

@@ -30,12 +30,16 @@ def test_the_verdict_weighs_the_model_against_the_layout_asked_for():
 def test_the_decimation_is_the_smallest_tried_that_meets_and_is_bracketed(sample_meshes):
     mesh = sample_meshes["bunny"]
     target = 0.004
-    alt = alternatives(mesh, target, views=4, resolution=64)
+    from nbvh_core.rendering.metrics import ViewScorer
+
+    checks = ViewScorer(ExactTracer(mesh), mesh.transform, 4, 64)
+    alt = alternatives(mesh, target, checks=checks)
     dec, tried = alt["decimation"], alt["decimations_tried"]
-    assert dec["mse"] <= target
-    met = [t for t in tried if t["mse"] <= target]
+    assert dec["compact_mse"] <= target  # what ships is what is scored: the compact mesh, decoded
+    met = [t for t in tried if t["compact_mse"] <= target]
     assert dec["requested_triangles"] == min(t["requested_triangles"] for t in met)
-    missed_below = [t for t in tried if t["mse"] > target and t["requested_triangles"] < dec["requested_triangles"]]
+    missed_below = [t for t in tried if t["compact_mse"] > target
+                    and t["requested_triangles"] < dec["requested_triangles"]]
     assert missed_below, "the bisection needs a size that missed below the one kept"
     # The bracket around the kept size is within 2^(2 / 2^DECIMATE_REFINE) (x4 steps bisected in log space).
     gap = dec["requested_triangles"] / max(t["requested_triangles"] for t in missed_below)
@@ -86,42 +90,40 @@ def test_a_check_with_cached_reference_images_scores_exactly_as_the_evaluation(s
         evaluate(model, tracer, 4, 32, reference=ref)
 
 
-class _ScriptedCheck:
-    """Stands in for pipeline._QualityCheck: returns the next scripted MSE."""
-
-    def __init__(self, values):
-        self.values = list(values)
-
-    def mse(self, model) -> float:
-        return self.values.pop(0)
-
-
 def _model_at(log2: int):
     from types import SimpleNamespace
 
     return SimpleNamespace(cfg=SimpleNamespace(encoding=SimpleNamespace(log2_table=log2)))
 
 
+def _rule(monkeypatch, mses, now, **kw):
+    """A CheckRule over scripted check MSEs and a clock the test sets (now[0], seconds)."""
+    import nbvh_core.decision.checks as checks
+
+    monkeypatch.setattr(checks.time, "perf_counter", lambda: now[0])
+    values = list(mses)
+    kw.setdefault("bytes_at", lambda log2: 1000 * 2 ** (log2 - 10))
+    return checks.CheckRule(lambda model: values.pop(0), kw.pop("target", 1.0), kw.pop("max_log2", 12),
+                            kw.pop("budget_s", 100.0), **kw)
+
+
 def test_growth_follows_the_projection_to_the_end_of_the_budget(monkeypatch):
     """With the predictor's budget exponent one check decides: MSE x (budget / now)^slope against the target; the
     early stop is below EARLY_STOP_MARGIN x the target; nothing grows at the top size; without an exponent two
     checks at a size give the power law, and a check without progress grows."""
-    import nbvh_core.app.pipeline as pl
-
     now = [0.0]
-    monkeypatch.setattr(pl.time, "perf_counter", lambda: now[0])
-    target, budget = 1.0, 100.0
     # slope -0.5: at 25 s of 100 s an MSE falls by (100 / 25)^-0.5 = 0.5 by the end
-    decide = pl._grow_check(_ScriptedCheck([1.9, 2.1, 0.5, 3.0]), target, 12, budget, lambda log2: -0.5)
+    decide = _rule(monkeypatch, [1.9, 2.1, 0.5, 3.0], now, budget_slope=lambda log2: -0.5)
     now[0] = 25.0
     assert decide(_model_at(10)) is False  # 0.95 at the end: met
     assert decide(_model_at(10)) == "grow"  # 1.05 at the end: missed
     assert decide(_model_at(11)) is True  # below 0.9 x the target now
     assert decide(_model_at(12)) is False  # the top size: nothing to grow to
-    assert [c[1] for c in decide.history] == [10, 10, 11, 12]
+    assert [d.log2_table for d in decide.decisions] == [10, 10, 11, 12]
+    assert [d.action for d in decide.decisions] == ["train on", "grow", "stop: level met", "train on"]
 
     now[0] = 0.0
-    two_point = pl._grow_check(_ScriptedCheck([4.0, 2.0, 2.0, 2.5]), target, 12, budget)
+    two_point = _rule(monkeypatch, [4.0, 2.0, 2.0, 2.5], now)
     now[0] = 10.0
     assert two_point(_model_at(10)) is False  # one check: no law yet
     now[0] = 20.0
@@ -130,3 +132,69 @@ def test_growth_follows_the_projection_to_the_end_of_the_budget(monkeypatch):
     assert two_point(_model_at(11)) is False  # the first check at the grown size
     now[0] = 40.0
     assert two_point(_model_at(11)) == "grow"  # worse than before: no progress at this size
+
+
+def _curve(points):
+    from nbvh_core.decision.alternative_curve import AlternativeCurve, CurvePoint
+
+    return AlternativeCurve([CurvePoint(b, m, b // 4, None if i == len(points) - 1 else b // 4)
+                             for i, (b, m) in enumerate(points)])
+
+
+def test_the_alternative_curve_is_the_measured_envelope_interpolated_in_log_log():
+    curve = _curve([(1000, 0.01), (4000, 0.0025), (3000, 0.02), (16000, 0.001), (64000, 1e-5)])
+    assert [p.bytes for p in curve.points] == [1000, 4000, 16000, 64000]  # (3000, 0.02) is beaten in both
+    assert curve.bytes_at(0.05) == 1000 and curve.bytes_at(0.0025) == pytest.approx(4000)
+    assert curve.bytes_at(0.005) == pytest.approx(2000, rel=1e-6)  # halfway in log MSE: halfway in log bytes
+    assert curve.bytes_at(1e-6) == float("inf")  # nothing measured reaches it
+    assert curve.cheapest_meeting(0.003).bytes == 4000 and curve.cheapest_meeting(1e-6) is None
+
+
+def test_a_check_keeps_the_mesh_when_the_model_stays_above_a_measured_decimation(monkeypatch):
+    """Above the curve at its projection and no growth that gets under it: stop, keep the mesh; --force trains on;
+    growth only where the grown model is projected under the curve."""
+    now = [50.0]
+    curve = _curve([(500, 0.01), (2000, 0.002), (8000, 0.0005), (40000, 1e-5)])
+    halve = lambda log2: 0.5  # noqa: E731  (the predictor: a table twice as large halves the MSE)
+    kw = dict(target=0.001, budget_s=100.0, curve=curve, budget_slope=lambda log2: 0.0, grow_gain=halve)
+    # a 4,000 B model projected at 0.004: 2,000 B of decimation reach 0.002; the grown model (8,000 B at 0.002)
+    # would still be above the curve (2,000 B): keep the mesh
+    keep = _rule(monkeypatch, [0.004], now, bytes_at=lambda log2: 4000 * 2 ** (log2 - 10), **kw)
+    assert keep(_model_at(10)) is True and keep.keep_mesh is keep.decisions[0]
+    assert keep.decisions[0].action == "stop: keep the mesh" and "2,000 B" in keep.decisions[0].reason
+    forced = _rule(monkeypatch, [0.004], now, bytes_at=lambda log2: 4000 * 2 ** (log2 - 10), force=True, **kw)
+    assert forced(_model_at(10)) == "grow" and forced.keep_mesh is None
+    # a cheap model (200 B at 0.004) grows: 400 B at a projected 0.002 is under the curve's 2,000 B
+    cheap = _rule(monkeypatch, [0.004], now, bytes_at=lambda log2: 200 * 2 ** (log2 - 10), **kw)
+    assert cheap(_model_at(10)) == "grow" and "under the alternative" in cheap.decisions[0].reason
+    # under the curve but the level out of reach at the top size: train on (the best value), never keep the mesh
+    top = _rule(monkeypatch, [0.004], now, bytes_at=lambda log2: 200, max_log2=10, **kw)
+    assert top(_model_at(10)) is False and top.decisions[0].action == "train on"
+
+
+def test_the_final_verdict_ships_the_smaller_at_the_same_measured_mse():
+    from nbvh_core.decision.final_verdict import final_verdict
+
+    curve = _curve([(500, 0.01), (2000, 0.002), (8000, 0.0005), (40000, 1e-5)])
+    # a 9,000 B model at 0.0004: the 8,000 B decimation measured at 0.0005 does not reach it, 40,000 B does
+    assert final_verdict(9000, 0.0004, 0.0005, curve).shipped == "model"
+    lost = final_verdict(9000, 0.0005, 0.0005, curve)
+    assert lost.shipped == "decimation" and lost.decimation["compact_bytes"] == 8000 and lost.level_met
+    # 5,000 B at 0.0019: the interpolated curve says ~2,070 B but no measured point is both cheaper and as good:
+    # the decimation the curve expects there is measured, and ships when it reaches the model's MSE
+    from nbvh_core.decision.alternative_curve import CurvePoint
+
+    asked = []
+    measure = lambda count: asked.append(count) or CurvePoint(2100, 0.0018, count, count)  # noqa: E731
+    settled = final_verdict(5000, 0.0019, 0.0005, curve, measure=measure)
+    assert len(asked) == 1 and 500 < asked[0] < 2000 and settled.shipped == "decimation"
+    assert settled.decimation["compact_bytes"] == 2100 and settled.level_met is False and "out of reach" in \
+        settled.message
+    missing = lambda count: asked.append(count) or CurvePoint(2100, 0.0025, count, count)  # noqa: E731
+    assert final_verdict(5000, 0.0019, 0.0005, _curve([(500, 0.01), (2000, 0.002), (8000, 0.0005), (40000, 1e-5)]),
+                         measure=missing).shipped == "model" and len(asked) == 1 + 2  # two tries, both missed
+    won = final_verdict(5000, 0.0004, 0.0005, curve)
+    assert won.shipped == "model" and won.level_met and won.ratio > 1 and "smaller" in won.message
+    forced = final_verdict(9000, 0.0019, 0.0005, curve, force=True)
+    assert forced.shipped == "model" and "forced" in forced.message and "out of reach" in forced.message
+    assert final_verdict(100, 0.1, 0.0005, None).shipped == "model"

@@ -230,17 +230,21 @@ def _compress_locked(args, mesh, mesh_path, paths, sink) -> int:
         q = result.quality
         print(f"\nwrote {out} ({_fmt_bytes(result.file_bytes)}) and, beside it, "
               f"{', '.join(p.name for role, p in paths.items() if role != 'model')}")
+        final = (result.decisions or {}).get("final")
+        if final:  # the strongest alternative first: the compact decimation at the model's own measured MSE
+            print(f"verdict: {final['message']}")
         print("bytes: " + ", ".join(f"{k} {v:,}" for k, v in result.components.items()))
         resident = summary['mesh_resident_bytes']['total']
-        ratio = (f"{resident / result.file_bytes:.1f}x smaller" if resident >= result.file_bytes
-                 else f"{result.file_bytes / resident:.1f}x LARGER")
-        print(f"mesh as a ray tracer holds it: {resident:,} B -> the model is {ratio}")
+        compact = result.assessment.get("compact_bytes")
+        held = [f"as a compact mesh {compact:,} B ({compact / result.file_bytes:.2f}x the model)"] if compact else []
+        held.append(f"as a ray tracer holds it {resident:,} B ({resident / result.file_bytes:.1f}x the model)")
+        print("the whole mesh: " + "; ".join(held))
         draco = result.assessment.get("alternatives", {}).get("draco11_bytes")
         if draco:
             print(f"the mesh as a Draco 11-bit file (storage and transfer only; decoded before tracing): {draco:,} B")
         if q:
-            print(f"quality ({q.views} views, {q.resolution}px): MSE {q.mse:.5f}, silhouette IoU {q.silhouette_iou:.4f},"
-                  f" depth error {q.depth_error:.5f} (unit box)")
+            print(f"quality ({q.views} {'held-out ' if q.held_out else ''}views, {q.resolution}px): MSE {q.mse:.5f}, "
+                  f"silhouette IoU {q.silhouette_iou:.4f}, depth error {q.depth_error:.5f} (unit box)")
         t = result.training
         print(f"training: {t.steps} steps, {t.seconds:.1f} s, {t.samples_per_s:,.0f} samples/s on {t.device}")
         print(f"why: {result.why}")

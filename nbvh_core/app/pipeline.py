@@ -22,9 +22,9 @@ from ..training.appearance_training import SurfaceLabels, train_head
 from ..geometry.bvh import NODE_DTYPE, build_bvh
 from ..protocol.events import EventSink, null_sink
 from ..geometry.exact import ExactTracer
-from ..storage.fileformat import component_bytes, encode_nbvh, write_atomic
+from ..storage.fileformat import component_bytes, encode_nbvh, look_stored_bytes, write_atomic
 from ..geometry.mesh import Mesh
-from ..rendering.metrics import Quality, evaluate, reference_views
+from ..rendering.metrics import Quality, ViewScorer, evaluate
 from ..neural.model import NeuralBVH
 from ..protocol.process import Cancelled, NotWorthCompressing, TrainingDiverged
 from ..neural.quantize import snap_nodes
@@ -33,24 +33,16 @@ from ..planning import sizing
 from ..planning.sizing import (LOG2_RANGE, assess, choose_resolution, grid_measures, load_fit, mesh_features, resolve,
                                search_size)
 from ..training.train import TrainResult, train
+from ..decision.alternative_curve import AlternativeCurve, CurvePoint
+from ..decision.checks import CheckRule
+from ..decision.final_verdict import final_verdict
 
 #: A diverged training restarts from scratch at a 10x lower learning rate, at most this many times.
 DIVERGENCE_RETRIES = 2
-#: Training with a target stops early once a check's MSE (`_QualityCheck`: the evaluation's views, the model at its
-#: stored precision) is below this fraction of the target: the margin is for the training still moving between the
-#: check and the end, and the evaluation after it confirms or not.
-EARLY_STOP_MARGIN = 0.9
-#: size_search "grow": the training starts this many table sizes below the predicted one; at each check (every
-#: budget / GROW_CHECKS seconds, at most target_check_every_s) the MSE is projected to the end of the budget with
-#: the size predictor's own budget exponent at this T (`SizeFit.budget_slope`), and the table grows when the
-#: projection misses the target. The exponent, not the slope between the last two checks: the learning rate decays
-#: over the budget, so a run's MSE falls faster at its end than mid-way (the spiky sphere at 2^12: 0.00062 and
-#: 0.00060 at 72 s and 89 s of 200 s, projected 0.00053 by those two, a miss; a fixed 2^12 run ends at 0.00042),
-#: and the two-point rule grew it to 2^13 (bench/results/need.csv). Measured on four meshes at the preview
-#: budget with a 4-view check (bench/results/grow.md): growing on a
-#: plateau (MSE falling < 15% between checks) grew too late on the spiky sphere (2^9 reached at 36 s of 60, MSE
-#: 0.011 against 0.01); starting one size below the prediction, the gyroid never grew and kept 2^12 where 2^11
-#: met the level (the predictor is pessimistic), so the start is two sizes below.
+#: size_search "grow": the training starts this many table sizes below the predicted one, and its checks
+#: (`decision.checks.CheckRule`, every budget / GROW_CHECKS seconds at most) grow it while growing pays. Starting one
+#: size below the prediction, the gyroid never grew and kept 2^12 where 2^11 met the level (the predictor is
+#: pessimistic), so the start is two sizes below (bench/results/grow.md).
 GROW_START_BELOW = 2
 GROW_CHECKS = 12
 
@@ -72,13 +64,16 @@ class CompressResult:
     target_met: bool | None = None
     assessment: dict = field(default_factory=dict)  # sizing.Assessment: is the model smaller than the mesh?
     data: bytes = b""  # the complete .nbvh file contents (written to `path` when one was given)
+    #: The decisions on measurements: every training check (decision.records.CheckDecision), the final verdict
+    #: (FinalVerdict: the model as shipped against the alternative at the same held-out MSE) and that curve.
+    decisions: dict = field(default_factory=dict)
 
     def summary(self) -> dict:
         return {"path": self.path, "file_bytes": self.file_bytes, "components": self.components,
                 "quality": self.quality.to_dict() if self.quality else None,
                 "training": {k: v for k, v in dataclasses.asdict(self.training).items() if k != "history"},
                 "settings": self.settings.to_dict(), "seconds": self.seconds, "why": self.why,
-                "target_met": self.target_met, "assessment": self.assessment}
+                "target_met": self.target_met, "assessment": self.assessment, "decisions": self.decisions}
 
 
 class _Trained(NamedTuple):
@@ -129,71 +124,17 @@ def resume_settings(checkpoint_path: str | Path, mesh: Mesh) -> Settings:
     return dataclasses.replace(settings, target_mse=None, budget_kb=None)
 
 
-class _QualityCheck:
-    """The checks during a training with a target: the evaluation's own metric, views and resolution, on a copy of
-    the model at the precision its file will store (so a check reads what the final evaluation will: a 4-view 64 px
-    check read 1.06-1.23x the full MSE and grew tables too early; the float32 model read 4.7% (spiky sphere) to 18%
-    (bunny, its table grown late) below the stored one), with the exact images rendered once per run
-    (`metrics.reference_views`)."""
-
-    def __init__(self, tracer, views: int, resolution: int, storage):
-        self.tracer, self.views, self.resolution, self.storage = tracer, views, resolution, storage
-        self._reference = None
-
-    def mse(self, model) -> float:
-        """The image MSE of `model` as its file would hold it now (the training's own model is left as it is)."""
-        if self._reference is None:
-            self._reference = reference_views(self.tracer, self.views, self.resolution)
+def _stored_mse(scorer: ViewScorer, storage):
+    """score(model) for the training's checks: the image MSE of `model` as its file would hold it now (a copy at
+    its stored precision; the training's own model is left as it is): the float32 model read 4.7% (spiky sphere) to
+    18% (bunny, its table grown late) below the stored one."""
+    def score(model) -> float:
         stored = copy.deepcopy(model)
         stored.eval()
-        stored.finalize_storage(self.storage)
+        stored.finalize_storage(storage)
         with torch.no_grad():
-            return evaluate(stored, self.tracer, self.views, self.resolution, reference=self._reference)[0].mse
-
-
-def _target_check(check: _QualityCheck, target: float):
-    """The early-stop callback for a target MSE (see EARLY_STOP_MARGIN)."""
-    def reached(model) -> bool:
-        return check.mse(model) <= EARLY_STOP_MARGIN * target
-    return reached
-
-
-def _grow_check(check: _QualityCheck, target: float, max_log2: int, budget_s: float, budget_slope=None):
-    """The callback of a growing training (size_search "grow"): True once the check's MSE is below EARLY_STOP_MARGIN
-    x the target; "grow" when, at a size below 2^max_log2, the MSE projected to the end of the budget `budget_s`
-    (seconds since the callback was made, ~ since training started) misses the target. The projection is
-    MSE x (budget / now)^budget_slope(log2 T) (the size predictor's exponent, see GROW_START_BELOW); without one,
-    the power law through the last two checks at this size."""
-    start = time.perf_counter()
-
-    def projected(points: list[tuple[float, float]], log2: int) -> float | None:
-        """The MSE at the end of the budget from this size's checks [(seconds, MSE)]; None: not enough checks."""
-        t, m = max(points[-1][0], 1e-6), points[-1][1]
-        if budget_slope is not None:
-            slope = budget_slope(log2)
-        elif len(points) < 2:
-            return None
-        else:
-            t1, m1 = points[-2]
-            if m >= m1:  # no progress at this size
-                return math.inf
-            slope = math.log(m / m1) / math.log(t / max(t1, 1e-6))  # t is already >= 1e-6
-        return m * (max(budget_s, t) / t) ** slope
-
-    def decide(model) -> bool | str:
-        mse = check.mse(model)
-        log2 = model.cfg.encoding.log2_table
-        decide.history.append((time.perf_counter() - start, log2, mse))
-        if mse <= EARLY_STOP_MARGIN * target:
-            return True
-        if log2 >= max_log2:
-            return False
-        at_end = projected([(sec, m) for sec, l2, m in decide.history if l2 == log2], log2)
-        # Grow only for a projected miss of the level itself: the margin is for stopping on a noisy check (aiming
-        # growth at it grew the gyroid and the studs past the size that met the level).
-        return "grow" if at_end is not None and at_end > target else False
-    decide.history = []  # (seconds, log2 T, MSE) of every check: TrainResult.checks (seconds rounded there)
-    return decide
+            return scorer.score_model(stored)[0].mse
+    return score
 
 
 def _train_with_restarts(mesh, bvh, tracer, settings, why, events, should_cancel, checkpoint_path, resume_from=None,
@@ -219,12 +160,28 @@ def _train_with_restarts(mesh, bvh, tracer, settings, why, events, should_cancel
     raise AssertionError("unreachable")
 
 
-def _verdict(mesh: Mesh, settings: Settings, why: str, tracer: ExactTracer, events: EventSink,
+def _look_bytes(mesh: Mesh, settings: Settings, made) -> int:
+    """What the file adds for the asset's look (`fileformat.look_stored_bytes`: the head `made` as stored, the slot
+    images unless the head learns the colour itself), so every decision weighs the model as it ships."""
+    if mesh.look is None:
+        return 0
+    materials = list(mesh.look.materials)
+    if made is not None and made[0].cfg.target == "colour":
+        materials = [dataclasses.replace(m, image=None, _linear=None) for m in materials]
+    return sum(look_stored_bytes(made[0].cfg if made else None, materials, settings.storage()).values())
+
+
+def _verdict(mesh: Mesh, settings: Settings, why: str, weighing: _Weighing, events: EventSink,
              seconds: dict) -> "sizing.Assessment":
-    """Is the model worth training (`sizing.assess`)? Raises NotWorthCompressing unless forced; in seconds."""
+    """Is the model worth training (`sizing.assess`, the model weighed with its look)? Measures the alternative's
+    curves into `weighing`. Raises NotWorthCompressing unless forced; in seconds."""
     t = time.perf_counter()
     events({"event": "phase", "phase": "plan", "message": why})
-    assessment = assess(mesh, settings, measure_alternatives=settings.target_mse is not None, tracer=tracer)
+    assessment = assess(mesh, settings, measure_alternatives=settings.target_mse is not None,
+                        tracer=weighing.checks.tracer, checks=weighing.checks, held_out=weighing.held_out,
+                        look_bytes=weighing.look_bytes)
+    weighing.curve = AlternativeCurve.from_alternatives(assessment.alternatives)
+    weighing.curve_held_out = AlternativeCurve.from_alternatives(assessment.alternatives, held_out=True)
     seconds["plan"] = time.perf_counter() - t
     if not assessment.worth_compressing:
         if not settings.force:
@@ -233,6 +190,35 @@ def _verdict(mesh: Mesh, settings: Settings, why: str, tracer: ExactTracer, even
             raise NotWorthCompressing(assessment)
         events({"event": "warning", "message": assessment.message + " (training anyway: forced)"})
     return assessment
+
+
+def _measure_decimation(mesh: Mesh, weighing: _Weighing, assessment):
+    """measure(triangles) -> CurvePoint for the final verdict: one more decimation scored on the held-out views
+    (and recorded with the others, so the one that ships can be written)."""
+    def measure(count: int) -> CurvePoint:
+        entry = sizing.decimation_entry(mesh, count, weighing.checks, weighing.held_out, None)
+        if not entry["triangles"]:
+            return CurvePoint(2 ** 62, math.inf, 0, count)
+        assessment.alternatives.setdefault("decimations_tried", []).append(entry)
+        return CurvePoint(entry["compact_bytes"], entry["compact_mse_held_out"], entry["triangles"], count)
+    return measure
+
+
+def _keep_the_mesh(assessment, verdict, events: EventSink):
+    """NotWorthCompressing for a decision taken on measurements (a check's or the final verdict's): the assessment
+    now recommends the measured decimation (or the whole mesh) that the CLI writes."""
+    alt = dict(assessment.alternatives)
+    rec = "mesh"
+    if verdict is not None and verdict.decimation is not None and verdict.decimation["requested_triangles"]:
+        rec = "decimate"
+        alt["decimation"] = next((e for e in alt.get("decimations_tried", [])
+                                  if e["requested_triangles"] == verdict.decimation["requested_triangles"]),
+                                 alt.get("decimation"))
+    message = verdict.message if verdict is not None else assessment.message
+    kept = dataclasses.replace(assessment, worth_compressing=False, recommendation=rec, message=message,
+                               alternatives=alt, final=verdict.to_dict() if verdict is not None else None)
+    events({"event": "verdict", "worth_compressing": False, "message": message, "assessment": kept.to_dict()})
+    return NotWorthCompressing(kept)
 
 
 def _training_bvh(mesh: Mesh, settings: Settings, events: EventSink, seconds: dict):
@@ -247,20 +233,37 @@ def _training_bvh(mesh: Mesh, settings: Settings, events: EventSink, seconds: di
     return bvh
 
 
+@dataclass
+class _Weighing:
+    """What a run's decisions are measured and weighed with: the check views and the held-out views (one metric for
+    every contender), the alternative's curve on each (None without a target), and the bytes the asset's look adds
+    to every model (appearance head and textures, as stored)."""
+
+    checks: ViewScorer
+    held_out: ViewScorer
+    curve: AlternativeCurve | None = None
+    curve_held_out: AlternativeCurve | None = None
+    look_bytes: int = 0
+
+
 class _SizeSearch:
-    """The trainings of one compress_mesh call: one at the resolved size, or with a target MSE the
-    predict-train-measure-correct search over T (`sizing.search_size`, at most TARGET_TRAININGS). Each training is
-    finalized to the stored precision and scored; `trained[log2 T]` keeps them all."""
+    """The trainings of one compress_mesh call: one at the resolved size, or with a target MSE one growing training
+    (`grow`, the default: `decision.checks.CheckRule`) or the predict-train-measure-correct search over T
+    (`sizing.search_size`, at most TARGET_TRAININGS). Each training is finalized to the stored precision and scored
+    on the held-out views; `trained[log2 T]` keeps them all."""
 
     def __init__(self, mesh, bvh, tracer, settings: Settings, why: str, events, should_cancel, checkpoint_path,
-                 resume_from, evaluate_quality: bool, compare_float32: bool, seconds: dict, grid=None):
+                 resume_from, evaluate_quality: bool, compare_float32: bool, seconds: dict, weighing: _Weighing,
+                 grid=None):
         self.mesh, self.bvh, self.tracer, self.settings, self.why = mesh, bvh, tracer, settings, why
         self.grid = grid  # sizing.GridMeasures when N_max follows the mesh (re-chosen for every table size tried)
         self.events, self.should_cancel = events, should_cancel
         self.checkpoint_path, self.resume_from = checkpoint_path, resume_from
         self.evaluate_quality, self.compare_float32, self.seconds = evaluate_quality, compare_float32, seconds
+        self.weighing = weighing
         self.trained: dict[int, _Trained] = {}
-        self.check = _QualityCheck(tracer, settings.eval_views, settings.eval_resolution, settings.storage())
+        self.rule: CheckRule | None = None  # the growing training's checks, once it ran
+        self.score_stored = _stored_mse(weighing.checks, settings.storage())
         seconds.update(train=0.0, eval=0.0)
 
     def run(self) -> tuple[int, str]:
@@ -283,10 +286,25 @@ class _SizeSearch:
             why += f"; measured {trail} (target {target:g}): kept T=2^{chosen}"
         return chosen, why
 
+    def bytes_at(self, log2_table: int) -> int:
+        """The file's bytes at table size 2^log2_table as it ships: geometry, look, header."""
+        return estimate_file_bytes(dataclasses.replace(self.settings, log2_table=log2_table)) + self.weighing.look_bytes
+
+    def _rule(self, top: int, budget: float) -> CheckRule:
+        s = self.settings
+        fit = load_fit()
+        slope = fit.budget_slope if fit is not None and fit.budget_coef else None
+        gain = None
+        if fit is not None:
+            feats = mesh_features(self.mesh)
+            gain = lambda l2: math.exp(fit.predict_log_mse(l2 + 1, feats, s.nodes, budget)  # noqa: E731
+                                       - fit.predict_log_mse(l2, feats, s.nodes, budget))
+        return CheckRule(self.score_stored, s.target_mse, top, budget, self.bytes_at, self.weighing.curve, slope,
+                         gain, s.force)
+
     def grow(self) -> tuple[int, str]:
-        """One training that starts GROW_START_BELOW sizes under the resolved T and grows its table while the quick
-        checks say the target is out of reach at its size (up to one size above the resolved T); returns (the final
-        log2 T, `why`)."""
+        """One training that starts GROW_START_BELOW sizes under the resolved T and grows its table while the checks
+        say growing pays (up to one size above the resolved T); returns (the final log2 T, `why`)."""
         t = time.perf_counter()
         s = self.settings
         top = min(s.log2_table + 1, LOG2_RANGE[-1])  # never past the sizes the predictor knows
@@ -294,19 +312,20 @@ class _SizeSearch:
         budget = s.time_limit_s or 200.0
         s_start = dataclasses.replace(s, log2_table=start,
                                       target_check_every_s=min(s.target_check_every_s, budget / GROW_CHECKS))
-        fit = load_fit()
-        slope = fit.budget_slope if fit is not None and fit.budget_coef else None
-        decide = _grow_check(self.check, s.target_mse, top, budget, slope)
+        self.rule = rule = self._rule(top, budget)
         model, tr, s_used, why_used = _train_with_restarts(
             self.mesh, self.bvh, self.tracer, s_start, self.why, self.events, self.should_cancel,
-            self.checkpoint_path, self.resume_from, decide)
-        tr.checks = [(round(sec, 2), log2, mse) for sec, log2, mse in decide.history]
+            self.checkpoint_path, self.resume_from, rule)
+        tr.checks = [(d.seconds, d.log2_table, d.mse) for d in rule.decisions]
         final = model.cfg.encoding.log2_table
         s_used = dataclasses.replace(s_used, log2_table=final, target_check_every_s=s.target_check_every_s)
         trail = ", ".join(f"T=2^{log2} at {sec:g} s" for _, sec, log2 in tr.grew) or "no growth"
         why_used += (f"; one training from T=2^{start} growing its table to meet {s.target_mse:g}: {trail}"
-                     + (f"; stopped after {tr.seconds:.0f} s, the target met" if tr.stopped_early else ""))
+                     + (f"; stopped after {tr.seconds:.0f} s: {rule.decisions[-1].action}" if tr.stopped_early else ""))
         self.seconds["train"] += time.perf_counter() - t
+        if rule.keep_mesh is not None:  # nothing worth finishing: the verdict is the mesh
+            self.trained[final] = _Trained(model, tr, s_used, why_used[len(self.why):], None)
+            return final, self.why
         self._keep(final, model, tr, s_used, why_used)
         return final, self.why
 
@@ -315,9 +334,9 @@ class _SizeSearch:
         notes `why_used` adds to `why`); returns its quality (None without an evaluation)."""
         model.eval()
         if self.compare_float32 and self.evaluate_quality:  # the same training before its storage is quantized
-            self.seconds["mse_float32"] = evaluate(model, self.tracer, s_used.eval_views, s_used.eval_resolution)[0].mse
+            self.seconds["mse_float32"] = self.weighing.held_out.score_model(model)[0].mse
         model.finalize_storage(s_used.storage())  # measure the model the file stores, not its float32 original
-        quality = self._score(model, s_used) if self.evaluate_quality else None
+        quality = self._score(model) if self.evaluate_quality else None
         self.trained[log2_table] = _Trained(model, tr, s_used, why_used[len(self.why):], quality)
         return quality
 
@@ -341,7 +360,9 @@ class _SizeSearch:
         if self.grid is not None and log2_table != self.settings.log2_table:
             s_try.n_max = choose_resolution(self.grid, log2_table)[0]
         target = s_try.target_mse
-        stop = _target_check(self.check, target) if target is not None and self.evaluate_quality else None
+        # a fixed size: the checks only stop the training once the level is met (no growth, no alternative)
+        stop = (CheckRule(self.score_stored, target, log2_table, s_try.time_limit_s or 0.0, self.bytes_at)
+                if target is not None and self.evaluate_quality else None)
         model, tr, s_used, why_used = _train_with_restarts(self.mesh, self.bvh, self.tracer, s_try, self.why,
                                                            self.events, self.should_cancel, self.checkpoint_path,
                                                            self.resume_from, stop)
@@ -352,12 +373,13 @@ class _SizeSearch:
         quality = self._keep(log2_table, model, tr, s_used, why_used)
         return quality.mse if quality is not None else math.inf
 
-    def _score(self, model: NeuralBVH, s: Settings) -> Quality:
+    def _score(self, model: NeuralBVH) -> Quality:
+        """The final evaluation: the held-out views (no check used them)."""
         if self.should_cancel():
             raise Cancelled("cancelled before evaluation")
-        self.events({"event": "phase", "phase": "eval", "message": f"{s.eval_views} views at {s.eval_resolution}px"})
+        self.events({"event": "phase", "phase": "eval", "message": self.weighing.held_out.name})
         t = time.perf_counter()
-        quality, _ = evaluate(model, self.tracer, s.eval_views, s.eval_resolution)
+        quality, _ = self.weighing.held_out.score_model(model)
         self.seconds["eval"] += time.perf_counter() - t
         return quality
 
@@ -423,25 +445,34 @@ def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = 
     """Compress `mesh` with `settings`; write `out_path` (atomically) when given. Raises `process.Cancelled`,
     `process.TrainingDiverged` (nothing written in either case). compare_float32: also score each training before
     its storage is quantized (`seconds['mse_float32']`, for benchmarks). resume_from: a checkpoint of this mesh
-    (`resume_settings` gives the settings it was made with; pass those). Raises NotWorthCompressing (in seconds,
-    before any training) when the verdict says so and `settings.force` is off."""
+    (`resume_settings` gives the settings it was made with; pass those). Raises NotWorthCompressing, unless
+    `settings.force`: before training when the verdict says so (seconds), at a training check that projects the
+    model above the alternative's curve, or after the held-out evaluation when a measured decimation reaches the
+    model's MSE in fewer bytes than its file (`decision.final_verdict`); the assessment then names what to ship."""
     grid = grid_measures(mesh) if settings.n_max is None and resume_from is None else None
     settings, why = resolve(settings, mesh, grid)
     if resume_from is not None:
         why += f"; resumed from the checkpoint {resume_from}"
     seconds: dict = {}
     tracer = ExactTracer(mesh)  # one Embree scene for the alternatives, the labels and the evaluation
-    assessment = _verdict(mesh, settings, why, tracer, events, seconds)
     head = make_head(mesh, AppearanceConfig(target=settings.appearance_target,
                                             log2_table=settings.appearance_log2_table))
+    weighing = _Weighing(ViewScorer(tracer, mesh.transform, settings.eval_views, settings.eval_resolution),
+                         ViewScorer(tracer, mesh.transform, settings.eval_views, settings.eval_resolution, True),
+                         look_bytes=_look_bytes(mesh, settings, head))
+    assessment = _verdict(mesh, settings, why, weighing, events, seconds)
     asked = settings
     if head is not None and settings.time_limit_s and resume_from is None:  # the head's share of the budget
         settings = dataclasses.replace(settings, time_limit_s=settings.time_limit_s * (1 - settings.appearance_share))
     bvh = _training_bvh(mesh, settings, events, seconds)
     search = _SizeSearch(mesh, bvh, tracer, settings, why, events, should_cancel, checkpoint_path, resume_from,
-                         evaluate_quality, compare_float32, seconds, grid)
+                         evaluate_quality, compare_float32, seconds, weighing, grid)
     chosen_log2, why = search.run()
     model, tr, settings, restart_notes, quality = search.trained[chosen_log2]
+    if search.rule is not None and search.rule.keep_mesh is not None:
+        d = search.rule.keep_mesh
+        raise _keep_the_mesh(assessment, final_verdict(d.model_bytes, d.projected_mse, settings.target_mse,
+                                                       weighing.curve), events)
     why += restart_notes  # a restart at a lower learning rate, in the training kept
     if head is not None and asked is not settings:
         settings = dataclasses.replace(settings, time_limit_s=asked.time_limit_s)
@@ -450,6 +481,22 @@ def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = 
     if look_info:
         metadata["appearance"] = look_info
     data = encode_nbvh(model, metadata, settings.storage())
+    verdict = None
+    if quality is not None and weighing.curve_held_out is not None:
+        verdict = final_verdict(len(data), quality.mse, settings.target_mse, weighing.curve_held_out, settings.force,
+                                _measure_decimation(mesh, weighing, assessment))
+        if verdict.shipped != "model":
+            raise _keep_the_mesh(assessment, verdict, events)
+    decisions = {"checks": [d.to_dict() for d in search.rule.decisions] if search.rule else [],
+                 "final": verdict.to_dict() if verdict else None,
+                 "alternative": weighing.curve_held_out.to_dict() if weighing.curve_held_out else None}
+    return _ship(out_path, data, model, tr, settings, quality, why, metadata, assessment, decisions, tracer,
+                 seconds, events, should_cancel)
+
+
+def _ship(out_path, data: bytes, model, tr, settings, quality, why, metadata, assessment, decisions, tracer,
+          seconds, events, should_cancel) -> CompressResult:
+    """Write the file (atomically) when a path is given and make the run's result."""
     size = len(data)
     if out_path is not None:
         if should_cancel():
@@ -460,7 +507,8 @@ def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = 
                             components=component_bytes(data), quality=quality, training=tr, settings=settings,
                             seconds={k: (v if k.startswith("mse") else round(v, 2)) for k, v in seconds.items()},
                             model=model, tracer=tracer, why=why,
-                            target_met=metadata["target_met"], assessment=assessment.to_dict(), data=data)
+                            target_met=metadata["target_met"], assessment=assessment.to_dict(), data=data,
+                            decisions=decisions)
     events({"event": "result", "path": result.path, "bytes": size,
             "quality": json.loads(json.dumps(metadata["quality"])), "train_seconds": round(tr.seconds, 2)})
     return result

@@ -104,7 +104,7 @@ class Settings:
     #: (pipeline._grow_check); "retrain" - predict T, train, measure, correct (up to TARGET_TRAININGS trainings).
     size_search: str = "grow"
     #: The mesh layout the verdict weighs the model against (MESH_LAYOUTS): "compact", the strongest ray-traceable
-    #: mesh (`compact_mesh`, ~8-9.5 B per triangle), or "plain", as Embree or Cycles hold it (~44 B per triangle).
+    #: mesh (`compact_mesh`, ~3.6-4.8 B per triangle), or "plain", as Embree or Cycles hold it (~44 B per triangle).
     mesh_layout: str = "compact"
     #: An asset with several material slots or a texture: the share of the time budget (or, without one, of the
     #: geometry's training time, added) the appearance head trains in (`appearance.py`), and its table size.

@@ -427,39 +427,54 @@ def decimate(mesh: Mesh, triangles: int) -> Mesh:
     return mesh_like(mesh, v, f)
 
 
-def _compact_entry(dec: Mesh, tracer, transform, views: int, resolution: int, measure: bool) -> dict:
-    """The decimation as a compact ray-traceable mesh (`compact_mesh`): its exact bytes, and with `measure` the
-    image MSE of what the layout holds (the decoded triangles, same metric)."""
-    from ..geometry.compact_mesh import compact_mesh
-    from ..geometry.exact import ExactTracer
-    from ..rendering.metrics import evaluate_renderer
-    from ..rendering.render import render_reference
-
-    nbytes, decoded = compact_mesh(dec)
-    out = {"compact_bytes": nbytes}
-    if measure:
-        dec_tracer = ExactTracer(decoded)
-        q, _ = evaluate_renderer(lambda cam, w, h: render_reference(dec_tracer, cam, w, h), tracer, transform,
-                                 views, resolution)
-        out["compact_mse"] = q.mse
-    return out
-
-
 #: Decimation sizes tried first (triangles, x4 apart; those >= DECIMATE_MAX_SHARE of the mesh are not tried), then
 #: DECIMATE_REFINE bisections (in log space) between the last that missed and the first that met: the decimation
-#: reported is within 2^(2 / 2^DECIMATE_REFINE) = 1.19x of the smallest that meets the target.
+#: reported is within 2^(2 / 2^DECIMATE_REFINE) = 1.19x of the smallest that meets the target. One size x4 above the
+#: first that met is measured too, so the alternative's curve (`decision.alternative_curve`) reaches models that
+#: beat the target by measurement, not by extrapolation.
 DECIMATE_COUNTS = (250, 1000, 4000, 16000, 64000, 256000, 1024000)
 DECIMATE_MAX_SHARE = 0.7
 DECIMATE_REFINE = 3
 
 
-def alternatives(mesh: Mesh, target_mse: float | None, views: int = 8, resolution: int = 96,
-                 tracer=None) -> dict:
-    """What a user could ship instead, measured: Draco (11-bit, storage bytes) of the mesh, and the smallest
-    quadric decimation (fast-simplification) whose image MSE (same metric, Embree) meets `target_mse` (see
-    DECIMATE_COUNTS), with its resident, compact-mesh (`compact_mesh`, and the decoded compact mesh's MSE) and Draco
-    bytes. Missing optional packages give a note instead of numbers. `tracer`: the mesh's ExactTracer when the
-    caller has one (else one is built)."""
+def _scorers(mesh: Mesh, tracer, checks, held_out):
+    """The run's two view sets (rendering.metrics.ViewScorer), made with the metric's defaults when not given."""
+    from ..geometry.exact import ExactTracer
+    from ..rendering.metrics import ViewScorer
+
+    if checks is None:
+        tracer = tracer or ExactTracer(mesh)
+        checks = ViewScorer(tracer, mesh.transform, 16, 128)
+    return checks, held_out
+
+
+def decimation_entry(mesh: Mesh, count: int, checks, held_out, draco) -> dict:
+    """One point of the alternative: the quadric decimation to ~`count` triangles, plainly and as a compact mesh
+    (exact bytes; the decoded compact mesh scored on the check views and, when given, the held-out views)."""
+    from ..geometry.compact_mesh import compact_mesh
+
+    dec = decimate(mesh, count)
+    if dec.n_triangles == 0:
+        return {"triangles": 0, "requested_triangles": count, "mse": math.inf, "compact_mse": math.inf}
+    entry = {"triangles": dec.n_triangles, "requested_triangles": count, "mse": checks.score_mesh(dec).mse,
+             "resident_bytes": mesh_resident_bytes(dec)["total"]}
+    nbytes, decoded = compact_mesh(dec)
+    entry["compact_bytes"] = nbytes
+    entry["compact_mse"] = checks.score_mesh(decoded).mse
+    if held_out is not None:
+        entry["compact_mse_held_out"] = held_out.score_mesh(decoded).mse
+    if draco is not None:
+        entry["draco11_bytes"] = len(draco.encode(dec.vertices, dec.faces, quantization_bits=11, compression_level=7))
+    return entry
+
+
+def alternatives(mesh: Mesh, target_mse: float | None, tracer=None, checks=None, held_out=None) -> dict:
+    """What a user could ship instead, measured: Draco (11-bit, storage bytes) of the mesh, and quadric decimations
+    (fast-simplification) up to the smallest whose image MSE meets `target_mse` (see DECIMATE_COUNTS), each with its
+    resident and compact-mesh bytes and the compact mesh's MSE, scored by the run's own metric: `checks` (a
+    rendering.metrics.ViewScorer: the training checks' views) and `held_out` (the final evaluation's). The whole
+    mesh as a compact mesh is scored too ('mesh_compact'). Missing optional packages give a note instead of
+    numbers. `tracer`: the mesh's ExactTracer when the caller has one and passes no scorer."""
     out: dict = {}
     try:
         import DracoPy
@@ -475,36 +490,21 @@ def alternatives(mesh: Mesh, target_mse: float | None, views: int = 8, resolutio
     except ImportError:
         out["note"] = (out.get("note", "") + "; " if "note" in out else "") + "fast-simplification not installed"
         return out
-    from ..geometry.exact import ExactTracer
-    from ..rendering.metrics import evaluate_renderer, reference_views
-    from ..rendering.render import render_reference
-
-    tracer = tracer or ExactTracer(mesh)
-    reference = reference_views(tracer, views, resolution)
+    checks, held_out = _scorers(mesh, tracer, checks, held_out)
+    out["metric"] = checks.name
     tried: dict[int, dict] = {}
 
     def measure(count: int) -> dict:
-        dec = decimate(mesh, count)
-        if dec.n_triangles == 0:
-            return {"triangles": 0, "requested_triangles": count, "mse": math.inf}
-        dec_tracer = ExactTracer(dec)
-        q, _ = evaluate_renderer(lambda cam, w, h: render_reference(dec_tracer, cam, w, h), tracer, mesh.transform,
-                                 views, resolution, reference=reference)
-        entry = {"triangles": dec.n_triangles, "requested_triangles": count, "mse": q.mse,
-                 "resident_bytes": mesh_resident_bytes(dec)["total"]}
-        entry.update(_compact_entry(dec, tracer, mesh.transform, views, resolution, q.mse <= target_mse))
-        if DracoPy is not None:
-            entry["draco11_bytes"] = len(DracoPy.encode(dec.vertices, dec.faces, quantization_bits=11,
-                                                        compression_level=7))
-        tried[count] = entry
-        return entry
+        tried[count] = decimation_entry(mesh, count, checks, held_out, DracoPy)
+        return tried[count]
 
     missed, met = None, None
-    for count in DECIMATE_COUNTS:
-        if count >= mesh.n_triangles * DECIMATE_MAX_SHARE:
-            break
-        if measure(count)["mse"] <= target_mse:
+    counts = [c for c in DECIMATE_COUNTS if c < mesh.n_triangles * DECIMATE_MAX_SHARE]
+    for i, count in enumerate(counts):
+        if measure(count)["compact_mse"] <= target_mse:
             met = count
+            if i + 1 < len(counts):
+                measure(counts[i + 1])
             break
         missed = count
     if met is not None:
@@ -513,13 +513,25 @@ def alternatives(mesh: Mesh, target_mse: float | None, views: int = 8, resolutio
             mid = int(round(math.sqrt(lo * met)))
             if mid in (lo, met):
                 break
-            if measure(mid)["mse"] <= target_mse:
+            if measure(mid)["compact_mse"] <= target_mse:
                 met = mid
             else:
                 lo = mid
         out["decimation"] = tried[met]
     out["decimations_tried"] = [tried[c] for c in sorted(tried)]
+    out["mesh_compact"] = _whole_mesh_entry(mesh, checks, held_out)
     return out
+
+
+def _whole_mesh_entry(mesh: Mesh, checks, held_out) -> dict:
+    """The whole mesh as a compact mesh: its exact bytes and the grid's own error on both view sets."""
+    from ..geometry.compact_mesh import compact_mesh
+
+    nbytes, decoded = compact_mesh(mesh)
+    entry = {"triangles": mesh.n_triangles, "compact_bytes": nbytes, "compact_mse": checks.score_mesh(decoded).mse}
+    if held_out is not None:
+        entry["compact_mse_held_out"] = held_out.score_mesh(decoded).mse
+    return entry
 
 
 def winning_decimation(mesh: Mesh, assessment: "Assessment") -> Mesh | None:
@@ -556,6 +568,8 @@ class Assessment:
     #: The whole mesh as a compact ray-traceable mesh (`compact_mesh.encode_compact`), exact bytes.
     compact_bytes: int | None = None
     layout: str = "compact"
+    #: The decision that kept the mesh after training began (`decision.records.FinalVerdict` as a dict), or None.
+    final: dict | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -567,23 +581,26 @@ def _held(layout: str, plain: int, compact: int) -> str:
     return f"{a} ({b})" if layout == "compact" else f"{b} ({a})"
 
 
-def assess(mesh: Mesh, settings, measure_alternatives: bool = False, tracer=None) -> Assessment:
+def assess(mesh: Mesh, settings, measure_alternatives: bool = False, tracer=None, checks=None, held_out=None,
+           look_bytes: int = 0) -> Assessment:
     """Weigh the model `settings` (already resolved) would write against the mesh and, with `measure_alternatives`
     and a target MSE, against the smallest decimation that meets it, each held in `settings.mesh_layout` (see
     MESH_LAYOUTS; both layouts are reported): 'mesh' when the whole mesh is no larger than the model, 'decimate'
-    when the decimation is not, else 'neural'. Draco's size (storage only) is reported beside."""
+    when the decimation is not, else 'neural'. Draco's size (storage only) is reported beside. look_bytes: what the
+    model's file adds for the asset's look (appearance head and textures, `fileformat.look_stored_bytes`), so the
+    model is weighed as it will ship. checks, held_out: the run's ViewScorers (see `alternatives`)."""
     from ..geometry.compact_mesh import compact_bytes
 
     layout = settings.mesh_layout
     if layout not in MESH_LAYOUTS:
         raise ValueError(f"mesh_layout must be one of {', '.join(MESH_LAYOUTS)}, got {layout!r}")
-    model = estimate_file_bytes(settings)
+    model = estimate_file_bytes(settings) + look_bytes
     tree = build_full_tree(mesh)
     resident_bytes = mesh_resident_bytes(mesh, tree)
     resident = resident_bytes["total"]
-    compact = compact_bytes(mesh, tree)
     # The Draco size always (cheap: shows which tool wins for storage alone); decimations only with a target.
-    alt = alternatives(mesh, settings.target_mse if measure_alternatives else None, tracer=tracer)
+    alt = alternatives(mesh, settings.target_mse if measure_alternatives else None, tracer, checks, held_out)
+    compact = alt["mesh_compact"]["compact_bytes"] if "mesh_compact" in alt else compact_bytes(mesh, tree)
     dec = alt.get("decimation")
     held = (lambda plain, comp: comp) if layout == "compact" else (lambda plain, comp: plain)
     draco = f"; Draco 11-bit of the mesh: {alt['draco11_bytes']:,} B for storage" if "draco11_bytes" in alt else ""

@@ -25,6 +25,8 @@ class Quality:
     depth_error_original_units: float
     views: int
     resolution: int
+    #: Scored on the held-out views (render.orbit_cameras(held_out=True)), which no training check used.
+    held_out: bool = False
     per_view_mse: list = field(default_factory=list)
     neural_rays_per_s: float = 0.0
     reference_rays_per_s: float = 0.0
@@ -33,7 +35,8 @@ class Quality:
         return asdict(self)
 
 
-def evaluate(model, tracer, n_views: int = 16, resolution: int = 256, keep_images: int = 0, reference=None):
+def evaluate(model, tracer, n_views: int = 16, resolution: int = 256, keep_images: int = 0, reference=None,
+             held_out: bool = False):
     """Score `model` (NeuralBVH) against `tracer` (ExactTracer of the same mesh) on `n_views` orbit views.
 
     Returns (Quality, images): images is a list of (reference, neural) (H, W) arrays for the first
@@ -41,17 +44,54 @@ def evaluate(model, tracer, n_views: int = 16, resolution: int = 256, keep_image
     repeatedly (a training's checks): the exact images are then rendered once.
     """
     return evaluate_renderer(lambda cam, w, h: render_neural(model, cam, w, h), tracer, model.transform, n_views,
-                             resolution, keep_images, reference)
+                             resolution, keep_images, reference, held_out)
 
 
-def reference_views(tracer, n_views: int, resolution: int) -> list:
+def reference_views(tracer, n_views: int, resolution: int, held_out: bool = False) -> list:
     """The exact images of the metric's `n_views` orbit views at `resolution` px (RenderResult each), to score many
     models or checkpoints of one training against without rendering them again."""
-    return [render_reference(tracer, cam, resolution, resolution) for cam in orbit_cameras(n_views)]
+    return [render_reference(tracer, cam, resolution, resolution) for cam in orbit_cameras(n_views, held_out=held_out)]
+
+
+class ViewScorer:
+    """The one metric every contender of a run is scored by (the training's checks, the neural model, each
+    decimation and compact mesh of the alternative): `n_views` orbit views at `resolution` px of `tracer`'s mesh,
+    the exact images rendered once. held_out: the turned view set no check used (the final evaluation's, and the
+    alternative's at equal quality)."""
+
+    def __init__(self, tracer, transform, n_views: int, resolution: int, held_out: bool = False):
+        self.tracer, self.transform = tracer, transform
+        self.n_views, self.resolution, self.held_out = n_views, resolution, held_out
+        self._reference = None
+
+    @property
+    def name(self) -> str:
+        return f"{self.n_views} {'held-out' if self.held_out else 'check'} views at {self.resolution} px"
+
+    def reference(self) -> list:
+        if self._reference is None:
+            self._reference = reference_views(self.tracer, self.n_views, self.resolution, self.held_out)
+        return self._reference
+
+    def score(self, render, keep_images: int = 0) -> tuple[Quality, list]:
+        """`render(camera, width, height) -> RenderResult` scored: (Quality, the first `keep_images` image pairs)."""
+        return evaluate_renderer(render, self.tracer, self.transform, self.n_views, self.resolution, keep_images,
+                                 self.reference(), self.held_out)
+
+    def score_model(self, model, keep_images: int = 0) -> tuple[Quality, list]:
+        """A NeuralBVH, as it is held (finalize it to its stored precision first to score the file)."""
+        return self.score(lambda cam, w, h: render_neural(model, cam, w, h), keep_images)
+
+    def score_mesh(self, mesh) -> Quality:
+        """Another triangulation of the same mesh (a decimation, a decoded compact mesh), traced exactly."""
+        from ..geometry.exact import ExactTracer
+
+        other = ExactTracer(mesh)
+        return self.score(lambda cam, w, h: render_reference(other, cam, w, h))[0]
 
 
 def evaluate_renderer(render, tracer, transform, n_views: int = 16, resolution: int = 256, keep_images: int = 0,
-                      reference=None):
+                      reference=None, held_out: bool = False):
     """The same metric for any renderer: `render(camera, width, height) -> RenderResult` (a neural model, or
     Embree on a decimated / Draco-decoded mesh for the baselines) against `tracer`'s exact images (or
     `reference`, those images from `reference_views` with the same views and resolution).
@@ -63,7 +103,7 @@ def evaluate_renderer(render, tracer, transform, n_views: int = 16, resolution: 
     depth_sum, depth_n = 0.0, 0
     per_view, images = [], []
     t_neural = t_ref = 0.0
-    for i, cam in enumerate(orbit_cameras(n_views)):
+    for i, cam in enumerate(orbit_cameras(n_views, held_out=held_out)):
         t = time.perf_counter()
         ref = reference[i] if reference is not None else render_reference(tracer, cam, resolution, resolution)
         t_ref += time.perf_counter() - t
@@ -82,6 +122,6 @@ def evaluate_renderer(render, tracer, transform, n_views: int = 16, resolution: 
     n_rays = n_views * resolution * resolution
     q = Quality(mse=float(np.mean(per_view)), silhouette_iou=inter / max(union, 1), depth_error=depth,
                 depth_error_original_units=float(transform.distance_to_original(depth)), views=n_views,
-                resolution=resolution, per_view_mse=per_view, neural_rays_per_s=n_rays / max(t_neural, 1e-9),
+                resolution=resolution, held_out=held_out, per_view_mse=per_view, neural_rays_per_s=n_rays / max(t_neural, 1e-9),
                 reference_rays_per_s=n_rays / max(t_ref, 1e-9))
     return q, images

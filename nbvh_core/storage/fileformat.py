@@ -750,3 +750,16 @@ def read_info(path: str | os.PathLike) -> FileInfo:
     header = _parse(data, str(path))
     _decode(data, header, str(path))
     return FileInfo(path=str(path), total_bytes=len(data), components=_components(header, len(data)), header=header)
+
+
+def look_stored_bytes(cfg: AppearanceConfig | None, materials: list[Material], storage: StorageConfig) -> dict[str, int]:
+    """What a file stores for an asset's look, exactly: {'appearance': the head's tensors (cfg None: no head),
+    'textures': each slot image's PNG}, so a model is weighed as it ships before it is trained."""
+    pngs = {f"texture.{i}": {"nbytes": len(encode_png(m.image))} for i, m in enumerate(materials)
+            if m.image is not None}
+    look = (cfg, [m.to_dict() for m in materials])
+    shapes = _look_expected(look, storage, pngs, "look")
+    out = {"appearance": 0, "textures": 0}
+    for name, (shape, kind) in shapes.items():
+        out["textures" if name.startswith("texture.") else "appearance"] += _nbytes(shape, kind)
+    return out

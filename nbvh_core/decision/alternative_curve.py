@@ -1,0 +1,80 @@
+"""The alternative a model must beat, as a curve: compact-mesh bytes against image MSE, measured once per run on
+the decimations `planning.sizing.alternatives` tried and the whole mesh, each scored by the run's own metric.
+
+Between two measured points the curve is the straight line in log bytes / log MSE (decimation sizes 4x apart);
+below the best measured MSE (the whole mesh's grid error) no alternative exists; above the loosest, the smallest
+measured decimation stands for it (a smaller one may exist: this flatters the model only where models are
+tiny)."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class CurvePoint:
+    """bytes: the compact mesh's exact bytes; mse: its measured MSE on this curve's views; triangles; requested:
+    the decimation count asked for (None: the whole mesh)."""
+
+    bytes: int
+    mse: float
+    triangles: int
+    requested: int | None
+
+
+class AlternativeCurve:
+    """The lower envelope of measured (bytes, MSE) points: no point kept is beaten in both by another."""
+
+    def __init__(self, points: list[CurvePoint]):
+        finite = sorted((p for p in points if math.isfinite(p.mse) and p.bytes > 0), key=lambda p: (p.bytes, p.mse))
+        self.points: list[CurvePoint] = []
+        for p in finite:  # by bytes ascending: keep a point only when it is better than every smaller one
+            if not self.points or p.mse < self.points[-1].mse:
+                self.points.append(p)
+
+    @classmethod
+    def from_alternatives(cls, alt: dict, held_out: bool = False) -> "AlternativeCurve | None":
+        """The curve of `sizing.alternatives`'s result on its check views, or (held_out) on the held-out views;
+        None when no decimation was measured."""
+        key = "compact_mse_held_out" if held_out else "compact_mse"
+        entries = list(alt.get("decimations_tried", []))
+        whole = alt.get("mesh_compact")
+        pts = [CurvePoint(int(e["compact_bytes"]), float(e[key]), int(e["triangles"]), int(e["requested_triangles"]))
+               for e in entries if key in e and "compact_bytes" in e]
+        if whole and key in whole:
+            pts.append(CurvePoint(int(whole["compact_bytes"]), float(whole[key]), int(whole["triangles"]), None))
+        curve = cls(pts)
+        return curve if curve.points else None
+
+    def bytes_at(self, mse: float) -> float:
+        """The alternative's bytes to reach `mse` (inf: nothing measured reaches it)."""
+        pts = self.points
+        if mse >= pts[0].mse:
+            return float(pts[0].bytes)
+        for lo, hi in zip(pts, pts[1:]):  # lo: fewer bytes, higher MSE
+            if hi.mse <= mse <= lo.mse:
+                w = math.log(lo.mse / mse) / math.log(lo.mse / hi.mse) if lo.mse > hi.mse else 1.0
+                return math.exp(math.log(lo.bytes) + w * math.log(hi.bytes / lo.bytes))
+        return math.inf
+
+    def triangles_at(self, mse: float) -> int | None:
+        """The decimation count the curve expects to reach `mse` (log-log between the measured points), or None
+        outside the decimations measured."""
+        pts = [p for p in self.points if p.requested is not None]
+        for lo, hi in zip(pts, pts[1:]):
+            if hi.mse <= mse <= lo.mse and lo.mse > hi.mse:
+                w = math.log(lo.mse / mse) / math.log(lo.mse / hi.mse)
+                return int(round(math.exp(math.log(lo.requested) + w * math.log(hi.requested / lo.requested))))
+        return None
+
+    def add(self, point: CurvePoint) -> None:
+        """One more measured point (a decimation measured to settle a verdict)."""
+        self.__init__(self.points + [point])
+
+    def cheapest_meeting(self, mse: float) -> CurvePoint | None:
+        """The smallest measured point whose MSE is at most `mse` (what can be shipped instead), or None."""
+        return next((p for p in self.points if p.mse <= mse), None)
+
+    def to_dict(self) -> list[dict]:
+        return [{"bytes": p.bytes, "mse": p.mse, "triangles": p.triangles, "requested": p.requested}
+                for p in self.points]

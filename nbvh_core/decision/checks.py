@@ -1,0 +1,100 @@
+"""The rule at each check of a training with a target (the need-driven default): stop when the level is met,
+grow the table when growing pays better than the alternative would, stop and keep the mesh when the model will
+not get under the alternative's curve. Every check is measured (the model at its stored precision on the check
+views), weighed as it will ship (`bytes_at`), and recorded (`records.CheckDecision`)."""
+from __future__ import annotations
+
+import math
+import time
+from typing import Callable
+
+from .alternative_curve import AlternativeCurve
+from .records import CheckDecision
+
+#: A check below this fraction of the target stops the training: the margin is for the training still moving between
+#: the check and the end; the held-out evaluation after it confirms or not.
+EARLY_STOP_MARGIN = 0.9
+
+
+class CheckRule:
+    """The target_reached callback of `training.train` (True: stop; "grow": double the table; False: train on).
+
+    score(model) -> check MSE of the model as stored; target: the MSE level; max_log2: the largest table;
+    budget_s: the training's budget (seconds since this rule was made ~ since training began); budget_slope(log2)
+    -> d ln MSE / d ln time at that size (the size predictor's; None: the slope through the last two checks);
+    grow_gain(log2) -> the predicted MSE ratio of a table twice as large (< 1; None: growth is judged on the
+    target alone); bytes_at(log2) -> the file's bytes at that size as it ships (geometry, look, header); curve: the
+    alternative on the check views (None: no alternative measured); force: train on even above the curve.
+    After training, `decisions` holds every check and `keep_mesh` the decision that stopped it for the mesh."""
+
+    def __init__(self, score: Callable, target: float, max_log2: int, budget_s: float,
+                 bytes_at: Callable[[int], int], curve: AlternativeCurve | None = None, budget_slope=None,
+                 grow_gain=None, force: bool = False):
+        self.score, self.target, self.max_log2, self.budget_s = score, target, max_log2, budget_s
+        self.bytes_at, self.curve, self.budget_slope, self.grow_gain = bytes_at, curve, budget_slope, grow_gain
+        self.force = force
+        self.decisions: list[CheckDecision] = []
+        self.keep_mesh: CheckDecision | None = None
+        self._start = time.perf_counter()
+
+    def projected(self, log2: int) -> float | None:
+        """The MSE at the end of the budget from this size's checks; None: not enough checks yet. The projection is
+        MSE x (budget / now)^slope: the predictor's exponent at this size (the learning rate decays over the budget,
+        so the slope between two checks mid-way underestimates the end: bench/results/need.csv), else two checks'."""
+        points = [(d.seconds, d.mse) for d in self.decisions if d.log2_table == log2]
+        t, m = max(points[-1][0], 1e-6), points[-1][1]
+        if self.budget_slope is not None:
+            slope = self.budget_slope(log2)
+        elif len(points) < 2:
+            return None
+        else:
+            t1, m1 = points[-2]
+            if m >= m1:  # no progress at this size
+                return math.inf
+            slope = math.log(m / m1) / math.log(t / max(t1, 1e-6))
+        return m * (max(self.budget_s, t) / t) ** slope
+
+    def __call__(self, model) -> bool | str:
+        mse = self.score(model)
+        log2 = model.cfg.encoding.log2_table
+        seconds = round(time.perf_counter() - self._start, 2)
+        self.decisions.append(CheckDecision(seconds, log2, mse, None, self.bytes_at(log2), None, "train on", ""))
+        d = self.decisions[-1]
+        d.projected_mse = self.projected(log2)
+        d.action, d.reason = self._decide(d)
+        if d.action == "stop: keep the mesh":
+            self.keep_mesh = d
+        return {"grow": "grow", "train on": False}.get(d.action, True)
+
+    def _decide(self, d: CheckDecision) -> tuple[str, str]:
+        if d.mse <= EARLY_STOP_MARGIN * self.target:
+            return "stop: level met", f"MSE {d.mse:.4g} <= {EARLY_STOP_MARGIN} x the level {self.target:g}"
+        end = d.projected_mse if d.projected_mse is not None else d.mse
+        alt = self.curve.bytes_at(end) if self.curve is not None else None
+        d.alternative_bytes = None if alt is None else (alt if math.isfinite(alt) else None)
+        grow = self._growth(d, end)
+        if grow is not None:
+            return grow
+        beaten_by = self.curve.cheapest_meeting(end) if self.curve is not None else None
+        if (beaten_by is not None and beaten_by.bytes < d.model_bytes and not self.force
+                and d.projected_mse is not None):  # a measured decimation, not the interpolated curve, decides
+            return ("stop: keep the mesh", f"the model ({d.model_bytes:,} B) stays above the alternative: "
+                    f"{beaten_by.triangles:,} triangles reach MSE {beaten_by.mse:.4g} in {beaten_by.bytes:,} B, "
+                    f"the model is projected to {end:.4g}; growing would not get it under")
+        return "train on", ("projected to meet the level" if end <= self.target
+                            else f"projected MSE {end:.4g} misses the level; no larger size pays")
+
+    def _growth(self, d: CheckDecision, end: float) -> tuple[str, str] | None:
+        """("grow", why) when the projection misses the level at this size and a table twice as large is projected
+        under the alternative's curve (its MSE gain per added byte beats the curve's); else None."""
+        if d.projected_mse is None or end <= self.target or d.log2_table >= self.max_log2:
+            return None
+        grown_bytes = self.bytes_at(d.log2_table + 1)
+        if self.grow_gain is None or self.curve is None:
+            return "grow", f"projected MSE {end:.4g} misses the level {self.target:g}"
+        grown_mse = end * self.grow_gain(d.log2_table)
+        alt = self.curve.bytes_at(grown_mse)
+        if grown_bytes < alt or self.force:
+            return "grow", (f"projected MSE {end:.4g} misses the level; 2^{d.log2_table + 1} projected "
+                            f"{grown_mse:.4g} in {grown_bytes:,} B, under the alternative's {alt:,.0f} B")
+        return None

@@ -1,0 +1,65 @@
+"""The last decision of a run: after the held-out evaluation, the model as it ships (its file, every byte) against
+the alternative's curve at the model's own measured MSE (the same held-out views); by default the smaller ships."""
+from __future__ import annotations
+
+import math
+
+from .alternative_curve import AlternativeCurve
+from .records import FinalVerdict
+
+
+#: Decimations measured to settle a verdict the curve's interpolation leaves open (each 1.19x above the last).
+SETTLE_TRIES = 2
+
+
+def _settle(curve: AlternativeCurve, model_bytes: int, model_mse: float, measure) -> None:
+    """When the interpolated curve is below the model but no measured decimation reaching its MSE is smaller,
+    measure the decimation the curve expects there (then 1.19x larger), so a measurement decides, not the line."""
+    point = curve.cheapest_meeting(model_mse)
+    if measure is None or curve.bytes_at(model_mse) >= model_bytes or (point and point.bytes < model_bytes):
+        return
+    count = curve.triangles_at(model_mse)
+    for _ in range(SETTLE_TRIES if count else 0):
+        got = measure(count)
+        curve.add(got)
+        if got.mse <= model_mse or got.bytes >= model_bytes:
+            return
+        count = int(count * 2 ** 0.25) + 1
+
+
+def final_verdict(model_bytes: int, model_mse: float, target: float | None, curve: AlternativeCurve | None,
+                  force: bool = False, measure=None) -> FinalVerdict:
+    """Weigh the shipped model (`model_bytes`, held-out `model_mse`) against `curve` (the alternative on the
+    held-out views). A measured decimation (or the whole mesh) that reaches the model's MSE in fewer bytes ships
+    instead, unless `force`. A missed `target` is said, and the model ships only while it is the better value.
+    measure(triangles) -> CurvePoint: measures one more decimation on the same views (None: the curve as it is)."""
+    level_met = None if target is None else model_mse <= target
+    if curve is None:
+        return FinalVerdict(model_bytes, model_mse, None, "model", None, level_met, force,
+                            f"the model: {model_bytes:,} B at MSE {model_mse:.4g} (no alternative measured: fixed size)")
+    if not force:
+        _settle(curve, model_bytes, model_mse, measure)
+    alt = curve.bytes_at(model_mse)
+    alt_bytes = alt if math.isfinite(alt) else None
+    beaten_by = curve.cheapest_meeting(model_mse)
+    beaten = beaten_by is not None and beaten_by.bytes < model_bytes
+    level = "" if level_met is not False else f"; the level {target:g} was out of reach in the budget"
+    if beaten and not force:
+        what = (f"a decimation to {beaten_by.triangles:,} triangles" if beaten_by.requested is not None
+                else "the whole mesh")
+        return FinalVerdict(model_bytes, model_mse, alt_bytes, "decimation" if beaten_by.requested else "mesh",
+                            {"triangles": beaten_by.triangles, "requested_triangles": beaten_by.requested,
+                             "compact_bytes": beaten_by.bytes, "mse": beaten_by.mse},
+                            level_met, force,
+                            f"kept as a mesh: {what} reaches MSE {beaten_by.mse:.4g} in {beaten_by.bytes:,} B as a "
+                            f"compact mesh; the model needs {model_bytes:,} B for MSE {model_mse:.4g} "
+                            f"({model_bytes / beaten_by.bytes:.2f}x the decimation){level}")
+    if alt_bytes is None:
+        versus = "no alternative measured reaches its MSE"
+    else:
+        versus = (f"the compact decimation at the same MSE ~{alt_bytes:,.0f} B: the model is "
+                  + (f"{alt_bytes / model_bytes:.2f}x smaller" if alt_bytes >= model_bytes
+                     else f"{model_bytes / alt_bytes:.2f}x larger"))
+    forced = "; shipped because forced" if beaten else ""
+    return FinalVerdict(model_bytes, model_mse, alt_bytes, "model", None, level_met, force,
+                        f"the model: {model_bytes:,} B at MSE {model_mse:.4g}; {versus}{level}{forced}")

@@ -1,0 +1,55 @@
+"""The typed records of a run's decisions (what was decided, on which measurements), serialised into reports."""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+#: What a training check decided.
+CHECK_ACTIONS = ("train on", "grow", "stop: level met", "stop: keep the mesh")
+
+
+@dataclass
+class CheckDecision:
+    """One training check. seconds since training began; log2_table: the table's size then; mse: measured on the
+    check views, the model at its stored precision; projected_mse: at the end of the budget at this size (None
+    before a projection is possible); model_bytes: the file as it would ship at this size (geometry, look,
+    header); alternative_bytes: the alternative's bytes at the projected MSE (None: no alternative measured);
+    action: one of CHECK_ACTIONS; reason: one line."""
+
+    seconds: float
+    log2_table: int
+    mse: float
+    projected_mse: float | None
+    model_bytes: int
+    alternative_bytes: float | None
+    action: str
+    reason: str
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass
+class FinalVerdict:
+    """The model as shipped against the alternative at the same measured quality (held-out views).
+    model_bytes: the .nbvh file; model_mse: its held-out MSE; alternative_bytes: the compact decimation's bytes
+    that reach the model's MSE (interpolated on the measured curve; None: not measured); shipped: 'model' or
+    'decimation' or 'mesh'; decimation: the measured decimation shipped instead (its triangles, requested count,
+    compact bytes and held-out MSE) or None; level_met: the model met the target on the held-out views;
+    forced: the user asked for the model whatever the verdict; message: one line for people."""
+
+    model_bytes: int
+    model_mse: float
+    alternative_bytes: float | None
+    shipped: str
+    decimation: dict | None
+    level_met: bool | None
+    forced: bool
+    message: str
+
+    @property
+    def ratio(self) -> float | None:
+        """alternative bytes / model bytes at equal measured MSE (> 1: the model is smaller)."""
+        return None if not self.alternative_bytes else self.alternative_bytes / self.model_bytes
+
+    def to_dict(self) -> dict:
+        return {**asdict(self), "ratio": self.ratio}
