@@ -55,12 +55,14 @@ def request_from_props(props) -> engine.Request:
 
 
 def _verdict(report_path: str) -> str:
-    """The job's comparison with what the user could ship instead (its report's assessment message)."""
+    """The job's comparison with what the user could ship instead: the final verdict (the model as shipped against
+    the compact decimation at the same measured MSE) when there is one, else the verdict before training."""
     try:
         report = json.loads(Path(report_path).read_text())
     except (OSError, ValueError):
         return ""
-    return str((report.get("assessment") or {}).get("message") or "")
+    final = (report.get("decisions") or {}).get("final") or {}
+    return str(final.get("message") or (report.get("assessment") or {}).get("message") or "")
 
 
 def _store_results(scene, session) -> None:

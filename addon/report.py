@@ -68,6 +68,8 @@ def object_entry(name: str, blender_bytes: dict, job_report: dict, textures: dic
         "alternatives": assessment.get("alternatives", {}),
         "why": job_report.get("why", ""),
         "target_met": job_report.get("target_met"),
+        # After the held-out evaluation: the model as shipped against the compact decimation at the same MSE
+        "final_verdict": ((job_report.get("decisions") or {}).get("final") or {}).get("message", ""),
         "scene_split": job_report.get("scene_split"),
     }
 
@@ -135,6 +137,7 @@ def write_report(report: dict, out_dir: str | Path, stem: str = "nbvh_report") -
         rows.append(f"""
 <section><h2>{html.escape(e['name'])}</h2>
 <table>
+<tr><th>final verdict (held-out views; the compact decimation at the model's own MSE)</th><td>{html.escape(e.get('final_verdict') or 'not measured (no quality target)')}</td></tr>
 <tr><th>mesh as Blender stores it</th><td>{_kb(e['blender_mesh_bytes']['total'])}</td></tr>
 <tr><th>mesh as a ray tracer holds it (vertices, indices, normals, BVH)</th><td>{_kb(e['ray_tracing_resident_bytes']['total'])}</td></tr>
 <tr><th>.nbvh</th><td>{_kb(e['nbvh_bytes'])} ({html.escape(comps)})</td></tr>

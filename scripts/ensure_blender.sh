@@ -14,3 +14,7 @@ if ! command -v blender >/dev/null 2>&1; then
   $SUDO apt-get update -qq
   DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq blender python3-numpy >/dev/null
 fi
+# Both must start now, or the tests would silently run on one.
+"$NBVH_PY" -c "import bpy" || { echo "bpy==5.0.1 was installed but does not import" >&2; exit 1; }
+blender -b --factory-startup --python-expr "import bpy" >/dev/null 2>&1 \
+  || { echo "Debian's blender was installed but does not start headless" >&2; exit 1; }

@@ -36,9 +36,9 @@ def make_library(root: Path) -> Path:
     (root / "props").mkdir(parents=True)
     shutil.copy(ROOT / "assets" / "blob.ply.gz", root / "blob.ply.gz")
     shutil.copy(ROOT / "assets" / "blob.ply.gz", root / "props" / "blob_copy.ply.gz")
-    ico4 = icosphere(4, noise=0.02, seed=1)
+    ico4 = icosphere(5, noise=0.02, seed=1)  # 20,480 triangles: ~95 KB as a compact mesh, more than a tiny model
     np.savez(root / "sphere.npz", vertices=ico4.vertices, faces=ico4.faces)
-    (root / "props" / "bumpy.obj").write_text(_obj_text(icosphere(4, noise=0.05, seed=2)))
+    (root / "props" / "bumpy.obj").write_text(_obj_text(icosphere(5, noise=0.05, seed=2)))
     tiny = icosphere(1)
     np.savez(root / "pebble.npz", vertices=tiny.vertices, faces=tiny.faces)
     (root / "props" / "broken.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 99\n")
@@ -198,7 +198,7 @@ def test_ctrl_c_stops_the_run_and_keeps_what_finished(tmp_path):
     lib = tmp_path / "lib"
     lib.mkdir()
     shutil.copy(ROOT / "assets" / "blob.ply.gz", lib / "blob.ply.gz")
-    ico = icosphere(4, noise=0.03, seed=5)
+    ico = icosphere(5, noise=0.03, seed=5)  # more than a tiny model as a compact mesh
     np.savez(lib / "sphere.npz", vertices=ico.vertices, faces=ico.faces)
     out = tmp_path / "out"
     cmd = [sys.executable, "-m", "nbvh_core", "batch", str(lib), "-o", str(out), "--preset", "tiny", "--steps", "1500",

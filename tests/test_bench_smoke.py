@@ -17,7 +17,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 BENCH = ROOT / "bench"
 #: The shared modules of bench/ (not benchmarks themselves).
-LIBRARIES = {"harness.py", "rd_runs.py", "bench_meshes.py"}
+LIBRARIES = {"harness.py", "rd_runs.py", "bench_meshes.py", "real_assets.py"}
 #: script -> its arguments at a tiny budget ({tmp}: the case's scratch folder).
 SMOKE = {
     "bench_batch_cluster.py": ["--assets", "blob", "studs", "--preset", "tiny", "--time-limit", "1"],
@@ -38,6 +38,7 @@ SMOKE = {
     "bench_quality.py": ["--quick"],
     "bench_rd_compact.py": ["--meshes", "blob"],
     "bench_resolution.py": ["--meshes", "blob", "--n-max", "32", "--preset", "tiny", "--steps", "5"],
+    "bench_shipped.py": ["--assets", "gear", "--time-limit", "2"],
     "bench_samples.py": ["--preset", "tiny", "--out", "{tmp}/samples"],
     "bench_speed.py": ["--quick", "--asset", "blob", "--train-s", "1", "--steps", "3"],
     "bench_table5.py": ["--steps", "5", "--meshes", "blob", "--methods", "base", "III"],

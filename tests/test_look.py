@@ -116,7 +116,8 @@ def test_the_head_learns_slots_and_coordinates():
     tracer = ExactTracer(m)
     head, face_patch = make_head(m, AppearanceConfig(log2_table=10))
     cfg = head.cfg
-    assert cfg.slots == 2 and cfg.uv and cfg.patches == 6  # the crate's six planar islands fit exactly
+    # the crate: its textured slot's four planar islands fit exactly; the plain slot's two are one patch
+    assert cfg.slots == 2 and cfg.uv and cfg.patches == 5
     labels = SurfaceLabels(m, tracer, np.random.default_rng(0), face_patch)
     before = head.loss(*[torch.from_numpy(a) for a in labels.draw(4096)]).item()
     train_head(head, labels, seconds=60, max_steps=400, batch=4096, pool_size=1 << 15)
@@ -235,3 +236,36 @@ def test_checking_a_look_leaves_the_callers_materials_as_they_were():
     m = mesh_from_arrays(v, np.array([[0, 1, 2]]), "t", Look(np.array([0]), None, [mat]))
     assert np.allclose(m.look.materials[0].base_color, [1, 0.5, 0, 1])
     assert np.allclose(mat.base_color, [2.0, 0.5, -1.0, 1.0])
+
+
+def _many_slots_with_seams(slots: int, textured: tuple = ()) -> "Mesh":
+    """An icosphere cut into `slots` slots by longitude, every face its own UV island (the worst seams an export can
+    have), slots in `textured` sampling an image, the others a flat colour."""
+    import dataclasses as dc
+
+    base = demo_assets.patchwork(subdivisions=3, slots=slots)
+    n = len(base.faces)
+    corner_uvs = (np.random.default_rng(2).uniform(0, 1, (n, 1, 2)) + np.array([[0, 0], [0.01, 0], [0, 0.01]])
+                  ).astype(np.float32)
+    image = np.full((8, 8, 3), 200, np.uint8)
+    mats = [dc.replace(m, image=image if i in textured else None) for i, m in enumerate(base.look.materials)]
+    return mesh_from_arrays(base.vertices, base.faces, "slots", Look(base.look.face_slots, corner_uvs, mats))
+
+
+def test_plain_slots_cost_one_patch_each_however_many_islands_they_have():
+    """120 flat-colour slots over 1,280 one-face islands: a patch per used slot (a palette and a class each), not an
+    island each; beside a textured slot, only that slot is cut by its islands."""
+    from nbvh_core.storage.fileformat import look_stored_bytes
+
+    mesh = _many_slots_with_seams(120)
+    head, face_patch = make_head(mesh, AppearanceConfig())
+    used = np.unique(mesh.look.face_slots).size  # a slot no face uses needs no patch
+    assert head.cfg.patches == used > 100 and head.cfg.slots == 120
+    assert np.array_equal(head.patch_slot.cpu().numpy()[face_patch], mesh.look.face_slots)
+    plain = look_stored_bytes(head.cfg, mesh.look.materials, preset("default").storage())
+    assert plain["textures"] == 0 and plain["appearance"] < 40_000, plain
+    mixed = _many_slots_with_seams(8, textured=(3,))
+    head, face_patch = make_head(mixed, AppearanceConfig(max_patches=4096))
+    islands_of_3 = int((mixed.look.face_slots == 3).sum())
+    assert head.cfg.patches == np.unique(mixed.look.face_slots).size - 1 + islands_of_3  # its islands: one a face
+    assert look_stored_bytes(head.cfg, mixed.look.materials, preset("default").storage())["textures"] > 0

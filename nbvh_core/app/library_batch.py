@@ -74,6 +74,8 @@ class Row:
     decimation_triangles: int | None = None  # the verdict's winning decimation (written beside the results)
     decimation_compact_bytes: int | None = None
     predicted_model_bytes: int | None = None
+    #: After training, the compact decimation's bytes at the model's own held-out MSE (decision.final_verdict)
+    alternative_bytes: int | None = None
     verdict: str | None = None
     recommendation: str | None = None
     key: str | None = None
@@ -89,6 +91,14 @@ class Row:
     files: dict = field(default_factory=dict)
 
     @property
+    def saved_vs_alternative_bytes(self) -> int:
+        """Bytes saved by the model against the strongest alternative: the compact decimation at the same measured
+        MSE (0 when not compressed or not measured; negative never ships: the batch keeps the mesh then)."""
+        if self.status in ("done", "cached") and self.alternative_bytes and self.model_bytes:
+            return self.alternative_bytes - self.model_bytes
+        return 0
+
+    @property
     def saved_bytes(self) -> int:
         """Resident bytes saved by using the model instead of the mesh (0 when not compressed)."""
         if self.status in ("done", "cached") and self.mesh_resident_bytes and self.model_resident_bytes:
@@ -102,7 +112,8 @@ class Row:
         return 0
 
     def to_dict(self) -> dict:
-        return {**asdict(self), "saved_bytes": self.saved_bytes, "predicted_savings": self.predicted_savings}
+        return {**asdict(self), "saved_bytes": self.saved_bytes, "predicted_savings": self.predicted_savings,
+                "saved_vs_alternative_bytes": self.saved_vs_alternative_bytes}
 
 
 # ------------------------------------------------------------------------------------------------ discovery
@@ -220,10 +231,13 @@ def measure_asset(asset: dict, spec: dict) -> dict:
 
 
 def compress_asset(asset: dict, spec: dict) -> dict:
-    """Ray task: train one asset's model (verdict already given: forced past a borderline one), render its
-    thumbnail; returns the file's bytes and the numbers. Never raises for the asset's own failures."""
+    """Ray task: train one asset's model, render its thumbnail; returns the file's bytes and the numbers. The
+    training's decisions are the CLI's: a check or the final verdict that finds a measured decimation smaller at
+    the model's own MSE keeps the mesh (status not_worth, with that decimation). Never raises for the asset's own
+    failures."""
     from .. import kernels
     from .pipeline import compress_mesh
+    from ..protocol.process import NotWorthCompressing
     from ..rendering.render import orbit_cameras
     from .result_bundle import View, make_bundle
 
@@ -235,16 +249,39 @@ def compress_asset(asset: dict, spec: dict) -> dict:
         torch.set_num_threads(max(1, int(os.environ.get("OMP_NUM_THREADS", torch.get_num_threads()))))
         kernels.keep_freed_memory()
         mesh = load_asset(asset["path"], asset["name"])
-        res = compress_mesh(mesh, settings_from_request(spec).with_overrides(force=True))
+        try:
+            res = compress_mesh(mesh, settings_from_request(spec))
+        except NotWorthCompressing as exc:
+            out.update(_kept_as_mesh(mesh, exc.assessment))
+            return out
         bundle = make_bundle(res, mesh, View(orbit_cameras(1)[0], THUMBNAIL_PX, THUMBNAIL_PX),
                              ("model", "report", "preview"))
         out.update(status="done", bundle_files=bundle.files, summary=bundle.report, thumb=bundle.files["preview"],
                    model_bytes=res.file_bytes, model_resident_bytes=sum(res.model.resident_bytes().values()),
                    mse=res.quality.mse if res.quality else None, iou=res.quality.silhouette_iou if res.quality else None,
-                   train_seconds=round(res.training.seconds, 2))
+                   train_seconds=round(res.training.seconds, 2),
+                   alternative_bytes=_rounded((res.decisions.get("final") or {}).get("alternative_bytes")),
+                   verdict=(res.decisions.get("final") or {}).get("message"))
     except Exception as exc:
         out.update(status="failed", error=f"{type(exc).__name__}: {exc}")
     out["task_seconds"] = round(time.perf_counter() - t0, 2)
+    return out
+
+
+def _rounded(x) -> int | None:
+    return None if x is None else int(round(x))
+
+
+def _kept_as_mesh(mesh, assessment) -> dict:
+    """A compress task's row when a measurement during or after training kept the mesh: the verdict and the
+    decimation that wins, as a file the head writes."""
+    from ..planning.sizing import mesh_file_bytes, winning_decimation
+
+    out = {"status": "not_worth", "verdict": assessment.message, "recommendation": assessment.recommendation}
+    dec = winning_decimation(mesh, assessment)
+    if dec is not None:
+        out.update(decimation_triangles=dec.n_triangles, decimation_ply=mesh_file_bytes(dec),
+                   decimation_compact_bytes=assessment.alternatives["decimation"].get("compact_bytes"))
     return out
 
 
@@ -377,7 +414,8 @@ class _Library:
                   "decimation_triangles", "decimation_compact_bytes"):
             if k in r:
                 setattr(row, k, r[k])
-        row.thumb_original = self.thumb(name, "original", r.get("thumb"))
+        if "thumb" in r:
+            row.thumb_original = self.thumb(name, "original", r.get("thumb"))
         if r.get("decimation_ply"):
             from ..protocol.outputs import write_atomic
 
@@ -392,11 +430,14 @@ class _Library:
 
         row = self.rows[name]
         row.worker, row.status, row.error = r.get("worker"), r["status"], r.get("error")
+        if r["status"] == "not_worth":  # kept as a mesh by a measurement during or after training
+            self.measured(name, r)
         if r["status"] == "done":
             folder = self.out / "assets" / row.key
             folder.mkdir(parents=True, exist_ok=True)
             model = f"{_safe(name)}.nbvh"
-            for k in ("model_bytes", "model_resident_bytes", "mse", "iou", "train_seconds"):
+            for k in ("model_bytes", "model_resident_bytes", "mse", "iou", "train_seconds", "alternative_bytes",
+                      "verdict"):
                 setattr(row, k, r.get(k))
             row.thumb_neural = self.thumb(name, "neural", r.get("thumb"))
             row.files = {"model": str(Path("assets") / row.key / model)}
@@ -416,7 +457,8 @@ class _Library:
 
     def from_cache(self, name: str, record: dict) -> None:
         row = self.rows[name]
-        for k in ("model_bytes", "model_resident_bytes", "mse", "iou", "train_seconds", "worker", "thumb_neural"):
+        for k in ("model_bytes", "model_resident_bytes", "mse", "iou", "train_seconds", "worker", "thumb_neural",
+                  "alternative_bytes", "verdict"):
             setattr(row, k, record.get(k))
         row.status = "cached"
         row.files = {"model": str(Path("assets") / row.key / record["files"]["model"])}

@@ -263,6 +263,7 @@ class _SizeSearch:
         self.weighing = weighing
         self.trained: dict[int, _Trained] = {}
         self.rule: CheckRule | None = None  # the growing training's checks, once it ran
+        self.check_views_mse: float | None = None  # the kept model on the check views (the report gives both)
         self.score_stored = _stored_mse(weighing.checks, settings.storage())
         seconds.update(train=0.0, eval=0.0)
 
@@ -337,6 +338,8 @@ class _SizeSearch:
             self.seconds["mse_float32"] = self.weighing.held_out.score_model(model)[0].mse
         model.finalize_storage(s_used.storage())  # measure the model the file stores, not its float32 original
         quality = self._score(model) if self.evaluate_quality else None
+        if quality is not None and s_used.target_mse is not None:  # the same model on the views the checks used
+            self.check_views_mse = self.weighing.checks.score_model(model)[0].mse
         self.trained[log2_table] = _Trained(model, tr, s_used, why_used[len(self.why):], quality)
         return quality
 
@@ -488,6 +491,7 @@ def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = 
         if verdict.shipped != "model":
             raise _keep_the_mesh(assessment, verdict, events)
     decisions = {"checks": [d.to_dict() for d in search.rule.decisions] if search.rule else [],
+                 "mse_check_views": search.check_views_mse, "mse_held_out_views": quality.mse if quality else None,
                  "final": verdict.to_dict() if verdict else None,
                  "alternative": weighing.curve_held_out.to_dict() if weighing.curve_held_out else None}
     return _ship(out_path, data, model, tr, settings, quality, why, metadata, assessment, decisions, tracer,

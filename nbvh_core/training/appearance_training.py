@@ -39,6 +39,9 @@ class SurfaceLabels:
             slot, uv = hit_labels(self.mesh.look, self.mesh.vertices, self.mesh.faces, fh.tri[h], p)
             if self.want_colour:
                 uv = linear_to_srgb(albedo(self.mesh.look.materials, slot, uv))
+            elif uv is not None:  # a slot without an image has no coordinates to learn: its patch's map is zero
+                flat = np.array([m.image is None for m in self.mesh.look.materials])[slot]
+                uv = np.where(flat[:, None], np.float32(0), uv)
             pts.append(p.astype(np.float32))
             slots.append(self.face_patch[fh.tri[h]])
             uvs.append(uv)

@@ -1,0 +1,152 @@
+"""What the default ships, on real assets and generated shapes, with one metric for every contender.
+
+    .venv/bin/python bench/bench_shipped.py --assets bunny dragon48k dragon engine spiky gyroid studs sheet
+
+Per asset (real ones from `real_assets.py`, generated ones from `bench_meshes.py` written to a PLY first):
+1. `nbvh compress FILE -o OUT/` with no options: the need-driven default (level standard, 200 s), every decision
+   from measurements (the verdict, each training check against the alternative's curve, the final verdict).
+2. What it shipped is scored on 16 held-out views at 256 px (`rendering.metrics.ViewScorer`): the .nbvh as loaded
+   from its file, or the compact mesh NAME.compact.cmsh as decoded from its file.
+3. The alternative is scored the same way: compact decimations at 1k, 2k, 4k ... triangles (x2 apart, below 70%
+   of the mesh) and the whole mesh as a compact mesh; `alternative_bytes` is that curve's bytes at the shipped
+   MSE (log-log between measured points), `ratio` = alternative_bytes / shipped_bytes (>= 1: nothing smaller
+   was left on the table; < 1: the default shipped more than the alternative at equal quality).
+
+Rows land in bench/results/shipped.csv as they finish (a rerun resumes); shipped.md has the table.
+"""
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from bench_meshes import MADE, bench_mesh
+from harness import RESULTS, ROOT, SMOKE, append_row, markdown_table, num, read_rows, write_markdown
+from real_assets import REAL_ASSETS, asset_path
+
+CSV = RESULTS / ("shipped_smoke.csv" if SMOKE else "shipped.csv")
+
+
+def source_file(name: str, work: Path) -> Path:
+    if name in REAL_ASSETS or name == "bunny":
+        return asset_path(name)
+    from nbvh_core.planning.sizing import mesh_file_bytes
+
+    path = work / f"{name}.ply"
+    if not path.exists():
+        path.write_bytes(mesh_file_bytes(bench_mesh(name)))
+    return path
+
+
+def curve(mesh, scorer, counts) -> list[tuple[int, float, int]]:
+    """(compact bytes, MSE, triangles) of each compact decimation and of the whole mesh, scored by `scorer`."""
+    from nbvh_core.geometry.compact_mesh import compact_mesh
+    from nbvh_core.planning.sizing import decimate
+
+    pts = []
+    for count in counts:
+        nbytes, decoded = compact_mesh(decimate(mesh, count))
+        pts.append((nbytes, scorer.score_mesh(decoded).mse, decoded.n_triangles))
+    nbytes, decoded = compact_mesh(mesh)
+    pts.append((nbytes, scorer.score_mesh(decoded).mse, mesh.n_triangles))
+    return pts
+
+
+def shipped_score(mesh, out: Path, scorer) -> tuple[str, int, float]:
+    """(what shipped, its bytes, its MSE): the model file, else the compact mesh file, each read back."""
+    from nbvh_core.geometry.compact_mesh import decode_compact
+    from nbvh_core.geometry.mesh import Mesh
+    from nbvh_core.storage.fileformat import load_nbvh
+
+    model = out / f"{mesh.name}.nbvh"
+    if model.exists():
+        return "model", model.stat().st_size, scorer.score_model(load_nbvh(model))[0].mse
+    cmsh = out / f"{mesh.name}.compact.cmsh"
+    dec = decode_compact(cmsh.read_bytes())
+    kind = "decimation" if (out / f"{mesh.name}.decimated.ply").exists() else "mesh"
+    held = Mesh(vertices=mesh.transform.to_normalised(dec.vertices).astype("float32"), faces=dec.faces,
+                transform=mesh.transform, name=mesh.name)
+    return kind, cmsh.stat().st_size, scorer.score_mesh(held).mse
+
+
+def bytes_at(pts: list[tuple[int, float, int]], mse: float) -> float:
+    from nbvh_core.decision.alternative_curve import AlternativeCurve, CurvePoint
+
+    c = AlternativeCurve([CurvePoint(b, m, t, t) for b, m, t in pts])
+    return c.bytes_at(mse)
+
+
+def measure(name: str, args, work: Path) -> None:
+    from nbvh_core.geometry.exact import ExactTracer
+    from nbvh_core.geometry.mesh import load_mesh
+    from nbvh_core.protocol.quality_levels import DEFAULT_LEVEL, QUALITY_LEVELS
+    from nbvh_core.rendering.metrics import ViewScorer
+
+    path = source_file(name, work)
+    out = work / name
+    out.mkdir(exist_ok=True)
+    extra = ["--time-limit", str(args.time_limit)] if args.time_limit else []
+    t = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-m", "nbvh_core", "compress", str(path), "-o", f"{out}/", "--overwrite",
+                           *extra], cwd=ROOT, capture_output=True, text=True)
+    wall = time.perf_counter() - t
+    if proc.returncode not in (0, 4):
+        print(proc.stderr[-2000:], file=sys.stderr)
+        return
+    mesh = load_mesh(path)
+    scorer = ViewScorer(ExactTracer(mesh), mesh.transform, args.views, args.size, held_out=True)
+    kind, nbytes, mse = shipped_score(mesh, out, scorer)
+    counts = [c for c in (1000 * 2 ** k for k in range(12)) if c < 0.7 * mesh.n_triangles][:args.max_points]
+    pts = curve(mesh, scorer, counts)
+    alt = bytes_at(pts, mse)
+    level = QUALITY_LEVELS[DEFAULT_LEVEL]
+    verdict = next((ln for ln in proc.stderr.splitlines() if ln.startswith(("verdict:", "not worth", "kept as"))), "")
+    row = {"asset": name, "triangles": mesh.n_triangles, "exit_code": proc.returncode, "wall_s": round(wall, 1),
+           "shipped": kind, "shipped_bytes": nbytes, "mse": mse, "level": level, "met": mse <= level,
+           "alternative_bytes": round(alt) if alt != float("inf") else "", "ratio":
+           round(alt / nbytes, 3) if alt != float("inf") else "", "views": args.views, "size": args.size,
+           "curve": ";".join(f"{b}:{m:.6g}:{t}" for b, m, t in pts), "verdict": verdict[:300]}
+    append_row(CSV, row)
+    print({k: row[k] for k in ("asset", "shipped", "shipped_bytes", "mse", "alternative_bytes", "ratio", "wall_s")},
+          flush=True)
+
+
+def report() -> None:
+    rows = read_rows(CSV)
+    table = [[r["asset"], f"{int(r['triangles']):,}", r["shipped"], f"{int(r['shipped_bytes']):,}",
+              f"{num(r, 'mse'):.5f}", "yes" if r["met"] == "True" else "no",
+              f"{int(num(r, 'alternative_bytes')):,}" if r["alternative_bytes"] else "-",
+              f"{num(r, 'ratio'):.2f}" if r["ratio"] else "-", r["wall_s"]] for r in rows]
+    views = f"{rows[0]['views']} held-out views at {rows[0]['size']} px" if rows else ""
+    write_markdown(CSV.with_suffix(".md"), [
+        f"# What the default ships ({views}, one metric for every contender)", "",
+        "ratio = the compact decimation's bytes at the shipped MSE / the shipped bytes (< 1: shipped more than the "
+        "alternative at equal quality).", "",
+        *markdown_table(["asset", "triangles", "shipped", "bytes", "MSE", "level met", "alternative at that MSE",
+                         "ratio", "wall s"], table)])
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--assets", nargs="+", default=["bunny", "dragon48k", "dragon", "engine", *MADE[:3]])
+    p.add_argument("--time-limit", type=float, default=None, help="training budget (default: the product's)")
+    p.add_argument("--views", type=int, default=2 if SMOKE else 16)
+    p.add_argument("--size", type=int, default=32 if SMOKE else 256)
+    p.add_argument("--max-points", type=int, default=2 if SMOKE else 12)
+    p.add_argument("--work", default=None, help="folder for the runs' outputs (default: a temporary one)")
+    args = p.parse_args()
+    done = {r["asset"] for r in read_rows(CSV)}
+    with tempfile.TemporaryDirectory(prefix="nbvh-shipped-") as tmp:
+        work = Path(args.work) if args.work else Path(tmp)
+        work.mkdir(parents=True, exist_ok=True)
+        for name in args.assets:
+            if name not in done:
+                measure(name, args, work)
+    report()
+
+
+if __name__ == "__main__":
+    main()
