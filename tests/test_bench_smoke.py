@@ -22,6 +22,7 @@ LIBRARIES = {"harness.py", "rd_runs.py", "bench_meshes.py", "real_assets.py"}
 SMOKE = {
     "bench_batch_cluster.py": ["--assets", "blob", "studs", "--preset", "tiny", "--time-limit", "1"],
     "bench_compact.py": ["--storage", "smoke"],
+    "bench_compact_layout.py": ["--assets", "gear"],
     "bench_engine.py": ["{tmp}/models", "--frames", "1"],
     "bench_foundation.py": ["--quick", "--rays", "2000", "--nodes", "64"],
     "bench_grow.py": ["--meshes", "blob", "--preset", "tiny", "--sizes", "7", "--time-limit", "2"],

@@ -273,6 +273,8 @@ def test_a_decimation_verdict_writes_the_decimation_beside_the_output(tmp_path, 
         else None
     cmsh = (tmp_path / "bunny.compact.cmsh").read_bytes()
     decoded = decode_compact(cmsh)
+    # the bytes written are the bytes the verdict counted (encoded as counted, then placed in original units)
+    assert len(cmsh) == _verdict_compact_bytes(tmp_path)
     assert len(decoded.faces) == dec.n_triangles and report is None
     lo = dec.transform.to_original(dec.vertices).min(axis=0)  # original coordinates, like the PLY
     assert np.allclose(decoded.vertices.min(axis=0), lo, atol=1e-3 * float(np.ptp(dec.transform.to_original(dec.vertices))))
@@ -281,3 +283,17 @@ def test_a_decimation_verdict_writes_the_decimation_beside_the_output(tmp_path, 
     before = written.read_bytes()
     assert main(["compress", "bunny", "-o", str(tmp_path) + "/", "--target-mse", "0.01"]) == 4
     assert written.read_bytes() == before and "not written" in capsys.readouterr().err  # kept without --overwrite
+
+
+def _verdict_compact_bytes(folder) -> int:
+    """The compact bytes the last verdict counted for the winning decimation, from a rerun with --events."""
+    import io
+    from contextlib import redirect_stdout
+
+    from nbvh_core.app.cli import main
+
+    out = io.StringIO()
+    with redirect_stdout(out):
+        main(["compress", "bunny", "-o", str(folder / "again") + "/", "--target-mse", "0.01", "--events"])
+    verdicts = [json.loads(ln) for ln in out.getvalue().splitlines() if '"verdict"' in ln]
+    return int(verdicts[-1]["assessment"]["alternatives"]["decimation"]["compact_bytes"])

@@ -4,6 +4,8 @@ are torch-free all the way down), no function in nbvh_core over 80 lines, and ev
 from __future__ import annotations
 
 import ast
+
+import pytest
 from pathlib import Path
 
 
@@ -194,3 +196,27 @@ def test_only_the_bindings_module_calls_the_compiled_library():
     planted = "from ..kernels import load\nx = load().nbvh_encode_forward(t.data_ptr())\n"
     assert len(_calls_the_library(ast.parse(planted))) == 2
 
+
+
+def test_every_message_that_crosses_a_process_is_declared_in_the_protocol():
+    """The wire contract: each event ("event": KIND) and render-worker request ("op": KIND) written anywhere in
+    nbvh_core or the add-on is declared in nbvh_core/protocol/events.py; a planted undeclared one is caught."""
+    import re
+
+    from nbvh_core.protocol.events import EVENTS, WORKER_REQUESTS, event
+
+    def undeclared(texts: dict[str, str]) -> list[str]:
+        out = []
+        for name, text in texts.items():
+            out += [f"{name}: event {k}" for k in re.findall(r"""["']event["']\s*:\s*["'](\w+)["']""", text)
+                    if k not in EVENTS]
+            out += [f"{name}: op {k}" for k in re.findall(r"""["']op["']\s*:\s*["'](\w+)["']""", text)
+                    if k not in WORKER_REQUESTS]
+        return out
+
+    files = {str(p.relative_to(ROOT)): p.read_text() for d in ("nbvh_core", "addon") for p in (ROOT / d).rglob("*.py")}
+    assert not undeclared(files)
+    assert undeclared({"planted.py": 'sink({"event": "teleported", "x": 1})'}) == ["planted.py: event teleported"]
+    assert event("warning", message="m") == {"event": "warning", "message": "m"}
+    with pytest.raises(ValueError, match="undeclared event"):
+        event("teleported")

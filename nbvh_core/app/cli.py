@@ -145,9 +145,7 @@ def _write_alternative(mesh, assessment, stem: Path, mesh_path: Path, args, sink
     NAME.decimated.ply, and, when the verdict weighed the compact layout, the winner (the decimation, or the whole
     mesh) as NAME.compact.cmsh, the compact ray-traceable mesh whose bytes the verdict counted
     (`compact_mesh.encode_compact`)."""
-    import dataclasses
-
-    from ..geometry.compact_mesh import encode_compact
+    from ..geometry.compact_mesh import encode_compact, in_original_units
     from ..protocol.outputs import check_outputs, write_atomic
     from ..planning.sizing import mesh_file_bytes, winning_decimation
 
@@ -156,9 +154,9 @@ def _write_alternative(mesh, assessment, stem: Path, mesh_path: Path, args, sink
     if dec is not None:
         files[Path(f"{stem}.decimated.ply")] = mesh_file_bytes(dec)
     if assessment.layout == "compact" and assessment.recommendation in ("mesh", "decimate"):
-        winner = dec if dec is not None else mesh
-        original = dataclasses.replace(winner, vertices=winner.transform.to_original(winner.vertices).astype("float32"))
-        files[Path(f"{stem}.compact.cmsh")] = encode_compact(original)
+        winner = dec if dec is not None else mesh  # encoded as the verdict counted it, placed in original units
+        files[Path(f"{stem}.compact.cmsh")] = in_original_units(encode_compact(winner), winner.transform.scale,
+                                                                winner.transform.offset)
     for path, data in files.items():
         try:
             check_outputs([path], [mesh_path], overwrite=args.overwrite)

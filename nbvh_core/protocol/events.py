@@ -1,13 +1,9 @@
-"""The job protocol: progress events as JSON lines, shared by the CLI's progress bar and the Blender add-on.
+"""The wire contract: every message that crosses a process boundary, as JSON lines, declared here (`EVENTS`,
+`WORKER_REQUESTS`); tests/test_structure.py fails when code emits an event or a request not declared here.
 
-Every event is a flat JSON object with an "event" key:
-  {"event": "phase", "phase": "bvh" | "train" | "anneal" | "freeze" | "eval" | "save", "message": str}
-  {"event": "progress", "phase": str, "step": int, "total": int | null, "fraction": float, "loss": float,
-   "samples_per_s": float, "elapsed_s": float, "eta_s": float | null}
-  {"event": "warning", "message": str}
-  {"event": "result", "path": str, "bytes": int, ...}        (the job's outcome)
-  {"event": "error", "kind": str, "message": str}            (the job failed; "cancelled" when cancelled)
-A consumer ignores keys and events it does not know, so the protocol can grow.
+Job and CLI events (`--events`, the add-on's background jobs, library batches) are flat JSON objects with an "event"
+key; the render worker (`app/render_worker.py`) reads requests with an "op" key and answers with events. A consumer
+ignores keys and events it does not know, so the protocol can grow.
 """
 from __future__ import annotations
 
@@ -17,6 +13,42 @@ import time
 from typing import Callable, TextIO
 
 EventSink = Callable[[dict], None]
+
+#: event -> what it carries (the keys every emitter sets; more may come).
+EVENTS = {
+    # a compress run, a job, a library batch
+    "phase": "phase ('plan', 'bvh', 'train', 'anneal', 'freeze', 'quantize', 'search', 'appearance', 'eval', "
+             "'save', ...), message",
+    "progress": "phase, fraction; a training: step, total, loss, samples_per_s, elapsed_s, eta_s; a batch: done, total",
+    "warning": "message (one line)",
+    "verdict": "worth_compressing (false), message, assessment (sizing.Assessment: alternatives, recommendation, "
+               "final: the decision.records.FinalVerdict that kept the mesh after training began, or null)",
+    "written": "files (paths), kind ('decimation' | 'mesh' for a kept mesh), triangles",
+    "asset": "a library row: name, phase ('measure' | 'train'), status, and its numbers",
+    "result": "the run's outcome: path, bytes, quality, ... (a job: name, files, train_seconds, device)",
+    "error": "kind (process.Outcome kind: 'bad_input', 'not_worth', 'cancelled', ...), message",
+    # the render worker's answers
+    "ready": "the worker started: path (the compute path it runs)",
+    "scene": "id, problems (objects that could not be loaded)",
+    "frame": "channel, id, level, width, height, seconds (the pixels follow as raw float32 RGBA)",
+    "superseded": "channel, id: a newer request replaced this one",
+    # the add-on's render client, when the worker process ends
+    "exit": "code",
+}
+#: The render worker's requests ("op") -> what they carry.
+WORKER_REQUESTS = {
+    "scene": "id, scene (scene_render.SceneSpec as a dict)",
+    "render": "channel, id, camera (4x4 rows, NDC -> world), width, height, samples, levels",
+    "cancel": "channel",
+    "quit": "nothing (end of input means the same)",
+}
+
+
+def event(kind: str, **fields) -> dict:
+    """One declared event (`EVENTS`); raises ValueError for an undeclared kind."""
+    if kind not in EVENTS:
+        raise ValueError(f"undeclared event {kind!r}; declared: {', '.join(EVENTS)}")
+    return {"event": kind, **fields}
 
 
 def null_sink(event: dict) -> None:
