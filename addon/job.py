@@ -210,8 +210,9 @@ class Job:
 
 
 #: Seconds the phases after a training take (evaluation; then the preview image, proxy points and files) until this
-#: job has timed one: measured on this 2-core CPU for the default 16 views at 128 px and a 256 px preview.
-EVAL_GUESS_S, FINISH_GUESS_S = 4.0, 4.0
+#: job has timed one: 4 s measured on this 2-core CPU for 16 views at 128 px, scaled to the default 256 px (4x the
+#: pixels, the held-out and the check views), and a 256 px preview.
+EVAL_GUESS_S, FINISH_GUESS_S = 12.0, 4.0
 TRAINING_PHASES = ("train", "anneal", "freeze", "quantize")
 
 

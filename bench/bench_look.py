@@ -12,7 +12,7 @@ the Smart-UV Suzanne `bench/look_suzanne.py` exports) compress with a preset at 
 * bytes: the whole file, its appearance head, its textures; seconds: geometry training and the head's.
 
     .venv/bin/python bench/bench_look.py [--preset preview] [--assets globe,crate,ring,patchwork] [--npz X.npz]
-                                         [--target coordinates|colour]
+                                         [--real engine] [--target coordinates|colour]
 
 --target colour: the head learns the textured colour itself and the file keeps no image (the alternative to
 coordinates + images); rows then have no slot or coordinate scores, the bytes and FLIP compare the two.
@@ -30,6 +30,8 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 
 from harness import RESULTS, append_rows, read_rows, stamp
+from real_assets import asset_path
+from nbvh_core.geometry.mesh import load_mesh
 from nbvh_core.geometry import demo_assets
 from nbvh_core.geometry.mesh_arrays import mesh_from_npz
 from nbvh_core.geometry.look import hit_labels, seam_distance, seam_edges
@@ -102,6 +104,8 @@ def main() -> None:
     ap.add_argument("--preset", default="preview")
     ap.add_argument("--assets", default="globe,crate,ring,patchwork")
     ap.add_argument("--npz", action="append", default=[], type=Path)
+    ap.add_argument("--real", action="append", default=[], help="a real asset by name (bench/real_assets.py), e.g. "
+                    "engine: 115 plain material slots")
     ap.add_argument("--views", type=int, default=4)
     ap.add_argument("--size", type=int, default=512)
     ap.add_argument("--target", choices=["coordinates", "colour"], default="coordinates")
@@ -110,6 +114,7 @@ def main() -> None:
             if r["commit"] == stamp()["commit"]}
     jobs = [(a, lambda a=a: demo_assets.ASSETS[a]()) for a in args.assets.split(",") if a]
     jobs += [(p.stem, lambda p=p: mesh_from_npz(p, p.stem)) for p in args.npz]
+    jobs += [(n, lambda n=n: load_mesh(asset_path(n))) for n in args.real]
     for name, make in jobs:
         if (name, args.preset, args.target) in done:
             continue

@@ -18,9 +18,12 @@ fi
 # --overwrite: the demo owns out/NAME and replaces its own earlier result (only once the new one is complete)
 rc=0
 "$NBVH_PY" -m nbvh_core compress "$sample" -o "out/$name/$name.nbvh" --overwrite "$@" || rc=$?
-if [ "$rc" -eq 4 ]; then  # the verdict: kept as a mesh (any decimation that wins is in out/NAME/)
+if [ "$rc" -eq 4 ]; then  # kept as a mesh: the winning decimation or mesh is in out/NAME/
+  echo "decided: kept as a mesh (it is smaller than the model at the same measured quality; see the lines above)"
   exit 0
 elif [ "$rc" -ne 0 ]; then
   exit "$rc"
 fi
 "$NBVH_PY" -m nbvh_core info "out/$name/$name.nbvh" --mesh "$sample"
+# one line: what was decided and why (the final verdict of a sized run, else the verdict before training)
+"$NBVH_PY" -c 'import json, sys; r = json.load(open(sys.argv[1])); f = (r.get("decisions") or {}).get("final"); print("decided: " + (f["message"] if f else "the model (a fixed preset measures no decimation; before training: " + r["assessment"]["message"] + ")"))' "out/$name/$name.report.json"

@@ -148,6 +148,8 @@ def test_the_alternative_curve_is_the_measured_envelope_interpolated_in_log_log(
     assert curve.bytes_at(0.005) == pytest.approx(2000, rel=1e-6)  # halfway in log MSE: halfway in log bytes
     assert curve.bytes_at(1e-6) == float("inf")  # nothing measured reaches it
     assert curve.cheapest_meeting(0.003).bytes == 4000 and curve.cheapest_meeting(1e-6) is None
+    # between the last decimation and the whole mesh (16,000 triangles): a count below the mesh's, to be measured
+    assert 1000 < curve.triangles_at(0.0015) < 4000 and 4000 < curve.triangles_at(0.0001) < 16000
 
 
 def test_a_check_keeps_the_mesh_when_the_model_stays_above_a_measured_decimation(monkeypatch):
@@ -192,7 +194,7 @@ def test_the_final_verdict_ships_the_smaller_at_the_same_measured_mse():
         settled.message
     missing = lambda count: asked.append(count) or CurvePoint(2100, 0.0025, count, count)  # noqa: E731
     assert final_verdict(5000, 0.0019, 0.0005, _curve([(500, 0.01), (2000, 0.002), (8000, 0.0005), (40000, 1e-5)]),
-                         measure=missing).shipped == "model" and len(asked) == 1 + 2  # two tries, both missed
+                         measure=missing).shipped == "model" and len(asked) == 1 + 3  # three tries, all missed
     won = final_verdict(5000, 0.0004, 0.0005, curve)
     assert won.shipped == "model" and won.level_met and won.ratio > 1 and "smaller" in won.message
     forced = final_verdict(9000, 0.0019, 0.0005, curve, force=True)

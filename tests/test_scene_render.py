@@ -151,7 +151,9 @@ def test_neural_object_matches_its_mesh_at_a_transform(blob_files):
     fg_a, fg_b = a[..., 3] > 0, b[..., 3] > 0
     assert fg_b.sum() > 500
     assert (fg_a & fg_b).sum() / (fg_a | fg_b).sum() > 0.95
-    assert float(((np.clip(a[..., :3], 0, 1) - np.clip(b[..., :3], 0, 1)) ** 2).mean()) < 0.01
+    # on the pixels both draw (the background would dilute it): recorded 0.000197; a 2x regression fails
+    both = fg_a & fg_b
+    assert float(((np.clip(a[..., :3], 0, 1) - np.clip(b[..., :3], 0, 1))[both] ** 2).mean()) < 0.00035
 
 
 def test_bad_objects_are_left_out_with_a_reason(tmp_path, blob_files):

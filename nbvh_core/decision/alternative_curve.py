@@ -1,7 +1,9 @@
 """The alternative a model must beat, as a curve: compact-mesh bytes against image MSE, measured once per run on
 the decimations `planning.sizing.alternatives` tried and the whole mesh, each scored by the run's own metric.
 
-Between two measured points the curve is the straight line in log bytes / log MSE (decimation sizes 4x apart);
+Between two measured points the curve is the straight line in log bytes / log MSE (decimation sizes 4x apart; a
+prediction that flatters the alternative next to the whole mesh, whose MSE is only the grid's: a verdict that
+rests on it measures the decimation it predicts first, `final_verdict`);
 below the best measured MSE (the whole mesh's grid error) no alternative exists; above the loosest, the smallest
 measured decimation stands for it (a smaller one may exist: this flatters the model only where models are
 tiny)."""
@@ -60,11 +62,13 @@ class AlternativeCurve:
     def triangles_at(self, mse: float) -> int | None:
         """The decimation count the curve expects to reach `mse` (log-log between the measured points), or None
         outside the decimations measured."""
-        pts = [p for p in self.points if p.requested is not None]
+        pts = self.points  # the whole mesh (requested None) bounds the last gap by its triangle count
         for lo, hi in zip(pts, pts[1:]):
             if hi.mse <= mse <= lo.mse and lo.mse > hi.mse:
                 w = math.log(lo.mse / mse) / math.log(lo.mse / hi.mse)
-                return int(round(math.exp(math.log(lo.requested) + w * math.log(hi.requested / lo.requested))))
+                a, b = lo.requested or lo.triangles, hi.requested or hi.triangles
+                count = int(round(math.exp(math.log(a) + w * math.log(b / a))))
+                return count if count < (hi.triangles if hi.requested is None else math.inf) else None
         return None
 
     def add(self, point: CurvePoint) -> None:

@@ -8,13 +8,15 @@ from .alternative_curve import AlternativeCurve
 from .records import FinalVerdict
 
 
-#: Decimations measured to settle a verdict the curve's interpolation leaves open (each 1.19x above the last).
-SETTLE_TRIES = 2
+#: Decimations measured to settle a verdict the curve's interpolation leaves open (each 1.41x above the last).
+SETTLE_TRIES = 3
+SETTLE_STEP = 2 ** 0.5
 
 
 def _settle(curve: AlternativeCurve, model_bytes: int, model_mse: float, measure) -> None:
     """When the interpolated curve is below the model but no measured decimation reaching its MSE is smaller,
-    measure the decimation the curve expects there (then 1.19x larger), so a measurement decides, not the line."""
+    measure the decimation the curve expects there (then 1.41x larger, up to SETTLE_TRIES), so a measurement
+    decides, not the line."""
     point = curve.cheapest_meeting(model_mse)
     if measure is None or curve.bytes_at(model_mse) >= model_bytes or (point and point.bytes < model_bytes):
         return
@@ -24,7 +26,9 @@ def _settle(curve: AlternativeCurve, model_bytes: int, model_mse: float, measure
         curve.add(got)
         if got.mse <= model_mse or got.bytes >= model_bytes:
             return
-        count = int(count * 2 ** 0.25) + 1
+        count = int(count * SETTLE_STEP) + 1
+        if count >= max(p.triangles for p in curve.points):
+            return
 
 
 def final_verdict(model_bytes: int, model_mse: float, target: float | None, curve: AlternativeCurve | None,
@@ -44,6 +48,9 @@ def final_verdict(model_bytes: int, model_mse: float, target: float | None, curv
     beaten_by = curve.cheapest_meeting(model_mse)
     beaten = beaten_by is not None and beaten_by.bytes < model_bytes
     level = "" if level_met is not False else f"; the level {target:g} was out of reach in the budget"
+    at_level = curve.cheapest_meeting(target) if level_met is False else None
+    if at_level is not None:  # what reaching the level would take as a mesh, for the user to choose
+        level += f" (a mesh of {at_level.triangles:,} triangles meets it: {at_level.bytes:,} B)"
     if beaten and not force:
         what = (f"a decimation to {beaten_by.triangles:,} triangles" if beaten_by.requested is not None
                 else "the whole mesh")
@@ -56,10 +63,13 @@ def final_verdict(model_bytes: int, model_mse: float, target: float | None, curv
                             f"({model_bytes / beaten_by.bytes:.2f}x the decimation){level}")
     if alt_bytes is None:
         versus = "no alternative measured reaches its MSE"
-    else:
-        versus = (f"the compact decimation at the same MSE ~{alt_bytes:,.0f} B: the model is "
-                  + (f"{alt_bytes / model_bytes:.2f}x smaller" if alt_bytes >= model_bytes
-                     else f"{model_bytes / alt_bytes:.2f}x larger"))
+    elif alt_bytes >= model_bytes:
+        versus = f"the compact decimation at the same MSE ~{alt_bytes:,.0f} B: the model is {alt_bytes / model_bytes:.2f}x smaller"
+    else:  # the line between measured points says smaller, no measurement does
+        nearest = beaten_by.bytes if beaten_by is not None else None
+        versus = (f"the curve between measured decimations puts one at ~{alt_bytes:,.0f} B, but none measured "
+                  f"reaches this MSE in fewer bytes than the model"
+                  + (f" (the smallest that does: {nearest:,} B)" if nearest else ""))
     forced = "; shipped because forced" if beaten else ""
     return FinalVerdict(model_bytes, model_mse, alt_bytes, "model", None, level_met, force,
                         f"the model: {model_bytes:,} B at MSE {model_mse:.4g}; {versus}{level}{forced}")

@@ -498,22 +498,28 @@ def alternatives(mesh: Mesh, target_mse: float | None, tracer=None, checks=None,
         tried[count] = decimation_entry(mesh, count, checks, held_out, DracoPy)
         return tried[count]
 
+    def meets(entry: dict) -> bool:  # on the check views and, when measured, the held-out views alike
+        return max(entry["compact_mse"], entry.get("compact_mse_held_out", 0.0)) <= target_mse
+
     missed, met = None, None
     counts = [c for c in DECIMATE_COUNTS if c < mesh.n_triangles * DECIMATE_MAX_SHARE]
     for i, count in enumerate(counts):
-        if measure(count)["compact_mse"] <= target_mse:
+        if meets(measure(count)):
             met = count
             if i + 1 < len(counts):
                 measure(counts[i + 1])
             break
         missed = count
+    top = int(mesh.n_triangles * DECIMATE_MAX_SHARE)
+    if met is None and counts and counts[-1] < top and meets(measure(top)):  # the gap up to the whole mesh
+        missed, met = counts[-1], top
     if met is not None:
         lo = missed if missed is not None else max(met // 4, 4)
         for _ in range(DECIMATE_REFINE):
             mid = int(round(math.sqrt(lo * met)))
             if mid in (lo, met):
                 break
-            if measure(mid)["compact_mse"] <= target_mse:
+            if meets(measure(mid)):
                 met = mid
             else:
                 lo = mid
