@@ -408,9 +408,12 @@ class NBVH_OT_check_python(bpy.types.Operator):
 
 
 def _library_settings(props) -> dict:
-    """The batch's settings from the panel: the preset or target (a byte budget applies per asset), time limit."""
+    """The batch's settings from the panel: the preset or target (a byte budget applies per asset), time limit,
+    and *Train even if not worth it*."""
     spec = {"preset": props.preset, "time_limit_s": float(props.time_limit), "device": props.device.lower(),
             "mesh_layout": props.compare_with.lower()}
+    if props.force:
+        spec["force"] = True
     if props.mode == "TARGET":
         spec["target_mse"] = engine.QUALITY_LEVELS[props.target.lower()]
     elif props.mode == "BUDGET":

@@ -163,11 +163,13 @@ def test_compress_via_operator_loads_image_proxy_report():
     props.mode, props.preset = "PRESET", "preview"
     props.output_dir = str(Path(ARGS.work) / "panel_out")
     props.time_limit = 8
+    props.force = True  # the blob is 72 KB as a compact mesh, smaller than a preview model: trained anyway
     select("Blob")
     bpy.context.view_layer.objects.active = blob
     assert bpy.ops.nbvh.compress() == {"FINISHED"}
     assert props.running
     run_operator_until_done()
+    props.force = False
     assert not props.running and props.phase == "done", (props.phase, props.last_error)
     assert mesh_fingerprint(blob) == before, "the original mesh or transform changed"
     results = list(bpy.context.scene.nbvh_results)
@@ -494,8 +496,11 @@ def test_compress_library_folder_with_a_blend_file():
     props = bpy.context.scene.nbvh_props
     props.mode, props.preset, props.time_limit = "PRESET", "preview", 5
     props.output_dir = str(Path(ARGS.work) / "library_out")
+    # weighed plainly: the blob (72 KB as a compact mesh) is then worth a preview model, Suzanne (968 triangles) not
+    props.compare_with = "PLAIN"
     assert bpy.ops.nbvh.compress_library(directory=str(lib)) == {"FINISHED"}
     run_library_until_done(timeout=900)
+    props.compare_with = "COMPACT"
     assert props.library_phase == "finished", props.library_phase
     rows = {r.name: r for r in props.library_rows}
     assert rows["blob"].status == "done" and rows["blob"].model_bytes > 0
@@ -560,7 +565,7 @@ def test_render_engine_draws_three_models_like_their_meshes():
           f"{mse:.5f}")
     assert neural.shape == (180, 320, 4)
     assert reference[..., :3].std() > 0.05 and neural[..., :3].std() > 0.05  # objects, not a flat image
-    assert mse < 0.01, mse
+    assert mse < 0.004, mse  # recorded 0.00203 (Blender 3.4) and 0.00226 (5.0): a 2x regression fails
     # Shadows: somewhere on the ground it is much darker with shadows than without.
     assert (no_shadows[..., :3].mean(-1) - reference[..., :3].mean(-1)).max() > 0.15
     # Colours come from the materials: the blob is reddish somewhere, the studs bluish.

@@ -215,7 +215,8 @@ def measure_asset(asset: dict, spec: dict) -> dict:
         tracer = ExactTracer(mesh)
         a = assess(mesh, settings, measure_alternatives=settings.target_mse is not None, tracer=tracer)
         thumb = render_reference(tracer, orbit_cameras(1)[0], THUMBNAIL_PX, THUMBNAIL_PX).display
-        out.update(status="measured" if a.worth_compressing else "not_worth", triangles=mesh.n_triangles,
+        out.update(status="measured" if a.worth_compressing or settings.force else "not_worth",
+                   triangles=mesh.n_triangles,
                    mesh_resident_bytes=a.resident["total"], draco_bytes=a.alternatives.get("draco11_bytes"),
                    predicted_model_bytes=a.model_bytes, verdict=a.message, recommendation=a.recommendation,
                    key=settings_key(mesh_identity(mesh)["sha256"], spec), thumb=png_bytes(thumb),
@@ -514,7 +515,7 @@ def _run_locked(library: Path, out: Path, spec: dict, events: EventSink, should_
     except BaseException:
         if "lib" in locals():
             for row in lib.rows.values():
-                if row.status == "measured" and row.recommendation == "neural" and not measure_only:
+                if row.status == "measured" and not measure_only:  # measured = worth it, or forced
                     row.status = "cancelled"
             lib.info["wall_s"] = round(time.time() - t0, 1)
             lib.write_report(final=True)
@@ -531,7 +532,7 @@ def _train_worth(lib: _Library, cluster: dict, spec: dict, events: EventSink, sh
     """The training phase: worth assets, largest predicted savings first; finished ones (by KEY) are reused."""
     import ray
 
-    worth = sorted((r for r in lib.rows.values() if r.status == "measured" and r.recommendation == "neural"),
+    worth = sorted((r for r in lib.rows.values() if r.status == "measured"),
                    key=lambda r: -r.predicted_savings)
     jobs, first_of_key = [], {}
     for row in worth:
