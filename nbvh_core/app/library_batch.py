@@ -221,10 +221,7 @@ def measure_asset(asset: dict, spec: dict) -> dict:
                    predicted_model_bytes=a.model_bytes, verdict=a.message, recommendation=a.recommendation,
                    key=settings_key(mesh_identity(mesh)["sha256"], spec), thumb=png_bytes(thumb),
                    compact_bytes=a.compact_bytes, texture_bytes=mesh.look.texture_bytes() if mesh.look else 0)
-        dec = winning_decimation(mesh, a)
-        if dec is not None:  # the mesh that wins, as a file the head writes (workers may not share its disk)
-            out.update(decimation_triangles=dec.n_triangles, decimation_ply=mesh_file_bytes(dec),
-                       decimation_compact_bytes=a.alternatives["decimation"].get("compact_bytes"))
+        out.update(_decimation_fields(mesh, a))
     except Exception as exc:  # a bad asset is a row with its error, never the end of the run
         out.update(status="failed", error=f"{type(exc).__name__}: {exc}")
     out["measure_seconds"] = round(time.perf_counter() - t0, 3)
@@ -250,11 +247,7 @@ def compress_asset(asset: dict, spec: dict) -> dict:
         torch.set_num_threads(max(1, int(os.environ.get("OMP_NUM_THREADS", torch.get_num_threads()))))
         kernels.keep_freed_memory()
         mesh = load_asset(asset["path"], asset["name"])
-        try:
-            res = compress_mesh(mesh, settings_from_request(spec))
-        except NotWorthCompressing as exc:
-            out.update(_kept_as_mesh(mesh, exc.assessment))
-            return out
+        res = compress_mesh(mesh, settings_from_request(spec))
         bundle = make_bundle(res, mesh, View(orbit_cameras(1)[0], THUMBNAIL_PX, THUMBNAIL_PX),
                              ("model", "report", "preview"))
         out.update(status="done", bundle_files=bundle.files, summary=bundle.report, thumb=bundle.files["preview"],
@@ -263,6 +256,9 @@ def compress_asset(asset: dict, spec: dict) -> dict:
                    train_seconds=round(res.training.seconds, 2),
                    alternative_bytes=_rounded((res.decisions.get("final") or {}).get("alternative_bytes")),
                    verdict=(res.decisions.get("final") or {}).get("message"))
+    except NotWorthCompressing as exc:  # a measurement during or after training kept the mesh
+        a = exc.assessment
+        out.update(status="not_worth", verdict=a.message, recommendation=a.recommendation, **_decimation_fields(mesh, a))
     except Exception as exc:
         out.update(status="failed", error=f"{type(exc).__name__}: {exc}")
     out["task_seconds"] = round(time.perf_counter() - t0, 2)
@@ -273,17 +269,16 @@ def _rounded(x) -> int | None:
     return None if x is None else int(round(x))
 
 
-def _kept_as_mesh(mesh, assessment) -> dict:
-    """A compress task's row when a measurement during or after training kept the mesh: the verdict and the
-    decimation that wins, as a file the head writes."""
+def _decimation_fields(mesh, assessment) -> dict:
+    """The row's fields for the decimation a verdict keeps instead of a model (none when it keeps no decimation):
+    the mesh that wins as a file the head writes (workers may not share its disk)."""
     from ..planning.sizing import mesh_file_bytes, winning_decimation
 
-    out = {"status": "not_worth", "verdict": assessment.message, "recommendation": assessment.recommendation}
     dec = winning_decimation(mesh, assessment)
-    if dec is not None:
-        out.update(decimation_triangles=dec.n_triangles, decimation_ply=mesh_file_bytes(dec),
-                   decimation_compact_bytes=assessment.alternatives["decimation"].get("compact_bytes"))
-    return out
+    if dec is None:
+        return {}
+    return {"decimation_triangles": dec.n_triangles, "decimation_ply": mesh_file_bytes(dec),
+            "decimation_compact_bytes": assessment.alternatives["decimation"].get("compact_bytes")}
 
 
 def task_resources(triangles: int, cluster: dict) -> dict:

@@ -24,7 +24,7 @@ from ..protocol.events import EventSink, null_sink
 from ..geometry.exact import ExactTracer
 from ..storage.fileformat import component_bytes, encode_nbvh, look_stored_bytes, write_atomic
 from ..geometry.mesh import Mesh
-from ..rendering.metrics import Quality, ViewScorer, evaluate
+from ..rendering.metrics import Quality, ViewScorer
 from ..neural.model import NeuralBVH
 from ..protocol.process import Cancelled, NotWorthCompressing, TrainingDiverged
 from ..neural.quantize import snap_nodes
@@ -160,15 +160,21 @@ def _train_with_restarts(mesh, bvh, tracer, settings, why, events, should_cancel
     raise AssertionError("unreachable")
 
 
+def _shipped_materials(mesh: Mesh, made) -> list:
+    """The slots' materials as the file keeps them: without their images when the head `made` learns the colour."""
+    materials = list(mesh.look.materials)
+    if made is not None and made[0].cfg.target == "colour":  # the colour is learnt: the images are not kept
+        materials = [dataclasses.replace(m, image=None, _linear=None) for m in materials]
+    return materials
+
+
 def _look_bytes(mesh: Mesh, settings: Settings, made) -> int:
     """What the file adds for the asset's look (`fileformat.look_stored_bytes`: the head `made` as stored, the slot
-    images unless the head learns the colour itself), so every decision weighs the model as it ships."""
+    images it keeps), so every decision weighs the model as it ships."""
     if mesh.look is None:
         return 0
-    materials = list(mesh.look.materials)
-    if made is not None and made[0].cfg.target == "colour":
-        materials = [dataclasses.replace(m, image=None, _linear=None) for m in materials]
-    return sum(look_stored_bytes(made[0].cfg if made else None, materials, settings.storage()).values())
+    return sum(look_stored_bytes(made[0].cfg if made else None, _shipped_materials(mesh, made),
+                                 settings.storage()).values())
 
 
 def _verdict(mesh: Mesh, settings: Settings, why: str, weighing: _Weighing, events: EventSink,
@@ -412,9 +418,7 @@ def _appearance(model: NeuralBVH, mesh: Mesh, tracer: ExactTracer, settings: Set
     and hold it as the file stores it. Returns what the file's metadata records of it ({} for a bare shape)."""
     if mesh.look is None:
         return {}
-    model.materials = list(mesh.look.materials)
-    if made is not None and made[0].cfg.target == "colour":  # the colour is learnt: the images are not kept
-        model.materials = [dataclasses.replace(m, image=None, _linear=None) for m in model.materials]
+    model.materials = _shipped_materials(mesh, made)
     if made is None:
         return {"slots": mesh.look.n_slots, "head": None}
     head, face_patch = made
@@ -460,9 +464,7 @@ def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = 
     tracer = ExactTracer(mesh)  # one Embree scene for the alternatives, the labels and the evaluation
     head = make_head(mesh, AppearanceConfig(target=settings.appearance_target,
                                             log2_table=settings.appearance_log2_table))
-    weighing = _Weighing(ViewScorer(tracer, mesh.transform, settings.eval_views, settings.eval_resolution),
-                         ViewScorer(tracer, mesh.transform, settings.eval_views, settings.eval_resolution, True),
-                         look_bytes=_look_bytes(mesh, settings, head))
+    weighing = _Weighing(*sizing.view_scorers(mesh, settings, tracer), look_bytes=_look_bytes(mesh, settings, head))
     assessment = _verdict(mesh, settings, why, weighing, events, seconds)
     asked = settings
     if head is not None and settings.time_limit_s and resume_from is None:  # the head's share of the budget

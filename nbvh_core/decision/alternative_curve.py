@@ -24,15 +24,20 @@ class CurvePoint:
     requested: int | None
 
 
+def _envelope(points: list[CurvePoint]) -> list[CurvePoint]:
+    """By bytes ascending, each point that is better than every smaller one (measured, finite)."""
+    out: list[CurvePoint] = []
+    for p in sorted((p for p in points if math.isfinite(p.mse) and p.bytes > 0), key=lambda p: (p.bytes, p.mse)):
+        if not out or p.mse < out[-1].mse:
+            out.append(p)
+    return out
+
+
 class AlternativeCurve:
     """The lower envelope of measured (bytes, MSE) points: no point kept is beaten in both by another."""
 
     def __init__(self, points: list[CurvePoint]):
-        finite = sorted((p for p in points if math.isfinite(p.mse) and p.bytes > 0), key=lambda p: (p.bytes, p.mse))
-        self.points: list[CurvePoint] = []
-        for p in finite:  # by bytes ascending: keep a point only when it is better than every smaller one
-            if not self.points or p.mse < self.points[-1].mse:
-                self.points.append(p)
+        self.points = _envelope(points)
 
     @classmethod
     def from_alternatives(cls, alt: dict, held_out: bool = False) -> "AlternativeCurve | None":
@@ -73,7 +78,7 @@ class AlternativeCurve:
 
     def add(self, point: CurvePoint) -> None:
         """One more measured point (a decimation measured to settle a verdict)."""
-        self.__init__(self.points + [point])
+        self.points = _envelope(self.points + [point])
 
     def cheapest_meeting(self, mse: float) -> CurvePoint | None:
         """The smallest measured point whose MSE is at most `mse` (what can be shipped instead), or None."""

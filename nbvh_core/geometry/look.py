@@ -14,8 +14,6 @@ Principled/Diffuse BSDF whose Base Color is an Image Texture or a plain value.
 """
 from __future__ import annotations
 
-import dataclasses
-
 import io
 from dataclasses import dataclass, field, replace
 
@@ -263,7 +261,7 @@ def uv_patches(vertices: np.ndarray, faces: np.ndarray, look: Look, tolerance: f
         return face_patch, np.zeros((len(slots), 2, 5 if degree == 1 else 11), np.float32), slots.astype(np.int32)
     textured = np.array([m.image is not None for m in look.materials], bool)
     if not textured.any():
-        return uv_patches(vertices, faces, dataclasses.replace(look, corner_uvs=None), tolerance, max_patches, degree)
+        return uv_patches(vertices, faces, replace(look, corner_uvs=None), tolerance, max_patches, degree)
     charts = np.where(textured[look.face_slots], uv_charts(faces, look.corner_uvs), -1)
     groups = np.unique(np.stack([charts, look.face_slots], 1), axis=0, return_inverse=True)[1].reshape(-1)
     members = [np.nonzero(groups == g)[0] for g in range(groups.max() + 1)]

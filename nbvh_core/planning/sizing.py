@@ -437,15 +437,15 @@ DECIMATE_MAX_SHARE = 0.7
 DECIMATE_REFINE = 3
 
 
-def _scorers(mesh: Mesh, tracer, checks, held_out):
-    """The run's two view sets (rendering.metrics.ViewScorer), made with the metric's defaults when not given."""
+def view_scorers(mesh: Mesh, settings, tracer=None):
+    """The run's two view sets (rendering.metrics.ViewScorer): the checks' and the held-out ones, at the settings'
+    views and resolution (one metric for the CLI, the add-on's jobs and library batches)."""
     from ..geometry.exact import ExactTracer
     from ..rendering.metrics import ViewScorer
 
-    if checks is None:
-        tracer = tracer or ExactTracer(mesh)
-        checks = ViewScorer(tracer, mesh.transform, 16, 128)
-    return checks, held_out
+    tracer = tracer or ExactTracer(mesh)
+    return (ViewScorer(tracer, mesh.transform, settings.eval_views, settings.eval_resolution),
+            ViewScorer(tracer, mesh.transform, settings.eval_views, settings.eval_resolution, held_out=True))
 
 
 def decimation_entry(mesh: Mesh, count: int, checks, held_out, draco) -> dict:
@@ -468,13 +468,13 @@ def decimation_entry(mesh: Mesh, count: int, checks, held_out, draco) -> dict:
     return entry
 
 
-def alternatives(mesh: Mesh, target_mse: float | None, tracer=None, checks=None, held_out=None) -> dict:
+def alternatives(mesh: Mesh, target_mse: float | None, checks=None, held_out=None, tree=None) -> dict:
     """What a user could ship instead, measured: Draco (11-bit, storage bytes) of the mesh, and quadric decimations
     (fast-simplification) up to the smallest whose image MSE meets `target_mse` (see DECIMATE_COUNTS), each with its
     resident and compact-mesh bytes and the compact mesh's MSE, scored by the run's own metric: `checks` (a
     rendering.metrics.ViewScorer: the training checks' views) and `held_out` (the final evaluation's). The whole
-    mesh as a compact mesh is scored too ('mesh_compact'). Missing optional packages give a note instead of
-    numbers. `tracer`: the mesh's ExactTracer when the caller has one and passes no scorer."""
+    mesh as a compact mesh is scored too ('mesh_compact'; `tree`: its `bvh.build_full_tree` when the caller has one).
+    Missing optional packages give a note instead of numbers. With a target, `checks` is required."""
     out: dict = {}
     try:
         import DracoPy
@@ -490,7 +490,6 @@ def alternatives(mesh: Mesh, target_mse: float | None, tracer=None, checks=None,
     except ImportError:
         out["note"] = (out.get("note", "") + "; " if "note" in out else "") + "fast-simplification not installed"
         return out
-    checks, held_out = _scorers(mesh, tracer, checks, held_out)
     out["metric"] = checks.name
     tried: dict[int, dict] = {}
 
@@ -525,15 +524,15 @@ def alternatives(mesh: Mesh, target_mse: float | None, tracer=None, checks=None,
                 lo = mid
         out["decimation"] = tried[met]
     out["decimations_tried"] = [tried[c] for c in sorted(tried)]
-    out["mesh_compact"] = _whole_mesh_entry(mesh, checks, held_out)
+    out["mesh_compact"] = _whole_mesh_entry(mesh, checks, held_out, tree)
     return out
 
 
-def _whole_mesh_entry(mesh: Mesh, checks, held_out) -> dict:
+def _whole_mesh_entry(mesh: Mesh, checks, held_out, tree=None) -> dict:
     """The whole mesh as a compact mesh: its exact bytes and the grid's own error on both view sets."""
     from ..geometry.compact_mesh import compact_mesh
 
-    nbytes, decoded = compact_mesh(mesh)
+    nbytes, decoded = compact_mesh(mesh, tree)
     entry = {"triangles": mesh.n_triangles, "compact_bytes": nbytes, "compact_mse": checks.score_mesh(decoded).mse}
     if held_out is not None:
         entry["compact_mse_held_out"] = held_out.score_mesh(decoded).mse
@@ -594,7 +593,8 @@ def assess(mesh: Mesh, settings, measure_alternatives: bool = False, tracer=None
     MESH_LAYOUTS; both layouts are reported): 'mesh' when the whole mesh is no larger than the model, 'decimate'
     when the decimation is not, else 'neural'. Draco's size (storage only) is reported beside. look_bytes: what the
     model's file adds for the asset's look (appearance head and textures, `fileformat.look_stored_bytes`), so the
-    model is weighed as it will ship. checks, held_out: the run's ViewScorers (see `alternatives`)."""
+    model is weighed as it will ship. checks, held_out: the run's ViewScorers (see `alternatives`; made from the
+    settings, on `tracer` when given, when the caller has none)."""
     from ..geometry.compact_mesh import compact_bytes
 
     layout = settings.mesh_layout
@@ -605,7 +605,9 @@ def assess(mesh: Mesh, settings, measure_alternatives: bool = False, tracer=None
     resident_bytes = mesh_resident_bytes(mesh, tree)
     resident = resident_bytes["total"]
     # The Draco size always (cheap: shows which tool wins for storage alone); decimations only with a target.
-    alt = alternatives(mesh, settings.target_mse if measure_alternatives else None, tracer, checks, held_out)
+    if measure_alternatives and checks is None:
+        checks, held_out = view_scorers(mesh, settings, tracer)
+    alt = alternatives(mesh, settings.target_mse if measure_alternatives else None, checks, held_out, tree)
     compact = alt["mesh_compact"]["compact_bytes"] if "mesh_compact" in alt else compact_bytes(mesh, tree)
     dec = alt.get("decimation")
     held = (lambda plain, comp: comp) if layout == "compact" else (lambda plain, comp: plain)

@@ -26,6 +26,8 @@ class SurfaceLabels:
     def __init__(self, mesh: Mesh, tracer, rng: np.random.Generator, face_patch: np.ndarray | None = None,
                  colour: bool = False):
         self.mesh, self.tracer, self.rng, self.want_colour = mesh, tracer, rng, colour
+        # a slot without an image has no coordinates to learn: its patch's map is zero
+        self.flat_slot = np.array([m.image is None for m in mesh.look.materials])
         self.face_patch = face_patch if face_patch is not None else mesh.look.face_slots
         self.lo, self.hi = mesh.vertices.min(0), mesh.vertices.max(0)
 
@@ -39,9 +41,8 @@ class SurfaceLabels:
             slot, uv = hit_labels(self.mesh.look, self.mesh.vertices, self.mesh.faces, fh.tri[h], p)
             if self.want_colour:
                 uv = linear_to_srgb(albedo(self.mesh.look.materials, slot, uv))
-            elif uv is not None:  # a slot without an image has no coordinates to learn: its patch's map is zero
-                flat = np.array([m.image is None for m in self.mesh.look.materials])[slot]
-                uv = np.where(flat[:, None], np.float32(0), uv)
+            elif uv is not None:
+                uv = np.where(self.flat_slot[slot][:, None], np.float32(0), uv)
             pts.append(p.astype(np.float32))
             slots.append(self.face_patch[fh.tri[h]])
             uvs.append(uv)
