@@ -20,7 +20,7 @@ ROOT = Path(__file__).resolve().parents[1]
 import numpy as np
 
 from bench_meshes import bench_grid, bench_mesh
-from harness import RESULTS, append_row, read_rows, write_markdown
+from harness import RESULTS, append_row, read_rows, save_figure, write_markdown
 from nbvh_core import kernels
 from nbvh_core.geometry.exact import ExactTracer
 from nbvh_core.rendering.metrics import evaluate_renderer
@@ -162,7 +162,7 @@ def charts(rows: list[dict]) -> None:
                      f"targets; blue: other and earlier configurations) vs decimation / Draco, {axis} bytes, one metric",
                      fontsize=9)
         fig.tight_layout()
-        fig.savefig(RESULTS / f"rd_budget_{axis}.png", dpi=90)
+        save_figure(fig, RESULTS / f"rd_budget_{axis}.png", dpi=90)
         plt.close(fig)
 
 

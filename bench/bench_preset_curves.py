@@ -19,7 +19,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 from bench_meshes import bench_mesh
 from bench_pays import equal_mse_decimation
-from harness import RESULTS, append_row, read_rows, write_markdown
+from harness import RESULTS, append_row, read_rows, save_figure, write_markdown
 from nbvh_core import kernels
 from nbvh_core.geometry.exact import ExactTracer
 from nbvh_core.app.pipeline import compress_mesh, preset
@@ -58,7 +58,7 @@ def write_outputs(rows: list[dict]) -> None:
         a.grid(True, which="both", alpha=0.3)
         a.legend()
     fig.tight_layout()
-    fig.savefig(RESULTS / "preset_curves.png", dpi=110)
+    save_figure(fig, RESULTS / "preset_curves.png")
     plt.close(fig)
     lines = ["# Speed against accuracy per preset (bench/bench_preset_curves.py)", "",
              "Each user preset trained for fractions of its own budget (the last point: the preset as users run it) "

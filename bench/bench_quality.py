@@ -37,7 +37,7 @@ import numpy as np
 import torch
 
 from bench_meshes import BENCH_MESHES, bench_mesh
-from harness import RESULTS, append_row, num, read_rows, write_markdown
+from harness import RESULTS, append_row, num, read_rows, save_figure, write_markdown
 from nbvh_core import kernels
 from nbvh_core.app.pipeline import compress_mesh, preset
 from nbvh_core.geometry.exact import ExactTracer
@@ -335,7 +335,7 @@ def charts(plan: Plan) -> None:
                      "decimation" + (" - Draco files must be decoded and a BVH built before tracing" if axis == "resident" else ""),
                      fontsize=10)
         fig.tight_layout()
-        fig.savefig(RESULTS / f"rd_{axis}{plan.suffix}.png", dpi=90)
+        save_figure(fig, RESULTS / f"rd_{axis}{plan.suffix}.png", dpi=90)
         plt.close(fig)
     # MSE against training time; render speed against MSE.
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 3.8))
@@ -353,7 +353,7 @@ def charts(plan: Plan) -> None:
         a2.axhline(np.median(emb), color="black", ls="--", label="Embree (median, same runs)")
     _log_axes(a2, "image MSE", "render rays/s", "Render speed against accuracy")
     fig.tight_layout()
-    fig.savefig(RESULTS / f"speed_accuracy{plan.suffix}.png", dpi=90)
+    save_figure(fig, RESULTS / f"speed_accuracy{plan.suffix}.png", dpi=90)
     plt.close(fig)
 
 

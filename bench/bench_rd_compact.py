@@ -1,7 +1,9 @@
 """Bytes against image error for every contender on the bench meshes: quadric decimations at several triangle
 counts, each held plainly (~44 B per triangle), as a compact ray-traceable mesh (`nbvh_core/geometry/compact_mesh.py`,
-scored on its decoded triangles) and as Draco 11-bit (storage only), beside the neural models of pays.csv (each
-preset trained at its own budget). One metric for all: 16 orbit views at 128 px against the full mesh (Embree).
+scored on its decoded triangles) and as Draco 11-bit (storage only), beside the neural models of bench_pays (each
+preset trained at its own budget, from compact_dgf.csv). One metric for the meshes: the product's `ViewScorer`, 16
+held-out orbit views at 256 px against the full mesh (Embree); the neural points carry bench_pays's MSE (16 views,
+128 px), said so in the legend.
 
     .venv/bin/python bench/bench_rd_compact.py [--meshes bunny spiky ...]   # -> bench/results/rd_compact.{csv,png}
     .venv/bin/python bench/bench_rd_compact.py --chart                      # the chart only, from the CSV
@@ -13,14 +15,13 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
-from harness import RESULTS, append_rows, read_rows
+from harness import RESULTS, append_rows, read_rows, save_figure
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = RESULTS / "rd_compact.csv"
 COUNTS = (1000, 4000, 16000, 64000, 256000)
 MESHES = ("bunny", "spiky", "gyroid", "knot", "terrain", "lattice", "gear", "sheet")
-#: pays.csv rows of the current presets (wound normals for the MLP) and, for the knot, the earlier facing rows.
-NEURAL_STORAGE = ("t8/w8/n8 n_max=auto:64 normals=oriented", "t8/w8/n8 n_max=auto:64")
+VIEWS, SIZE = 16, 256
 
 
 def measure(name: str, done: set) -> None:
@@ -30,12 +31,11 @@ def measure(name: str, done: set) -> None:
     from bench_meshes import bench_mesh
     from nbvh_core.geometry.compact_mesh import compact_mesh
     from nbvh_core.geometry.exact import ExactTracer
-    from nbvh_core.rendering.metrics import evaluate_renderer
-    from nbvh_core.rendering.render import render_reference
+    from nbvh_core.rendering.metrics import ViewScorer
     from nbvh_core.planning.sizing import decimate, mesh_resident_bytes
 
     mesh = bench_mesh(name)
-    reference = ExactTracer(mesh)
+    scorer = ViewScorer(ExactTracer(mesh), mesh.transform, VIEWS, SIZE, held_out=True)
     if (name, "full") not in done:  # the whole mesh: exact, drawn as its bytes (vertical lines)
         nbytes, _ = compact_mesh(mesh)
         append_rows(OUT, [{"mesh": name, "requested": "full", "triangles": mesh.n_triangles, "compact_mse": 0.0,
@@ -50,9 +50,7 @@ def measure(name: str, done: set) -> None:
         if dec.n_triangles > 0.9 * mesh.n_triangles:  # the simplifier kept (nearly) everything: no decimation
             continue
         nbytes, decoded = compact_mesh(dec)
-        tracer = ExactTracer(decoded)
-        q, _ = evaluate_renderer(lambda cam, w, h: render_reference(tracer, cam, w, h), reference, mesh.transform,
-                                 16, 128)
+        q = scorer.score_mesh(decoded)
         row = {"mesh": name, "requested": count, "triangles": dec.n_triangles, "compact_mse": q.mse,
                "plain_bytes": mesh_resident_bytes(dec)["total"], "compact_bytes": nbytes,
                "draco11_bytes": len(DracoPy.encode(dec.vertices, dec.faces, quantization_bits=11,
@@ -70,8 +68,7 @@ def chart(path: Path) -> None:
     import matplotlib.pyplot as plt
 
     rows = read_rows(OUT)
-    neural = [r for r in read_rows(RESULTS / "pays.csv") if r["storage"] in NEURAL_STORAGE]
-    need = read_rows(RESULTS / "need.csv") if (RESULTS / "need.csv").exists() else []
+    neural = read_rows(RESULTS / "compact_dgf.csv")
     meshes = [m for m in MESHES if any(r["mesh"] == m for r in rows)]
     fig, axes = plt.subplots(2, 4, figsize=(17, 8))
     for ax in axes.ravel()[len(meshes):]:
@@ -88,14 +85,12 @@ def chart(path: Path) -> None:
                                   ("compact_bytes", "decimation, compact mesh", "s-"),
                                   ("draco11_bytes", "decimation, Draco 11-bit (storage)", "^--")):
             ax.plot([int(r[key]) for r in dec], mse, style, label=label, ms=4)
-        own = [r for r in neural if r["mesh"] == name]
-        current = [r for r in own if r["storage"] == NEURAL_STORAGE[0]] or own
-        ax.plot([int(r["file_bytes"]) for r in current], [float(r["mse"]) for r in current], "*", ms=12,
-                color="crimson", label="neural (presets at their budgets)")
+        current = [r for r in neural if r["mesh"] == name]
+        ax.plot([int(r["model_file_bytes"]) for r in current], [float(r["model_mse"]) for r in current], "*", ms=12,
+                color="crimson", label="neural, presets at their budgets (MSE at 128 px)")
         for r in current:
-            ax.annotate(r["preset"], (int(r["file_bytes"]), float(r["mse"])), fontsize=7, xytext=(4, 4),
+            ax.annotate(r["preset"], (int(r["model_file_bytes"]), float(r["model_mse"])), fontsize=7, xytext=(4, 4),
                         textcoords="offset points")
-        _need_on(ax, [r for r in need if r["mesh"] == name])
         if not any(y > 0 for line in ax.get_lines() for y in line.get_ydata()[:1] if line.get_marker() != "None"):
             ax.set_ylim(1e-5, 0.1)  # nothing measured yet but the whole mesh's bytes (exact: MSE 0)
             ax.text(0.5, 0.5, "no decimation reduces it (the simplifier keeps\nits sharp edges); the whole mesh is exact",
@@ -104,7 +99,7 @@ def chart(path: Path) -> None:
         ax.set_yscale("log")
         ax.set_title(name)
         ax.set_xlabel("bytes")
-        ax.set_ylabel("image MSE (16 views, 128 px)")
+        ax.set_ylabel(f"image MSE ({VIEWS} held-out views, {SIZE} px)")
         ax.grid(True, which="both", alpha=0.3)
     handles = {}
     for ax in axes.ravel():
@@ -112,26 +107,7 @@ def chart(path: Path) -> None:
             handles.setdefault(label, h)
     fig.legend(list(handles.values()), list(handles), loc="lower center", ncol=5, fontsize=8)
     fig.tight_layout(rect=(0, 0.07, 1, 1))
-    fig.savefig(path, dpi=110)
-
-
-def _need_on(ax, rows: list[dict]) -> None:
-    """bench_need's runs on one panel: the default run's path through its sizes (one training: each check's MSE at
-    the file bytes of the table it had), its final model, and the fixed sizes at the same budget."""
-    import json
-
-    default = next((r for r in rows if r["mode"] == "default" and r["exit_code"] == "0"), None)
-    if default:
-        path = json.loads(default.get("checks") or "[]")
-        if path:
-            ax.plot([c[3] for c in path], [c[2] for c in path], ".-", color="purple", lw=1, ms=4,
-                    label="neural, one growing training (its checks)")
-        ax.plot([int(default["file_bytes"])], [float(default["mse"])], "D", color="purple", ms=8,
-                label="neural, need-driven default")
-    fixed = [r for r in rows if r["mode"].startswith("fixed") or r["mode"] == "preset default"]
-    if fixed:
-        ax.plot([int(r["file_bytes"]) for r in fixed], [float(r["mse"]) for r in fixed], "x", color="k", ms=7,
-                label="neural, fixed sizes (200 s)")
+    save_figure(fig, path)
 
 
 def main() -> None:

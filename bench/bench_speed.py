@@ -33,7 +33,7 @@ from nbvh_core.app.pipeline import preset
 from nbvh_core.rendering.render import orbit_cameras
 from nbvh_core.geometry.bundled_samples import sample_path
 from nbvh_core.training.train import train
-from harness import RESULTS, write_markdown, write_rows
+from harness import RESULTS, save_figure, write_markdown, write_rows
 
 
 def matmul_peak_gflops(device: torch.device, n: int = 4096, repeat: int = 5) -> float:
@@ -225,7 +225,7 @@ def chart(rows, path: Path) -> None:
     ax.set_title("Neural render: reference vs fast path vs Embree (same run)")
     ax.legend()
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path)
     plt.close(fig)
 
 

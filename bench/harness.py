@@ -130,3 +130,37 @@ def write_markdown(path: str | os.PathLike, lines: list[str], run_stamp: dict | 
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text("\n".join(text).rstrip() + "\n")
     return path
+
+
+#: The PNG text key that carries a figure's stamp (`stamp_text`); `tests/test_provenance.py` reads it.
+PNG_STAMP_KEY = "nbvh-provenance"
+
+
+def stamp_text(run_stamp: dict | None = None) -> str:
+    """One line: the command that made a result, commit, machine, kernel plan and UTC time."""
+    st = run_stamp or stamp()
+    return (f"made by `{st['command']}` at commit {st['commit']} on {st['machine']}; kernels: {st['kernel_plan']}; "
+            f"{st['utc']} UTC")
+
+
+def save_figure(fig, path: str | os.PathLike, dpi: int = 110, run_stamp: dict | None = None) -> Path:
+    """Save a matplotlib figure as PNG with its stamp both drawn small along the bottom edge (a reader of the image
+    sees where it comes from) and kept as the PNG text chunk PNG_STAMP_KEY (a test can read it)."""
+    text = stamp_text(run_stamp)
+    fig.text(0.005, 0.003, text, fontsize=5, color="0.4", ha="left", va="bottom")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=dpi, metadata={PNG_STAMP_KEY: text})
+    return path
+
+
+def save_image(image, path: str | os.PathLike, run_stamp: dict | None = None) -> Path:
+    """Save a PIL image as PNG with the stamp as the text chunk PNG_STAMP_KEY."""
+    from PIL import PngImagePlugin
+
+    info = PngImagePlugin.PngInfo()
+    info.add_text(PNG_STAMP_KEY, stamp_text(run_stamp))
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    image.save(path, pnginfo=info)
+    return path

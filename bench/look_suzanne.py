@@ -24,7 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 import bpy
 
-from harness import RESULTS, append_rows
+from harness import RESULTS, append_rows, save_image
 
 
 def build_scene(size: int):
@@ -175,7 +175,7 @@ def main() -> None:
     from PIL import Image
 
     gap = np.ones((args.size, 8, 3), np.float32)
-    Image.fromarray((np.concatenate([nbvh, gap, cycles], 1) * 255 + 0.5).astype(np.uint8)).save(args.out / "figure.png")
+    save_image(Image.fromarray((np.concatenate([nbvh, gap, cycles], 1) * 255 + 0.5).astype(np.uint8)), args.out / "figure.png")
     row = {"size": args.size,
            "seconds": args.seconds, "triangles": facts["triangles"], "file_bytes": facts["file_bytes"],
            "appearance_bytes": facts["appearance_bytes"], "texture_bytes": facts["texture_bytes"],

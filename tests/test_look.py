@@ -269,3 +269,22 @@ def test_plain_slots_cost_one_patch_each_however_many_islands_they_have():
     islands_of_3 = int((mixed.look.face_slots == 3).sum())
     assert head.cfg.patches == np.unique(mixed.look.face_slots).size - 1 + islands_of_3  # its islands: one a face
     assert look_stored_bytes(head.cfg, mixed.look.materials, preset("default").storage())["textures"] > 0
+
+
+def test_a_run_scores_the_file_as_shipped_with_its_look():
+    """The run's report gives the quality of the file itself, read back with its appearance head: colour MSE and
+    FLIP on the held-out views beside the geometry's MSE, and the model's resident bytes count the head and the
+    decoded images."""
+    m = demo_assets.globe(16, 8, texture=32)
+    s = preset("tiny").with_overrides(force=True, eval_views=4, eval_resolution=48)
+    r = compress_mesh(m, s)
+    shipped, geometry = r.quality_as_shipped, r.quality
+    assert shipped is not None and shipped.held_out and shipped.views == 4 and shipped.resolution == 48
+    # the file decodes to the model the run scored: the same geometry, the same grey MSE
+    assert abs(shipped.mse - geometry.mse) <= 1e-6 + 1e-3 * geometry.mse
+    assert 0 <= shipped.colour_mse < 0.05 and 0 < shipped.flip < 0.5  # a tiny model: coarse, but coloured
+    assert geometry.colour_mse is None  # scored before the head was attached
+    summary = r.summary()
+    assert summary["quality_as_shipped"]["flip"] == shipped.flip and "per_view_mse" not in summary["quality_as_shipped"]
+    resident = summary["model_resident_bytes"]
+    assert resident["appearance"] > 0 and resident["textures"] == m.look.texture_bytes()

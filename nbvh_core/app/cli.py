@@ -244,6 +244,10 @@ def _compress_locked(args, mesh, mesh_path, paths, sink) -> int:
         if q:
             print(f"quality ({q.views} {'held-out ' if q.held_out else ''}views, {q.resolution}px): MSE {q.mse:.5f}, "
                   f"silhouette IoU {q.silhouette_iou:.4f}, depth error {q.depth_error:.5f} (unit box)")
+        s = result.quality_as_shipped
+        if s is not None and s.colour_mse is not None:
+            print(f"the file as shipped, its look included ({s.views} held-out views, {s.resolution}px): colour MSE "
+                  f"{s.colour_mse:.5f}, FLIP {s.flip:.4f}")
         t = result.training
         print(f"training: {t.steps} steps, {t.seconds:.1f} s, {t.samples_per_s:,.0f} samples/s on {t.device}")
         print(f"why: {result.why}")

@@ -22,7 +22,7 @@ from ..training.appearance_training import SurfaceLabels, train_head
 from ..geometry.bvh import NODE_DTYPE, build_bvh
 from ..protocol.events import EventSink, null_sink
 from ..geometry.exact import ExactTracer
-from ..storage.fileformat import component_bytes, encode_nbvh, look_stored_bytes, write_atomic
+from ..storage.fileformat import component_bytes, decode_nbvh, encode_nbvh, look_stored_bytes, write_atomic
 from ..geometry.mesh import Mesh
 from ..rendering.metrics import Quality, ViewScorer
 from ..neural.model import NeuralBVH
@@ -67,10 +67,15 @@ class CompressResult:
     #: The decisions on measurements: every training check (decision.records.CheckDecision), the final verdict
     #: (FinalVerdict: the model as shipped against the alternative at the same held-out MSE) and that curve.
     decisions: dict = field(default_factory=dict)
+    #: The file as shipped, decoded from its bytes with its look, on the held-out views: colour MSE and FLIP beside
+    #: the geometry's MSE (for a bare shape the file is the model `quality` scored, at its stored precision).
+    quality_as_shipped: Quality | None = None
 
     def summary(self) -> dict:
         return {"path": self.path, "file_bytes": self.file_bytes, "components": self.components,
                 "quality": self.quality.to_dict() if self.quality else None,
+                "quality_as_shipped": self.quality_as_shipped.brief() if self.quality_as_shipped else None,
+                "model_resident_bytes": self.model.resident_bytes() if self.model is not None else None,
                 "training": {k: v for k, v in dataclasses.asdict(self.training).items() if k != "history"},
                 "settings": self.settings.to_dict(), "seconds": self.seconds, "why": self.why,
                 "target_met": self.target_met, "assessment": self.assessment, "decisions": self.decisions}
@@ -492,16 +497,20 @@ def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = 
                                 _measure_decimation(mesh, weighing, assessment))
         if verdict.shipped != "model":
             raise _keep_the_mesh(assessment, verdict, events)
+    as_shipped = quality
+    if quality is not None and look_info:  # the file read back with its look: what a user sees
+        events({"event": "phase", "phase": "eval", "message": f"the file as shipped: {weighing.held_out.name}"})
+        as_shipped, _ = weighing.held_out.score_model(decode_nbvh(data, "<the file as shipped>"), flip=True)
     decisions = {"checks": [d.to_dict() for d in search.rule.decisions] if search.rule else [],
                  "mse_check_views": search.check_views_mse, "mse_held_out_views": quality.mse if quality else None,
                  "final": verdict.to_dict() if verdict else None,
                  "alternative": weighing.curve_held_out.to_dict() if weighing.curve_held_out else None}
     return _ship(out_path, data, model, tr, settings, quality, why, metadata, assessment, decisions, tracer,
-                 seconds, events, should_cancel)
+                 seconds, events, should_cancel, as_shipped)
 
 
 def _ship(out_path, data: bytes, model, tr, settings, quality, why, metadata, assessment, decisions, tracer,
-          seconds, events, should_cancel) -> CompressResult:
+          seconds, events, should_cancel, as_shipped: Quality | None = None) -> CompressResult:
     """Write the file (atomically) when a path is given and make the run's result."""
     size = len(data)
     if out_path is not None:
@@ -514,7 +523,7 @@ def _ship(out_path, data: bytes, model, tr, settings, quality, why, metadata, as
                             seconds={k: (v if k.startswith("mse") else round(v, 2)) for k, v in seconds.items()},
                             model=model, tracer=tracer, why=why,
                             target_met=metadata["target_met"], assessment=assessment.to_dict(), data=data,
-                            decisions=decisions)
+                            decisions=decisions, quality_as_shipped=as_shipped)
     events({"event": "result", "path": result.path, "bytes": size,
             "quality": json.loads(json.dumps(metadata["quality"])), "train_seconds": round(tr.seconds, 2)})
     return result

@@ -237,7 +237,8 @@ class NeuralBVH(nn.Module):
         place: `traversal.TorchBVH` is a view of them on the CPU), the
         feature rows as held (uint8 codes + affine, or floats), HashVQAD's codes (one byte each), the network's
         weights as held (float16 after `finalize_storage` at 16 bits, or when loaded from such a file; the fused
-        kernels read them without a float32 copy)."""
+        kernels read them without a float32 copy), and for an asset with a look the appearance head as held and the
+        decoded texture images."""
         enc = self.encoding
         rows = (enc.qcodes.numel() + 4 * (enc.qoffset.numel() + enc.qscale.numel()) if enc.quantized
                 else enc.table.numel() * enc.table.element_size())
@@ -248,6 +249,12 @@ class NeuralBVH(nn.Module):
             out["index"] = int(enc.codes.numel())
         out["network"] = sum(t.numel() * t.element_size()
                              for t in (*self.network.parameters(), *self.network.buffers()))
+        if self.appearance is not None:  # the head's tables and layers as held
+            out["appearance"] = sum(t.numel() * t.element_size()
+                                    for t in (*self.appearance.parameters(), *self.appearance.buffers()))
+        textures = sum(m.image.nbytes for m in self.materials if m.image is not None)
+        if textures:  # the decoded images a hit samples
+            out["textures"] = int(textures)
         return out
 
     @torch.no_grad()

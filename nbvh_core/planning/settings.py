@@ -30,7 +30,7 @@ NORMAL_LOSSES = ("facing", "oriented", "unoriented")
 #: closed meshes at the default preset's 200 s (bunny 0.00039 vs 0.00049, spiky 0.00042 vs 0.00064, two sessions);
 #: KMLP, whose pair network sees the segment's two ends in order, keeps facing normals right on the terrain (1.7% off)
 #: and loses silhouettes as wound (III T=2^9: 0.0017 facing vs 0.0068 wound, IoU 0.986 vs 0.911; spiky 0.0017 vs
-#: 0.0048, bench/results/table5*.md).
+#: 0.0048, bench/bench_table5.py).
 NORMAL_LOSS_BY_NETWORK = {"mlp": "oriented", "kmlp": "facing"}
 #: The paper's finest grid resolution (every model); the user presets choose theirs from the mesh.
 PAPER_N_MAX = 128
@@ -218,13 +218,13 @@ PRESETS: dict[str, Settings] = {
     # (~775 KB), 60 s on the bunny, HashGrid+MLP reached MSE 0.0032 / IoU 0.972 (405 steps) against
     # HashVQAD+MLP 0.013 / 0.885 (172 steps); on the gyroid, 90 s, KMLP lost to MLP (0.046 vs 0.025, HashVQAD).
     # So the user presets are HashGrid + MLP + consistent rays; the paper's full method is preset "III".
-    # Storage and feature width by measurement at the default preset's own budget (bench/results/pays.md, bunny,
+    # Storage and feature width by measurement at the default preset's own budget (bench/bench_pays.py, bunny,
     # 200 s): 16 features x T=2^11 with float16 weights 247 KB at MSE 0.00051 (3.4x smaller resident than the
     # equal-MSE decimation); int8 weight rows 202 KB at 0.00052 (4.1x); 8 features x T=2^12 (the same table bytes,
     # a first layer half as wide: 30% more steps in the budget) with int8 rows 186 KB at 0.00045 (5.6x).
     # The grid's finest resolution follows the mesh and the table (n_max None: `sizing.choose_resolution`): at
     # T=2^12 and equal steps N_max 64 beat the paper's 128 on the bunny, blob and gyroid (13-32% lower MSE) and tied
-    # on the studs (bench/results/resolution.md).
+    # on the studs (bench/bench_resolution.py).
     "preview": Settings(encoding="hashgrid", network="mlp", nodes=1023, log2_table=11, features=8, network_bits=8,
                         n_max=None, time_limit_s=60.0, eval_views=8),
     "default": Settings(encoding="hashgrid", network="mlp", log2_table=12, features=8, network_bits=8,

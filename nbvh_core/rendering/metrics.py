@@ -6,6 +6,9 @@
 * silhouette_iou: |hit_ref AND hit_neural| / |hit_ref OR hit_neural| over all pixels of all views.
 * depth_error: mean |t_ref - t_neural| over pixels both hit, in normalised units (unit box) and in the
   original mesh's units.
+* colour_mse: the same mean over the coloured images (sRGB, 3 channels) when both renders have the asset's look;
+  flip: NVIDIA's FLIP (`flip-evaluator`, LDR, mean over views) of what a preview shows (the coloured image, else
+  the grey shading), when asked: what people would see, scored on the file as shipped.
 """
 from __future__ import annotations
 
@@ -30,9 +33,18 @@ class Quality:
     per_view_mse: list = field(default_factory=list)
     neural_rays_per_s: float = 0.0
     reference_rays_per_s: float = 0.0
+    #: None when either render has no look (a bare shape, or a model before its appearance head is attached).
+    colour_mse: float | None = None
+    #: None unless asked (`flip=True`): FLIP costs about as much as rendering the views.
+    flip: float | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+    def brief(self) -> dict:
+        """The scores without the per-view list and speeds: what a report's summary line needs."""
+        return {k: v for k, v in asdict(self).items()
+                if k not in ("per_view_mse", "neural_rays_per_s", "reference_rays_per_s")}
 
 
 def evaluate(model, tracer, n_views: int = 16, resolution: int = 256, keep_images: int = 0, reference=None,
@@ -73,14 +85,16 @@ class ViewScorer:
             self._reference = reference_views(self.tracer, self.n_views, self.resolution, self.held_out)
         return self._reference
 
-    def score(self, render, keep_images: int = 0) -> tuple[Quality, list]:
-        """`render(camera, width, height) -> RenderResult` scored: (Quality, the first `keep_images` image pairs)."""
+    def score(self, render, keep_images: int = 0, flip: bool = False) -> tuple[Quality, list]:
+        """`render(camera, width, height) -> RenderResult` scored: (Quality, the first `keep_images` image pairs);
+        flip: also FLIP of the displayed images."""
         return evaluate_renderer(render, self.tracer, self.transform, self.n_views, self.resolution, keep_images,
-                                 self.reference(), self.held_out)
+                                 self.reference(), self.held_out, flip)
 
-    def score_model(self, model, keep_images: int = 0) -> tuple[Quality, list]:
-        """A NeuralBVH, as it is held (finalize it to its stored precision first to score the file)."""
-        return self.score(lambda cam, w, h: render_neural(model, cam, w, h), keep_images)
+    def score_model(self, model, keep_images: int = 0, flip: bool = False) -> tuple[Quality, list]:
+        """A NeuralBVH, as it is held (finalize it to its stored precision first to score the file; a model
+        decoded from the file's bytes is the file)."""
+        return self.score(lambda cam, w, h: render_neural(model, cam, w, h), keep_images, flip)
 
     def score_mesh(self, mesh) -> Quality:
         """Another triangulation of the same mesh (a decimation, a decoded compact mesh), traced exactly."""
@@ -91,17 +105,17 @@ class ViewScorer:
 
 
 def evaluate_renderer(render, tracer, transform, n_views: int = 16, resolution: int = 256, keep_images: int = 0,
-                      reference=None, held_out: bool = False):
+                      reference=None, held_out: bool = False, flip: bool = False):
     """The same metric for any renderer: `render(camera, width, height) -> RenderResult` (a neural model, or
     Embree on a decimated / Draco-decoded mesh for the baselines) against `tracer`'s exact images (or
     `reference`, those images from `reference_views` with the same views and resolution).
-    `transform` (mesh.Transform) converts the depth error to original units."""
+    `transform` (mesh.Transform) converts the depth error to original units. flip: also score FLIP (Quality.flip)."""
     if reference is not None and (len(reference) != n_views or reference[0].image.shape != (resolution, resolution)):
         raise ValueError(f"reference views are {len(reference)} at {reference[0].image.shape}, not {n_views} at "
                          f"{resolution} px")
     inter = union = 0
     depth_sum, depth_n = 0.0, 0
-    per_view, images = [], []
+    per_view, images, colour, flips = [], [], [], []
     t_neural = t_ref = 0.0
     for i, cam in enumerate(orbit_cameras(n_views, held_out=held_out)):
         t = time.perf_counter()
@@ -116,6 +130,10 @@ def evaluate_renderer(render, tracer, transform, n_views: int = 16, resolution: 
         both = ref.hit & neu.hit
         depth_sum += float(np.abs(ref.depth[both] - neu.depth[both]).sum())
         depth_n += int(both.sum())
+        if ref.colour is not None and neu.colour is not None:
+            colour.append(float(((ref.colour - neu.colour) ** 2).mean()))
+        if flip:
+            flips.append(flip_error(ref.display, neu.display))
         if i < keep_images:
             images.append((ref.image, neu.image))
     depth = depth_sum / max(depth_n, 1)
@@ -123,5 +141,18 @@ def evaluate_renderer(render, tracer, transform, n_views: int = 16, resolution: 
     q = Quality(mse=float(np.mean(per_view)), silhouette_iou=inter / max(union, 1), depth_error=depth,
                 depth_error_original_units=float(transform.distance_to_original(depth)), views=n_views,
                 resolution=resolution, held_out=held_out, per_view_mse=per_view, neural_rays_per_s=n_rays / max(t_neural, 1e-9),
-                reference_rays_per_s=n_rays / max(t_ref, 1e-9))
+                reference_rays_per_s=n_rays / max(t_ref, 1e-9),
+                colour_mse=float(np.mean(colour)) if len(colour) == n_views else None,
+                flip=float(np.mean(flips)) if flips else None)
     return q, images
+
+
+def flip_error(reference: np.ndarray, test: np.ndarray) -> float:
+    """Mean FLIP (LDR) of `test` against `reference`: (H, W) grey or (H, W, 3) sRGB float images in [0, 1]."""
+    import flip_evaluator
+
+    def rgb(img: np.ndarray) -> np.ndarray:
+        img = np.clip(img, 0.0, 1.0).astype(np.float32)
+        return np.ascontiguousarray(np.repeat(img[..., None], 3, axis=2) if img.ndim == 2 else img[..., :3])
+
+    return float(flip_evaluator.evaluate(rgb(reference), rgb(test), "LDR", applyMagma=False)[1])
