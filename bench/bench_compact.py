@@ -1,7 +1,7 @@
 """Neural model vs the equal-MSE decimation held as a compact ray-traceable mesh (`nbvh_core/geometry/compact_mesh.py`):
 for each model row of bench/results/pays.csv (a preset trained at its own budget, its image MSE, and the quadric
 decimation found to meet that MSE), the decimation is rebuilt (deterministic), encoded compactly, decoded, and scored
-with the same metric (16 views, 128 px, Embree reference).
+with the product's metric (`harness.product_scorer`: 16 held-out views, 256 px, Embree reference).
 
     .venv/bin/python bench/bench_compact.py [--storage "t8/w8/n8 n_max=auto:64"]   # -> bench/results/compact.csv
 
@@ -14,7 +14,7 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
-from harness import RESULTS, append_rows, read_rows
+from harness import RESULTS, append_rows, product_scorer, read_rows
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -23,18 +23,13 @@ def compact_row(pays: dict) -> dict:
     """One pays.csv row -> its compact-mesh comparison."""
     from bench_meshes import bench_mesh
     from nbvh_core.geometry.compact_mesh import compact_mesh
-    from nbvh_core.geometry.exact import ExactTracer
-    from nbvh_core.rendering.metrics import evaluate_renderer
-    from nbvh_core.rendering.render import render_reference
     from nbvh_core.planning.sizing import decimate, mesh_resident_bytes
 
     mesh = bench_mesh(pays["mesh"])
     t0 = time.perf_counter()
     dec = decimate(mesh, int(pays["equal_mse_decimation_triangles"]))
     nbytes, decoded = compact_mesh(dec)
-    tracer = ExactTracer(decoded)
-    q, _ = evaluate_renderer(lambda cam, w, h: render_reference(tracer, cam, w, h), ExactTracer(mesh),
-                             mesh.transform, 16, 128)
+    q = product_scorer(mesh).score_mesh(decoded)
     file_bytes = int(pays["file_bytes"])
     plain = mesh_resident_bytes(dec)["total"]
     return {"mesh": pays["mesh"], "triangles": mesh.n_triangles, "preset": pays["preset"], "storage": pays["storage"],

@@ -1,6 +1,6 @@
 """Does compression pay at the user's budget? Neural model (a preset, its real time budget) vs the quadric
 decimation of the same image MSE, on resident bytes; and vs Draco on storage bytes. One metric for every contender:
-`metrics.evaluate` (16 orbit views, 128 px, Embree reference), the one the pipeline reports.
+`harness.product_scorer` (16 held-out orbit views, 256 px, Embree reference), the one the pipeline reports.
 
     .venv/bin/python bench/bench_pays.py --meshes bunny --presets default [--table-bits 8 32]
     .venv/bin/python bench/bench_pays.py --charts    # only the charts, from pays.csv and baselines.csv
@@ -20,12 +20,10 @@ ROOT = Path(__file__).resolve().parents[1]
 import numpy as np
 
 from bench_meshes import bench_grid, bench_mesh
-from harness import RESULTS, append_row, read_rows, save_figure, write_markdown
+from harness import RESULTS, append_row, product_scorer, read_rows, save_figure, write_markdown
 from nbvh_core import kernels
 from nbvh_core.geometry.exact import ExactTracer
-from nbvh_core.rendering.metrics import evaluate_renderer
 from nbvh_core.app.pipeline import compress_mesh, estimate_file_bytes, preset
-from nbvh_core.rendering.render import render_reference
 from nbvh_core.planning.settings import NORMAL_LOSS_BY_NETWORK
 from nbvh_core.planning.sizing import choose_resolution, decimate, mesh_resident_bytes
 
@@ -41,8 +39,7 @@ def decimation_mse(mesh, tracer, triangles: int, views: int, res: int) -> tuple[
     import DracoPy
 
     dec = decimate(mesh, triangles)
-    dt = ExactTracer(dec)
-    q, _ = evaluate_renderer(lambda cam, w, h: render_reference(dt, cam, w, h), tracer, mesh.transform, views, res)
+    q = product_scorer(mesh, tracer, views, res).score_mesh(dec)
     draco = len(DracoPy.encode(dec.vertices, dec.faces, quantization_bits=11, compression_level=7))
     return q.mse, dec.n_triangles, mesh_resident_bytes(dec)["total"], draco
 

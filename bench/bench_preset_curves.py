@@ -23,9 +23,10 @@ from harness import RESULTS, append_row, read_rows, save_figure, write_markdown
 from nbvh_core import kernels
 from nbvh_core.geometry.exact import ExactTracer
 from nbvh_core.app.pipeline import compress_mesh, preset
+from nbvh_core.planning.settings import Settings
 
 DEFAULT_BUDGETS = {"preview": [15, 30, 60], "default": [25, 50, 100, 200], "high": [100, 300, 600]}
-VIEWS, RESOLUTION = 16, 128
+VIEWS, RESOLUTION = Settings().eval_views, Settings().eval_resolution  # the product's one metric
 
 
 def write_outputs(rows: list[dict]) -> None:
@@ -43,7 +44,7 @@ def write_outputs(rows: list[dict]) -> None:
         ax.plot(xs, [float(r["mse"]) for _, r in mine], "o-", label=f"{name} ({rows[0]['mesh']})")
         bx.plot(xs, [float(r["ratio_resident_decimation_to_model"]) for _, r in mine], "o-", label=name)
     ax.set_yscale("log")
-    ax.set_ylabel("image MSE (16 views, 128 px)")
+    ax.set_ylabel(f"image MSE ({VIEWS} views, {RESOLUTION} px)")
     bx.set_ylabel("x smaller resident than the equal-MSE decimation")
     bx.axhline(4.0, color="grey", ls="--", lw=0.8, label="4x (the default preset's target)")
     from matplotlib.ticker import NullFormatter

@@ -42,8 +42,7 @@ from nbvh_core import kernels
 from nbvh_core.app.pipeline import compress_mesh, preset
 from nbvh_core.geometry.exact import ExactTracer
 from nbvh_core.planning.sizing import decimate, mesh_like, mesh_resident_bytes
-from nbvh_core.rendering.metrics import evaluate_renderer
-from nbvh_core.rendering.render import render_reference
+from nbvh_core.rendering.metrics import ViewScorer
 from nbvh_core.training.train import TrainingDiverged
 from rd_runs import METHODS, SIZES, SUBSETS, MeshCache, Plan, interp_bytes_for_mse, run_neural
 
@@ -92,9 +91,7 @@ def run_baselines(plan: Plan) -> None:
                 decoded = DracoPy.decode(blob)
                 dec_s = time.perf_counter() - t0
                 cand = mesh_like(mesh, np.asarray(decoded.points), np.asarray(decoded.faces))
-                cand_tracer = ExactTracer(cand)
-                q, _ = evaluate_renderer(lambda cam, w, h: render_reference(cand_tracer, cam, w, h), tracer,
-                                         mesh.transform, plan.views, plan.res)
+                q = ViewScorer(tracer, mesh.transform, plan.views, plan.res, held_out=True).score_mesh(cand)
                 row = {"mesh": mesh_name, "baseline": kind, "param": param, "triangles": cand.n_triangles,
                        "storage_bytes": len(blob), "resident_bytes": mesh_resident_bytes(cand)["total"],
                        "original_resident_bytes": mesh_resident_bytes(mesh)["total"], "mse": q.mse,

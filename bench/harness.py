@@ -164,3 +164,16 @@ def save_image(image, path: str | os.PathLike, run_stamp: dict | None = None) ->
     path.parent.mkdir(parents=True, exist_ok=True)
     image.save(path, pnginfo=info)
     return path
+
+
+def product_scorer(mesh, tracer=None, n_views: int | None = None, resolution: int | None = None):
+    """The product's one metric for a benchmark's contenders (`rendering.metrics.ViewScorer`): the held-out orbit
+    views, as many and as large as a run's final evaluation (`Settings.eval_views`, `eval_resolution`) unless a
+    smoke run asks for fewer. tracer: an ExactTracer of `mesh` already built."""
+    from nbvh_core.geometry.exact import ExactTracer
+    from nbvh_core.planning.settings import Settings
+    from nbvh_core.rendering.metrics import ViewScorer
+
+    s = Settings()
+    return ViewScorer(tracer or ExactTracer(mesh), mesh.transform, n_views or s.eval_views,
+                      resolution or s.eval_resolution, held_out=True)

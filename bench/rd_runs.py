@@ -16,6 +16,7 @@ from nbvh_core.app.pipeline import compress_mesh, preset
 from nbvh_core.geometry.bvh import build_bvh
 from nbvh_core.geometry.exact import ExactTracer
 from nbvh_core.geometry.mesh import Mesh
+from nbvh_core.planning.settings import Settings
 from nbvh_core.geometry.traversal import TorchBVH, leaves_along_rays
 from nbvh_core.training.rays import RayConfig, root_box, sample_rays
 from nbvh_core.training.train import TrainingDiverged
@@ -32,7 +33,7 @@ class Plan:
         self.quick = quick
         self.meshes = ("blob", "knot") if quick else BENCH_MESHES
         self.train_s = 4.0 if quick else 15.0
-        self.views, self.res = (4, 48) if quick else (8, 128)
+        self.views, self.res = (4, 48) if quick else (Settings().eval_views, Settings().eval_resolution)
         # All sizes for III and the user preset (rate-distortion curves); the middle size for base, I, II.
         self.full_sizes_methods = ("III", "default") if not quick else ("default",)
         self.seed_meshes = ("knot",) if quick else ("bunny", "knot")

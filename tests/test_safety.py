@@ -122,8 +122,20 @@ def test_bvh_cycle_is_refused(model_file):
         decode_nbvh(data)
 
 
+def test_a_config_the_model_does_not_know_is_the_readers_refusal(model_file):
+    """Found by bench/fuzz_reader.py (3 of 6,000 cases): a network config's own check raised a bare ValueError
+    through the reader; every refusal is an NBVHFileError, so callers that catch the reader's errors catch it."""
+    from nbvh_core.storage.fileformat import decode_nbvh
+
+    header, payload = split(model_file.read_bytes())
+    header["config"]["network"]["normal_loss"] = "x"
+    with pytest.raises(NBVHFileError, match="normal loss 'x'"):
+        decode_nbvh(craft(header, payload))
+
+
 @pytest.mark.parametrize("case", ["child_1e8", "negative_offset", "log2_table_15", "log2_table_20", "header_list",
-                                  "string_offset", "string_quality", "leaf_out_of_range", "nan_box"])
+                                  "string_offset", "string_quality", "leaf_out_of_range", "nan_box",
+                                  "unknown_normal_loss"])
 def test_crafted_headers_and_nodes_refused_by_the_cli(model_file, tmp_path, case, capsys):
     header, payload = split(model_file.read_bytes())
     if case == "child_1e8":  # a 32-bit node file whose root points far outside the node array
@@ -150,6 +162,8 @@ def test_crafted_headers_and_nodes_refused_by_the_cli(model_file, tmp_path, case
         leaf = np.frombuffer(payload[t["offset"]:t["offset"] + t["nbytes"]], "<u2").copy()
         leaf[np.nonzero(leaf != 65535)[0][0]] = 60000
         payload = patch_payload(payload, t["offset"], leaf.tobytes())
+    elif case == "unknown_normal_loss":  # found by bench/fuzz_reader.py: a ValueError escaped the reader
+        header["config"]["network"]["normal_loss"] = "x"
     elif case == "nan_box":
         t = tensor(header, "bvh.root")
         payload = patch_payload(payload, t["offset"], np.array([np.nan], "<f4").tobytes())

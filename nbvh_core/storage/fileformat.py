@@ -294,7 +294,10 @@ def _config_from(d, cls, where: str, what: str):
             raise NBVHFileError(f"{where}: {what} field {name!r} must be a {want.__name__}, got {v!r:.40}")
         else:
             kw[name] = v
-    return cls(**kw)
+    try:  # the config's own checks (a loss or kind it does not know): still the reader's one-line refusal
+        return cls(**kw)
+    except ValueError as exc:
+        raise NBVHFileError(f"{where}: {what}: {exc}") from None
 
 
 def _model_config(header: dict, where: str) -> ModelConfig:
