@@ -66,7 +66,7 @@ def parse(argv: list[str]) -> argparse.Namespace:
 def run(argv: list[str]) -> int:
     import bpy
 
-    from addon import engine, previews, render_engine
+    from addon import compress_session, previews, render_engine
     from addon.job import default_python
 
     args = parse(argv)
@@ -85,15 +85,15 @@ def run(argv: list[str]) -> int:
         objects = [bpy.data.objects[n] for n in args.objects]
     overrides = {"device": args.device, "time_limit_s": args.time_limit, "steps": args.steps,
                  "budget_kb": args.budget_kb, "force": True if args.force else None,
-                 "target_mse": engine.QUALITY_LEVELS[args.quality] if args.quality else args.target_mse}
+                 "target_mse": compress_session.QUALITY_LEVELS[args.quality] if args.quality else args.target_mse}
     if args.steps is not None and args.time_limit is None:
         overrides["time_limit_s"] = 0  # steps only (0 = no wall-clock limit, see job)
     overrides = {k: v for k, v in overrides.items() if v is not None}
-    req = engine.Request(preset=args.preset, overrides=overrides, out_dir=str(Path(args.out).resolve()),
+    req = compress_session.Request(preset=args.preset, overrides=overrides, out_dir=str(Path(args.out).resolve()),
                          load_model=args.load, resume=args.resume)
     python = args.python or default_python()
     try:
-        session, refusals = engine.start(bpy.context, objects, req, python)
+        session, refusals = compress_session.start(bpy.context, objects, req, python)
     except RuntimeError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
@@ -116,9 +116,9 @@ def run(argv: list[str]) -> int:
             print(f"[{job.name}] wrote {ev.get('path')} ({ev.get('bytes')} B)", flush=True)
 
     session.queue.wait(on_event=show)
-    engine.end_session(session)
-    engine.finish_done(session, bpy.context.scene)
-    paths = engine.write_scene_report(session)
+    compress_session.end_session(session)
+    compress_session.finish_done(session, bpy.context.scene)
+    paths = compress_session.write_scene_report(session)
     if paths:
         print(f"report: {paths[0]} {paths[1]}")
     if args.save_blend:

@@ -79,6 +79,8 @@ class Installer:
 
     steps: list[Step]
     env: dict | None = None
+    #: The interpreter of the environment the steps set up (the preferences' Python once they are done).
+    python: str = ""
     state: str = "queued"
     index: int = 0
     line: str = ""

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import bpy
 
-from . import engine, operators
+from . import compress_ops, compress_session, install_ops, library_ops, report_ops
 
 PRESET_ITEMS = [("preview", "Preview", "Small and quick (about a minute)"),
                 ("default", "Default", "Balanced size and quality (a few minutes)"),
@@ -23,7 +23,7 @@ class NBVH_Result(bpy.types.PropertyGroup):
                                          "(positions, corners, faces, normals)")
     mse: bpy.props.FloatProperty(name="MSE", precision=5, description=(
         "Image mean squared error of the neural rendering against the exact one of the mesh, over 16 orbit views "
-        f"(0 = identical; {engine.QUALITY_LEVELS['standard']:g} is the 'standard' quality level)"))
+        f"(0 = identical; {compress_session.QUALITY_LEVELS['standard']:g} is the 'standard' quality level)"))
     iou: bpy.props.FloatProperty(name="IoU", precision=4, description=(
         "Silhouette intersection over union: the share of pixels covered by both renderings among those covered "
         "by either (1 = the same outline)"))
@@ -51,8 +51,8 @@ class NBVH_Props(bpy.types.PropertyGroup):
         ("BUDGET", "Byte budget", "The best model that fits a size")], default="TARGET")
     preset: bpy.props.EnumProperty(name="Preset", items=PRESET_ITEMS, default="default")
     target: bpy.props.EnumProperty(name="Quality", items=[
-        (name.upper(), name.title(), f"image MSE <= {mse:g}") for name, mse in engine.QUALITY_LEVELS.items()],
-        default=engine.DEFAULT_LEVEL.upper())
+        (name.upper(), name.title(), f"image MSE <= {mse:g}") for name, mse in compress_session.QUALITY_LEVELS.items()],
+        default=compress_session.DEFAULT_LEVEL.upper())
     budget_kb: bpy.props.IntProperty(name="Budget (KB)", default=400, min=16, max=100000)
     compare_with: bpy.props.EnumProperty(name="Compare with", items=[
         ("COMPACT", "Compact mesh", "The verdict weighs the model against the mesh (or a decimation meeting the level) "
@@ -82,7 +82,7 @@ class NBVH_Props(bpy.types.PropertyGroup):
     eta: bpy.props.StringProperty()
     last_error: bpy.props.StringProperty()
     last_note: bpy.props.StringProperty()  # verdicts: objects kept as meshes (not worth compressing)
-    decimations: bpy.props.StringProperty()  # JSON {object name: engine.decimation_offer}: one click each
+    decimations: bpy.props.StringProperty()  # JSON {object name: compress_session.decimation_offer}: one click each
     warnings: bpy.props.StringProperty()  # the jobs' warning events (a target missed, a restart after divergence)
     message_selection: bpy.props.StringProperty()  # the selection last_error / last_note are about
     report_html: bpy.props.StringProperty(subtype="FILE_PATH")
@@ -113,7 +113,7 @@ class NBVH_Preferences(bpy.types.AddonPreferences):
         row.operator("nbvh.install_dependencies")
         if self.install_status:
             col.label(text=self.install_status)
-            if operators.installing():
+            if install_ops.installing():
                 col.prop(self, "install_progress", text="", slider=True)
                 col.operator("nbvh.cancel_install", icon="CANCEL")
 
@@ -153,31 +153,31 @@ class NBVH_PT_panel(bpy.types.Panel):
             else:
                 box.prop(props, "progress", text=f"ETA {props.eta or '?'}", slider=True)
             box.operator("nbvh.cancel", icon="CANCEL")
-        if props.warnings and (props.running or props.message_selection in ("", operators.selection_key(context))):
+        if props.warnings and (props.running or props.message_selection in ("", compress_ops.selection_key(context))):
             _wrapped(layout, props.warnings, "ERROR", context)
         else:
             n = len(context.selected_objects)
             layout.operator("nbvh.compress", text=f"Compress {n} object{'s' if n != 1 else ''} to NBVH",
                             icon="MOD_REMESH")
             resumable = [o.name for o in context.selected_objects
-                         if engine.checkpoint_path(engine.output_dir(props.output_dir), o.name) is not None]
+                         if compress_session.checkpoint_path(compress_session.output_dir(props.output_dir), o.name) is not None]
             if resumable:  # a job died in training: continue it instead of starting over
                 op = layout.operator("nbvh.compress", text=f"Resume training ({', '.join(resumable)[:40]})",
                                      icon="RECOVER_LAST")
                 op.resume = True
-        why = operators.compress_disabled_reason(context)
+        why = compress_ops.compress_disabled_reason(context)
         if why and not props.running:
             _wrapped(layout, why, "INFO", context)
-        current = props.running or props.message_selection in ("", operators.selection_key(context))
+        current = props.running or props.message_selection in ("", compress_ops.selection_key(context))
         if props.last_error and current:  # a message about another selection is stale: not shown
             _wrapped(layout, props.last_error, "ERROR", context, lines=6)
         if props.last_note and current:
             _wrapped(layout, props.last_note, "INFO", context, lines=6)
-        for name, offer in operators.decimation_offers(context).items():
+        for name, offer in compress_ops.decimation_offers(context).items():
             op = layout.operator("nbvh.apply_decimation", icon="MOD_DECIM",
                                  text=f"Decimate {name[:24]} to {offer['triangles']:,} triangles")
             op.object_name, op.ratio = name, offer["ratio"]
-        out = engine.output_dir(props.output_dir)
+        out = compress_session.output_dir(props.output_dir)
         row = layout.row()
         row.label(text=f"Output: {_short_path(out, context)}", icon="FILE_FOLDER")
         row.operator("nbvh.open_folder", text="", icon="FOLDER_REDIRECT")
@@ -260,10 +260,12 @@ class NBVH_PT_library(bpy.types.Panel):
 
 
 CLASSES = (NBVH_Result, NBVH_LibraryRow, NBVH_Props, NBVH_Preferences, NBVH_PT_panel, NBVH_PT_library)
+#: The operators, by feature.
+OPERATORS = compress_ops.CLASSES + library_ops.CLASSES + install_ops.CLASSES + report_ops.CLASSES
 
 
 def register():
-    for cls in CLASSES + operators.CLASSES:
+    for cls in CLASSES + OPERATORS:
         bpy.utils.register_class(cls)
     bpy.types.Scene.nbvh_props = bpy.props.PointerProperty(type=NBVH_Props)
     bpy.types.Scene.nbvh_results = bpy.props.CollectionProperty(type=NBVH_Result)
@@ -272,5 +274,5 @@ def register():
 def unregister():
     del bpy.types.Scene.nbvh_results
     del bpy.types.Scene.nbvh_props
-    for cls in reversed(CLASSES + operators.CLASSES):
+    for cls in reversed(CLASSES + OPERATORS):
         bpy.utils.unregister_class(cls)

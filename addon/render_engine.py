@@ -53,7 +53,7 @@ def _worker() -> render_client.RenderWorker:
     worker = render_client.current_worker()
     if worker is not None and worker.alive:
         return worker
-    from .operators import _python as job_python
+    from .job_watcher import job_python
 
     python = job_python(bpy.context)
     if not python:

@@ -77,7 +77,7 @@ def object_entry(name: str, blender_bytes: dict, job_report: dict, textures: dic
 def build_report(entries: list[dict], kept_as_mesh: list[dict] | None = None) -> dict:
     """The scene report: trained `entries` (object_entry), and the objects whose verdict kept them as meshes
     ({name, blender_mesh_bytes, verdict, decimation}: nothing was trained for them; decimation: the one that wins,
-    engine.decimation_offer, or None)."""
+    compress_session.decimation_offer, or None)."""
     totals = {"blender_mesh_bytes": sum(e["blender_mesh_bytes"]["total"] for e in entries),
               "ray_tracing_resident_bytes": sum(e["ray_tracing_resident_bytes"]["total"] for e in entries),
               "nbvh_bytes": sum(e["nbvh_bytes"] for e in entries)}
@@ -100,7 +100,7 @@ def _img_tag(path: str | None, alt: str) -> str:
 
 
 def _decimation_text(offer: dict | None) -> str:
-    """The winning decimation of an object kept as a mesh (engine.decimation_offer), as the report states it."""
+    """The winning decimation of an object kept as a mesh (compress_session.decimation_offer), as the report states it."""
     if not offer:
         return ""
     return (f"use a decimation: {offer['triangles']:,} triangles (Decimate ratio {offer['ratio']:.4f}, MSE "

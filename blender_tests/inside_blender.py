@@ -26,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import engine_scene  # noqa: E402  (beside this file)
 
 ARGS = None
-ADDON = {}  # module, engine, previews, operators, job
+ADDON = {}  # module, compress_session, the operators by feature, previews, job
 
 
 def parse_args() -> argparse.Namespace:
@@ -118,10 +118,10 @@ def select(*names):
 
 
 def run_operator_until_done(timeout=300.0):
-    ops = ADDON["operators"]
+    watcher = ADDON["compress_ops"].WATCHER
     t0 = time.monotonic()
-    while ops.STATE.session is not None:
-        ops._tick()  # bpy.app.timers do not fire in background mode: drive the same function by hand
+    while watcher.running:
+        watcher.tick()  # bpy.app.timers do not fire in background mode: drive the same function by hand
         if time.monotonic() - t0 > timeout:
             raise AssertionError("job did not finish in time")
         time.sleep(0.2)
@@ -132,7 +132,7 @@ def test_addon_installed_and_registered():
     name = install_addon()
     mod = importlib.import_module(name)
     ADDON["module"] = mod
-    for sub in ("engine", "previews", "operators", "job", "export"):
+    for sub in ("compress_session", "compress_ops", "library_ops", "report_ops", "previews", "job", "export"):
         ADDON[sub] = importlib.import_module(f"{name}.{sub}")
     assert hasattr(bpy.types, "NBVH_PT_panel"), "panel not registered"
     assert bpy.types.NBVH_PT_panel.bl_category == "NBVH"
@@ -149,10 +149,10 @@ def test_the_panel_sizes_by_need_by_default():
     it makes is sized to that level (one growing training) with the verdict against the compact layout."""
     props = bpy.context.scene.nbvh_props
     rna = type(props).bl_rna.properties
-    assert rna["mode"].default == "TARGET" and rna["target"].default == ADDON["engine"].DEFAULT_LEVEL.upper()
+    assert rna["mode"].default == "TARGET" and rna["target"].default == ADDON["compress_session"].DEFAULT_LEVEL.upper()
     assert rna["compare_with"].default == "COMPACT"
-    req = ADDON["operators"].request_from_props(props)
-    assert req.overrides["target_mse"] == ADDON["engine"].QUALITY_LEVELS[ADDON["engine"].DEFAULT_LEVEL]
+    req = ADDON["compress_ops"].request_from_props(props)
+    assert req.overrides["target_mse"] == ADDON["compress_session"].QUALITY_LEVELS[ADDON["compress_session"].DEFAULT_LEVEL]
     assert req.overrides["mesh_layout"] == "compact"
 
 
@@ -241,11 +241,11 @@ def test_cancel_stops_running_job_and_leaves_nothing():
     props.time_limit = 600
     select("Blob")
     assert bpy.ops.nbvh.compress() == {"FINISHED"}
-    session = ADDON["operators"].STATE.session
+    session = ADDON["compress_ops"].WATCHER.work
     job = session.queue.jobs[0]
     t0 = time.monotonic()
     while job.progress.get("step", 0) < 1 and time.monotonic() - t0 < 180:
-        ADDON["operators"]._tick()
+        ADDON["compress_ops"].WATCHER.tick()
         time.sleep(0.2)
     assert job.state == "running" and job.progress.get("step", 0) >= 1, job.progress
     proc = job._proc
@@ -256,7 +256,7 @@ def test_cancel_stops_running_job_and_leaves_nothing():
     left = sorted(p.name for p in out.iterdir()) if out.exists() else []
     assert left in ([], [".Blob.nbvh.checkpoint"]), left
     if left:
-        assert ADDON["engine"].checkpoint_path(str(out), "Blob") is not None
+        assert ADDON["compress_session"].checkpoint_path(str(out), "Blob") is not None
     assert not props.running and props.phase == "cancelled"
     assert bpy.data.objects.get("Blob_nbvh_proxy") is None
     props.compare_with = "COMPACT"
@@ -286,7 +286,7 @@ def test_resume_refuses_a_crafted_checkpoint_and_runs_nothing():
     props.preset = "preview"
     select("Blob")
     bpy.context.view_layer.objects.active = bpy.data.objects["Blob"]
-    assert ADDON["engine"].checkpoint_path(str(out), "Blob") is not None  # the panel offers "Resume training"
+    assert ADDON["compress_session"].checkpoint_path(str(out), "Blob") is not None  # the panel offers "Resume training"
     assert bpy.ops.nbvh.compress(resume=True) == {"FINISHED"}
     run_operator_until_done()
     assert props.phase != "done" and "pickled checkpoint" in props.last_error, (props.phase, props.last_error)
@@ -308,7 +308,7 @@ def test_a_decimation_verdict_is_offered_as_one_click():
     assert bpy.ops.nbvh.compress() == {"FINISHED"}
     run_operator_until_done()
     props.mode = "PRESET"
-    offers = ADDON["operators"].decimation_offers(bpy.context)
+    offers = ADDON["compress_ops"].decimation_offers(bpy.context)
     assert "Blob" in offers and 0 < offers["Blob"]["ratio"] < 0.5, (props.last_note, props.last_error, offers)
     scene_json = json.loads(Path(props.report_html).with_suffix(".json").read_text())
     assert scene_json["kept_as_mesh"][0]["decimation"]["triangles"] == offers["Blob"]["triangles"]
@@ -406,10 +406,10 @@ def test_stored_model_paths_only_name_regular_nbvh_files():
 
 
 def test_bad_selections_refused_with_names():
-    engine = ADDON["engine"]
-    req = engine.Request(preset="tiny", out_dir=str(Path(ARGS.work) / "bad_out"))
+    session_module = ADDON["compress_session"]
+    req = session_module.Request(preset="tiny", out_dir=str(Path(ARGS.work) / "bad_out"))
     objs = [bpy.data.objects[n] for n in ("Empty", "Cam", "Hollow")]
-    session, refusals = engine.start(bpy.context, objs, req, ARGS.python)
+    session, refusals = session_module.start(bpy.context, objs, req, ARGS.python)
     assert not session.objects
     text = " ".join(refusals)
     assert "'Empty'" in text and "'Cam'" in text and "'Hollow'" in text and "empty mesh" in text, text
@@ -466,10 +466,10 @@ def test_scene_budget_is_split_by_need_and_suzanne_is_not_worth_it():
 
 
 def run_library_until_done(timeout=600.0):
-    ops = ADDON["operators"]
+    watcher = ADDON["library_ops"].WATCHER
     t0 = time.monotonic()
-    while ops.STATE.library is not None:
-        ops._library_tick()  # timers do not fire in background mode
+    while watcher.running:
+        watcher.tick()  # timers do not fire in background mode
         if time.monotonic() - t0 > timeout:
             raise AssertionError("library job did not finish in time")
         time.sleep(0.2)
@@ -529,7 +529,7 @@ def test_compress_library_folder_with_a_blend_file():
 
 
 def test_disabled_compress_says_why_and_the_report_opens_without_a_browser():
-    ops = ADDON["operators"]
+    ops = ADDON["compress_ops"]
     setup_scene()
     select()
     why = ops.compress_disabled_reason(bpy.context)
@@ -538,7 +538,7 @@ def test_disabled_compress_says_why_and_the_report_opens_without_a_browser():
     assert ops.compress_disabled_reason(bpy.context) == "" and ops.selection_key(bpy.context) == "Blob"
     report = Path(bpy.context.scene.nbvh_props.report_html)
     assert report.exists(), report  # written by the compress tests above
-    text = ops.open_report_text(report)
+    text = ADDON["report_ops"].open_report_text(report)
     assert text.name.startswith("NBVH ") and json.loads(text.as_string())  # the report's JSON, readable in Blender
     assert bpy.data.texts.get(text.name) is not None
 

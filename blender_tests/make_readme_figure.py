@@ -4,7 +4,7 @@ camera (rendered by the model, not by Blender).
 
     .venv/bin/python blender_tests/make_readme_figure.py MODEL.nbvh SAMPLE_NAME docs/addon_preview.png
 
-Runs the add-on's real code path (engine.start with load_model -> job -> previews.load_result).
+Runs the add-on's real code path (compress_session.start with load_model -> job -> previews.load_result).
 """
 import sys
 from pathlib import Path
@@ -15,7 +15,7 @@ from mathutils import Vector
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from addon import engine  # noqa: E402
+from addon import compress_session  # noqa: E402
 from addon.job import default_python  # noqa: E402
 from nbvh_core.geometry.mesh import load_mesh  # noqa: E402
 from nbvh_core.geometry.bundled_samples import sample_path  # noqa: E402
@@ -45,12 +45,12 @@ direction = Vector((0.95, 0, 0.05)) - cam.location
 cam.rotation_euler = direction.to_track_quat("-Z", "Y").to_euler()
 bpy.context.view_layer.update()
 
-req = engine.Request(preset="default", out_dir=str(out_png.parent / "figure_out"), load_model=model_path,
+req = compress_session.Request(preset="default", out_dir=str(out_png.parent / "figure_out"), load_model=model_path,
                      proxy_points=60000, image_size=640)
-session, refusals = engine.start(bpy.context, [obj], req, default_python())
+session, refusals = compress_session.start(bpy.context, [obj], req, default_python())
 assert not refusals, refusals
 session.queue.wait()
-engine.finish_done(session, bpy.context.scene)
+compress_session.finish_done(session, bpy.context.scene)
 assert obj.name in session.loaded, session.failures
 
 scene = bpy.context.scene

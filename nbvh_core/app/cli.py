@@ -226,36 +226,43 @@ def _compress_locked(args, mesh, mesh_path, paths, sink) -> int:
     if args.events:
         sink({"event": "written", "files": [str(p) for p in paths.values()]})
     else:
-        q = result.quality
-        print(f"\nwrote {out} ({_fmt_bytes(result.file_bytes)}) and, beside it, "
-              f"{', '.join(p.name for role, p in paths.items() if role != 'model')}")
-        final = (result.decisions or {}).get("final")
-        if final:  # the strongest alternative first: the compact decimation at the model's own measured MSE
-            print(f"verdict: {final['message']}")
-        print("bytes: " + ", ".join(f"{k} {v:,}" for k, v in result.components.items()))
-        resident = summary['mesh_resident_bytes']['total']
-        compact = result.assessment.get("compact_bytes")
-        held = [f"as a compact mesh {compact:,} B ({compact / result.file_bytes:.2f}x the model)"] if compact else []
-        held.append(f"as a ray tracer holds it {resident:,} B ({resident / result.file_bytes:.1f}x the model)")
-        print("the whole mesh: " + "; ".join(held))
-        draco = result.assessment.get("alternatives", {}).get("draco11_bytes")
-        if draco:
-            print(f"the mesh as a Draco 11-bit file (storage and transfer only; decoded before tracing): {draco:,} B")
-        if q:
-            print(f"quality ({q.views} {'held-out ' if q.held_out else ''}views, {q.resolution}px): MSE {q.mse:.5f}, "
-                  f"silhouette IoU {q.silhouette_iou:.4f}, depth error {q.depth_error:.5f} (unit box)")
-        s = result.quality_as_shipped
-        if s is not None and s.colour_mse is not None:
-            print(f"the file as shipped, its look included ({s.views} held-out views, {s.resolution}px): colour MSE "
-                  f"{s.colour_mse:.5f}, FLIP {s.flip:.4f}")
-        t = result.training
-        print(f"training: {t.steps} steps, {t.seconds:.1f} s, {t.samples_per_s:,.0f} samples/s on {t.device}")
-        print(f"why: {result.why}")
-        if result.target_met is not None:
-            print(f"target {'met' if result.target_met else 'MISSED'}: MSE {q.mse:.5f} vs {result.settings.target_mse:g}")
-        if not result.assessment["worth_compressing"]:
-            print(f"note: {result.assessment['message']}")
+        _print_result(result, summary, out, paths)
     return 0
+
+
+def _print_result(result, summary: dict, out: Path, paths: dict) -> None:
+    """What `compress` prints when it wrote its files: the verdict against the strongest alternative first, the
+    bytes, the whole mesh held compactly and plainly, the quality (geometry, and the file as shipped with its
+    look), the training and why."""
+    q = result.quality
+    print(f"\nwrote {out} ({_fmt_bytes(result.file_bytes)}) and, beside it, "
+          f"{', '.join(p.name for role, p in paths.items() if role != 'model')}")
+    final = (result.decisions or {}).get("final")
+    if final:  # the strongest alternative first: the compact decimation at the model's own measured MSE
+        print(f"verdict: {final['message']}")
+    print("bytes: " + ", ".join(f"{k} {v:,}" for k, v in result.components.items()))
+    resident = summary['mesh_resident_bytes']['total']
+    compact = result.assessment.get("compact_bytes")
+    held = [f"as a compact mesh {compact:,} B ({compact / result.file_bytes:.2f}x the model)"] if compact else []
+    held.append(f"as a ray tracer holds it {resident:,} B ({resident / result.file_bytes:.1f}x the model)")
+    print("the whole mesh: " + "; ".join(held))
+    draco = result.assessment.get("alternatives", {}).get("draco11_bytes")
+    if draco:
+        print(f"the mesh as a Draco 11-bit file (storage and transfer only; decoded before tracing): {draco:,} B")
+    if q:
+        print(f"quality ({q.views} {'held-out ' if q.held_out else ''}views, {q.resolution}px): MSE {q.mse:.5f}, "
+              f"silhouette IoU {q.silhouette_iou:.4f}, depth error {q.depth_error:.5f} (unit box)")
+    s = result.quality_as_shipped
+    if s is not None and s.colour_mse is not None:
+        print(f"the file as shipped, its look included ({s.views} held-out views, {s.resolution}px): colour MSE "
+              f"{s.colour_mse:.5f}, FLIP {s.flip:.4f}")
+    t = result.training
+    print(f"training: {t.steps} steps, {t.seconds:.1f} s, {t.samples_per_s:,.0f} samples/s on {t.device}")
+    print(f"why: {result.why}")
+    if result.target_met is not None:
+        print(f"target {'met' if result.target_met else 'MISSED'}: MSE {q.mse:.5f} vs {result.settings.target_mse:g}")
+    if not result.assessment["worth_compressing"]:
+        print(f"note: {result.assessment['message']}")
 
 
 def cmd_render(args: argparse.Namespace) -> int:

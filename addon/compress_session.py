@@ -1,5 +1,6 @@
-"""The add-on's one code path, shared by the panel's operators and the headless compress.py:
-selected objects -> exported arrays -> queued background jobs -> results loaded back -> report.
+"""The compress session: the add-on's one code path from a selection to its results, shared by the panel's
+Compress (`compress_ops`) and the headless compress.py: selected objects -> exported arrays -> queued background
+jobs -> results loaded back -> report.
 
 bpy is used here (export, load back) but torch never is: the jobs run nbvh_core in another process.
 """
