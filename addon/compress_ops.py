@@ -16,7 +16,7 @@ from .job_watcher import JobWatcher, job_python, notify
 def request_from_props(props) -> compress_session.Request:
     """Panel settings -> compress_session.Request (preset, or target quality, or byte budget; time limit; device)."""
     overrides = {"time_limit_s": float(props.time_limit), "device": props.device.lower(), "steps": None,
-                 "appearance_target": props.look.lower(), "mesh_layout": props.compare_with.lower()}
+                 "appearance_target": props.look.lower(), "mesh_layout": props.mesh_layout.lower()}
     if props.force:
         overrides["force"] = True
     preset = props.preset

@@ -14,7 +14,7 @@ def _library_settings(props) -> dict:
     """The batch's settings from the panel: the preset or target (a byte budget applies per asset), time limit,
     and *Train even if not worth it*."""
     spec = {"preset": props.preset, "time_limit_s": float(props.time_limit), "device": props.device.lower(),
-            "mesh_layout": props.compare_with.lower()}
+            "mesh_layout": props.mesh_layout.lower()}
     if props.force:
         spec["force"] = True
     if props.mode == "TARGET":

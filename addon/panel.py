@@ -54,7 +54,7 @@ class NBVH_Props(bpy.types.PropertyGroup):
         (name.upper(), name.title(), f"image MSE <= {mse:g}") for name, mse in compress_session.QUALITY_LEVELS.items()],
         default=compress_session.DEFAULT_LEVEL.upper())
     budget_kb: bpy.props.IntProperty(name="Budget (KB)", default=400, min=16, max=100000)
-    compare_with: bpy.props.EnumProperty(name="Compare with", items=[
+    mesh_layout: bpy.props.EnumProperty(name="Mesh layout", items=[
         ("COMPACT", "Compact mesh", "The verdict weighs the model against the mesh (or a decimation meeting the level) "
                                     "as a compact ray-traceable mesh, ~4 B per triangle: the strongest mesh"),
         ("PLAIN", "Mesh as Blender holds it", "The verdict weighs the model against the mesh as a plain ray tracer "
@@ -139,7 +139,7 @@ class NBVH_PT_panel(bpy.types.Panel):
         col.prop(props, "time_limit")
         if props.mode == "TARGET":
             col.label(text="one training: its table grows until the level is met", icon="INFO")
-        col.prop(props, "compare_with")
+        col.prop(props, "mesh_layout")
         col.prop(props, "device")
         col.prop(props, "look")
         col.prop(props, "output_dir")

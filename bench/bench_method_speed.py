@@ -45,7 +45,7 @@ def measure(name: str, over: dict, steps: int, renders: int, bvh, mesh, tracer) 
     s.time_limit_s = None
     model = NeuralBVH(bvh.nodes, s.model_config(), mesh.transform)
     cfg = s.train_config()
-    cfg.anneal_fraction, cfg.freeze, cfg.qat_bits = 0.0, False, None  # the soft phase throughout
+    cfg.anneal_fraction, cfg.freeze, cfg.table_bits = 0.0, False, None  # the soft phase throughout
     tr = train(model, bvh, tracer, cfg)
     out = [{"method": name, "train_samples_per_s": tr.samples_per_s, "compute_path": tr.compute_path}]
     if model.encoding.learned_index:

@@ -41,7 +41,7 @@ steps = int(sys.argv[1]) if len(sys.argv) > 1 else 150
 for name, over in [("base", {"log2_table": 11}), ("III", {"encoding": "hashvqad", "network": "kmlp", "log2_table": 9})]:
     s = preset("default").with_overrides(steps=steps, features=16, n_max=64, **over); s.time_limit_s = None
     model = NeuralBVH(bvh.nodes, s.model_config(), mesh.transform)
-    cfg = s.train_config(); cfg.anneal_fraction, cfg.freeze, cfg.qat_bits = 0.0, False, None
+    cfg = s.train_config(); cfg.anneal_fraction, cfg.freeze, cfg.table_bits = 0.0, False, None
     acc.clear(); t = time.perf_counter(); tr = train(model, bvh, tracer, cfg); dt = time.perf_counter() - t
     read = acc.pop("touched_rows_frac", 0.0) / steps
     print(name, f"{dt / steps * 1e3:.1f} ms/step", {k: f"{v / steps * 1e3:.1f}" for k, v in acc.items()},

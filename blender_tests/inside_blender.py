@@ -150,7 +150,7 @@ def test_the_panel_sizes_by_need_by_default():
     props = bpy.context.scene.nbvh_props
     rna = type(props).bl_rna.properties
     assert rna["mode"].default == "TARGET" and rna["target"].default == ADDON["compress_session"].DEFAULT_LEVEL.upper()
-    assert rna["compare_with"].default == "COMPACT"
+    assert rna["mesh_layout"].default == "COMPACT"
     req = ADDON["compress_ops"].request_from_props(props)
     assert req.overrides["target_mse"] == ADDON["compress_session"].QUALITY_LEVELS[ADDON["compress_session"].DEFAULT_LEVEL]
     assert req.overrides["mesh_layout"] == "compact"
@@ -237,7 +237,7 @@ def test_cancel_stops_running_job_and_leaves_nothing():
     props = bpy.context.scene.nbvh_props
     props.output_dir = str(out)
     props.mode, props.preset = "PRESET", "default"
-    props.compare_with = "PLAIN"  # as a compact mesh the smooth blob is smaller than this model: it would not train
+    props.mesh_layout = "PLAIN"  # as a compact mesh the smooth blob is smaller than this model: it would not train
     props.time_limit = 600
     select("Blob")
     assert bpy.ops.nbvh.compress() == {"FINISHED"}
@@ -259,7 +259,7 @@ def test_cancel_stops_running_job_and_leaves_nothing():
         assert ADDON["compress_session"].checkpoint_path(str(out), "Blob") is not None
     assert not props.running and props.phase == "cancelled"
     assert bpy.data.objects.get("Blob_nbvh_proxy") is None
-    props.compare_with = "COMPACT"
+    props.mesh_layout = "COMPACT"
 
 
 def test_resume_refuses_a_crafted_checkpoint_and_runs_nothing():
@@ -438,7 +438,7 @@ def test_scene_budget_is_split_by_need_and_suzanne_is_not_worth_it():
     props.mode = "BUDGET"
     props.budget_kb = 1500
     props.time_limit = 5
-    props.compare_with = "PLAIN"  # the smooth blob is smaller than any model as a compact mesh: weigh it plainly
+    props.mesh_layout = "PLAIN"  # the smooth blob is smaller than any model as a compact mesh: weigh it plainly
     props.output_dir = str(Path(ARGS.work) / "scene_out")
     select("Blob", "Suzanne")
     assert bpy.ops.nbvh.compress() == {"FINISHED"}
@@ -462,7 +462,7 @@ def test_scene_budget_is_split_by_need_and_suzanne_is_not_worth_it():
     page = Path(props.report_html).read_text()
     assert "Scene budget split" in page and "Kept as meshes" in page
     assert (mesh_fingerprint(blob), mesh_fingerprint(monkey)) == before
-    props.mode, props.compare_with = "PRESET", "COMPACT"
+    props.mode, props.mesh_layout = "PRESET", "COMPACT"
 
 
 def run_library_until_done(timeout=600.0):
@@ -480,7 +480,7 @@ def test_scene_memory_report_measures_every_mesh_object_without_training():
     monkey = _add_suzanne()
     before = (mesh_fingerprint(blob), mesh_fingerprint(monkey))
     props = bpy.context.scene.nbvh_props
-    props.mode, props.preset, props.compare_with = "PRESET", "default", "PLAIN"
+    props.mode, props.preset, props.mesh_layout = "PRESET", "default", "PLAIN"
     props.output_dir = str(Path(ARGS.work) / "report_out")
     assert bpy.ops.nbvh.scene_report() == {"FINISHED"}
     run_library_until_done()
@@ -493,7 +493,7 @@ def test_scene_memory_report_measures_every_mesh_object_without_training():
     assert "predicted savings" in props.library_summary and Path(props.library_report_html).exists()
     assert not (Path(props.output_dir) / "scene_report" / "assets").exists()  # nothing trained
     assert (mesh_fingerprint(blob), mesh_fingerprint(monkey)) == before
-    props.compare_with = "COMPACT"
+    props.mesh_layout = "COMPACT"
 
 
 def test_compress_library_folder_with_a_blend_file():
@@ -509,10 +509,10 @@ def test_compress_library_folder_with_a_blend_file():
     props.mode, props.preset, props.time_limit = "PRESET", "preview", 5
     props.output_dir = str(Path(ARGS.work) / "library_out")
     # weighed plainly: the blob (72 KB as a compact mesh) is then worth a preview model, Suzanne (968 triangles) not
-    props.compare_with = "PLAIN"
+    props.mesh_layout = "PLAIN"
     assert bpy.ops.nbvh.compress_library(directory=str(lib)) == {"FINISHED"}
     run_library_until_done(timeout=900)
-    props.compare_with = "COMPACT"
+    props.mesh_layout = "COMPACT"
     assert props.library_phase == "finished", props.library_phase
     rows = {r.name: r for r in props.library_rows}
     assert rows["blob"].status == "done" and rows["blob"].model_bytes > 0

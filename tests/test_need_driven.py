@@ -199,4 +199,6 @@ def test_the_final_verdict_ships_the_smaller_at_the_same_measured_mse():
     assert won.shipped == "model" and won.level_met and won.ratio > 1 and "smaller" in won.message
     forced = final_verdict(9000, 0.0019, 0.0005, curve, force=True)
     assert forced.shipped == "model" and "forced" in forced.message and "out of reach" in forced.message
+    # forced past a smaller measured decimation: the message says which, not that none reaches the MSE
+    assert "none measured" not in forced.message and "x smaller than the model" in forced.message
     assert final_verdict(100, 0.1, 0.0005, None).shipped == "model"

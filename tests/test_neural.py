@@ -216,7 +216,7 @@ def test_every_config_trains_and_renders(blob_setup, encoding, network, labels):
     from nbvh_core.training.train import samples_loss
 
     held_out = generate_training_samples(bvh, tracer, 2048, labels, seed=99,
-                                         facing_normals=TrainConfig().facing_normals)  # the targets it trains on
+                                         normal_loss=TrainConfig().normal_loss)  # the targets it trains on
     with torch.no_grad():
         before = float(samples_loss(model, held_out, torch.device("cpu"))[0])
     res = train(model, bvh, tracer, TrainConfig(labels=labels, steps=STEPS, rays_per_step=256, lr=5e-3))

@@ -109,10 +109,10 @@ def test_normal_targets_are_each_networks_own_unless_set():
     assert NORMAL_LOSS_BY_NETWORK == {"mlp": "oriented", "kmlp": "facing"}
     for name, facing in (("default", False), ("preview", False), ("base", False), ("I", True), ("III", True)):
         s = preset(name)
-        assert s.train_config().facing_normals is facing, name
+        assert (s.train_config().normal_loss == "facing") is facing, name
         assert s.model_config().network.normal_loss == "oriented"
-    assert preset("default").with_overrides(normal_loss="facing").train_config().facing_normals
+    assert preset("default").with_overrides(normal_loss="facing").train_config().normal_loss == "facing"
     unoriented = preset("III").with_overrides(normal_loss="unoriented")
-    assert not unoriented.train_config().facing_normals and unoriented.model_config().network.normal_loss == "unoriented"
+    assert unoriented.train_config().normal_loss == "unoriented" and unoriented.model_config().network.normal_loss == "unoriented"
     with pytest.raises(ValueError, match="normal loss"):
         preset("default").with_overrides(normal_loss="sideways").model_config()

@@ -149,7 +149,7 @@ def test_facing_normals_are_the_geometric_ones_turned_toward_the_ray(sample_bvhs
     bvh, tracer = sample_bvhs["blob"], sample_tracers["blob"]
     o, d = sample_rays(*root_box(bvh), 3000, np.random.default_rng(5))
     wound = label_samples(bvh, tracer, o, d, mode)
-    facing = label_samples(bvh, tracer, o, d, mode, facing_normals=True)
+    facing = label_samples(bvh, tracer, o, d, mode, normal_loss="facing")
     hit = wound.hit
     dots = (facing.normal[hit] * facing.rays_d[facing.ray[hit]]).sum(-1)
     assert bool((dots <= 0).all())

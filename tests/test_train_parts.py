@@ -118,7 +118,7 @@ def test_hashvqad_life_cycle_anneal_then_freeze_then_finetune(blob):
     model = _model(bvh, VQAD)
     enc = model.encoding
     assert enc.learned_index and not enc.frozen and not model.encoding.freeze_due(0.5, TrainConfig())
-    cfg = TrainConfig(anneal_fraction=0.3, finetune_fraction=0.1, tau_min=0.01, qat_bits=8, qat_fraction=0.05)
+    cfg = TrainConfig(anneal_fraction=0.3, finetune_fraction=0.1, tau_min=0.01, table_bits=8, qat_fraction=0.05)
     events, scored = [], []
     phases = EncodingPhases(model, cfg, events.append, lambda: 1.0, lambda m: scored.append(m.encoding.frozen))
     assert phases.before_step(0.5) == "train" and enc.temperature == 1.0

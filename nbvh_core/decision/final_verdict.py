@@ -61,7 +61,10 @@ def final_verdict(model_bytes: int, model_mse: float, target: float | None, curv
                             f"kept as a mesh: {what} reaches MSE {beaten_by.mse:.4g} in {beaten_by.bytes:,} B as a "
                             f"compact mesh; the model needs {model_bytes:,} B for MSE {model_mse:.4g} "
                             f"({model_bytes / beaten_by.bytes:.2f}x the decimation){level}")
-    if alt_bytes is None:
+    if beaten:  # forced: say what the user gives up
+        versus = (f"a measured compact decimation to {beaten_by.triangles:,} triangles reaches MSE {beaten_by.mse:.4g} "
+                  f"in {beaten_by.bytes:,} B, {model_bytes / beaten_by.bytes:.2f}x smaller than the model")
+    elif alt_bytes is None:
         versus = "no alternative measured reaches its MSE"
     elif alt_bytes >= model_bytes:
         versus = f"the compact decimation at the same MSE ~{alt_bytes:,.0f} B: the model is {alt_bytes / model_bytes:.2f}x smaller"

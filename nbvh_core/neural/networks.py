@@ -55,7 +55,7 @@ class NetworkConfig:
     """kind: 'mlp' | 'kmlp'; k points per segment; `hidden` layers of `width`; loss weights w_t, w_n.
 
     normal_loss: 'oriented' (default) - the L1 to the target normal as given (the mesh's winding, or facing the ray
-    when the trainer labels so: TrainConfig.facing_normals); 'unoriented' - the L1 to the nearer of +-target (the
+    when the trainer labels so: TrainConfig.normal_loss 'facing'); 'unoriented' - the L1 to the nearer of +-target (the
     surface's line only; measured worse than facing targets, bench/bench_table5.py).
     """
 

@@ -58,7 +58,7 @@ class Settings:
     #: The network's hidden layers and their width (NetworkConfig).
     hidden: int = NetworkConfig.hidden
     width: int = NetworkConfig.width
-    #: 'facing': normal targets flipped to face the ray (TrainConfig.facing_normals), L1 to them; 'oriented': the
+    #: 'facing': normal targets flipped to face the ray (rays.label_samples), L1 to them; 'oriented': the
     #: paper's L1 to the normal as the mesh winds it; 'unoriented': L1 to the nearer of +-normal
     #: (NetworkConfig.normal_loss); None: the network's own (NORMAL_LOSS_BY_NETWORK).
     normal_loss: str | None = None
@@ -143,9 +143,9 @@ class Settings:
         return TrainConfig(labels=self.labels, lr=self.lr, steps=self.steps, time_limit_s=self.time_limit_s,
                            rays_per_step=self.rays_per_step, seed=self.seed, device=self.device,
                            anneal_fraction=self.anneal_fraction, finetune_fraction=self.finetune_fraction,
-                           facing_normals=self.resolved_normal_loss() == "facing", leaf_sampling=self.leaf_sampling,
+                           normal_loss=self.resolved_normal_loss(), leaf_sampling=self.leaf_sampling,
                            tree_cut=self.tree_cut, checkpoint_every_s=self.checkpoint_every_s,
-                           target_check_every_s=self.target_check_every_s, qat_bits=self.table_bits if self.table_bits == 8 else None,
+                           target_check_every_s=self.target_check_every_s, table_bits=self.table_bits if self.table_bits == 8 else None,
                            qat_fraction=self.qat_fraction)
 
     def with_overrides(self, **kw) -> "Settings":

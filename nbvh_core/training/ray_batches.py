@@ -87,7 +87,7 @@ class Batches:
             self._weights_override = None
         o, d = self._draw(per * n_steps, weights)
         chunk = label_samples(self.bvh, self.tracer, o, d, self.cfg.labels, tree=self.tree,
-                              facing_normals=self.cfg.facing_normals)
+                              normal_loss=self.cfg.normal_loss)
         return [(part, {"chunk_state": chunk_state, "index": i, "leaf_weights": weights})
                 for i, part in enumerate(split_samples(chunk, per))]
 

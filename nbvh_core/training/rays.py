@@ -177,11 +177,11 @@ def sample_rays_in_leaves(leaf_lo: np.ndarray, leaf_hi: np.ndarray, weights: np.
 
 
 def label_samples(bvh: BVH, tracer: ExactTracer, rays_o: np.ndarray, rays_d: np.ndarray, mode: str,
-                  tree: TorchBVH | None = None, facing_normals: bool = False) -> TrainingSamples:
+                  tree: TorchBVH | None = None, normal_loss: str = "oriented") -> TrainingSamples:
     """Label every (ray, entered leaf) pair up to and including the ray's first hit (see module docstring).
 
     rays_o, rays_d: (N, 3) float32 unit directions, normalised coordinates. mode: 'ownership' | 'consistent'.
-    facing_normals: hit normals flipped to face the ray (n . d <= 0) instead of the mesh's winding.
+    normal_loss: 'facing' flips hit normals to face the ray (n . d <= 0) instead of the mesh's winding.
     Computed on the CPU; move the result with `samples_to(device)`.
     """
     if mode not in LABEL_MODES:
@@ -233,7 +233,7 @@ def label_samples(bvh: BVH, tracer: ExactTracer, rays_o: np.ndarray, rays_d: np.
         hit = torch.from_numpy(inside)
         t_hit[hit] = torch.from_numpy(allh.t[idx_c[inside]])
         normal[hit] = torch.from_numpy(tracer.normals[allh.tri[idx_c[inside]]])
-    if facing_normals:  # what every renderer shades with; the two sides of a thin wall differ by the ray alone
+    if normal_loss == "facing":  # what every renderer shades with; the two sides of a thin wall differ by the ray alone
         back = (normal * torch.from_numpy(rays_d)[ray]).sum(-1) > 0
         normal = torch.where(back[:, None], -normal, normal)
     # Clamp into the segment: the network predicts a position inside [t_enter, t_exit].
@@ -263,9 +263,9 @@ def split_samples(samples: TrainingSamples, rays_per_part: int) -> list[Training
 
 
 def generate_training_samples(bvh: BVH, tracer: ExactTracer, n_rays: int, mode: str, seed: int = 0,
-                              config: RayConfig = RayConfig(), facing_normals: bool = False) -> TrainingSamples:
+                              config: RayConfig = RayConfig(), normal_loss: str = "oriented") -> TrainingSamples:
     """Draw `n_rays` rays around the BVH root box and label them (see `sample_rays`, `label_samples`)."""
     rng = np.random.default_rng(seed)
     lo, hi = root_box(bvh)
     rays_o, rays_d = sample_rays(lo, hi, n_rays, rng, config)
-    return label_samples(bvh, tracer, rays_o, rays_d, mode, facing_normals=facing_normals)
+    return label_samples(bvh, tracer, rays_o, rays_d, mode, normal_loss=normal_loss)

@@ -44,8 +44,9 @@ class TrainConfig:
     one must be set). rays_per_step: rays drawn per step (each yields ~1-5 leaf samples)."""
 
     labels: str = "consistent"
-    #: Normal targets facing the ray (samples.label_samples' facing_normals) rather than as the mesh winds them.
-    facing_normals: bool = False
+    #: The normal loss (Settings.normal_loss, resolved): 'facing' labels normal targets facing the ray
+    #: (rays.label_samples) rather than as the mesh winds them; the network's loss reads the rest.
+    normal_loss: str = "oriented"
     lr: float = 1e-3
     lr_final_factor: float = 0.1
     rays_per_step: int = 4096
@@ -88,9 +89,9 @@ class TrainConfig:
     tree_cut_rounds: int = 10
     tree_cut_until: float = 0.3
     # Quantization-aware end of training: for the last qat_fraction of the budget the feature table is snapped to its
-    # qat_bits-bit grid (per level and feature, `quantize.table_affine`) and held there while the network adapts to
+    # table_bits-bit grid (per level and feature, `quantize.table_affine`) and held there while the network adapts to
     # the quantized rows; the affine map is kept (`encoding.qat_affine`) so the file's codes reproduce them exactly.
-    qat_bits: int | None = None
+    table_bits: int | None = None
     qat_fraction: float = 0.05
     # With a `target_reached` callback (a requested quality), it is asked every this many seconds once 10% of the
     # budget has passed; True ends training there (no more than the asset needs). HashVQAD stops only after its freeze.
@@ -306,7 +307,7 @@ def _optimizer_state(tensors: dict, opt: torch.optim.Optimizer, where: str) -> d
 class EncodingPhases:
     """The encoding's life cycle inside training: its own schedule (HashVQAD's anneal: `Encoding.schedule`), the
     freeze (scored before and after on held-out rays; `before_freeze(model)` is called first), and the
-    quantization-aware end (cfg.qat_bits: the table snapped to its grid and held there, see TrainConfig).
+    quantization-aware end (cfg.table_bits: the table snapped to its grid and held there, see TrainConfig).
     `before_step(fraction)` returns the phase the step trains in."""
 
     def __init__(self, model: NeuralBVH, cfg: TrainConfig, events: EventSink, held_out_loss, before_freeze,
@@ -328,10 +329,10 @@ class EncodingPhases:
         if own is not None and own != self.phase:
             self.phase = own
             self.events({"event": "phase", "phase": own, "message": f"softmax temperature 1 -> {cfg.tau_min}"})
-        if cfg.qat_bits and not self.qat_on and fraction >= 1.0 - cfg.qat_fraction:
-            self.qat_on = _snap_table(self.model, cfg.qat_bits)
+        if cfg.table_bits and not self.qat_on and fraction >= 1.0 - cfg.qat_fraction:
+            self.qat_on = _snap_table(self.model, cfg.table_bits)
             self.events({"event": "phase", "phase": "quantize",
-                         "message": f"feature table snapped to {cfg.qat_bits} bits; the network adapts to it"})
+                         "message": f"feature table snapped to {cfg.table_bits} bits; the network adapts to it"})
         return self.phase
 
     def after_backward(self) -> None:
@@ -365,7 +366,7 @@ class EncodingPhases:
 
 @torch.no_grad()
 def _snap_table(model: NeuralBVH, bits: int) -> bool:
-    """Snap the feature table onto its `bits`-bit grid (see TrainConfig.qat_bits); records the affine map."""
+    """Snap the feature table onto its `bits`-bit grid (see TrainConfig.table_bits); records the affine map."""
     from ..neural.quantize import dequantize_table, quantize_table, table_affine
 
     table = model.encoding.table
@@ -485,7 +486,7 @@ def _held_out_loss(model: NeuralBVH, batches: Batches, tracer: ExactTracer, cfg:
     def loss() -> float:
         rays = sample_rays(batches.lo, batches.hi, 8192, np.random.default_rng(cfg.seed + 7919), cfg.ray_config)
         held_out = label_samples(batches.bvh, tracer, *rays, cfg.labels, tree=batches.tree,
-                                 facing_normals=cfg.facing_normals)
+                                 normal_loss=cfg.normal_loss)
         with torch.no_grad():
             return float(samples_loss(model, held_out, device)[0])
     return loss
