@@ -288,3 +288,33 @@ def test_a_run_scores_the_file_as_shipped_with_its_look():
     assert summary["quality_as_shipped"]["flip"] == shipped.flip and "per_view_mse" not in summary["quality_as_shipped"]
     resident = summary["model_resident_bytes"]
     assert resident["appearance"] > 0 and resident["textures"] == m.look.texture_bytes()
+
+
+def test_a_missing_or_unreadable_image_is_one_warning_and_its_slot_keeps_its_colour(tmp_path):
+    """A slot without an image beside slots with one, one whose image is missing and one whose image is not an
+    image: every triangle loads, the good image is kept, each lost image is one line saying which material and
+    file, and those slots fall back to their base colour."""
+    import warnings
+
+    from PIL import Image
+
+    from nbvh_core.geometry.mesh import MeshWarning
+
+    Image.fromarray(demo_assets.pattern(16)).save(tmp_path / "tex.png")
+    (tmp_path / "bad.png").write_bytes(b"not a png at all")
+    (tmp_path / "a.mtl").write_text("newmtl red\nKd 1 0 0\nnewmtl tex\nKd 1 1 1\nmap_Kd tex.png\n"
+                                    "newmtl gone\nKd 0 0 1\nmap_Kd missing.png\nnewmtl broken\nKd 0 1 0\nmap_Kd bad.png\n")
+    (tmp_path / "a.obj").write_text(
+        "mtllib a.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nv 1 1 1\nvt 0 0\nvt 1 0\nvt 0 1\n"
+        "usemtl red\nf 1/1 2/2 3/3\nusemtl tex\nf 1/1 3/3 4/2\nusemtl gone\nf 1/1 2/2 4/3\nusemtl broken\nf 2/1 3/2 5/3\n")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        m = load_mesh(tmp_path / "a.obj")
+    said = [str(w.message) for w in caught if issubclass(w.category, MeshWarning)]
+    assert len(said) == 2 and all(len(s.splitlines()) == 1 for s in said), said
+    assert any("'gone'" in s and "missing.png" in s for s in said) and any("'broken'" in s and "bad.png" in s
+                                                                          for s in said)
+    assert m.n_triangles == 4 and m.look.n_slots == 4
+    by_name = {mat.name: mat for mat in m.look.materials}
+    assert by_name["tex"].image is not None and by_name["red"].image is None
+    assert by_name["gone"].image is None and by_name["gone"].base_color[2] > 0.9  # blue, its Kd

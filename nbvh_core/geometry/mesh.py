@@ -279,7 +279,35 @@ def load_mesh(path: str | os.PathLike) -> Mesh:
         raise MeshError(f"{path}: contains no triangles (a point cloud, lines or an empty scene?)")
     vertices, faces, look = _joined(parts)
     name = path.name.split(".")[0]
+    if ext == ".obj" and path.suffix.lower() != ".gz":
+        _warn_unread_images(path, data, look)
     return mesh_from_arrays(vertices, faces, name=name, look=look)
+
+
+def _warn_unread_images(path: Path, data: bytes, look: Look) -> None:
+    """An OBJ's material whose MTL names an image (map_Kd) that could not be read - missing, outside the mesh's
+    folder, or not an image - loads with its base colour alone (the reader drops it silently): say so, one line per
+    material, as a MeshWarning. Nothing else is lost."""
+    resolver = _confined_resolver(path)
+    named: dict[str, str] = {}
+    for line in data.decode("utf-8", "replace").splitlines():
+        if line.strip().startswith("mtllib "):
+            try:
+                mtl = resolver.get(line.strip()[7:].strip()).decode("utf-8", "replace")
+            except ValueError:
+                continue  # no material library: the reader said so, or it has no materials to lose
+            current = None
+            for entry in mtl.splitlines():
+                words = entry.strip().split(maxsplit=1)
+                if len(words) == 2 and words[0] == "newmtl":
+                    current = words[1].strip()
+                elif len(words) == 2 and words[0] == "map_Kd" and current is not None:
+                    named[current] = words[1].split()[-1]
+    for m in look.materials:
+        if m.image is None and m.name in named:
+            warnings.warn(f"{path.name}: material {m.name!r}: its image {named[m.name][:80]!r} could not be read "
+                          "(missing, outside the mesh's folder, or not an image); the slot shows its base colour",
+                          MeshWarning, stacklevel=3)
 
 
 def _joined(parts: list) -> tuple[np.ndarray, np.ndarray, Look]:
