@@ -202,3 +202,27 @@ def test_the_final_verdict_ships_the_smaller_at_the_same_measured_mse():
     # forced past a smaller measured decimation: the message says which, not that none reaches the MSE
     assert "none measured" not in forced.message and "x smaller than the model" in forced.message
     assert final_verdict(100, 0.1, 0.0005, None).shipped == "model"
+
+
+def test_the_alternative_carries_the_assets_look_in_its_bytes():
+    """A decimation weighed against a model with a look is counted with what it needs to carry that look: the same
+    slot images the model stores, 16-bit texture coordinates per vertex, a slot id per triangle; the curve's points
+    and the verdict's whole mesh add it. A bare shape adds nothing."""
+    from nbvh_core.decision.alternative_curve import AlternativeCurve
+    from nbvh_core.geometry import demo_assets
+    from meshes import icosphere
+    from nbvh_core.neural.quantize import StorageConfig
+    from nbvh_core.planning.sizing import look_carried_bytes
+    from nbvh_core.storage.fileformat import look_stored_bytes
+
+    globe = demo_assets.globe(16, 8, texture=32)
+    pngs = look_stored_bytes(None, globe.look.materials, StorageConfig())["textures"]
+    assert globe.look.n_slots == 2 and pngs > 0
+    assert look_carried_bytes(globe, 100, 150) == pngs + 4 * 100 + 19  # images, UVs, 1 bit per triangle
+    patchwork = demo_assets.patchwork(2, slots=4)  # four flat slots, no image: 2 bits per triangle
+    assert look_carried_bytes(patchwork, 100, 160) == 160 * 2 // 8
+    assert look_carried_bytes(icosphere(1), 100, 150) == 0
+    alt = {"decimations_tried": [{"triangles": 100, "requested_triangles": 100, "compact_bytes": 1000,
+                                  "look_bytes": 700, "compact_mse": 0.01}],
+           "mesh_compact": {"triangles": 400, "compact_bytes": 3000, "look_bytes": 900, "compact_mse": 0.0}}
+    assert [p.bytes for p in AlternativeCurve.from_alternatives(alt).points] == [1700, 3900]

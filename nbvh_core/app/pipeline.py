@@ -211,7 +211,8 @@ def _measure_decimation(mesh: Mesh, weighing: _Weighing, assessment):
         if not entry["triangles"]:
             return CurvePoint(2 ** 62, math.inf, 0, count)
         assessment.alternatives.setdefault("decimations_tried", []).append(entry)
-        return CurvePoint(entry["compact_bytes"], entry["compact_mse_held_out"], entry["triangles"], count)
+        return CurvePoint(entry["compact_bytes"] + entry.get("look_bytes", 0), entry["compact_mse_held_out"],
+                          entry["triangles"], count)
     return measure
 
 

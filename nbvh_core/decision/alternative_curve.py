@@ -46,10 +46,13 @@ class AlternativeCurve:
         key = "compact_mse_held_out" if held_out else "compact_mse"
         entries = list(alt.get("decimations_tried", []))
         whole = alt.get("mesh_compact")
-        pts = [CurvePoint(int(e["compact_bytes"]), float(e[key]), int(e["triangles"]), int(e["requested_triangles"]))
+        # a point's bytes: the compact mesh and what it needs to carry the asset's look (sizing.look_carried_bytes)
+        pts = [CurvePoint(int(e["compact_bytes"]) + int(e.get("look_bytes", 0)), float(e[key]), int(e["triangles"]),
+                          int(e["requested_triangles"]))
                for e in entries if key in e and "compact_bytes" in e]
         if whole and key in whole:
-            pts.append(CurvePoint(int(whole["compact_bytes"]), float(whole[key]), int(whole["triangles"]), None))
+            pts.append(CurvePoint(int(whole["compact_bytes"]) + int(whole.get("look_bytes", 0)), float(whole[key]),
+                                  int(whole["triangles"]), None))
         curve = cls(pts)
         return curve if curve.points else None
 

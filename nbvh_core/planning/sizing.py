@@ -448,6 +448,27 @@ def view_scorers(mesh: Mesh, settings, tracer=None):
             ViewScorer(tracer, mesh.transform, settings.eval_views, settings.eval_resolution, held_out=True))
 
 
+def look_carried_bytes(mesh: Mesh, n_vertices: int, n_triangles: int) -> int:
+    """The bytes a mesh of `n_vertices` / `n_triangles` (the asset or a decimation of it) needs to carry the asset's
+    look, as a compact mesh would hold it: the same slot images the model stores (their PNGs), 16-bit texture
+    coordinates per vertex when images are sampled, and a slot id per triangle (ceil(log2 slots) bits) when there
+    are several slots. Counted, not written: the compact mesh this product writes is geometry only (Blender's
+    Decimate modifier, which the add-on offers, keeps the object's UVs and slots). 0 for a bare shape."""
+    look = mesh.look
+    if look is None:
+        return 0
+    textures = getattr(look, "_stored_texture_bytes", None)
+    if textures is None:  # PNG-encoding the images once per look
+        from ..neural.quantize import StorageConfig
+        from ..storage.fileformat import look_stored_bytes
+
+        textures = look_stored_bytes(None, look.materials, StorageConfig()).get("textures", 0)
+        look._stored_texture_bytes = textures
+    uv = 4 * n_vertices if look.textured else 0
+    slots = math.ceil(n_triangles * math.ceil(math.log2(look.n_slots)) / 8) if look.n_slots > 1 else 0
+    return int(textures + uv + slots)
+
+
 def decimation_entry(mesh: Mesh, count: int, checks, held_out, draco) -> dict:
     """One point of the alternative: the quadric decimation to ~`count` triangles, plainly and as a compact mesh
     (exact bytes; the decoded compact mesh scored on the check views and, when given, the held-out views)."""
@@ -460,6 +481,7 @@ def decimation_entry(mesh: Mesh, count: int, checks, held_out, draco) -> dict:
              "resident_bytes": mesh_resident_bytes(dec)["total"]}
     nbytes, decoded = compact_mesh(dec)
     entry["compact_bytes"] = nbytes
+    entry["look_bytes"] = look_carried_bytes(mesh, dec.n_vertices, dec.n_triangles)
     entry["compact_mse"] = checks.score_mesh(decoded).mse
     if held_out is not None:
         entry["compact_mse_held_out"] = held_out.score_mesh(decoded).mse
@@ -533,7 +555,8 @@ def _whole_mesh_entry(mesh: Mesh, checks, held_out, tree=None) -> dict:
     from ..geometry.compact_mesh import compact_mesh
 
     nbytes, decoded = compact_mesh(mesh, tree)
-    entry = {"triangles": mesh.n_triangles, "compact_bytes": nbytes, "compact_mse": checks.score_mesh(decoded).mse}
+    entry = {"triangles": mesh.n_triangles, "compact_bytes": nbytes, "compact_mse": checks.score_mesh(decoded).mse,
+             "look_bytes": look_carried_bytes(mesh, mesh.n_vertices, mesh.n_triangles)}
     if held_out is not None:
         entry["compact_mse_held_out"] = held_out.score_mesh(decoded).mse
     return entry
@@ -610,6 +633,12 @@ def assess(mesh: Mesh, settings, measure_alternatives: bool = False, tracer=None
     alt = alternatives(mesh, settings.target_mse if measure_alternatives else None, checks, held_out, tree)
     compact = alt["mesh_compact"]["compact_bytes"] if "mesh_compact" in alt else compact_bytes(mesh, tree)
     dec = alt.get("decimation")
+    # A mesh weighed against the model carries the asset's look too (the model's head and images are in `model`).
+    whole_look = look_carried_bytes(mesh, mesh.n_vertices, mesh.n_triangles)
+    resident, compact = resident + whole_look, compact + whole_look
+    if dec is not None and dec.get("look_bytes"):
+        dec = {**dec, "resident_bytes": dec["resident_bytes"] + dec["look_bytes"],
+               "compact_bytes": dec["compact_bytes"] + dec["look_bytes"]}
     held = (lambda plain, comp: comp) if layout == "compact" else (lambda plain, comp: plain)
     draco = f"; Draco 11-bit of the mesh: {alt['draco11_bytes']:,} B for storage" if "draco11_bytes" in alt else ""
     # The smaller of the two alternatives wins the comparison (a decimation is offered even when the whole mesh
