@@ -46,6 +46,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from .errors import NBVHFileError  # noqa: F401  (raised here; callers import it from this module)
+from .packed import is_packed, unpack
 from ..geometry.bvh import MAX_NODES, NODE_DTYPE
 from ..neural.encodings import ENCODINGS, EncodingConfig
 from ..neural.appearance import TARGETS, AppearanceConfig, AppearanceHead, map_width
@@ -81,9 +83,6 @@ LIMITS = {"levels": (1, 16), "n_min": (1, 1 << 16), "n_max": (1, 1 << 16), "feat
 MAX_HEADER_BYTES = 1 << 20
 
 
-class NBVHFileError(ValueError):
-    """A file that is not a readable .nbvh model: the message says which file and why."""
-
 
 def pack_codes(codes: np.ndarray, bits: int) -> bytes:
     """Pack unsigned integer codes (< 2^bits, bits in {1, 2, 4, 8}) densely, little-endian within each byte."""
@@ -111,9 +110,10 @@ class FileInfo:
     """What `read_info` tells without building the model: sizes by component (bytes), header, metadata."""
 
     path: str
-    total_bytes: int
+    total_bytes: int  # the traceable file: what a tracer holds, read in place
     components: dict
     header: dict
+    stored_bytes: int = 0  # the file on disk: total_bytes, or less for the storage variant (packed.py)
 
     @property
     def metadata(self) -> dict:
@@ -730,29 +730,32 @@ def save_nbvh(model: NeuralBVH, path: str | os.PathLike, metadata: dict | None =
     return write_atomic(path, encode_nbvh(model, metadata, storage))
 
 
-def _read(path: Path) -> bytes:
+def read_model_bytes(path: Path) -> bytes:
+    """The traceable file's bytes: as they are on disk, or decoded from the storage variant (`packed.py`)."""
     try:
         if path.is_dir():
             raise NBVHFileError(f"{path}: is a folder, not an .nbvh file")
-        return path.read_bytes()
+        data = path.read_bytes()
     except OSError as exc:
         raise NBVHFileError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    return unpack(data, str(path)) if is_packed(data) else data
 
 
 def load_nbvh(path: str | os.PathLike, device: str | torch.device = "cpu") -> NeuralBVH:
     """Read a .nbvh file (see `decode_nbvh`); raises `NBVHFileError` for anything that is not a valid model."""
     path = Path(path)
-    return decode_nbvh(_read(path), str(path), device)
+    return decode_nbvh(read_model_bytes(path), str(path), device)
 
 
 def read_info(path: str | os.PathLike) -> FileInfo:
     """Header, metadata and bytes by component of a .nbvh file (validated as completely as `load_nbvh` does: a file
     `info` accepts is one `render` can load)."""
     path = Path(path)
-    data = _read(path)
+    data = read_model_bytes(path)
     header = _parse(data, str(path))
     _decode(data, header, str(path))
-    return FileInfo(path=str(path), total_bytes=len(data), components=_components(header, len(data)), header=header)
+    return FileInfo(path=str(path), total_bytes=len(data), components=_components(header, len(data)), header=header,
+                    stored_bytes=path.stat().st_size)
 
 
 def look_stored_bytes(cfg: AppearanceConfig | None, materials: list[Material], storage: StorageConfig) -> dict[str, int]:
