@@ -41,6 +41,7 @@ SMOKE = {
     "bench_resolution.py": ["--meshes", "blob", "--n-max", "32", "--preset", "tiny", "--steps", "5"],
     "bench_shipped.py": ["--assets", "gear", "--time-limit", "2"],
     "bench_samples.py": ["--preset", "tiny", "--out", "{tmp}/samples"],
+    "bench_storage.py": ["--meshes", "blob", "--preset", "tiny", "--seconds", "1"],
     "bench_speed.py": ["--quick", "--asset", "blob", "--train-s", "1", "--steps", "3"],
     "bench_table5.py": ["--steps", "5", "--meshes", "blob", "--methods", "base", "III"],
     "error_split.py": ["blob", "--preset", "tiny", "--steps", "5"],
