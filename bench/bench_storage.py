@@ -104,7 +104,7 @@ def chart(rows: list[dict]) -> None:
             ("decimation_compact_bytes", "decimation, compact mesh", "C1"),
             ("decimation_compact_xz_bytes", "decimation, compact mesh xz", "navajowhite"),
             ("decimation_draco11_bytes", "decimation, Draco 11-bit", "C2")]
-    fig, ax = plt.subplots(figsize=(2.2 + 1.6 * len(rows), 4.2))
+    fig, ax = plt.subplots(figsize=(2.2 + 1.6 * len(rows), 4.8))
     x = np.arange(len(rows))
     for i, (key, label, colour) in enumerate(keys):
         ax.bar(x + (i - 2) * 0.16, [int(r[key]) for r in rows], 0.16, label=label, color=colour)
@@ -112,9 +112,9 @@ def chart(rows: list[dict]) -> None:
     ax.set_yscale("log")
     ax.set_ylabel("bytes at the model's MSE")
     ax.set_title("Storage at equal image MSE (16 held-out views, 256 px)", fontsize=10)
-    ax.legend(fontsize=7)
     ax.grid(True, axis="y", which="both", alpha=0.3)
-    fig.tight_layout(rect=(0, 0.03, 1, 1))
+    fig.legend(*ax.get_legend_handles_labels(), loc="lower center", ncol=3, fontsize=7)
+    fig.tight_layout(rect=(0, 0.16, 1, 1))
     save_figure(fig, RESULTS / "storage.png")
 
 
