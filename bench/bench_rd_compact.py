@@ -1,9 +1,8 @@
 """Bytes against image error for every contender on the bench meshes: quadric decimations at several triangle
 counts, each held plainly (~44 B per triangle), as a compact ray-traceable mesh (`nbvh_core/geometry/compact_mesh.py`,
-scored on its decoded triangles) and as Draco 11-bit (storage only), beside the neural models of bench_pays (each
-preset trained at its own budget, from compact_dgf.csv). One metric for the meshes: the product's `ViewScorer`, 16
-held-out orbit views at 256 px against the full mesh (Embree); the neural points carry bench_pays's MSE (16 views,
-128 px), said so in the legend.
+scored on its decoded triangles) and as Draco 11-bit (storage only), beside the neural models of bench_storage (a
+preset at its own budget, traceable and packed). One metric for all: the product's `ViewScorer`, 16 held-out orbit
+views at 256 px against the full mesh (Embree).
 
     .venv/bin/python bench/bench_rd_compact.py [--meshes bunny spiky ...]   # -> bench/results/rd_compact.{csv,png}
     .venv/bin/python bench/bench_rd_compact.py --chart                      # the chart only, from the CSV
@@ -68,7 +67,7 @@ def chart(path: Path) -> None:
     import matplotlib.pyplot as plt
 
     rows = read_rows(OUT)
-    neural = read_rows(RESULTS / "compact_dgf.csv")
+    neural = read_rows(RESULTS / "storage.csv")  # bench_storage: the models on this chart's metric
     meshes = [m for m in MESHES if any(r["mesh"] == m for r in rows)]
     fig, axes = plt.subplots(2, 4, figsize=(17, 8))
     for ax in axes.ravel()[len(meshes):]:
@@ -86,10 +85,12 @@ def chart(path: Path) -> None:
                                   ("draco11_bytes", "decimation, Draco 11-bit (storage)", "^--")):
             ax.plot([int(r[key]) for r in dec], mse, style, label=label, ms=4)
         current = [r for r in neural if r["mesh"] == name]
-        ax.plot([int(r["model_file_bytes"]) for r in current], [float(r["model_mse"]) for r in current], "*", ms=12,
-                color="crimson", label="neural, presets at their budgets (MSE at 128 px)")
+        ax.plot([int(r["model_bytes"]) for r in current], [float(r["model_mse"]) for r in current], "*", ms=12,
+                color="crimson", label="neural, traceable .nbvh (preset at its budget)")
+        ax.plot([int(r["model_packed_bytes"]) for r in current], [float(r["model_mse"]) for r in current], "*",
+                ms=10, color="salmon", label="neural, storage variant (xz, decoded at load)")
         for r in current:
-            ax.annotate(r["preset"], (int(r["model_file_bytes"]), float(r["model_mse"])), fontsize=7, xytext=(4, 4),
+            ax.annotate(r["preset"], (int(r["model_bytes"]), float(r["model_mse"])), fontsize=7, xytext=(4, 4),
                         textcoords="offset points")
         if not any(y > 0 for line in ax.get_lines() for y in line.get_ydata()[:1] if line.get_marker() != "None"):
             ax.set_ylim(1e-5, 0.1)  # nothing measured yet but the whole mesh's bytes (exact: MSE 0)
