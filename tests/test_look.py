@@ -318,3 +318,16 @@ def test_a_missing_or_unreadable_image_is_one_warning_and_its_slot_keeps_its_col
     by_name = {mat.name: mat for mat in m.look.materials}
     assert by_name["tex"].image is not None and by_name["red"].image is None
     assert by_name["gone"].image is None and by_name["gone"].base_color[2] > 0.9  # blue, its Kd
+
+
+def test_the_reference_speed_is_timed_when_its_images_are_rendered_not_when_they_are_reused():
+    """A ViewScorer renders the exact images once; a score that reuses them reported billions of Embree rays/s (the
+    time of a list lookup). It now reports the speed measured when they were rendered."""
+    from nbvh_core.rendering.metrics import ViewScorer
+
+    m = icosphere(2)
+    scorer = ViewScorer(ExactTracer(m), m.transform, 2, 32)
+    first = scorer.score_mesh(m)
+    again = scorer.score_mesh(m)
+    assert first.reference_rays_per_s == again.reference_rays_per_s == scorer.reference_rays_per_s
+    assert 0 < scorer.reference_rays_per_s < 1e9  # a 2-core CPU's Embree: millions, not billions

@@ -75,6 +75,7 @@ class ViewScorer:
         self.tracer, self.transform = tracer, transform
         self.n_views, self.resolution, self.held_out = n_views, resolution, held_out
         self._reference = None
+        self.reference_rays_per_s = 0.0
 
     @property
     def name(self) -> str:
@@ -82,14 +83,19 @@ class ViewScorer:
 
     def reference(self) -> list:
         if self._reference is None:
+            t = time.perf_counter()
             self._reference = reference_views(self.tracer, self.n_views, self.resolution, self.held_out)
+            rays = self.n_views * self.resolution * self.resolution
+            self.reference_rays_per_s = rays / max(time.perf_counter() - t, 1e-9)  # Embree's speed, timed once
         return self._reference
 
     def score(self, render, keep_images: int = 0, flip: bool = False) -> tuple[Quality, list]:
         """`render(camera, width, height) -> RenderResult` scored: (Quality, the first `keep_images` image pairs);
         flip: also FLIP of the displayed images."""
-        return evaluate_renderer(render, self.tracer, self.transform, self.n_views, self.resolution, keep_images,
-                                 self.reference(), self.held_out, flip)
+        q, images = evaluate_renderer(render, self.tracer, self.transform, self.n_views, self.resolution, keep_images,
+                                      self.reference(), self.held_out, flip)
+        q.reference_rays_per_s = self.reference_rays_per_s  # the cached images were timed when they were rendered
+        return q, images
 
     def score_model(self, model, keep_images: int = 0, flip: bool = False) -> tuple[Quality, list]:
         """A NeuralBVH, as it is held (finalize it to its stored precision first to score the file; a model
@@ -109,7 +115,9 @@ def evaluate_renderer(render, tracer, transform, n_views: int = 16, resolution: 
     """The same metric for any renderer: `render(camera, width, height) -> RenderResult` (a neural model, or
     Embree on a decimated / Draco-decoded mesh for the baselines) against `tracer`'s exact images (or
     `reference`, those images from `reference_views` with the same views and resolution).
-    `transform` (mesh.Transform) converts the depth error to original units. flip: also score FLIP (Quality.flip)."""
+    `transform` (mesh.Transform) converts the depth error to original units. flip: also score FLIP (Quality.flip).
+    With `reference` given, its images were rendered earlier: Quality.reference_rays_per_s is then 0 (not timed
+    here; ViewScorer fills in the time it took once)."""
     if reference is not None and (len(reference) != n_views or reference[0].image.shape != (resolution, resolution)):
         raise ValueError(f"reference views are {len(reference)} at {reference[0].image.shape}, not {n_views} at "
                          f"{resolution} px")
@@ -141,7 +149,7 @@ def evaluate_renderer(render, tracer, transform, n_views: int = 16, resolution: 
     q = Quality(mse=float(np.mean(per_view)), silhouette_iou=inter / max(union, 1), depth_error=depth,
                 depth_error_original_units=float(transform.distance_to_original(depth)), views=n_views,
                 resolution=resolution, held_out=held_out, per_view_mse=per_view, neural_rays_per_s=n_rays / max(t_neural, 1e-9),
-                reference_rays_per_s=n_rays / max(t_ref, 1e-9),
+                reference_rays_per_s=0.0 if reference is not None else n_rays / max(t_ref, 1e-9),
                 colour_mse=float(np.mean(colour)) if len(colour) == n_views else None,
                 flip=float(np.mean(flips)) if flips else None)
     return q, images
