@@ -27,15 +27,26 @@ def request_from_props(props) -> compress_session.Request:
     return compress_session.Request(preset=preset, overrides=overrides, out_dir=props.output_dir)
 
 
-def _verdict(report_path: str) -> str:
-    """The job's comparison with what the user could ship instead: the final verdict (the model as shipped against
-    the compact decimation at the same measured MSE) when there is one, else the verdict before training."""
+def _read_report(report_path: str) -> dict:
+    """The job's report ({} when it cannot be read: the row then shows what the job's result event said)."""
     try:
         report = json.loads(Path(report_path).read_text())
     except (OSError, ValueError):
-        return ""
+        return {}
+    return report if isinstance(report, dict) else {}
+
+
+def _verdict(report: dict) -> str:
+    """The job's comparison with what the user could ship instead: the final verdict (the model as shipped against
+    the compact decimation at the same measured MSE) when there is one, else the verdict before training."""
     final = (report.get("decisions") or {}).get("final") or {}
     return str(final.get("message") or (report.get("assessment") or {}).get("message") or "")
+
+
+def _shipped_flip(report: dict) -> float:
+    """FLIP of the file as shipped, its look included, on the held-out views (0: a bare shape, or not scored)."""
+    flip = (report.get("quality_as_shipped") or {}).get("flip")
+    return float(flip) if isinstance(flip, (int, float)) else 0.0
 
 
 def _store_results(scene, session) -> None:
@@ -53,7 +64,9 @@ def _store_results(scene, session) -> None:
         item.iou = q.get("silhouette_iou") or 0.0
         item.train_seconds = res.get("train_seconds") or 0.0
         item.blender_bytes = session.blender_bytes[obj_name]["total"]
-        item.verdict = _verdict(res["files"]["report"])
+        report = _read_report(res["files"]["report"])
+        item.verdict = _verdict(report)
+        item.flip = _shipped_flip(report)
     paths = compress_session.write_scene_report(session)
     if paths:
         scene.nbvh_props.report_html = str(paths[1])

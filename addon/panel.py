@@ -22,11 +22,15 @@ class NBVH_Result(bpy.types.PropertyGroup):
     blender_bytes: bpy.props.IntProperty(name="Mesh bytes", description="What the mesh holds as Blender stores it "
                                          "(positions, corners, faces, normals)")
     mse: bpy.props.FloatProperty(name="MSE", precision=5, description=(
-        "Image mean squared error of the neural rendering against the exact one of the mesh, over 16 orbit views "
+        "Image mean squared error of the neural rendering against the exact one of the mesh, over 16 held-out orbit "
+        "views at 256 px "
         f"(0 = identical; {compress_session.QUALITY_LEVELS['standard']:g} is the 'standard' quality level)"))
     iou: bpy.props.FloatProperty(name="IoU", precision=4, description=(
         "Silhouette intersection over union: the share of pixels covered by both renderings among those covered "
         "by either (1 = the same outline)"))
+    flip: bpy.props.FloatProperty(name="FLIP", precision=4, description=(
+        "NVIDIA's FLIP of the file as shipped, its look included (colours, textures), against the exact coloured "
+        "render of the mesh on the same held-out views (0 = identical; shown for assets with materials)"))
     train_seconds: bpy.props.FloatProperty()
     verdict: bpy.props.StringProperty(description="What the user could ship instead: the mesh as a ray tracer "
                                       "holds it, a decimation of equal quality, Draco for storage")
@@ -191,6 +195,8 @@ class NBVH_PT_panel(bpy.types.Panel):
             col.label(text=f"{r.blender_bytes / max(r.nbvh_bytes, 1):.1f}x smaller than the mesh")
             col.prop(r, "mse", text="MSE", emboss=False)
             col.prop(r, "iou", text="IoU", emboss=False)
+            if r.flip > 0:  # an asset with a look: what people see, scored on the written file
+                col.prop(r, "flip", text="FLIP, as shipped", emboss=False)
             col.label(text=f"trained {r.train_seconds:.0f} s")
             if r.verdict:
                 _wrapped(box, r.verdict, "NONE", context, lines=6)

@@ -213,6 +213,10 @@ def test_compress_via_operator_loads_image_proxy_report():
     assert (co >= bb.min(0) - 0.1 * size).all() and (co <= bb.max(0) + 0.1 * size).all()
     report = json.loads(Path(r.report_path).read_text())
     assert report["file_bytes"] == r.nbvh_bytes
+    # a bare shape: no look, no FLIP row; an asset with a look shows its file's FLIP as the report scored it
+    assert r.flip == 0.0 and report["quality_as_shipped"]["flip"] is None
+    ops = ADDON["compress_ops"]
+    assert ops._shipped_flip({"quality_as_shipped": {"flip": 0.0213}}) == 0.0213 and ops._shipped_flip({}) == 0.0
     # The object now points at its model: the NBVH render engine draws it from there.
     assert Path(bpy.path.abspath(blob.nbvh_model)).resolve() == model_path.resolve()
     html = Path(props.report_html)
