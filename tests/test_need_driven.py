@@ -7,7 +7,8 @@ import pytest
 
 from meshes import icosphere
 from nbvh_core.geometry.exact import ExactTracer
-from nbvh_core.planning.settings import preset
+from nbvh_core.decision.config import DecisionConfig
+from nbvh_core.planning.settings import estimate_file_bytes, preset
 from nbvh_core.planning.sizing import (DECIMATE_REFINE, LOG2_RANGE, MeshFeatures, alternatives, assess,
                                        choose_table_and_nodes, load_fit, max_nodes_for, mesh_features, resolve)
 
@@ -17,14 +18,14 @@ def test_the_verdict_weighs_the_model_against_the_layout_asked_for():
     # nodes is ~45 KB: smaller than the plain mesh, larger than the compact one.
     mesh = icosphere(3)
     s = preset("default").with_overrides(log2_table=8, nodes=255)
-    compact = assess(mesh, s)
-    plain = assess(mesh, s.with_overrides(mesh_layout="plain"))
+    compact = assess(mesh, estimate_file_bytes(s), DecisionConfig())
+    plain = assess(mesh, estimate_file_bytes(s), DecisionConfig(mesh_layout="plain"))
     assert compact.compact_bytes < compact.model_bytes < compact.resident["total"]
     assert compact.recommendation == "mesh" and not compact.worth_compressing and compact.layout == "compact"
     assert "compact mesh" in compact.message and "plain ray tracer" in compact.message
     assert plain.recommendation == "neural" and plain.worth_compressing and plain.layout == "plain"
     with pytest.raises(ValueError, match="mesh_layout"):
-        assess(mesh, dataclasses.replace(s, mesh_layout="dgf"))
+        DecisionConfig(mesh_layout="dgf")
 
 
 def test_the_decimation_is_the_smallest_tried_that_meets_and_is_bracketed(sample_meshes):

@@ -1,6 +1,7 @@
 import pytest
 
-from nbvh_core.app.pipeline import PRESETS, estimate_file_bytes, preset, resolve, compress_mesh
+from nbvh_core.app.pipeline import PRESETS, estimate_file_bytes, preset, compress_mesh
+from nbvh_core.planning.sizing import resolve
 from nbvh_core.planning.sizing import LOG2_RANGE
 
 
@@ -43,15 +44,17 @@ def test_target_maps_to_a_preset_and_is_checked(sample_meshes, tmp_path):
 
 
 def test_small_mesh_is_reported_not_worth_compressing(sample_meshes):
+    from nbvh_core.decision.config import DecisionConfig
+    from nbvh_core.planning.settings import estimate_file_bytes
     from nbvh_core.planning.sizing import assess, mesh_resident_bytes
 
     from meshes import icosphere
 
     cube_like = icosphere(1)  # 80 triangles: a few KB as a mesh
-    verdict = assess(cube_like, preset("default"))
+    verdict = assess(cube_like, estimate_file_bytes(preset("default")), DecisionConfig())
     assert not verdict.worth_compressing and "not worth compressing" in verdict.message
     assert verdict.resident == mesh_resident_bytes(cube_like) and verdict.resident["total"] < verdict.model_bytes
-    detailed = assess(sample_meshes["studs"], preset("default"))
+    detailed = assess(sample_meshes["studs"], estimate_file_bytes(preset("default")), DecisionConfig())
     assert detailed.worth_compressing and detailed.resident["total"] > 10 * detailed.model_bytes
 
 

@@ -2,6 +2,7 @@
 leaf the float32 BVH would enter), and a model's quantized storage scores within 10% of the same training in
 float32."""
 import numpy as np
+import torch
 import pytest
 
 from nbvh_core.geometry.bvh import NODE_DTYPE
@@ -92,3 +93,26 @@ def test_quantized_storage_scores_within_10_percent_of_its_float32_training(samp
     f32, q = res.seconds["mse_float32"], res.quality.mse
     assert 0 < f32 < 0.05  # a trained model, not noise
     assert abs(q - f32) <= 0.10 * f32, (q, f32)
+
+
+def test_four_bit_tables_halve_the_features_and_read_back_exactly(sample_meshes):
+    """table_bits 4: the file's feature codes take half the bytes of 8-bit ones (the grid's affine map is kept), the
+    codes stay under 16, the network trained its last steps on that grid (quantization-aware), and the file decodes
+    to the very model that was scored."""
+    from nbvh_core.rendering.metrics import MetricConfig, view_sets
+    from nbvh_core.storage.fileformat import decode_nbvh
+
+    mesh = sample_meshes["bunny"]
+    runs = {}
+    for bits in (8, 4):
+        s = preset("tiny").with_overrides(steps=60, force=True, table_bits=bits, log2_table=10, levels=8, features=4)
+        runs[bits] = compress_mesh(mesh, s, None)
+    f8, f4 = runs[8].components["features"], runs[4].components["features"]
+    affine = 2 * 4 * 8 * 4  # float32 offset and scale per (level, feature)
+    assert f4 - affine == (f8 - affine) // 2, (f8, f4)
+    res = runs[4]
+    assert int(res.model.encoding.qcodes.max()) < 16 and res.settings.table_bits == 4
+    decoded = decode_nbvh(res.data)
+    assert torch.equal(decoded.encoding.qcodes.cpu(), res.model.encoding.qcodes.cpu())
+    checks, held = view_sets(res.tracer, mesh.transform, MetricConfig(2, 32))
+    assert held.score_model(decoded)[0].mse == pytest.approx(held.score_model(res.model)[0].mse, rel=1e-4)

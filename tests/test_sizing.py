@@ -9,8 +9,11 @@ import pytest
 from meshes import icosphere
 from nbvh_core.app.cli import main as cli_main
 from nbvh_core.geometry.mesh import mesh_from_arrays
-from nbvh_core.app.pipeline import compress_mesh, estimate_file_bytes, preset, resolve
-from nbvh_core.planning.sizing import (LOG2_RANGE, QUALITY_LEVELS, MeshFeatures, SizeFit, assess, choose_size,
+from nbvh_core.app.pipeline import compress_mesh, estimate_file_bytes, preset
+from nbvh_core.decision.config import DecisionConfig
+from nbvh_core.geometry.exact import ExactTracer
+from nbvh_core.rendering.metrics import MetricConfig, view_sets
+from nbvh_core.planning.sizing import (LOG2_RANGE, QUALITY_LEVELS, MeshFeatures, SizeFit, assess, choose_size, resolve,
                               fit_size_model, load_fit, mesh_features, search_size, split_budget)
 
 
@@ -73,10 +76,10 @@ def test_shipped_fit_and_target_resolution(sample_meshes):
 def test_trivial_meshes_are_not_worth_compressing_and_detailed_ones_are(sample_meshes):
     small = preset("default").with_overrides(log2_table=6, nodes=255)
     for mesh in (cube(), icosphere(2)):  # 12 and 320 triangles
-        verdict = assess(mesh, small)
+        verdict = assess(mesh, estimate_file_bytes(small), DecisionConfig())
         assert not verdict.worth_compressing and verdict.recommendation == "mesh"
         assert "not worth compressing" in verdict.message
-    detailed = assess(sample_meshes["studs"], preset("default"))
+    detailed = assess(sample_meshes["studs"], estimate_file_bytes(preset("default")), DecisionConfig())
     assert detailed.worth_compressing and detailed.recommendation == "neural"
     # The Draco size is always shown: for storage alone it wins (here by far).
     assert 0 < detailed.alternatives["draco11_bytes"] < detailed.model_bytes and "Draco" in detailed.message
@@ -86,7 +89,9 @@ def test_decimation_that_meets_the_target_is_recommended_when_smaller(sample_mes
     # The blob is smooth: a few thousand triangles render it almost exactly, and they hold far fewer resident
     # bytes than a default-size model.
     s = preset("default").with_overrides(target_mse=0.01)
-    verdict = assess(sample_meshes["blob"], s, measure_alternatives=True)
+    mesh = sample_meshes["blob"]
+    checks, held_out = view_sets(ExactTracer(mesh), mesh.transform, MetricConfig())
+    verdict = assess(mesh, estimate_file_bytes(s), DecisionConfig(target_mse=0.01), checks, held_out)
     dec = verdict.alternatives["decimation"]
     assert dec["mse"] <= 0.01 and dec["triangles"] < sample_meshes["blob"].n_triangles
     assert dec["resident_bytes"] < verdict.model_bytes

@@ -18,8 +18,9 @@ LONG_FUNCTIONS: dict[str, str] = {}
 TORCH_FREE = ("nbvh_core.protocol.events", "nbvh_core.protocol.outputs", "nbvh_core.protocol.quality_levels",
               "nbvh_core.protocol.process", "nbvh_core.geometry.look")
 #: nbvh_core's layers, lowest first, in the order data flows: a module imports from its own layer or below only
-#: (function-local imports included). The package's __init__ and __main__ are entry points above them all.
-LAYERS = ("protocol", "kernels", "geometry", "neural", "storage", "training", "rendering", "planning", "decision",
+#: (function-local imports included). The package's __init__ and __main__ are entry points above them all. The
+#: decision rules are pure (measurements in, typed records out), so every stage that decides can use them.
+LAYERS = ("protocol", "decision", "kernels", "geometry", "neural", "storage", "training", "rendering", "planning",
           "app")
 ENTRY_POINTS = ("nbvh_core", "nbvh_core.__main__")
 

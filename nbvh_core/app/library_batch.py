@@ -201,9 +201,11 @@ def _worker_id() -> str:
 def measure_asset(asset: dict, spec: dict) -> dict:
     """Ray task: measure one asset and decide (see the module docstring). Never raises: a failure is a row."""
     from ..geometry.exact import ExactTracer
-    from .pipeline import mesh_identity
+    from ..neural.appearance import make_head
+    from .pipeline import mesh_identity, weigh
+    from ..planning.run_config import plan_run
     from ..rendering.render import orbit_cameras, png_bytes, render_reference
-    from ..planning.sizing import assess, mesh_file_bytes, resolve, winning_decimation
+    from ..planning.sizing import mesh_file_bytes, winning_decimation
 
     t0 = time.perf_counter()
     out = {"name": asset["name"], "worker": _worker_id()}
@@ -211,11 +213,11 @@ def measure_asset(asset: dict, spec: dict) -> dict:
         if asset.get("error"):
             raise ValueError(asset["error"])
         mesh = load_asset(asset["path"], asset["name"])
-        settings, _ = resolve(settings_from_request(spec), mesh)
+        run = plan_run(settings_from_request(spec), mesh)
         tracer = ExactTracer(mesh)
-        a = assess(mesh, settings, measure_alternatives=settings.target_mse is not None, tracer=tracer)
+        a, _ = weigh(mesh, run, tracer, make_head(mesh, run.look.head))  # the run's own verdict, its look weighed
         thumb = render_reference(tracer, orbit_cameras(1)[0], THUMBNAIL_PX, THUMBNAIL_PX).display
-        out.update(status="measured" if a.worth_compressing or settings.force else "not_worth",
+        out.update(status="measured" if a.worth_compressing or run.decision.force else "not_worth",
                    triangles=mesh.n_triangles,
                    mesh_resident_bytes=a.resident["total"], draco_bytes=a.alternatives.get("draco11_bytes"),
                    predicted_model_bytes=a.model_bytes, verdict=a.message, recommendation=a.recommendation,

@@ -1,6 +1,7 @@
-"""mesh -> BVH -> training -> quality check -> .nbvh file: the one function the CLI, the add-on's job and the
-benchmarks call (`compress_mesh`). What a run is asked to do (Settings, presets) lives in `settings.py`, how big a
-model to train in `sizing.py`; both are re-exported here for callers that only need this module.
+"""mesh -> BVH -> training -> quality check -> .nbvh file: the one function the CLI, the add-on's job, library
+batches and the benchmarks call (`compress_mesh`). What a run is asked (`Settings`, presets) is planned once into
+its parts (`planning.run_config.plan_run` -> RunConfig); every stage below takes only its part. Settings and the
+presets are re-exported here for callers that only need this module.
 """
 from __future__ import annotations
 
@@ -17,24 +18,25 @@ from typing import Callable, NamedTuple
 import numpy as np
 import torch
 
-from ..neural.appearance import AppearanceConfig, finalize_head, make_head
+from ..neural.appearance import finalize_head, make_head
 from ..training.appearance_training import SurfaceLabels, train_head
 from ..geometry.bvh import NODE_DTYPE, build_bvh
 from ..protocol.events import EventSink, null_sink
 from ..geometry.exact import ExactTracer
 from ..storage.fileformat import component_bytes, decode_nbvh, encode_nbvh, look_stored_bytes, write_atomic
 from ..geometry.mesh import Mesh
-from ..rendering.metrics import Quality, ViewScorer
+from ..rendering.metrics import Quality, ViewScorer, view_sets
 from ..neural.model import NeuralBVH
 from ..protocol.process import Cancelled, NotWorthCompressing, TrainingDiverged
 from ..neural.quantize import snap_nodes
 from ..planning.settings import PRESETS, Settings, estimate_file_bytes, preset  # noqa: F401  (re-exported)
 from ..planning import sizing
-from ..planning.sizing import (LOG2_RANGE, assess, choose_resolution, grid_measures, load_fit, mesh_features, resolve,
-                               search_size)
+from ..planning.run_config import LookConfig, RunConfig, plan_run
+from ..planning.sizing import LOG2_RANGE, assess, load_fit, mesh_features, search_size
 from ..training.train import TrainResult, train
 from ..decision.alternative_curve import AlternativeCurve, CurvePoint
 from ..decision.checks import CheckRule
+from ..decision.records import RunNote, why_of
 from ..decision.final_verdict import final_verdict
 
 #: A diverged training restarts from scratch at a 10x lower learning rate, at most this many times.
@@ -70,6 +72,8 @@ class CompressResult:
     #: The file as shipped, decoded from its bytes with its look, on the held-out views: colour MSE and FLIP beside
     #: the geometry's MSE (for a bare shape the file is the model `quality` scored, at its stored precision).
     quality_as_shipped: Quality | None = None
+    #: The run's account in order (decision.records.RunNote): the plan, a resume, restarts, growth, the search.
+    notes: list = field(default_factory=list)
 
     def summary(self) -> dict:
         return {"path": self.path, "file_bytes": self.file_bytes, "components": self.components,
@@ -78,6 +82,7 @@ class CompressResult:
                 "model_resident_bytes": self.model.resident_bytes() if self.model is not None else None,
                 "training": {k: v for k, v in dataclasses.asdict(self.training).items() if k != "history"},
                 "settings": self.settings.to_dict(), "seconds": self.seconds, "why": self.why,
+                "notes": [n.to_dict() for n in self.notes],
                 "target_met": self.target_met, "assessment": self.assessment, "decisions": self.decisions}
 
 
@@ -86,8 +91,8 @@ class _Trained(NamedTuple):
 
     model: NeuralBVH
     result: TrainResult
-    settings: Settings  # as used (a divergence restart lowers lr)
-    restart_notes: str  # what the restarts add to `why`
+    run: RunConfig  # as used (a divergence restart lowers lr; growth changes the table)
+    notes: tuple  # what this training adds to the run's account (RunNote: restarts, growth, an early stop)
     quality: Quality | None
 
 
@@ -142,26 +147,27 @@ def _stored_mse(scorer: ViewScorer, storage):
     return score
 
 
-def _train_with_restarts(mesh, bvh, tracer, settings, why, events, should_cancel, checkpoint_path, resume_from=None,
-                         target_reached=None):
+def _train_with_restarts(mesh, bvh, tracer, run: RunConfig, events, should_cancel, checkpoint_path, resume_from=None,
+                         target_reached=None) -> tuple[NeuralBVH, TrainResult, RunConfig, tuple]:
     """Train a fresh model (or resume `resume_from`); on divergence restart from scratch at a 10x lower learning rate
-    (at most DIVERGENCE_RETRIES times). Returns (model, TrainResult, settings actually used, why)."""
+    (at most DIVERGENCE_RETRIES times). Returns (model, TrainResult, the run as used, the restarts' notes)."""
+    notes: tuple = ()
     for attempt in range(DIVERGENCE_RETRIES + 1):
-        model = NeuralBVH(bvh.nodes, settings.model_config(), mesh.transform)
+        model = NeuralBVH(bvh.nodes, run.model, mesh.transform)
         try:
-            extra = {"settings": settings.to_dict(), "mesh": mesh_identity(mesh)}
-            tr = train(model, bvh, tracer, settings.train_config(), events=events, should_cancel=should_cancel,
+            extra = {"settings": run.request.to_dict(), "mesh": mesh_identity(mesh)}
+            tr = train(model, bvh, tracer, run.training, events=events, should_cancel=should_cancel,
                        checkpoint_path=checkpoint_path, resume_from=resume_from if attempt == 0 else None,
                        checkpoint_extra=extra, target_reached=target_reached)
-            return model, tr, settings, why
+            return model, tr, run, notes
         except TrainingDiverged as exc:
             if attempt == DIVERGENCE_RETRIES:
                 raise TrainingDiverged(f"{exc} (after {attempt} restarts at lower learning rates)") from None
-            lower = settings.lr * 0.1
-            why += f"; training diverged at lr {settings.lr:g} ({exc}), restarted at lr {lower:g}"
+            lr = run.training.lr
+            notes += (RunNote("restart", f"training diverged at lr {lr:g} ({exc}), restarted at lr {lr * 0.1:g}"),)
             events({"event": "warning", "message": f"training diverged ({exc}); restarting from scratch with the "
-                                                   f"learning rate {settings.lr:g} -> {lower:g}"})
-            settings = dataclasses.replace(settings, lr=lower)
+                                                   f"learning rate {lr:g} -> {lr * 0.1:g}"})
+            run = run.with_training(lr=lr * 0.1)
     raise AssertionError("unreachable")
 
 
@@ -173,37 +179,51 @@ def _shipped_materials(mesh: Mesh, made) -> list:
     return materials
 
 
-def _look_bytes(mesh: Mesh, settings: Settings, made) -> int:
-    """What the file adds for the asset's look (`fileformat.look_stored_bytes`: the head `made` as stored, the slot
-    images it keeps), so every decision weighs the model as it ships."""
-    if mesh.look is None:
-        return 0
-    return sum(look_stored_bytes(made[0].cfg if made else None, _shipped_materials(mesh, made),
-                                 settings.storage()).values())
+@dataclass
+class Weighing:
+    """What a run's decisions are measured and weighed with: the check views and the held-out views (one metric for
+    every contender), the alternative's curve on each (None without a target), and the bytes the asset's look adds
+    to every model (appearance head and textures, as stored)."""
+
+    checks: ViewScorer
+    held_out: ViewScorer
+    curve: AlternativeCurve | None = None
+    curve_held_out: AlternativeCurve | None = None
+    look_bytes: int = 0
 
 
-def _verdict(mesh: Mesh, settings: Settings, why: str, weighing: _Weighing, events: EventSink,
-             seconds: dict) -> "sizing.Assessment":
-    """Is the model worth training (`sizing.assess`, the model weighed with its look)? Measures the alternative's
-    curves into `weighing`. Raises NotWorthCompressing unless forced; in seconds."""
+def weigh(mesh: Mesh, run: RunConfig, tracer: ExactTracer, made=None) -> tuple["sizing.Assessment", Weighing]:
+    """The verdict before training, the same for a run and a library batch's measurement: the model `run` plans,
+    with what its file adds for the asset's look (the head `made`, `make_head`; the images it keeps), weighed
+    against the mesh and, with a target, the measured decimations (`sizing.assess`, on the run's view sets)."""
+    checks, held_out = view_sets(tracer, mesh.transform, run.metric)
+    look_bytes = 0
+    if mesh.look is not None:
+        look_bytes = sum(look_stored_bytes(made[0].cfg if made else None, _shipped_materials(mesh, made),
+                                           run.storage).values())
+    measured = run.decision.target_mse is not None
+    assessment = assess(mesh, run.file_bytes, run.decision, checks if measured else None, held_out, look_bytes)
+    return assessment, Weighing(checks, held_out, AlternativeCurve.from_alternatives(assessment.alternatives),
+                                AlternativeCurve.from_alternatives(assessment.alternatives, held_out=True), look_bytes)
+
+
+def _verdict(mesh: Mesh, run: RunConfig, tracer: ExactTracer, made, events: EventSink, seconds: dict):
+    """Is the model worth training (`weigh`)? Raises NotWorthCompressing unless forced; returns (Assessment,
+    Weighing); in seconds['plan']."""
     t = time.perf_counter()
-    events({"event": "phase", "phase": "plan", "message": why})
-    assessment = assess(mesh, settings, measure_alternatives=settings.target_mse is not None,
-                        tracer=weighing.checks.tracer, checks=weighing.checks, held_out=weighing.held_out,
-                        look_bytes=weighing.look_bytes)
-    weighing.curve = AlternativeCurve.from_alternatives(assessment.alternatives)
-    weighing.curve_held_out = AlternativeCurve.from_alternatives(assessment.alternatives, held_out=True)
+    events({"event": "phase", "phase": "plan", "message": why_of(run.notes)})
+    assessment, weighing = weigh(mesh, run, tracer, made)
     seconds["plan"] = time.perf_counter() - t
     if not assessment.worth_compressing:
-        if not settings.force:
+        if not run.decision.force:
             events({"event": "verdict", "worth_compressing": False, "message": assessment.message,
                     "assessment": assessment.to_dict()})
             raise NotWorthCompressing(assessment)
         events({"event": "warning", "message": assessment.message + " (training anyway: forced)"})
-    return assessment
+    return assessment, weighing
 
 
-def _measure_decimation(mesh: Mesh, weighing: _Weighing, assessment):
+def _measure_decimation(mesh: Mesh, weighing: Weighing, assessment):
     """measure(triangles) -> CurvePoint for the final verdict: one more decimation scored on the held-out views
     (and recorded with the others, so the one that ships can be written)."""
     def measure(count: int) -> CurvePoint:
@@ -211,8 +231,7 @@ def _measure_decimation(mesh: Mesh, weighing: _Weighing, assessment):
         if not entry["triangles"]:
             return CurvePoint(2 ** 62, math.inf, 0, count)
         assessment.alternatives.setdefault("decimations_tried", []).append(entry)
-        return CurvePoint(entry["compact_bytes"] + entry.get("look_bytes", 0), entry["compact_mse_held_out"],
-                          entry["triangles"], count)
+        return CurvePoint.from_entry(entry, held_out=True)
     return measure
 
 
@@ -233,132 +252,119 @@ def _keep_the_mesh(assessment, verdict, events: EventSink):
     return NotWorthCompressing(kept)
 
 
-def _training_bvh(mesh: Mesh, settings: Settings, events: EventSink, seconds: dict):
-    """The BVH the model is trained on: `settings.nodes` nodes, snapped to 8-bit boxes when the file stores them
-    so (each contains its exact box). A size search retrains with another T only, never another node count."""
+def _training_bvh(mesh: Mesh, nodes: int, node_bits: int, events: EventSink, seconds: dict):
+    """The BVH the model is trained on: `nodes` nodes, snapped to 8-bit boxes when the file stores them so
+    (node_bits 8: each contains its exact box). A size search retrains with another T only, never another node
+    count."""
     t = time.perf_counter()
-    events({"event": "phase", "phase": "bvh", "message": f"{mesh.n_triangles} triangles -> {settings.nodes} nodes"})
-    bvh = build_bvh(mesh, settings.nodes)
-    if settings.node_bits == 8:
+    events({"event": "phase", "phase": "bvh", "message": f"{mesh.n_triangles} triangles -> {nodes} nodes"})
+    bvh = build_bvh(mesh, nodes)
+    if node_bits == 8:
         bvh = dataclasses.replace(bvh, nodes=snap_nodes(bvh.nodes))
     seconds["bvh"] = time.perf_counter() - t
     return bvh
 
 
-@dataclass
-class _Weighing:
-    """What a run's decisions are measured and weighed with: the check views and the held-out views (one metric for
-    every contender), the alternative's curve on each (None without a target), and the bytes the asset's look adds
-    to every model (appearance head and textures, as stored)."""
-
-    checks: ViewScorer
-    held_out: ViewScorer
-    curve: AlternativeCurve | None = None
-    curve_held_out: AlternativeCurve | None = None
-    look_bytes: int = 0
-
-
 class _SizeSearch:
-    """The trainings of one compress_mesh call: one at the resolved size, or with a target MSE one growing training
+    """The trainings of one compress_mesh call: one at the planned size, or with a target MSE one growing training
     (`grow`, the default: `decision.checks.CheckRule`) or the predict-train-measure-correct search over T
     (`sizing.search_size`, at most TARGET_TRAININGS). Each training is finalized to the stored precision and scored
-    on the held-out views; `trained[log2 T]` keeps them all."""
+    on the held-out views; `trained[log2 T]` keeps them all, `notes` the search's own account."""
 
-    def __init__(self, mesh, bvh, tracer, settings: Settings, why: str, events, should_cancel, checkpoint_path,
-                 resume_from, evaluate_quality: bool, compare_float32: bool, seconds: dict, weighing: _Weighing,
-                 grid=None):
-        self.mesh, self.bvh, self.tracer, self.settings, self.why = mesh, bvh, tracer, settings, why
-        self.grid = grid  # sizing.GridMeasures when N_max follows the mesh (re-chosen for every table size tried)
+    def __init__(self, mesh, bvh, tracer, run: RunConfig, events, should_cancel, checkpoint_path, resume_from,
+                 evaluate_quality: bool, compare_float32: bool, seconds: dict, weighing: Weighing):
+        self.mesh, self.bvh, self.tracer, self.run = mesh, bvh, tracer, run
         self.events, self.should_cancel = events, should_cancel
         self.checkpoint_path, self.resume_from = checkpoint_path, resume_from
         self.evaluate_quality, self.compare_float32, self.seconds = evaluate_quality, compare_float32, seconds
         self.weighing = weighing
         self.trained: dict[int, _Trained] = {}
+        self.notes: list[RunNote] = []
         self.rule: CheckRule | None = None  # the growing training's checks, once it ran
         self.check_views_mse: float | None = None  # the kept model on the check views (the report gives both)
-        self.score_stored = _stored_mse(weighing.checks, settings.storage())
+        self.score_stored = _stored_mse(weighing.checks, run.storage)
         seconds.update(train=0.0, eval=0.0)
 
-    def run(self) -> tuple[int, str]:
-        """Train (and search); returns (the chosen log2 T, `why` with the search's trail)."""
-        target = self.settings.target_mse
+    def search(self) -> int:
+        """Train (and search); returns the chosen log2 T."""
+        target, run = self.run.decision.target_mse, self.run
         if target is None or not self.evaluate_quality:
-            self.train_and_measure(self.settings.log2_table)
-            return self.settings.log2_table, self.why
-        if self.settings.size_search == "grow":
+            self.train_and_measure(run.log2_table)
+            return run.log2_table
+        if run.decision.size_search == "grow":
             return self.grow()
-        if self.settings.size_search != "retrain":
-            raise ValueError(f"size_search must be 'retrain' or 'grow', got {self.settings.size_search!r}")
         fit = load_fit()
         feats = mesh_features(self.mesh) if fit is not None else None
-        chosen, measured = search_size(fit, feats, target, self.settings.log2_table, self._measure_next,
-                                       budget_s=self.settings.time_limit_s)
-        why = self.why
+        chosen, measured = search_size(fit, feats, target, run.log2_table, self._measure_next,
+                                       budget_s=run.training.time_limit_s)
         if len(measured) > 1:
             trail = ", ".join(f"T=2^{l2}: {mse:.4g}" for l2, mse in measured.items())
-            why += f"; measured {trail} (target {target:g}): kept T=2^{chosen}"
-        return chosen, why
+            self.notes.append(RunNote("search", f"measured {trail} (target {target:g}): kept T=2^{chosen}"))
+        return chosen
 
     def bytes_at(self, log2_table: int) -> int:
         """The file's bytes at table size 2^log2_table as it ships: geometry, look, header."""
-        return estimate_file_bytes(dataclasses.replace(self.settings, log2_table=log2_table)) + self.weighing.look_bytes
+        return self.run.at_table(log2_table, regrid=False).file_bytes + self.weighing.look_bytes
 
     def _rule(self, top: int, budget: float) -> CheckRule:
-        s = self.settings
+        run = self.run
         fit = load_fit()
         slope = fit.budget_slope if fit is not None and fit.budget_coef else None
         gain = None
         if fit is not None:
             feats = mesh_features(self.mesh)
-            gain = lambda l2: math.exp(fit.predict_log_mse(l2 + 1, feats, s.nodes, budget)  # noqa: E731
-                                       - fit.predict_log_mse(l2, feats, s.nodes, budget))
-        return CheckRule(self.score_stored, s.target_mse, top, budget, self.bytes_at, self.weighing.curve, slope,
-                         gain, s.force)
+            gain = lambda l2: math.exp(fit.predict_log_mse(l2 + 1, feats, run.nodes, budget)  # noqa: E731
+                                       - fit.predict_log_mse(l2, feats, run.nodes, budget))
+        return CheckRule(self.score_stored, run.decision.target_mse, top, budget, self.bytes_at, self.weighing.curve,
+                         slope, gain, run.decision.force)
 
-    def grow(self) -> tuple[int, str]:
-        """One training that starts GROW_START_BELOW sizes under the resolved T and grows its table while the checks
-        say growing pays (up to one size above the resolved T); returns (the final log2 T, `why`)."""
+    def grow(self) -> int:
+        """One training that starts GROW_START_BELOW sizes under the planned T and grows its table while the checks
+        say growing pays (up to one size above the planned T); returns the final log2 T."""
         t = time.perf_counter()
-        s = self.settings
-        top = min(s.log2_table + 1, LOG2_RANGE[-1])  # never past the sizes the predictor knows
-        start = max(6, s.log2_table - GROW_START_BELOW)
-        budget = s.time_limit_s or 200.0
-        s_start = dataclasses.replace(s, log2_table=start,
-                                      target_check_every_s=min(s.target_check_every_s, budget / GROW_CHECKS))
+        run = self.run
+        top = min(run.log2_table + 1, LOG2_RANGE[-1])  # never past the sizes the predictor knows
+        start = max(6, run.log2_table - GROW_START_BELOW)
+        budget = run.training.time_limit_s or 200.0
+        every = run.decision.check_every_s
+        run_start = run.at_table(start, regrid=False).with_training(target_check_every_s=min(every,
+                                                                                            budget / GROW_CHECKS))
         self.rule = rule = self._rule(top, budget)
-        model, tr, s_used, why_used = _train_with_restarts(
-            self.mesh, self.bvh, self.tracer, s_start, self.why, self.events, self.should_cancel,
-            self.checkpoint_path, self.resume_from, rule)
+        model, tr, run_used, notes = _train_with_restarts(self.mesh, self.bvh, self.tracer, run_start, self.events,
+                                                          self.should_cancel, self.checkpoint_path, self.resume_from,
+                                                          rule)
         tr.checks = [(d.seconds, d.log2_table, d.mse) for d in rule.decisions]
         final = model.cfg.encoding.log2_table
-        s_used = dataclasses.replace(s_used, log2_table=final, target_check_every_s=s.target_check_every_s)
+        run_used = run_used.at_table(final, regrid=False).with_training(target_check_every_s=every)
         trail = ", ".join(f"T=2^{log2} at {sec:g} s" for _, sec, log2 in tr.grew) or "no growth"
-        why_used += (f"; one training from T=2^{start} growing its table to meet {s.target_mse:g}: {trail}"
-                     + (f"; stopped after {tr.seconds:.0f} s: {rule.decisions[-1].action}" if tr.stopped_early else ""))
+        notes += (RunNote("growth", f"one training from T=2^{start} growing its table to meet "
+                                    f"{run.decision.target_mse:g}: {trail}"),)
+        if tr.stopped_early:
+            notes += (RunNote("early stop", f"stopped after {tr.seconds:.0f} s: {rule.decisions[-1].action}"),)
         self.seconds["train"] += time.perf_counter() - t
         if rule.keep_mesh is not None:  # nothing worth finishing: the verdict is the mesh
-            self.trained[final] = _Trained(model, tr, s_used, why_used[len(self.why):], None)
-            return final, self.why
-        self._keep(final, model, tr, s_used, why_used)
-        return final, self.why
+            self.trained[final] = _Trained(model, tr, run_used, notes, None)
+            return final
+        self._keep(final, model, tr, run_used, notes)
+        return final
 
-    def _keep(self, log2_table: int, model, tr, s_used: Settings, why_used: str) -> Quality | None:
-        """Finalize a trained model to its stored precision, score it, keep it as `trained[log2_table]` (with the
-        notes `why_used` adds to `why`); returns its quality (None without an evaluation)."""
+    def _keep(self, log2_table: int, model, tr, run_used: RunConfig, notes: tuple) -> Quality | None:
+        """Finalize a trained model to its stored precision, score it, keep it as `trained[log2_table]` (with its
+        notes); returns its quality (None without an evaluation)."""
         model.eval()
         if self.compare_float32 and self.evaluate_quality:  # the same training before its storage is quantized
             self.seconds["mse_float32"] = self.weighing.held_out.score_model(model)[0].mse
-        model.finalize_storage(s_used.storage())  # measure the model the file stores, not its float32 original
+        model.finalize_storage(run_used.storage)  # measure the model the file stores, not its float32 original
         quality = self._score(model) if self.evaluate_quality else None
-        if quality is not None and s_used.target_mse is not None:  # the same model on the views the checks used
+        if quality is not None and run_used.decision.target_mse is not None:  # the same model on the check views
             self.check_views_mse = self.weighing.checks.score_model(model)[0].mse
-        self.trained[log2_table] = _Trained(model, tr, s_used, why_used[len(self.why):], quality)
+        self.trained[log2_table] = _Trained(model, tr, run_used, notes, quality)
         return quality
 
     def _measure_next(self, log2_table: int) -> float:
         """A search step: says why this size comes next (after the first), then trains it."""
         if self.trained:
-            target = self.settings.target_mse
+            target = self.run.decision.target_mse
             prev = list(self.trained)[-1]
             mse_prev = self.trained[prev].quality.mse
             verdict = "missed" if mse_prev > target else "met"
@@ -371,21 +377,19 @@ class _SizeSearch:
     def train_and_measure(self, log2_table: int) -> float:
         """One training at table size 2^log2_table, finalized and scored; its MSE (inf without an evaluation)."""
         t = time.perf_counter()
-        s_try = dataclasses.replace(self.settings, log2_table=log2_table)
-        if self.grid is not None and log2_table != self.settings.log2_table:
-            s_try.n_max = choose_resolution(self.grid, log2_table)[0]
-        target = s_try.target_mse
+        run_try = self.run if log2_table == self.run.log2_table else self.run.at_table(log2_table)
+        target, budget = run_try.decision.target_mse, run_try.training.time_limit_s or 0.0
         # a fixed size: the checks only stop the training once the level is met (no growth, no alternative)
-        stop = (CheckRule(self.score_stored, target, log2_table, s_try.time_limit_s or 0.0, self.bytes_at)
+        stop = (CheckRule(self.score_stored, target, log2_table, budget, self.bytes_at)
                 if target is not None and self.evaluate_quality else None)
-        model, tr, s_used, why_used = _train_with_restarts(self.mesh, self.bvh, self.tracer, s_try, self.why,
-                                                           self.events, self.should_cancel, self.checkpoint_path,
-                                                           self.resume_from, stop)
+        model, tr, run_used, notes = _train_with_restarts(self.mesh, self.bvh, self.tracer, run_try, self.events,
+                                                          self.should_cancel, self.checkpoint_path, self.resume_from,
+                                                          stop)
         if tr.stopped_early:
-            why_used += (f"; T=2^{log2_table}: training stopped after {tr.seconds:.0f} s of the "
-                         f"{s_try.time_limit_s or 0:.0f} s budget, the target being met")
+            notes += (RunNote("early stop", f"T=2^{log2_table}: training stopped after {tr.seconds:.0f} s of the "
+                                            f"{budget:.0f} s budget, the target being met"),)
         self.seconds["train"] += time.perf_counter() - t
-        quality = self._keep(log2_table, model, tr, s_used, why_used)
+        quality = self._keep(log2_table, model, tr, run_used, notes)
         return quality.mse if quality is not None else math.inf
 
     def _score(self, model: NeuralBVH) -> Quality:
@@ -399,9 +403,9 @@ class _SizeSearch:
         return quality
 
 
-def _metadata(mesh: Mesh, settings: Settings, why: str, assessment, tr: TrainResult,
-              quality: Quality | None) -> dict:
-    """What the file's header records of the run: source, settings, why, verdict, training, quality, provenance."""
+def _metadata(mesh: Mesh, run: RunConfig, notes: list, assessment, tr: TrainResult, quality: Quality | None) -> dict:
+    """What the file's header records of the run: source, settings, why (and its typed notes), verdict, training,
+    quality, provenance."""
     training = {"steps": tr.steps, "seconds": round(tr.seconds, 2), "samples": tr.samples,
                 "stopped_early": tr.stopped_early, "samples_per_s": round(tr.samples_per_s),
                 "final_loss": tr.final_loss, "device": tr.device, "compute_path": tr.compute_path,  # the kernel plan, exactly
@@ -410,18 +414,20 @@ def _metadata(mesh: Mesh, settings: Settings, why: str, assessment, tr: TrainRes
     q = quality.to_dict() if quality else None
     if q:
         q.pop("per_view_mse", None)
+    target = run.decision.target_mse
     return {"source": {"name": mesh.name, "triangles": mesh.n_triangles, "vertices": mesh.n_vertices},
-            "settings": settings.to_dict(), "why": why, "assessment": assessment.to_dict(),
-            "target_met": None if settings.target_mse is None or quality is None else quality.mse <= settings.target_mse,
+            "settings": run.request.to_dict(), "why": why_of(notes), "notes": [n.to_dict() for n in notes],
+            "assessment": assessment.to_dict(),
+            "target_met": None if target is None or quality is None else quality.mse <= target,
             "training": training, "quality": q, "created": time.strftime("%Y-%m-%dT%H:%M:%S"),
             "torch": torch.__version__, "machine": platform.machine()}
 
 
-def _appearance(model: NeuralBVH, mesh: Mesh, tracer: ExactTracer, settings: Settings, made, tr: TrainResult,
-                events: EventSink, should_cancel, seconds: dict) -> dict:
-    """Give the model the mesh's materials and, when its look needs one, train the appearance head (in
-    `appearance_share` of the time budget, or that share of the geometry's training time when there is no budget)
-    and hold it as the file stores it. Returns what the file's metadata records of it ({} for a bare shape)."""
+def _appearance(model: NeuralBVH, mesh: Mesh, tracer: ExactTracer, look: LookConfig, run: RunConfig, made,
+                tr: TrainResult, events: EventSink, should_cancel, seconds: dict) -> dict:
+    """Give the model the mesh's materials and, when its look needs one, train the appearance head (`look.budget_s`,
+    or without a time budget `look.share` of the geometry's training time added) and hold it as the file stores it
+    (`run.storage`). Returns what the file's metadata records of it ({} for a bare shape)."""
     if mesh.look is None:
         return {}
     model.materials = _shipped_materials(mesh, made)
@@ -429,22 +435,20 @@ def _appearance(model: NeuralBVH, mesh: Mesh, tracer: ExactTracer, settings: Set
         return {"slots": mesh.look.n_slots, "head": None}
     head, face_patch = made
     cfg = head.cfg
-    share = settings.appearance_share
-    budget = (settings.time_limit_s * share if settings.time_limit_s
-              else max(1.0, tr.seconds * share / max(1 - share, 1e-6)))
+    budget = look.budget_s or max(1.0, tr.seconds * look.share / max(1 - look.share, 1e-6))
     events({"event": "phase", "phase": "appearance",
             "message": f"{cfg.slots} material slot(s), {cfg.patches} patch(es)"
                        f"{', texture coordinates' if cfg.uv else ''}: {budget:.0f} s"})
     t = time.perf_counter()
     head = head.to(model.device)
-    torch.manual_seed(settings.seed)
-    labels = SurfaceLabels(mesh, tracer, np.random.default_rng(settings.seed + 1), face_patch,
-                           colour=cfg.target == "colour")
+    seed = run.training.seed
+    torch.manual_seed(seed)
+    labels = SurfaceLabels(mesh, tracer, np.random.default_rng(seed + 1), face_patch, colour=cfg.target == "colour")
     result = train_head(head, labels, budget, should_stop=should_cancel,
-                        pool_size=1 << 19 if settings.time_limit_s else 1 << 15)
+                        pool_size=1 << 19 if look.budget_s else 1 << 15)
     if should_cancel():
         raise Cancelled("cancelled while training the appearance head")
-    finalize_head(head, settings.table_bits, settings.network_bits)
+    finalize_head(head, run.storage.table_bits, run.storage.network_bits)
     model.appearance = head
     seconds["appearance"] = time.perf_counter() - t
     return {"slots": cfg.slots, "patches": cfg.patches, "head": {"steps": result.steps, "seconds": round(result.seconds, 2),
@@ -455,46 +459,45 @@ def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = 
                   events: EventSink = null_sink, should_cancel: Callable[[], bool] = lambda: False,
                   evaluate_quality: bool = True, checkpoint_path: str | Path | None = None,
                   compare_float32: bool = False, resume_from: str | Path | None = None) -> CompressResult:
-    """Compress `mesh` with `settings`; write `out_path` (atomically) when given. Raises `process.Cancelled`,
-    `process.TrainingDiverged` (nothing written in either case). compare_float32: also score each training before
-    its storage is quantized (`seconds['mse_float32']`, for benchmarks). resume_from: a checkpoint of this mesh
-    (`resume_settings` gives the settings it was made with; pass those). Raises NotWorthCompressing, unless
-    `settings.force`: before training when the verdict says so (seconds), at a training check that projects the
-    model above the alternative's curve, or after the held-out evaluation when a measured decimation reaches the
-    model's MSE in fewer bytes than its file (`decision.final_verdict`); the assessment then names what to ship."""
-    grid = grid_measures(mesh) if settings.n_max is None and resume_from is None else None
-    settings, why = resolve(settings, mesh, grid)
-    if resume_from is not None:
-        why += f"; resumed from the checkpoint {resume_from}"
+    """Compress `mesh` as `settings` ask (planned once: `plan_run`); write `out_path` (atomically) when given.
+    Raises `process.Cancelled`, `process.TrainingDiverged` (nothing written in either case). compare_float32: also
+    score each training before its storage is quantized (`seconds['mse_float32']`, for benchmarks). resume_from: a
+    checkpoint of this mesh (`resume_settings` gives the settings it was made with; pass those). Raises
+    NotWorthCompressing, unless `settings.force`: before training when the verdict says so (seconds), at a training
+    check that projects the model above the alternative's curve, or after the held-out evaluation when a measured
+    decimation reaches the model's MSE in fewer bytes than its file (`decision.final_verdict`); the assessment then
+    names what to ship."""
+    run = plan_run(settings, mesh, resumed=resume_from is not None)
+    return _compress(mesh, run, out_path, events, should_cancel, evaluate_quality, checkpoint_path, compare_float32,
+                     resume_from)
+
+
+def _compress(mesh: Mesh, run: RunConfig, out_path, events: EventSink, should_cancel, evaluate_quality: bool,
+              checkpoint_path, compare_float32: bool, resume_from) -> CompressResult:
+    """compress_mesh's stages on the planned run: verdict, BVH, size search, look, file, final verdict, ship."""
+    notes = list(run.notes) + ([RunNote("resumed", f"resumed from the checkpoint {resume_from}")] if resume_from else [])
     seconds: dict = {}
     tracer = ExactTracer(mesh)  # one Embree scene for the alternatives, the labels and the evaluation
-    head = make_head(mesh, AppearanceConfig(target=settings.appearance_target,
-                                            log2_table=settings.appearance_log2_table))
-    weighing = _Weighing(*sizing.view_scorers(mesh, settings, tracer), look_bytes=_look_bytes(mesh, settings, head))
-    assessment = _verdict(mesh, settings, why, weighing, events, seconds)
-    asked = settings
-    if head is not None and settings.time_limit_s and resume_from is None:  # the head's share of the budget
-        settings = dataclasses.replace(settings, time_limit_s=settings.time_limit_s * (1 - settings.appearance_share))
-    bvh = _training_bvh(mesh, settings, events, seconds)
-    search = _SizeSearch(mesh, bvh, tracer, settings, why, events, should_cancel, checkpoint_path, resume_from,
-                         evaluate_quality, compare_float32, seconds, weighing, grid)
-    chosen_log2, why = search.run()
-    model, tr, settings, restart_notes, quality = search.trained[chosen_log2]
+    head = make_head(mesh, run.look.head)
+    assessment, weighing = _verdict(mesh, run, tracer, head, events, seconds)
+    bvh = _training_bvh(mesh, run.nodes, run.storage.node_bits, events, seconds)
+    search = _SizeSearch(mesh, bvh, tracer, run, events, should_cancel, checkpoint_path, resume_from,
+                         evaluate_quality, compare_float32, seconds, weighing)
+    chosen_log2 = search.search()
+    model, tr, run_used, trained_notes, quality = search.trained[chosen_log2]
+    target = run.decision.target_mse
     if search.rule is not None and search.rule.keep_mesh is not None:
         d = search.rule.keep_mesh
-        raise _keep_the_mesh(assessment, final_verdict(d.model_bytes, d.projected_mse, settings.target_mse,
-                                                       weighing.curve), events)
-    why += restart_notes  # a restart at a lower learning rate, in the training kept
-    if head is not None and asked is not settings:
-        settings = dataclasses.replace(settings, time_limit_s=asked.time_limit_s)
-    look_info = _appearance(model, mesh, tracer, settings, head, tr, events, should_cancel, seconds)
-    metadata = _metadata(mesh, settings, why, assessment, tr, quality)
+        raise _keep_the_mesh(assessment, final_verdict(d.model_bytes, d.projected_mse, target, weighing.curve), events)
+    notes += search.notes + list(trained_notes)
+    look_info = _appearance(model, mesh, tracer, run.look, run_used, head, tr, events, should_cancel, seconds)
+    metadata = _metadata(mesh, run_used, notes, assessment, tr, quality)
     if look_info:
         metadata["appearance"] = look_info
-    data = encode_nbvh(model, metadata, settings.storage())
+    data = encode_nbvh(model, metadata, run_used.storage)
     verdict = None
     if quality is not None and weighing.curve_held_out is not None:
-        verdict = final_verdict(len(data), quality.mse, settings.target_mse, weighing.curve_held_out, settings.force,
+        verdict = final_verdict(len(data), quality.mse, target, weighing.curve_held_out, run.decision.force,
                                 _measure_decimation(mesh, weighing, assessment))
         if verdict.shipped != "model":
             raise _keep_the_mesh(assessment, verdict, events)
@@ -506,25 +509,23 @@ def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = 
                  "mse_check_views": search.check_views_mse, "mse_held_out_views": quality.mse if quality else None,
                  "final": verdict.to_dict() if verdict else None,
                  "alternative": weighing.curve_held_out.to_dict() if weighing.curve_held_out else None}
-    return _ship(out_path, data, model, tr, settings, quality, why, metadata, assessment, decisions, tracer,
-                 seconds, events, should_cancel, as_shipped)
+    result = CompressResult(path=None, file_bytes=len(data), components=component_bytes(data), quality=quality,
+                            training=tr, settings=run_used.request,
+                            seconds={k: (v if k.startswith("mse") else round(v, 2)) for k, v in seconds.items()},
+                            model=model, tracer=tracer, why=why_of(notes), target_met=metadata["target_met"],
+                            assessment=assessment.to_dict(), data=data, decisions=decisions,
+                            quality_as_shipped=as_shipped, notes=notes)
+    return _ship(out_path, result, metadata["quality"], events, should_cancel)
 
 
-def _ship(out_path, data: bytes, model, tr, settings, quality, why, metadata, assessment, decisions, tracer,
-          seconds, events, should_cancel, as_shipped: Quality | None = None) -> CompressResult:
-    """Write the file (atomically) when a path is given and make the run's result."""
-    size = len(data)
+def _ship(out_path, result: CompressResult, quality: dict | None, events: EventSink, should_cancel) -> CompressResult:
+    """Write the file (atomically) when a path is given; the run's result, with its path and bytes on disk."""
     if out_path is not None:
         if should_cancel():
             raise Cancelled("cancelled before saving")
         events({"event": "phase", "phase": "save", "message": str(out_path)})
-        size = write_atomic(out_path, data)
-    result = CompressResult(path=str(out_path) if out_path else None, file_bytes=size,
-                            components=component_bytes(data), quality=quality, training=tr, settings=settings,
-                            seconds={k: (v if k.startswith("mse") else round(v, 2)) for k, v in seconds.items()},
-                            model=model, tracer=tracer, why=why,
-                            target_met=metadata["target_met"], assessment=assessment.to_dict(), data=data,
-                            decisions=decisions, quality_as_shipped=as_shipped)
-    events({"event": "result", "path": result.path, "bytes": size,
-            "quality": json.loads(json.dumps(metadata["quality"])), "train_seconds": round(tr.seconds, 2)})
+        result.file_bytes = write_atomic(out_path, result.data)
+        result.path = str(out_path)
+    events({"event": "result", "path": result.path, "bytes": result.file_bytes,
+            "quality": json.loads(json.dumps(quality)), "train_seconds": round(result.training.seconds, 2)})
     return result

@@ -23,6 +23,15 @@ class CurvePoint:
     triangles: int
     requested: int | None
 
+    @classmethod
+    def from_entry(cls, entry: dict, held_out: bool = False, whole: bool = False) -> "CurvePoint":
+        """A measured decimation (`sizing.decimation_entry`; whole: the whole mesh's entry) as a point: its bytes are
+        the compact mesh and what it needs to carry the asset's look (`sizing.look_carried_bytes`), its MSE on the
+        check views or (held_out) the held-out views."""
+        key = "compact_mse_held_out" if held_out else "compact_mse"
+        return cls(int(entry["compact_bytes"]) + int(entry.get("look_bytes", 0)), float(entry[key]),
+                   int(entry["triangles"]), None if whole else int(entry["requested_triangles"]))
+
 
 def _envelope(points: list[CurvePoint]) -> list[CurvePoint]:
     """By bytes ascending, each point that is better than every smaller one (measured, finite)."""
@@ -46,13 +55,9 @@ class AlternativeCurve:
         key = "compact_mse_held_out" if held_out else "compact_mse"
         entries = list(alt.get("decimations_tried", []))
         whole = alt.get("mesh_compact")
-        # a point's bytes: the compact mesh and what it needs to carry the asset's look (sizing.look_carried_bytes)
-        pts = [CurvePoint(int(e["compact_bytes"]) + int(e.get("look_bytes", 0)), float(e[key]), int(e["triangles"]),
-                          int(e["requested_triangles"]))
-               for e in entries if key in e and "compact_bytes" in e]
+        pts = [CurvePoint.from_entry(e, held_out) for e in entries if key in e and "compact_bytes" in e]
         if whole and key in whole:
-            pts.append(CurvePoint(int(whole["compact_bytes"]) + int(whole.get("look_bytes", 0)), float(whole[key]),
-                                  int(whole["triangles"]), None))
+            pts.append(CurvePoint.from_entry(whole, held_out, whole=True))
         curve = cls(pts)
         return curve if curve.points else None
 

@@ -3,8 +3,31 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
+#: The kinds of step a run's account (`RunNote`) tells.
+NOTE_KINDS = ("plan", "resumed", "restart", "growth", "search", "early stop")
 #: What a training check decided.
 CHECK_ACTIONS = ("train on", "grow", "stop: level met", "stop: keep the mesh")
+
+
+@dataclass(frozen=True)
+class RunNote:
+    """One step of a run's account, in order: kind (NOTE_KINDS) and one line for people. The run's `why` is its
+    notes joined; the report keeps them typed."""
+
+    kind: str
+    text: str
+
+    def __post_init__(self):
+        if self.kind not in NOTE_KINDS:
+            raise ValueError(f"unknown note kind {self.kind!r}; one of {', '.join(NOTE_KINDS)}")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def why_of(notes) -> str:
+    """The notes as one line: 'plan; growth; ...'."""
+    return "; ".join(n.text for n in notes)
 
 
 @dataclass

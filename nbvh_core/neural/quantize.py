@@ -32,19 +32,22 @@ import numpy as np
 from ..geometry.bvh import NODE_DTYPE
 
 NONE16 = 65535
+#: Bits per stored feature value: float32, float16, or codes (8, 4) on a per (level, feature) affine grid.
+TABLE_BITS = (32, 16, 8, 4)
 _Q = np.float32(255.0)
 
 
 @dataclass(frozen=True)
 class StorageConfig:
-    """Bits per stored value: table_bits in {32, 16, 8}, network_bits in {32, 16, 8}, node_bits in {32, 8}."""
+    """Bits per stored value: table_bits in TABLE_BITS (4 and 8: codes on a per level and feature affine grid,
+    4-bit codes packed two to a byte), network_bits in {32, 16, 8}, node_bits in {32, 8}."""
 
     table_bits: int = 8
     network_bits: int = 16
     node_bits: int = 8
 
     def __post_init__(self):
-        for name, allowed in (("table_bits", (32, 16, 8)), ("network_bits", (32, 16, 8)), ("node_bits", (32, 8))):
+        for name, allowed in (("table_bits", TABLE_BITS), ("network_bits", (32, 16, 8)), ("node_bits", (32, 8))):
             v = getattr(self, name)
             if not isinstance(v, int) or isinstance(v, bool) or v not in allowed:
                 raise ValueError(f"{name} must be one of {allowed}, got {v!r}")
@@ -175,7 +178,7 @@ def table_affine(table: np.ndarray, bits: int = 8) -> tuple[np.ndarray, np.ndarr
 
 
 def quantize_table(table: np.ndarray, offset: np.ndarray, scale: np.ndarray, bits: int = 8) -> np.ndarray:
-    """(L, T, F) float32 -> (L, T, F) uint8 codes, round to nearest of `offset + code * scale`."""
+    """(L, T, F) float32 -> (L, T, F) uint8 codes (< 2^bits), round to nearest of `offset + code * scale`."""
     levels = (1 << bits) - 1
     q = np.rint((table - offset[:, None, :]) / scale[:, None, :])
     return np.clip(q, 0, levels).astype(np.uint8)

@@ -19,7 +19,10 @@ from ..geometry.bvh import NODE_DTYPE
 from ..neural.encodings import EncodingConfig
 from ..neural.model import ModelConfig, NeuralBVH
 from ..neural.networks import NetworkConfig
+from ..neural.appearance import AppearanceConfig
 from ..neural.quantize import StorageConfig
+from ..decision.config import MESH_LAYOUTS, SIZE_SEARCHES, DecisionConfig
+from ..rendering.metrics import MetricConfig
 from ..training.train import TrainConfig
 
 
@@ -66,56 +69,54 @@ class Settings:
     normal_weight: float | None = None
     #: The unit pull's weight on raw normals; None: the network's own (networks.NORMAL_UNIT_WEIGHTS).
     normal_unit_weight: float | None = None
-    labels: str = "consistent"
-    lr: float = 5e-3
+    labels: str = TrainConfig.labels
+    lr: float = TrainConfig.lr
     steps: int | None = None
     time_limit_s: float | None = 180.0
-    rays_per_step: int = 4096
-    anneal_fraction: float = 0.3
+    rays_per_step: int = TrainConfig.rays_per_step
+    anneal_fraction: float = TrainConfig.anneal_fraction
     #: HashVQAD: the last fraction of training run on the frozen (argmax) codes (TrainConfig.finetune_fraction).
-    finetune_fraction: float = 0.1
+    finetune_fraction: float = TrainConfig.finetune_fraction
     #: 'uniform' or 'loss' (N-BVH's loss-proportional resampling of leaves; see TrainConfig.leaf_sampling).
-    leaf_sampling: str = "uniform"
+    leaf_sampling: str = TrainConfig.leaf_sampling
     #: N-BVH's tree-cut splitting during training (see TrainConfig.tree_cut).
-    tree_cut: bool = False
-    seed: int = 0
-    device: str = "auto"
-    #: Storage (quantize.py): bits per feature value (32/16/8), per network weight (32/16), per node (32/8).
-    table_bits: int = 8
-    network_bits: int = 16
-    node_bits: int = 8
+    tree_cut: bool = TrainConfig.tree_cut
+    seed: int = TrainConfig.seed
+    device: str = TrainConfig.device
+    #: Storage (quantize.py): bits per feature value (32/16/8/4), per network weight (32/16/8), per node (32/8).
+    table_bits: int = StorageConfig.table_bits
+    network_bits: int = StorageConfig.network_bits
+    node_bits: int = StorageConfig.node_bits
     #: The last fraction of training during which the quantized table is fixed and the network adapts to it.
-    qat_fraction: float = 0.05
-    #: The one metric every contender of a run is scored by (`rendering.metrics.ViewScorer`) and the benchmarks
-    #: rescore with: 16 views at 256 px (at 128 px the bunny's level-meeting decimation read 6% lower). The levels
-    #: were calibrated at 128 px.
-    eval_views: int = 16
-    eval_resolution: int = 256
+    qat_fraction: float = TrainConfig.qat_fraction
+    #: The one metric every contender of a run is scored by (`rendering.metrics.MetricConfig`).
+    eval_views: int = MetricConfig.views
+    eval_resolution: int = MetricConfig.resolution
     #: Ways to ask for a size instead of fixing it (see `resolve`): a byte budget, or a target image MSE.
     budget_kb: float | None = None
     target_mse: float | None = None
     #: Train even when the verdict is "not worth compressing" (otherwise the run ends with the verdict).
-    force: bool = False
+    force: bool = DecisionConfig.force
     #: Seconds between checkpoints when a checkpoint path is given (a kill loses at most this much training).
-    checkpoint_every_s: float = 60.0
+    checkpoint_every_s: float = TrainConfig.checkpoint_every_s
     #: With a target MSE: seconds between quality checks during training (the evaluation's views and resolution);
     #: training stops once the MSE is below EARLY_STOP_MARGIN x the target (the evaluation after it confirms or not).
-    target_check_every_s: float = 20.0
+    target_check_every_s: float = DecisionConfig.check_every_s
     #: With a target MSE, how the size is found: "grow" (default) - one training that starts GROW_START_BELOW sizes
     #: under the predicted T and doubles its table in place (the function unchanged: HashGrid.grow) whenever the
     #: checks project a miss at its size by the end of the budget, up to one size above the predicted T
     #: (pipeline._grow_check); "retrain" - predict T, train, measure, correct (up to TARGET_TRAININGS trainings).
-    size_search: str = "grow"
+    size_search: str = DecisionConfig.size_search
     #: The mesh layout the verdict weighs the model against (MESH_LAYOUTS): "compact", the strongest ray-traceable
     #: mesh (`compact_mesh`, ~3.6-4.8 B per triangle), or "plain", as Embree or Cycles hold it (~44 B per triangle).
-    mesh_layout: str = "compact"
+    mesh_layout: str = DecisionConfig.mesh_layout
     #: An asset with several material slots or a texture: the share of the time budget (or, without one, of the
     #: geometry's training time, added) the appearance head trains in (`appearance.py`), and its table size.
     appearance_share: float = 0.15
-    appearance_log2_table: int = 9
+    appearance_log2_table: int = AppearanceConfig.log2_table
     #: "coordinates": the head answers slot and texture coordinates, the images are kept in the file; "colour": it
     #: learns the textured colour itself and no image is stored (appearance.py; bench/bench_look.py compares them).
-    appearance_target: str = "coordinates"
+    appearance_target: str = AppearanceConfig.target
 
     def model_config(self) -> ModelConfig:
         normal_loss = self.resolved_normal_loss()
@@ -145,7 +146,8 @@ class Settings:
                            anneal_fraction=self.anneal_fraction, finetune_fraction=self.finetune_fraction,
                            normal_loss=self.resolved_normal_loss(), leaf_sampling=self.leaf_sampling,
                            tree_cut=self.tree_cut, checkpoint_every_s=self.checkpoint_every_s,
-                           target_check_every_s=self.target_check_every_s, table_bits=self.table_bits if self.table_bits == 8 else None,
+                           target_check_every_s=self.target_check_every_s,
+                           table_bits=self.table_bits if self.table_bits <= 8 else None,
                            qat_fraction=self.qat_fraction)
 
     def with_overrides(self, **kw) -> "Settings":
@@ -162,7 +164,7 @@ class Settings:
 SETTING_LIMITS = {"nodes": (1, 65535), "log2_table": (1, 24), "levels": (1, 16), "features": (1, 64),
                   "n_min": (1, 1 << 16), "n_max": (1, 1 << 16), "index_factor": (1, 1024), "k": (2, 64),
                   "hidden": (0, 16), "width": (1, 1024), "steps": (1, 1 << 40), "rays_per_step": (1, 1 << 22),
-                  "seed": (0, (1 << 63) - 1), "table_bits": (8, 32), "network_bits": (8, 32), "node_bits": (8, 32),
+                  "seed": (0, (1 << 63) - 1), "table_bits": (4, 32), "network_bits": (8, 32), "node_bits": (8, 32),
                   "eval_views": (1, 1024), "eval_resolution": (8, 8192), "lr": (0.0, 10.0),
                   "time_limit_s": (0.0, 1e7), "anneal_fraction": (0.0, 1.0), "finetune_fraction": (0.0, 1.0),
                   "qat_fraction": (0.0, 1.0), "budget_kb": (0.0, 1e9), "target_mse": (0.0, 10.0),
@@ -170,8 +172,6 @@ SETTING_LIMITS = {"nodes": (1, 65535), "log2_table": (1, 24), "levels": (1, 16),
                   "normal_weight": (0.0, 1e6), "normal_unit_weight": (0.0, 1e6), "appearance_share": (0.0, 0.9),
                   "appearance_log2_table": (4, 20)}
 #: Settings whose value is one of a few names (checked in requests and files, like the limits above).
-MESH_LAYOUTS = ("compact", "plain")
-SIZE_SEARCHES = ("grow", "retrain")
 SETTING_CHOICES = {"size_search": SIZE_SEARCHES, "mesh_layout": MESH_LAYOUTS}
 #: The largest model any setting may ask for (the high preset's is under 1 MB).
 MAX_MODEL_BYTES = 1 << 30

@@ -33,7 +33,8 @@ import numpy as np
 from ..geometry.bvh import build_full_tree, resident_bvh_nodes
 from ..geometry.mesh import Mesh
 from ..protocol.quality_levels import QUALITY_LEVELS, TARGET_TRAININGS  # noqa: F401  (QUALITY_LEVELS re-exported)
-from .settings import MESH_LAYOUTS, PAPER_N_MAX, PRESETS, Settings, estimate_file_bytes
+from ..decision.config import DecisionConfig
+from .settings import PAPER_N_MAX, PRESETS, Settings, estimate_file_bytes
 
 FIT_PATH = Path(__file__).with_name("sizing_fit.json")
 #: Table sizes the chooser considers (log2 T): the range the predictor was fitted on (bench/fit_budget.py: the
@@ -437,17 +438,6 @@ DECIMATE_MAX_SHARE = 0.7
 DECIMATE_REFINE = 3
 
 
-def view_scorers(mesh: Mesh, settings, tracer=None):
-    """The run's two view sets (rendering.metrics.ViewScorer): the checks' and the held-out ones, at the settings'
-    views and resolution (one metric for the CLI, the add-on's jobs and library batches)."""
-    from ..geometry.exact import ExactTracer
-    from ..rendering.metrics import ViewScorer
-
-    tracer = tracer or ExactTracer(mesh)
-    return (ViewScorer(tracer, mesh.transform, settings.eval_views, settings.eval_resolution),
-            ViewScorer(tracer, mesh.transform, settings.eval_views, settings.eval_resolution, held_out=True))
-
-
 def look_carried_bytes(mesh: Mesh, n_vertices: int, n_triangles: int) -> int:
     """The bytes a mesh of `n_vertices` / `n_triangles` (the asset or a decimation of it) needs to carry the asset's
     look, as a compact mesh would hold it: the same slot images the model stores (their PNGs), 16-bit texture
@@ -609,28 +599,24 @@ def _held(layout: str, plain: int, compact: int) -> str:
     return f"{a} ({b})" if layout == "compact" else f"{b} ({a})"
 
 
-def assess(mesh: Mesh, settings, measure_alternatives: bool = False, tracer=None, checks=None, held_out=None,
+def assess(mesh: Mesh, model_bytes: int, decision: DecisionConfig, checks=None, held_out=None,
            look_bytes: int = 0) -> Assessment:
-    """Weigh the model `settings` (already resolved) would write against the mesh and, with `measure_alternatives`
-    and a target MSE, against the smallest decimation that meets it, each held in `settings.mesh_layout` (see
-    MESH_LAYOUTS; both layouts are reported): 'mesh' when the whole mesh is no larger than the model, 'decimate'
-    when the decimation is not, else 'neural'. Draco's size (storage only) is reported beside. look_bytes: what the
-    model's file adds for the asset's look (appearance head and textures, `fileformat.look_stored_bytes`), so the
-    model is weighed as it will ship. checks, held_out: the run's ViewScorers (see `alternatives`; made from the
-    settings, on `tracer` when given, when the caller has none)."""
+    """Weigh a model of `model_bytes` (its file, `RunConfig.file_bytes`) against the mesh and, with a target MSE
+    (`decision.target_mse`) and the run's view sets (`checks`, `held_out`: `rendering.metrics.view_sets`), against
+    the smallest decimation that meets it, each held in `decision.mesh_layout` (see MESH_LAYOUTS; both layouts are
+    reported): 'mesh' when the whole mesh is no larger than the model, 'decimate' when the decimation is not, else
+    'neural'. Draco's size (storage only) is reported beside. look_bytes: what the model's file adds for the
+    asset's look (appearance head and textures, `fileformat.look_stored_bytes`), so the model is weighed as it will
+    ship."""
     from ..geometry.compact_mesh import compact_bytes
 
-    layout = settings.mesh_layout
-    if layout not in MESH_LAYOUTS:
-        raise ValueError(f"mesh_layout must be one of {', '.join(MESH_LAYOUTS)}, got {layout!r}")
-    model = estimate_file_bytes(settings) + look_bytes
+    layout = decision.mesh_layout
+    model = model_bytes + look_bytes
     tree = build_full_tree(mesh)
     resident_bytes = mesh_resident_bytes(mesh, tree)
     resident = resident_bytes["total"]
     # The Draco size always (cheap: shows which tool wins for storage alone); decimations only with a target.
-    if measure_alternatives and checks is None:
-        checks, held_out = view_scorers(mesh, settings, tracer)
-    alt = alternatives(mesh, settings.target_mse if measure_alternatives else None, checks, held_out, tree)
+    alt = alternatives(mesh, decision.target_mse if checks is not None else None, checks, held_out, tree)
     compact = alt["mesh_compact"]["compact_bytes"] if "mesh_compact" in alt else compact_bytes(mesh, tree)
     dec = alt.get("decimation")
     # A mesh weighed against the model carries the asset's look too (the model's head and images are in `model`).

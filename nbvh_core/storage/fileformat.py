@@ -190,12 +190,17 @@ def _look_header(model: NeuralBVH) -> dict | None:
 
 
 def _table_tensors(enc, name: str, component: str, bits: int, how: str) -> list[tuple[str, str, bytes, list[int]]]:
-    """A feature table's stored tensors: at 8 bits its uint8 codes `name` and float32 `name.offset`, `name.scale`
-    (the encoding must hold codes already: `how` says what makes it so); else its rows at `bits`."""
-    if bits == 8:
+    """A feature table's stored tensors: at 8 or 4 bits its codes `name` (4-bit codes packed two to a byte) and
+    float32 `name.offset`, `name.scale` (the encoding must hold codes already: `how` says what makes it so); else
+    its rows at `bits`."""
+    if bits <= 8:
         if not enc.quantized:
-            raise ValueError(f"an 8-bit table must be quantized first ({how})")
-        out = [(name, component, enc.qcodes.cpu().numpy().tobytes(), list(enc.qcodes.shape))]
+            raise ValueError(f"a {bits}-bit table must be quantized first ({how})")
+        codes = enc.qcodes.cpu().numpy()
+        if codes.size and int(codes.max()) >= 1 << bits:
+            raise ValueError(f"the table holds codes above {bits} bits ({how} at another width)")
+        data = codes.tobytes() if bits == 8 else pack_codes(codes, bits)
+        out = [(name, component, data, list(enc.qcodes.shape))]
         for part, t in (("offset", enc.qoffset), ("scale", enc.qscale)):
             arr = t.detach().cpu().numpy().astype(np.float32)
             out.append((f"{name}.{part}", component, arr.tobytes(), list(arr.shape)))
@@ -369,8 +374,9 @@ def _expected_tensors(cfg: ModelConfig, storage: StorageConfig, n_nodes: int,
 
 def _table_shapes(name: str, levels: int, rows: int, features: int, bits: int) -> dict[str, tuple[tuple, str]]:
     """name -> (shape, dtype) of a feature table's stored tensors (see `_table_tensors`)."""
-    if bits == 8:
-        return {name: ((levels, rows, features), "u1"), f"{name}.offset": ((levels, features), "<f4"),
+    if bits <= 8:
+        kind = "u1" if bits == 8 else f"packed{bits}"
+        return {name: ((levels, rows, features), kind), f"{name}.offset": ((levels, features), "<f4"),
                 f"{name}.scale": ((levels, features), "<f4")}
     return {name: ((levels, rows, features), "<f2" if bits == 16 else "<f4")}
 
@@ -643,8 +649,9 @@ def _decode(data: bytes, header: dict, where: str, device: str | torch.device = 
 
 def _load_table(enc, name: str, bits: int, array, bad_scale: str) -> None:
     """Fill an encoding's feature table from the file's `name` tensors (see `_table_tensors`): codes with their
-    affine at 8 bits (held as codes; a scale <= 0 raises NBVHFileError(bad_scale)), else float rows."""
-    if bits == 8:
+    affine at 8 or 4 bits (held as uint8 codes; a scale <= 0 raises NBVHFileError(bad_scale)), else float
+    rows."""
+    if bits <= 8:
         scale = array(f"{name}.scale")
         if (scale <= 0).any():
             raise NBVHFileError(bad_scale)

@@ -72,10 +72,10 @@ class HashGrid(Encoding):
 
     @torch.no_grad()
     def hold_as_stored(self, bits: int) -> None:
-        """Hold the rows as a file with `bits`-bit features stores them: uint8 codes (8), rows rounded to float16
-        (16, unless already codes), as they are (32). Inference only; irreversible."""
-        if bits == 8:
-            self.quantize_(8)
+        """Hold the rows as a file with `bits`-bit features stores them: codes (8 or 4 bits, held one per uint8),
+        rows rounded to float16 (16, unless already codes), as they are (32). Inference only; irreversible."""
+        if bits <= 8:
+            self.quantize_(bits)
         elif bits == 16 and not self.quantized:
             self.table.copy_(self.table.half().float())
 
@@ -200,8 +200,8 @@ def table_features_bytes(cfg: EncodingConfig, table_bits: int) -> int:
     """Stored bytes of a (L, T, F) table at `table_bits` per value (8 bits adds the per (level, feature) offset
     and scale, float32)."""
     n = cfg.levels * cfg.table_size * cfg.features
-    extra = 2 * 4 * cfg.levels * cfg.features if table_bits == 8 else 0
-    return n * table_bits // 8 + extra
+    extra = 2 * 4 * cfg.levels * cfg.features if table_bits <= 8 else 0
+    return (n * table_bits + 7) // 8 + extra
 
 
 @torch.no_grad()

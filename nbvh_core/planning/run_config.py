@@ -1,0 +1,113 @@
+"""A run's configuration, nested by concern and frozen: `plan_run` turns one request (`Settings`: flat, the record
+files and checkpoints keep) into the parts each stage of a run takes, and nothing below asks for more than its part:
+
+    RunConfig.nodes     -> geometry.bvh.build_bvh
+    RunConfig.model     -> neural.model.NeuralBVH          (encoding, network)
+    RunConfig.training  -> training.train.train            (budget, schedule, labels, quantization-aware end)
+    RunConfig.storage   -> storage.fileformat.encode_nbvh  (bits per value)
+    RunConfig.decision  -> decision.*                      (level, layout, size search, checks, force)
+    RunConfig.metric    -> rendering.metrics.view_sets     (views, resolution)
+    RunConfig.look      -> training.appearance_training    (the appearance head and its share of the budget)
+
+Every default lives once, on the part that uses it (TrainConfig, StorageConfig, ...); `Settings` takes its defaults
+from them and the presets set what the product uses."""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+from ..decision.config import DecisionConfig
+from ..decision.records import RunNote
+from ..geometry.mesh import Mesh
+from ..neural.appearance import AppearanceConfig
+from ..neural.model import ModelConfig
+from ..neural.quantize import StorageConfig
+from ..rendering.metrics import MetricConfig
+from ..training.train import TrainConfig
+from .settings import Settings, estimate_file_bytes
+from .sizing import GridMeasures, choose_resolution, grid_measures, resolve
+
+
+@dataclass(frozen=True)
+class LookConfig:
+    """The appearance head (`neural.appearance`): its architecture template (`head`; the asset fills in its slots
+    and patches) and its training budget: `budget_s` seconds, or None: `share` of the geometry's training time
+    (a run in steps)."""
+
+    head: AppearanceConfig
+    share: float
+    budget_s: float | None
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """What one run does, by part. request: the resolved flat Settings this configuration was made from (written
+    into the file's header and checkpoints); file_bytes: the model's file at these sizes (exact payload + typical
+    header, the look not included); grid: the mesh's measures when the grid's finest resolution follows the mesh
+    (re-chosen at every table size a search tries), else None; notes: why these sizes (typed, for the report)."""
+
+    request: Settings
+    nodes: int
+    model: ModelConfig
+    training: TrainConfig
+    storage: StorageConfig
+    decision: DecisionConfig
+    metric: MetricConfig
+    look: LookConfig
+    file_bytes: int
+    grid: GridMeasures | None = None
+    notes: tuple[RunNote, ...] = ()
+
+    @property
+    def log2_table(self) -> int:
+        return self.model.encoding.log2_table
+
+    def at_table(self, log2_table: int, regrid: bool = True) -> "RunConfig":
+        """The same run with a table of 2^log2_table rows; regrid: the grid's finest resolution re-chosen for the
+        mesh at that size when it follows the mesh (a growing table keeps the resolution it was planned for)."""
+        request = dataclasses.replace(self.request, log2_table=log2_table)
+        if self.grid is not None and regrid:
+            request.n_max = choose_resolution(self.grid, log2_table)[0]
+        return _parts(request, self.look, self.grid, self.notes)
+
+    def with_training(self, **changes) -> "RunConfig":
+        """The same run with some training knobs changed (a restart's learning rate, a check period): the request
+        records them too."""
+        return dataclasses.replace(self, request=dataclasses.replace(self.request, **changes),
+                                   training=dataclasses.replace(self.training, **changes))
+
+
+def plan_run(settings: Settings, mesh: Mesh, resumed: bool = False) -> RunConfig:
+    """The run `settings` asks for on `mesh`: a byte budget or a target MSE turned into sizes (`sizing.resolve`;
+    the grid's finest resolution chosen for the mesh when `settings.n_max` is None), and the time budget split
+    between the geometry and, for an asset with a look, the appearance head (`appearance_share` of it; the request
+    keeps the budget asked). resumed: the sizes are the checkpoint's (fixed; the grid is not re-chosen). Raises
+    ValueError (one line) for settings no run can use."""
+    grid = grid_measures(mesh) if settings.n_max is None and not resumed else None
+    resolved, plan_note = resolve(settings, mesh, grid)
+    share, budget = resolved.appearance_share, resolved.time_limit_s
+    look = LookConfig(AppearanceConfig(target=resolved.appearance_target, log2_table=resolved.appearance_log2_table),
+                      share, budget * share if mesh.look is not None and budget else None)
+    return _parts(resolved, look, grid, (RunNote("plan", plan_note),))
+
+
+def run_config(settings: Settings) -> RunConfig:
+    """The parts of already resolved `settings` (fixed sizes; no mesh, no look): for tools and tests that train
+    one model as the settings say."""
+    return _parts(settings, LookConfig(AppearanceConfig(target=settings.appearance_target,
+                                                        log2_table=settings.appearance_log2_table),
+                                       settings.appearance_share, None), None, ())
+
+
+def _parts(s: Settings, look: LookConfig, grid: GridMeasures | None, notes: tuple) -> RunConfig:
+    """The one place the flat request becomes the parts (the training's budget less the look's share)."""
+    training = s.train_config()
+    if look.budget_s is not None:
+        training = dataclasses.replace(training, time_limit_s=s.time_limit_s - look.budget_s)
+    return RunConfig(request=s, nodes=s.nodes, model=s.model_config(), training=training,
+                     storage=s.storage(),
+                     decision=DecisionConfig(target_mse=s.target_mse, mesh_layout=s.mesh_layout,
+                                             size_search=s.size_search, check_every_s=s.target_check_every_s,
+                                             force=s.force),
+                     metric=MetricConfig(s.eval_views, s.eval_resolution), look=look,
+                     file_bytes=estimate_file_bytes(s), grid=grid, notes=notes)
