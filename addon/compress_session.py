@@ -111,7 +111,7 @@ def start(context, objects, req: Request, python: str | None = None) -> tuple[Se
     scene_jobs = [j for j in session.queue.jobs if j.id in session.objects]
     if "budget_kb" in req.overrides and len(scene_jobs) > 1 and not req.load_model:
         # One budget for the whole selection, shared by need (detail, size on screen) inside every job
-        # (nbvh_core.planning.sizing.split_budget, deterministic): the jobs have not started yet, so their requests can
+        # (nbvh_core.decision.scene_budget, deterministic): the jobs have not started yet, so their requests can
         # still carry the full list of exported meshes.
         # A job's own folder goes when it finishes, so the shared copies live in a session folder.
         objs = [bpy.data.objects[session.objects[j.id]] for j in scene_jobs]

@@ -61,7 +61,7 @@ def object_entry(name: str, blender_bytes: dict, job_report: dict, textures: dic
         "mse": q.get("mse"), "silhouette_iou": q.get("silhouette_iou"), "depth_error": q.get("depth_error"),
         "eval_views": q.get("views"), "train_seconds": t.get("seconds"), "device": t.get("device"),
         "settings": job_report.get("settings"), "files": job_report.get("files", {}),
-        # Before training: was the model going to be smaller than the mesh a ray tracer holds? (sizing.assess)
+        # Before training: was the model going to be smaller than the mesh a ray tracer holds? (decision.verdict)
         "worth_compressing": assessment.get("worth_compressing", resident["total"] > nbvh),
         "assessment": assessment.get("message", ""),
         "recommendation": assessment.get("recommendation", ""),

@@ -10,7 +10,7 @@ got faster: 15 s buy more steps).
 
 Fit: log MSE on [1, log2 T, log area, occupancy, roughness, log10 triangles] (sizing.fit_size_model). Checked
 leave-one-mesh-out: for each mesh, the fit without it serves three targets (the named levels preview, standard,
-high) the way compress_mesh does: the predictor's first choice, then `sizing.search_size` (train, measure,
+high) the way compress_mesh does: the predictor's first choice, then `decision.size_search` (train, measure,
 calibrate, step) with the grid's measured MSE standing in for each training; compared with the smallest grid
 configuration whose measured MSE meets the target.
 Writes nbvh_core/planning/sizing_fit.json (fit on all meshes), bench/results/sizing.csv and sizing.md.
@@ -33,8 +33,10 @@ from harness import RESULTS, read_rows, write_markdown, write_rows
 from bench_meshes import bench_mesh
 from nbvh_core import kernels
 from nbvh_core.app.pipeline import estimate_file_bytes, preset
-from nbvh_core.planning.sizing import (FEATURE_NAMES, FIT_PATH, QUALITY_LEVELS,
-                              TARGET_TRAININGS, choose_table_and_nodes, fit_size_model, mesh_features, search_size)
+from nbvh_core.decision.size_search import search_size
+from nbvh_core.planning.sizing import (FEATURE_NAMES, FIT_PATH, LOG2_RANGE, QUALITY_LEVELS, choose_table_and_nodes,
+                                       fit_size_model, mesh_features, predictor)
+from nbvh_core.protocol.quality_levels import TARGET_TRAININGS
 
 #: From the smallest table the search may choose (2^8: a size the grid lacks would end a simulated search
 #: unmeasured) to the largest.
@@ -168,7 +170,8 @@ class Study:
             return got[0]
 
         try:
-            final, measured = search_size(f, self.feats[m], target, l2, measure, nodes=n if f.nodes_coef else None)
+            final, measured = search_size(predictor(f, self.feats[m], n if f.nodes_coef else None), target, l2,
+                                          measure, LOG2_RANGE)
         except KeyError:
             return {"first": (l2, n), "pred": pred, "measured": {}, "final": None, "trainings": 0}
         return {"first": (l2, n), "pred": pred, "measured": measured, "final": (final, n), "trainings": len(measured)}
@@ -237,7 +240,7 @@ def report(study: Study, table: list[dict]) -> list[str]:
          f"{', '.join(f'{c:.3f}' for c in full.coef)}. Feature subset chosen by leave-one-mesh-out RMS error in log "
          "space (" + "; ".join(f"[{', '.join(n) or 'T only'}] {e:.2f}" for e, n in scored[:4]) + "; the full set "
          f"{next(e for e, n in scored if len(n) == len(FEATURE_NAMES)):.2f}).\n",
-         "How a target is served (compress_mesh, sizing.search_size): the fit picks the smallest size predicted to "
+         "How a target is served (compress_mesh, decision.size_search): the fit picks the smallest size predicted to "
          f"meet it with a safety factor exp(margin x {full.residual_std:.2f}); that size is trained and measured; the "
          "measurement calibrates the prediction for this mesh (its error is mostly a per-mesh offset); a miss trains "
          "the smallest size the calibrated prediction says meets the target, a hit with room (calibrated prediction "

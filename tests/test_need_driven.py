@@ -116,21 +116,21 @@ def test_growth_follows_the_projection_to_the_end_of_the_budget(monkeypatch):
     # slope -0.5: at 25 s of 100 s an MSE falls by (100 / 25)^-0.5 = 0.5 by the end
     decide = _rule(monkeypatch, [1.9, 2.1, 0.5, 3.0], now, budget_slope=lambda log2: -0.5)
     now[0] = 25.0
-    assert decide(_model_at(10)) is False  # 0.95 at the end: met
+    assert decide(_model_at(10)) == "train on"  # 0.95 at the end: met
     assert decide(_model_at(10)) == "grow"  # 1.05 at the end: missed
-    assert decide(_model_at(11)) is True  # below 0.9 x the target now
-    assert decide(_model_at(12)) is False  # the top size: nothing to grow to
+    assert decide(_model_at(11)) == "stop: level met"  # below 0.9 x the target now
+    assert decide(_model_at(12)) == "train on"  # the top size: nothing to grow to
     assert [d.log2_table for d in decide.decisions] == [10, 10, 11, 12]
     assert [d.action for d in decide.decisions] == ["train on", "grow", "stop: level met", "train on"]
 
     now[0] = 0.0
     two_point = _rule(monkeypatch, [4.0, 2.0, 2.0, 2.5], now)
     now[0] = 10.0
-    assert two_point(_model_at(10)) is False  # one check: no law yet
+    assert two_point(_model_at(10)) == "train on"  # one check: no law yet
     now[0] = 20.0
-    assert two_point(_model_at(10)) is False  # 4 -> 2 from 10 s to 20 s: slope -1, 0.4 at 100 s
+    assert two_point(_model_at(10)) == "train on"  # 4 -> 2 from 10 s to 20 s: slope -1, 0.4 at 100 s
     now[0] = 30.0
-    assert two_point(_model_at(11)) is False  # the first check at the grown size
+    assert two_point(_model_at(11)) == "train on"  # the first check at the grown size
     now[0] = 40.0
     assert two_point(_model_at(11)) == "grow"  # worse than before: no progress at this size
 
@@ -163,7 +163,7 @@ def test_a_check_keeps_the_mesh_when_the_model_stays_above_a_measured_decimation
     # a 4,000 B model projected at 0.004: 2,000 B of decimation reach 0.002; the grown model (8,000 B at 0.002)
     # would still be above the curve (2,000 B): keep the mesh
     keep = _rule(monkeypatch, [0.004], now, bytes_at=lambda log2: 4000 * 2 ** (log2 - 10), **kw)
-    assert keep(_model_at(10)) is True and keep.keep_mesh is keep.decisions[0]
+    assert keep(_model_at(10)) == "stop: keep the mesh" and keep.keep_mesh is keep.decisions[0]
     assert keep.decisions[0].action == "stop: keep the mesh" and "2,000 B" in keep.decisions[0].reason
     forced = _rule(monkeypatch, [0.004], now, bytes_at=lambda log2: 4000 * 2 ** (log2 - 10), force=True, **kw)
     assert forced(_model_at(10)) == "grow" and forced.keep_mesh is None
@@ -172,7 +172,7 @@ def test_a_check_keeps_the_mesh_when_the_model_stays_above_a_measured_decimation
     assert cheap(_model_at(10)) == "grow" and "under the alternative" in cheap.decisions[0].reason
     # under the curve but the level out of reach at the top size: train on (the best value), never keep the mesh
     top = _rule(monkeypatch, [0.004], now, bytes_at=lambda log2: 200, max_log2=10, **kw)
-    assert top(_model_at(10)) is False and top.decisions[0].action == "train on"
+    assert top(_model_at(10)) == "train on" and top.decisions[0].action == "train on"
 
 
 def test_the_final_verdict_ships_the_smaller_at_the_same_measured_mse():

@@ -86,6 +86,10 @@ def test_training_stops_once_the_target_is_met(sample_meshes):
     res = compress_mesh(sample_meshes["blob"], s)
     assert res.training.stopped_early and res.training.seconds < 60
     assert res.target_met and "the target being met" in res.why
+    # The account is typed, in order: the plan first, the early stop said by its own record; the file keeps both.
+    kinds = [n.kind for n in res.notes]
+    assert kinds[0] == "plan" and kinds[-1] == "early stop" and res.why.endswith(res.notes[-1].text)
+    assert res.summary()["notes"] == [n.to_dict() for n in res.notes]
     # A target not met keeps training through every check, to the end of the budget.
     from nbvh_core.geometry.bvh import build_bvh
     from nbvh_core.geometry.exact import ExactTracer

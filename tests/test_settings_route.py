@@ -53,3 +53,28 @@ def test_the_cli_job_and_batch_take_this_route():
         calls = {n.func.id if isinstance(n.func, ast.Name) else getattr(n.func, "attr", "")
                  for n in ast.walk(ast.parse((app / name).read_text())) if isinstance(n, ast.Call)}
         assert "settings_from_request" in calls, name
+
+
+def test_a_run_is_planned_once_into_parts_that_agree_with_its_request():
+    """plan_run: every part says what the request says; a look takes its share of the budget from the geometry's
+    training (the request keeps the budget asked); a table size or a training knob changed changes both."""
+    from nbvh_core.geometry.demo_assets import crate
+    from nbvh_core.planning.run_config import plan_run
+
+    from meshes import icosphere
+
+    s = preset("default").with_overrides(target_mse=None, log2_table=10, time_limit_s=100.0, table_bits=4)
+    run = plan_run(s, icosphere(3))
+    assert (run.nodes, run.log2_table, run.storage.table_bits) == (s.nodes, 10, 4)
+    assert run.training.time_limit_s == 100.0 and run.training.lr == s.lr and run.training.table_bits == 4
+    assert (run.metric.views, run.metric.resolution) == (s.eval_views, s.eval_resolution)
+    assert run.decision.target_mse is None and run.look.budget_s is None
+    assert run.notes[0].kind == "plan" and run.file_bytes > 0
+    looked = plan_run(s, crate(cells=2, texture=64))
+    assert looked.look.budget_s == pytest.approx(100.0 * s.appearance_share)
+    assert looked.training.time_limit_s == pytest.approx(100.0 * (1 - s.appearance_share))
+    assert looked.request.time_limit_s == 100.0
+    bigger = run.at_table(12)
+    assert bigger.log2_table == bigger.request.log2_table == 12 and bigger.file_bytes > run.file_bytes
+    slower = run.with_training(lr=run.training.lr / 10)
+    assert slower.training.lr == slower.request.lr == run.training.lr / 10 and run.training.lr == s.lr

@@ -14,7 +14,9 @@ from nbvh_core.decision.config import DecisionConfig
 from nbvh_core.geometry.exact import ExactTracer
 from nbvh_core.rendering.metrics import MetricConfig, view_sets
 from nbvh_core.planning.sizing import (LOG2_RANGE, QUALITY_LEVELS, MeshFeatures, SizeFit, assess, choose_size, resolve,
-                              fit_size_model, load_fit, mesh_features, search_size, split_budget)
+                              fit_size_model, load_fit, mesh_features, predictor)
+from nbvh_core.decision.scene_budget import split_budget
+from nbvh_core.decision.size_search import search_size
 
 
 def plane(n=40):
@@ -99,22 +101,28 @@ def test_decimation_that_meets_the_target_is_recommended_when_smaller(sample_mes
     assert verdict.alternatives["draco11_bytes"] > 0 and "Draco" in verdict.message
 
 
+def _chooser(fit, features):
+    """choose(i, level) -> (log2 T, predicted MSE): the size predictor's smallest table for mesh i at that level."""
+    return lambda i, level: choose_size(fit, features[i], level)[:2]
+
+
 def test_scene_budget_is_shared_by_need():
     fit = SizeFit(method="default", train_s=15.0, coef=[-1.0, -0.6, 0.3, 2.0, 6.0, 0.1], residual_std=0.2)
     smooth = MeshFeatures(triangles=20000, area=3.0, occupancy=0.05, roughness=0.02)
     detailed = MeshFeatures(triangles=200000, area=6.0, occupancy=0.15, roughness=0.4)
     size = lambda i, l2: estimate_file_bytes(preset("default").with_overrides(log2_table=l2))  # noqa: E731
     budget = size(0, 11) + size(1, 11)  # both cannot have the largest table (2^12)
-    plan = split_budget([smooth, detailed], budget, fit, size)
+    choose = _chooser(fit, [smooth, detailed])
+    plan = split_budget(2, budget, choose, size)
     assert plan["total"] <= budget
     assert plan["log2"][1] > plan["log2"][0]  # the detailed mesh gets the bigger table
     assert plan["total"] > 0.5 * budget  # the budget is used, not left idle
     # A bigger share of the screen earns a bigger model.
-    plan_w = split_budget([smooth, smooth], budget, fit, size, weights=[4.0, 0.25])
+    plan_w = split_budget(2, budget, _chooser(fit, [smooth, smooth]), size, weights=[4.0, 0.25])
     assert plan_w["log2"][0] > plan_w["log2"][1]
     # A budget below the smallest models is refused with the size they need, not silently exceeded.
     with pytest.raises(ValueError, match="too small for these 2 meshes"):
-        split_budget([smooth, detailed], 1.5 * size(0, 5), fit, size)
+        split_budget(2, 1.5 * size(0, 5), choose, size)
 
 
 def _line_fit(slope_per_doubling: float = -0.3):
@@ -127,7 +135,7 @@ def test_search_steps_up_to_the_calibrated_size_when_missed():
     fit, feats = _line_fit(), mesh_features(icosphere(2))
     truth = {l2: math.exp(-4.0 - 0.3 * (l2 - 8)) for l2 in range(8, 13)}  # this mesh: e^1 worse than predicted
     calls = []
-    chosen, measured = search_size(fit, feats, truth[11] * 1.01, 8, lambda l2: calls.append(l2) or truth[l2])
+    chosen, measured = search_size(predictor(fit, feats), truth[11] * 1.01, 8, lambda l2: calls.append(l2) or truth[l2], LOG2_RANGE)
     # 2^8 misses by ~e^0.9; the calibrated prediction says 2^11 is the smallest that meets it: no walk 9, 10, 11.
     assert calls == [8, 11] and chosen == 11
 
@@ -136,21 +144,21 @@ def test_search_steps_down_after_a_comfortable_hit_and_keeps_the_smallest_that_m
     fit, feats = _line_fit(), mesh_features(icosphere(2))
     truth = {l2: math.exp(-6.0 - 0.3 * (l2 - 8)) for l2 in range(8, 13)}  # e^1 better than predicted
     target = truth[9] * 1.01
-    chosen, measured = search_size(fit, feats, target, 11, lambda l2: truth[l2])
+    chosen, measured = search_size(predictor(fit, feats), target, 11, lambda l2: truth[l2], LOG2_RANGE)
     assert list(measured) == [11, 10, 9] and chosen == 9  # two steps down within the 3 trainings
     # A step down that misses ends the search; the size that met is kept.
     noisy = {**truth, 10: target * 1.5}
-    chosen, measured = search_size(fit, feats, target, 11, lambda l2: noisy[l2])
+    chosen, measured = search_size(predictor(fit, feats), target, 11, lambda l2: noisy[l2], LOG2_RANGE)
     assert list(measured) == [11, 10] and chosen == 11
     # A hit without room (calibrated 2^10 would miss) costs one training.
-    chosen, measured = search_size(fit, feats, truth[11] * 1.01, 11, lambda l2: truth[l2])
+    chosen, measured = search_size(predictor(fit, feats), truth[11] * 1.01, 11, lambda l2: truth[l2], LOG2_RANGE)
     assert list(measured) == [11] and chosen == 11
 
 
 def test_search_without_a_fit_steps_up_once_per_miss_and_respects_the_limit():
-    chosen, measured = search_size(None, None, 1e-9, 9, lambda l2: 1.0, max_trainings=3)
+    chosen, measured = search_size(None, 1e-9, 9, lambda l2: 1.0, LOG2_RANGE, max_trainings=3)
     assert list(measured) == [9, 10, 11] and chosen == 11  # none met: the largest trained
-    chosen, measured = search_size(None, None, 0.5, 9, lambda l2: 0.1)
+    chosen, measured = search_size(None, 0.5, 9, lambda l2: 0.1, LOG2_RANGE)
     assert list(measured) == [9] and chosen == 9
 
 

@@ -6,7 +6,7 @@
   arrays, and .blend files - each mesh object one asset, exported by a `blender` binary, `blend_export.py`) or a
   list file (one path per line, relative to the list). A file that cannot be read becomes a failed row, not a stop.
 * **Decide first** (`measure_asset`, one Ray task per asset): triangles, resident bytes as a ray tracer holds the
-  mesh, its Draco size, the verdict of `sizing.assess` and a thumbnail, before any training; the first report is
+  mesh, its Draco size, the run's own verdict (`pipeline.weigh`) and a thumbnail, before any training; the first report is
   written as soon as every asset is measured.
 * **Train second** (`compress_asset`): only assets worth compressing, largest predicted savings first, each one task
   sized by its need (CPUs and memory from the triangle count, a GPU when the cluster has one). A task returns its

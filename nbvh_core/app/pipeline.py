@@ -32,11 +32,12 @@ from ..neural.quantize import snap_nodes
 from ..planning.settings import PRESETS, Settings, estimate_file_bytes, preset  # noqa: F401  (re-exported)
 from ..planning import sizing
 from ..planning.run_config import LookConfig, RunConfig, plan_run
-from ..planning.sizing import LOG2_RANGE, assess, load_fit, mesh_features, search_size
+from ..planning.sizing import LOG2_RANGE, assess, load_fit, mesh_features, predictor
 from ..training.train import TrainResult, train
 from ..decision.alternative_curve import AlternativeCurve, CurvePoint
 from ..decision.checks import CheckRule
-from ..decision.records import RunNote, why_of
+from ..decision.size_search import search_size
+from ..decision.records import Assessment, RunNote, why_of
 from ..decision.final_verdict import final_verdict
 
 #: A diverged training restarts from scratch at a 10x lower learning rate, at most this many times.
@@ -64,7 +65,7 @@ class CompressResult:
     tracer: ExactTracer | None = None  # the mesh's exact tracer, for callers that render the reference too
     why: str = ""
     target_met: bool | None = None
-    assessment: dict = field(default_factory=dict)  # sizing.Assessment: is the model smaller than the mesh?
+    assessment: dict = field(default_factory=dict)  # decision.records.Assessment: is the model smaller than the mesh?
     data: bytes = b""  # the complete .nbvh file contents (written to `path` when one was given)
     #: The decisions on measurements: every training check (decision.records.CheckDecision), the final verdict
     #: (FinalVerdict: the model as shipped against the alternative at the same held-out MSE) and that curve.
@@ -192,7 +193,7 @@ class Weighing:
     look_bytes: int = 0
 
 
-def weigh(mesh: Mesh, run: RunConfig, tracer: ExactTracer, made=None) -> tuple["sizing.Assessment", Weighing]:
+def weigh(mesh: Mesh, run: RunConfig, tracer: ExactTracer, made=None) -> tuple[Assessment, Weighing]:
     """The verdict before training, the same for a run and a library batch's measurement: the model `run` plans,
     with what its file adds for the asset's look (the head `made`, `make_head`; the images it keeps), weighed
     against the mesh and, with a target, the measured decimations (`sizing.assess`, on the run's view sets)."""
@@ -268,7 +269,7 @@ def _training_bvh(mesh: Mesh, nodes: int, node_bits: int, events: EventSink, sec
 class _SizeSearch:
     """The trainings of one compress_mesh call: one at the planned size, or with a target MSE one growing training
     (`grow`, the default: `decision.checks.CheckRule`) or the predict-train-measure-correct search over T
-    (`sizing.search_size`, at most TARGET_TRAININGS). Each training is finalized to the stored precision and scored
+    (`decision.size_search`, at most TARGET_TRAININGS). Each training is finalized to the stored precision and scored
     on the held-out views; `trained[log2 T]` keeps them all, `notes` the search's own account."""
 
     def __init__(self, mesh, bvh, tracer, run: RunConfig, events, should_cancel, checkpoint_path, resume_from,
@@ -295,8 +296,8 @@ class _SizeSearch:
             return self.grow()
         fit = load_fit()
         feats = mesh_features(self.mesh) if fit is not None else None
-        chosen, measured = search_size(fit, feats, target, run.log2_table, self._measure_next,
-                                       budget_s=run.training.time_limit_s)
+        chosen, measured = search_size(predictor(fit, feats, None, run.training.time_limit_s), target,
+                                       run.log2_table, self._measure_next, LOG2_RANGE)
         if len(measured) > 1:
             trail = ", ".join(f"T=2^{l2}: {mse:.4g}" for l2, mse in measured.items())
             self.notes.append(RunNote("search", f"measured {trail} (target {target:g}): kept T=2^{chosen}"))

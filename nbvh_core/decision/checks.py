@@ -17,7 +17,7 @@ EARLY_STOP_MARGIN = 0.9
 
 
 class CheckRule:
-    """The target_reached callback of `training.train` (True: stop; "grow": double the table; False: train on).
+    """The target_reached callback of `training.train`: each call answers one of `records.CHECK_ACTIONS`.
 
     score(model) -> check MSE of the model as stored; target: the MSE level; max_log2: the largest table;
     budget_s: the training's budget (seconds since this rule was made ~ since training began); budget_slope(log2)
@@ -54,7 +54,8 @@ class CheckRule:
             slope = math.log(m / m1) / math.log(t / max(t1, 1e-6))
         return m * (max(self.budget_s, t) / t) ** slope
 
-    def __call__(self, model) -> bool | str:
+    def __call__(self, model) -> str:
+        """Measure `model` now and decide: one of CHECK_ACTIONS (recorded in `decisions`)."""
         mse = self.score(model)
         log2 = model.cfg.encoding.log2_table
         seconds = round(time.perf_counter() - self._start, 2)
@@ -64,7 +65,7 @@ class CheckRule:
         d.action, d.reason = self._decide(d)
         if d.action == "stop: keep the mesh":
             self.keep_mesh = d
-        return {"grow": "grow", "train on": False}.get(d.action, True)
+        return d.action
 
     def _decide(self, d: CheckDecision) -> tuple[str, str]:
         if d.mse <= EARLY_STOP_MARGIN * self.target:

@@ -1,7 +1,7 @@
 """The typed records of a run's decisions (what was decided, on which measurements), serialised into reports."""
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 
 #: The kinds of step a run's account (`RunNote`) tells.
 NOTE_KINDS = ("plan", "resumed", "restart", "growth", "search", "early stop")
@@ -76,3 +76,26 @@ class FinalVerdict:
 
     def to_dict(self) -> dict:
         return {**asdict(self), "ratio": self.ratio}
+
+
+@dataclass
+class Assessment:
+    """model_bytes: the .nbvh size (exact payload + typical header); resident: `planning.sizing.mesh_resident_bytes(mesh)`;
+    compact_bytes: the mesh in the compact ray-traceable layout; layout: the one the model was weighed against
+    (decision.config.MESH_LAYOUTS); alternatives: `planning.sizing.alternatives(...)` when measured; recommendation: what to use (decision.verdict.RECOMMENDATIONS: 'neural',
+    'mesh': the mesh as it is, 'decimate': the decimation in alternatives['decimation'])."""
+
+    model_bytes: int
+    resident: dict
+    worth_compressing: bool
+    message: str
+    alternatives: dict = field(default_factory=dict)
+    recommendation: str = "neural"
+    #: The whole mesh as a compact ray-traceable mesh (`compact_mesh.encode_compact`), exact bytes.
+    compact_bytes: int | None = None
+    layout: str = "compact"
+    #: The decision that kept the mesh after training began (`decision.records.FinalVerdict` as a dict), or None.
+    final: dict | None = None
+
+    def to_dict(self) -> dict:
+        return asdict(self)

@@ -167,11 +167,17 @@ def snap_nodes(nodes: np.ndarray) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------------------------------- tables
-def table_affine(table: np.ndarray, bits: int = 8) -> tuple[np.ndarray, np.ndarray]:
-    """Per (level, feature) (offset, scale), each (L, F) float32, of a (L, T, F) float32 table."""
+def table_affine(table: np.ndarray, bits: int = 8, clip_percent: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Per (level, feature) (offset, scale), each (L, F) float32, of a (L, T, F) float32 table: the grid spans the
+    rows' range, or with `clip_percent` the range between that percentile and its mirror (the tails are clipped:
+    at 4 bits a few outlying rows would otherwise leave most rows two or three codes)."""
     levels = (1 << bits) - 1
-    mn = table.min(axis=1).astype(np.float32)
-    mx = table.max(axis=1).astype(np.float32)
+    if clip_percent > 0:
+        mn = np.percentile(table, clip_percent, axis=1).astype(np.float32)
+        mx = np.percentile(table, 100.0 - clip_percent, axis=1).astype(np.float32)
+    else:
+        mn = table.min(axis=1).astype(np.float32)
+        mx = table.max(axis=1).astype(np.float32)
     scale = ((mx - mn) / np.float32(levels)).astype(np.float32)
     scale = np.where(scale > 0, scale, np.float32(1e-12)).astype(np.float32)
     return mn, scale

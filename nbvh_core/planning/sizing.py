@@ -11,12 +11,12 @@
   errors); coefficients in sizing_fit.json.
 * **Choice** (`resolve`, `choose_table_and_nodes`): a byte budget or a quality target turned into sizes: the
   (T, node count) of fewest file bytes whose predicted MSE meets the target; `pipeline.compress_mesh` trains it,
-  measures and corrects (`search_size`: up to TARGET_TRAININGS trainings, calibrated by each measurement).
+  measures and corrects (`decision.size_search`: up to TARGET_TRAININGS trainings, calibrated by each measurement).
   `choose_size` is the same over T alone (scenes).
 * **Verdict** (`assess`): when the mesh as it is, or the smallest decimation of it that meets the target, is no
   larger than the model held as a compact ray-traceable mesh (or, with mesh_layout "plain", as a plain ray tracer
   holds it), compressing is not worth it; the result says so with all sizes (a user can still force the model).
-* **Scenes** (`plan_scene`, `split_budget`): one byte budget over several meshes, shared by need: every mesh gets the
+* **Scenes** (`plan_scene`; the rule: `decision.scene_budget`): one byte budget over several meshes, shared by need: every mesh gets the
   smallest T that meets a common quality level (scaled by its weight, e.g. its size on screen), with the level
   set as strict as the budget allows.
 """
@@ -32,8 +32,11 @@ import numpy as np
 
 from ..geometry.bvh import build_full_tree, resident_bvh_nodes
 from ..geometry.mesh import Mesh
-from ..protocol.quality_levels import QUALITY_LEVELS, TARGET_TRAININGS  # noqa: F401  (QUALITY_LEVELS re-exported)
+from ..protocol.quality_levels import QUALITY_LEVELS  # noqa: F401  (re-exported)
 from ..decision.config import DecisionConfig
+from ..decision.records import Assessment
+from ..decision.scene_budget import split_budget
+from ..decision.verdict import verdict_before_training
 from .settings import PAPER_N_MAX, PRESETS, Settings, estimate_file_bytes
 
 FIT_PATH = Path(__file__).with_name("sizing_fit.json")
@@ -268,6 +271,15 @@ def predict_mse(fit: SizeFit, log2_table: int, features: MeshFeatures, nodes: in
     return math.exp(fit.predict_log_mse(log2_table, features, nodes, budget_s))
 
 
+def predictor(fit: SizeFit | None, features: MeshFeatures | None, nodes: int | None = None,
+              budget_s: float | None = None):
+    """predict(log2 T) -> ln image MSE of this mesh's model at that table size (the size search's input,
+    `decision.size_search`), or None without a fit."""
+    if fit is None or features is None:
+        return None
+    return lambda log2_table: fit.predict_log_mse(log2_table, features, nodes, budget_s)
+
+
 def choose_size(fit: SizeFit, features: MeshFeatures, target_mse: float,
                 budget_s: float | None = None) -> tuple[int, float, bool]:
     """`choose_table_and_nodes` over T alone (the fitted node count): the smallest log2 T in LOG2_RANGE whose
@@ -297,64 +309,13 @@ def choose_table_and_nodes(fit: SizeFit, features: MeshFeatures, target_mse: flo
 
 
 
-def next_size(fit: SizeFit | None, features: MeshFeatures | None, target_mse: float,
-              measured: dict[int, float], nodes: int | None = None, budget_s: float | None = None) -> int | None:
-    """The next log2 T to train after measuring `measured` {log2 T: image MSE}, or None to stop.
-
-    The fit's error for this mesh is mostly an offset (its residuals are per-mesh), so each measurement calibrates
-    the prediction: calibrated(T) = predicted(T) x measured(T0) / predicted(T0), T0 the last size trained.
-    * Target missed everywhere so far: the smallest larger T whose calibrated MSE meets it (the largest in
-      LOG2_RANGE when none is predicted to); None at the top of the range.
-    * Target met: one step down (the largest smaller T, not yet trained) if its calibrated MSE meets it, else
-      None; a smaller size that then misses ends the search (the smallest size that met is kept).
-    Without a fit: one step up when missed, no step down.
-    """
-    last = list(measured)[-1]
-    met = [l2 for l2, mse in measured.items() if mse <= target_mse]
-    if fit is None or features is None:
-        return last + 1 if not met and last + 1 <= LOG2_RANGE[-1] else None
-    offset = math.log(measured[last]) - fit.predict_log_mse(last, features, nodes, budget_s)
-
-    def calibrated_ok(l2: int) -> bool:
-        return fit.predict_log_mse(l2, features, nodes, budget_s) + offset <= math.log(target_mse)
-
-    if not met:
-        larger = [l2 for l2 in LOG2_RANGE if l2 > max(measured)]
-        if not larger:
-            return None
-        # The smallest predicted to meet it; none predicted: the largest (the best chance there is).
-        return next((l2 for l2 in larger if calibrated_ok(l2)), larger[-1])
-    if measured[last] > target_mse:  # a step down missed: keep the smallest that met
-        return None
-    smaller = min(met) - 1
-    if smaller < LOG2_RANGE[0] or smaller in measured or not calibrated_ok(smaller):
-        return None
-    return smaller
-
-
-def search_size(fit: SizeFit | None, features: MeshFeatures | None, target_mse: float, first_log2: int,
-                measure, max_trainings: int = TARGET_TRAININGS, nodes: int | None = None,
-                budget_s: float | None = None) -> tuple[int, dict]:
-    """Train-and-measure search for the smallest log2 T meeting `target_mse`: `measure(log2) -> MSE` trains and
-    scores one size (the expensive part); starts at `first_log2` (the predictor's choice) and follows `next_size`
-    for at most `max_trainings` measurements. Returns (chosen log2 T, {log2 T: MSE} in the order measured): the
-    smallest measured size that met the target, else the largest measured."""
-    measured: dict[int, float] = {}
-    l2: int | None = first_log2
-    while l2 is not None and len(measured) < max_trainings:
-        measured[l2] = measure(l2)
-        l2 = next_size(fit, features, target_mse, measured, nodes, budget_s)
-    met = [t for t, mse in measured.items() if mse <= target_mse]
-    return (min(met) if met else max(measured)), measured
-
-
 def resolve(s: Settings, mesh: Mesh | None = None, grid: GridMeasures | None = None) -> tuple[Settings, str]:
     """Turn a byte budget or a quality target into concrete sizes; returns (settings, why).
 
     Budget: the largest (T, nodes) of the grid T in 2^5..2^13, nodes in 255..8191 whose file fits the budget
     (largest file first, ties to more nodes). Target (with the mesh): the method the size predictor was fitted
     for (sizing_fit.json: HashGrid + MLP + consistent labels) at the smallest T whose predicted MSE meets the
-    target (`sizing.choose_table_and_nodes`); `compress_mesh` then measures and corrects (`sizing.search_size`).
+    target (`sizing.choose_table_and_nodes`); `compress_mesh` then measures and corrects (`decision.size_search`).
     n_max None: the grid's finest resolution is chosen for the mesh and the chosen T (`choose_resolution`; `grid`:
     its measures when the caller has them).
     """
@@ -570,35 +531,6 @@ def mesh_file_bytes(mesh: Mesh) -> bytes:
 
 
 # ---------------------------------------------------------------------------------------------------- verdict
-@dataclass
-class Assessment:
-    """model_bytes: the .nbvh size (exact payload + typical header); resident: `mesh_resident_bytes(mesh)`;
-    compact_bytes: the mesh in the compact ray-traceable layout; layout: the one the model was weighed against
-    (MESH_LAYOUTS); alternatives: `alternatives(...)` when measured; recommendation: what to use ('neural',
-    'mesh': the mesh as it is, 'decimate': the decimation in alternatives['decimation'])."""
-
-    model_bytes: int
-    resident: dict
-    worth_compressing: bool
-    message: str
-    alternatives: dict = field(default_factory=dict)
-    recommendation: str = "neural"
-    #: The whole mesh as a compact ray-traceable mesh (`compact_mesh.encode_compact`), exact bytes.
-    compact_bytes: int | None = None
-    layout: str = "compact"
-    #: The decision that kept the mesh after training began (`decision.records.FinalVerdict` as a dict), or None.
-    final: dict | None = None
-
-    def to_dict(self) -> dict:
-        return asdict(self)
-
-
-def _held(layout: str, plain: int, compact: int) -> str:
-    """'31,322 B as a compact mesh (135,392 B as a plain ray tracer holds it)', the verdict's layout first."""
-    a, b = f"{compact:,} B as a compact mesh", f"{plain:,} B as a plain ray tracer holds it"
-    return f"{a} ({b})" if layout == "compact" else f"{b} ({a})"
-
-
 def assess(mesh: Mesh, model_bytes: int, decision: DecisionConfig, checks=None, held_out=None,
            look_bytes: int = 0) -> Assessment:
     """Weigh a model of `model_bytes` (its file, `RunConfig.file_bytes`) against the mesh and, with a target MSE
@@ -625,73 +557,13 @@ def assess(mesh: Mesh, model_bytes: int, decision: DecisionConfig, checks=None, 
     if dec is not None and dec.get("look_bytes"):
         dec = {**dec, "resident_bytes": dec["resident_bytes"] + dec["look_bytes"],
                "compact_bytes": dec["compact_bytes"] + dec["look_bytes"]}
-    held = (lambda plain, comp: comp) if layout == "compact" else (lambda plain, comp: plain)
-    draco = f"; Draco 11-bit of the mesh: {alt['draco11_bytes']:,} B for storage" if "draco11_bytes" in alt else ""
-    # The smaller of the two alternatives wins the comparison (a decimation is offered even when the whole mesh
-    # is also smaller than the model: it is the least a user needs to ship).
-    dec_held = held(dec["resident_bytes"], dec["compact_bytes"]) if dec is not None else None
-    if held(resident, compact) <= model and (dec_held is None or held(resident, compact) <= dec_held):
-        rec = "mesh"
-        msg = (f"not worth compressing: the mesh ({mesh.n_triangles:,} triangles) is already no larger than this "
-               f"model (~{model:,} B): {_held(layout, resident, compact)}; keep the mesh, or ask for a smaller model "
-               f"(--budget-kb){draco}")
-    elif dec_held is not None and dec_held <= model:
-        rec = "decimate"
-        msg = (f"not worth compressing: a decimation to {dec['triangles']:,} triangles meets the target (MSE "
-               f"{dec['mse']:.4g}) in {_held(layout, dec['resident_bytes'], dec['compact_bytes'])}, no more than "
-               f"this model (~{model:,} B; the full mesh: {_held(layout, resident, compact)}){draco}")
-    else:
-        rec = "neural"
-        msg = (f"model ~{model:,} B vs the mesh {_held(layout, resident, compact)}: "
-               f"{held(resident, compact) / model:.1f}x smaller")
-        if dec is not None:
-            msg += (f"; the smallest decimation meeting the target ({dec['triangles']:,} triangles) holds "
-                    f"{_held(layout, dec['resident_bytes'], dec['compact_bytes'])}: "
-                    f"{held(dec['resident_bytes'], dec['compact_bytes']) / model:.2f}x the model")
-        msg += draco
+    rec, msg = verdict_before_training(model, mesh.n_triangles, resident, compact, dec, alt.get("draco11_bytes"),
+                                       layout)
     return Assessment(model_bytes=model, resident=resident_bytes, worth_compressing=rec == "neural", message=msg,
                       alternatives=alt, recommendation=rec, compact_bytes=compact, layout=layout)
 
 
 # ------------------------------------------------------------------------------------------------------ scenes
-def split_budget(features: list[MeshFeatures], budget_bytes: float, fit: SizeFit, bytes_for_log2,
-                 weights: list[float] | None = None) -> dict:
-    """Share `budget_bytes` among meshes by need. Every mesh i gets the smallest log2 T whose predicted MSE meets
-    level / w_i (w_i: weight, e.g. share of the screen; bigger = needs to look better), with the common level as
-    strict as the budget allows (bisection in log space). bytes_for_log2(i, log2) -> file bytes of mesh i's model.
-    Returns {'level': MSE level, 'log2': [...], 'bytes': [...], 'predicted_mse': [...], 'total': bytes}; raises
-    ValueError when even the smallest models do not fit the budget."""
-    n = len(features)
-    weights = [1.0] * n if weights is None else [max(float(w), 1e-6) for w in weights]
-
-    def plan(level: float):
-        l2s, sizes, preds = [], [], []
-        for i, f in enumerate(features):
-            l2, pred, _ = choose_size(fit, f, level / weights[i])
-            l2s.append(l2)
-            sizes.append(bytes_for_log2(i, l2))
-            preds.append(pred)
-        return l2s, sizes, preds
-
-    lo, hi = math.log(1e-6), math.log(1.0)  # strict .. loose
-    best = None
-    for _ in range(40):
-        mid = (lo + hi) / 2
-        l2s, sizes, preds = plan(math.exp(mid))
-        if sum(sizes) <= budget_bytes:
-            best = (math.exp(mid), l2s, sizes, preds)
-            hi = mid  # fits: try stricter
-        else:
-            lo = mid
-    if best is None:  # even the loosest level (every mesh at its smallest size) does not fit
-        smallest = sum(plan(1.0)[1])
-        raise ValueError(f"a budget of {budget_bytes / 1024:g} KB is too small for these {n} meshes: the smallest "
-                         f"models need {smallest / 1024:.0f} KB together")
-    level, l2s, sizes, preds = best
-    return {"level": level, "log2": l2s, "bytes": sizes, "predicted_mse": preds, "total": int(sum(sizes)),
-            "weights": weights, "budget": budget_bytes}
-
-
 def mesh_bytes(mesh: Mesh, layout: str) -> int:
     """`mesh` held in `layout` (MESH_LAYOUTS): the compact ray-traceable mesh's exact bytes, or plain resident."""
     if layout == "compact":
@@ -714,7 +586,10 @@ def split_scene(meshes: list[Mesh], budget_bytes: float, fit: SizeFit, bytes_for
     out = {"level": None, "log2": [None] * len(meshes), "bytes": [0] * len(meshes),
            "predicted_mse": [None] * len(meshes), "total": 0, "weights": weights, "budget": budget_bytes}
     if keep:
-        plan = split_budget([feats[i] for i in keep], budget_bytes, fit, lambda j, l2: bytes_for_log2(keep[j], l2),
+        def choose(j: int, level: float) -> tuple[int, float]:
+            return choose_size(fit, feats[keep[j]], level)[:2]
+
+        plan = split_budget(len(keep), budget_bytes, choose, lambda j, l2: bytes_for_log2(keep[j], l2),
                             [weights[i] for i in keep])
         for j, i in enumerate(keep):
             out["log2"][i], out["bytes"][i], out["predicted_mse"][i] = (plan["log2"][j], plan["bytes"][j],

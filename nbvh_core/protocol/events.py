@@ -21,7 +21,7 @@ EVENTS = {
              "'save', ...), message",
     "progress": "phase, fraction; a training: step, total, loss, samples_per_s, elapsed_s, eta_s; a batch: done, total",
     "warning": "message (one line)",
-    "verdict": "worth_compressing (false), message, assessment (sizing.Assessment: alternatives, recommendation, "
+    "verdict": "worth_compressing (false), message, assessment (decision.records.Assessment: alternatives, recommendation, "
                "final: the decision.records.FinalVerdict that kept the mesh after training began, or null)",
     "written": "files (paths), kind ('decimation' | 'mesh' for a kept mesh), triangles",
     "asset": "a library row: name, phase ('measure' | 'train'), status, and its numbers",

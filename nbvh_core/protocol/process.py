@@ -22,7 +22,7 @@ class TrainingDiverged(RuntimeError):
 
 class NotWorthCompressing(Exception):
     """The verdict before training: the mesh (or a decimation meeting the target) is smaller than the model would
-    be. Nothing was trained or written; `assessment` (sizing.Assessment) has the sizes and the alternatives."""
+    be. Nothing was trained or written; `assessment` (decision.records.Assessment) has the sizes and the alternatives."""
 
     def __init__(self, assessment):
         super().__init__(assessment.message)

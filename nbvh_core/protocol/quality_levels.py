@@ -11,7 +11,7 @@ QUALITY_LEVELS = {"preview": 0.001, "standard": 0.0005, "high": 0.00025}
 #: The level a run is sized to when it names no preset, size or target (CLI, compress.py, batches, the add-on).
 DEFAULT_LEVEL = "standard"
 
-#: A quality target costs at most this many trainings: the predicted size, then corrections (`sizing.next_size`);
+#: A quality target costs at most this many trainings: the predicted size, then corrections (`decision.size_search`);
 #: the add-on's ETA and the panel's time-limit hint say so.
 TARGET_TRAININGS = 3
 
