@@ -86,7 +86,7 @@ def test_training_stops_once_the_target_is_met(sample_meshes):
     res = compress_mesh(sample_meshes["blob"], s)
     assert res.training.stopped_early and res.training.seconds < 60
     assert res.target_met and "the target being met" in res.why
-    # The account is typed, in order: the plan first, the early stop said by its own record; the file keeps both.
+    # The account is typed, in order: the plan first, the early stop said by its own record (the report keeps them).
     kinds = [n.kind for n in res.notes]
     assert kinds[0] == "plan" and kinds[-1] == "early stop" and res.why.endswith(res.notes[-1].text)
     assert res.summary()["notes"] == [n.to_dict() for n in res.notes]

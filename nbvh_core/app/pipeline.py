@@ -405,8 +405,8 @@ class _SizeSearch:
 
 
 def _metadata(mesh: Mesh, run: RunConfig, notes: list, assessment, tr: TrainResult, quality: Quality | None) -> dict:
-    """What the file's header records of the run: source, settings, why (and its typed notes), verdict, training,
-    quality, provenance."""
+    """What the file's header records of the run: source, settings, why (the notes in one line; the report keeps
+    them typed), verdict, training, quality, provenance."""
     training = {"steps": tr.steps, "seconds": round(tr.seconds, 2), "samples": tr.samples,
                 "stopped_early": tr.stopped_early, "samples_per_s": round(tr.samples_per_s),
                 "final_loss": tr.final_loss, "device": tr.device, "compute_path": tr.compute_path,  # the kernel plan, exactly
@@ -417,7 +417,7 @@ def _metadata(mesh: Mesh, run: RunConfig, notes: list, assessment, tr: TrainResu
         q.pop("per_view_mse", None)
     target = run.decision.target_mse
     return {"source": {"name": mesh.name, "triangles": mesh.n_triangles, "vertices": mesh.n_vertices},
-            "settings": run.request.to_dict(), "why": why_of(notes), "notes": [n.to_dict() for n in notes],
+            "settings": run.request.to_dict(), "why": why_of(notes),
             "assessment": assessment.to_dict(),
             "target_met": None if target is None or quality is None else quality.mse <= target,
             "training": training, "quality": q, "created": time.strftime("%Y-%m-%dT%H:%M:%S"),
