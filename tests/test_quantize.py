@@ -1,6 +1,8 @@
 """Quantized storage keeps its promises: an 8-bit node box always contains its exact box (so traversal never misses a
 leaf the float32 BVH would enter), and a model's quantized storage scores within 10% of the same training in
 float32."""
+import dataclasses
+
 import numpy as np
 import torch
 import pytest
@@ -116,3 +118,23 @@ def test_four_bit_tables_halve_the_features_and_read_back_exactly(sample_meshes)
     assert torch.equal(decoded.encoding.qcodes.cpu(), res.model.encoding.qcodes.cpu())
     checks, held = view_sets(res.tracer, mesh.transform, MetricConfig(2, 32))
     assert held.score_model(decoded)[0].mse == pytest.approx(held.score_model(res.model)[0].mse, rel=1e-4)
+
+
+def test_a_four_bit_file_keeps_its_appearance_head_at_eight_bits():
+    """The head trains no quantization-aware phase, so a 4-bit geometry table leaves the head's table at 8 bits: the
+    file's head bytes are what the estimate before training counted, and the head reads back code for code."""
+    from nbvh_core.geometry.demo_assets import crate
+    from nbvh_core.storage.fileformat import decode_nbvh, look_stored_bytes
+
+    mesh = crate(cells=2, texture=64)
+    s = preset("tiny").with_overrides(steps=30, force=True, table_bits=4)
+    res = compress_mesh(mesh, s, None, evaluate_quality=False)
+    head = res.model.appearance
+    assert head is not None and head.encoding.quantized
+    assert int(head.encoding.qcodes.max()) > 15  # 8-bit codes (the grid spans each feature's range: code 255)
+    storage = res.settings.storage()
+    expected = look_stored_bytes(head.cfg, res.model.materials, storage)
+    eight = look_stored_bytes(head.cfg, res.model.materials, dataclasses.replace(storage, table_bits=8))
+    assert res.components["appearance"] == expected["appearance"] == eight["appearance"]
+    decoded = decode_nbvh(res.data).appearance
+    assert torch.equal(decoded.encoding.qcodes.cpu(), head.encoding.qcodes.cpu())

@@ -50,7 +50,7 @@ from .errors import NBVHFileError  # noqa: F401  (raised here; callers import it
 from .packed import is_packed, unpack
 from ..geometry.bvh import MAX_NODES, NODE_DTYPE
 from ..neural.encodings import ENCODINGS, EncodingConfig
-from ..neural.appearance import TARGETS, AppearanceConfig, AppearanceHead, map_width
+from ..neural.appearance import TARGETS, AppearanceConfig, AppearanceHead, head_table_bits, map_width
 from ..neural.encodings.base import code_width, level_vertex_counts
 from ..geometry.look import MAX_SLOTS, MAX_TEXTURE_SIDE, LookError, Material, decode_png, encode_png
 from ..geometry.mesh import Transform
@@ -165,7 +165,7 @@ def _look_tensors(model: NeuralBVH, storage: StorageConfig) -> list[tuple[str, s
     out = []
     head = model.appearance
     if head is not None:
-        out += _table_tensors(head.encoding, "appearance.features", "appearance", storage.table_bits,
+        out += _table_tensors(head.encoding, "appearance.features", "appearance", head_table_bits(storage.table_bits),
                               "appearance.finalize_head")
         fdt = np.float32 if storage.network_bits == 32 else np.float16
         for name, p in head.network.state_dict().items():
@@ -519,7 +519,7 @@ def _look_expected(look, storage: StorageConfig, by_name: dict, where: str) -> d
     out: dict[str, tuple[tuple, str]] = {}
     if cfg is not None:
         out.update(_table_shapes("appearance.features", cfg.levels, 1 << cfg.log2_table, cfg.features,
-                                 storage.table_bits))
+                                 head_table_bits(storage.table_bits)))
         with torch.device("meta"):
             head = AppearanceHead(cfg, inference=True)
         fdt = "<f4" if storage.network_bits == 32 else "<f2"
@@ -677,7 +677,7 @@ def _load_look(model: NeuralBVH, look: tuple, table_bits: int, array, where: str
     if cfg is None:
         return
     head = AppearanceHead(cfg, inference=True)
-    _load_table(head.encoding, "appearance.features", table_bits, array,
+    _load_table(head.encoding, "appearance.features", head_table_bits(table_bits), array,
                 f"{where}: appearance feature scales must be > 0")
     state = {n: torch.from_numpy(array(f"appearance.network.{n}").astype(np.float32))
              for n in head.network.state_dict()}
