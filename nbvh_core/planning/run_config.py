@@ -91,14 +91,6 @@ def plan_run(settings: Settings, mesh: Mesh, resumed: bool = False) -> RunConfig
     return _parts(resolved, look, grid, (RunNote("plan", plan_note),))
 
 
-def run_config(settings: Settings) -> RunConfig:
-    """The parts of already resolved `settings` (fixed sizes; no mesh, no look): for tools and tests that train
-    one model as the settings say."""
-    return _parts(settings, LookConfig(AppearanceConfig(target=settings.appearance_target,
-                                                        log2_table=settings.appearance_log2_table),
-                                       settings.appearance_share, None), None, ())
-
-
 def _parts(s: Settings, look: LookConfig, grid: GridMeasures | None, notes: tuple) -> RunConfig:
     """The one place the flat request becomes the parts (the training's budget less the look's share)."""
     training = s.train_config()
