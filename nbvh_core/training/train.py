@@ -40,12 +40,9 @@ from .rays import RayConfig, TrainingSamples, label_samples, sample_rays
 
 
 #: Below 8 bits the table trains through its grid (straight through: each step's forward sees the rows on the grid,
-#: the gradient updates the float rows under them) for at least this fraction of the budget, on a grid whose range
-#: is clipped at this percentile per (level, feature). Measured after a 60 s bunny training (default preset, 16
-#: held-out views at 256 px): rounding to 4 bits over the full range read 4.9x the float model's MSE, clipped at 1%
-#: 2.2x, at 6 bits 1.24x; at 8 bits 1.03x (no clipping, the last 5% held on the grid suffice there).
+#: the gradient updates the float rows under them) for at least this fraction of the budget, on the clipped grid
+#: `quantize.table_affine` gives at those bits (at 8 bits the last 5% held on the grid suffice: 1.03x the float MSE).
 LOW_BITS_QAT_FRACTION = 0.25
-LOW_BITS_CLIP_PERCENT = 1.0
 
 
 @dataclass
@@ -392,12 +389,12 @@ class EncodingPhases:
 @torch.no_grad()
 def _snap_table(model: NeuralBVH, bits: int, hold: bool = True) -> bool:
     """Fix the feature table's `bits`-bit grid (see TrainConfig.table_bits) and record its affine map; hold: snap the
-    rows onto it now (8 bits: they stay there). Below 8 bits the grid's range is clipped (LOW_BITS_CLIP_PERCENT)."""
+    rows onto it now (8 bits: they stay there)."""
     from ..neural.quantize import dequantize_table, quantize_table, table_affine
 
     table = model.encoding.table
     arr = table.detach().cpu().numpy()
-    offset, scale = table_affine(arr, bits, 0.0 if bits >= 8 else LOW_BITS_CLIP_PERCENT)
+    offset, scale = table_affine(arr, bits)
     if hold:
         snapped = dequantize_table(quantize_table(arr, offset, scale, bits), offset, scale)
         table.copy_(torch.from_numpy(snapped).to(table.device))
