@@ -8,7 +8,7 @@ from nbvh_core.neural.appearance import AppearanceConfig, finalize_head, make_he
 from nbvh_core.training.appearance_training import SurfaceLabels, train_head
 from nbvh_core.geometry.exact import ExactTracer
 from nbvh_core.storage.fileformat import NBVHFileError, decode_nbvh
-from nbvh_core.geometry.look import (Look, Material, albedo, barycentrics, decode_png, encode_png, hit_labels, look_arrays,
+from nbvh_core.geometry.look import (Look, Material, albedo, barycentrics, decode_texture, encode_png, encode_texture, hit_labels, look_arrays,
                             look_from_arrays, sample_bilinear, uv_charts)
 from nbvh_core.geometry.mesh import MeshError, load_mesh, mesh_from_arrays
 from nbvh_core.app.pipeline import compress_mesh, preset
@@ -67,13 +67,58 @@ def test_charts_split_at_seams_only():
 def test_png_round_trip_and_refusals():
     img = demo_assets.pattern(32)
     data = encode_png(img)
-    assert np.array_equal(decode_png(data, (32, 32, 3), "t"), img)
+    assert np.array_equal(decode_texture(data, (32, 32, 3), "t"), img)
     with pytest.raises(ValueError, match="entry says"):
-        decode_png(data, (16, 32, 3), "t")
-    with pytest.raises(ValueError, match="not a PNG"):
-        decode_png(b"GIF89a" + data, (32, 32, 3), "t")
+        decode_texture(data, (16, 32, 3), "t")
+    with pytest.raises(ValueError, match="neither a PNG nor a JPEG"):
+        decode_texture(b"GIF89a" + data, (32, 32, 3), "t")
     with pytest.raises(ValueError, match="damaged"):
-        decode_png(data[:60], (32, 32, 3), "t")
+        decode_texture(data[:60], (32, 32, 3), "t")
+
+
+def _photograph(side: int = 256) -> np.ndarray:
+    """A smooth, noisy image like a scan's photographed atlas (PNG holds its noise losslessly, at a cost)."""
+    rng = np.random.default_rng(3)
+    y, x = np.mgrid[0:side, 0:side] / side
+    base = np.stack([0.5 + 0.3 * np.sin(6 * x + 2 * y), 0.45 + 0.25 * np.cos(5 * y), 0.4 + 0.2 * np.sin(4 * x * y)], -1)
+    return np.clip((base + rng.normal(0, 0.004, base.shape)) * 255, 0, 255).astype(np.uint8)
+
+
+def test_a_photograph_is_stored_as_jpeg_within_its_error_and_a_pattern_stays_png():
+    from nbvh_core.geometry.look import TEXTURE_JPEG_MAX_MSE, texture_format
+
+    photo = _photograph()
+    data = encode_texture(photo)
+    assert texture_format(data) == "jpeg" and len(data) <= len(encode_png(photo)) // 2
+    back = decode_texture(data, photo.shape, "t")
+    assert np.mean(((back.astype(float) - photo) / 255) ** 2) <= TEXTURE_JPEG_MAX_MSE
+    pattern = demo_assets.pattern(64)  # flat cells: PNG is small and exact
+    assert texture_format(encode_texture(pattern)) == "png"
+    rgba = np.dstack([photo, np.full(photo.shape[:2], 200, np.uint8)])  # JPEG has no alpha
+    assert texture_format(encode_texture(rgba)) == "png"
+    with pytest.raises(ValueError, match="3 channels"):
+        decode_texture(data, (256, 256, 4), "t")
+    with pytest.raises(ValueError, match="damaged"):
+        decode_texture(data[:200], photo.shape, "t")
+
+
+def test_an_image_read_from_a_jpeg_file_is_stored_as_its_own_bytes(tmp_path):
+    """The source's bytes, when they decode to exactly the pixels, are the texture (no second generation of JPEG
+    loss, no re-encoding larger than the asset's own file); bytes of another image are never used."""
+    from PIL import Image
+
+    from nbvh_core.storage.fileformat import look_stored_bytes
+
+    Image.fromarray(_photograph(64)).save(tmp_path / "tex.jpg", quality=70)
+    (tmp_path / "a.mtl").write_text("newmtl tex\nKd 1 1 1\nmap_Kd tex.jpg\n")
+    (tmp_path / "a.obj").write_text("mtllib a.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 0 1\n"
+                                    "usemtl tex\nf 1/1 2/2 3/3\n")
+    mat = load_mesh(tmp_path / "a.obj").look.materials[0]
+    source = (tmp_path / "tex.jpg").read_bytes()
+    assert mat.source == source and encode_texture(mat.image, mat.source) == source
+    assert look_stored_bytes(None, [mat], preset("default").storage())["textures"] == len(source)
+    other = _photograph(64)[::-1].copy()
+    assert encode_texture(other, source) != source
 
 
 def test_npz_members_round_trip(tmp_path):
@@ -103,6 +148,7 @@ def test_obj_with_two_materials_and_a_texture_loads_its_look(tmp_path):
     assert len(textured) == 1 and textured[0].image.shape[:2] == (16, 16)
     red = next(mat for mat in m.look.materials if mat.image is None)
     assert red.base_color[0] > 0.9 and red.base_color[1] < 0.1
+    assert textured[0].source == (tmp_path / "tex.png").read_bytes()
 
 
 def test_plain_meshes_load_as_bare_shapes(tmp_path):

@@ -32,11 +32,14 @@ class LookError(ValueError):
 
 @dataclass
 class Material:
-    """One slot's material. base_color: (4,) linear RGBA in [0, 1]; image: (H, W, 3|4) uint8 sRGB or None."""
+    """One slot's material. base_color: (4,) linear RGBA in [0, 1]; image: (H, W, 3|4) uint8 sRGB or None;
+    source: the PNG or JPEG bytes the image was read from, when known (a file stores them as they are when they are
+    the smallest exact form: `encode_texture`)."""
 
     name: str = "material"
     base_color: np.ndarray = field(default_factory=lambda: np.array([0.8, 0.8, 0.8, 1.0], np.float32))
     image: np.ndarray | None = None
+    source: bytes | None = field(default=None, repr=False, compare=False)
     _linear: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     def linear_image(self) -> np.ndarray | None:
@@ -410,18 +413,63 @@ def encode_png(image: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
-def decode_png(data: bytes, shape: tuple[int, int, int], where: str) -> np.ndarray:
-    """PNG bytes -> (H, W, C) uint8 of exactly `shape` (checked from the PNG's header before any pixel is
+#: A texture is stored as JPEG (quality TEXTURE_JPEG_QUALITY, no chroma subsampling) when that takes at most half
+#: its PNG's bytes and stays within TEXTURE_JPEG_MAX_MSE of its pixels (sRGB in [0, 1]; 1e-4 = 40 dB PSNR), else as
+#: PNG (lossless). Photographs (a scan's atlas) are 5-8x smaller as JPEG; flat and generated images stay PNG.
+TEXTURE_JPEG_QUALITY = 92
+TEXTURE_JPEG_MAX_MSE = 1e-4
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_JPEG_SIGNATURE = b"\xff\xd8\xff"
+
+
+def encode_texture(image: np.ndarray, source: bytes | None = None) -> bytes:
+    """(H, W, 3|4) uint8 -> the bytes a file stores for it: the source's own PNG or JPEG bytes when they decode to
+    exactly these pixels and are no larger than a re-encoding (the image stored once, as the asset holds it); else
+    JPEG when the rule above allows (3 channels only); else PNG. Deterministic: the same arguments give the same
+    bytes (a size estimate equals the file's)."""
+    from PIL import Image
+
+    png = encode_png(image)
+    if source is not None and texture_format(source) != "unknown":
+        try:
+            exact = np.array_equal(decode_texture(source, image.shape, "source"), image)
+        except LookError:
+            exact = False
+        if exact and len(source) <= len(png):
+            return source
+    if image.ndim != 3 or image.shape[2] != 3:
+        return png
+    buf = io.BytesIO()
+    Image.fromarray(np.ascontiguousarray(image)).save(buf, format="JPEG", quality=TEXTURE_JPEG_QUALITY,
+                                                      subsampling=0, optimize=True)
+    jpeg = buf.getvalue()
+    if len(jpeg) > len(png) // 2:
+        return png
+    back = decode_texture(jpeg, image.shape, "texture").astype(np.float32)
+    mse = float(np.mean(((back - image.astype(np.float32)) / 255.0) ** 2))
+    return jpeg if mse <= TEXTURE_JPEG_MAX_MSE else png
+
+
+def texture_format(data: bytes) -> str:
+    """'png', 'jpeg' or 'unknown', from a stored texture's first bytes."""
+    return "png" if data[:8] == _PNG_SIGNATURE else "jpeg" if data[:3] == _JPEG_SIGNATURE else "unknown"
+
+
+def decode_texture(data: bytes, shape: tuple[int, int, int], where: str) -> np.ndarray:
+    """PNG or JPEG bytes -> (H, W, C) uint8 of exactly `shape` (checked from the image's header before any pixel is
     decoded); anything else (another format, another size, a damaged stream) raises `LookError`."""
     from PIL import Image
 
-    if data[:8] != b"\x89PNG\r\n\x1a\n":
-        raise LookError(f"{where}: a texture is not a PNG image")
+    kind = texture_format(data)
+    if kind == "unknown":
+        raise LookError(f"{where}: a texture is neither a PNG nor a JPEG image")
     h, w, c = shape
     if not (1 <= h <= MAX_TEXTURE_SIDE and 1 <= w <= MAX_TEXTURE_SIDE and c in (3, 4)):
         raise LookError(f"{where}: texture shape {shape} out of range")
+    if kind == "jpeg" and c != 3:
+        raise LookError(f"{where}: a JPEG texture must have 3 channels, its entry says {c}")
     try:
-        with Image.open(io.BytesIO(data), formats=["PNG"]) as im:
+        with Image.open(io.BytesIO(data), formats=[kind.upper()]) as im:
             if im.size != (w, h):
                 raise LookError(f"{where}: texture is {im.size[0]}x{im.size[1]}, its entry says {w}x{h}")
             arr = np.asarray(im.convert("RGBA" if c == 4 else "RGB"))
@@ -429,6 +477,8 @@ def decode_png(data: bytes, shape: tuple[int, int, int], where: str) -> np.ndarr
         raise
     except Exception as exc:  # Pillow raises many types for a damaged stream
         raise LookError(f"{where}: damaged texture: {type(exc).__name__}: {str(exc)[:80]}") from None
+    if arr.shape != (h, w, c):
+        raise LookError(f"{where}: damaged texture: decoded {arr.shape}, its entry says {(h, w, c)}")
     return np.ascontiguousarray(arr, np.uint8)
 
 

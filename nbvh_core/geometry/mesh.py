@@ -287,7 +287,8 @@ def load_mesh(path: str | os.PathLike) -> Mesh:
 def _warn_unread_images(path: Path, data: bytes, look: Look) -> None:
     """An OBJ's material whose MTL names an image (map_Kd) that could not be read - missing, outside the mesh's
     folder, or not an image - loads with its base colour alone (the reader drops it silently): say so, one line per
-    material, as a MeshWarning. Nothing else is lost."""
+    material, as a MeshWarning. Nothing else is lost. An image that was read keeps its file's bytes as its source
+    (`Material.source`: the file stores them as they are when they are exact and smallest)."""
     resolver = _confined_resolver(path)
     named: dict[str, str] = {}
     for line in data.decode("utf-8", "replace").splitlines():
@@ -308,6 +309,11 @@ def _warn_unread_images(path: Path, data: bytes, look: Look) -> None:
             warnings.warn(f"{path.name}: material {m.name!r}: its image {named[m.name][:80]!r} could not be read "
                           "(missing, outside the mesh's folder, or not an image); the slot shows its base colour",
                           MeshWarning, stacklevel=3)
+        elif m.image is not None and m.name in named:
+            try:
+                m.source = resolver.get(named[m.name])
+            except ValueError:
+                pass  # the reader found it and this lookup did not: the image is re-encoded
 
 
 def _joined(parts: list) -> tuple[np.ndarray, np.ndarray, Look]:

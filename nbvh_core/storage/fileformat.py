@@ -52,7 +52,7 @@ from ..geometry.bvh import MAX_NODES, NODE_DTYPE
 from ..neural.encodings import ENCODINGS, EncodingConfig
 from ..neural.appearance import TARGETS, AppearanceConfig, AppearanceHead, head_table_bits, map_width
 from ..neural.encodings.base import code_width, level_vertex_counts
-from ..geometry.look import MAX_SLOTS, MAX_TEXTURE_SIDE, LookError, Material, decode_png, encode_png
+from ..geometry.look import MAX_SLOTS, MAX_TEXTURE_SIDE, LookError, Material, decode_texture, encode_texture
 from ..geometry.mesh import Transform
 from ..neural.model import ModelConfig, NeuralBVH
 from ..neural.networks import NETWORKS, NetworkConfig
@@ -67,7 +67,7 @@ VERSION_MINOR = 3  # 2.1: network_bits 8 (a 2.0 reader refuses such a file by it
 #                    refuses such a file by its tensors)
 REACHABLE_INDEX_SINCE = (2, 2)
 APPEARANCE_SINCE = (2, 3)
-#: A texture's decoded pixels may be at most this many times its PNG's bytes (a flat 4k image compresses ~1300x)
+#: A texture's decoded pixels may be at most this many times its stored bytes (a flat 4k image compresses ~1300x)
 #: or MIN_TEXTURE_ALLOWANCE, whichever is larger: a crafted tiny PNG cannot ask for gigabytes.
 TEXTURE_INFLATION = 4096
 MIN_TEXTURE_ALLOWANCE = 16 << 20
@@ -161,7 +161,8 @@ def _tensors(model: NeuralBVH, storage: StorageConfig) -> list[tuple[str, str, b
 
 
 def _look_tensors(model: NeuralBVH, storage: StorageConfig) -> list[tuple[str, str, bytes, list[int]]]:
-    """The appearance head's table and network, then every slot image as PNG bytes (file format 2.3)."""
+    """The appearance head's table and network, then every slot image as PNG or JPEG bytes (`encode_texture`; file
+    format 2.3: a reader that knows PNG only refuses a JPEG texture in one line)."""
     out = []
     head = model.appearance
     if head is not None:
@@ -177,8 +178,8 @@ def _look_tensors(model: NeuralBVH, storage: StorageConfig) -> list[tuple[str, s
                 ("appearance.patch_slot", "appearance", patch_slot.tobytes(), list(patch_slot.shape))]
     for i, m in enumerate(model.materials):
         if m.image is not None:
-            png = encode_png(m.image)
-            out.append((f"texture.{i}", "textures", png, [len(png)]))
+            data = encode_texture(m.image, m.source)
+            out.append((f"texture.{i}", "textures", data, [len(data)]))
     return out
 
 
@@ -511,8 +512,8 @@ def _look_spec(header: dict, where: str) -> tuple[AppearanceConfig | None, list[
 
 
 def _look_expected(look, storage: StorageConfig, by_name: dict, where: str) -> dict[str, tuple[tuple, str]]:
-    """name -> (shape, dtype) of the appearance head's tensors and the textures (each PNG as long as its entry
-    says, its decoded size bounded by TEXTURE_INFLATION x its bytes)."""
+    """name -> (shape, dtype) of the appearance head's tensors and the textures (each image's bytes as long as its
+    entry says, its decoded size bounded by TEXTURE_INFLATION x its bytes)."""
     if look is None:
         return {}
     cfg, mats = look
@@ -532,7 +533,7 @@ def _look_expected(look, storage: StorageConfig, by_name: dict, where: str) -> d
         nbytes = entry["nbytes"] if entry is not None else 0
         h, w, c = m["image"]
         if h * w * c > max(MIN_TEXTURE_ALLOWANCE, TEXTURE_INFLATION * nbytes):
-            raise NBVHFileError(f"{where}: texture {i} declares {w}x{h}x{c} pixels from {nbytes} bytes of PNG")
+            raise NBVHFileError(f"{where}: texture {i} declares {w}x{h}x{c} pixels from {nbytes} bytes of image")
         out[f"texture.{i}"] = ((nbytes,), "u1")
     return out
 
@@ -662,14 +663,14 @@ def _load_table(enc, name: str, bits: int, array, bad_scale: str) -> None:
 
 
 def _load_look(model: NeuralBVH, look: tuple, table_bits: int, array, where: str) -> None:
-    """The materials (textures decoded from their PNGs) and the appearance head, held as stored."""
+    """The materials (textures decoded from their PNG or JPEG bytes) and the appearance head, held as stored."""
     cfg, mats = look
     materials = []
     for i, m in enumerate(mats):
         image = None
         if m["image"] is not None:
             try:
-                image = decode_png(array(f"texture.{i}").tobytes(), tuple(m["image"]), where)
+                image = decode_texture(array(f"texture.{i}").tobytes(), tuple(m["image"]), where)
             except LookError as exc:
                 raise NBVHFileError(str(exc)) from None
         materials.append(Material(m["name"], np.asarray(m["base_color"], np.float32), image))
@@ -767,11 +768,12 @@ def read_info(path: str | os.PathLike) -> FileInfo:
 
 def look_stored_bytes(cfg: AppearanceConfig | None, materials: list[Material], storage: StorageConfig) -> dict[str, int]:
     """What a file stores for an asset's look, exactly: {'appearance': the head's tensors (cfg None: no head),
-    'textures': each slot image's PNG}, so a model is weighed as it ships before it is trained."""
-    pngs = {f"texture.{i}": {"nbytes": len(encode_png(m.image))} for i, m in enumerate(materials)
-            if m.image is not None}
+    'textures': each slot image as `encode_texture` stores it}, so a model is weighed as it ships before it is
+    trained."""
+    stored = {f"texture.{i}": {"nbytes": len(encode_texture(m.image, m.source))} for i, m in enumerate(materials)
+              if m.image is not None}
     look = (cfg, [m.to_dict() for m in materials])
-    shapes = _look_expected(look, storage, pngs, "look")
+    shapes = _look_expected(look, storage, stored, "look")
     out = {"appearance": 0, "textures": 0}
     for name, (shape, kind) in shapes.items():
         out["textures" if name.startswith("texture.") else "appearance"] += _nbytes(shape, kind)
