@@ -75,11 +75,13 @@ def look_arrays(obj, mesh) -> dict:
         out["corner_uvs"] = uv.reshape(-1, 2)[loops].reshape(n_t, 3, 2)
     colors, names = [], []
     for i, slot in enumerate(slots):
-        color, image = material_look(slot.material)
+        color, image, source = material_look(slot.material)
         colors.append(color)
         names.append(slot.material.name if slot.material is not None else f"slot{i}")
         if image is not None:
             out[f"image_{i}"] = image
+            if source is not None:
+                out[f"image_source_{i}"] = np.frombuffer(source, np.uint8)
     out["base_colors"] = np.asarray(colors, np.float32)
     out["material_names"] = np.array(names, dtype=str)
     return out
@@ -89,24 +91,55 @@ def look_arrays(obj, mesh) -> dict:
 MAX_EXPORT_SIDE = 8192
 
 
-def material_look(mat) -> tuple[list[float], np.ndarray | None]:
-    """(linear RGBA base colour, image (H, W, 4) uint8 sRGB or None) of a material: the Principled or Diffuse BSDF
-    feeding the output, its Base Color's value or the Image Texture linked to it; the viewport colour otherwise."""
+def material_look(mat) -> tuple[list[float], np.ndarray | None, bytes | None]:
+    """(linear RGBA base colour, image (H, W, 3|4) uint8 sRGB or None, the image's PNG/JPEG file bytes or None) of
+    a material: the Principled or Diffuse BSDF feeding the output, its Base Color's value or the Image Texture
+    linked to it; the viewport colour otherwise."""
     if mat is None:
-        return [0.8, 0.8, 0.8, 1.0], None
+        return [0.8, 0.8, 0.8, 1.0], None, None
     color = list(mat.diffuse_color)
     if not mat.use_nodes or mat.node_tree is None:
-        return color, None
+        return color, None, None
     bsdf = next((n for n in mat.node_tree.nodes if n.type in ("BSDF_PRINCIPLED", "BSDF_DIFFUSE")), None)
     if bsdf is None:
-        return color, None
+        return color, None, None
     socket = bsdf.inputs.get("Base Color") or bsdf.inputs.get("Color")
     if socket is None:
-        return color, None
+        return color, None, None
     if socket.is_linked and socket.links[0].from_node.type == "TEX_IMAGE":
         img = socket.links[0].from_node.image
-        return list(socket.default_value), image_pixels(img)
-    return list(socket.default_value), None
+        pixels = image_pixels(img)
+        return list(socket.default_value), pixels, image_file_bytes(img) if pixels is not None else None
+    return list(socket.default_value), None, None
+
+
+#: Largest image file carried as a texture's source (the core stores it as is only when it decodes to exactly the
+#: exported pixels: `nbvh_core.geometry.look.encode_texture`).
+MAX_SOURCE_BYTES = 64 << 20
+
+
+def image_file_bytes(img) -> bytes | None:
+    """The PNG or JPEG bytes a Blender image was loaded from (packed into the .blend, or its file on disk), or
+    None (generated, another format, unreadable, too large). Read only: the user's file is never written."""
+    if img is None or getattr(img, "source", "FILE") != "FILE" or img.file_format not in ("PNG", "JPEG"):
+        return None
+    try:
+        packed = getattr(img, "packed_file", None)
+        if packed is not None:
+            data = bytes(packed.data)
+        else:
+            import os
+
+            import bpy
+
+            path = bpy.path.abspath(img.filepath, library=img.library)
+            if not os.path.isfile(path) or os.path.getsize(path) > MAX_SOURCE_BYTES:
+                return None
+            with open(path, "rb") as f:
+                data = f.read()
+    except (OSError, ValueError, TypeError):
+        return None
+    return data if len(data) <= MAX_SOURCE_BYTES else None
 
 
 def linear_to_srgb(rgb: np.ndarray) -> np.ndarray:
@@ -116,8 +149,9 @@ def linear_to_srgb(rgb: np.ndarray) -> np.ndarray:
 
 
 def image_pixels(img) -> np.ndarray | None:
-    """(H, W, 4) uint8 of a Blender image, row 0 at the top, sRGB-encoded (float images are encoded here); None
-    when it has no pixels or is over MAX_EXPORT_SIDE."""
+    """(H, W, 4) uint8 of a Blender image, row 0 at the top, sRGB-encoded (float images are encoded here), or
+    (H, W, 3) when every pixel is opaque (an alpha of 255 everywhere carries nothing, and a 3-channel photograph
+    may be stored as JPEG); None when it has no pixels or is over MAX_EXPORT_SIDE."""
     if img is None:
         return None
     w, h = int(img.size[0]), int(img.size[1])
@@ -128,7 +162,10 @@ def image_pixels(img) -> np.ndarray | None:
     px = px.reshape(h, w, 4)[::-1]
     if img.is_float:
         px[..., :3] = linear_to_srgb(px[..., :3])
-    return np.ascontiguousarray(np.clip(px * 255 + 0.5, 0, 255).astype(np.uint8))
+    out = np.clip(px * 255 + 0.5, 0, 255).astype(np.uint8)
+    if (out[..., 3] == 255).all():
+        out = out[..., :3]
+    return np.ascontiguousarray(out)
 
 
 def asset_textures(obj) -> tuple[dict, int]:

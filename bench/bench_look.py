@@ -6,7 +6,8 @@ the Smart-UV Suzanne `bench/look_suzanne.py` exports) compress with a preset at 
 
 * slot accuracy and coordinate error of the head at the exact hit points (what the head learnt) and at the
   model's own hit points (what a render shows: the geometry's error included), on pixels both hit; coordinates
-  are scored in texels of a 512 px texture, away from UV seams (> 1% of the asset's size from one);
+  are scored in texels of a 512 px texture, away from UV seams (> 1% of the asset's size from one), on slots
+  that sample an image (a plain slot's hits use no coordinates);
 * FLIP (NVIDIA, `flip-evaluator`) and MSE of the model's colour render against the mesh's colour render with the
   same materials and light (the paper's head-on shading x albedo);
 * bytes: the whole file, its appearance head, its textures; seconds: geometry training and the head's.
@@ -48,7 +49,8 @@ def score_views(mesh, model, tracer, views: int, size: int) -> dict:
 
     seams = seam_edges(mesh.vertices, mesh.faces, mesh.look.corner_uvs) if mesh.look.corner_uvs is not None \
         else np.zeros((0, 2, 3), np.float32)
-    acc = {k: [] for k in ("slot_exact", "slot_model", "uv_exact", "uv_model", "away", "flip", "mse")}
+    acc = {k: [] for k in ("slot_exact", "slot_model", "uv_exact", "uv_model", "away", "sampled", "flip", "mse")}
+    sampled = np.array([m.image is not None for m in mesh.look.materials], bool)
     for cam in orbit_cameras(views):
         o, d = cam.rays(size, size)
         fh = tracer.first_hit(o, d)
@@ -64,7 +66,9 @@ def score_views(mesh, model, tracer, views: int, size: int) -> dict:
             acc[f"slot_{tag}"].append(ps == slot)
             if uv is not None:
                 acc[f"uv_{tag}"].append(np.abs(puv - uv).max(1) * TEXELS)
+        # coordinates are scored where they are used: away from seams, on slots that sample an image
         acc["away"].append(seam_distance(p_exact, seams) > 0.01)
+        acc["sampled"].append(sampled[slot])
         ref = render_reference(tracer, cam, size, size).colour
         neu = render_neural(model, cam, size, size).colour
         acc["flip"].append(float(flip_evaluator.evaluate(ref, neu, "LDR", applyMagma=False)[1]))
@@ -76,7 +80,7 @@ def score_views(mesh, model, tracer, views: int, size: int) -> dict:
                    slot_model=np.concatenate(acc["slot_model"]).mean())
     for tag in ("exact", "model"):
         if acc[f"uv_{tag}"]:
-            e = np.concatenate(acc[f"uv_{tag}"])[away]
+            e = np.concatenate(acc[f"uv_{tag}"])[away & np.concatenate(acc["sampled"])]
             out[f"uv_half_texel_{tag}"] = (e < 0.5).mean()
             out[f"uv_median_texels_{tag}"] = float(np.median(e))
     return {k: round(float(v), 4) for k, v in out.items()}

@@ -15,6 +15,7 @@ import json
 import math
 import os
 import sys
+import tempfile
 import time
 import traceback
 from pathlib import Path
@@ -377,8 +378,23 @@ def test_export_carries_slots_coordinates_and_the_base_colour_image():
     assert np.allclose(sorted(map(tuple, look["corner_uvs"].reshape(-1, 2).tolist())), sorted(map(tuple, uv.tolist())))
     assert np.allclose(look["base_colors"][1], [0.1, 0.2, 0.9, 1.0], atol=1e-6)
     img = look["image_0"]
-    assert img.shape == (2, 4, 4) and img[0, :, 0].min() == 255 and img[1, :, 0].max() == 0  # top row first
+    # opaque everywhere: three channels (the alpha carried nothing); rows top first
+    assert img.shape == (2, 4, 3) and img[0, :, 0].min() == 255 and img[1, :, 0].max() == 0
+    assert "image_source_0" not in look  # a generated image has no file
     assert "image_1" not in look and list(look["material_names"]) == ["nbvh-look-tex", "nbvh-look-plain"]
+    # an image loaded from a PNG file carries the file's bytes as its source (stored as is when exact); a
+    # translucent one keeps its alpha
+    px[0, 0, 3] = 0.5
+    image.pixels.foreach_set(px.ravel())
+    path = os.path.join(tempfile.mkdtemp(prefix="nbvh-look-"), "albedo.png")
+    image.filepath_raw = path
+    image.file_format = "PNG"
+    image.save()
+    tex.image = bpy.data.images.load(path)
+    _, _, _, look = export.evaluated_triangles(obj, bpy.context.evaluated_depsgraph_get())
+    assert look["image_0"].shape == (2, 4, 4) and look["image_0"][1, 0, 3] == 128
+    with open(path, "rb") as f:
+        assert look["image_source_0"].tobytes() == f.read()
     look_module = importlib.import_module(ADDON["module"].__name__ + ".nbvh_core.geometry.look")  # torch-free
     back = look_module.look_from_arrays(look, "Looked")
     assert back.n_slots == 2 and back.textured

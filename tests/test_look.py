@@ -123,6 +123,7 @@ def test_an_image_read_from_a_jpeg_file_is_stored_as_its_own_bytes(tmp_path):
 
 def test_npz_members_round_trip(tmp_path):
     m = demo_assets.globe(16, 8, texture=16)
+    m.look.materials[0].source = encode_png(m.look.materials[0].image)  # the file an image was read from
     arrays = look_arrays(m.look)
     np.savez(tmp_path / "a.npz", vertices=m.vertices, faces=m.faces, **arrays)
     from nbvh_core.geometry.mesh_arrays import mesh_from_npz
@@ -130,6 +131,7 @@ def test_npz_members_round_trip(tmp_path):
     back = mesh_from_npz(tmp_path / "a.npz", "a")
     assert back.look.n_slots == 2 and np.array_equal(back.look.face_slots, m.look.face_slots)
     assert np.array_equal(back.look.materials[0].image, m.look.materials[0].image)
+    assert back.look.materials[0].source == m.look.materials[0].source and back.look.materials[1].source is None
     assert look_from_arrays({"vertices": 0}, "x") is None
 
 

@@ -368,7 +368,8 @@ def seam_distance(points: np.ndarray, seams: np.ndarray, spacing: float = 1e-3) 
 # ------------------------------------------------------------------------------------------------ arrays
 #: The members of a mesh .npz (the add-on's export, library assets) that carry a look, beside vertices and faces:
 #: face_slots (F,) int, corner_uvs (F, 3, 2) float, base_colors (S, 4) float linear, material_names (S,) str,
-#: image_I (H, W, 3|4) uint8 sRGB (row 0 at the top) for every slot I with an image.
+#: image_I (H, W, 3|4) uint8 sRGB (row 0 at the top) for every slot I with an image, and image_source_I (B,) uint8:
+#: the PNG or JPEG file that image was read from, when known (`Material.source`).
 LOOK_MEMBERS = ("face_slots", "corner_uvs", "base_colors", "material_names")
 
 
@@ -382,6 +383,8 @@ def look_arrays(look: Look) -> dict[str, np.ndarray]:
     for i, m in enumerate(look.materials):
         if m.image is not None:
             out[f"image_{i}"] = m.image
+            if m.source is not None:
+                out[f"image_source_{i}"] = np.frombuffer(m.source, np.uint8)
     return out
 
 
@@ -396,7 +399,10 @@ def look_from_arrays(arrays: dict, where: str) -> Look | None:
     names = arrays.get("material_names")
     names = [str(n)[:256] for n in names] if names is not None and len(names) == len(colors) else \
         [f"slot{i}" for i in range(len(colors))]
-    materials = [Material(names[i], colors[i], arrays.get(f"image_{i}")) for i in range(len(colors))]
+    sources = {i: arrays.get(f"image_source_{i}") for i in range(len(colors))}
+    materials = [Material(names[i], colors[i], arrays.get(f"image_{i}"),
+                          None if sources[i] is None else np.asarray(sources[i], np.uint8).reshape(-1).tobytes())
+                 for i in range(len(colors))]
     slots = arrays.get("face_slots")
     if slots is None:
         raise LookError(f"{where}: base_colors without face_slots")

@@ -9,7 +9,7 @@ import numpy as np
 
 
 def read_mesh_arrays(path: str | os.PathLike) -> dict[str, np.ndarray]:
-    """`vertices`, `faces` and the look's members (`look.LOOK_MEMBERS`, `image_I`) of a mesh .npz as data: each
+    """`vertices`, `faces` and the look's members (`look.LOOK_MEMBERS`, `image_I`, `image_source_I`) of a mesh .npz as data: each
     member's .npy header is read first and refused unless it is a numeric (names: unicode) array whose declared
     size fits the member's own bytes (no pickles, nothing allocated beyond the file); other members are ignored.
     Raises MeshError (one line)."""
@@ -23,7 +23,8 @@ def read_mesh_arrays(path: str | os.PathLike) -> dict[str, np.ndarray]:
         with zipfile.ZipFile(path) as z:
             present = {n[:-4] for n in z.namelist() if n.endswith(".npy")}
             optional = [k for k in sorted(present) if k in LOOK_MEMBERS or
-                        (k.startswith("image_") and k[6:].isdigit() and len(k) <= 10)]
+                        (k.startswith("image_") and k[6:].isdigit() and len(k) <= 10) or
+                        (k.startswith("image_source_") and k[13:].isdigit() and len(k) <= 17)]
             for key in ("vertices", "faces", *optional):
                 info = z.getinfo(f"{key}.npy")
                 with z.open(info) as f:
