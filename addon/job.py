@@ -31,11 +31,13 @@ CORE_PARENT = _HERE if (_HERE / "nbvh_core").is_dir() else _HERE.parent
 
 
 try:  # the installed add-on carries nbvh_core inside it; in the repository it sits beside addon/
+    from .nbvh_core.protocol import events as wire  # noqa: F401  (render_client.py builds its requests with it)
     from .nbvh_core.protocol.events import parse_line as parse_event  # no torch: these modules are plain Python
     from .nbvh_core.protocol.outputs import checkpoint_for, lock_for  # noqa: F401  (checkpoint_for: for compress_session.py)
     from .nbvh_core.protocol.quality_levels import (DEFAULT_LEVEL, QUALITY_LEVELS,  # noqa: F401  (compress_session.py, the panel)
                                                     TARGET_TRAININGS, most_trainings)
 except ImportError:
+    from nbvh_core.protocol import events as wire  # noqa: F401
     from nbvh_core.protocol.events import parse_line as parse_event
     from nbvh_core.protocol.outputs import checkpoint_for, lock_for  # noqa: F401
     from nbvh_core.protocol.quality_levels import (DEFAULT_LEVEL, QUALITY_LEVELS,  # noqa: F401

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from .installer import stop_process
-from .job import core_env, parse_event
+from .job import core_env, parse_event, wire
 
 FINAL = "final"
 
@@ -93,7 +93,7 @@ class RenderWorker:
             event = parse_event(line)
             if event is not None:
                 self._events.put(event)
-        self._events.put({"event": "exit"})
+        self._events.put(wire.process_exit())
 
     def _read_stderr(self) -> None:
         for line in self._proc.stderr:
@@ -121,7 +121,7 @@ class RenderWorker:
         """Ask the worker to quit, terminate it if it does not, remove its frames."""
         try:
             if self.alive:
-                self._proc.stdin.write('{"op":"quit"}\n')
+                self._proc.stdin.write(json.dumps(wire.quit_request()) + "\n")
                 self._proc.stdin.flush()
                 self._proc.wait(timeout=3)
         except (OSError, ValueError, subprocess.TimeoutExpired):
@@ -133,7 +133,7 @@ class RenderWorker:
     def set_scene(self, scene: dict) -> int:
         """Send a scene (`nbvh_core.rendering.scene_render` JSON form); returns its id (`scene_done` reaches it)."""
         self.scene_id += 1
-        self.send({"op": "scene", "id": self.scene_id, "scene": scene})
+        self.send(wire.scene_request(id=self.scene_id, scene=scene))
         return self.scene_id
 
     def request(self, channel: str, camera, width: int, height: int, levels=(1,), samples: int = 1,
@@ -143,10 +143,10 @@ class RenderWorker:
         self._next_id += 1
         ch = self.channels.setdefault(channel, Channel())
         ch.requested, ch.pending, ch.progress, ch.error = self._next_id, True, 0.0, None
-        self.send({"op": "render", "channel": channel, "id": self._next_id,
-                   "camera": np.asarray(camera, np.float64).reshape(4, 4).tolist(), "width": int(width),
-                   "height": int(height), "levels": [int(x) for x in levels], "samples": int(samples),
-                   "bands": int(bands)})
+        self.send(wire.render_request(channel=channel, id=self._next_id,
+                                      camera=np.asarray(camera, np.float64).reshape(4, 4).tolist(), width=int(width),
+                                      height=int(height), levels=[int(x) for x in levels], samples=int(samples),
+                                      bands=int(bands)))
         return self._next_id
 
     def cancel(self, channel: str) -> None:
@@ -154,7 +154,7 @@ class RenderWorker:
         if ch is not None:
             ch.pending = False
         if self.alive:
-            self.send({"op": "cancel", "channel": channel})
+            self.send(wire.cancel_request(channel=channel))
 
     # -- events -------------------------------------------------------------------------------------------
     def poll(self) -> bool:

@@ -223,6 +223,40 @@ def test_every_message_that_crosses_a_process_is_declared_in_the_protocol():
         event("teleported")
 
 
+def test_every_message_is_built_by_its_one_constructor():
+    """Each declared event and request has exactly one constructor in the protocol, which builds its kind; no code
+    outside the protocol writes a message as a dict literal (a planted one is caught)."""
+    import ast
+
+    from nbvh_core.protocol import events as wire
+
+    assert set(wire.CONSTRUCTORS) == set(wire.EVENTS) and set(wire.REQUEST_CONSTRUCTORS) == set(wire.WORKER_REQUESTS)
+    assert len(set(wire.CONSTRUCTORS.values())) == len(wire.CONSTRUCTORS)
+    samples = {"phase": dict(phase="p", message="m"), "progress": dict(fraction=0.5), "warning": dict(message="m"),
+               "verdict": dict(message="m", assessment=None), "written": dict(files=[]), "asset": dict(phase="train"),
+               "result": {}, "error": dict(message="m"), "ready": dict(pid=1),
+               "scene": dict(id=1, objects=0, warnings=[], seconds=0.0),
+               "frame": dict(channel="c", id=1, level=1, width=2, height=2, path="p", seconds=0.0, last=True),
+               "superseded": dict(channel="c", id=1), "exit": {}}
+    for kind, make in wire.CONSTRUCTORS.items():
+        assert make(**samples[kind])["event"] == kind
+    requests = {"scene": dict(id=1, scene={}), "render": dict(channel="c", id=1, camera=[], width=2, height=2),
+                "cancel": dict(channel="c"), "quit": {}}
+    for op, make in wire.REQUEST_CONSTRUCTORS.items():
+        assert make(**requests[op])["op"] == op
+
+    def literals(name: str, text: str) -> list[str]:
+        return [f"{name}:{node.lineno}" for node in ast.walk(ast.parse(text))
+                if isinstance(node, ast.Dict) and node.keys and isinstance(node.keys[0], ast.Constant)
+                and node.keys[0].value in ("event", "op")]
+
+    protocol = ROOT / "nbvh_core" / "protocol"
+    found = [hit for d in ("nbvh_core", "addon") for p in (ROOT / d).rglob("*.py") if protocol not in p.parents
+             for hit in literals(str(p.relative_to(ROOT)), p.read_text())]
+    assert not found, found
+    assert literals("planted.py", 'sink({"event": "phase", "phase": "x"})') == ["planted.py:1"]
+
+
 def test_every_relative_import_in_the_addon_names_a_module_that_exists():
     """Imports inside functions run only when Blender calls them (a render, a timer): a stale name there passes
     every import-time check. nbvh_core is copied into the add-on's zip by build_addon.py."""

@@ -25,6 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..protocol import events as wire
+
 
 def _resolve_mesh(arg: str) -> Path:
     from ..geometry.bundled_samples import SAMPLE_NAMES, sample_path
@@ -135,7 +137,7 @@ def cmd_compress(args: argparse.Namespace) -> int:
             return _compress_locked(args, mesh, mesh_path, paths, sink)
     except BaseException as exc:  # the event stream says how the run ended, whatever ended it
         if args.events:
-            sink({"event": "error", "kind": outcome(exc).kind, "message": str(exc)})
+            sink(wire.error(kind=outcome(exc).kind, message=str(exc)))
         raise
 
 
@@ -165,8 +167,8 @@ def _write_alternative(mesh, assessment, stem: Path, mesh_path: Path, args, sink
             continue
         write_atomic(path, data)
         if args.events:
-            sink({"event": "written", "files": [str(path)], "kind": "decimation" if dec is not None else "mesh",
-                  "triangles": (dec or mesh).n_triangles})
+            sink(wire.written(files=[str(path)], kind="decimation" if dec is not None else "mesh",
+                              triangles=(dec or mesh).n_triangles))
         reached = ("reaches the model's measured quality" if assessment.final else "meets the target")
         what = (f"the decimation that {reached} ({dec.n_triangles:,} triangles, MSE "
                 f"{assessment.alternatives['decimation']['compact_mse']:.4g})" if dec is not None else "the mesh")
@@ -224,7 +226,7 @@ def _compress_locked(args, mesh, mesh_path, paths, sink) -> int:
     if checkpoint == default_ck or args.resume == str(checkpoint):
         checkpoint.unlink(missing_ok=True)
     if args.events:
-        sink({"event": "written", "files": [str(p) for p in paths.values()]})
+        sink(wire.written(files=[str(p) for p in paths.values()]))
     else:
         _print_result(result, summary, out, paths)
     return 0

@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from ..protocol.events import json_lines
+from ..protocol import events as wire
 
 
 #: The request's fields and their JSON types (the request file is data: anything else is refused in one line).
@@ -74,8 +75,8 @@ def run_batch_job(request: dict, events, should_cancel) -> dict:
 
     summary = run_batch(request["library"], request["out_dir"], dict(request.get("settings") or {}), events,
                         should_cancel, address=request.get("address"), measure_only=bool(request.get("measure_only")))
-    event = {"event": "result", "name": request["name"], "path": summary["html"], "report": summary["html"],
-             "json": summary["json"], "totals": summary["totals"]}
+    event = wire.result(name=request["name"], path=summary["html"], report=summary["html"], json=summary["json"],
+                        totals=summary["totals"])
     events(event)
     return event
 
@@ -95,7 +96,7 @@ def run_job(request: dict, events, should_cancel) -> dict:
     out_dir.mkdir(parents=True, exist_ok=True)
     mesh = mesh_from_npz(request["mesh"], name)  # data only: pickled or oversized arrays are refused
     for msg in mesh.repairs:
-        events({"event": "warning", "message": msg})
+        events(wire.warning(message=msg))
     settings = settings_from_request(request.get("settings") or {})
     scene_split = None
     if request.get("scene"):
@@ -127,7 +128,7 @@ def _run_locked(request, events, should_cancel, mesh, settings, scene_split, fil
         # Load an existing model instead of training (a damaged file fails here with NBVHFileError).
         from ..storage.fileformat import load_nbvh, read_info
 
-        events({"event": "phase", "phase": "load", "message": request["model"]})
+        events(wire.phase(phase="load", message=request["model"]))
         model = load_nbvh(request["model"])
         info = read_info(request["model"])
         result = LoadedResult(model, info, str(request["model"]))
@@ -143,7 +144,7 @@ def _run_locked(request, events, should_cancel, mesh, settings, scene_split, fil
         view = View(Camera(position=pos, target=tgt, up=np.asarray(cam_spec.get("up", [0, 0, 1]), float),
                            fov_deg=float(cam_spec.get("fov_deg", 40.0))),
                     int(cam_spec.get("width", 256)), int(cam_spec.get("height", 256)))
-    events({"event": "phase", "phase": "preview", "message": f"{view.width}x{view.height} image, proxy points"})
+    events(wire.phase(phase="preview", message=f"{view.width}x{view.height} image, proxy points"))
     extra = {"name": name, "files": files, **({"scene_split": scene_split} if scene_split is not None else {})}
     roles = tuple(r for r in ROLES if not (r == "model" and request.get("model")))
     bundle = make_bundle(result, mesh, view, roles, proxy_points=int(request.get("proxy_points", 20000)),
@@ -152,9 +153,9 @@ def _run_locked(request, events, should_cancel, mesh, settings, scene_split, fil
     if not request.get("model"):
         checkpoint_for(model_path).unlink(missing_ok=True)
     report = bundle.report
-    event = {"event": "result", "name": name, "path": str(model_path), "bytes": result.file_bytes,
-             "files": files, "quality": report["quality"], "train_seconds": round(float(result.training.seconds), 2),
-             "device": result.training.device}
+    event = wire.result(name=name, path=str(model_path), bytes=result.file_bytes, files=files,
+                        quality=report["quality"], train_seconds=round(float(result.training.seconds), 2),
+                        device=result.training.device)
     events(event)
     return event
 
@@ -181,13 +182,14 @@ def _scene_share(scene: dict, settings, events):
              "objects": plan["objects"]}
     base = plan["base"]
     if i in plan["excluded"]:
-        events({"event": "phase", "phase": "plan", "message": "scene budget: this object gets nothing (its mesh is "
-                                                               "smaller than any model)"})
+        events(wire.phase(phase="plan", message="scene budget: this object gets nothing (its mesh is smaller than "
+                                                "any model)"))
         return dataclasses.replace(base, log2_table=5), split
-    events({"event": "phase", "phase": "plan",
-            "message": f"scene budget {scene['budget_kb']:g} KB shared by need over {len(meshes) - len(plan['excluded'])}"
-                       f" objects: this one gets T=2^{plan['log2'][i]} (~{plan['bytes'][i] / 1024:.0f} KB, predicted "
-                       f"MSE {plan['predicted_mse'][i]:.4g})"})
+    shared = len(meshes) - len(plan["excluded"])
+    kb = plan["bytes"][i] / 1024
+    events(wire.phase(phase="plan", message=f"scene budget {scene['budget_kb']:g} KB shared by need over {shared} "
+                                            f"objects: this one gets T=2^{plan['log2'][i]} (~{kb:.0f} KB, predicted "
+                                            f"MSE {plan['predicted_mse'][i]:.4g})"))
     return dataclasses.replace(base, log2_table=plan["log2"][i]), split
 
 
@@ -206,8 +208,8 @@ def main(argv: list[str]) -> int:
         return 0
     except (Exception, KeyboardInterrupt) as exc:
         end = outcome(exc)
-        event = {"event": "error", "kind": end.kind,
-                 "message": f"{type(exc).__name__}: {exc}" if end.kind == "input" else end.message}
+        event = wire.error(kind=end.kind,
+                           message=f"{type(exc).__name__}: {exc}" if end.kind == "input" else end.message)
         if end.kind == "crash":
             event["traceback"] = traceback.format_exc()
         events(event)

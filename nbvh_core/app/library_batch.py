@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Callable
 
 from ..protocol.events import EventSink, null_sink
+from ..protocol import events as wire
 from ..geometry.mesh import SUPPORTED_EXTENSIONS
 from ..geometry.mesh_arrays import mesh_from_npz
 from ..planning.settings import settings_from_request
@@ -380,9 +381,8 @@ def _run_tasks(remote, jobs: list[tuple[str, tuple, dict]], phase: str, on_resul
             on_result(name, result)
         elapsed = time.perf_counter() - t0
         eta = elapsed / done * (total - done) if done else None
-        events({"event": "progress", "phase": phase, "done": done, "total": total,
-                "fraction": round(done / total, 4) if total else 1.0, "elapsed_s": round(elapsed, 1),
-                "eta_s": None if eta is None else round(eta, 1)})
+        events(wire.progress(phase=phase, done=done, total=total, fraction=round(done / total, 4) if total else 1.0,
+                             elapsed_s=round(elapsed, 1), eta_s=None if eta is None else round(eta, 1)))
 
 
 class _Library:
@@ -421,7 +421,7 @@ class _Library:
             path.parent.mkdir(parents=True, exist_ok=True)
             write_atomic(path, r["decimation_ply"])
             row.files["decimation"] = str(path.relative_to(self.out))
-        self.events({"event": "asset", "phase": "measure", **_event_fields(row)})
+        self.events(wire.asset(phase="measure", **_event_fields(row)))
 
     def trained(self, name: str, r: dict) -> None:
         from .result_bundle import Bundle, bundle_paths, write_bundle
@@ -444,13 +444,13 @@ class _Library:
             write_bundle(bundle_paths(folder / model, ("model", "report", "preview")),
                          Bundle(r["bundle_files"], r.get("summary") or {}),
                          also={folder / "result.json": json.dumps(record, indent=2, default=str).encode()})
-        self.events({"event": "asset", "phase": "train", **_event_fields(row)})
+        self.events(wire.asset(phase="train", **_event_fields(row)))
         for other in self.copies.get(name, []):
             if row.status == "done":
                 self.from_cache(other, {**row.to_dict(), "files": {"model": Path(row.files["model"]).name}})
             else:
                 self.rows[other].status, self.rows[other].error = row.status, row.error
-            self.events({"event": "asset", "phase": "train", **_event_fields(self.rows[other])})
+            self.events(wire.asset(phase="train", **_event_fields(self.rows[other])))
         self.write_report()
 
     def from_cache(self, name: str, record: dict) -> None:
@@ -499,8 +499,8 @@ def _run_locked(library: Path, out: Path, spec: dict, events: EventSink, should_
         cluster = cluster_info()
         lib = _Library(out, assets, spec, events, {"library": str(library), "settings": spec, "cluster": cluster,
                                                    "started": time.strftime("%Y-%m-%dT%H:%M:%S")})
-        events({"event": "phase", "phase": "measure", "message": f"{len(assets)} assets on {cluster['nodes']} node(s),"
-                                                                 f" {cluster['CPU']:g} CPUs: measuring"})
+        events(wire.phase(phase="measure", message=f"{len(assets)} assets on {cluster['nodes']} node(s),"
+                                                   f" {cluster['CPU']:g} CPUs: measuring"))
         _run_tasks(ray.remote(measure_asset), [(a.name, (asdict(a), spec), {"num_cpus": 1}) for a in assets],
                    "measure", lib.measured, events, should_cancel)
         lib.info["measured_s"] = round(time.time() - t0, 1)
@@ -520,8 +520,7 @@ def _run_locked(library: Path, out: Path, spec: dict, events: EventSink, should_
     finally:
         if started:
             ray.shutdown()
-    events({"event": "result", "report": summary["html"], "json": summary["json"], "csv": summary["csv"],
-            "totals": summary["totals"]})
+    events(wire.result(report=summary["html"], json=summary["json"], csv=summary["csv"], totals=summary["totals"]))
     return summary
 
 
@@ -542,8 +541,8 @@ def _train_worth(lib: _Library, cluster: dict, spec: dict, events: EventSink, sh
             first_of_key[row.key] = row.name
             jobs.append((row.name, (asdict(lib.assets[row.name]), spec), task_resources(row.triangles, cluster)))
     if len(jobs) < len(worth) - sum(len(v) for v in lib.copies.values()):
-        events({"event": "phase", "phase": "train", "message": f"{len(worth) - len(jobs)} assets already finished "
-                                                               "in an earlier run (same mesh and settings): kept"})
-    events({"event": "phase", "phase": "train", "message": f"training {len(jobs)} of {len(lib.rows)} assets "
-                                                           "(the ones worth compressing), largest savings first"})
+        events(wire.phase(phase="train", message=f"{len(worth) - len(jobs)} assets already finished "
+                                                 "in an earlier run (same mesh and settings): kept"))
+    events(wire.phase(phase="train", message=f"training {len(jobs)} of {len(lib.rows)} assets "
+                                             "(the ones worth compressing), largest savings first"))
     _run_tasks(ray.remote(compress_asset), jobs, "train", lib.trained, events, should_cancel)

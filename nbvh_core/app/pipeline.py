@@ -22,6 +22,7 @@ from ..neural.appearance import finalize_head, make_head
 from ..training.appearance_training import SurfaceLabels, train_head
 from ..geometry.bvh import NODE_DTYPE, build_bvh
 from ..protocol.events import EventSink, null_sink
+from ..protocol import events as wire
 from ..geometry.exact import ExactTracer
 from ..storage.fileformat import component_bytes, decode_nbvh, encode_nbvh, look_stored_bytes, write_atomic
 from ..geometry.mesh import Mesh
@@ -166,8 +167,8 @@ def _train_with_restarts(mesh, bvh, tracer, run: RunConfig, events, should_cance
                 raise TrainingDiverged(f"{exc} (after {attempt} restarts at lower learning rates)") from None
             lr = run.training.lr
             notes += (RunNote("restart", f"training diverged at lr {lr:g} ({exc}), restarted at lr {lr * 0.1:g}"),)
-            events({"event": "warning", "message": f"training diverged ({exc}); restarting from scratch with the "
-                                                   f"learning rate {lr:g} -> {lr * 0.1:g}"})
+            events(wire.warning(message=f"training diverged ({exc}); restarting from scratch with the "
+                                        f"learning rate {lr:g} -> {lr * 0.1:g}"))
             run = run.with_training(lr=lr * 0.1)
     raise AssertionError("unreachable")
 
@@ -212,15 +213,14 @@ def _verdict(mesh: Mesh, run: RunConfig, tracer: ExactTracer, made, events: Even
     """Is the model worth training (`weigh`)? Raises NotWorthCompressing unless forced; returns (Assessment,
     Weighing); in seconds['plan']."""
     t = time.perf_counter()
-    events({"event": "phase", "phase": "plan", "message": why_of(run.notes)})
+    events(wire.phase(phase="plan", message=why_of(run.notes)))
     assessment, weighing = weigh(mesh, run, tracer, made)
     seconds["plan"] = time.perf_counter() - t
     if not assessment.worth_compressing:
         if not run.decision.force:
-            events({"event": "verdict", "worth_compressing": False, "message": assessment.message,
-                    "assessment": assessment.to_dict()})
+            events(wire.verdict(worth_compressing=False, message=assessment.message, assessment=assessment.to_dict()))
             raise NotWorthCompressing(assessment)
-        events({"event": "warning", "message": assessment.message + " (training anyway: forced)"})
+        events(wire.warning(message=assessment.message + " (training anyway: forced)"))
     return assessment, weighing
 
 
@@ -249,7 +249,7 @@ def _keep_the_mesh(assessment, verdict, events: EventSink):
     message = verdict.message if verdict is not None else assessment.message
     kept = dataclasses.replace(assessment, worth_compressing=False, recommendation=rec, message=message,
                                alternatives=alt, final=verdict.to_dict() if verdict is not None else None)
-    events({"event": "verdict", "worth_compressing": False, "message": message, "assessment": kept.to_dict()})
+    events(wire.verdict(worth_compressing=False, message=message, assessment=kept.to_dict()))
     return NotWorthCompressing(kept)
 
 
@@ -258,7 +258,7 @@ def _training_bvh(mesh: Mesh, nodes: int, node_bits: int, events: EventSink, sec
     (node_bits 8: each contains its exact box). A size search retrains with another T only, never another node
     count."""
     t = time.perf_counter()
-    events({"event": "phase", "phase": "bvh", "message": f"{mesh.n_triangles} triangles -> {nodes} nodes"})
+    events(wire.phase(phase="bvh", message=f"{mesh.n_triangles} triangles -> {nodes} nodes"))
     bvh = build_bvh(mesh, nodes)
     if node_bits == 8:
         bvh = dataclasses.replace(bvh, nodes=snap_nodes(bvh.nodes))
@@ -370,9 +370,9 @@ class _SizeSearch:
             mse_prev = self.trained[prev].quality.mse
             verdict = "missed" if mse_prev > target else "met"
             step = "larger" if log2_table > prev else "smaller"
-            self.events({"event": "warning" if verdict == "missed" else "phase", "phase": "search",
-                         "message": f"measured MSE {mse_prev:.4g} {verdict} the target {target:g} at T=2^{prev}: "
-                                    f"trying T=2^{log2_table} ({step})"})
+            said = wire.warning if verdict == "missed" else wire.phase
+            self.events(said(phase="search", message=f"measured MSE {mse_prev:.4g} {verdict} the target {target:g} "
+                                                     f"at T=2^{prev}: trying T=2^{log2_table} ({step})"))
         return self.train_and_measure(log2_table)
 
     def train_and_measure(self, log2_table: int) -> float:
@@ -397,7 +397,7 @@ class _SizeSearch:
         """The final evaluation: the held-out views (no check used them)."""
         if self.should_cancel():
             raise Cancelled("cancelled before evaluation")
-        self.events({"event": "phase", "phase": "eval", "message": self.weighing.held_out.name})
+        self.events(wire.phase(phase="eval", message=self.weighing.held_out.name))
         t = time.perf_counter()
         quality, _ = self.weighing.held_out.score_model(model)
         self.seconds["eval"] += time.perf_counter() - t
@@ -437,9 +437,8 @@ def _appearance(model: NeuralBVH, mesh: Mesh, tracer: ExactTracer, look: LookCon
     head, face_patch = made
     cfg = head.cfg
     budget = look.budget_s or max(1.0, tr.seconds * look.share / max(1 - look.share, 1e-6))
-    events({"event": "phase", "phase": "appearance",
-            "message": f"{cfg.slots} material slot(s), {cfg.patches} patch(es)"
-                       f"{', texture coordinates' if cfg.uv else ''}: {budget:.0f} s"})
+    events(wire.phase(phase="appearance", message=f"{cfg.slots} material slot(s), {cfg.patches} patch(es)"
+                                                  f"{', texture coordinates' if cfg.uv else ''}: {budget:.0f} s"))
     t = time.perf_counter()
     head = head.to(model.device)
     seed = run.training.seed
@@ -504,7 +503,7 @@ def _compress(mesh: Mesh, run: RunConfig, out_path, events: EventSink, should_ca
             raise _keep_the_mesh(assessment, verdict, events)
     as_shipped = quality
     if quality is not None and look_info:  # the file read back with its look: what a user sees
-        events({"event": "phase", "phase": "eval", "message": f"the file as shipped: {weighing.held_out.name}"})
+        events(wire.phase(phase="eval", message=f"the file as shipped: {weighing.held_out.name}"))
         as_shipped, _ = weighing.held_out.score_model(decode_nbvh(data, "<the file as shipped>"), flip=True)
     decisions = {"checks": [d.to_dict() for d in search.rule.decisions] if search.rule else [],
                  "mse_check_views": search.check_views_mse, "mse_held_out_views": quality.mse if quality else None,
@@ -524,9 +523,9 @@ def _ship(out_path, result: CompressResult, quality: dict | None, events: EventS
     if out_path is not None:
         if should_cancel():
             raise Cancelled("cancelled before saving")
-        events({"event": "phase", "phase": "save", "message": str(out_path)})
+        events(wire.phase(phase="save", message=str(out_path)))
         result.file_bytes = write_atomic(out_path, result.data)
         result.path = str(out_path)
-    events({"event": "result", "path": result.path, "bytes": result.file_bytes,
-            "quality": json.loads(json.dumps(quality)), "train_seconds": round(result.training.seconds, 2)})
+    events(wire.result(path=result.path, bytes=result.file_bytes, quality=json.loads(json.dumps(quality)),
+                       train_seconds=round(result.training.seconds, 2)))
     return result

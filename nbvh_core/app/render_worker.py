@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from ..protocol.events import json_lines
+from ..protocol import events as wire
 from ..protocol.process import Cancelled
 
 #: Final renders first (F12 waits on them), then the viewports.
@@ -107,10 +108,10 @@ def read_requests(stream, mailbox: Mailbox, sink) -> None:
             if not isinstance(msg, dict):
                 raise ValueError("not an object")
         except ValueError as exc:
-            sink({"event": "error", "message": f"bad request line: {exc}"})
+            sink(wire.error(message=f"bad request line: {exc}"))
             continue
         mailbox.put(msg)
-    mailbox.put({"op": "quit"})
+    mailbox.put(wire.quit_request())
 
 
 def write_frame(path: Path, image: np.ndarray) -> None:
@@ -142,11 +143,11 @@ def render_request(renderer, msg: dict, frames: Path, sink, stale) -> None:
             y0, y1 = h * b // n_bands, h * (b + 1) // n_bands
             image[y0:y1] = renderer.render(camera, w, h, samples if last else 1, should_stop=stale, rows=(y0, y1))
             if n_bands > 1:
-                sink({"event": "progress", "channel": channel, "id": rid, "fraction": (b + 1) / n_bands})
+                sink(wire.progress(channel=channel, id=rid, fraction=(b + 1) / n_bands))
         path = frames / f"{_safe(channel)}-{rid}-{level}.rgba"
         write_frame(path, image)
-        sink({"event": "frame", "channel": channel, "id": rid, "level": level, "width": w, "height": h,
-              "path": str(path), "seconds": round(time.monotonic() - t0, 4), "last": last})
+        sink(wire.frame(channel=channel, id=rid, level=level, width=w, height=h, path=str(path),
+                        seconds=round(time.monotonic() - t0, 4), last=last))
 
 
 def _safe(name: str) -> str:
@@ -162,7 +163,7 @@ def serve(frames: Path, stdin=None, stdout=None) -> int:
     mailbox = Mailbox()
     threading.Thread(target=read_requests, args=(stdin or sys.stdin, mailbox, sink), daemon=True).start()
     renderer = SceneRenderer()
-    sink({"event": "ready", "pid": os.getpid()})
+    sink(wire.ready(pid=os.getpid()))
     while True:
         kind, msg, generation = mailbox.take()
         if kind == "quit":
@@ -171,19 +172,19 @@ def serve(frames: Path, stdin=None, stdout=None) -> int:
             t0 = time.monotonic()
             try:
                 warnings = renderer.set_scene(SceneSpec.from_dict(msg.get("scene")))
-                sink({"event": "scene", "id": msg.get("id"), "objects": len(renderer.placed), "warnings": warnings,
-                      "seconds": round(time.monotonic() - t0, 3)})
+                sink(wire.scene(id=msg.get("id"), objects=len(renderer.placed), warnings=warnings,
+                                seconds=round(time.monotonic() - t0, 3)))
             except (ValueError, TypeError, KeyError) as exc:
-                sink({"event": "error", "id": msg.get("id"), "message": f"bad scene: {exc}"})
+                sink(wire.error(id=msg.get("id"), message=f"bad scene: {exc}"))
             continue
         channel = str(msg.get("channel", "default"))
         try:
             render_request(renderer, msg, frames, sink, lambda: mailbox.stale(channel, generation))
         except Cancelled:
             mailbox.requeue(channel, msg, generation)  # a new scene: the same view again (a newer one replaces it)
-            sink({"event": "superseded", "channel": channel, "id": msg.get("id")})
+            sink(wire.superseded(channel=channel, id=msg.get("id")))
         except (ValueError, TypeError, KeyError, OSError) as exc:
-            sink({"event": "error", "channel": channel, "id": msg.get("id"), "message": str(exc)})
+            sink(wire.error(channel=channel, id=msg.get("id"), message=str(exc)))
 
 
 def main(argv: list[str] | None = None) -> int:

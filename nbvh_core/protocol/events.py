@@ -28,12 +28,12 @@ EVENTS = {
     "result": "the run's outcome: path, bytes, quality, ... (a job: name, files, train_seconds, device)",
     "error": "kind (process.Outcome kind: 'bad_input', 'not_worth', 'cancelled', ...), message",
     # the render worker's answers
-    "ready": "the worker started: path (the compute path it runs)",
-    "scene": "id, problems (objects that could not be loaded)",
-    "frame": "channel, id, level, width, height, seconds (the pixels follow as raw float32 RGBA)",
+    "ready": "the worker started: pid",
+    "scene": "id, objects, warnings (objects that could not be loaded), seconds",
+    "frame": "channel, id, level, width, height, path (the pixels: raw float32 RGBA), seconds, last",
     "superseded": "channel, id: a newer request replaced this one",
     # the add-on's render client, when the worker process ends
-    "exit": "code",
+    "exit": "code (or null)",
 }
 #: The render worker's requests ("op") -> what they carry.
 WORKER_REQUESTS = {
@@ -45,10 +45,119 @@ WORKER_REQUESTS = {
 
 
 def event(kind: str, **fields) -> dict:
-    """One declared event (`EVENTS`); raises ValueError for an undeclared kind."""
+    """One declared event (`EVENTS`); raises ValueError for an undeclared kind. The constructors below are the
+    way code builds events; this one serves a kind chosen at run time."""
     if kind not in EVENTS:
         raise ValueError(f"undeclared event {kind!r}; declared: {', '.join(EVENTS)}")
     return {"event": kind, **fields}
+
+
+# ---------------------------------------------------------------- one constructor per event (EVENTS)
+def phase(phase: str, message: str, **more) -> dict:
+    """A run entering `phase` (or saying something within it): message, one line."""
+    return event("phase", phase=phase, message=message, **more)
+
+
+def progress(fraction: float, **detail) -> dict:
+    """How far a phase is, `fraction` in [0, 1]; detail: a training's phase, step, total, loss, samples_per_s,
+    elapsed_s, eta_s; a batch's phase, done, total; a render's channel, id."""
+    return event("progress", fraction=fraction, **detail)
+
+
+def warning(message: str, **more) -> dict:
+    """Something the user should know that does not stop the run (one line)."""
+    return event("warning", message=message, **more)
+
+
+def verdict(message: str, assessment: dict | None, worth_compressing: bool = False) -> dict:
+    """The run keeps the mesh: why (message) and the measured alternatives (`Assessment.to_dict()`)."""
+    return event("verdict", worth_compressing=worth_compressing, message=message, assessment=assessment)
+
+
+def written(files: list[str], **more) -> dict:
+    """Files written in place of a model: kind ('decimation' | 'mesh'), triangles."""
+    return event("written", files=files, **more)
+
+
+def asset(phase: str, **row) -> dict:
+    """A library batch's row for one asset in `phase` ('measure' | 'train'): name, status and its numbers."""
+    return event("asset", phase=phase, **row)
+
+
+def result(**fields) -> dict:
+    """A run's or a job's outcome: path, bytes, quality, ... (a job: name, files, train_seconds, device)."""
+    return event("result", **fields)
+
+
+def error(message: str, **more) -> dict:
+    """A failure, one line: kind (`process.Outcome` kind) for a run; channel, id for a render request."""
+    return event("error", message=message, **more)
+
+
+def ready(pid: int) -> dict:
+    """The render worker started (its process id)."""
+    return event("ready", pid=pid)
+
+
+def scene(id: int | None, objects: int, warnings: list[str], seconds: float) -> dict:
+    """The render worker loaded a scene: objects placed, warnings (objects it could not load), seconds."""
+    return event("scene", id=id, objects=objects, warnings=warnings, seconds=seconds)
+
+
+def frame(channel: str, id: int, level: int, width: int, height: int, path: str, seconds: float,
+          last: bool) -> dict:
+    """A rendered frame of a request (level: coarse to fine; last: the final level), its pixels at `path`."""
+    return event("frame", channel=channel, id=id, level=level, width=width, height=height, path=path,
+                 seconds=seconds, last=last)
+
+
+def superseded(channel: str, id: int | None) -> dict:
+    """A render request abandoned for a newer one or a cancel."""
+    return event("superseded", channel=channel, id=id)
+
+
+def process_exit(code: int | None = None) -> dict:
+    """The render worker's process ended (the client's own event, `code` when known)."""
+    return event("exit", code=code)
+
+
+#: kind -> its constructor (a test checks that every declared event has exactly one).
+CONSTRUCTORS = {"phase": phase, "progress": progress, "warning": warning, "verdict": verdict, "written": written,
+                "asset": asset, "result": result, "error": error, "ready": ready, "scene": scene, "frame": frame,
+                "superseded": superseded, "exit": process_exit}
+
+
+# ---------------------------------------------------------------- one constructor per worker request
+def request(op: str, **fields) -> dict:
+    """One declared render-worker request (`WORKER_REQUESTS`); raises ValueError for an undeclared op."""
+    if op not in WORKER_REQUESTS:
+        raise ValueError(f"undeclared request {op!r}; declared: {', '.join(WORKER_REQUESTS)}")
+    return {"op": op, **fields}
+
+
+def scene_request(id: int, scene: dict) -> dict:
+    """Load a scene (`scene_render.SceneSpec` as a dict) under `id`."""
+    return request("scene", id=id, scene=scene)
+
+
+def render_request(channel: str, id: int, camera: list, width: int, height: int, **more) -> dict:
+    """Render `channel` (viewport / final) from camera (4x4 rows, NDC -> world) at width x height; more: samples,
+    levels, shadows, ..."""
+    return request("render", channel=channel, id=id, camera=camera, width=width, height=height, **more)
+
+
+def cancel_request(channel: str) -> dict:
+    """Abandon that channel's request."""
+    return request("cancel", channel=channel)
+
+
+def quit_request() -> dict:
+    """End the worker (end of input means the same)."""
+    return request("quit")
+
+
+REQUEST_CONSTRUCTORS = {"scene": scene_request, "render": render_request, "cancel": cancel_request,
+                        "quit": quit_request}
 
 
 def null_sink(event: dict) -> None:

@@ -33,6 +33,7 @@ from .ray_batches import Batches, LeafErrors, TreeCut  # noqa: F401  (LeafErrors
 from ..geometry.bvh import BVH
 from ..storage.checkpoint import CheckpointError, read_checkpoint, write_checkpoint
 from ..protocol.events import EventSink, null_sink
+from ..protocol import events as wire
 from ..geometry.exact import ExactTracer
 from ..neural.model import NeuralBVH
 from ..protocol.process import Cancelled, TrainingDiverged
@@ -339,13 +340,13 @@ class EncodingPhases:
         own = enc.schedule(fraction, cfg)
         if own is not None and own != self.phase:
             self.phase = own
-            self.events({"event": "phase", "phase": own, "message": f"softmax temperature 1 -> {cfg.tau_min}"})
+            self.events(wire.phase(phase=own, message=f"softmax temperature 1 -> {cfg.tau_min}"))
         qat_fraction = max(cfg.qat_fraction, LOW_BITS_QAT_FRACTION) if low_bits else cfg.qat_fraction
         if cfg.table_bits and not self.qat_on and fraction >= 1.0 - qat_fraction:
             self.qat_on = _snap_table(self.model, cfg.table_bits, hold=not low_bits)
-            self.events({"event": "phase", "phase": "quantize",
-                         "message": f"feature table on its {cfg.table_bits}-bit grid; the network adapts to it"
-                                    + ("" if not low_bits else ", the rows train through it")})
+            self.events(wire.phase(phase="quantize",
+                                   message=f"feature table on its {cfg.table_bits}-bit grid; the network adapts to it"
+                                   + ("" if not low_bits else ", the rows train through it")))
         if self.qat_on and low_bits:  # straight through: this step sees the rows on the grid
             table = enc.table
             self._float_rows = table.detach().clone()
@@ -367,9 +368,9 @@ class EncodingPhases:
             self.before_freeze(self.model)
         self.model.encoding.freeze()
         self.losses["frozen"] = self.held_out_loss()
-        self.events({"event": "phase", "phase": "freeze",
-                     "message": f"index codes frozen; held-out loss {self.losses['soft']:.4f} -> "
-                                f"{self.losses['frozen']:.4f}; fine-tuning on the frozen codes"})
+        self.events(wire.phase(phase="freeze",
+                               message=f"index codes frozen; held-out loss {self.losses['soft']:.4f} -> "
+                                       f"{self.losses['frozen']:.4f}; fine-tuning on the frozen codes"))
 
     @property
     def ready_to_stop(self) -> bool:
@@ -428,10 +429,9 @@ class Progress:
         return self.samples / max(now - self.elapsed_before, 1e-9)
 
     def emit(self, phase: str, step: int, fraction: float, loss: float, now: float, eta: float | None) -> None:
-        self.events({"event": "progress", "phase": phase, "step": step, "total": self.cfg.steps,
-                     "fraction": round(fraction, 4), "loss": round(loss, 6),
-                     "samples_per_s": round(self.samples_per_s(now), 1), "elapsed_s": round(now, 2),
-                     "eta_s": None if eta is None else round(eta, 1)})
+        self.events(wire.progress(phase=phase, step=step, total=self.cfg.steps, fraction=round(fraction, 4),
+                                  loss=round(loss, 6), samples_per_s=round(self.samples_per_s(now), 1),
+                                  elapsed_s=round(now, 2), eta_s=None if eta is None else round(eta, 1)))
 
 
 class EarlyStop:
@@ -454,12 +454,12 @@ class EarlyStop:
         if decision == "grow":
             grown = grow_table(model, opt, checkpoints)
             self.grew.append((step, round(elapsed, 1), grown))
-            events({"event": "phase", "phase": phases.phase,
-                    "message": f"target not in reach at this size: the table grows to T=2^{grown}"})
+            events(wire.phase(phase=phases.phase,
+                              message=f"target not in reach at this size: the table grows to T=2^{grown}"))
             return False
         if decision:
-            events({"event": "phase", "phase": phases.phase,
-                    "message": f"target reached at step {step} ({elapsed:.0f} s): training stops"})
+            events(wire.phase(phase=phases.phase,
+                              message=f"target reached at step {step} ({elapsed:.0f} s): training stops"))
         return bool(decision)
 
     def reached(self, model: NeuralBVH, fraction: float, elapsed: float, ready: bool) -> bool | str:
@@ -512,8 +512,8 @@ class _TreeCutHook:
         self.model.set_nodes(refined.nodes)
         batches.set_bvh(refined)
         if refined.n_leaves >= self.tree_cut.final_leaves:
-            self.events({"event": "phase", "phase": phase, "message": f"tree cut refined to {refined.n_nodes} "
-                                                                      "nodes by splitting the leaves with the highest error"})
+            self.events(wire.phase(phase=phase, message=f"tree cut refined to {refined.n_nodes} nodes by splitting the "
+                                                        "leaves with the highest error"))
 
 
 def _held_out_loss(model: NeuralBVH, batches: Batches, tracer: ExactTracer, cfg: TrainConfig,
@@ -594,7 +594,7 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
     ck = load_checkpoint(resume_from, model, opt, device) if resume_from is not None else {}
     step, elapsed_before, history = ck.get("step", 0), ck.get("elapsed", 0.0), ck.get("history", [])
     if ck:
-        events({"event": "phase", "phase": "train", "message": f"resumed at step {step}"})
+        events(wire.phase(phase="train", message=f"resumed at step {step}"))
     batches, leaf_errors, cut = _training_data(model, bvh, tracer, cfg, ck, device, plan,
                                                np.random.default_rng(cfg.seed), events)
     schedule, guard, progress = Schedule(cfg), DivergenceGuard(cfg, step), Progress(events, cfg, elapsed_before)
@@ -602,8 +602,8 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
                             ck.get("qat_affine"))
     checkpoints, early = Checkpoints(checkpoint_path, cfg, checkpoint_extra, elapsed_before), EarlyStop(target_reached, cfg, elapsed_before)
     train_step = make_step(model, device, plan)
-    events({"event": "phase", "phase": "train", "message": f"{model.cfg.encoding.kind}+{model.cfg.network.kind}, "
-                                                           f"{cfg.labels} labels, {plan.describe()}"})
+    events(wire.phase(phase="train", message=f"{model.cfg.encoding.kind}+{model.cfg.network.kind}, "
+                                                           f"{cfg.labels} labels, {plan.describe()}"))
 
     def state() -> dict:  # what a checkpoint holds now
         return _checkpoint_state(model, opt, step, time.perf_counter() - t0, history, batches, leaf_errors, cut, phases)
