@@ -275,7 +275,13 @@ def test_info_lists_the_look_and_its_bytes(tmp_path, capsys):
     path.write_bytes(r.data)
     assert main(["info", str(path)]) == 0
     out = capsys.readouterr().out
-    assert "appearance" in out and "textures" in out and "painted (32x32 image), blue" in out and "patch" in out
+    stored = len(encode_texture(r.model.materials[0].image))
+    assert "appearance" in out and "textures" in out and f"painted (32x32 PNG, {stored:,} B), blue" in out
+    assert "patch" in out
+    assert main(["info", str(path), "--json"]) == 0
+    import json
+
+    assert json.loads(capsys.readouterr().out)["textures"] == {"0": {"format": "png", "bytes": stored}}
 
 
 def test_checking_a_look_leaves_the_callers_materials_as_they_were():

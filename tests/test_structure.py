@@ -240,6 +240,9 @@ def test_every_message_is_built_by_its_one_constructor():
                "superseded": dict(channel="c", id=1), "exit": {}}
     for kind, make in wire.CONSTRUCTORS.items():
         assert make(**samples[kind])["event"] == kind
+    # a field may be named like the message's own kind key ('kind' of an error or a written file)
+    assert wire.error(message="m", kind="bad_input")["kind"] == "bad_input"
+    assert wire.written(files=[], kind="mesh") == {"event": "written", "files": [], "kind": "mesh"}
     requests = {"scene": dict(id=1, scene={}), "render": dict(channel="c", id=1, camera=[], width=2, height=2),
                 "cancel": dict(channel="c"), "quit": {}}
     for op, make in wire.REQUEST_CONSTRUCTORS.items():

@@ -317,7 +317,7 @@ def cmd_info(args: argparse.Namespace) -> int:
            "components": info.components,
            "config": info.header["config"], "storage": info.storage.to_dict(),
            "source": meta.get("source"), "training": meta.get("training"), "quality": meta.get("quality"),
-           "appearance": info.header.get("appearance")}
+           "appearance": info.header.get("appearance"), "textures": info.textures}
     if args.mesh:
         mesh = _load_mesh_reporting(args.mesh)
         res = mesh_resident_bytes(mesh)
@@ -339,8 +339,11 @@ def cmd_info(args: argparse.Namespace) -> int:
           f"stored with {st.table_bits}-bit features, {st.network_bits}-bit weights, {st.node_bits}-bit boxes")
     look = info.header.get("appearance")
     if look:
-        mats = ", ".join(f"{m['name']}" + (f" ({m['image'][1]}x{m['image'][0]} image)" if m["image"] else "")
-                         for m in look["materials"])
+        def image(i: int, m: dict) -> str:
+            t = info.textures.get(i, {})
+            return f" ({m['image'][1]}x{m['image'][0]} {t.get('format', '').upper()}, {t.get('bytes', 0):,} B)"
+
+        mats = ", ".join(m["name"] + (image(i, m) if m["image"] else "") for i, m in enumerate(look["materials"]))
         head = look["config"]
         print(f"  look: {len(look['materials'])} slot(s): {mats}; "
               + (f"head: {head.get('target', 'coordinates')}, {head.get('patches', 1)} patch(es)" if head else "no head (one plain slot)"))

@@ -44,7 +44,7 @@ WORKER_REQUESTS = {
 }
 
 
-def event(kind: str, **fields) -> dict:
+def event(kind: str, /, **fields) -> dict:
     """One declared event (`EVENTS`); raises ValueError for an undeclared kind. The constructors below are the
     way code builds events; this one serves a kind chosen at run time."""
     if kind not in EVENTS:
@@ -128,7 +128,7 @@ CONSTRUCTORS = {"phase": phase, "progress": progress, "warning": warning, "verdi
 
 
 # ---------------------------------------------------------------- one constructor per worker request
-def request(op: str, **fields) -> dict:
+def request(op: str, /, **fields) -> dict:
     """One declared render-worker request (`WORKER_REQUESTS`); raises ValueError for an undeclared op."""
     if op not in WORKER_REQUESTS:
         raise ValueError(f"undeclared request {op!r}; declared: {', '.join(WORKER_REQUESTS)}")

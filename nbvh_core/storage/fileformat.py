@@ -40,7 +40,7 @@ import math
 import os
 import struct
 import zlib
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
@@ -52,7 +52,7 @@ from ..geometry.bvh import MAX_NODES, NODE_DTYPE
 from ..neural.encodings import ENCODINGS, EncodingConfig
 from ..neural.appearance import TARGETS, AppearanceConfig, AppearanceHead, head_table_bits, map_width
 from ..neural.encodings.base import code_width, level_vertex_counts
-from ..geometry.look import MAX_SLOTS, MAX_TEXTURE_SIDE, LookError, Material, decode_texture, encode_texture
+from ..geometry.look import MAX_SLOTS, MAX_TEXTURE_SIDE, LookError, Material, decode_texture, encode_texture, texture_format
 from ..geometry.mesh import Transform
 from ..neural.model import ModelConfig, NeuralBVH
 from ..neural.networks import NETWORKS, NetworkConfig
@@ -114,6 +114,7 @@ class FileInfo:
     components: dict
     header: dict
     stored_bytes: int = 0  # the file on disk: total_bytes, or less for the storage variant (packed.py)
+    textures: dict = field(default_factory=dict)  # slot -> {"format": "png" | "jpeg", "bytes": int}
 
     @property
     def metadata(self) -> dict:
@@ -762,8 +763,12 @@ def read_info(path: str | os.PathLike) -> FileInfo:
     data = read_model_bytes(path)
     header = _parse(data, str(path))
     _decode(data, header, str(path))
+    start = header["_payload_start"]
+    textures = {int(t["name"].split(".")[1]): {"format": texture_format(data[start + t["offset"]:][:8]),
+                                               "bytes": t["nbytes"]}
+                for t in header["tensors"] if t["name"].startswith("texture.")}
     return FileInfo(path=str(path), total_bytes=len(data), components=_components(header, len(data)), header=header,
-                    stored_bytes=path.stat().st_size)
+                    stored_bytes=path.stat().st_size, textures=textures)
 
 
 def look_stored_bytes(cfg: AppearanceConfig | None, materials: list[Material], storage: StorageConfig) -> dict[str, int]:
