@@ -385,11 +385,12 @@ def test_export_carries_slots_coordinates_and_the_base_colour_image():
     # an image loaded from a PNG file carries the file's bytes as its source (stored as is when exact); a
     # translucent one keeps its alpha
     px[0, 0, 3] = 0.5
-    image.pixels.foreach_set(px.ravel())
+    translucent = bpy.data.images.new("nbvh-test-look-alpha", 4, 2, alpha=True)
+    translucent.pixels.foreach_set(px.ravel())
     path = os.path.join(tempfile.mkdtemp(prefix="nbvh-look-"), "albedo.png")
-    image.filepath_raw = path
-    image.file_format = "PNG"
-    image.save()
+    translucent.filepath_raw = path
+    translucent.file_format = "PNG"
+    translucent.save()
     tex.image = bpy.data.images.load(path)
     _, _, _, look = export.evaluated_triangles(obj, bpy.context.evaluated_depsgraph_get())
     assert look["image_0"].shape == (2, 4, 4) and look["image_0"][1, 0, 3] == 128

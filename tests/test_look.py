@@ -1,4 +1,6 @@
 """The asset's look: materials, slots and texture coordinates from loading to the file, the head, the renders."""
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -203,6 +205,11 @@ def test_file_round_trip_keeps_the_look_and_counts_its_bytes():
     assert np.array_equal(back.materials[0].image, m.look.materials[0].image)
     pts = np.random.default_rng(0).uniform(0.2, 0.8, (500, 3)).astype(np.float32)
     assert np.allclose(back.albedo_at(pts), model.albedo_at(pts), atol=1e-5)
+    # the painted slot's patches come first and keep their maps; the blue slot's patch stores none (read as zero)
+    cfg = model.appearance.cfg
+    assert 0 < cfg.mapped_patches < cfg.patches and back.appearance.cfg.mapped_patches == cfg.mapped_patches
+    assert torch.equal(back.appearance.affine, model.appearance.affine)
+    assert not model.appearance.affine[cfg.mapped_patches:].any()
     meta = decode_nbvh(r.data).metadata
     assert meta["appearance"]["slots"] == 2 and meta["appearance"]["head"]["steps"] > 0
 
@@ -318,10 +325,16 @@ def test_plain_slots_cost_one_patch_each_however_many_islands_they_have():
     assert np.array_equal(head.patch_slot.cpu().numpy()[face_patch], mesh.look.face_slots)
     plain = look_stored_bytes(head.cfg, mesh.look.materials, preset("default").storage())
     assert plain["textures"] == 0 and plain["appearance"] < 40_000, plain
+    # no slot samples an image: no coordinates, and no patch map stored (each would be 2 x 21 float32)
+    assert head.cfg.mapped_patches == 0
+    every_map = look_stored_bytes(dataclasses.replace(head.cfg, mapped_patches=None), mesh.look.materials,
+                                  preset("default").storage())
+    assert every_map["appearance"] - plain["appearance"] == head.cfg.patches * 2 * 21 * 4
     mixed = _many_slots_with_seams(8, textured=(3,))
     head, face_patch = make_head(mixed, AppearanceConfig(max_patches=4096))
     islands_of_3 = int((mixed.look.face_slots == 3).sum())
     assert head.cfg.patches == np.unique(mixed.look.face_slots).size - 1 + islands_of_3  # its islands: one a face
+    assert head.cfg.mapped_patches == islands_of_3  # only the textured slot's patches keep maps
     assert look_stored_bytes(head.cfg, mixed.look.materials, preset("default").storage())["textures"] > 0
 
 

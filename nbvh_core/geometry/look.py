@@ -264,8 +264,8 @@ def uv_patches(vertices: np.ndarray, faces: np.ndarray, look: Look, tolerance: f
     the worst corner, 93% by area). Islands made by planar projection (Blender's Smart UV Project, box and cube
     maps) fit exactly and never split; curved maps split until they fit or the cap is reached.
     Returns face_patch (F,) int32, maps (P, 2, B + 1) float32 (uv = maps[:, :, :B] @ patch_basis(p), p in
-    normalised coordinates; maps[:, :, B]: the fit's largest |error| per coordinate at a fitting sample) and
-    patch_slot (P,) int32.
+    normalised coordinates; maps[:, :, B]: the fit's largest |error| per coordinate at a fitting sample; the
+    patches of slots that sample an image come first, the others' maps are zero) and patch_slot (P,) int32.
     """
     n = len(faces)
     if look.corner_uvs is None:
@@ -299,6 +299,9 @@ def uv_patches(vertices: np.ndarray, faces: np.ndarray, look: Look, tolerance: f
         halves = [m[order[:len(m) // 2]], m[order[len(m) // 2:]]]
         members[worst:worst + 1] = halves
         fits[worst:worst + 1] = [_fit(corners[h], look.corner_uvs[h], degree) for h in halves]
+    # patches of slots that sample an image first: a file stores the maps of those alone (`mapped_patches`)
+    first = sorted(range(len(members)), key=lambda i: not textured[look.face_slots[members[i][0]]])
+    members, fits = [members[i] for i in first], [fits[i] for i in first]
     face_patch = np.empty(n, np.int32)
     for i, m in enumerate(members):
         face_patch[m] = i

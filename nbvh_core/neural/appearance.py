@@ -60,6 +60,9 @@ class AppearanceConfig:
     hidden: int = 2
     width: int = 32
     uv_weight: float = 10.0
+    #: Patches whose maps a file stores: the first ones, those of slots that sample an image (a plain slot's patch
+    #: needs no coordinates: 100 plain slots would otherwise store 16.8 KB of zero cubic maps). None: all.
+    mapped_patches: int | None = None
 
     def encoding(self) -> EncodingConfig:
         return EncodingConfig(kind="hashgrid", levels=self.levels, n_min=self.n_min, n_max=self.n_max,
@@ -73,6 +76,11 @@ class AppearanceConfig:
     @property
     def outputs(self) -> int:
         return 3 if self.target == "colour" else self.classes + (2 if self.uv else 0)
+
+    @property
+    def stored_maps(self) -> int:
+        """How many patch maps a file holds (the first `mapped_patches`, or all)."""
+        return self.patches if self.mapped_patches is None else self.mapped_patches
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -176,6 +184,9 @@ def make_head(mesh: Mesh, base: AppearanceConfig | None = None) -> tuple[Appeara
         face_patch, affine, patch_slot = uv_patches(mesh.vertices, mesh.faces, look, cfg.patch_tolerance,
                                                     cfg.max_patches, cfg.patch_degree)
     cfg.slots, cfg.patches, cfg.uv = look.n_slots, len(affine), look.textured and cfg.target == "coordinates"
+    sampled = np.array([m.image is not None for m in look.materials], bool)[patch_slot]
+    cfg.mapped_patches = int(sampled.sum()) if cfg.uv else 0
+    assert sampled[:cfg.mapped_patches].all() or not cfg.uv, "uv_patches puts image slots' patches first"
     head = AppearanceHead(cfg)
     with torch.no_grad():
         head.affine.copy_(torch.from_numpy(affine))

@@ -173,10 +173,11 @@ def _look_tensors(model: NeuralBVH, storage: StorageConfig) -> list[tuple[str, s
         for name, p in head.network.state_dict().items():
             arr = p.detach().cpu().numpy().astype(fdt)
             out.append((f"appearance.network.{name}", "appearance", arr.tobytes(), list(arr.shape)))
-        affine = head.affine.cpu().numpy().astype(np.float32)
+        affine = head.affine.cpu().numpy().astype(np.float32)[:head.cfg.stored_maps]
         patch_slot = head.patch_slot.cpu().numpy().astype(np.uint16)
-        out += [("appearance.affine", "appearance", affine.tobytes(), list(affine.shape)),
-                ("appearance.patch_slot", "appearance", patch_slot.tobytes(), list(patch_slot.shape))]
+        if len(affine):
+            out.append(("appearance.affine", "appearance", affine.tobytes(), list(affine.shape)))
+        out.append(("appearance.patch_slot", "appearance", patch_slot.tobytes(), list(patch_slot.shape)))
     for i, m in enumerate(model.materials):
         if m.image is not None:
             data = encode_texture(m.image, m.source)
@@ -290,6 +291,8 @@ def _config_from(d, cls, where: str, what: str):
     default = cls()
     for name, v in d.items():
         want = type(getattr(default, name))
+        if want is type(None) and v is not None:  # an optional count (None: its default meaning)
+            want = int
         if want is int:
             lo, hi = LIMITS.get(name, (-(1 << 31), 1 << 31))
             kw[name] = _int_field(d, name, where, lo, hi)
@@ -506,7 +509,9 @@ def _look_spec(header: dict, where: str) -> tuple[AppearanceConfig | None, list[
     if look["config"] is not None:
         cfg = _config_from(look["config"], AppearanceConfig, where, "appearance config")
         if (cfg.slots != len(mats) or not 1 <= cfg.patches <= MAX_PATCHES or cfg.outputs == 0
-                or cfg.patch_degree not in (1, 2, 3) or cfg.target not in TARGETS):
+                or cfg.patch_degree not in (1, 2, 3) or cfg.target not in TARGETS
+                or not (cfg.mapped_patches is None or (isinstance(cfg.mapped_patches, int)
+                                                       and 0 <= cfg.mapped_patches <= cfg.patches))):
             raise NBVHFileError(f"{where}: the appearance head's {cfg.slots} slots and {cfg.patches} patches do not "
                                 f"match {len(mats)} materials (1 to {MAX_PATCHES} patches)")
     return cfg, mats
@@ -526,7 +531,9 @@ def _look_expected(look, storage: StorageConfig, by_name: dict, where: str) -> d
             head = AppearanceHead(cfg, inference=True)
         fdt = "<f4" if storage.network_bits == 32 else "<f2"
         out.update({f"appearance.network.{n}": (tuple(p.shape), fdt) for n, p in head.network.state_dict().items()})
-        out.update({"appearance.affine": ((cfg.patches, 2, map_width(cfg.patch_degree)), "<f4"), "appearance.patch_slot": ((cfg.patches,), "<u2")})
+        if cfg.stored_maps:  # the maps of the first patches (image slots'); the others are zero
+            out["appearance.affine"] = ((cfg.stored_maps, 2, map_width(cfg.patch_degree)), "<f4")
+        out["appearance.patch_slot"] = ((cfg.patches,), "<u2")
     for i, m in enumerate(mats):
         if m["image"] is None:
             continue
@@ -687,7 +694,8 @@ def _load_look(model: NeuralBVH, look: tuple, table_bits: int, array, where: str
     patch_slot = array("appearance.patch_slot").astype(np.int64)
     if (patch_slot >= len(materials)).any():
         raise NBVHFileError(f"{where}: appearance patches name slots beyond the {len(materials)} materials")
-    head.affine.copy_(torch.from_numpy(array("appearance.affine")))
+    if cfg.stored_maps:
+        head.affine[:cfg.stored_maps] = torch.from_numpy(array("appearance.affine"))
     head.patch_slot.copy_(torch.from_numpy(patch_slot))
     head.requires_grad_(False)
     model.appearance = head.eval()
