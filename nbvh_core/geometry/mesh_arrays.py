@@ -9,9 +9,10 @@ import numpy as np
 
 
 def read_mesh_arrays(path: str | os.PathLike) -> dict[str, np.ndarray]:
-    """`vertices`, `faces` and the look's members (`look.LOOK_MEMBERS`, `image_I`, `image_source_I`) of a mesh .npz as data: each
-    member's .npy header is read first and refused unless it is a numeric (names: unicode) array whose declared
-    size fits the member's own bytes (no pickles, nothing allocated beyond the file); other members are ignored.
+    """`vertices`, `faces` and the look's members (`look.LOOK_MEMBERS`, `image_I`, `image_source_I`) of a mesh .npz
+    as data: each member's .npy header is read first and refused unless it is a numeric (names: unicode) array whose
+    declared size fits the member's own bytes (no pickles, nothing allocated beyond the file); other members are
+    ignored.
     Raises MeshError (one line)."""
     import zipfile
 

@@ -403,8 +403,8 @@ def look_carried_bytes(mesh: Mesh, n_vertices: int, n_triangles: int) -> int:
     """The bytes a mesh of `n_vertices` / `n_triangles` (the asset or a decimation of it) needs to carry the asset's
     look, as a compact mesh would hold it: the same slot images the model stores (as `encode_texture` stores them),
     16-bit texture coordinates per vertex when images are sampled, and a slot id per triangle (ceil(log2 slots)
-    bits) when there are several slots. Counted, not written: the compact mesh this product writes is geometry only (Blender's
-    Decimate modifier, which the add-on offers, keeps the object's UVs and slots). 0 for a bare shape."""
+    bits) when there are several slots. Counted, not written: the compact mesh this product writes is geometry only
+    (Blender's Decimate modifier, which the add-on offers, keeps the object's UVs and slots). 0 for a bare shape."""
     look = mesh.look
     if look is None:
         return 0

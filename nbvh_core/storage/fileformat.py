@@ -52,7 +52,8 @@ from ..geometry.bvh import MAX_NODES, NODE_DTYPE
 from ..neural.encodings import ENCODINGS, EncodingConfig
 from ..neural.appearance import TARGETS, AppearanceConfig, AppearanceHead, head_table_bits, map_width
 from ..neural.encodings.base import code_width, level_vertex_counts
-from ..geometry.look import MAX_SLOTS, MAX_TEXTURE_SIDE, LookError, Material, decode_texture, encode_texture, texture_format
+from ..geometry.look import (MAX_SLOTS, MAX_TEXTURE_SIDE, LookError, Material, decode_texture, encode_texture,
+                             texture_format)
 from ..geometry.mesh import Transform
 from ..neural.model import ModelConfig, NeuralBVH
 from ..neural.networks import NETWORKS, NetworkConfig
