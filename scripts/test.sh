@@ -5,5 +5,5 @@ set -euo pipefail
 source "$(dirname "${BASH_SOURCE[0]}")/ensure_venv.sh"
 source "$(dirname "${BASH_SOURCE[0]}")/ensure_blender.sh"
 cd "$NBVH_ROOT"
-"$NBVH_PY" -m pytest tests "$@"
+"$NBVH_PY" -m pytest tests --durations=15 "$@"  # the slowest 15 listed: where the suite's time goes
 "$NBVH_PY" blender_tests/run.py
