@@ -33,6 +33,7 @@ SMOKE = {
                              "--straight", "1"],
     "bench_leaf_sampling.py": ["--quick", "--train-s", "1"],
     "bench_look.py": ["--preset", "tiny", "--assets", "crate", "--views", "1", "--size", "64"],
+    "bench_look_head.py": ["--assets", "crate", "--seconds", "1", "--device", "cpu"],
     "bench_method_speed.py": ["--steps", "3", "--repeats", "1", "--renders", "1"],
     "bench_pays.py": ["--meshes", "blob", "--presets", "tiny", "--time-limit", "1"],
     "bench_preset_curves.py": ["--mesh", "blob", "--budgets", "tiny=1"],
