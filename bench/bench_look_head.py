@@ -2,6 +2,7 @@
 coordinates land (no geometry model: what the head can do, apart from the geometry's error).
 
     .venv/bin/python bench/bench_look_head.py [--assets globe,ring,crate] [--seconds 9] [--device cpu|cuda]
+                                              [--batch 1024 8192]
 
 For each generated asset (`nbvh_core.geometry.demo_assets`): the head the product makes for it (default
 `AppearanceConfig`), trained `--seconds` on a pool of exact labels (`train_head`, as a run does), stored at 8-bit
@@ -29,7 +30,7 @@ OUT = RESULTS / "look_head.csv"
 TEXELS = 512
 
 
-def run_asset(name: str, seconds: float, device: str) -> dict:
+def run_asset(name: str, seconds: float, device: str, batch: int) -> dict:
     torch.manual_seed(0)
     mesh = demo_assets.ASSETS[name]()
     tracer = ExactTracer(mesh)
@@ -37,7 +38,7 @@ def run_asset(name: str, seconds: float, device: str) -> dict:
     head = head.to(device)
     labels = SurfaceLabels(mesh, tracer, np.random.default_rng(0), face_patch)
     t0 = time.perf_counter()
-    trained = train_head(head, labels, seconds=seconds, pool_size=1 << 14 if SMOKE else 1 << 19)
+    trained = train_head(head, labels, seconds=seconds, batch=batch, pool_size=1 << 14 if SMOKE else 1 << 19)
     wall = time.perf_counter() - t0
     finalize_head(head, 8, 16)
     p, patch, uv = SurfaceLabels(mesh, tracer, np.random.default_rng(1), face_patch).draw(2_000 if SMOKE else 20_000)
@@ -45,7 +46,7 @@ def run_asset(name: str, seconds: float, device: str) -> dict:
     with torch.no_grad():
         logits, residual = head(points)
         chosen = logits.argmax(1) if logits is not None else torch.zeros(len(p), dtype=torch.int64, device=device)
-    row = {"asset": name, "device": device, "triangles": mesh.n_triangles, "patches": head.cfg.patches,
+    row = {"asset": name, "device": device, "batch": batch, "triangles": mesh.n_triangles, "patches": head.cfg.patches,
            "mapped_patches": head.cfg.mapped_patches, "patch_degree": head.cfg.patch_degree,
            "seconds": round(wall, 2), "steps": trained.steps, "steps_per_s": round(trained.steps / max(wall, 1e-9), 1),
            "patch_right": round(float((chosen.cpu().numpy() == patch).mean()), 4)}
@@ -64,11 +65,13 @@ def main() -> None:
     ap.add_argument("--assets", default="globe,ring,crate")
     ap.add_argument("--seconds", type=float, default=9.0, help="the head's training budget (a preview run gives 9 s)")
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--batch", type=int, nargs="+", default=[1 << 10], help="labels a step (train_head's default: 1,024)")
     args = ap.parse_args()
-    for name in args.assets.split(","):
-        row = run_asset(name, args.seconds, args.device)
-        append_rows(OUT, [row])
-        print(row, flush=True)
+    for batch in args.batch:
+        for name in args.assets.split(","):
+            row = run_asset(name, args.seconds, args.device, batch)
+            append_rows(OUT, [row])
+            print(row, flush=True)
 
 
 if __name__ == "__main__":
