@@ -5,7 +5,7 @@ coordinates land (no geometry model: what the head can do, apart from the geomet
                                               [--batch 1024 8192]
 
 For each generated asset (`nbvh_core.geometry.demo_assets`): the head the product makes for it (default
-`AppearanceConfig`), trained `--seconds` on a pool of exact labels (`train_head`, as a run does), stored at 8-bit
+`AppearanceConfig`), trained `--seconds` on a pool of 32k exact labels (`train_head`, as a run does), stored at 8-bit
 table / float16 weights (`finalize_head`), then scored on 20,000 fresh exact labels: the patch right, and coordinates
 within half a 512 px texel, away from UV seams (> 1% of the asset's size) on slots that sample an image.
 
@@ -38,7 +38,7 @@ def run_asset(name: str, seconds: float, device: str, batch: int) -> dict:
     head = head.to(device)
     labels = SurfaceLabels(mesh, tracer, np.random.default_rng(0), face_patch)
     t0 = time.perf_counter()
-    trained = train_head(head, labels, seconds=seconds, batch=batch, pool_size=1 << 14 if SMOKE else 1 << 19)
+    trained = train_head(head, labels, seconds=seconds, batch=batch, pool_size=1 << 14 if SMOKE else 1 << 15)
     wall = time.perf_counter() - t0
     finalize_head(head, 8, 16)
     p, patch, uv = SurfaceLabels(mesh, tracer, np.random.default_rng(1), face_patch).draw(2_000 if SMOKE else 20_000)
