@@ -30,7 +30,12 @@ def read_mesh_arrays(path: str | os.PathLike) -> dict[str, np.ndarray]:
                 info = z.getinfo(f"{key}.npy")
                 with z.open(info) as f:
                     version = np.lib.format.read_magic(f)
-                    shape, fortran, dtype = np.lib.format._read_array_header(f, version)
+                    # the public header readers (numpy 1.x and 2.x both have them; 2.x dropped the private one)
+                    header = {(1, 0): np.lib.format.read_array_header_1_0,
+                              (2, 0): np.lib.format.read_array_header_2_0}.get(version)
+                    if header is None:
+                        raise MeshError(f"{path}: {key} is a .npy of version {version}, not 1.0 or 2.0")
+                    shape, fortran, dtype = header(f)
                     if dtype.hasobject or dtype.kind not in ("iufU" if key == "material_names" else "iuf"):
                         raise MeshError(f"{path}: {key} must be a numeric array, not {dtype}")
                     if math.prod(shape) * dtype.itemsize > info.file_size:
