@@ -50,7 +50,7 @@ def score_views(mesh, model, tracer, views: int, size: int) -> dict:
     seams = seam_edges(mesh.vertices, mesh.faces, mesh.look.corner_uvs) if mesh.look.corner_uvs is not None \
         else np.zeros((0, 2, 3), np.float32)
     acc = {k: [] for k in ("slot_exact", "slot_model", "uv_exact", "uv_model", "away", "sampled", "flip", "mse")}
-    sampled = np.array([m.image is not None for m in mesh.look.materials], bool)
+    sampled = mesh.look.image_slots
     for cam in orbit_cameras(views):
         o, d = cam.rays(size, size)
         fh = tracer.first_hit(o, d)

@@ -52,7 +52,7 @@ def run_asset(name: str, seconds: float, device: str, batch: int) -> dict:
            "patch_right": round(float((chosen.cpu().numpy() == patch).mean()), 4)}
     if uv is not None:
         _, predicted = head.predict(points)
-        sampled = np.array([m.image is not None for m in mesh.look.materials])[head.patch_slot.cpu().numpy()[patch]]
+        sampled = mesh.look.image_slots[head.patch_slot.cpu().numpy()[patch]]
         away = seam_distance(p, seam_edges(mesh.vertices, mesh.faces, mesh.look.corner_uvs)) > 0.01
         texels = np.abs(predicted - uv).max(1)[away & sampled] * TEXELS
         row.update(uv_half_texel=round(float((texels < 0.5).mean()), 4),

@@ -41,6 +41,7 @@ class Material:
     image: np.ndarray | None = None
     source: bytes | None = field(default=None, repr=False, compare=False)
     _linear: np.ndarray | None = field(default=None, repr=False, compare=False)
+    _stored: bytes | None = field(default=None, repr=False, compare=False)
 
     def linear_image(self) -> np.ndarray | None:
         """(H, W, 3) float32 linear RGB of the image (decoded once), or None."""
@@ -49,6 +50,15 @@ class Material:
         if self._linear is None:
             self._linear = srgb_to_linear(self.image[..., :3].astype(np.float32) / 255.0)
         return self._linear
+
+    def stored_image(self) -> bytes | None:
+        """The bytes a file stores for the image (`encode_texture(image, source)`, encoded once: the estimate before
+        training, the alternative's look and the file's writer all read these), or None without an image."""
+        if self.image is None:
+            return None
+        if self._stored is None:
+            self._stored = encode_texture(self.image, self.source)
+        return self._stored
 
     def to_dict(self) -> dict:
         """The JSON part (the image travels separately)."""
@@ -72,6 +82,11 @@ class Look:
     def textured(self) -> bool:
         """True when some slot has an image and the faces have texture coordinates."""
         return self.corner_uvs is not None and any(m.image is not None for m in self.materials)
+
+    @property
+    def image_slots(self) -> np.ndarray:
+        """(S,) bool: which slots sample an image (the others are a flat colour and use no coordinates)."""
+        return np.array([m.image is not None for m in self.materials], bool)
 
     @property
     def plain(self) -> bool:
@@ -273,7 +288,7 @@ def uv_patches(vertices: np.ndarray, faces: np.ndarray, look: Look, tolerance: f
         slots = np.unique(look.face_slots)
         face_patch = np.searchsorted(slots, look.face_slots).astype(np.int32)
         return face_patch, np.zeros((len(slots), 2, PATCH_BASIS_SIZE[degree] + 1), np.float32), slots.astype(np.int32)
-    textured = np.array([m.image is not None for m in look.materials], bool)
+    textured = look.image_slots
     if not textured.any():
         return uv_patches(vertices, faces, replace(look, corner_uvs=None), tolerance, max_patches, degree)
     charts = np.where(textured[look.face_slots], uv_charts(faces, look.corner_uvs), -1)

@@ -280,15 +280,15 @@ def load_mesh(path: str | os.PathLike) -> Mesh:
     vertices, faces, look = _joined(parts)
     name = path.name.split(".")[0]
     if ext == ".obj" and path.suffix.lower() != ".gz":
-        _warn_unread_images(path, data, look)
+        _read_mtl_images(path, data, look)
     return mesh_from_arrays(vertices, faces, name=name, look=look)
 
 
-def _warn_unread_images(path: Path, data: bytes, look: Look) -> None:
-    """An OBJ's material whose MTL names an image (map_Kd) that could not be read - missing, outside the mesh's
-    folder, or not an image - loads with its base colour alone (the reader drops it silently): say so, one line per
-    material, as a MeshWarning. Nothing else is lost. An image that was read keeps its file's bytes as its source
-    (`Material.source`: the file stores them as they are when they are exact and smallest)."""
+def _read_mtl_images(path: Path, data: bytes, look: Look) -> None:
+    """The images an OBJ's MTL names (map_Kd), after the reader loaded them: one that was read keeps its file's
+    bytes as its source (`Material.source`: a file stores them as they are when they are exact and smallest); one
+    that could not be read - missing, outside the mesh's folder, or not an image - loads with its base colour alone
+    (the reader drops it silently): say so, one line per material, as a MeshWarning. Nothing else is lost."""
     resolver = _confined_resolver(path)
     named: dict[str, str] = {}
     for line in data.decode("utf-8", "replace").splitlines():

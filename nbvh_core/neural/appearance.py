@@ -184,7 +184,7 @@ def make_head(mesh: Mesh, base: AppearanceConfig | None = None) -> tuple[Appeara
         face_patch, affine, patch_slot = uv_patches(mesh.vertices, mesh.faces, look, cfg.patch_tolerance,
                                                     cfg.max_patches, cfg.patch_degree)
     cfg.slots, cfg.patches, cfg.uv = look.n_slots, len(affine), look.textured and cfg.target == "coordinates"
-    sampled = np.array([m.image is not None for m in look.materials], bool)[patch_slot]
+    sampled = look.image_slots[patch_slot]
     cfg.mapped_patches = int(sampled.sum()) if cfg.uv else 0
     assert sampled[:cfg.mapped_patches].all() or not cfg.uv, "uv_patches puts image slots' patches first"
     head = AppearanceHead(cfg)

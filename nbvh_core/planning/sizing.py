@@ -401,20 +401,17 @@ DECIMATE_REFINE = 3
 
 def look_carried_bytes(mesh: Mesh, n_vertices: int, n_triangles: int) -> int:
     """The bytes a mesh of `n_vertices` / `n_triangles` (the asset or a decimation of it) needs to carry the asset's
-    look, as a compact mesh would hold it: the same slot images the model stores (as `encode_texture` stores them),
+    look, as a compact mesh would hold it: the same slot images the model stores (`Material.stored_image`),
     16-bit texture coordinates per vertex when images are sampled, and a slot id per triangle (ceil(log2 slots)
     bits) when there are several slots. Counted, not written: the compact mesh this product writes is geometry only
     (Blender's Decimate modifier, which the add-on offers, keeps the object's UVs and slots). 0 for a bare shape."""
     look = mesh.look
     if look is None:
         return 0
-    textures = getattr(look, "_stored_texture_bytes", None)
-    if textures is None:  # encoding the images once per look
-        from ..neural.quantize import StorageConfig
-        from ..storage.fileformat import look_stored_bytes
+    from ..neural.quantize import StorageConfig
+    from ..storage.fileformat import look_stored_bytes
 
-        textures = look_stored_bytes(None, look.materials, StorageConfig()).get("textures", 0)
-        look._stored_texture_bytes = textures
+    textures = look_stored_bytes(None, look.materials, StorageConfig())["textures"]  # each image encoded once
     uv = 4 * n_vertices if look.textured else 0
     slots = math.ceil(n_triangles * math.ceil(math.log2(look.n_slots)) / 8) if look.n_slots > 1 else 0
     return int(textures + uv + slots)

@@ -52,8 +52,7 @@ from ..geometry.bvh import MAX_NODES, NODE_DTYPE
 from ..neural.encodings import ENCODINGS, EncodingConfig
 from ..neural.appearance import TARGETS, AppearanceConfig, AppearanceHead, head_table_bits, map_width
 from ..neural.encodings.base import code_width, level_vertex_counts
-from ..geometry.look import (MAX_SLOTS, MAX_TEXTURE_SIDE, LookError, Material, decode_texture, encode_texture,
-                             texture_format)
+from ..geometry.look import MAX_SLOTS, MAX_TEXTURE_SIDE, LookError, Material, decode_texture, texture_format
 from ..geometry.mesh import Transform
 from ..neural.model import ModelConfig, NeuralBVH
 from ..neural.networks import NETWORKS, NetworkConfig
@@ -163,8 +162,8 @@ def _tensors(model: NeuralBVH, storage: StorageConfig) -> list[tuple[str, str, b
 
 
 def _look_tensors(model: NeuralBVH, storage: StorageConfig) -> list[tuple[str, str, bytes, list[int]]]:
-    """The appearance head's table and network, then every slot image as PNG or JPEG bytes (`encode_texture`; file
-    format 2.3: a reader that knows PNG only refuses a JPEG texture in one line)."""
+    """The appearance head's table and network, then every slot image as PNG or JPEG bytes
+    (`Material.stored_image`; file format 2.3: a reader that knows PNG only refuses a JPEG texture in one line)."""
     out = []
     head = model.appearance
     if head is not None:
@@ -181,7 +180,7 @@ def _look_tensors(model: NeuralBVH, storage: StorageConfig) -> list[tuple[str, s
         out.append(("appearance.patch_slot", "appearance", patch_slot.tobytes(), list(patch_slot.shape)))
     for i, m in enumerate(model.materials):
         if m.image is not None:
-            data = encode_texture(m.image, m.source)
+            data = m.stored_image()
             out.append((f"texture.{i}", "textures", data, [len(data)]))
     return out
 
@@ -773,18 +772,20 @@ def read_info(path: str | os.PathLike) -> FileInfo:
     header = _parse(data, str(path))
     _decode(data, header, str(path))
     start = header["_payload_start"]
-    textures = {int(t["name"].split(".")[1]): {"format": texture_format(data[start + t["offset"]:][:8]),
-                                               "bytes": t["nbytes"]}
-                for t in header["tensors"] if t["name"].startswith("texture.")}
+    textures = {}
+    for t in header["tensors"]:
+        if t["name"].startswith("texture."):
+            at = start + t["offset"]  # the image's signature: its first 8 bytes, not a copy of the rest
+            textures[int(t["name"].split(".")[1])] = {"format": texture_format(data[at:at + 8]), "bytes": t["nbytes"]}
     return FileInfo(path=str(path), total_bytes=len(data), components=_components(header, len(data)), header=header,
                     stored_bytes=path.stat().st_size, textures=textures)
 
 
 def look_stored_bytes(cfg: AppearanceConfig | None, materials: list[Material], storage: StorageConfig) -> dict[str, int]:
     """What a file stores for an asset's look, exactly: {'appearance': the head's tensors (cfg None: no head),
-    'textures': each slot image as `encode_texture` stores it}, so a model is weighed as it ships before it is
+    'textures': each slot image as stored, `Material.stored_image`}, so a model is weighed as it ships before it is
     trained."""
-    stored = {f"texture.{i}": {"nbytes": len(encode_texture(m.image, m.source))} for i, m in enumerate(materials)
+    stored = {f"texture.{i}": {"nbytes": len(m.stored_image())} for i, m in enumerate(materials)
               if m.image is not None}
     look = (cfg, [m.to_dict() for m in materials])
     shapes = _look_expected(look, storage, stored, "look")
