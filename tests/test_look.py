@@ -235,6 +235,9 @@ def _patched(data: bytes, edit) -> bytes:
     (lambda h: h["appearance"]["config"].update(slots=7), "slots"),
     (lambda h: h["appearance"]["config"].update(patches=70000), "patches"),
     (lambda h: h["appearance"].pop("materials"), "exactly"),
+    (lambda h: h["appearance"]["config"].update(mapped_patches=10**6), "patches"),  # more maps than patches
+    (lambda h: h["appearance"]["config"].update(mapped_patches=True), "mapped_patches"),
+    (lambda h: h["appearance"]["config"].update(patch_degree=4), "patches"),
 ])
 def test_crafted_look_headers_are_refused_in_one_line(edit, match):
     _, r = _textured_model()
