@@ -11,22 +11,23 @@ import zlib
 
 import numpy as np
 
-from nbvh_core.storage.fileformat import _PREFIX, VERSION_MAJOR, VERSION_MINOR, NBVHFileError, decode_nbvh
+from nbvh_core.storage.fileformat import (_PREFIX, VERSION_MAJOR, VERSION_MINOR, NBVHFileError, decode_nbvh,
+                                         header_bytes, header_json)
 from nbvh_core.rendering.render import orbit_cameras, render_neural
 
 
 def split(data: bytes) -> tuple[dict, bytes]:
     """(header dict, payload bytes) of a file."""
-    _, _, _, hlen = _PREFIX.unpack_from(data, 0)
-    return json.loads(data[_PREFIX.size:_PREFIX.size + hlen]), data[_PREFIX.size + hlen:-4]
+    _, major, minor, hlen = _PREFIX.unpack_from(data, 0)
+    return (json.loads(header_json(data[_PREFIX.size:_PREFIX.size + hlen], (major, minor), "<split>")),
+            data[_PREFIX.size + hlen:-4])
 
 
 def craft(header, payload: bytes, major: int = 2, minor: int | None = None) -> bytes:
     """A file with this header (any JSON value) and payload, and a valid checksum; version major.minor (minor: the
     writer's own for major 2, else 0 - the tensor layout the payload came with)."""
     minor = (VERSION_MINOR if major == VERSION_MAJOR else 0) if minor is None else minor
-    hdr = json.dumps(header).encode()
-    hdr += b" " * ((-(_PREFIX.size + len(hdr))) % 8)
+    hdr = header_bytes(header, (major, minor))
     body = _PREFIX.pack(b"NBVH\x00\r\n\x1a", major, minor, len(hdr)) + hdr + payload
     return body + struct.pack("<I", zlib.crc32(body))
 

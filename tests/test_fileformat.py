@@ -203,3 +203,82 @@ def test_int8_network_file_loads_as_stored_and_renders_like_its_float16_twin(sam
                          evaluate_quality=False)
     assert next(res8.model.network.parameters()).dtype == torch.int8
     assert read_info(tmp_path / "p8.nbvh").components["network"] == n_w + 4 * n_out
+
+
+def test_four_bit_rows_hold_seven_codes_a_side_and_training_sees_them_as_the_file_will():
+    """network_bits 4: codes in [-7, 7], the largest weight of a row exact; the training's grid (torch) gives the
+    file's rows bit for bit (numpy); the straight-through step puts the float weights back."""
+    from nbvh_core.neural.quantize import dequantize_rows, quantize_rows
+    from nbvh_core.training.network_quantization import NetworkQuantization, rows_on_grid
+
+    w = np.random.default_rng(2).normal(size=(29, 41)).astype(np.float32) * np.linspace(0.01, 3, 29)[:, None]
+    w[3] = 0.0
+    codes, scale = quantize_rows(w, 4)
+    assert codes.min() >= -7 and codes.max() <= 7
+    assert (np.abs(codes).max(axis=1)[np.arange(29) != 3] == 7).all() and not codes[3].any()
+    back = dequantize_rows(codes, scale).astype(np.float32)
+    assert (np.abs(back - w) <= 0.5 * scale.astype(np.float32)[:, None] + 2e-3 * np.abs(w) + 1e-8).all()
+    assert np.array_equal(rows_on_grid(torch.from_numpy(w), 4).numpy(), back)
+
+    net = torch.nn.Sequential(torch.nn.Linear(41, 29), torch.nn.ReLU(), torch.nn.Linear(29, 5))
+    before = [m.weight.detach().clone() for m in net if isinstance(m, torch.nn.Linear)]
+    grid = NetworkQuantization(net, 4, start=0.75)
+    assert not grid.before_step(0.5)  # not yet due: untouched
+    assert grid.before_step(0.8)
+    for m, w0 in zip([m for m in net if isinstance(m, torch.nn.Linear)], before):
+        c, s = quantize_rows(w0.numpy(), 4)
+        assert np.array_equal(m.weight.detach().numpy(), dequantize_rows(c, s).astype(np.float32))
+    grid.after_backward()
+    assert all(torch.equal(m.weight, w0) for m, w0 in zip([m for m in net if isinstance(m, torch.nn.Linear)], before))
+    assert not NetworkQuantization(net, 8, start=0.0).before_step(1.0)  # 8 bits: rounded once, at the end
+
+
+def test_four_bit_network_file_packs_two_codes_a_byte_and_loads_as_trained(sample_meshes, tmp_path):
+    """A model trained with network_bits 4 (its end through the rows on the grid) is written with each layer's codes
+    two to a byte (the exact bytes `stored_bytes` predicts) and loads holding the same codes and scales, rendering
+    the same image as the in-memory model."""
+    s = preset("tiny").with_overrides(steps=40, force=True, encoding="hashgrid", network_bits=4, table_bits=8)
+    res = compress_mesh(sample_meshes["blob"], s, tmp_path / "w4.nbvh", evaluate_quality=False)
+    linears = [m for m in res.model.network.modules() if isinstance(m, torch.nn.Linear)]
+    packed = sum(-(-m.in_features * m.out_features // 2) for m in linears)
+    n_out = sum(m.out_features for m in linears)
+    info = read_info(tmp_path / "w4.nbvh")
+    assert info.components["network"] == packed + 4 * n_out == res.model.stored_bytes(s.storage())["network"]
+    loaded = load_nbvh(tmp_path / "w4.nbvh")
+    for (n, p), (_, q) in zip(res.model.network.state_dict().items(), loaded.network.state_dict().items()):
+        assert p.dtype == q.dtype and torch.equal(p, q), n
+    assert all(int(m.weight.abs().max()) <= 7 for m in linears)
+    cam = orbit_cameras(3)[1]
+    assert np.array_equal(render_neural(res.model, cam, 40, 40).image, render_neural(loaded, cam, 40, 40).image)
+
+
+def test_the_header_is_stored_compressed_and_a_crafted_one_is_refused_in_one_line(trained, tmp_path):
+    """Format 2.4 stores the header zlib-compressed (smaller than its JSON); a 2.3 file (plain JSON) still loads;
+    a header that is not zlib data, inflates past the reader's limit or has bytes after it is refused in one line."""
+    import json
+    import struct
+    import zlib
+
+    from fuzzing import craft, split
+    from nbvh_core.storage.fileformat import _PREFIX, MAX_HEADER_BYTES, decode_nbvh
+
+    path, _ = trained["hashgrid"]
+    data = path.read_bytes()
+    header, payload = split(data)
+    hlen = _PREFIX.unpack_from(data, 0)[3]
+    assert hlen < 0.6 * len(json.dumps(header, separators=(",", ":")))
+    old = decode_nbvh(craft(header, payload, minor=3))  # plain JSON, as 2.3 wrote it
+    assert old.n_nodes == load_nbvh(path).n_nodes
+
+    def with_raw_header(raw: bytes) -> bytes:
+        raw += b"\0" * ((-(_PREFIX.size + len(raw))) % 8)
+        body = _PREFIX.pack(MAGIC, 2, 4, len(raw)) + raw + payload
+        return body + struct.pack("<I", zlib.crc32(body))
+
+    bomb = zlib.compress(b"{" + b" " * (MAX_HEADER_BYTES + 10) + b"}", 9)
+    cases = {"not zlib": json.dumps(header).encode(), "inflate": bomb,
+             "after": zlib.compress(json.dumps(header).encode()) + b"\x01" * 3}
+    for why, raw in cases.items():
+        with pytest.raises(NBVHFileError) as err:
+            decode_nbvh(with_raw_header(raw), "crafted.nbvh")
+        assert "\n" not in str(err.value) and "crafted.nbvh" in str(err.value), why

@@ -511,8 +511,9 @@ def _add_compress_parser(sub) -> None:
     c.add_argument("--table-bits", type=int, choices=[32, 16, 8, 4],
                    help="bits per stored feature value (default 8: per level/feature affine codes; 4: half the table "
                         "bytes, the network adapts to the coarser grid at the end of training)")
-    c.add_argument("--network-bits", type=int, choices=[32, 16, 8],
-                   help="bits per stored network weight (8: int8 rows with a float16 scale each; default: the preset's)")
+    c.add_argument("--network-bits", type=int, choices=[32, 16, 8, 4],
+                   help="bits per stored network weight (8 or 4: signed codes with a float16 scale per row; 4 trains "
+                        "through its rows at the end; default: the preset's)")
     c.add_argument("--node-bits", type=int, choices=[32, 8],
                    help="bits per BVH box coordinate (default 8: relative to the parent box, conservative)")
     c.add_argument("--views", type=int, help="evaluation views (default from the preset)")

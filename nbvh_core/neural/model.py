@@ -266,16 +266,16 @@ class NeuralBVH(nn.Module):
         self.encoding.hold_as_stored(storage.table_bits)
         if storage.network_bits == 16:
             self.hold_network_half()
-        elif storage.network_bits == 8:
-            self.hold_network_int8()
+        elif storage.network_bits <= 8:
+            self.hold_network_int8(bits=storage.network_bits)
         if storage.node_bits == 8:
             self.hold_nodes_compact()
 
     @torch.no_grad()
-    def hold_network_int8(self, rows: dict | None = None) -> None:
-        """Keep each Linear's weight as int8 rows with float16 scales (`quantize.quantize_rows`; `rows`: state_dict
-        weight name -> (codes, scale) as a file stores them, default: quantized from the current weights) and the
-        biases in float16, as a file with network_bits 8 stores them. Inference only."""
+    def hold_network_int8(self, rows: dict | None = None, bits: int = 8) -> None:
+        """Keep each Linear's weight as int8 rows with float16 scales (`quantize.quantize_rows` at `bits`, 8 or 4;
+        `rows`: state_dict weight name -> (codes, scale) as a file stores them, default: quantized from the current
+        weights) and the biases in float16, as a file with network_bits 8 or 4 stores them. Inference only."""
         for name, m in self.network.named_modules():
             if not isinstance(m, nn.Linear):
                 continue
@@ -283,7 +283,7 @@ class NeuralBVH(nn.Module):
             if rows is not None:
                 codes, scale = rows[key]
             else:
-                codes, scale = quantize_rows(m.weight.detach().float().cpu().numpy())
+                codes, scale = quantize_rows(m.weight.detach().float().cpu().numpy(), bits)
             m.weight.requires_grad_(False)
             m.weight.data = torch.from_numpy(np.ascontiguousarray(codes, np.int8)).to(m.weight.device)
             m.register_buffer("weight_scale", torch.from_numpy(np.ascontiguousarray(scale, np.float16)).to(m.weight.device))
@@ -314,12 +314,12 @@ class NeuralBVH(nn.Module):
 
 
 def network_stored_bytes(network: nn.Module, bits: int) -> int:
-    """Bytes of a network's stored tensors at `bits` per weight: 32/16: every parameter at that width; 8: each
-    Linear's weight as int8 plus a float16 scale per row, biases float16."""
-    if bits != 8:
+    """Bytes of a network's stored tensors at `bits` per weight: 32/16: every parameter at that width; 8 or 4: each
+    Linear's weight as codes (4-bit codes two to a byte) plus a float16 scale per row, biases float16."""
+    if bits > 8:
         return sum(p.numel() for p in network.parameters()) * bits // 8
     total = 0
     for m in network.modules():
         if isinstance(m, nn.Linear):
-            total += m.in_features * m.out_features + 2 * m.out_features + 2 * m.out_features
+            total += -(-m.in_features * m.out_features * bits // 8) + 2 * m.out_features + 2 * m.out_features
     return total

@@ -17,9 +17,10 @@ boxes the file stores (no mismatch between training and the loaded model).
 directly (`kernels`: accumulate the 8 corners' codes, then one multiply-add per feature, exact because the
 trilinear weights sum to 1), so no float copy of the table is resident.
 
-**Network weights** (`network_bits=8`): each Linear layer's weight rows (one per output unit) as int8 codes with
-one float16 scale per row, symmetric (`w = code * scale`, scale = max |w| of the row / 127, so the largest weight
-is exact); biases float16. A weight's value is float16(code * scale) on every path (the reference and the fused
+**Network weights** (`network_bits=8` or 4): each Linear layer's weight rows (one per output unit) as signed codes
+with one float16 scale per row, symmetric (`w = code * scale`, scale = max |w| of the row / 127 at 8 bits, / 7 at 4
+bits, so the largest weight is exact); biases float16. 4-bit codes are stored two to a byte and held as int8 codes
+in [-7, 7]; training ends through them (`training.train.NetworkQuantization`: the straight-through estimator). A weight's value is float16(code * scale) on every path (the reference and the fused
 kernels agree bit for bit). Measured on the bunny (default preset, 60 s): image MSE 0.000840 with float16 weights,
 0.000847 with int8 rows (+0.9%; 6 bits: +9%), so no fine-tuning is needed for it.
 """
@@ -34,6 +35,8 @@ from ..geometry.bvh import NODE_DTYPE
 NONE16 = 65535
 #: Bits per stored feature value: float32, float16, or codes (8, 4) on a per (level, feature) affine grid.
 TABLE_BITS = (32, 16, 8, 4)
+#: Bits per stored network weight: float32, float16, or signed codes (8, 4) with a float16 scale per row.
+NETWORK_BITS = (32, 16, 8, 4)
 #: Below 8 bits a table's grid spans its rows between this percentile and its mirror per (level, feature): a few
 #: outlying rows would otherwise leave most rows two or three codes. Measured after a 60 s bunny training (default
 #: preset, 16 held-out views at 256 px): rounding to 4 bits over the full range read 4.9x the float model's MSE,
@@ -45,14 +48,14 @@ _Q = np.float32(255.0)
 @dataclass(frozen=True)
 class StorageConfig:
     """Bits per stored value: table_bits in TABLE_BITS (4 and 8: codes on a per level and feature affine grid,
-    4-bit codes packed two to a byte), network_bits in {32, 16, 8}, node_bits in {32, 8}."""
+    4-bit codes packed two to a byte), network_bits in NETWORK_BITS, node_bits in {32, 8}."""
 
     table_bits: int = 8
     network_bits: int = 16
     node_bits: int = 8
 
     def __post_init__(self):
-        for name, allowed in (("table_bits", TABLE_BITS), ("network_bits", (32, 16, 8)), ("node_bits", (32, 8))):
+        for name, allowed in (("table_bits", TABLE_BITS), ("network_bits", NETWORK_BITS), ("node_bits", (32, 8))):
             v = getattr(self, name)
             if not isinstance(v, int) or isinstance(v, bool) or v not in allowed:
                 raise ValueError(f"{name} must be one of {allowed}, got {v!r}")
@@ -202,14 +205,21 @@ def dequantize_table(codes: np.ndarray, offset: np.ndarray, scale: np.ndarray) -
 
 
 # ---------------------------------------------------------------------------------------------------- network
-def quantize_rows(weight: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(out, in) float weights -> (out, in) int8 codes and (out,) float16 scales (symmetric per row; a zero row
-    gets scale 1). The scale is rounded to float16 first and the codes computed against it, so the stored pair
-    is exactly what `dequantize_rows` reads."""
+def code_limit(bits: int) -> int:
+    """The largest signed code of a `bits`-bit weight row (127 at 8 bits, 7 at 4): codes lie in [-limit, limit]."""
+    return (1 << (bits - 1)) - 1
+
+
+def quantize_rows(weight: np.ndarray, bits: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """(out, in) float weights -> (out, in) int8 codes in [-code_limit(bits), code_limit(bits)] and (out,) float16
+    scales (symmetric per row; a zero row gets scale 1). The scale is rounded to float16 first and the codes computed
+    against it, so the stored pair is exactly what `dequantize_rows` reads."""
     w = np.asarray(weight, np.float32)
+    limit = code_limit(bits)
     amax = np.abs(w).max(axis=1) if w.size else np.zeros(w.shape[0], np.float32)
-    scale = np.where(amax > 0, amax / 127.0, 1.0).astype(np.float16)
-    codes = np.clip(np.rint(w / scale.astype(np.float32)[:, None]), -127, 127).astype(np.int8)
+    scale = np.where(amax > 0, amax / limit, 1.0).astype(np.float16)
+    scale = np.where(scale > 0, scale, np.float16(1.0)).astype(np.float16)  # a row too small for float16's range
+    codes = np.clip(np.rint(w / scale.astype(np.float32)[:, None]), -limit, limit).astype(np.int8)
     return codes, scale
 
 

@@ -7,8 +7,9 @@ Layout (little endian):
     8       2     format major version (this reader reads 1 and 2; writes 2)
     10      2     format minor version (additions a reader may ignore)
     12      4     header length H (bytes of UTF-8 JSON)
-    16      H     header JSON: model config, transform, storage (bits per component), the tensor table (name,
-                  component, shape, offset, nbytes) and free-form metadata (training, quality, source mesh)
+    16      H     header: JSON (format 2.4: zlib-compressed JSON, zero-padded), holding the model config, transform,
+                  storage (bits per component), the tensor table (name, component, shape, offset, nbytes) and
+                  free-form metadata (training, quality, source mesh)
     16+H    ...   payload: the tensors back to back in table order, each 8-byte aligned (zero padding)
     end-4   4     CRC-32 of every byte before it
 
@@ -20,7 +21,8 @@ Tensors of format 2 (`storage` in the header says which form each component take
 * `index` (HashVQAD only: codes of log2(t) bits, packed little-endian within each byte; format 2.2: the reachable
   entries of each level (`HashVQAD.reachable_entries`), level after level; before 2.2: all L x H entries).
 * the network's parameters in `state_dict` order (`network.NAME`, float32 or float16; 8 bits (format 2.1): each
-  Linear's `network.N.weight` as int8 rows and `network.N.weight_scale` (rows,) float16, biases float16).
+  Linear's `network.N.weight` as int8 rows and `network.N.weight_scale` (rows,) float16, biases float16; 4 bits
+  (format 2.4): the same with each code c stored as the nibble c + 8, packed two to a byte).
 Format 1 files (float32/float16 everywhere, `float_bytes` in the header) still load.
 
 The reader trusts nothing: `_check_header` validates every header field's type and range, derives the exact
@@ -60,13 +62,18 @@ from ..protocol.outputs import write_atomic  # noqa: F401  (re-exported: callers
 from ..neural.quantize import NONE16, StorageConfig, decode_nodes, encode_nodes, quantize_rows
 
 MAGIC = b"NBVH\x00\r\n\x1a"
+#: A 4-bit network weight code c in [-7, 7] is stored as the unsigned nibble c + 8.
+NETWORK_CODE_OFFSET4 = 8
 VERSION_MAJOR = 2
-VERSION_MINOR = 3  # 2.1: network_bits 8 (a 2.0 reader refuses such a file by its storage field); 2.2: HashVQAD's
+VERSION_MINOR = 4  # 2.1: network_bits 8 (a 2.0 reader refuses such a file by its storage field); 2.2: HashVQAD's
 #                    index holds its reachable entries only (a 2.1 reader refuses such a file by the index's shape);
 #                    2.3: the asset's look (header `appearance`, tensors appearance.* and texture.*; a 2.2 reader
-#                    refuses such a file by its tensors)
+#                    refuses such a file by its tensors); 2.4: the header zlib-compressed (4.8 KB of JSON in 1.7 KB
+#                    on the bunny's default model) and 4-bit network rows (a 2.3 reader refuses such a file: its
+#                    header is not JSON)
 REACHABLE_INDEX_SINCE = (2, 2)
 APPEARANCE_SINCE = (2, 3)
+COMPRESSED_HEADER_SINCE = (2, 4)
 #: A texture's decoded pixels may be at most this many times its stored bytes (a flat 4k image compresses ~1300x)
 #: or MIN_TEXTURE_ALLOWANCE, whichever is larger: a crafted tiny PNG cannot ask for gigabytes.
 TEXTURE_INFLATION = 4096
@@ -157,7 +164,9 @@ def _tensors(model: NeuralBVH, storage: StorageConfig) -> list[tuple[str, str, b
             full = enc.full_codes().cpu().numpy()
             out.append(("index", "index", pack_codes(full, enc.code_bits()), list(full.shape)))
     for name, arr in _network_arrays(model, storage.network_bits):
-        out.append((f"network.{name}", "network", arr.tobytes(), list(arr.shape)))
+        data = (pack_codes(arr.astype(np.int16) + NETWORK_CODE_OFFSET4, 4)
+                if storage.network_bits == 4 and arr.dtype == np.int8 else arr.tobytes())
+        out.append((f"network.{name}", "network", data, list(arr.shape)))
     return out + _look_tensors(model, storage)
 
 
@@ -213,11 +222,11 @@ def _table_tensors(enc, name: str, component: str, bits: int, how: str) -> list[
 
 
 def _network_arrays(model: NeuralBVH, bits: int) -> list[tuple[str, np.ndarray]]:
-    """The network's stored arrays in file order: every state_dict entry at `bits` (32/16), or at 8 bits each
-    weight as int8 rows followed by its float16 row scales (held ones as they are, else quantized now)."""
+    """The network's stored arrays in file order: every state_dict entry at `bits` (32/16), or at 8 or 4 bits each
+    weight as int8 codes followed by its float16 row scales (held ones as they are, else quantized now)."""
     from torch import nn
 
-    if bits != 8:
+    if bits > 8:
         fdt = _float_dtype(bits)
         return [(n, p.detach().cpu().numpy().astype(fdt)) for n, p in model.network.state_dict().items()
                 if not n.endswith(".weight_scale")]
@@ -228,7 +237,7 @@ def _network_arrays(model: NeuralBVH, bits: int) -> list[tuple[str, np.ndarray]]
         if m.weight.dtype == torch.int8:
             codes, scale = m.weight.cpu().numpy(), m.weight_scale.cpu().numpy()
         else:
-            codes, scale = quantize_rows(m.weight.detach().float().cpu().numpy())
+            codes, scale = quantize_rows(m.weight.detach().float().cpu().numpy(), bits)
         out += [(f"{name}.weight", codes.astype(np.int8)), (f"{name}.weight_scale", scale.astype(np.float16)),
                 (f"{name}.bias", m.bias.detach().cpu().numpy().astype(np.float16))]
     return out
@@ -247,8 +256,7 @@ def encode_nbvh(model: NeuralBVH, metadata: dict | None = None, storage: Storage
     look = _look_header(model)
     if look is not None:
         header["appearance"] = look
-    hdr = json.dumps(header, separators=(",", ":"), sort_keys=True, allow_nan=False).encode()
-    hdr += b" " * ((-(_PREFIX.size + len(hdr))) % _ALIGN)  # align the payload
+    hdr = header_bytes(header)
     parts = [_PREFIX.pack(MAGIC, VERSION_MAJOR, VERSION_MINOR, len(hdr)), hdr]
     for _, _, data, _ in tensors:
         parts += [data, b"\0" * ((-len(data)) % _ALIGN)]
@@ -369,8 +377,8 @@ def _expected_tensors(cfg: ModelConfig, storage: StorageConfig, n_nodes: int,
         out["index"] = (shape, f"packed{code_width(enc.candidates)}")
     fdt = "<f4" if storage.network_bits == 32 else "<f2"
     for name, shape in _network_shapes(cfg).items():
-        if storage.network_bits == 8 and name.endswith("weight") and len(shape) == 2:
-            out[f"network.{name}"] = (shape, "i1")
+        if storage.network_bits <= 8 and name.endswith("weight") and len(shape) == 2:
+            out[f"network.{name}"] = (shape, "i1" if storage.network_bits == 8 else "packed4")
             out[f"network.{name}_scale"] = ((shape[0],), "<f2")
         else:
             out[f"network.{name}"] = (shape, fdt)
@@ -395,6 +403,35 @@ def _nbytes(shape: tuple, kind: str) -> int:
     return count * np.dtype(kind).itemsize
 
 
+def header_bytes(header: dict, version: tuple[int, int] | None = None) -> bytes:
+    """A header as a file of `version` (default: the writer's) stores it: JSON, zlib-compressed from 2.4 on, padded
+    so the payload that follows starts 8-byte aligned (zeros after compressed bytes, spaces after plain JSON)."""
+    version = version or (VERSION_MAJOR, VERSION_MINOR)
+    text = json.dumps(header, separators=(",", ":"), sort_keys=True, allow_nan=False).encode()
+    if version >= COMPRESSED_HEADER_SINCE:
+        text = zlib.compress(text, 9)
+        return text + b"\0" * ((-(_PREFIX.size + len(text))) % _ALIGN)
+    return text + b" " * ((-(_PREFIX.size + len(text))) % _ALIGN)
+
+
+def header_json(raw: bytes, version: tuple[int, int], where: str) -> bytes:
+    """The JSON text of a stored header (inverse of `header_bytes`): a compressed one is inflated to at most
+    MAX_HEADER_BYTES, and nothing but its alignment padding may follow it. Raises NBVHFileError (one line)."""
+    if version < COMPRESSED_HEADER_SINCE:
+        return raw
+    inflate = zlib.decompressobj()
+    try:
+        text = inflate.decompress(raw, MAX_HEADER_BYTES)
+    except zlib.error as exc:
+        raise NBVHFileError(f"{where}: unreadable header (not zlib data: {str(exc)[:60]})") from None
+    if not inflate.eof:
+        raise NBVHFileError(f"{where}: header does not inflate within {MAX_HEADER_BYTES} bytes (truncated or too "
+                            "large)")
+    if len(inflate.unused_data) >= _ALIGN or inflate.unused_data.strip(b"\0"):
+        raise NBVHFileError(f"{where}: bytes after the compressed header")
+    return text
+
+
 def _parse(data: bytes, where: str) -> dict:
     """Prefix, checksum, header JSON and the tensor table, all validated; nothing allocated beyond the header."""
     if len(data) < _PREFIX.size + 4:
@@ -411,7 +448,7 @@ def _parse(data: bytes, where: str) -> dict:
     if hlen > min(MAX_HEADER_BYTES, len(data) - _PREFIX.size - 4):
         raise NBVHFileError(f"{where}: header length {hlen} does not fit the file ({len(data)} bytes)")
     try:
-        header = json.loads(bytes(data[_PREFIX.size:_PREFIX.size + hlen]))
+        header = json.loads(header_json(bytes(data[_PREFIX.size:_PREFIX.size + hlen]), (major, minor), where))
     except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
         raise NBVHFileError(f"{where}: unreadable header: {str(exc)[:80]}") from None
     if not isinstance(header, dict):
@@ -705,7 +742,7 @@ def _load_network(model: NeuralBVH, bits: int, array, names: list[str]) -> None:
     """Fill the model's network from the file's arrays and hold it as stored (float16, or int8 rows + scales)."""
     from ..neural.quantize import dequantize_rows
 
-    if bits != 8:
+    if bits > 8:
         model.network.load_state_dict({n[len("network."):]: torch.from_numpy(array(n).astype(np.float32))
                                        for n in names})
         if bits == 16:
@@ -718,6 +755,8 @@ def _load_network(model: NeuralBVH, bits: int, array, names: list[str]) -> None:
             continue
         if f"{n}_scale" in names:
             codes, scale = array(n), array(f"{n}_scale")
+            if bits == 4:  # stored offset by 8 (0..15); code -8 is never written, and reads as itself
+                codes = (codes.astype(np.int16) - NETWORK_CODE_OFFSET4).astype(np.int8)
             if not np.isfinite(scale.astype(np.float32)).all():
                 raise NBVHFileError(f"network scales must be finite ({n})")
             rows[key] = (codes, scale)
@@ -725,7 +764,7 @@ def _load_network(model: NeuralBVH, bits: int, array, names: list[str]) -> None:
         else:
             state[key] = torch.from_numpy(array(n).astype(np.float32))
     model.network.load_state_dict(state)
-    model.hold_network_int8(rows)
+    model.hold_network_int8(rows, bits)
 
 
 def _check_nodes_links(nodes: np.ndarray, where: str) -> None:

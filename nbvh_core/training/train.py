@@ -37,6 +37,7 @@ from ..protocol import events as wire
 from ..geometry.exact import ExactTracer
 from ..neural.model import NeuralBVH
 from ..protocol.process import Cancelled, TrainingDiverged
+from .network_quantization import NetworkQuantization
 from .rays import RayConfig, TrainingSamples, label_samples, sample_rays
 
 
@@ -103,6 +104,9 @@ class TrainConfig:
     # the quantized rows; the affine map is kept (`encoding.qat_affine`) so the file's codes reproduce them exactly.
     table_bits: int | None = None
     qat_fraction: float = 0.05
+    #: Below 8 bits the network's weights train through their rows on the grid for the same share of the budget as a
+    #: low-bit table (`network_quantization.NetworkQuantization`); None or 8 and above: rounded once, at the end.
+    network_bits: int | None = None
     # With a `target_reached` callback (a requested quality), it is asked every this many seconds once 10% of the
     # budget has passed; True ends training there (no more than the asset needs). HashVQAD stops only after its freeze.
     target_check_every_s: float = 20.0
@@ -602,6 +606,8 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
                             ck.get("qat_affine"))
     checkpoints, early = Checkpoints(checkpoint_path, cfg, checkpoint_extra, elapsed_before), EarlyStop(target_reached, cfg, elapsed_before)
     train_step = make_step(model, device, plan)
+    network_grid = NetworkQuantization(model.network, cfg.network_bits, 1.0 - max(cfg.qat_fraction,
+                                                                                 LOW_BITS_QAT_FRACTION))
     events(wire.phase(phase="train", message=f"{model.cfg.encoding.kind}+{model.cfg.network.kind}, "
                                                            f"{cfg.labels} labels, {plan.describe()}"))
 
@@ -620,6 +626,7 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
                 checkpoints.save(state())
                 raise Cancelled(f"cancelled at step {step}")
             phase = phases.before_step(frac)
+            network_grid.before_step(frac)
             schedule.set_lr(opt, frac)
             batch = batches.next()
             opt.zero_grad(set_to_none=True)
@@ -629,6 +636,7 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
                     parts["raw"].cpu(), batch.hit, batch.local_t, batch.normal))
             guard.observe(step, loss)
             phases.after_backward()
+            network_grid.after_backward()
             opt.step()
             step += 1
             if cut is not None:
