@@ -17,7 +17,7 @@ import argparse
 import json
 import time
 
-from bench_meshes import MADE, bench_mesh
+from bench_meshes import named_mesh
 from harness import RESULTS, SMOKE, append_rows, markdown_table, product_scorer, read_rows, save_figure, write_markdown
 from nbvh_core.app.pipeline import compress_mesh, preset
 
@@ -37,19 +37,8 @@ def parse_variant(text: str) -> tuple[str, dict]:
     return label, overrides
 
 
-def load(name: str):
-    from nbvh_core.geometry.bundled_samples import SAMPLE_NAMES
-
-    if name in MADE or name in SAMPLE_NAMES:
-        return bench_mesh(name)
-    from nbvh_core.geometry.mesh import load_mesh
-    from real_assets import asset_path
-
-    return load_mesh(asset_path(name))
-
-
 def measure(name: str, seconds: float, label: str, overrides: dict) -> dict:
-    mesh = load(name)
+    mesh = named_mesh(name)
     t0 = time.perf_counter()
     smoke = dict(eval_views=1, eval_resolution=32) if SMOKE else {}  # a smoke run checks the script, not numbers
     s = preset("default").with_overrides(force=True, time_limit_s=seconds, **smoke, **overrides)
@@ -95,10 +84,11 @@ def chart(rows: list[dict]) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(7.0, 4.8))
-    for i, mesh in enumerate(sorted({r["mesh"] for r in rows})):
-        mine = [r for r in rows if r["mesh"] == mesh]
+    groups = sorted({(r["mesh"], float(r["train_s"])) for r in rows})
+    for i, (mesh, seconds) in enumerate(groups):  # a frontier per mesh and budget
+        mine = [r for r in rows if r["mesh"] == mesh and float(r["train_s"]) == seconds]
         pts = [(int(r["file_bytes"]), float(r["mse"])) for r in mine]
-        ax.plot(*zip(*pareto(pts)), "-", color=f"C{i}", alpha=0.6, label=f"{mesh} frontier")
+        ax.plot(*zip(*pareto(pts)), "-", color=f"C{i}", alpha=0.6, label=f"{mesh}, {seconds:g} s: frontier")
         for r, (b, m) in zip(mine, pts):
             ax.plot(b, m, "o", color=f"C{i}", ms=4)
             ax.annotate(r["variant"], (b, m), fontsize=6, xytext=(3, 2), textcoords="offset points")

@@ -148,3 +148,13 @@ if __name__ == "__main__":
     for name in BENCH_MESHES:
         m = bench_mesh(name)
         print(f"{name}: {m.n_triangles:,} triangles, {m.n_vertices:,} vertices")
+
+
+def named_mesh(name: str) -> Mesh:
+    """A bench mesh, or a real asset of `real_assets.REAL_ASSETS` (fetched when missing), by name."""
+    if name in MADE or name in SAMPLE_NAMES:
+        return bench_mesh(name)
+    from nbvh_core.geometry.mesh import load_mesh
+    from real_assets import asset_path
+
+    return load_mesh(asset_path(name))

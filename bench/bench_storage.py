@@ -7,7 +7,7 @@ decoded and a BVH built before tracing). One metric for all: `harness.product_sc
         [--table-bits 8|4]
 
 The decimation: quadric (fast-simplification), bisected on the triangle count until its decoded compact mesh
-reaches the model's MSE. Resumable: one row per (mesh, preset, seconds, table bits) in bench/results/storage.csv; storage.md and
+reaches the model's MSE. Resumable: one row per (mesh, preset, seconds, table bits, the preset's model shape) in bench/results/storage.csv; storage.md and
 the chart storage.png are rewritten after every row. Train on an otherwise idle CPU (the budget is wall-clock).
 """
 from __future__ import annotations
@@ -17,7 +17,7 @@ import lzma
 import math
 import time
 
-from bench_meshes import bench_mesh
+from bench_meshes import named_mesh
 from harness import RESULTS, append_rows, markdown_table, product_scorer, read_rows, save_figure, write_markdown
 from nbvh_core.app.pipeline import compress_mesh, preset
 from nbvh_core.geometry.compact_mesh import compact_mesh, encode_compact
@@ -56,7 +56,7 @@ def equal_mse_decimation(mesh, scorer, target: float) -> tuple:
 def measure(name: str, preset_name: str, seconds: float, table_bits: int) -> dict:
     import DracoPy
 
-    mesh = bench_mesh(name)
+    mesh = named_mesh(name)
     t0 = time.perf_counter()
     s = preset(preset_name).with_overrides(force=True, time_limit_s=seconds, table_bits=table_bits)
     res = compress_mesh(mesh, s, None)
@@ -69,7 +69,7 @@ def measure(name: str, preset_name: str, seconds: float, table_bits: int) -> dic
         return len(DracoPy.encode(m.vertices, m.faces, quantization_bits=11, compression_level=7))
 
     return {"mesh": name, "triangles": mesh.n_triangles, "preset": preset_name, "train_s": seconds,
-            "table_bits": table_bits,
+            "table_bits": table_bits, "shape": shape_of(preset_name),
             "model_mse": round(res.quality.mse, 7), "model_bytes": len(res.data), "model_packed_bytes": len(pack(res.data)),
             "decimation_triangles": dec.n_triangles, "decimation_compact_mse": round(dec_mse, 7),
             "decimation_compact_bytes": len(compact), "decimation_compact_xz_bytes": xz(compact),
@@ -78,13 +78,24 @@ def measure(name: str, preset_name: str, seconds: float, table_bits: int) -> dic
             "seconds": round(time.perf_counter() - t0, 1)}
 
 
+def shape_of(preset_name: str) -> str:
+    """The model's shape a preset trains: levels x features, hidden layers."""
+    s = preset(preset_name)
+    return f"{s.levels}x{s.features}, {s.hidden} hidden"
+
+
+def _shape(row: dict) -> str:
+    """A row's model shape (rows measured before the column existed: the presets' 4 x 8, 4 hidden)."""
+    return row.get("shape") or "4x8, 4 hidden"
+
+
 def _bits(row: dict) -> int:
     """A row's bits per feature value (rows measured before the option existed: 8)."""
     return int(row.get("table_bits") or 8)
 
 
 def report(rows: list[dict]) -> None:
-    table = [[r["mesh"], f"{int(r['triangles']):,}", f"{r['preset']}, {_bits(r)}-bit table", f"{float(r['model_mse']):.5f}",
+    table = [[r["mesh"], f"{int(r['triangles']):,}", f"{r['preset']}, {_shape(r)}, {_bits(r)}-bit table", f"{float(r['model_mse']):.5f}",
               f"{int(r['model_bytes']):,}", f"{int(r['model_packed_bytes']):,}",
               f"{int(r['decimation_triangles']):,}", f"{int(r['decimation_compact_bytes']):,}",
               f"{int(r['decimation_compact_xz_bytes']):,}", f"{int(r['decimation_draco11_bytes']):,}",
@@ -115,7 +126,7 @@ def chart(rows: list[dict]) -> None:
     x = np.arange(len(rows))
     for i, (key, label, colour) in enumerate(keys):
         ax.bar(x + (i - 2) * 0.16, [int(r[key]) for r in rows], 0.16, label=label, color=colour)
-    ax.set_xticks(x, [f"{r['mesh']} {_bits(r)}-bit\nMSE {float(r['model_mse']):.5f}" for r in rows], fontsize=8)
+    ax.set_xticks(x, [f"{r['mesh']} {_shape(r).split(',')[0]} {_bits(r)}-bit\nMSE {float(r['model_mse']):.5f}" for r in rows], fontsize=8)
     ax.set_yscale("log")
     ax.set_ylabel("bytes at the model's MSE")
     ax.set_title("Storage at equal image MSE (16 held-out views, 256 px)", fontsize=10)
@@ -132,9 +143,9 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=200.0)
     ap.add_argument("--table-bits", type=int, default=8, choices=[8, 4])
     args = ap.parse_args()
-    done = {(r["mesh"], r["preset"], float(r["train_s"]), _bits(r)) for r in read_rows(OUT)}
+    done = {(r["mesh"], r["preset"], float(r["train_s"]), _bits(r), _shape(r)) for r in read_rows(OUT)}
     for name in args.meshes:
-        if (name, args.preset, args.seconds, args.table_bits) in done:
+        if (name, args.preset, args.seconds, args.table_bits, shape_of(args.preset)) in done:
             continue
         row = measure(name, args.preset, args.seconds, args.table_bits)
         append_rows(OUT, [row])
