@@ -334,6 +334,9 @@ class EncodingPhases:
         self._float_rows = None  # below 8 bits, during a step: the float rows the grid's rows stand in for
         if self.qat_on:  # resumed inside the quantization-aware phase
             model.encoding.qat_affine = qat_affine
+        #: Below 8 bits the network's weights train through their rows too (from the low-bit table's start).
+        self.network_grid = NetworkQuantization(model.network, cfg.network_bits,
+                                                1.0 - max(cfg.qat_fraction, LOW_BITS_QAT_FRACTION))
 
     def before_step(self, fraction: float) -> str:
         enc, cfg = self.model.encoding, self.cfg
@@ -351,6 +354,7 @@ class EncodingPhases:
             self.events(wire.phase(phase="quantize",
                                    message=f"feature table on its {cfg.table_bits}-bit grid; the network adapts to it"
                                    + ("" if not low_bits else ", the rows train through it")))
+        self.network_grid.before_step(fraction)
         if self.qat_on and low_bits:  # straight through: this step sees the rows on the grid
             table = enc.table
             self._float_rows = table.detach().clone()
@@ -358,6 +362,7 @@ class EncodingPhases:
         return self.phase
 
     def after_backward(self) -> None:
+        self.network_grid.after_backward()
         if not self.qat_on:
             return
         if self._float_rows is not None:  # the gradient at the grid's rows updates the float rows under them
@@ -606,8 +611,6 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
                             ck.get("qat_affine"))
     checkpoints, early = Checkpoints(checkpoint_path, cfg, checkpoint_extra, elapsed_before), EarlyStop(target_reached, cfg, elapsed_before)
     train_step = make_step(model, device, plan)
-    network_grid = NetworkQuantization(model.network, cfg.network_bits, 1.0 - max(cfg.qat_fraction,
-                                                                                 LOW_BITS_QAT_FRACTION))
     events(wire.phase(phase="train", message=f"{model.cfg.encoding.kind}+{model.cfg.network.kind}, "
                                                            f"{cfg.labels} labels, {plan.describe()}"))
 
@@ -626,7 +629,6 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
                 checkpoints.save(state())
                 raise Cancelled(f"cancelled at step {step}")
             phase = phases.before_step(frac)
-            network_grid.before_step(frac)
             schedule.set_lr(opt, frac)
             batch = batches.next()
             opt.zero_grad(set_to_none=True)
@@ -636,7 +638,6 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
                     parts["raw"].cpu(), batch.hit, batch.local_t, batch.normal))
             guard.observe(step, loss)
             phases.after_backward()
-            network_grid.after_backward()
             opt.step()
             step += 1
             if cut is not None:
