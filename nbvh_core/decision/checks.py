@@ -16,7 +16,8 @@ from .records import CheckDecision
 EARLY_STOP_MARGIN = 0.9
 #: A table grows only while at least this share of the budget is left: a table grown later trains too briefly to beat
 #: the one it replaces. Measured on the bunny (target 0.0004, 200 s, 6x4 features): grown 2^11 -> 2^12 at 53 s and
-#: -> 2^13 at 154 s, it ended at MSE 0.00043 in 237,116 B; a fixed 2^12 trained the whole 200 s reads 0.00035.
+#: -> 2^13 at 154 s, it ended at MSE 0.00043 in 237,116 B; a fixed 2^12 trained the whole 200 s read 0.00037 in
+#: 137,916 B (bench/results/storage.md).
 GROW_MIN_REMAINING = 0.4
 
 
