@@ -18,7 +18,8 @@ import json
 import time
 
 from bench_meshes import named_mesh
-from harness import RESULTS, SMOKE, append_rows, markdown_table, product_scorer, read_rows, save_figure, write_markdown
+from harness import (RESULTS, SMOKE, append_rows, markdown_table, product_scorer, read_rows,
+                     save_bytes_mse_chart, write_markdown)
 from nbvh_core.app.pipeline import compress_mesh, preset
 
 OUT = RESULTS / "frontier.csv"
@@ -92,15 +93,7 @@ def chart(rows: list[dict]) -> None:
         for r, (b, m) in zip(mine, pts):
             ax.plot(b, m, "o", color=f"C{i}", ms=4)
             ax.annotate(r["variant"], (b, m), fontsize=6, xytext=(3, 2), textcoords="offset points")
-    ax.set_xscale("log")
-    ax.set_yscale("log")
-    ax.set_xlabel("file bytes")
-    ax.set_ylabel("image MSE (16 held-out views, 256 px)")
-    ax.set_title("Model variants: bytes against error", fontsize=10)
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=7)
-    fig.tight_layout()
-    save_figure(fig, RESULTS / "frontier.png")
+    save_bytes_mse_chart(fig, ax, "Model variants: bytes against error", RESULTS / "frontier.png")
 
 
 def main() -> None:

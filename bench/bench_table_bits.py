@@ -15,7 +15,8 @@ import argparse
 import time
 
 from bench_meshes import bench_mesh
-from harness import RESULTS, append_rows, markdown_table, product_scorer, read_rows, save_figure, write_markdown
+from harness import (RESULTS, append_rows, markdown_table, product_scorer, read_rows,
+                     save_bytes_mse_chart, write_markdown)
 from nbvh_core.app.pipeline import compress_mesh, preset
 
 OUT = RESULTS / "table_bits.csv"
@@ -59,15 +60,7 @@ def chart(rows: list[dict]) -> None:
                          if r["mesh"] == mesh and str(r["table_bits"]) == bits)
             if pts:
                 ax.plot(*zip(*pts), style, color=f"C{i}", label=f"{mesh}, {bits}-bit table")
-    ax.set_xscale("log")
-    ax.set_yscale("log")
-    ax.set_xlabel("file bytes")
-    ax.set_ylabel("image MSE (16 held-out views, 256 px)")
-    ax.set_title("Feature bits against table size at equal bytes", fontsize=10)
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=7)
-    fig.tight_layout()
-    save_figure(fig, RESULTS / "table_bits.png")
+    save_bytes_mse_chart(fig, ax, "Feature bits against table size at equal bytes", RESULTS / "table_bits.png")
 
 
 def main() -> None:
