@@ -158,7 +158,7 @@ def write_report(report: dict, out_dir: str | Path, stem: str = "nbvh_report") -
     split_html = ""
     if split:
         lines = "".join(f"<tr><td>{html.escape(o['name'])}</td><td>{o['triangles']:,}</td><td>{o['weight']:.2f}</td>"
-                        + ("<td colspan=3>nothing: its mesh is smaller than any model</td></tr>" if o.get("excluded")
+                        + ("<td colspan=3>nothing: its mesh is no larger than its model</td></tr>" if o.get("excluded")
                            or o["log2_table"] is None else
                            f"<td>2^{o['log2_table']}</td><td>{_kb(o['bytes'])}</td><td>{o['predicted_mse']:.4g}</td></tr>")
                         for o in split["objects"])

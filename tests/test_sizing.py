@@ -127,6 +127,27 @@ def test_scene_budget_is_shared_by_need():
         split_budget(2, 1.5 * size(0, 5), choose, size)
 
 
+def test_a_mesh_no_larger_than_the_model_its_share_buys_gets_nothing(sample_meshes):
+    """The split weighs each object's mesh against the model its share buys, not against the smallest model: a small
+    mesh above the smallest model but below its share is kept as a mesh, and its bytes go to the others."""
+    from nbvh_core.planning.sizing import mesh_bytes, split_scene
+
+    fit = SizeFit(method="default", train_s=15.0, coef=[-1.0, -0.6, 0.3, 2.0, 6.0, 0.1], residual_std=0.2)
+    blob, small = sample_meshes["blob"], icosphere(3)
+    held = mesh_bytes(small, "plain")
+    size = lambda i, l2: int(0.5 * held) + (1 << l2) * 16  # noqa: E731  (the smallest model: about half the mesh)
+    assert size(0, 5) < held < mesh_bytes(blob, "plain")
+    budget = 2 * size(0, 12)
+    plan = split_scene([blob, small], budget, fit, size, layout="plain")
+    assert plan["excluded"] == [1] and plan["bytes"][1] == 0 and plan["log2"][1] is None
+    assert size(1, plan["declined_log2"][1]) >= held  # its job is sized at the share it turned down
+    alone = split_scene([blob], budget, fit, size, layout="plain")
+    assert plan["bytes"][0] == alone["bytes"][0] > held  # the whole budget is the blob's
+    # A budget too small to buy the small mesh more than its own bytes keeps both shares.
+    tight = split_scene([blob, small], 2 * size(0, LOG2_RANGE[0]) + 64, fit, size, layout="plain")
+    assert tight["excluded"] == [] and tight["bytes"][1] < held
+
+
 def _line_fit(slope_per_doubling: float = -0.3):
     """A fit whose predicted log MSE is -5 + slope x (log2 T - 8) for every mesh (no mesh features)."""
     return SizeFit(method="default", train_s=15.0, coef=[-5.0 - 8 * slope_per_doubling, slope_per_doubling],
@@ -188,12 +209,16 @@ def test_cli_quality_level_and_plan(tmp_path, capsys):
     summary = json.loads((tmp_path / "blob.report.json").read_text())
     assert summary["settings"]["target_mse"] == QUALITY_LEVELS["preview"] and summary["target_met"] is not None
     capsys.readouterr()
-    rc = cli_main(["plan", "blob", "studs", "--budget-kb", "1200", "--json"])
+    rc = cli_main(["plan", "blob", "studs", "--budget-kb", "1200", "--mesh-layout", "plain", "--json"])
     assert rc == 0
     plan = json.loads(capsys.readouterr().out)
     assert plan["total"] <= 1200 * 1024 and len(plan["objects"]) == 2
     by = {o["mesh"]: o for o in plan["objects"]}
     assert by["studs"]["log2_table"] >= by["blob"]["log2_table"]
+    # As a compact mesh the smooth blob is smaller than the model its share would buy: it is kept as a mesh.
+    assert cli_main(["plan", "blob", "studs", "--budget-kb", "1200", "--json"]) == 0
+    by = {o["mesh"]: o for o in json.loads(capsys.readouterr().out)["objects"]}
+    assert by["blob"]["excluded"] and by["blob"]["bytes"] == 0 and not by["studs"]["excluded"]
 
 
 def test_table_and_node_choice_is_the_smallest_file_meeting_the_target():
@@ -227,11 +252,11 @@ def test_cli_plan_and_the_jobs_share_one_scene_plan(tmp_path, capsys, sample_mes
         paths.append(str(tmp_path / f"{n}.npz"))
         np.savez(paths[-1], vertices=m.vertices, faces=m.faces)
     capsys.readouterr()
-    assert cli_main(["plan", *names, "--budget-kb", "900", "--json"]) == 0
+    assert cli_main(["plan", *names, "--budget-kb", "900", "--mesh-layout", "plain", "--json"]) == 0
     cli_plan = {o["mesh"]: o["log2_table"] for o in json.loads(capsys.readouterr().out)["objects"]}
     for i, n in enumerate(names):
         scene = {"budget_kb": 900, "meshes": paths, "names": names, "index": i}
-        settings, split = _scene_share(scene, preset("default"), lambda e: None)
+        settings, split = _scene_share(scene, preset("default").with_overrides(mesh_layout="plain"), lambda e: None)
         assert settings.log2_table == cli_plan[n] == split["objects"][i]["log2_table"]
         assert settings.encoding == "hashgrid" and settings.budget_kb is None and settings.target_mse is None
 

@@ -397,7 +397,8 @@ def cmd_plan(args: argparse.Namespace) -> int:
     from ..planning.sizing import plan_scene
 
     meshes = [_load_mesh_reporting(m) for m in args.meshes]
-    plan = plan_scene(meshes, args.budget_kb * 1024, preset(args.preset), args.weights)
+    plan = plan_scene(meshes, args.budget_kb * 1024, preset(args.preset).with_overrides(mesh_layout=args.mesh_layout),
+                      args.weights)
     rows = [{"mesh": r["name"], **{k: v for k, v in r.items() if k != "name"}} for r in plan["objects"]]
     for r in rows:
         r["predicted_mse"] = None if r["predicted_mse"] is None else round(r["predicted_mse"], 6)
@@ -410,7 +411,7 @@ def cmd_plan(args: argparse.Namespace) -> int:
           f"(each mesh aims at level / weight), total {plan['total'] / 1024:.0f} KB")
     for r in rows:
         if r["excluded"]:
-            print(f"  {r['mesh']}: {r['triangles']:,} triangles -> nothing: its mesh is smaller than any model "
+            print(f"  {r['mesh']}: {r['triangles']:,} triangles -> nothing: its mesh is no larger than its model "
                   f"(keep the mesh)")
             continue
         print(f"  {r['mesh']}: {r['triangles']:,} triangles, weight {r['weight']:g} -> T=2^{r['log2_table']}, "
@@ -578,6 +579,9 @@ def _add_plan_parser(sub) -> None:
     pl.add_argument("--weights", type=float, nargs="+", help="per mesh, e.g. its share of the screen (default 1)")
     pl.add_argument("--preset", default="default", choices=list(PRESETS),
                     help="the settings each object's model is sized with (its T comes from the split)")
+    pl.add_argument("--mesh-layout", choices=["compact", "plain"], default="compact",
+                    help="how a mesh kept as a mesh is held: an object whose mesh is no larger than its share's "
+                         "model gets nothing")
     pl.add_argument("--json", action="store_true")
     pl.set_defaults(func=cmd_plan)
 

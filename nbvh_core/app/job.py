@@ -163,8 +163,9 @@ def _run_locked(request, events, should_cancel, mesh, settings, scene_split, fil
 def _scene_share(scene: dict, settings, events):
     """This object's share of a scene budget: {"budget_kb", "meshes": [npz paths, all objects, in order], "names",
     "weights", "index"}. Every job computes the same plan (sizing.plan_scene, deterministic) and takes entry
-    `index`; returns (settings with that size, the split for the report). An object the split excludes (never worth
-    compressing) keeps the smallest size: its verdict then ends its job before training."""
+    `index`; returns (settings with that size, the split for the report). An object the split excludes (its mesh no
+    larger than the model its share buys) is sized at the share it turned down: its verdict then ends its job
+    before training."""
     import dataclasses
 
     from ..geometry.mesh_arrays import read_mesh_arrays
@@ -182,9 +183,9 @@ def _scene_share(scene: dict, settings, events):
              "objects": plan["objects"]}
     base = plan["base"]
     if i in plan["excluded"]:
-        events(wire.phase(phase="plan", message="scene budget: this object gets nothing (its mesh is smaller than "
-                                                "any model)"))
-        return dataclasses.replace(base, log2_table=5), split
+        events(wire.phase(phase="plan", message="scene budget: this object gets nothing (its mesh is no larger than "
+                                                "its model)"))
+        return dataclasses.replace(base, log2_table=plan["declined_log2"][i]), split
     shared = len(meshes) - len(plan["excluded"])
     kb = plan["bytes"][i] / 1024
     events(wire.phase(phase="plan", message=f"scene budget {scene['budget_kb']:g} KB shared by need over {shared} "

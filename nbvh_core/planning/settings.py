@@ -229,18 +229,17 @@ PRESETS: dict[str, Settings] = {
     # 0.92x, 0.91x), near on the gyroid (1.06x; lower at equal bytes), higher on the knot (1.13x) and the terrain
     # (1.31x, where the wider features win at equal bytes); at 200 s on the bunny 6x4 with 4 hidden layers read
     # 0.000347 in 146,668 B against 0.000365 in 183,596 B. Fewer features (2) lost on the bunny (1.6x the MSE), and
-    # 4-bit network rows cost 20-39% MSE for 8% of the bytes (kept as an option). The presets keep 4 x 8 with 4
-    # hidden layers for now: with 6 x 4 the Blender scene-budget test gave the blob no bytes in its split (both
-    # Blender versions); until that is understood, the smaller shape is a Settings override (levels, features, hidden).
+    # 4-bit network rows cost 20-39% MSE for 8% of the bytes (kept as an option). So the presets hold 6 x 4 with 2
+    # hidden layers.
     # The grid's finest resolution follows the mesh and the table (n_max None: `sizing.choose_resolution`): at
     # T=2^12 and equal steps N_max 64 beat the paper's 128 on the bunny, blob and gyroid (13-32% lower MSE) and tied
     # on the studs (bench/bench_resolution.py).
-    "preview": Settings(encoding="hashgrid", network="mlp", nodes=1023, log2_table=11, features=8, network_bits=8,
-                        n_max=None, time_limit_s=60.0, eval_views=8),
-    "default": Settings(encoding="hashgrid", network="mlp", log2_table=12, features=8, network_bits=8,
-                        n_max=None, time_limit_s=200.0),
-    "high": Settings(encoding="hashgrid", network="mlp", nodes=4095, log2_table=13, features=8, network_bits=8,
-                     n_max=None, time_limit_s=600.0),
+    "preview": Settings(encoding="hashgrid", network="mlp", nodes=1023, log2_table=11, levels=6, features=4,
+                        hidden=2, network_bits=8, n_max=None, time_limit_s=60.0, eval_views=8),
+    "default": Settings(encoding="hashgrid", network="mlp", log2_table=12, levels=6, features=4, hidden=2,
+                        network_bits=8, n_max=None, time_limit_s=200.0),
+    "high": Settings(encoding="hashgrid", network="mlp", nodes=4095, log2_table=13, levels=6, features=4, hidden=2,
+                     network_bits=8, n_max=None, time_limit_s=600.0),
     # The paper's method steps (same size knobs as `default`), for ablations.
     "base": Settings(encoding="hashgrid", network="mlp", labels="ownership", log2_table=11),
     "I": Settings(encoding="hashgrid", network="kmlp", labels="ownership", log2_table=11),

@@ -572,27 +572,42 @@ def mesh_bytes(mesh: Mesh, layout: str) -> int:
 
 def split_scene(meshes: list[Mesh], budget_bytes: float, fit: SizeFit, bytes_for_log2,
                 weights: list[float] | None = None, layout: str = "compact") -> dict:
-    """The one scene-budget split (CLI `plan`, the add-on's jobs): objects whose mesh held in `layout`
-    (MESH_LAYOUTS) is no larger than their smallest model can never be worth compressing; they get nothing (log2
-    None, 0 bytes) and the budget is shared by need among the others (`split_budget`). Returns split_budget's dict
-    over all meshes, in order, plus 'excluded': [indices] and 'features'."""
+    """The one scene-budget split (CLI `plan`, the add-on's jobs): an object whose mesh held in `layout`
+    (MESH_LAYOUTS) is no larger than the model its share would buy is not worth compressing: it gets nothing (log2
+    None, 0 bytes) and the budget is shared by need among the others (`split_budget`), again until no share buys a
+    model larger than its mesh (a share grows as others drop out). Returns split_budget's dict over all meshes, in
+    order, plus 'excluded': [indices], 'declined_log2': per mesh, the table size of the share an excluded object
+    turned down (5, the smallest, when its mesh is below every model; None for the others) and 'features'."""
     feats = [mesh_features(m) for m in meshes]
     weights = [1.0] * len(meshes) if weights is None else list(weights)
+    held = [mesh_bytes(m, layout) for m in meshes]
     smallest = bytes_for_log2(0, 5)
-    keep = [i for i, m in enumerate(meshes) if mesh_bytes(m, layout) > smallest]
+    keep = [i for i in range(len(meshes)) if held[i] > smallest]
+    declined = [None if i in keep else 5 for i in range(len(meshes))]
     out = {"level": None, "log2": [None] * len(meshes), "bytes": [0] * len(meshes),
            "predicted_mse": [None] * len(meshes), "total": 0, "weights": weights, "budget": budget_bytes}
-    if keep:
-        def choose(j: int, level: float) -> tuple[int, float]:
+    plan = None
+    while keep:
+        def choose(j: int, level: float, keep=keep) -> tuple[int, float]:
             return choose_size(fit, feats[keep[j]], level)[:2]
 
-        plan = split_budget(len(keep), budget_bytes, choose, lambda j, l2: bytes_for_log2(keep[j], l2),
+        plan = split_budget(len(keep), budget_bytes, choose, lambda j, l2, keep=keep: bytes_for_log2(keep[j], l2),
                             [weights[i] for i in keep])
+        # The exact mesh at no more bytes than its model always wins: the comparison is on the share actually given.
+        worth = [i for j, i in enumerate(keep) if held[i] > plan["bytes"][j]]
+        for j, i in enumerate(keep):
+            if i not in worth:
+                declined[i] = plan["log2"][j]
+        if len(worth) == len(keep):
+            break
+        keep, plan = worth, None
+    if plan is not None:
         for j, i in enumerate(keep):
             out["log2"][i], out["bytes"][i], out["predicted_mse"][i] = (plan["log2"][j], plan["bytes"][j],
                                                                         plan["predicted_mse"][j])
         out["level"], out["total"] = plan["level"], plan["total"]
     out["excluded"] = [i for i in range(len(meshes)) if i not in keep]
+    out["declined_log2"] = declined
     out["features"] = feats
     return out
 
