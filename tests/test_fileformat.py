@@ -46,7 +46,8 @@ def test_file_size_equals_component_bytes(trained, enc):
     info = read_info(path)
     assert info.total_bytes == path.stat().st_size == sum(info.components.values()) == res.file_bytes
     sizes = res.model.stored_bytes(res.settings.storage())
-    assert info.components["bvh"] == sizes["bvh"] == 24 + len(res.model.nodes) * 10  # 8-bit boxes, 16-bit links
+    n = len(res.model.nodes)
+    assert info.components["bvh"] == sizes["bvh"] == 24 + 6 * n + (n + 7) // 8  # 8-bit boxes, 1 bit of shape a node
     assert info.components["features"] == sizes["features"]
     assert info.components["network"] == sizes["network"]
     if enc == "hashvqad":
@@ -252,7 +253,7 @@ def test_four_bit_network_file_packs_two_codes_a_byte_and_loads_as_trained(sampl
     assert np.array_equal(render_neural(res.model, cam, 40, 40).image, render_neural(loaded, cam, 40, 40).image)
 
 
-def test_the_header_is_stored_compressed_and_a_crafted_one_is_refused_in_one_line(trained, tmp_path):
+def test_the_header_is_stored_compressed_and_a_crafted_one_is_refused_in_one_line(trained, tmp_path, monkeypatch):
     """Format 2.4 stores the header zlib-compressed (smaller than its JSON); a 2.3 file (plain JSON) still loads;
     a header that is not zlib data, inflates past the reader's limit or has bytes after it is refused in one line."""
     import json
@@ -267,7 +268,13 @@ def test_the_header_is_stored_compressed_and_a_crafted_one_is_refused_in_one_lin
     header, payload = split(data)
     hlen = _PREFIX.unpack_from(data, 0)[3]
     assert hlen < 0.6 * len(json.dumps(header, separators=(",", ":")))
-    old = decode_nbvh(craft(header, payload, minor=3))  # plain JSON, as 2.3 wrote it
+    import nbvh_core.storage.fileformat as fileformat
+
+    path_24, res = tmp_path / "as_2_4.nbvh", trained["hashgrid"][1]
+    monkeypatch.setattr(fileformat, "VERSION_MINOR", 4)  # links and leaf ordinals, as 2.3 and 2.4 wrote them
+    save_nbvh(res.model, path_24, storage=res.settings.storage())
+    monkeypatch.undo()
+    old = decode_nbvh(craft(*split(path_24.read_bytes()), minor=3))  # plain JSON, as 2.3 wrote it
     assert old.n_nodes == load_nbvh(path).n_nodes
 
     def with_raw_header(raw: bytes) -> bytes:
@@ -282,3 +289,46 @@ def test_the_header_is_stored_compressed_and_a_crafted_one_is_refused_in_one_lin
         with pytest.raises(NBVHFileError) as err:
             decode_nbvh(with_raw_header(raw), "crafted.nbvh")
         assert "\n" not in str(err.value) and "crafted.nbvh" in str(err.value), why
+
+
+def test_the_bvh_shape_is_one_bit_a_node_and_any_other_layout_keeps_its_links(sample_meshes, trained, tmp_path):
+    """Format 2.5: a tree laid out as `layout_cut` lays it out (breadth first, padding node at 1 when the count is
+    even) is stored as one bit per node and loads with the same links and leaf ordinals; a tree numbered otherwise
+    keeps its links; shape bits that make no tree are refused in one line."""
+    from fuzzing import craft, split
+    from nbvh_core.geometry.bvh import build_bvh
+    from nbvh_core.neural.quantize import links_from_shape, shape_bits
+    from nbvh_core.storage.fileformat import decode_nbvh
+
+    for budget in (1, 2, 15, 64, 511):  # odd, padded (even), a single leaf
+        nodes = build_bvh(sample_meshes["blob"], budget).nodes
+        bits = shape_bits(nodes["left"], nodes["leaf"])
+        assert bits is not None and len(bits) == len(nodes)
+        left, leaf = links_from_shape(bits)
+        assert np.array_equal(left, nodes["left"]) and np.array_equal(leaf, nodes["leaf"])
+    path, res = trained["hashgrid"]
+    header, payload = split(path.read_bytes())
+    names = {t["name"]: t for t in header["tensors"]}
+    assert "bvh.shape" in names and "bvh.left" not in names and names["bvh.shape"]["nbytes"] == (63 + 7) // 8
+    loaded = load_nbvh(path)
+    assert np.array_equal(loaded.nodes["left"], res.model.nodes["left"])
+    assert np.array_equal(loaded.nodes["leaf"], res.model.nodes["leaf"])
+    # Leaf ordinals numbered backwards: a valid tree, not the builder's layout: stored with its links, read back.
+    model = load_nbvh(path)
+    nodes = model.nodes.copy()
+    is_leaf = nodes["leaf"] >= 0
+    nodes["leaf"][is_leaf] = is_leaf.sum() - 1 - nodes["leaf"][is_leaf]
+    model.set_nodes(nodes)
+    assert shape_bits(nodes["left"], nodes["leaf"]) is None and not model.shape_only()
+    other = tmp_path / "reordered.nbvh"
+    save_nbvh(model, other, storage=res.settings.storage())
+    assert {"bvh.left", "bvh.leaf"} <= {t["name"] for t in split(other.read_bytes())[0]["tensors"]}
+    assert np.array_equal(load_nbvh(other).nodes["leaf"], nodes["leaf"])
+    assert read_info(other).components["bvh"] == model.stored_bytes(res.settings.storage())["bvh"]
+    # The root marked a leaf: too few internal nodes for the node count.
+    at = names["bvh.shape"]["offset"]
+    broken = bytearray(payload)
+    broken[at] &= 0xFE
+    with pytest.raises(NBVHFileError, match="shape bits are not a tree") as err:
+        decode_nbvh(craft(header, bytes(broken)), "crafted.nbvh")
+    assert "\n" not in str(err.value) and "crafted.nbvh" in str(err.value)

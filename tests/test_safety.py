@@ -109,8 +109,21 @@ def test_failed_or_cancelled_rerun_keeps_the_previous_result(tmp_path, sample_me
 
 
 # ------------------------------------------------------------------------------ 3-5. crafted files are refused
+def with_links(path: Path) -> bytes:
+    """The model file as format 2.4 wrote it: the BVH's links and leaf ordinals (2.5 stores the builder's layout as
+    shape bits, which hold no link to break)."""
+    import nbvh_core.storage.fileformat as fileformat
+
+    model, minor = load_nbvh(path), fileformat.VERSION_MINOR
+    fileformat.VERSION_MINOR = 4
+    try:
+        return fileformat.encode_nbvh(model, {}, model.storage)
+    finally:
+        fileformat.VERSION_MINOR = minor
+
+
 def test_bvh_cycle_is_refused(model_file):
-    header, payload = split(model_file.read_bytes())
+    header, payload = split(with_links(model_file))
     t = tensor(header, "bvh.left")
     left = np.frombuffer(payload[t["offset"]:t["offset"] + t["nbytes"]], "<u2").copy()
     internal = np.nonzero(left)[0]
@@ -134,7 +147,7 @@ def test_a_config_the_model_does_not_know_is_the_readers_refusal(model_file):
 
 
 @pytest.mark.parametrize("case", ["child_1e8", "negative_offset", "log2_table_15", "log2_table_20", "header_list",
-                                  "string_offset", "string_quality", "leaf_out_of_range", "nan_box",
+                                  "string_offset", "string_quality", "leaf_out_of_range", "shape_not_a_tree", "nan_box",
                                   "unknown_normal_loss"])
 def test_crafted_headers_and_nodes_refused_by_the_cli(model_file, tmp_path, case, capsys):
     header, payload = split(model_file.read_bytes())
@@ -158,10 +171,14 @@ def test_crafted_headers_and_nodes_refused_by_the_cli(model_file, tmp_path, case
     elif case == "string_quality":
         header["metadata"]["quality"] = {"mse": "good", "silhouette_iou": 1.0}
     elif case == "leaf_out_of_range":
+        header, payload = split(with_links(model_file))
         t = tensor(header, "bvh.leaf")
         leaf = np.frombuffer(payload[t["offset"]:t["offset"] + t["nbytes"]], "<u2").copy()
         leaf[np.nonzero(leaf != 65535)[0][0]] = 60000
         payload = patch_payload(payload, t["offset"], leaf.tobytes())
+    elif case == "shape_not_a_tree":  # every node marked internal
+        t = tensor(header, "bvh.shape")
+        payload = patch_payload(payload, t["offset"], b"\xff" * t["nbytes"])
     elif case == "unknown_normal_loss":  # found by bench/fuzz_reader.py: a ValueError escaped the reader
         header["config"]["network"]["normal_loss"] = "x"
     elif case == "nan_box":

@@ -20,7 +20,7 @@ from ..geometry.traversal import CompactBVH, LeafStream, TorchBVH
 from . import fused_mlp as mlp
 from .encodings import EncodingConfig, make_encoding
 from .networks import NetworkConfig, make_network
-from .quantize import StorageConfig, decode_nodes, encode_nodes, quantize_rows, stored_node_bytes
+from .quantize import StorageConfig, decode_nodes, encode_nodes, quantize_rows, shape_bits, stored_node_bytes
 
 
 @dataclass
@@ -226,15 +226,25 @@ class NeuralBVH(nn.Module):
         """Bytes of the stored tensors by component (no header) at `storage` (default float32 everywhere): bvh,
         features, [index], network."""
         st = storage or StorageConfig.float32()
-        out = {"bvh": stored_node_bytes(self.n_nodes, st.node_bits)}
+        out = {"bvh": stored_node_bytes(self.n_nodes, st.node_bits, self.shape_only())}
         out.update(self.encoding.stored_bytes(st.table_bits))
         out["network"] = network_stored_bytes(self.network, st.network_bits)
         return out
 
+    def shape_only(self) -> bool:
+        """Whether a file holds this tree's shape as one bit per node (`quantize.shape_bits`: the layout
+        `bvh.layout_cut` makes) rather than links and leaf ordinals. Nodes not built yet (all zero: a shapes-only
+        model sizing a file) count as laid out by `layout_cut`, which builds every trained tree."""
+        c = self.compact_nodes
+        left, leaf = (c["left"], c["leaf"]) if c is not None else (self._nodes["left"], self._nodes["leaf"])
+        if len(left) > 1 and not np.asarray(left).any():
+            return True
+        return shape_bits(left, leaf) is not None
+
     def resident_bytes(self) -> dict[str, int]:
-        """Bytes this model holds to answer rays, by component: the nodes as held (the file's 8-bit format, 10 B
-        each, after `hold_nodes_compact`; else the decoded 32-byte records, which the fused traversal reads in
-        place: `traversal.TorchBVH` is a view of them on the CPU), the
+        """Bytes this model holds to answer rays, by component: the nodes as held (the 8-bit boxes with links and
+        leaf ordinals, 10 B each, after `hold_nodes_compact`; else the decoded 32-byte records, which the fused
+        traversal reads in place: `traversal.TorchBVH` is a view of them on the CPU), the
         feature rows as held (uint8 codes + affine, or floats), HashVQAD's codes (one byte each), the network's
         weights as held (float16 after `finalize_storage` at 16 bits, or when loaded from such a file; the fused
         kernels read them without a float32 copy), and for an asset with a look the appearance head as held and the
@@ -242,7 +252,7 @@ class NeuralBVH(nn.Module):
         enc = self.encoding
         rows = (enc.qcodes.numel() + 4 * (enc.qoffset.numel() + enc.qscale.numel()) if enc.quantized
                 else enc.table.numel() * enc.table.element_size())
-        bvh = (stored_node_bytes(self.n_nodes, 8) if self.compact_nodes is not None
+        bvh = (stored_node_bytes(self.n_nodes, 8, shape_only=False) if self.compact_nodes is not None
                else self.n_nodes * NODE_DTYPE.itemsize)
         out = {"bvh": bvh, "features": int(rows)}
         if enc.learned_index and enc.frozen:

@@ -160,10 +160,56 @@ def decode_nodes(root: np.ndarray, boxes: np.ndarray, left: np.ndarray, leaf: np
     return nodes
 
 
-def stored_node_bytes(n_nodes: int, node_bits: int) -> int:
+def stored_node_bytes(n_nodes: int, node_bits: int, shape_only: bool = True) -> int:
     """Bytes a file spends on n_nodes BVH nodes: 32 each as float32 records, else the exact root (6 float32) and
-    per node 6 uint8 box codes + uint16 link + uint16 leaf ordinal (`encode_nodes`)."""
-    return n_nodes * NODE_DTYPE.itemsize if node_bits == 32 else 6 * 4 + n_nodes * (6 + 2 + 2)
+    per node 6 uint8 box codes (`encode_nodes`) plus the tree's shape: one bit per node when the nodes are laid
+    out as `bvh.layout_cut` lays them (`shape_bits`; shape_only), else a uint16 link and a uint16 leaf ordinal."""
+    if node_bits == 32:
+        return n_nodes * NODE_DTYPE.itemsize
+    return 6 * 4 + n_nodes * 6 + ((n_nodes + 7) // 8 if shape_only else n_nodes * 4)
+
+
+def shape_bits(left: np.ndarray, leaf: np.ndarray) -> np.ndarray | None:
+    """(M,) uint8 0/1: 1 where node i is internal, or None when the links and leaf ordinals are not the ones
+    `links_from_shape` derives from those bits (a tree not laid out breadth first with sibling pairs in order,
+    the padding node at 1 when M is even, leaves numbered in node order): then a file keeps the links."""
+    left, leaf = np.asarray(left, np.int64), np.asarray(leaf, np.int64)
+    bits = (left != 0).astype(np.uint8)
+    if len(left) % 2 == 0 and len(left) > 1:
+        bits[1] = 0
+    try:
+        d_left, d_leaf = links_from_shape(bits)
+    except ValueError:
+        return None
+    leaf = np.where(leaf == NONE16, -1, leaf)
+    return bits if np.array_equal(d_left, left) and np.array_equal(d_leaf, leaf) else None
+
+
+def links_from_shape(bits: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(M,) 0/1 internal flags -> (left (M,) int64, leaf (M,) int64; -1 for internal nodes and the padding node),
+    as `bvh.layout_cut` lays a tree out: root 0, the padding node 1 when M is even (a binary tree has an odd node
+    count), then each internal node's two children at the next free pair in node order, leaves numbered in node
+    order. Raises ValueError when the bits are not such a tree (the count of internal nodes, a child before its
+    parent)."""
+    bits = np.asarray(bits).astype(bool)
+    m = len(bits)
+    padded = m % 2 == 0 and m > 1
+    real = np.ones(m, bool)
+    if padded:
+        if bits[1]:
+            raise ValueError("the padding node cannot be internal")
+        real[1] = False
+    n_real = m - int(padded)
+    if m == 0 or int(bits.sum()) != (n_real - 1) // 2:
+        raise ValueError(f"{int(bits.sum())} internal nodes cannot make a binary tree of {n_real} nodes")
+    first_child = 2 if padded else 1
+    before = np.cumsum(bits) - bits  # internal nodes before each node
+    left = np.where(bits, first_child + 2 * before, 0).astype(np.int64)
+    is_leaf = real & ~bits
+    leaf = np.where(is_leaf, np.cumsum(is_leaf) - 1, -1).astype(np.int64)
+    if (bits & (left <= np.arange(m))).any():
+        raise ValueError("a child comes before its parent")
+    return left, leaf
 
 
 def snap_nodes(nodes: np.ndarray) -> np.ndarray:

@@ -15,7 +15,9 @@ Layout (little endian):
 
 Tensors of format 2 (`storage` in the header says which form each component takes, see `quantize.py`):
 * bvh, 32-bit nodes: `bvh` (M x 32-byte nodes, the bytes `bvh.NODE_DTYPE` describes); 8-bit nodes: `bvh.root`
-  (6 float32), `bvh.boxes` (M x 6 uint8, relative to the parent's decoded box), `bvh.left`, `bvh.leaf` (M uint16).
+  (6 float32), `bvh.boxes` (M x 6 uint8, relative to the parent's decoded box) and the tree's shape: `bvh.shape`
+  (format 2.5: M bits, 1 for an internal node, when the tree is laid out as `bvh.layout_cut` lays it out: links and
+  leaf ordinals follow from the bits, `quantize.links_from_shape`), else `bvh.left`, `bvh.leaf` (M uint16).
 * features (L x T x F): float32 or float16 `features`; 8 bits: `features` uint8 codes + `features.offset`,
   `features.scale` (L x F float32).
 * `index` (HashVQAD only: codes of log2(t) bits, packed little-endian within each byte; format 2.2: the reachable
@@ -59,21 +61,24 @@ from ..geometry.mesh import Transform
 from ..neural.model import ModelConfig, NeuralBVH
 from ..neural.networks import NETWORKS, NetworkConfig
 from ..protocol.outputs import write_atomic  # noqa: F401  (re-exported: callers write files through it)
-from ..neural.quantize import NONE16, StorageConfig, decode_nodes, encode_nodes, quantize_rows
+from ..neural.quantize import (NONE16, StorageConfig, decode_nodes, encode_nodes, links_from_shape, quantize_rows,
+                               shape_bits)
 
 MAGIC = b"NBVH\x00\r\n\x1a"
 #: A 4-bit network weight code c in [-7, 7] is stored as the unsigned nibble c + 8.
 NETWORK_CODE_OFFSET4 = 8
 VERSION_MAJOR = 2
-VERSION_MINOR = 4  # 2.1: network_bits 8 (a 2.0 reader refuses such a file by its storage field); 2.2: HashVQAD's
+VERSION_MINOR = 5  # 2.1: network_bits 8 (a 2.0 reader refuses such a file by its storage field); 2.2: HashVQAD's
 #                    index holds its reachable entries only (a 2.1 reader refuses such a file by the index's shape);
 #                    2.3: the asset's look (header `appearance`, tensors appearance.* and texture.*; a 2.2 reader
 #                    refuses such a file by its tensors); 2.4: the header zlib-compressed (4.8 KB of JSON in 1.7 KB
 #                    on the bunny's default model) and 4-bit network rows (a 2.3 reader refuses such a file: its
-#                    header is not JSON)
+#                    header is not JSON); 2.5: the BVH's shape as one bit per node (`bvh.shape`; a 2.4 reader
+#                    refuses such a file by its tensors)
 REACHABLE_INDEX_SINCE = (2, 2)
 APPEARANCE_SINCE = (2, 3)
 COMPRESSED_HEADER_SINCE = (2, 4)
+SHAPE_BITS_SINCE = (2, 5)
 #: A texture's decoded pixels may be at most this many times its stored bytes (a flat 4k image compresses ~1300x)
 #: or MIN_TEXTURE_ALLOWANCE, whichever is larger: a crafted tiny PNG cannot ask for gigabytes.
 TEXTURE_INFLATION = 4096
@@ -151,9 +156,15 @@ def _tensors(model: NeuralBVH, storage: StorageConfig) -> list[tuple[str, str, b
     if packed is None:
         out.append(("bvh", "bvh", nodes.tobytes(), [len(nodes)]))
     else:
-        for part in ("root", "boxes", "left", "leaf"):
-            arr = packed[part]
-            out.append((f"bvh.{part}", "bvh", arr.tobytes(), list(arr.shape)))
+        shape = (shape_bits(packed["left"], packed["leaf"]) if (VERSION_MAJOR, VERSION_MINOR) >= SHAPE_BITS_SINCE
+                 else None)
+        for part in ("root", "boxes"):
+            out.append((f"bvh.{part}", "bvh", packed[part].tobytes(), list(packed[part].shape)))
+        if shape is not None:  # 1 bit a node in place of 4 bytes of links (the bunny's 2,047 nodes: 8.2 KB -> 256 B)
+            out.append(("bvh.shape", "bvh", pack_codes(shape, 1), [len(shape)]))
+        else:
+            out += [(f"bvh.{part}", "bvh", packed[part].tobytes(), list(packed[part].shape))
+                    for part in ("left", "leaf")]
     out += _table_tensors(enc, "features", "features", storage.table_bits, "model.finalize_storage")
     if enc.learned_index:
         if not enc.frozen:
@@ -359,15 +370,19 @@ def _network_shapes(cfg: ModelConfig) -> dict[str, tuple[int, ...]]:
 
 
 def _expected_tensors(cfg: ModelConfig, storage: StorageConfig, n_nodes: int,
-                      version: tuple[int, int] = (VERSION_MAJOR, VERSION_MINOR)) -> dict[str, tuple[tuple, str]]:
+                      version: tuple[int, int] = (VERSION_MAJOR, VERSION_MINOR),
+                      shape_only: bool = False) -> dict[str, tuple[tuple, str]]:
     """name -> (shape, numpy dtype or 'packed<bits>') of every tensor a file of this format version and config
-    must hold."""
+    must hold (shape_only: its 8-bit BVH holds the tree's shape as bits, from format 2.5 on)."""
     enc = cfg.encoding
     L, T, F = enc.levels, enc.table_size, enc.features
     out: dict[str, tuple[tuple, str]] = {}
     if storage.node_bits == 8:
-        out.update({"bvh.root": ((6,), "<f4"), "bvh.boxes": ((n_nodes, 6), "u1"), "bvh.left": ((n_nodes,), "<u2"),
-                    "bvh.leaf": ((n_nodes,), "<u2")})
+        out.update({"bvh.root": ((6,), "<f4"), "bvh.boxes": ((n_nodes, 6), "u1")})
+        if shape_only and version >= SHAPE_BITS_SINCE:
+            out["bvh.shape"] = ((n_nodes,), "packed1")
+        else:
+            out.update({"bvh.left": ((n_nodes,), "<u2"), "bvh.leaf": ((n_nodes,), "<u2")})
     else:
         out["bvh"] = ((n_nodes,), "node")
     out.update(_table_shapes("features", L, T, F, storage.table_bits))
@@ -495,10 +510,11 @@ def _check_header(header: dict, payload: int, where: str) -> None:
         if t["name"] in by_name:
             raise NBVHFileError(f"{where}: tensor {t['name'][:40]!r} appears twice")
         by_name[t["name"]] = t
-    node_tensor = by_name.get("bvh" if storage.node_bits == 32 else "bvh.left")
-    if node_tensor is None or len(node_tensor["shape"]) != 1 or not 1 <= node_tensor["shape"][0] <= MAX_NODES:
+    node_tensor = by_name.get("bvh" if storage.node_bits == 32 else "bvh.boxes")
+    if node_tensor is None or not node_tensor["shape"] or not 1 <= node_tensor["shape"][0] <= MAX_NODES:
         raise NBVHFileError(f"{where}: the BVH tensor is missing or its node count is not in [1, {MAX_NODES}]")
-    expected = _expected_tensors(cfg, storage, node_tensor["shape"][0], (header["_major"], header["_minor"]))
+    expected = _expected_tensors(cfg, storage, node_tensor["shape"][0], (header["_major"], header["_minor"]),
+                                 shape_only="bvh.shape" in by_name)
     look = _look_spec(header, where)
     expected.update(_look_expected(look, storage, by_name, where))
     if set(expected) != set(by_name):
@@ -655,7 +671,15 @@ def _decode(data: bytes, header: dict, where: str, device: str | torch.device = 
         return _finite(np.frombuffer(raw, kind).reshape(shape).copy(), name, where)
 
     if storage.node_bits == 8:
-        root, left, leaf = array("bvh.root"), array("bvh.left"), array("bvh.leaf")
+        root = array("bvh.root")
+        if "bvh.shape" in expected:
+            try:
+                left, leaf = links_from_shape(array("bvh.shape"))
+            except ValueError as exc:
+                raise NBVHFileError(f"{where}: the BVH's shape bits are not a tree ({exc})") from None
+            left, leaf = left.astype(np.uint16), np.where(leaf < 0, NONE16, leaf).astype(np.uint16)
+        else:
+            left, leaf = array("bvh.left"), array("bvh.leaf")
         pre = np.zeros(len(left), NODE_DTYPE)
         pre["left"], pre["leaf"] = left, np.where(leaf == NONE16, -1, leaf.astype(np.int64))
         pre["lo"], pre["hi"] = root[:3], root[3:]  # structure check first (decode walks the links)
