@@ -7,7 +7,8 @@ decoded and a BVH built before tracing). One metric for all: `harness.product_sc
         [--table-bits 8|4]
 
 The decimation: quadric (fast-simplification), bisected on the triangle count until its decoded compact mesh
-reaches the model's MSE. Resumable: one row per (mesh, preset, seconds, table bits, the preset's model shape) in bench/results/storage.csv; storage.md and
+reaches the model's MSE. Resumable: one row per (mesh, preset, seconds, table bits, the preset's model shape, the file format) in
+bench/results/storage.csv; storage.md and
 the chart storage.png are rewritten after every row. Train on an otherwise idle CPU (the budget is wall-clock).
 """
 from __future__ import annotations
@@ -22,6 +23,7 @@ from harness import RESULTS, append_rows, markdown_table, product_scorer, read_r
 from nbvh_core.app.pipeline import compress_mesh, preset
 from nbvh_core.geometry.compact_mesh import compact_mesh, encode_compact
 from nbvh_core.planning.sizing import decimate
+from nbvh_core.storage import fileformat
 from nbvh_core.storage.packed import pack
 
 OUT = RESULTS / "storage.csv"
@@ -69,7 +71,7 @@ def measure(name: str, preset_name: str, seconds: float, table_bits: int) -> dic
         return len(DracoPy.encode(m.vertices, m.faces, quantization_bits=11, compression_level=7))
 
     return {"mesh": name, "triangles": mesh.n_triangles, "preset": preset_name, "train_s": seconds,
-            "table_bits": table_bits, "shape": shape_of(preset_name),
+            "table_bits": table_bits, "shape": shape_of(preset_name), "format": FORMAT,
             "model_mse": round(res.quality.mse, 7), "model_bytes": len(res.data), "model_packed_bytes": len(pack(res.data)),
             "decimation_triangles": dec.n_triangles, "decimation_compact_mse": round(dec_mse, 7),
             "decimation_compact_bytes": len(compact), "decimation_compact_xz_bytes": xz(compact),
@@ -89,13 +91,22 @@ def _shape(row: dict) -> str:
     return row.get("shape") or "4x8, 4 hidden"
 
 
+#: The .nbvh format the rows are written in (2.5 stores the BVH's shape in 1 bit a node instead of 4 bytes of links).
+FORMAT = f"{fileformat.VERSION_MAJOR}.{fileformat.VERSION_MINOR}"
+
+
+def _format(row: dict) -> str:
+    """A row's file format (rows measured before the column existed: 2.4)."""
+    return row.get("format") or "2.4"
+
+
 def _bits(row: dict) -> int:
     """A row's bits per feature value (rows measured before the option existed: 8)."""
     return int(row.get("table_bits") or 8)
 
 
 def report(rows: list[dict]) -> None:
-    table = [[r["mesh"], f"{int(r['triangles']):,}", f"{r['preset']}, {_shape(r)}, {_bits(r)}-bit table", f"{float(r['model_mse']):.5f}",
+    table = [[r["mesh"], f"{int(r['triangles']):,}", f"{r['preset']}, {_shape(r)}, {_bits(r)}-bit table, format {_format(r)}", f"{float(r['model_mse']):.5f}",
               f"{int(r['model_bytes']):,}", f"{int(r['model_packed_bytes']):,}",
               f"{int(r['decimation_triangles']):,}", f"{int(r['decimation_compact_bytes']):,}",
               f"{int(r['decimation_compact_xz_bytes']):,}", f"{int(r['decimation_draco11_bytes']):,}",
@@ -143,9 +154,9 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=200.0)
     ap.add_argument("--table-bits", type=int, default=8, choices=[8, 4])
     args = ap.parse_args()
-    done = {(r["mesh"], r["preset"], float(r["train_s"]), _bits(r), _shape(r)) for r in read_rows(OUT)}
+    done = {(r["mesh"], r["preset"], float(r["train_s"]), _bits(r), _shape(r), _format(r)) for r in read_rows(OUT)}
     for name in args.meshes:
-        if (name, args.preset, args.seconds, args.table_bits, shape_of(args.preset)) in done:
+        if (name, args.preset, args.seconds, args.table_bits, shape_of(args.preset), FORMAT) in done:
             continue
         row = measure(name, args.preset, args.seconds, args.table_bits)
         append_rows(OUT, [row])
