@@ -85,13 +85,17 @@ def chart(path: Path) -> None:
                                   ("draco11_bytes", "decimation, Draco 11-bit (storage)", "^--")):
             ax.plot([int(r[key]) for r in dec], mse, style, label=label, ms=4)
         current = [r for r in neural if r["mesh"] == name]
-        ax.plot([int(r["model_bytes"]) for r in current], [float(r["model_mse"]) for r in current], "*", ms=12,
-                color="crimson", label="neural, traceable .nbvh (preset at its budget)")
-        ax.plot([int(r["model_packed_bytes"]) for r in current], [float(r["model_mse"]) for r in current], "*",
-                ms=10, color="salmon", label="neural, storage variant (xz, decoded at load)")
-        for r in current:
-            ax.annotate(r["preset"], (int(r["model_bytes"]), float(r["model_mse"])), fontsize=7, xytext=(4, 4),
-                        textcoords="offset points")
+        for i, r in enumerate(current):  # earlier model shapes and formats faded, the newest row named
+            newest = i == len(current) - 1
+            alpha, tag = (1.0, {}) if newest else (0.3, {"label": None})
+            ax.plot([int(r["model_bytes"])], [float(r["model_mse"])], "*", ms=12, color="crimson", alpha=alpha,
+                    **({"label": "neural, traceable .nbvh (preset at its budget)"} if newest else tag))
+            ax.plot([int(r["model_packed_bytes"])], [float(r["model_mse"])], "*", ms=10, color="salmon", alpha=alpha,
+                    **({"label": "neural, storage variant (xz, decoded at load)"} if newest else tag))
+            if newest:
+                shape = (r.get("shape") or "4x8, 4 hidden").split(",")[0]  # rows before the column: the old shape
+                ax.annotate(f"{r['preset']} {shape}, format {r.get('format') or '2.4'}", (int(r["model_bytes"]),
+                            float(r["model_mse"])), fontsize=7, xytext=(4, 4), textcoords="offset points")
         if not any(y > 0 for line in ax.get_lines() for y in line.get_ydata()[:1] if line.get_marker() != "None"):
             ax.set_ylim(1e-5, 0.1)  # nothing measured yet but the whole mesh's bytes (exact: MSE 0)
             ax.text(0.5, 0.5, "no decimation reduces it (the simplifier keeps\nits sharp edges); the whole mesh is exact",
