@@ -229,17 +229,22 @@ PRESETS: dict[str, Settings] = {
     # 0.92x, 0.91x), near on the gyroid (1.06x; lower at equal bytes), higher on the knot (1.13x) and the terrain
     # (1.31x, where the wider features win at equal bytes); at 200 s on the bunny 6x4 with 4 hidden layers read
     # 0.000347 in 146,668 B against 0.000365 in 183,596 B. Fewer features (2) lost on the bunny (1.6x the MSE), and
-    # 4-bit network rows cost 20-39% MSE for 8% of the bytes (kept as an option). So the presets hold 6 x 4 with 2
-    # hidden layers.
+    # 4-bit network rows cost 20-39% MSE for 8% of the bytes (kept as an option). Then, at 2 hidden layers: k = 4
+    # points per segment instead of 8 (a first layer half as wide: 40% more steps in the budget) read on the bunny at
+    # 200 s 0.000348 in 123,820 B against 0.000372 in 129,956 B (k = 6: 0.000358), at 60 s 3-6% lower MSE on the
+    # knot, the terrain and the gyroid, 2% higher on the dragon; and 8 levels at T=2^11 (93,164 B) read 0.000383 on
+    # the bunny at 200 s, and at 60 s against 6 levels at 2^12 with k = 8 (129,9xx B): spiky 0.000520 / 0.000535, knot
+    # 0.000404 / 0.000410, terrain 0.000414 / 0.000483, dragon 0.000973 / 0.000935, gyroid 0.00589 / 0.00557. So
+    # the presets hold 8 levels of 4 features, 2 hidden layers and k = 4, one table size below the old presets'.
     # The grid's finest resolution follows the mesh and the table (n_max None: `sizing.choose_resolution`): at
     # T=2^12 and equal steps N_max 64 beat the paper's 128 on the bunny, blob and gyroid (13-32% lower MSE) and tied
     # on the studs (bench/bench_resolution.py).
-    "preview": Settings(encoding="hashgrid", network="mlp", nodes=1023, log2_table=11, levels=6, features=4,
-                        hidden=2, network_bits=8, n_max=None, time_limit_s=60.0, eval_views=8),
-    "default": Settings(encoding="hashgrid", network="mlp", log2_table=12, levels=6, features=4, hidden=2,
+    "preview": Settings(encoding="hashgrid", network="mlp", nodes=1023, log2_table=10, levels=8, features=4,
+                        hidden=2, k=4, network_bits=8, n_max=None, time_limit_s=60.0, eval_views=8),
+    "default": Settings(encoding="hashgrid", network="mlp", log2_table=11, levels=8, features=4, hidden=2, k=4,
                         network_bits=8, n_max=None, time_limit_s=200.0),
-    "high": Settings(encoding="hashgrid", network="mlp", nodes=4095, log2_table=13, levels=6, features=4, hidden=2,
-                     network_bits=8, n_max=None, time_limit_s=600.0),
+    "high": Settings(encoding="hashgrid", network="mlp", nodes=4095, log2_table=12, levels=8, features=4, hidden=2,
+                     k=4, network_bits=8, n_max=None, time_limit_s=600.0),
     # The paper's method steps (same size knobs as `default`), for ablations.
     "base": Settings(encoding="hashgrid", network="mlp", labels="ownership", log2_table=11),
     "I": Settings(encoding="hashgrid", network="kmlp", labels="ownership", log2_table=11),
