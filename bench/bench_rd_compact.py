@@ -93,7 +93,8 @@ def chart(path: Path) -> None:
             ax.plot([int(r["model_packed_bytes"])], [float(r["model_mse"])], "*", ms=10, color="salmon", alpha=alpha,
                     **({"label": "neural, storage variant (xz, decoded at load)"} if newest else tag))
             if newest:
-                shape = (r.get("shape") or "4x8, 4 hidden").split(",")[0]  # rows before the column: the old shape
+                parts = (r.get("shape") or "4x8, 4 hidden").split(", ")  # rows before the column: the old shape
+                shape = " ".join([parts[0]] + [p for p in parts[2:] if p.startswith("k ")])
                 ax.annotate(f"{r['preset']} {shape}, format {r.get('format') or '2.4'}", (int(r["model_bytes"]),
                             float(r["model_mse"])), fontsize=7, xytext=(4, 4), textcoords="offset points")
         if not any(y > 0 for line in ax.get_lines() for y in line.get_ydata()[:1] if line.get_marker() != "None"):

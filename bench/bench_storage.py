@@ -83,12 +83,14 @@ def measure(name: str, preset_name: str, seconds: float, table_bits: int) -> dic
 def shape_of(preset_name: str) -> str:
     """The model's shape a preset trains: levels x features, hidden layers."""
     s = preset(preset_name)
-    return f"{s.levels}x{s.features}, {s.hidden} hidden"
+    return f"{s.levels}x{s.features}, {s.hidden} hidden, k {s.k}"
 
 
 def _shape(row: dict) -> str:
-    """A row's model shape (rows measured before the column existed: the presets' 4 x 8, 4 hidden)."""
-    return row.get("shape") or "4x8, 4 hidden"
+    """A row's model shape (rows measured before the column existed: the presets' 4 x 8, 4 hidden; before k was
+    named: k 8)."""
+    shape = row.get("shape") or "4x8, 4 hidden"
+    return shape if ", k " in shape else f"{shape}, k 8"
 
 
 #: The .nbvh format the rows are written in (2.5 stores the BVH's shape in 1 bit a node instead of 4 bytes of links).
