@@ -232,10 +232,11 @@ PRESETS: dict[str, Settings] = {
     # 4-bit network rows cost 20-39% MSE for 8% of the bytes (kept as an option). Then, at 2 hidden layers: k = 4
     # points per segment instead of 8 (a first layer half as wide: 40% more steps in the budget) read on the bunny at
     # 200 s 0.000348 in 123,820 B against 0.000372 in 129,956 B (k = 6: 0.000358), at 60 s 3-6% lower MSE on the
-    # knot, the terrain and the gyroid, 2% higher on the dragon; and 8 levels at T=2^11 (93,164 B) read 0.000383 on
-    # the bunny at 200 s, and at 60 s against 6 levels at 2^12 with k = 8 (129,9xx B): spiky 0.000520 / 0.000535, knot
-    # 0.000404 / 0.000410, terrain 0.000414 / 0.000483, dragon 0.000973 / 0.000935, gyroid 0.00589 / 0.00557. So
-    # the presets hold 8 levels of 4 features, 2 hidden layers and k = 4, one table size below the old presets'.
+    # knot, the terrain and the gyroid, 2% higher on the dragon; and 8 levels at T=2^11 (93,164 B) read 0.000383 and
+    # 0.000405 (two runs) on the bunny at 200 s, and at 60 s against 6 levels at 2^12 with k = 8 (129,9xx B): spiky
+    # 0.000520 / 0.000535, knot 0.000404 / 0.000410, terrain 0.000414 / 0.000483, dragon 0.000973 / 0.000935, gyroid
+    # 0.00589 / 0.00557. So the presets hold 8 levels of 4 features, 2 hidden layers and k = 4, one table size below
+    # the old presets'.
     # The grid's finest resolution follows the mesh and the table (n_max None: `sizing.choose_resolution`): at
     # T=2^12 and equal steps N_max 64 beat the paper's 128 on the bunny, blob and gyroid (13-32% lower MSE) and tied
     # on the studs (bench/bench_resolution.py).
