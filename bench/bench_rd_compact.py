@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
+from bench_storage import row_format, row_shape
 from harness import RESULTS, append_rows, read_rows, save_figure
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -87,15 +88,13 @@ def chart(path: Path) -> None:
         current = [r for r in neural if r["mesh"] == name]
         for i, r in enumerate(current):  # earlier model shapes and formats faded, the newest row named
             newest = i == len(current) - 1
-            alpha, tag = (1.0, {}) if newest else (0.3, {"label": None})
+            alpha = 1.0 if newest else 0.3
             ax.plot([int(r["model_bytes"])], [float(r["model_mse"])], "*", ms=12, color="crimson", alpha=alpha,
-                    **({"label": "neural, traceable .nbvh (preset at its budget)"} if newest else tag))
+                    label="neural, traceable .nbvh (preset at its budget)" if newest else None)
             ax.plot([int(r["model_packed_bytes"])], [float(r["model_mse"])], "*", ms=10, color="salmon", alpha=alpha,
-                    **({"label": "neural, storage variant (xz, decoded at load)"} if newest else tag))
+                    label="neural, storage variant (xz, decoded at load)" if newest else None)
             if newest:
-                parts = (r.get("shape") or "4x8, 4 hidden").split(", ")  # rows before the column: the old shape
-                shape = " ".join([parts[0]] + [p for p in parts[2:] if p.startswith("k ")])
-                ax.annotate(f"{r['preset']} {shape}, format {r.get('format') or '2.4'}", (int(r["model_bytes"]),
+                ax.annotate(f"{r['preset']} {row_shape(r)}, format {row_format(r)}", (int(r["model_bytes"]),
                             float(r["model_mse"])), fontsize=7, xytext=(4, 4), textcoords="offset points")
         if not any(y > 0 for line in ax.get_lines() for y in line.get_ydata()[:1] if line.get_marker() != "None"):
             ax.set_ylim(1e-5, 0.1)  # nothing measured yet but the whole mesh's bytes (exact: MSE 0)

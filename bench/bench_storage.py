@@ -86,7 +86,7 @@ def shape_of(preset_name: str) -> str:
     return f"{s.levels}x{s.features}, {s.hidden} hidden, k {s.k}"
 
 
-def _shape(row: dict) -> str:
+def row_shape(row: dict) -> str:
     """A row's model shape (rows measured before the column existed: the presets' 4 x 8, 4 hidden; before k was
     named: k 8)."""
     shape = row.get("shape") or "4x8, 4 hidden"
@@ -97,7 +97,7 @@ def _shape(row: dict) -> str:
 FORMAT = f"{fileformat.VERSION_MAJOR}.{fileformat.VERSION_MINOR}"
 
 
-def _format(row: dict) -> str:
+def row_format(row: dict) -> str:
     """A row's file format (rows measured before the column existed: 2.4)."""
     return row.get("format") or "2.4"
 
@@ -108,7 +108,8 @@ def _bits(row: dict) -> int:
 
 
 def report(rows: list[dict]) -> None:
-    table = [[r["mesh"], f"{int(r['triangles']):,}", f"{r['preset']}, {_shape(r)}, {_bits(r)}-bit table, format {_format(r)}", f"{float(r['model_mse']):.5f}",
+    table = [[r["mesh"], f"{int(r['triangles']):,}",
+              f"{r['preset']}, {row_shape(r)}, {_bits(r)}-bit table, format {row_format(r)}", f"{float(r['model_mse']):.5f}",
               f"{int(r['model_bytes']):,}", f"{int(r['model_packed_bytes']):,}",
               f"{int(r['decimation_triangles']):,}", f"{int(r['decimation_compact_bytes']):,}",
               f"{int(r['decimation_compact_xz_bytes']):,}", f"{int(r['decimation_draco11_bytes']):,}",
@@ -139,7 +140,7 @@ def chart(rows: list[dict]) -> None:
     x = np.arange(len(rows))
     for i, (key, label, colour) in enumerate(keys):
         ax.bar(x + (i - 2) * 0.16, [int(r[key]) for r in rows], 0.16, label=label, color=colour)
-    ax.set_xticks(x, [f"{r['mesh']} {_shape(r).split(',')[0]} {_bits(r)}-bit\nMSE {float(r['model_mse']):.5f}" for r in rows], fontsize=8)
+    ax.set_xticks(x, [f"{r['mesh']} {row_shape(r).split(',')[0]} {_bits(r)}-bit\nMSE {float(r['model_mse']):.5f}" for r in rows], fontsize=8)
     ax.set_yscale("log")
     ax.set_ylabel("bytes at the model's MSE")
     ax.set_title("Storage at equal image MSE (16 held-out views, 256 px)", fontsize=10)
@@ -156,7 +157,8 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=200.0)
     ap.add_argument("--table-bits", type=int, default=8, choices=[8, 4])
     args = ap.parse_args()
-    done = {(r["mesh"], r["preset"], float(r["train_s"]), _bits(r), _shape(r), _format(r)) for r in read_rows(OUT)}
+    done = {(r["mesh"], r["preset"], float(r["train_s"]), _bits(r), row_shape(r), row_format(r))
+            for r in read_rows(OUT)}
     for name in args.meshes:
         if (name, args.preset, args.seconds, args.table_bits, shape_of(args.preset), FORMAT) in done:
             continue
