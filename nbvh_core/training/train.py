@@ -57,14 +57,11 @@ class TrainConfig:
     #: (rays.label_samples) rather than as the mesh winds them; the network's loss reads the rest.
     normal_loss: str = "oriented"
     #: Adam's learning rate at the start of the schedule, decaying exponentially to lr_final_factor x lr at the end.
-    #: 1e-2 -> 1e-4 against 5e-3 -> 5e-4, the default preset's model at 60 s (one run each, 16 views at 256 px): MSE
-    #: bunny 0.000412 / 0.000533, terrain 0.000319 / 0.000414, gyroid 0.00524 / 0.00579, knot 0.000373 / 0.000404,
-    #: spiky 0.000483 / 0.000520, dragon 0.00101 / 0.00107: lower on all six, one run each; single runs are
-    #: noisy: the bunny at 1e-2 read 0.00041, 0.00063 and 0.00050 (seeds 0, 1, 2; seed 0 again: 0.00063). At 200 s
-    #: the gain is within that spread (bunny 0.00039 and 0.00043 against 0.00038-0.00043 in four runs at 5e-3).
-    #: 2e-2 -> 1e-4 read 0.00041 on the bunny, 1e-2 -> 3e-4 0.00043; Adam's eps 1e-15 (Instant-NGP's) gained nothing.
-    lr: float = 1e-2
-    lr_final_factor: float = 0.01
+    #: 1e-2 -> 1e-4 read lower MSE than this at 60 s on six meshes (one run each: 6-23%) but not at the default
+    #: preset's 200 s (bunny, five runs: 0.00039-0.00044, mean 0.000419; here six runs: 0.000383-0.00043, mean
+    #: 0.000397; bench/results/frontier.md), so 5e-3 -> 5e-4 stays.
+    lr: float = 5e-3
+    lr_final_factor: float = 0.1
     rays_per_step: int = 4096
     steps: int | None = 2000
     time_limit_s: float | None = None
