@@ -205,6 +205,31 @@ def test_the_final_verdict_ships_the_smaller_at_the_same_measured_mse():
     assert final_verdict(100, 0.1, 0.0005, None).shipped == "model"
 
 
+def test_a_final_verdict_the_line_gives_the_model_narrowly_is_measured():
+    """Where the interpolated curve favours the model by less than SETTLE_WINDOW, the largest decimation smaller than
+    the model's file is measured once, and ships if it reaches the model's MSE (the CAD engine's case: the line said
+    1.14x the model, a measured decimation was smaller)."""
+    from nbvh_core.decision.alternative_curve import CurvePoint
+    from nbvh_core.decision.final_verdict import SETTLE_WINDOW, final_verdict
+
+    points = [(500, 0.01), (2000, 0.002), (8000, 0.0005), (40000, 1e-5)]
+    mse = 0.002 / 3  # the line through (2000, 0.002) and (8000, 0.0005) puts ~6,000 B here: 1.2x a 5,000 B model
+    assert 1.0 < _curve(points).bytes_at(mse) / 5000 < SETTLE_WINDOW
+    asked = []
+    smaller = lambda count: asked.append(count) or CurvePoint(4800, 0.0006, count, count)  # noqa: E731
+    settled = final_verdict(5000, mse, 0.0005, _curve(points), measure=smaller)
+    # the line's count there (~1,500) scaled to the model's bytes, a little under
+    assert len(asked) == 1 and 1000 < asked[0] < 1300
+    assert settled.shipped == "decimation" and settled.decimation["compact_bytes"] == 4800
+    worse = lambda count: asked.append(count) or CurvePoint(4800, 0.0008, count, count)  # noqa: E731
+    assert final_verdict(5000, mse, 0.0005, _curve(points), measure=worse).shipped == "model" and len(asked) == 2
+    # the line well above the model (2x): decided by the line, nothing measured
+    assert final_verdict(3000, mse, 0.0005, _curve(points), measure=worse).shipped == "model" and len(asked) == 2
+    # forced runs measure nothing
+    assert final_verdict(5000, mse, 0.0005, _curve(points), force=True, measure=smaller).shipped == "model"
+    assert len(asked) == 2
+
+
 def test_the_alternative_carries_the_assets_look_in_its_bytes():
     """A decimation weighed against a model with a look is counted with what it needs to carry that look: the same
     slot images the model stores, 16-bit texture coordinates per vertex, a slot id per triangle; the curve's points
