@@ -11,10 +11,11 @@ from .records import FinalVerdict
 #: Decimations measured to settle a verdict the curve's interpolation leaves open (each 1.41x above the last).
 SETTLE_TRIES = 3
 SETTLE_STEP = 2 ** 0.5
-#: The line between measured decimations (x2 apart) can also favour the model wrongly: on the CAD engine
-#: (bench/bench_shipped.py) it put the decimation at the model's MSE at ~353,729 B, 1.14x the 310,580 B model, where
-#: the benchmark's denser curve measured 271,112 B; so a model the line favours by less than this factor is checked
-#: by measuring the largest decimation smaller than its file.
+#: A line between measured decimations (x2 apart) decides a verdict either way: on the CAD engine
+#: (bench/bench_shipped.py) the product's line put the decimation at the model's MSE at 1.14x the 310,580 B model
+#: and the benchmark's line at 0.88x; the error falls steeply between 45k and 64k triangles. So a model the line
+#: favours by less than this factor is checked by measuring the largest decimation smaller than its file (there:
+#: 55k triangles, 0.0060 against the model's 0.0055 in 349 KB with the look's bytes: the model stood).
 SETTLE_WINDOW = 1.5
 
 
