@@ -60,13 +60,18 @@ def curve(mesh, scorer, counts) -> list[tuple[int, float, int]]:
     return [curve_point(mesh, scorer, count) for count in counts] + [curve_point(mesh, scorer, None)]
 
 
+def alternative_curve(pts: list[tuple[int, float, int]]):
+    """The product's `AlternativeCurve` (envelope, log-log line) through (bytes, MSE, triangles) points."""
+    from nbvh_core.decision.alternative_curve import AlternativeCurve, CurvePoint
+
+    return AlternativeCurve([CurvePoint(b, m, t, t) for b, m, t in pts])
+
+
 def settle(mesh, scorer, pts: list[tuple[int, float, int]], mse: float) -> list[tuple[int, float, int]]:
     """pts with one more decimation measured at the count the log-log line puts at `mse`, so the ratio rests on a
     measurement near the shipped quality: on the CAD engine the line between 45k and 64k triangles put 0.00548 at
     ~273 KB, where the product measured 0.0060 at 55k (the error falls steeply in that gap)."""
-    from nbvh_core.decision.alternative_curve import AlternativeCurve, CurvePoint
-
-    count = AlternativeCurve([CurvePoint(b, m, t, t) for b, m, t in pts[:-1]]).triangles_at(mse)
+    count = alternative_curve(pts[:-1]).triangles_at(mse)
     if count is None or any(abs(t / count - 1) < 0.05 for _, _, t in pts):
         return pts
     return sorted(pts[:-1] + [curve_point(mesh, scorer, count)]) + pts[-1:]
@@ -87,13 +92,6 @@ def shipped_score(mesh, out: Path, scorer) -> tuple[str, int, float]:
     held = Mesh(vertices=mesh.transform.to_normalised(dec.vertices).astype("float32"), faces=dec.faces,
                 transform=mesh.transform, name=mesh.name)
     return kind, cmsh.stat().st_size, scorer.score_mesh(held).mse
-
-
-def bytes_at(pts: list[tuple[int, float, int]], mse: float) -> float:
-    from nbvh_core.decision.alternative_curve import AlternativeCurve, CurvePoint
-
-    c = AlternativeCurve([CurvePoint(b, m, t, t) for b, m, t in pts])
-    return c.bytes_at(mse)
 
 
 def measure(name: str, args, work: Path, prior: dict | None = None) -> None:
@@ -126,7 +124,7 @@ def measure(name: str, args, work: Path, prior: dict | None = None) -> None:
     counts = sorted({int(1000 * 2 ** (k / 2)) for k in range(26) if 1000 * 2 ** (k / 2) < top} | {int(top)})
     counts = counts[:args.max_points]
     pts = settle(mesh, scorer, curve(mesh, scorer, counts), mse)
-    alt = bytes_at(pts, mse)
+    alt = alternative_curve(pts).bytes_at(mse)
     level = QUALITY_LEVELS[DEFAULT_LEVEL]
     verdict = next((ln for ln in stderr.splitlines() if ln.startswith(("verdict:", "not worth", "kept as"))), "")
     row = {"asset": name, "triangles": mesh.n_triangles, "exit_code": returncode, "wall_s": round(wall, 1),
