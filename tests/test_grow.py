@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from nbvh_core import kernels
-from nbvh_core.app.pipeline import compress_mesh, preset
+from nbvh_core.app.pipeline import GROW_START_BELOW, compress_mesh, preset
 from nbvh_core.geometry.bundled_samples import sample_path
 from nbvh_core.geometry.mesh import load_mesh
 from nbvh_core.neural.encodings.base import EncodingConfig, vertex_resolution
@@ -76,7 +76,7 @@ def test_adam_goes_on_with_grown_moments():
 def test_a_target_run_that_grows_ends_with_the_grown_table_in_its_file(tmp_path):
     mesh = load_mesh(sample_path("blob"))
     # A target no size meets: the run plateaus above it at every size and grows up to one size above the resolved
-    # one (the predictor's largest, 2^13 on this mesh), starting two sizes below it.
+    # one (the predictor's largest, 2^13 on this mesh), starting GROW_START_BELOW sizes below it.
     s = preset("tiny").with_overrides(steps=10**6, time_limit_s=12.0, target_mse=1e-9, size_search="grow",
                                       target_check_every_s=0.25, force=True, eval_views=2)
     res = compress_mesh(mesh, s, tmp_path / "blob.nbvh")
@@ -84,7 +84,7 @@ def test_a_target_run_that_grows_ends_with_the_grown_table_in_its_file(tmp_path)
     start = int(res.why.split("one training from T=2^")[1].split(" ")[0])
     assert grew and [g[2] for g in grew] == list(range(start + 1, start + 1 + len(grew)))  # one size at a time
     final = grew[-1][2]
-    assert final <= start + 3 and res.settings.log2_table == final
+    assert final <= start + GROW_START_BELOW + 1 and res.settings.log2_table == final
     assert res.why.count("growing its table") == 1
     # Every check is recorded with the size it saw: the path of one training through its sizes.
     checks = res.training.checks

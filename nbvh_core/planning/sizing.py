@@ -7,8 +7,9 @@
 * **Cheap predictor** (`mesh_features`, `predict_mse`): image MSE after training as a linear function in log
   space of the table size log2 T, properties of the mesh (how much its normals vary locally, triangle count) and
   the training budget (ln budget, and its product with log2 T: a larger table gains more from a longer budget),
-  fitted on 84 measurements at 15-600 s by bench/fit_budget.py (bench/results/sizing_budget.md: leave-one-mesh-out
-  errors); coefficients in sizing_fit.json.
+  fitted on 84 measurements at 15-600 s by bench/fit_budget.py, then shifted to the presets' present shape by its own
+  rows (`SizeFit.shape_shift`; bench/results/sizing_budget.md: leave-one-mesh-out errors); coefficients in
+  sizing_fit.json.
 * **Choice** (`resolve`, `choose_table_and_nodes`): a byte budget or a quality target turned into sizes: the
   (T, node count) of fewest file bytes whose predicted MSE meets the target; `pipeline.compress_mesh` trains it,
   measures and corrects (`decision.size_search`: up to TARGET_TRAININGS trainings, calibrated by each measurement).
@@ -224,13 +225,16 @@ class SizeFit:
     #: L = ln(budget / train_s), [a, c] = budget_coef (a larger table gains more from a longer budget); [] = not
     #: fitted (predictions are for train_s seconds).
     budget_coef: list = field(default_factory=list)
+    #: ln of the presets' present shape's MSE over what the slopes predict (fitted on its own rows, bench/fit_budget.py:
+    #: the slopes were measured on older shapes that need a larger table for the same MSE); added to every prediction.
+    shape_shift: float = 0.0
 
     def predict_log_mse(self, log2_table: int, features: MeshFeatures, nodes: int | None = None,
                         budget_s: float | None = None) -> float:
         """ln of the image MSE a model of table 2^log2_table on a mesh with `features` reaches after `budget_s`
         seconds of training (None: the fit's own train_s) at `nodes` BVH nodes (None: nodes_ref)."""
         x = np.concatenate([[1.0, float(log2_table)], features.vector(self.features)])
-        out = float(np.dot(self.coef, x))
+        out = float(np.dot(self.coef, x)) + self.shape_shift
         if nodes is not None and self.nodes_coef:
             out += self.nodes_coef * (math.log2(nodes + 1) - math.log2(self.nodes_ref + 1))
         if budget_s and self.budget_coef:
