@@ -211,8 +211,13 @@ def test_the_final_verdict_ships_the_smaller_at_the_same_measured_mse():
     measure = lambda count: asked.append(count) or CurvePoint(2100, 0.0018, count, count)  # noqa: E731
     settled = final_verdict(5000, 0.0019, 0.0005, curve, measure=measure)
     assert len(asked) == 1 and 500 < asked[0] < 2000 and settled.shipped == "decimation"
-    assert settled.decimation["compact_bytes"] == 2100 and settled.level_met is False and "out of reach" in \
-        settled.message
+    # the model lost at its own MSE and missed the level: the mesh that ships is the one at the level asked for
+    assert settled.decimation["compact_bytes"] == 8000 and settled.level_met is False
+    assert "meets 0.0005" in settled.message and "2,100 B" in settled.message
+    # no measured mesh meets the level: the one at the model's MSE ships, and the miss is said
+    short = final_verdict(5000, 0.0019, 0.0001, _curve([(500, 0.01), (2000, 0.0018), (8000, 0.0005)]))
+    assert short.shipped == "decimation" and short.decimation["compact_bytes"] == 2000 and "out of reach" in \
+        short.message
     missing = lambda count: asked.append(count) or CurvePoint(2100, 0.0025, count, count)  # noqa: E731
     assert final_verdict(5000, 0.0019, 0.0005, _curve([(500, 0.01), (2000, 0.002), (8000, 0.0005), (40000, 1e-5)]),
                          measure=missing).shipped == "model" and len(asked) == 1 + 3  # three tries, all missed
@@ -233,20 +238,21 @@ def test_a_final_verdict_the_line_gives_the_model_narrowly_is_measured():
     from nbvh_core.decision.final_verdict import SETTLE_WINDOW, final_verdict
 
     points = [(500, 0.01), (2000, 0.002), (8000, 0.0005), (40000, 1e-5)]
+    LEVEL = 0.001  # the model meets it: the decimation at its own MSE is the one weighed
     mse = 0.002 / 3  # the line through (2000, 0.002) and (8000, 0.0005) puts ~6,000 B here: 1.2x a 5,000 B model
     assert 1.0 < _curve(points).bytes_at(mse) / 5000 < SETTLE_WINDOW
     asked = []
     smaller = lambda count: asked.append(count) or CurvePoint(4800, 0.0006, count, count)  # noqa: E731
-    settled = final_verdict(5000, mse, 0.0005, _curve(points), measure=smaller)
+    settled = final_verdict(5000, mse, LEVEL, _curve(points), measure=smaller)
     # the line's count there (~1,500) scaled to the model's bytes, a little under
     assert len(asked) == 1 and 1000 < asked[0] < 1300
     assert settled.shipped == "decimation" and settled.decimation["compact_bytes"] == 4800
     worse = lambda count: asked.append(count) or CurvePoint(4800, 0.0008, count, count)  # noqa: E731
-    assert final_verdict(5000, mse, 0.0005, _curve(points), measure=worse).shipped == "model" and len(asked) == 2
+    assert final_verdict(5000, mse, LEVEL, _curve(points), measure=worse).shipped == "model" and len(asked) == 2
     # the line well above the model (2x): decided by the line, nothing measured
-    assert final_verdict(3000, mse, 0.0005, _curve(points), measure=worse).shipped == "model" and len(asked) == 2
+    assert final_verdict(3000, mse, LEVEL, _curve(points), measure=worse).shipped == "model" and len(asked) == 2
     # forced runs measure nothing
-    assert final_verdict(5000, mse, 0.0005, _curve(points), force=True, measure=smaller).shipped == "model"
+    assert final_verdict(5000, mse, LEVEL, _curve(points), force=True, measure=smaller).shipped == "model"
     assert len(asked) == 2
 
 
@@ -274,18 +280,28 @@ def test_the_alternative_carries_the_assets_look_in_its_bytes():
     assert [p.bytes for p in AlternativeCurve.from_alternatives(alt).points] == [1700, 3900]
 
 
-def test_a_growing_run_is_weighed_at_the_size_it_starts_at(sample_meshes, sample_tracers):
-    """The verdict before training weighs a growing training's first size (its checks weigh each larger one against
-    the measured alternative when it gets there); a run of one fixed size is weighed at that size."""
+def test_a_run_with_a_target_is_weighed_at_the_size_expected_to_meet_it(sample_meshes, sample_tracers):
+    """The verdict before training weighs the model at the size the predictor expects to meet the target (no safety
+    factor), as the decimation is weighed at the target; training starts GROW_START_BELOW sizes under the planned
+    size (which has the safety factor); without a target the planned size is weighed."""
     from nbvh_core.app.pipeline import GROW_START_BELOW, grow_start, weigh
     from nbvh_core.planning.run_config import plan_run
+    from nbvh_core.planning.sizing import expected_table
 
-    mesh = sample_meshes["blob"]
-    s = preset("default").with_overrides(target_mse=0.002, eval_views=2, eval_resolution=32)
-    growing = plan_run(s, mesh)
-    fixed = plan_run(dataclasses.replace(s, size_search="retrain"), mesh)
-    assert grow_start(growing) == max(6, growing.log2_table - GROW_START_BELOW) < growing.log2_table
-    weighed_growing, _ = weigh(mesh, growing, sample_tracers["blob"])
-    weighed_fixed, _ = weigh(mesh, fixed, sample_tracers["blob"])
-    assert weighed_growing.model_bytes == growing.at_table(grow_start(growing), regrid=False).file_bytes
-    assert weighed_fixed.model_bytes == fixed.file_bytes > weighed_growing.model_bytes
+    mesh = sample_meshes["bunny"]
+    s = preset("default").with_overrides(target_mse=0.0005, eval_views=2, eval_resolution=32)
+    run = plan_run(s, mesh)
+    fit = load_fit()
+    feats = mesh_features(mesh)
+    expected = run.expected_log2_table
+    assert expected == expected_table(run.request, mesh)
+    # the smallest size whose median prediction meets the target, at most the planned (safety-factored) size
+    assert fit.predict_log_mse(expected, feats, budget_s=s.time_limit_s) <= np.log(0.0005)
+    assert expected == LOG2_RANGE[0] or fit.predict_log_mse(expected - 1, feats, budget_s=s.time_limit_s) > np.log(0.0005)
+    assert expected <= run.log2_table and grow_start(run) == max(6, run.log2_table - GROW_START_BELOW)
+    weighed, _ = weigh(mesh, run, sample_tracers["bunny"])
+    assert weighed.model_bytes == run.at_table(expected, regrid=False).file_bytes
+    assert run.at_table(12).expected_log2_table == expected  # carried through a search's sizes
+    fixed = plan_run(preset("default").with_overrides(log2_table=9, eval_views=2, eval_resolution=32), mesh)
+    assert fixed.expected_log2_table is None
+    assert weigh(mesh, fixed, sample_tracers["bunny"])[0].model_bytes == fixed.file_bytes

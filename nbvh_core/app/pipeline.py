@@ -195,11 +195,6 @@ class Weighing:
     look_bytes: int = 0
 
 
-def grows(run: RunConfig) -> bool:
-    """True when the run sizes itself by one growing training (a target with size_search "grow")."""
-    return run.decision.target_mse is not None and run.decision.size_search == "grow"
-
-
 def grow_start(run: RunConfig) -> int:
     """log2 T a growing training starts at: GROW_START_BELOW sizes under the planned one (2^6 at least)."""
     return max(6, run.log2_table - GROW_START_BELOW)
@@ -208,11 +203,14 @@ def grow_start(run: RunConfig) -> int:
 def weigh(mesh: Mesh, run: RunConfig, tracer: ExactTracer, made=None) -> tuple[Assessment, Weighing]:
     """The verdict before training, the same for a run and a library batch's measurement: the model `run` plans,
     with what its file adds for the asset's look (the head `made`, `make_head`; the images it keeps), weighed
-    against the mesh and, with a target, the measured decimations (`sizing.assess`, on the run's view sets). A
-    growing training is weighed at the size it starts at: its checks weigh every larger size against the measured
-    alternative when it gets there, so a prediction alone (ln error ~0.4-0.5) does not rule the model out."""
+    against the mesh and, with a target, the measured decimations (`sizing.assess`, on the run's view sets). With a
+    target the model is weighed at the size the predictor expects to meet it (`RunConfig.expected_log2_table`, no
+    safety factor), as the decimation is weighed at the target: the safety factor says where training starts, and
+    the checks weigh every size the training reaches against the measured alternative."""
     checks, held_out = view_sets(tracer, mesh.transform, run.metric)
-    model_bytes = run.at_table(grow_start(run), regrid=False).file_bytes if grows(run) else run.file_bytes
+    expected = run.expected_log2_table
+    model_bytes = (run.at_table(expected, regrid=False).file_bytes if expected not in (None, run.log2_table)
+                   else run.file_bytes)
     look_bytes = 0
     if mesh.look is not None:
         look_bytes = sum(look_stored_bytes(made[0].cfg if made else None, _shipped_materials(mesh, made),

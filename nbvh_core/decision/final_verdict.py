@@ -48,7 +48,9 @@ def final_verdict(model_bytes: int, model_mse: float, target: float | None, curv
                   force: bool = False, measure=None) -> FinalVerdict:
     """Weigh the shipped model (`model_bytes`, held-out `model_mse`) against `curve` (the alternative on the
     held-out views). A measured decimation (or the whole mesh) that reaches the model's MSE in fewer bytes ships
-    instead, unless `force`. A missed `target` is said, and the model ships only while it is the better value.
+    instead, unless `force`; when the model also missed `target`, the mesh that ships is the smallest measured one
+    that meets the target, where one does (the level asked for; else the one at the model's MSE). A missed level is
+    said, and a model that misses it ships only while it is the better value at its own MSE.
     measure(triangles) -> CurvePoint: measures one more decimation on the same views (None: the curve as it is)."""
     level_met = None if target is None else model_mse <= target
     if curve is None:
@@ -64,6 +66,16 @@ def final_verdict(model_bytes: int, model_mse: float, target: float | None, curv
     at_level = curve.cheapest_meeting(target) if level_met is False else None
     if at_level is not None:  # what reaching the level would take as a mesh, for the user to choose
         level += f" (a mesh of {at_level.triangles:,} triangles meets it: {at_level.bytes:,} B)"
+    if beaten and not force and at_level is not None:  # a mesh ships: the one at the level asked for
+        what = (f"a decimation to {at_level.triangles:,} triangles" if at_level.requested is not None
+                else "the whole mesh")
+        return FinalVerdict(model_bytes, model_mse, alt_bytes, "decimation" if at_level.requested else "mesh",
+                            {"triangles": at_level.triangles, "requested_triangles": at_level.requested,
+                             "compact_bytes": at_level.bytes, "mse": at_level.mse},
+                            level_met, force,
+                            f"kept as a mesh at the level: {what} meets {target:g} (MSE {at_level.mse:.4g}) in "
+                            f"{at_level.bytes:,} B as a compact mesh; the model missed it (MSE {model_mse:.4g} in "
+                            f"{model_bytes:,} B), and a decimation reaches its MSE in {beaten_by.bytes:,} B")
     if beaten and not force:
         what = (f"a decimation to {beaten_by.triangles:,} triangles" if beaten_by.requested is not None
                 else "the whole mesh")

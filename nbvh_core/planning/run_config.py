@@ -25,7 +25,7 @@ from ..neural.quantize import StorageConfig
 from ..rendering.metrics import MetricConfig
 from ..training.train import TrainConfig
 from .settings import Settings, estimate_file_bytes
-from .sizing import GridMeasures, choose_resolution, grid_measures, resolve
+from .sizing import GridMeasures, choose_resolution, expected_table, grid_measures, resolve
 
 
 @dataclass(frozen=True)
@@ -44,7 +44,9 @@ class RunConfig:
     """What one run does, by part. request: the resolved flat Settings this configuration was made from (written
     into the file's header and checkpoints); file_bytes: the model's file at these sizes (exact payload + typical
     header, the look not included); grid: the mesh's measures when the grid's finest resolution follows the mesh
-    (re-chosen at every table size a search tries), else None; notes: why these sizes (typed, for the report)."""
+    (re-chosen at every table size a search tries), else None; notes: why these sizes (typed, for the report);
+    expected_log2_table: with a target, the table the predictor expects to meet it (`sizing.expected_table`: what
+    the verdict before training weighs), else None."""
 
     request: Settings
     nodes: int
@@ -57,6 +59,7 @@ class RunConfig:
     file_bytes: int
     grid: GridMeasures | None = None
     notes: tuple[RunNote, ...] = ()
+    expected_log2_table: int | None = None
 
     @property
     def log2_table(self) -> int:
@@ -68,7 +71,8 @@ class RunConfig:
         request = dataclasses.replace(self.request, log2_table=log2_table)
         if self.grid is not None and regrid:
             request.n_max = choose_resolution(self.grid, log2_table)[0]
-        return _parts(request, self.look, self.grid, self.notes)
+        return dataclasses.replace(_parts(request, self.look, self.grid, self.notes),
+                                   expected_log2_table=self.expected_log2_table)
 
     def with_training(self, **changes) -> "RunConfig":
         """The same run with some training knobs changed (a restart's learning rate, a check period): the request
@@ -88,7 +92,8 @@ def plan_run(settings: Settings, mesh: Mesh, resumed: bool = False) -> RunConfig
     share, budget = resolved.appearance_share, resolved.time_limit_s
     look = LookConfig(AppearanceConfig(target=resolved.appearance_target, log2_table=resolved.appearance_log2_table),
                       share, budget * share if mesh.look is not None and budget else None)
-    return _parts(resolved, look, grid, (RunNote("plan", plan_note),))
+    run = _parts(resolved, look, grid, (RunNote("plan", plan_note),))
+    return run if resumed else dataclasses.replace(run, expected_log2_table=expected_table(resolved, mesh))
 
 
 def _parts(s: Settings, look: LookConfig, grid: GridMeasures | None, notes: tuple) -> RunConfig:

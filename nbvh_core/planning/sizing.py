@@ -294,12 +294,14 @@ def choose_size(fit: SizeFit, features: MeshFeatures, target_mse: float,
 
 
 def choose_table_and_nodes(fit: SizeFit, features: MeshFeatures, target_mse: float,
-                           size_of, budget_s: float | None = None) -> tuple[int, int, float, bool]:
-    """The (log2 T, node count) of smallest file bytes `size_of(log2, nodes)` whose predicted MSE (with the safety
-    factor) meets the target, over LOG2_RANGE x NODE_CHOICES (only the fitted node count without a node fit), no
-    node count above `max_nodes_for(features.triangles)`. Returns (log2 T, nodes, predicted MSE, reachable);
-    unreachable: the largest T and node count."""
-    safety = math.exp(fit.margin * fit.residual_std)
+                           size_of, budget_s: float | None = None,
+                           safety: float | None = None) -> tuple[int, int, float, bool]:
+    """The (log2 T, node count) of smallest file bytes `size_of(log2, nodes)` whose predicted MSE (times `safety`,
+    default the fit's exp(margin x residual_std)) meets the target, over LOG2_RANGE x NODE_CHOICES (only the fitted
+    node count without a node fit), no node count above `max_nodes_for(features.triangles)`. Returns (log2 T,
+    nodes, predicted MSE, reachable); unreachable: the largest T and node count."""
+    if safety is None:
+        safety = math.exp(fit.margin * fit.residual_std)
     cap = max_nodes_for(features.triangles)
     node_choices = tuple(min(n, cap) for n in (NODE_CHOICES if fit.nodes_coef else (fit.nodes_ref,)))
     ok = [(size_of(l2, n), l2, n) for l2 in LOG2_RANGE for n in node_choices
@@ -373,6 +375,20 @@ def resolve(s: Settings, mesh: Mesh | None = None, grid: GridMeasures | None = N
             why += "; the target is beyond every size the predictor knows: using the largest"
         return chosen, why
     return s, "fixed settings"
+
+
+def expected_table(s: Settings, mesh: Mesh) -> int | None:
+    """log2 T of the smallest file the predictor expects to meet `s.target_mse` on `mesh` at `s.nodes` (its median
+    prediction: no safety factor; the largest size when none does): the model the verdict before training weighs
+    against the decimation measured at the target, since both then stand at the level (the safety factor only
+    says where a training starts). None without a target, a mesh or a fit."""
+    fit = load_fit()
+    if s.target_mse is None or mesh is None or fit is None:
+        return None
+    size_of = lambda lt, n: estimate_file_bytes(dataclasses.replace(s, log2_table=lt, nodes=n))  # noqa: E731
+    l2, _, _, _ = choose_table_and_nodes(fit, mesh_features(mesh), s.target_mse, size_of, s.time_limit_s,
+                                         safety=1.0)
+    return l2
 
 
 # ----------------------------------------------------------------------------------------------- alternatives
