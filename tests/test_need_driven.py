@@ -213,11 +213,11 @@ def test_the_final_verdict_ships_the_smaller_at_the_same_measured_mse():
     assert len(asked) == 1 and 500 < asked[0] < 2000 and settled.shipped == "decimation"
     # the model lost at its own MSE and missed the level: the mesh that ships is the one at the level asked for
     assert settled.decimation["compact_bytes"] == 8000 and settled.level_met is False
-    assert "meets 0.0005" in settled.message and "2,100 B" in settled.message
+    assert "meets 0.0005" in settled.message and "2,100 B" in settled.message and settled.at_level
     # no measured mesh meets the level: the one at the model's MSE ships, and the miss is said
     short = final_verdict(5000, 0.0019, 0.0001, _curve([(500, 0.01), (2000, 0.0018), (8000, 0.0005)]))
     assert short.shipped == "decimation" and short.decimation["compact_bytes"] == 2000 and "out of reach" in \
-        short.message
+        short.message and not short.at_level
     missing = lambda count: asked.append(count) or CurvePoint(2100, 0.0025, count, count)  # noqa: E731
     assert final_verdict(5000, 0.0019, 0.0005, _curve([(500, 0.01), (2000, 0.002), (8000, 0.0005), (40000, 1e-5)]),
                          measure=missing).shipped == "model" and len(asked) == 1 + 3  # three tries, all missed

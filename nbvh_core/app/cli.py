@@ -169,7 +169,9 @@ def _write_alternative(mesh, assessment, stem: Path, mesh_path: Path, args, sink
         if args.events:
             sink(wire.written(files=[str(path)], kind="decimation" if dec is not None else "mesh",
                               triangles=(dec or mesh).n_triangles))
-        reached = ("reaches the model's measured quality" if assessment.final else "meets the target")
+        final = assessment.final
+        reached = ("reaches the model's measured quality" if final and not final.get("at_level")
+                   else "meets the target")
         what = (f"the decimation that {reached} ({dec.n_triangles:,} triangles, MSE "
                 f"{assessment.alternatives['decimation']['compact_mse']:.4g})" if dec is not None else "the mesh")
         print(f"kept as a mesh: wrote {what} to {path} ({len(data):,} B)", file=sys.stderr)

@@ -75,7 +75,8 @@ def final_verdict(model_bytes: int, model_mse: float, target: float | None, curv
                             level_met, force,
                             f"kept as a mesh at the level: {what} meets {target:g} (MSE {at_level.mse:.4g}) in "
                             f"{at_level.bytes:,} B as a compact mesh; the model missed it (MSE {model_mse:.4g} in "
-                            f"{model_bytes:,} B), and a decimation reaches its MSE in {beaten_by.bytes:,} B")
+                            f"{model_bytes:,} B), and a decimation reaches its MSE in {beaten_by.bytes:,} B",
+                            at_level=True)
     if beaten and not force:
         what = (f"a decimation to {beaten_by.triangles:,} triangles" if beaten_by.requested is not None
                 else "the whole mesh")

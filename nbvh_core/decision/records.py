@@ -58,7 +58,8 @@ class FinalVerdict:
     that reach the model's MSE (interpolated on the measured curve; None: not measured); shipped: 'model' or
     'decimation' or 'mesh'; decimation: the measured decimation shipped instead (its triangles, requested count,
     compact bytes and held-out MSE) or None; level_met: the model met the target on the held-out views;
-    forced: the user asked for the model whatever the verdict; message: one line for people."""
+    forced: the user asked for the model whatever the verdict; message: one line for people; at_level: the mesh
+    shipped was chosen at the target (the model missed it), not at the model's MSE."""
 
     model_bytes: int
     model_mse: float
@@ -68,6 +69,7 @@ class FinalVerdict:
     level_met: bool | None
     forced: bool
     message: str
+    at_level: bool = False
 
     @property
     def ratio(self) -> float | None:
