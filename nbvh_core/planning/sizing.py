@@ -378,10 +378,10 @@ def resolve(s: Settings, mesh: Mesh | None = None, grid: GridMeasures | None = N
 
 
 def expected_table(s: Settings, mesh: Mesh) -> int | None:
-    """log2 T of the smallest file the predictor expects to meet `s.target_mse` on `mesh` at `s.nodes` (its median
-    prediction: no safety factor; the largest size when none does): the model the verdict before training weighs
-    against the decimation measured at the target, since both then stand at the level (the safety factor only
-    says where a training starts). None without a target, a mesh or a fit."""
+    """log2 T of the smallest file the predictor expects to meet `s.target_mse` on `mesh` (its median prediction: no
+    safety factor; the node count as `resolve` chooses it; the largest size when none does): the model the verdict
+    before training weighs against the decimation measured at the target, since both then stand at the level (the
+    safety factor only says where a training starts). None without a target, a mesh or a fit."""
     fit = load_fit()
     if s.target_mse is None or mesh is None or fit is None:
         return None
