@@ -66,27 +66,21 @@ def final_verdict(model_bytes: int, model_mse: float, target: float | None, curv
     at_level = curve.cheapest_meeting(target) if level_met is False else None
     if at_level is not None:  # what reaching the level would take as a mesh, for the user to choose
         level += f" (a mesh of {at_level.triangles:,} triangles meets it: {at_level.bytes:,} B)"
-    if beaten and not force and at_level is not None:  # a mesh ships: the one at the level asked for
-        what = (f"a decimation to {at_level.triangles:,} triangles" if at_level.requested is not None
-                else "the whole mesh")
-        return FinalVerdict(model_bytes, model_mse, alt_bytes, "decimation" if at_level.requested else "mesh",
-                            {"triangles": at_level.triangles, "requested_triangles": at_level.requested,
-                             "compact_bytes": at_level.bytes, "mse": at_level.mse},
-                            level_met, force,
-                            f"kept as a mesh at the level: {what} meets {target:g} (MSE {at_level.mse:.4g}) in "
-                            f"{at_level.bytes:,} B as a compact mesh; the model missed it (MSE {model_mse:.4g} in "
-                            f"{model_bytes:,} B), and a decimation reaches its MSE in {beaten_by.bytes:,} B",
-                            at_level=True)
-    if beaten and not force:
-        what = (f"a decimation to {beaten_by.triangles:,} triangles" if beaten_by.requested is not None
-                else "the whole mesh")
-        return FinalVerdict(model_bytes, model_mse, alt_bytes, "decimation" if beaten_by.requested else "mesh",
-                            {"triangles": beaten_by.triangles, "requested_triangles": beaten_by.requested,
-                             "compact_bytes": beaten_by.bytes, "mse": beaten_by.mse},
-                            level_met, force,
-                            f"kept as a mesh: {what} reaches MSE {beaten_by.mse:.4g} in {beaten_by.bytes:,} B as a "
-                            f"compact mesh; the model needs {model_bytes:,} B for MSE {model_mse:.4g} "
-                            f"({model_bytes / beaten_by.bytes:.2f}x the decimation){level}")
+    if beaten and not force:  # a mesh ships: the one at the level asked for when the model missed it
+        ship = at_level if at_level is not None else beaten_by
+        what = f"a decimation to {ship.triangles:,} triangles" if ship.requested is not None else "the whole mesh"
+        if ship is at_level:
+            message = (f"kept as a mesh at the level: {what} meets {target:g} (MSE {ship.mse:.4g}) in {ship.bytes:,} B "
+                       f"as a compact mesh; the model missed it (MSE {model_mse:.4g} in {model_bytes:,} B), and a "
+                       f"decimation reaches its MSE in {beaten_by.bytes:,} B")
+        else:
+            message = (f"kept as a mesh: {what} reaches MSE {ship.mse:.4g} in {ship.bytes:,} B as a compact mesh; the "
+                       f"model needs {model_bytes:,} B for MSE {model_mse:.4g} ({model_bytes / ship.bytes:.2f}x the "
+                       f"decimation){level}")
+        return FinalVerdict(model_bytes, model_mse, alt_bytes, "decimation" if ship.requested else "mesh",
+                            {"triangles": ship.triangles, "requested_triangles": ship.requested,
+                             "compact_bytes": ship.bytes, "mse": ship.mse},
+                            level_met, force, message, at_level=ship is at_level)
     if beaten:  # forced: say what the user gives up
         versus = (f"a measured compact decimation to {beaten_by.triangles:,} triangles reaches MSE {beaten_by.mse:.4g} "
                   f"in {beaten_by.bytes:,} B, {model_bytes / beaten_by.bytes:.2f}x smaller than the model")
