@@ -239,3 +239,55 @@ def test_the_freeze_point_follows_the_settings_and_bad_fractions_are_refused(blo
     for ff, anneal in [(1.0, 0.0), (-0.1, 0.3), (0.8, 0.3)]:
         with pytest.raises(ValueError, match="finetune_fraction"):
             train(_model(bvh, VQAD), bvh, tracer, TrainConfig(steps=2, finetune_fraction=ff, anneal_fraction=anneal))
+
+
+def test_the_weight_average_is_a_mean_then_a_moving_average_and_restarts_with_the_form():
+    """decay 0.5: the first 2 steps averaged uniformly, then half-way moves; nothing before `start`; a new form
+    (a snapped table, a frozen index, a grown table) starts over from the weights it has then."""
+    from nbvh_core.training.weight_average import WeightAverage
+
+    layer = torch.nn.Linear(1, 1, bias=False)
+    average = WeightAverage(layer, decay=0.5, start=0.5)
+
+    def step(value, fraction, form=None):
+        with torch.no_grad():
+            layer.weight.fill_(value)
+        average.update(fraction, form)
+
+    step(100.0, 0.4)  # before the window: not averaged
+    for v in (1.0, 2.0, 4.0):
+        step(v, 0.6)
+    assert average.apply() and layer.weight.item() == pytest.approx(1.5 + (4.0 - 1.5) * 0.5)
+    step(10.0, 0.7, form="snapped")  # the form changed: the average starts again here
+    assert not average.apply() and layer.weight.item() == 10.0
+    step(20.0, 0.8, form="snapped")
+    assert average.apply() and layer.weight.item() == pytest.approx(15.0)
+    assert not WeightAverage(layer, decay=0.0, start=0.0).apply()
+
+
+def test_an_eight_bit_table_trained_with_the_weight_average_ends_on_its_grid(blob):
+    """The average restarts at the table's snap, so the table it hands back is on the 8-bit grid the network
+    adapted to (the file stores it exactly), and the network's weights are the average, not the last step's."""
+    from nbvh_core.training.train import _on_grid
+
+    _, bvh, tracer, _ = blob
+    model = _model(bvh)
+    cfg = TrainConfig(steps=80, rays_per_step=256, table_bits=8, qat_fraction=0.3, average_from=0.5,
+                      weight_average=0.9, progress_every_s=0)
+    last = {}
+    original = torch.optim.Adam.step
+
+    def keep_last(opt, *a, **k):
+        out = original(opt, *a, **k)
+        last.update({n: p.detach().clone() for n, p in model.network.named_parameters()})
+        return out
+
+    torch.optim.Adam.step = keep_last
+    try:
+        train(model, bvh, tracer, cfg)
+    finally:
+        torch.optim.Adam.step = original
+    table = model.encoding.table.detach()
+    assert torch.equal(_on_grid(table, model.encoding.qat_affine, 8), table)
+    moved = [not torch.equal(p.detach(), last[n]) for n, p in model.network.named_parameters()]
+    assert any(moved), "the network's weights are the last step's, not the average"

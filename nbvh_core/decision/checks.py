@@ -25,7 +25,7 @@ class CheckRule:
     """The target_reached callback of `training.train`: each call answers one of `records.CHECK_ACTIONS`.
 
     score(model) -> check MSE of the model as stored; target: the MSE level; max_log2: the largest table;
-    budget_s: the training's budget (seconds since this rule was made ~ since training began); budget_slope(log2)
+    budget_s: the training's budget (its clock: seconds since this rule was made, less the checks' own time); budget_slope(log2)
     -> d ln MSE / d ln time at that size (the size predictor's; None: the slope through the last two checks);
     grow_gain(log2) -> the predicted MSE ratio of a table twice as large (< 1; None: growth is judged on the
     target alone); bytes_at(log2) -> the file's bytes at that size as it ships (geometry, look, header); curve: the
@@ -41,6 +41,7 @@ class CheckRule:
         self.decisions: list[CheckDecision] = []
         self.keep_mesh: CheckDecision | None = None
         self._start = time.perf_counter()
+        self._measuring_s = 0.0  # spent in score(): the training's clock stops for it (`training.train`)
 
     def projected(self, log2: int) -> float | None:
         """The MSE at the end of the budget from this size's checks; None: not enough checks yet. The projection is
@@ -61,9 +62,11 @@ class CheckRule:
 
     def __call__(self, model) -> str:
         """Measure `model` now and decide: one of CHECK_ACTIONS (recorded in `decisions`)."""
+        began = time.perf_counter()
+        seconds = round(began - self._start - self._measuring_s, 2)  # training time: the checks' own is not
         mse = self.score(model)
+        self._measuring_s += time.perf_counter() - began
         log2 = model.cfg.encoding.log2_table
-        seconds = round(time.perf_counter() - self._start, 2)
         self.decisions.append(CheckDecision(seconds, log2, mse, None, self.bytes_at(log2), None, "train on", ""))
         d = self.decisions[-1]
         d.projected_mse = self.projected(log2)
