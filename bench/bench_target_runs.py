@@ -1,6 +1,7 @@
 """How reliably a run with a target meets it: the CLI's `compress MESH --target-mse X --force` (the need-driven
 default: one growing training, its checks, the held-out evaluation) repeated over seeds, each run's file bytes,
-held-out and check-view MSE, steps and growth in one row. Answers "does the bunny meet 0.0004 in <= 95,000 B within
+held-out and check-view MSE, steps, growth and the checks' trajectory ([training s, log2 T, check MSE], ...)
+in one row. Answers "does the bunny meet 0.0004 in <= 95,000 B within
 the default budget, and in how many runs of how many?" with a count rather than one lucky run.
 
     .venv/bin/python bench/bench_target_runs.py --mesh bunny --target 0.0004 --seeds 0 1 2 3
@@ -12,6 +13,7 @@ otherwise idle machine: the training has a time budget, so a busy CPU trains few
 from __future__ import annotations
 
 import argparse
+import json
 import statistics
 
 from harness import append_rows, markdown_table, read_rows, result_path, stamp, write_markdown
@@ -35,7 +37,8 @@ def one_run(mesh_name: str, target: float, seed: int, time_limit_s: float | None
             "mse_held_out": res.quality.mse, "mse_check_views": res.decisions.get("mse_check_views"),
             "target_met": bool(res.target_met), "log2_table": res.settings.log2_table, "steps": res.training.steps,
             "train_s": round(res.training.seconds, 1), "checks": len(checks),
-            "stopped_early": res.training.stopped_early}
+            "stopped_early": res.training.stopped_early,
+            "check_trajectory": json.dumps([[c["seconds"], c["log2_table"], round(c["mse"], 7)] for c in checks])}
 
 
 def summarise(rows: list[dict]) -> list[str]:

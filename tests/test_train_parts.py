@@ -291,3 +291,30 @@ def test_an_eight_bit_table_trained_with_the_weight_average_ends_on_its_grid(blo
     assert torch.equal(_on_grid(table, model.encoding.qat_affine, 8), table)
     moved = [not torch.equal(p.detach(), last[n]) for n, p in model.network.named_parameters()]
     assert any(moved), "the network's weights are the last step's, not the average"
+
+
+def test_a_check_s_own_time_is_not_the_budget_s(blob):
+    """A slow check (0.25 s each) stops the training's clock: the budget's second of training is all steps, the
+    checks' time comes on top of it, and the check rule's clock reads training time too."""
+    import time
+
+    from nbvh_core.decision.checks import CheckRule
+
+    _, bvh, tracer, _ = blob
+    asked = []
+
+    def slow_score(model):
+        asked.append(time.perf_counter())
+        time.sleep(0.25)
+        return 1.0
+
+    rule = CheckRule(slow_score, target=1e-9, max_log2=6, budget_s=1.0, bytes_at=lambda log2: 1000)
+    cfg = TrainConfig(steps=None, time_limit_s=1.0, rays_per_step=256, target_check_every_s=0.2, progress_every_s=0)
+    began = time.perf_counter()
+    tr = train(_model(bvh), bvh, tracer, cfg, target_reached=rule)
+    wall = time.perf_counter() - began
+    assert len(asked) >= 3 and not tr.stopped_early
+    assert tr.seconds < 1.2, tr.seconds
+    assert wall >= 1.0 + 0.9 * 0.25 * len(asked), (wall, len(asked))
+    gaps = [b.seconds - a.seconds for a, b in zip(rule.decisions, rule.decisions[1:])]
+    assert max(gaps) < 0.2 + 0.15, gaps  # the interval between checks, not interval + the check's 0.25 s

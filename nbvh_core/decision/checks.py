@@ -11,9 +11,11 @@ from typing import Callable
 from .alternative_curve import AlternativeCurve
 from .records import CheckDecision
 
-#: A check below this fraction of the target stops the training: the margin is for the training still moving between
-#: the check and the end; the held-out evaluation after it confirms or not.
-EARLY_STOP_MARGIN = 0.9
+#: A check below this fraction of the target stops the training; the held-out evaluation after it confirms or not.
+#: The margin is for the check views' error against the held-out views': at the end of nine target runs the held-out
+#: views read 0.93-1.18x the last check (bench/results/need.csv), and the bunny stopped at 105 s by a check under 0.9x
+#: the level read 1.22x it held out (0.00044: missed; bench/results/shipped.csv at 8cbaa54).
+EARLY_STOP_MARGIN = 0.8
 #: A table grows only while at least this share of the budget is left: a table grown later trains too briefly to beat
 #: the one it replaces. Measured on the bunny (target 0.0004, 200 s, 6x4 features): grown 2^11 -> 2^12 at 53 s and
 #: -> 2^13 at 154 s, it ended at MSE 0.00043 in 237,116 B; a fixed 2^12 trained the whole 200 s read 0.00037 in
