@@ -350,6 +350,8 @@ class EncodingPhases:
         #: Below 8 bits the network's weights train through their rows too (from the low-bit table's start).
         self.network_grid = NetworkQuantization(model.network, cfg.network_bits,
                                                 1.0 - max(cfg.qat_fraction, LOW_BITS_QAT_FRACTION))
+        #: What training returns: the last steps' mean, restarted by every change of form below (`weight_average`).
+        self.average = WeightAverage(model, cfg.weight_average, cfg.average_from)
 
     def before_step(self, fraction: float) -> str:
         enc, cfg = self.model.encoding, self.cfg
@@ -384,6 +386,10 @@ class EncodingPhases:
         else:  # 8 bits: the snapped table stays on its grid
             self.model.encoding.table.grad = None
 
+    def after_step(self, fraction: float) -> None:
+        """After the optimizer's step: the weights into the average (a snap or a freeze starts it over)."""
+        self.average.update(fraction, (self.qat_on, self.model.encoding.frozen))
+
     def freeze(self) -> None:
         self.losses["soft"] = self.held_out_loss()
         if self.before_freeze is not None:
@@ -400,7 +406,9 @@ class EncodingPhases:
         return self.model.encoding.frozen
 
     def finish(self, result: "TrainResult") -> None:
-        """After the loop: a learned index is frozen now if the budget ended before its fine-tune."""
+        """After the loop: the averaged weights go into the model; a learned index is frozen now if the budget ended
+        before its fine-tune."""
+        self.average.apply()
         if self.model.encoding.learned_index and self.cfg.freeze:
             if not self.model.encoding.frozen:
                 self.freeze()
@@ -468,10 +476,19 @@ class EarlyStop:
     def __init__(self, target_reached, cfg: TrainConfig, last_s: float):
         self.target_reached, self.cfg, self.last_s = target_reached, cfg, last_s
         self.grew: list[tuple[int, float, int]] = []  # (step, seconds, new log2 T) of each growth
+        self.spent_s = 0.0  # the last act()'s own seconds
 
     def act(self, model: NeuralBVH, opt, checkpoints: "Checkpoints", events: EventSink, phases, step: int,
             fraction: float, elapsed: float) -> bool:
-        """Ask (when due) and do what the answer says: grow the table, or return True to end training."""
+        """Ask (when due) and do what the answer says: grow the table, or return True to end training. `spent_s`:
+        the seconds this call took (the caller's budget clock stops for them)."""
+        began = time.perf_counter()
+        try:
+            return self._act(model, opt, checkpoints, events, phases, step, fraction, elapsed)
+        finally:
+            self.spent_s = time.perf_counter() - began
+
+    def _act(self, model, opt, checkpoints, events, phases, step: int, fraction: float, elapsed: float) -> bool:
         decision = self.reached(model, fraction, elapsed, phases.ready_to_stop)
         if decision == "grow":
             grown = grow_table(model, opt, checkpoints)
@@ -593,6 +610,13 @@ def check_config(cfg: TrainConfig) -> None:
                          f"{cfg.finetune_fraction} and {cfg.anneal_fraction}")
 
 
+def _note_leaf_errors(leaf_errors: LeafErrors | None, model: NeuralBVH, batch: TrainingSamples, parts: dict) -> None:
+    """Loss-proportional leaf sampling: the step's per-sample errors into the running per-leaf error."""
+    if leaf_errors is not None:
+        leaf_errors.update(batch.leaf, model.network.sample_errors(parts["raw"].cpu(), batch.hit, batch.local_t,
+                                                                   batch.normal))
+
+
 def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, events: EventSink = null_sink,
           should_cancel: Callable[[], bool] = lambda: False, checkpoint_path: str | os.PathLike | None = None,
           resume_from: str | os.PathLike | None = None,
@@ -624,7 +648,6 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
                             ck.get("qat_affine"))
     checkpoints, early = Checkpoints(checkpoint_path, cfg, checkpoint_extra, elapsed_before), EarlyStop(target_reached, cfg, elapsed_before)
     train_step = make_step(model, device, plan)
-    average = WeightAverage(model, cfg.weight_average, cfg.average_from)
     events(wire.phase(phase="train", message=f"{model.cfg.encoding.kind}+{model.cfg.network.kind}, "
                                                            f"{cfg.labels} labels, {plan.describe()}"))
 
@@ -636,11 +659,9 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
     gc.freeze()  # what exists now (torch, the model, the data) lives on: full collections skip it (were ~8% of a step)
     try:
         while (frac := schedule.fraction(step, elapsed := time.perf_counter() - t0)) < 1.0:
-            checked = time.perf_counter()
-            stop = early.act(model, opt, checkpoints, events, phases, step, frac, elapsed)
-            t0 += time.perf_counter() - checked  # a check measures; its time is not the budget's (nor the schedule's)
-            if stop:
-                stopped_early = True
+            stopped_early = early.act(model, opt, checkpoints, events, phases, step, frac, elapsed)
+            t0 += early.spent_s  # a check measures: its time is not the budget's (nor the schedule's)
+            if stopped_early:
                 break
             if should_cancel():
                 checkpoints.save(state())
@@ -650,13 +671,11 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
             batch = batches.next()
             opt.zero_grad(set_to_none=True)
             loss, parts = train_step(batch, leaf_errors is not None)
-            if leaf_errors is not None:
-                leaf_errors.update(batch.leaf, model.network.sample_errors(
-                    parts["raw"].cpu(), batch.hit, batch.local_t, batch.normal))
+            _note_leaf_errors(leaf_errors, model, batch, parts)
             guard.observe(step, loss)
             phases.after_backward()
             opt.step()
-            average.update(frac, (phases.qat_on, model.encoding.frozen))
+            phases.after_step(frac)
             step += 1
             if cut is not None:
                 cut.after_step(frac, batches, leaf_errors, phase)
@@ -669,7 +688,6 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
         batches.close()
         gc.unfreeze()
     guard.finish(model, step)
-    average.apply()
     seconds = time.perf_counter() - t0
     result = TrainResult(steps=step, seconds=seconds, samples=progress.samples,
                          samples_per_s=progress.samples_per_s(seconds),
