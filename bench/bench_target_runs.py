@@ -1,8 +1,8 @@
 """How reliably a run with a target meets it: the CLI's `compress MESH --target-mse X --force` (the need-driven
 default: one growing training, its checks, the held-out evaluation) repeated over seeds, each run's file bytes,
-held-out and check-view MSE, steps, growth and the checks' trajectory ([training s, log2 T, check MSE], ...)
-in one row. Answers "does the bunny meet 0.0004 in <= 95,000 B within
-the default budget, and in how many runs of how many?" with a count rather than one lucky run.
+held-out and check-view MSE, steps, growth and the checks' trajectory ([training s, log2 T, check MSE], ...) in one
+row. Answers "does the bunny meet 0.0004 in <= 95,000 B within the default budget, and in how many runs of how many?"
+with a count rather than one lucky run.
 
     .venv/bin/python bench/bench_target_runs.py --mesh bunny --target 0.0004 --seeds 0 1 2 3
 
@@ -66,14 +66,13 @@ def main() -> None:
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3])
     p.add_argument("--time-limit", type=float, default=None, help="seconds of training (default: the default's)")
     args = p.parse_args()
-    time_limit = args.time_limit
     path = result_path(CSV)
     run_stamp = stamp()
     done = {(r["mesh"], float(r["target"]), int(r["seed"]), r["commit"]) for r in read_rows(path)}
     for seed in args.seeds:
         if (args.mesh, args.target, seed, run_stamp["commit"]) in done:
             continue
-        row = one_run(args.mesh, args.target, seed, time_limit)
+        row = one_run(args.mesh, args.target, seed, args.time_limit)
         append_rows(path, [row], run_stamp)
         print(row, flush=True)
     write_markdown(result_path("target_runs.md"),
