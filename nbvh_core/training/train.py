@@ -63,7 +63,7 @@ class TrainConfig:
     #: 0.000397; bench/results/frontier.md), so 5e-3 -> 5e-4 stays.
     lr: float = 5e-3
     lr_final_factor: float = 0.1
-    #: Half N-BVH's batch: at one wall-clock budget more, smaller steps (bunny, default preset, 200 s, seeds 0 / 1,
+    #: At one wall-clock budget, more and smaller steps read lower error (bunny, default preset, 200 s, seeds 0 / 1,
     #: held-out image MSE: 4096 rays 0.000389 / 0.000399 in ~22k steps, 2048 0.000373 / 0.000381 in ~37k, 1024
     #: 0.000381 / 0.000398 in ~64k; bench/results/frontier.md).
     rays_per_step: int = 2048
