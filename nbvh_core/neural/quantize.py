@@ -34,7 +34,7 @@ from ..geometry.bvh import NODE_DTYPE
 
 NONE16 = 65535
 #: Bits per stored feature value: float32, float16, or codes (8, 4) on a per (level, feature) affine grid.
-TABLE_BITS = (32, 16, 8, 4)
+TABLE_BITS = (32, 16, 8, 6, 4)
 #: Bits per stored network weight: float32, float16, or signed codes (8, 4) with a float16 scale per row.
 NETWORK_BITS = (32, 16, 8, 4)
 #: Below 8 bits a table's grid spans its rows between this percentile and its mirror per (level, feature): a few

@@ -97,24 +97,29 @@ MAX_HEADER_BYTES = 1 << 20
 
 
 def pack_codes(codes: np.ndarray, bits: int) -> bytes:
-    """Pack unsigned integer codes (< 2^bits, bits in {1, 2, 4, 8}) densely, little-endian within each byte."""
-    if bits not in (1, 2, 4, 8):
-        raise ValueError(f"code width {bits} bits is not supported (1, 2, 4 or 8)")
+    """Pack unsigned integer codes (< 2^bits, bits in 1..8) densely as one little-endian bit stream: code i holds
+    stream bits [i * bits, (i + 1) * bits), byte k stream bits [8k, 8k + 8) from its least significant bit (so at 1,
+    2, 4 bits each byte holds whole codes; at 6 bits four codes fill three bytes)."""
+    if not 1 <= bits <= 8:
+        raise ValueError(f"code width {bits} bits is not supported (1 to 8)")
     flat = np.asarray(codes, np.uint8).ravel()
-    per_byte = 8 // bits
-    pad = (-flat.size) % per_byte
-    flat = np.concatenate((flat, np.zeros(pad, np.uint8))).reshape(-1, per_byte)
-    shifts = (np.arange(per_byte) * bits).astype(np.uint8)
-    return np.bitwise_or.reduce(flat << shifts, axis=1).astype(np.uint8).tobytes()
+    if bits == 8:
+        return flat.tobytes()
+    stream = np.unpackbits(flat[:, None], axis=1, count=bits, bitorder="little")
+    return np.packbits(stream.ravel(), bitorder="little").tobytes()
 
 
 def unpack_codes(data: bytes, bits: int, count: int) -> np.ndarray:
-    """Inverse of `pack_codes`: the first `count` codes as uint8."""
-    per_byte = 8 // bits
+    """Inverse of `pack_codes`: the first `count` codes as uint8 (ValueError when `data` holds fewer)."""
+    if not 1 <= bits <= 8:
+        raise ValueError(f"code width {bits} bits is not supported (1 to 8)")
     raw = np.frombuffer(data, np.uint8)
-    shifts = (np.arange(per_byte) * bits).astype(np.uint8)
-    out = (raw[:, None] >> shifts) & np.uint8((1 << bits) - 1)
-    return out.ravel()[:count].astype(np.uint8)
+    if raw.size * 8 < count * bits:
+        raise ValueError(f"{raw.size} bytes hold fewer than {count} codes of {bits} bits")
+    if bits == 8:
+        return raw[:count].copy()
+    stream = np.unpackbits(raw, count=count * bits, bitorder="little").reshape(count, bits)
+    return np.packbits(stream, axis=1, bitorder="little").ravel()
 
 
 @dataclass
