@@ -12,9 +12,9 @@ more inputs, L = ln(budget / 15 s) and (log2 T - 10) x L, fitted jointly on:
 * compact.csv's preset rows with the current normals (preview 60 s at 2^11, default 200 s at 2^12, high 600 s at
   2^13; bunny, spiky, gyroid, terrain, knot, lattice).
 
-Then the presets' present shape (8 levels of 4 features, 2 hidden layers, k = 4; frontier.csv's
+Then the presets' present shape (10 levels of 4 features at 6 bits, 2 hidden layers, k = 4; frontier.csv's
 CURRENT_SHAPE_VARIANTS: 60 s on five meshes, 200 s on the bunny) reaches a given MSE with a smaller table than the
-shapes those rows were measured with: the fit over-predicted its MSE 1.4-5.2x. `shape_shift` is the mean of its
+shapes those rows were measured with. `shape_shift` is the mean of its
 rows' ln(measured / predicted) (each mesh weighed once), added to every prediction; its leave-one-mesh-out error is
 reported. The shift is fitted against the slopes as they are, so a rerun gives the same shift.
 
@@ -38,9 +38,9 @@ from nbvh_core.planning.sizing import FIT_PATH, SizeFit, load_fit, mesh_features
 
 BASE_S = 15.0
 GRID_PART = "grid4"
-#: frontier.csv's variants of the presets' present shape at the present learning rate: `l8f4t11h2k4` names the
-#: shape field by field, `s1`/`s2` are the default preset with another seed (the rows `lr2s*` ran at 1e-2).
-CURRENT_SHAPE_VARIANTS = ("l8f4t11h2k4", "s1", "s2")
+#: frontier.csv's variants of the presets' present shape (10 levels of 4 features at 6 bits, 2,048 rays per step):
+#: `l10b6f4t11h2k4` at 60 s on five meshes, `l10b6s0`/`l10b6s1` the bunny at 200 s with two seeds.
+CURRENT_SHAPE_VARIANTS = ("l10b6f4t11h2k4", "l10b6s0", "l10b6s1")
 #: The measurements are read from the committed results (a smoke run's results folder is empty).
 SOURCES = ROOT / "bench" / "results"
 

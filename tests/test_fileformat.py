@@ -20,12 +20,24 @@ def trained(sample_meshes, tmp_path_factory):
     return out
 
 
-@pytest.mark.parametrize("bits", [1, 2, 4, 8])
+@pytest.mark.parametrize("bits", [1, 2, 3, 4, 5, 6, 7, 8])
 def test_pack_unpack_codes(bits):
     codes = np.random.default_rng(0).integers(0, 1 << bits, size=1001).astype(np.uint8)
     packed = pack_codes(codes, bits)
     assert len(packed) == -(-1001 * bits // 8)
     assert np.array_equal(unpack_codes(packed, bits, 1001), codes)
+    with pytest.raises(ValueError, match="fewer"):
+        unpack_codes(packed[:-1], bits, 1001 + 8)
+
+
+def test_packed_codes_keep_their_byte_layout():
+    """Files written before 6-bit tables hold 1- and 4-bit codes least significant first within each byte; the one
+    bit stream reads them the same, and at 6 bits four codes fill three bytes."""
+    assert pack_codes(np.array([1, 2], np.uint8), 4) == bytes([0x21])
+    assert pack_codes(np.array([1, 0, 1, 1, 0, 0, 0, 0, 1], np.uint8), 1) == bytes([0b1101, 1])
+    assert pack_codes(np.array([63, 0, 0, 1], np.uint8), 6) == bytes([63, 0, 0b100])  # code 3 at stream bit 18
+    with pytest.raises(ValueError, match="not supported"):
+        pack_codes(np.zeros(3, np.uint8), 9)
 
 
 @pytest.mark.parametrize("enc", ["hashgrid", "hashvqad"])

@@ -511,9 +511,9 @@ def _add_compress_parser(sub) -> None:
     c.add_argument("--seed", type=int)
     c.add_argument("--device", choices=["auto", "cpu", "cuda"])
     c.add_argument("--float16", action="store_true", help="store tables and weights as float16 (= --table-bits 16)")
-    c.add_argument("--table-bits", type=int, choices=[32, 16, 8, 4],
-                   help="bits per stored feature value (default 8: per level/feature affine codes; 4: half the table "
-                        "bytes, the network adapts to the coarser grid at the end of training)")
+    c.add_argument("--table-bits", type=int, choices=[32, 16, 8, 6, 4],
+                   help="bits per stored feature value (default 8: per level/feature affine codes; 6 or 4: 3/4 or half "
+                        "the table bytes, the last quarter of training runs through the coarser grid)")
     c.add_argument("--network-bits", type=int, choices=[32, 16, 8, 4],
                    help="bits per stored network weight (8 or 4: signed codes with a float16 scale per row; 4 trains "
                         "through its rows at the end; default: the preset's)")

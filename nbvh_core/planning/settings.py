@@ -236,16 +236,18 @@ PRESETS: dict[str, Settings] = {
     # 0.000405 (two runs) on the bunny at 200 s, and at 60 s against 6 levels at 2^12 with k = 8 (129,9xx B): spiky
     # 0.000520 / 0.000535, knot 0.000404 / 0.000410, terrain 0.000414 / 0.000483, dragon 0.000973 / 0.000935, gyroid
     # 0.00589 / 0.00557. So the presets hold 8 levels of 4 features, 2 hidden layers and k = 4, one table size below
-    # the old presets'.
+    # the old presets'. Then 10 levels at 6 bits per feature value (the last quarter of training through the 6-bit
+    # grid) in the bytes of 8 levels at 8 bits: on the bunny at 200 s 0.000320 / 0.000334 in 91,172 B against
+    # 0.000376 in 93,156 B (8 levels at 6 bits: 0.000341 in 76,772 B; bench/results/frontier.md).
     # The grid's finest resolution follows the mesh and the table (n_max None: `sizing.choose_resolution`): at
     # T=2^12 and equal steps N_max 64 beat the paper's 128 on the bunny, blob and gyroid (13-32% lower MSE) and tied
     # on the studs (bench/bench_resolution.py).
-    "preview": Settings(encoding="hashgrid", network="mlp", nodes=1023, log2_table=10, levels=8, features=4,
-                        hidden=2, k=4, network_bits=8, n_max=None, time_limit_s=60.0, eval_views=8),
-    "default": Settings(encoding="hashgrid", network="mlp", log2_table=11, levels=8, features=4, hidden=2, k=4,
-                        network_bits=8, n_max=None, time_limit_s=200.0),
-    "high": Settings(encoding="hashgrid", network="mlp", nodes=4095, log2_table=12, levels=8, features=4, hidden=2,
-                     k=4, network_bits=8, n_max=None, time_limit_s=600.0),
+    "preview": Settings(encoding="hashgrid", network="mlp", nodes=1023, log2_table=10, levels=10, features=4,
+                        hidden=2, k=4, table_bits=6, network_bits=8, n_max=None, time_limit_s=60.0, eval_views=8),
+    "default": Settings(encoding="hashgrid", network="mlp", log2_table=11, levels=10, features=4, hidden=2, k=4,
+                        table_bits=6, network_bits=8, n_max=None, time_limit_s=200.0),
+    "high": Settings(encoding="hashgrid", network="mlp", nodes=4095, log2_table=12, levels=10, features=4,
+                     hidden=2, k=4, table_bits=6, network_bits=8, n_max=None, time_limit_s=600.0),
     # The paper's method steps (same size knobs as `default`), for ablations.
     "base": Settings(encoding="hashgrid", network="mlp", labels="ownership", log2_table=11),
     "I": Settings(encoding="hashgrid", network="kmlp", labels="ownership", log2_table=11),
