@@ -32,15 +32,18 @@ class CheckRule:
     -> d ln MSE / d ln time at that size (the size predictor's; None: the slope through the last two checks);
     grow_gain(log2) -> the predicted MSE ratio of a table twice as large (< 1; None: growth is judged on the
     target alone); bytes_at(log2) -> the file's bytes at that size as it ships (geometry, look, header); curve: the
-    alternative on the check views (None: no alternative measured); force: train on even above the curve.
-    After training, `decisions` holds every check and `keep_mesh` the decision that stopped it for the mesh."""
+    alternative on the check views (None: no alternative measured); force: train on even above the curve;
+    shipped_form(model) -> whether the model already has the form it ships in (None: always): until then a met
+    level trains on, since the phase still to come (a low-bit table's training through its grid) is what makes the
+    score hold. After training, `decisions` holds every check and `keep_mesh` the decision that stopped it for
+    the mesh."""
 
     def __init__(self, score: Callable, target: float, max_log2: int, budget_s: float,
                  bytes_at: Callable[[int], int], curve: AlternativeCurve | None = None, budget_slope=None,
-                 grow_gain=None, force: bool = False):
+                 grow_gain=None, force: bool = False, shipped_form: Callable | None = None):
         self.score, self.target, self.max_log2, self.budget_s = score, target, max_log2, budget_s
         self.bytes_at, self.curve, self.budget_slope, self.grow_gain = bytes_at, curve, budget_slope, grow_gain
-        self.force = force
+        self.force, self.shipped_form = force, shipped_form
         self.decisions: list[CheckDecision] = []
         self.keep_mesh: CheckDecision | None = None
         self._start = time.perf_counter()
@@ -74,6 +77,8 @@ class CheckRule:
         d = self.decisions[-1]
         d.projected_mse = self.projected(log2)
         d.action, d.reason = self._decide(d)
+        if d.action == "stop: level met" and self.shipped_form is not None and not self.shipped_form(model):
+            d.action, d.reason = "train on", f"{d.reason}; its final low-bit phase is still to run"
         if d.action == "stop: keep the mesh":
             self.keep_mesh = d
         return d.action

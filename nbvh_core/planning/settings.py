@@ -215,33 +215,15 @@ def settings_from_dict(d, where: str = "settings") -> Settings:
 
 
 PRESETS: dict[str, Settings] = {
-    # What users pick. Within minutes on a 2-core CPU the cheapest steps learn most: measured at equal bytes
-    # (~775 KB), 60 s on the bunny, HashGrid+MLP reached MSE 0.0032 / IoU 0.972 (405 steps) against
-    # HashVQAD+MLP 0.013 / 0.885 (172 steps); on the gyroid, 90 s, KMLP lost to MLP (0.046 vs 0.025, HashVQAD).
-    # So the user presets are HashGrid + MLP + consistent rays; the paper's full method is preset "III".
-    # Storage and feature width by measurement at the default preset's own budget (bench/bench_pays.py, bunny,
-    # 200 s): 16 features x T=2^11 with float16 weights 247 KB at MSE 0.00051 (3.4x smaller resident than the
-    # equal-MSE decimation); int8 weight rows 202 KB at 0.00052 (4.1x); 8 features x T=2^12 (the same table bytes,
-    # a first layer half as wide: 30% more steps in the budget) with int8 rows 186 KB at 0.00045 (5.6x).
-    # The model's shape from a measured frontier of bytes against MSE (bench/bench_frontier.py, frontier.md): 6
-    # levels of 4 features and 2 hidden layers hold 0.75x the bytes of 4 levels of 8 and 4 hidden layers at the same
-    # T (2^12: 137,908 against 183,596 B). At 60 s it read lower MSE on the bunny, the 202k dragon and spiky (0.86x,
-    # 0.92x, 0.91x), near on the gyroid (1.06x; lower at equal bytes), higher on the knot (1.13x) and the terrain
-    # (1.31x, where the wider features win at equal bytes); at 200 s on the bunny 6x4 with 4 hidden layers read
-    # 0.000347 in 146,668 B against 0.000365 in 183,596 B. Fewer features (2) lost on the bunny (1.6x the MSE), and
-    # 4-bit network rows cost 20-39% MSE for 8% of the bytes (kept as an option). Then, at 2 hidden layers: k = 4
-    # points per segment instead of 8 (a first layer half as wide: 40% more steps in the budget) read on the bunny at
-    # 200 s 0.000348 in 123,820 B against 0.000372 in 129,956 B (k = 6: 0.000358), at 60 s 3-6% lower MSE on the
-    # knot, the terrain and the gyroid, 2% higher on the dragon; and 8 levels at T=2^11 (93,164 B) read 0.000383 and
-    # 0.000405 (two runs) on the bunny at 200 s, and at 60 s against 6 levels at 2^12 with k = 8 (129,9xx B): spiky
-    # 0.000520 / 0.000535, knot 0.000404 / 0.000410, terrain 0.000414 / 0.000483, dragon 0.000973 / 0.000935, gyroid
-    # 0.00589 / 0.00557. So the presets hold 8 levels of 4 features, 2 hidden layers and k = 4, one table size below
-    # the old presets'. Then 10 levels at 6 bits per feature value (the last quarter of training through the 6-bit
-    # grid) in the bytes of 8 levels at 8 bits: on the bunny at 200 s 0.000320 / 0.000334 in 91,172 B against
-    # 0.000376 in 93,156 B (8 levels at 6 bits: 0.000341 in 76,772 B; bench/results/frontier.md).
-    # The grid's finest resolution follows the mesh and the table (n_max None: `sizing.choose_resolution`): at
-    # T=2^12 and equal steps N_max 64 beat the paper's 128 on the bunny, blob and gyroid (13-32% lower MSE) and tied
-    # on the studs (bench/bench_resolution.py).
+    # What users pick, each choice the measured better one at equal bytes (docs/results.md, bench/results/):
+    # HashGrid + MLP + consistent rays (the paper's full method is preset "III": within minutes on a 2-core CPU
+    # the cheapest steps learn most; bunny, 60 s, ~775 KB: MSE 0.0032 against HashVQAD's 0.013); int8 network
+    # rows (4 bits cost 20-39% MSE for 8% of the bytes); 4 features per level, 2 hidden layers, k = 4 points per
+    # segment (a narrow first layer trains more steps in the budget; frontier.md); 10 levels at 6 bits per value
+    # in the bytes of 8 levels at 8 (bunny, 200 s: 0.000320 / 0.000334 in 91,172 B against 0.000376 in 93,156 B;
+    # at 60 s 4-8% lower on the dragon, gyroid and knot, within 2% on the terrain and spiky). The grid's finest
+    # resolution follows the mesh and the table (n_max None: `sizing.choose_resolution`; N_max 64 beat the
+    # paper's 128 by 13-32% at T=2^12, bench/bench_resolution.py).
     "preview": Settings(encoding="hashgrid", network="mlp", nodes=1023, log2_table=10, levels=10, features=4,
                         hidden=2, k=4, table_bits=6, network_bits=8, n_max=None, time_limit_s=60.0, eval_views=8),
     "default": Settings(encoding="hashgrid", network="mlp", log2_table=11, levels=10, features=4, hidden=2, k=4,
