@@ -155,6 +155,54 @@ def test_growth_follows_the_projection_to_the_end_of_the_budget(monkeypatch):
     assert two_point(_model_at(11)) == "grow"  # worse than before: no progress at this size
 
 
+def test_a_met_level_waits_for_the_form_the_model_ships_in(monkeypatch):
+    """A low-bit table not yet on its grid: the met level is recorded and training goes on (the phase that makes the
+    score hold is still to run); once the model is in its shipped form the same reading stops it."""
+    now = [10.0]
+    on_grid = [False]
+    decide = _rule(monkeypatch, [0.5, 0.5], now, shipped_form=lambda model: on_grid[0])
+    assert decide(_model_at(10)) == "train on"
+    assert "low-bit phase is still to run" in decide.decisions[-1].reason
+    on_grid[0] = True
+    assert decide(_model_at(10)) == "stop: level met"
+
+
+def test_checks_score_a_low_bit_table_at_eight_bits_until_it_is_on_its_grid():
+    """The checks' score rounds a 6-bit table not yet on its grid to 8 bits (what its last phase recovers), and to
+    its own 6 bits once it trains through them; the training's own model is left as it is."""
+    import numpy as np
+    import torch
+    from nbvh_core.app.pipeline import _stored_mse, low_bit_grid_pending
+    from nbvh_core.neural.quantize import StorageConfig
+
+    from meshes import icosphere
+    from nbvh_core.geometry.bvh import build_bvh
+    from nbvh_core.neural.model import NeuralBVH
+    from nbvh_core.planning.settings import preset
+
+    mesh = icosphere(2)
+    model = NeuralBVH(build_bvh(mesh, 15).nodes, preset("tiny").model_config(), mesh.transform)
+    with torch.no_grad():
+        model.encoding.table.uniform_(-1e-2, 1e-2)
+    bits_seen = []
+
+    class Scorer:
+        def score_model(self, m):
+            codes = m.encoding.qcodes
+            bits_seen.append(int(codes.max()).bit_length())
+            return [type("Q", (), {"mse": 0.1})()]
+
+    storage = StorageConfig(table_bits=6, network_bits=8, node_bits=32)
+    before = model.encoding.table.detach().clone()
+    assert low_bit_grid_pending(model, storage)
+    _stored_mse(Scorer(), storage)(model)
+    model.encoding.qat_affine = (np.zeros((2, 4), np.float32), np.full((2, 4), 1e-3, np.float32))
+    assert not low_bit_grid_pending(model, storage)
+    _stored_mse(Scorer(), storage)(model)
+    assert bits_seen[0] == 8 and bits_seen[1] <= 6
+    assert torch.equal(model.encoding.table, before) and not model.encoding.quantized
+
+
 def _curve(points):
     from nbvh_core.decision.alternative_curve import AlternativeCurve, CurvePoint
 
