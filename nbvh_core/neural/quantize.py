@@ -33,7 +33,7 @@ import numpy as np
 from ..geometry.bvh import NODE_DTYPE
 
 NONE16 = 65535
-#: Bits per stored feature value: float32, float16, or codes (8, 4) on a per (level, feature) affine grid.
+#: Bits per stored feature value: float32, float16, or codes (8, 6, 4) on a per (level, feature) affine grid.
 TABLE_BITS = (32, 16, 8, 6, 4)
 #: Bits per stored network weight: float32, float16, or signed codes (8, 4) with a float16 scale per row.
 NETWORK_BITS = (32, 16, 8, 4)
@@ -47,8 +47,8 @@ _Q = np.float32(255.0)
 
 @dataclass(frozen=True)
 class StorageConfig:
-    """Bits per stored value: table_bits in TABLE_BITS (4 and 8: codes on a per level and feature affine grid,
-    4-bit codes packed two to a byte), network_bits in NETWORK_BITS, node_bits in {32, 8}."""
+    """Bits per stored value: table_bits in TABLE_BITS (8, 6 and 4: codes on a per level and feature affine grid,
+    6- and 4-bit codes packed as one bit stream), network_bits in NETWORK_BITS, node_bits in {32, 8}."""
 
     table_bits: int = 8
     network_bits: int = 16
