@@ -170,14 +170,15 @@ def test_a_met_level_waits_for_the_form_the_model_ships_in(monkeypatch):
 def test_checks_score_a_low_bit_table_at_eight_bits_until_it_is_on_its_grid():
     """The checks' score rounds a 6-bit table not yet on its grid to 8 bits (what its last phase recovers), and to
     its own 6 bits once it trains through them; the training's own model is left as it is."""
+    from types import SimpleNamespace
+
     import numpy as np
     import torch
-    from nbvh_core.app.pipeline import _stored_mse, low_bit_grid_pending
-    from nbvh_core.neural.quantize import StorageConfig
-
     from meshes import icosphere
+    from nbvh_core.app.pipeline import _stored_mse, low_bit_grid_pending
     from nbvh_core.geometry.bvh import build_bvh
     from nbvh_core.neural.model import NeuralBVH
+    from nbvh_core.neural.quantize import StorageConfig
     from nbvh_core.planning.settings import preset
 
     mesh = icosphere(2)
@@ -190,7 +191,7 @@ def test_checks_score_a_low_bit_table_at_eight_bits_until_it_is_on_its_grid():
         def score_model(self, m):
             codes = m.encoding.qcodes
             bits_seen.append(int(codes.max()).bit_length())
-            return [type("Q", (), {"mse": 0.1})()]
+            return [SimpleNamespace(mse=0.1)]
 
     storage = StorageConfig(table_bits=6, network_bits=8, node_bits=32)
     before = model.encoding.table.detach().clone()
