@@ -136,23 +136,23 @@ def test_growth_follows_the_projection_to_the_end_of_the_budget(monkeypatch):
     # slope -0.5: at 25 s of 100 s an MSE falls by (100 / 25)^-0.5 = 0.5 by the end
     decide = _rule(monkeypatch, [1.9, 2.1, 0.5, 3.0], now, budget_slope=lambda log2: -0.5)
     now[0] = 25.0
-    assert decide(_model_at(10)) == "train on"  # 0.95 at the end: met
-    assert decide(_model_at(10)) == "grow"  # 1.05 at the end: missed
-    assert decide(_model_at(11)) == "stop: level met"  # below 0.9 x the target now
-    assert decide(_model_at(12)) == "train on"  # the top size: nothing to grow to
+    assert decide(_model_at(10)).action == "train on"  # 0.95 at the end: met
+    assert decide(_model_at(10)).action == "grow"  # 1.05 at the end: missed
+    assert decide(_model_at(11)).action == "stop: level met"  # below 0.9 x the target now
+    assert decide(_model_at(12)).action == "train on"  # the top size: nothing to grow to
     assert [d.log2_table for d in decide.decisions] == [10, 10, 11, 12]
     assert [d.action for d in decide.decisions] == ["train on", "grow", "stop: level met", "train on"]
 
     now[0] = 0.0
-    two_point = _rule(monkeypatch, [4.0, 2.0, 2.0, 2.5], now)
+    two_point = _rule(monkeypatch, [4.0, 2.0, 2.0, 2.2], now)
     now[0] = 10.0
-    assert two_point(_model_at(10)) == "train on"  # one check: no law yet
+    assert two_point(_model_at(10)).action == "train on"  # one check: no law yet
     now[0] = 20.0
-    assert two_point(_model_at(10)) == "train on"  # 4 -> 2 from 10 s to 20 s: slope -1, 0.4 at 100 s
+    assert two_point(_model_at(10)).action == "train on"  # 4 -> 2 from 10 s to 20 s: slope -1, 0.4 at 100 s
     now[0] = 30.0
-    assert two_point(_model_at(11)) == "train on"  # the first check at the grown size
+    assert two_point(_model_at(11)).action == "train on"  # the first check at the grown size
     now[0] = 40.0
-    assert two_point(_model_at(11)) == "grow"  # worse than before: no progress at this size
+    assert two_point(_model_at(11)).action == "grow"  # worse than before: no progress at this size
 
 
 def test_a_met_level_waits_for_the_form_the_model_ships_in(monkeypatch):
@@ -161,10 +161,31 @@ def test_a_met_level_waits_for_the_form_the_model_ships_in(monkeypatch):
     now = [10.0]
     on_grid = [False]
     decide = _rule(monkeypatch, [0.5, 0.5], now, shipped_form=lambda model: on_grid[0])
-    assert decide(_model_at(10)) == "train on"
+    assert decide(_model_at(10)).action == "train on"
     assert "low-bit phase is still to run" in decide.decisions[-1].reason
     on_grid[0] = True
-    assert decide(_model_at(10)) == "stop: level met"
+    assert decide(_model_at(10)).action == "stop: level met"
+
+
+def test_a_check_far_worse_than_the_best_of_its_form_rolls_back(monkeypatch):
+    """Above ROLLBACK_FACTOR x the best check of the same size and form: "roll back", with no projection, and the
+    best stays; just under it: trained on; a new form (the low-bit table on its grid) starts the record over."""
+    from nbvh_core.decision.checks import ROLLBACK_FACTOR
+
+    now = [10.0]
+    on_grid = [False]
+    best = 2.0
+    decide = _rule(monkeypatch, [best, best * ROLLBACK_FACTOR * 1.01, best * ROLLBACK_FACTOR * 0.99,
+                                 best * ROLLBACK_FACTOR * 1.01, 3.0, 3.0 * ROLLBACK_FACTOR * 1.01], now, target=0.1,
+                   budget_slope=lambda log2: -0.5, max_log2=10, shipped_form=lambda model: on_grid[0])
+    assert decide(_model_at(10)).action == "train on"
+    rolled = decide(_model_at(10))
+    assert rolled.action == "roll back" and rolled.projected_mse is None and "best check's 2" in rolled.reason
+    assert decide(_model_at(10)).action == "train on"  # 1.14x: within the checks' spread
+    assert decide(_model_at(10)).action == "roll back"  # measured against the best (2.0), not the last (2.27)
+    on_grid[0] = True
+    assert decide(_model_at(10)).action == "train on"  # 3.0, 1.5x the best before: the first check on the grid
+    assert decide(_model_at(10)).action == "roll back"  # against the grid's best
 
 
 def test_checks_score_a_low_bit_table_at_eight_bits_until_it_is_on_its_grid():
@@ -232,16 +253,16 @@ def test_a_check_keeps_the_mesh_when_the_model_stays_above_a_measured_decimation
     # a 4,000 B model projected at 0.004: 2,000 B of decimation reach 0.002; the grown model (8,000 B at 0.002)
     # would still be above the curve (2,000 B): keep the mesh
     keep = _rule(monkeypatch, [0.004], now, bytes_at=lambda log2: 4000 * 2 ** (log2 - 10), **kw)
-    assert keep(_model_at(10)) == "stop: keep the mesh" and keep.keep_mesh is keep.decisions[0]
+    assert keep(_model_at(10)).action == "stop: keep the mesh" and keep.keep_mesh is keep.decisions[0]
     assert keep.decisions[0].action == "stop: keep the mesh" and "2,000 B" in keep.decisions[0].reason
     forced = _rule(monkeypatch, [0.004], now, bytes_at=lambda log2: 4000 * 2 ** (log2 - 10), force=True, **kw)
-    assert forced(_model_at(10)) == "grow" and forced.keep_mesh is None
+    assert forced(_model_at(10)).action == "grow" and forced.keep_mesh is None
     # a cheap model (200 B at 0.004) grows: 400 B at a projected 0.002 is under the curve's 2,000 B
     cheap = _rule(monkeypatch, [0.004], now, bytes_at=lambda log2: 200 * 2 ** (log2 - 10), **kw)
-    assert cheap(_model_at(10)) == "grow" and "under the alternative" in cheap.decisions[0].reason
+    assert cheap(_model_at(10)).action == "grow" and "under the alternative" in cheap.decisions[0].reason
     # under the curve but the level out of reach at the top size: train on (the best value), never keep the mesh
     top = _rule(monkeypatch, [0.004], now, bytes_at=lambda log2: 200, max_log2=10, **kw)
-    assert top(_model_at(10)) == "train on" and top.decisions[0].action == "train on"
+    assert top(_model_at(10)).action == "train on" and top.decisions[0].action == "train on"
 
 
 def test_the_final_verdict_ships_the_smaller_at_the_same_measured_mse():

@@ -90,6 +90,44 @@ def test_early_stop_asks_only_after_ten_percent_every_period_and_when_ready():
     assert not EarlyStop(None, TrainConfig(), 0.0).reached(None, 0.9, 100.0, True)
 
 
+def test_a_check_far_worse_than_the_best_sends_training_back_to_the_best_check_s_state(blob):
+    """A check's record carries its MSE: the best check's parameters and Adam's moments are kept; "roll back"
+    puts them back (the learning rate as it is now) and starts the weight average over; a later, worse check
+    that is not rolled back does not replace the best."""
+    from types import SimpleNamespace
+
+    _, bvh, _, _ = blob
+    model = _model(bvh)
+    opt = torch.optim.Adam(model.parameters(), lr=1e-2)
+    answers = iter([SimpleNamespace(action="train on", mse=1.0), SimpleNamespace(action="train on", mse=1.1),
+                    SimpleNamespace(action="roll back", mse=2.0)])
+    stop = EarlyStop(lambda m: next(answers), TrainConfig(target_check_every_s=1.0), 0.0)
+    restarted, said = [], []
+    phases = SimpleNamespace(qat_on=False, phase="train", ready_to_stop=True,
+                             average=SimpleNamespace(restart=lambda: restarted.append(1)))
+
+    def nudge():  # one optimizer step away from the present weights
+        opt.zero_grad()
+        sum((p ** 2).sum() for p in model.parameters() if p.requires_grad).backward()
+        opt.step()
+
+    nudge()
+    assert not stop.act(model, opt, None, said.append, phases, 10, 0.2, 2.0)
+    best = [p.detach().clone() for p in model.parameters()]
+    best_moments = [v["exp_avg"].clone() for v in opt.state.values()]
+    nudge()
+    assert not stop.act(model, opt, None, said.append, phases, 20, 0.4, 4.0)  # 1.1: kept going, not the best
+    nudge()
+    opt.param_groups[0]["lr"] = 1e-3  # the schedule moved on
+    assert not stop.act(model, opt, None, said.append, phases, 30, 0.6, 6.0)
+    assert all(torch.equal(p, b) for p, b in zip(model.parameters(), best))
+    assert all(torch.equal(v["exp_avg"], m) for v, m in zip(opt.state.values(), best_moments))
+    assert opt.param_groups[0]["lr"] == 1e-3 and restarted == [1] and stop.best.restored == 1
+    assert "back to that check's weights" in said[-1]["message"]
+    # another form (a table put on its grid): the best before it does not fit, so nothing is restored
+    assert not stop.best.restore(model, opt, (6, True, False))
+
+
 _EXTRA = {"settings": {}, "mesh": {"triangles": 1}}
 
 

@@ -22,10 +22,15 @@ EARLY_STOP_MARGIN = 0.9
 #: -> 2^13 at 154 s, it ended at MSE 0.00043 in 237,116 B; a fixed 2^12 trained the whole 200 s read 0.00037 in
 #: 137,916 B (bench/results/storage.md).
 GROW_MIN_REMAINING = 0.4
+#: A check reading more than this times the best check of the model's present form sends training back to that
+#: check's state (`training.best_weights`): in 30 target runs of the bunny no check read more than 1.084x the best
+#: before it; the runs that went on from 1.18x and 1.47x missed the level (bench/results/target_runs.csv, seed 9).
+ROLLBACK_FACTOR = 1.15
 
 
 class CheckRule:
-    """The target_reached callback of `training.train`: each call answers one of `records.CHECK_ACTIONS`.
+    """The target_reached callback of `training.train`: each call answers a `records.CheckDecision` (its action one of
+    `records.CHECK_ACTIONS`).
 
     score(model) -> check MSE of the model as stored; target: the MSE level; max_log2: the largest table;
     budget_s: the training's budget (its clock: seconds since this rule was made, less the checks' own time); budget_slope(log2)
@@ -35,8 +40,8 @@ class CheckRule:
     alternative on the check views (None: no alternative measured); force: train on even above the curve;
     shipped_form(model) -> whether the model already has the form it ships in (None: always): until then a met
     level trains on, since the phase still to come (a low-bit table's training through its grid) is what makes the
-    score hold. After training, `decisions` holds every check and `keep_mesh` the decision that stopped it for
-    the mesh."""
+    score hold. A check far worse than the best of its form (ROLLBACK_FACTOR) answers "roll back". After training,
+    `decisions` holds every check and `keep_mesh` the decision that stopped it for the mesh."""
 
     def __init__(self, score: Callable, target: float, max_log2: int, budget_s: float,
                  bytes_at: Callable[[int], int], curve: AlternativeCurve | None = None, budget_slope=None,
@@ -48,12 +53,13 @@ class CheckRule:
         self.keep_mesh: CheckDecision | None = None
         self._start = time.perf_counter()
         self._measuring_s = 0.0  # spent in score(): the training's clock stops for it (`training.train`)
+        self._best: dict[tuple, float] = {}  # the best check's MSE of each form (table size, shipped form or not)
 
     def projected(self, log2: int) -> float | None:
         """The MSE at the end of the budget from this size's checks; None: not enough checks yet. The projection is
         MSE x (budget / now)^slope: the predictor's exponent at this size (the learning rate decays over the budget,
         so the slope between two checks mid-way underestimates the end: bench/results/need.csv), else two checks'."""
-        points = [(d.seconds, d.mse) for d in self.decisions if d.log2_table == log2]
+        points = [(d.seconds, d.mse) for d in self.decisions if d.log2_table == log2 and d.action != "roll back"]
         t, m = max(points[-1][0], 1e-6), points[-1][1]
         if self.budget_slope is not None:
             slope = self.budget_slope(log2)
@@ -66,8 +72,9 @@ class CheckRule:
             slope = math.log(m / m1) / math.log(t / max(t1, 1e-6))
         return m * (max(self.budget_s, t) / t) ** slope
 
-    def __call__(self, model) -> str:
-        """Measure `model` now and decide: one of CHECK_ACTIONS (recorded in `decisions`)."""
+    def __call__(self, model) -> CheckDecision:
+        """Measure `model` now and decide: the check's record (its action one of CHECK_ACTIONS), also kept in
+        `decisions`."""
         began = time.perf_counter()
         seconds = round(began - self._start - self._measuring_s, 2)  # training time: the checks' own is not
         mse = self.score(model)
@@ -76,12 +83,20 @@ class CheckRule:
         self.decisions.append(CheckDecision(seconds, log2, mse, None, self.bytes_at(log2), None, "train on", ""))
         d = self.decisions[-1]
         d.projected_mse = self.projected(log2)
+        form = (log2, self.shipped_form is None or self.shipped_form(model))
+        best = self._best.get(form)
         d.action, d.reason = self._decide(d)
-        if d.action == "stop: level met" and self.shipped_form is not None and not self.shipped_form(model):
+        if d.action == "stop: level met" and not form[1]:
             d.action, d.reason = "train on", f"{d.reason}; its final low-bit phase is still to run"
+        elif d.action != "stop: level met" and best is not None and d.mse > ROLLBACK_FACTOR * best:
+            d.projected_mse = d.alternative_bytes = None  # a projection from a state training leaves is moot
+            d.action, d.reason = "roll back", (f"MSE {d.mse:.4g} > {ROLLBACK_FACTOR} x the best check's {best:.4g}: "
+                                               "back to that check's weights")
+        if d.action != "roll back":
+            self._best[form] = min(d.mse, best if best is not None else math.inf)
         if d.action == "stop: keep the mesh":
             self.keep_mesh = d
-        return d.action
+        return d
 
     def _decide(self, d: CheckDecision) -> tuple[str, str]:
         if d.mse <= EARLY_STOP_MARGIN * self.target:

@@ -37,6 +37,7 @@ from ..protocol import events as wire
 from ..geometry.exact import ExactTracer
 from ..neural.model import NeuralBVH
 from ..protocol.process import Cancelled, TrainingDiverged
+from .best_weights import BestWeights
 from .network_quantization import NetworkQuantization
 from .weight_average import WeightAverage
 from .rays import RayConfig, TrainingSamples, label_samples, sample_rays
@@ -471,7 +472,9 @@ class EarlyStop:
     """Asks target_reached(model) every cfg.target_check_every_s once 10% of the budget has passed (and the
     encoding is in its final form): True ends training (see TrainConfig.target_check_every_s); "grow" asks for a
     table twice as large (`grow_table`), honoured while the model can still be trained at its new size (before
-    GROW_UNTIL of the budget, a HashGrid not yet quantized)."""
+    GROW_UNTIL of the budget, a HashGrid not yet quantized); "roll back" returns to the best check's state
+    (`best_weights`). An answer that is a check record (`records.CheckDecision`) also offers its MSE, so the best
+    check's state is kept."""
 
     #: No growth after this fraction of the budget: the larger table would get too little training to pay.
     GROW_UNTIL = 0.8
@@ -480,6 +483,8 @@ class EarlyStop:
         self.target_reached, self.cfg, self.last_s = target_reached, cfg, last_s
         self.grew: list[tuple[int, float, int]] = []  # (step, seconds, new log2 T) of each growth
         self.spent_s = 0.0  # the last act()'s own seconds
+        self.best = BestWeights()
+        self.last_mse: float | None = None  # the last check's MSE, when its answer carried one
 
     def act(self, model: NeuralBVH, opt, checkpoints: "Checkpoints", events: EventSink, phases, step: int,
             fraction: float, elapsed: float) -> bool:
@@ -493,6 +498,15 @@ class EarlyStop:
 
     def _act(self, model, opt, checkpoints, events, phases, step: int, fraction: float, elapsed: float) -> bool:
         decision = self.reached(model, fraction, elapsed, phases.ready_to_stop)
+        form = (model.cfg.encoding.log2_table, phases.qat_on, model.encoding.frozen)
+        if decision == "roll back":
+            if self.best.restore(model, opt, form):
+                phases.average.restart()
+                events(wire.phase(phase=phases.phase, message=f"check at step {step} read {self.last_mse:.4g}, far "
+                                  f"above the best ({self.best.mse:.4g}): back to that check's weights"))
+            return False
+        if self.last_mse is not None:
+            self.best.offer(model, opt, self.last_mse, form)
         if decision == "grow":
             grown = grow_table(model, opt, checkpoints)
             self.grew.append((step, round(elapsed, 1), grown))
@@ -505,12 +519,18 @@ class EarlyStop:
         return bool(decision)
 
     def reached(self, model: NeuralBVH, fraction: float, elapsed: float, ready: bool) -> bool | str:
-        """False (no check due, or train on), "grow" (honoured only while growth can pay), or True (stop)."""
+        """False (no check due, or train on), "grow" (honoured only while growth can pay), "roll back", or True
+        (stop)."""
+        self.last_mse = None
         if (self.target_reached is None or fraction < 0.1 or not ready
                 or elapsed - self.last_s < self.cfg.target_check_every_s):
             return False
         self.last_s = elapsed
         answer = self.target_reached(model)
+        self.last_mse = getattr(answer, "mse", None)
+        answer = getattr(answer, "action", answer)
+        if answer == "roll back":
+            return answer
         if answer == "grow":
             return "grow" if fraction < self.GROW_UNTIL and model.encoding.can_grow() else False
         if isinstance(answer, str):  # a check's action (decision.records.CHECK_ACTIONS)
@@ -625,14 +645,14 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
           resume_from: str | os.PathLike | None = None,
           before_freeze: Callable[[NeuralBVH], None] | None = None,
           checkpoint_extra: dict | None = None,
-          target_reached: Callable[[NeuralBVH], bool | str] | None = None) -> TrainResult:
+          target_reached: Callable[[NeuralBVH], object] | None = None) -> TrainResult:
     """Train `model` in place on rays around `bvh`, labelled by `tracer`; freezes HashVQAD near the end.
 
     before_freeze(model) is called once just before the HashVQAD freeze (e.g. to score the soft model).
     checkpoint_extra: stored in every checkpoint under 'extra' (the caller's settings and mesh identity).
-    target_reached(model) -> bool or a check's action (`decision.records.CHECK_ACTIONS`, what `CheckRule` answers):
-    polled every cfg.target_check_every_s seconds; True or a "stop: ..." action stops training early, "grow" doubles
-    the table (`grow_table`) and training goes on.
+    target_reached(model) -> bool, a check's action (`records.CHECK_ACTIONS`) or record (`CheckDecision`, as
+    `CheckRule` answers), asked every cfg.target_check_every_s seconds: True or "stop: ..." stops training early;
+    "grow" doubles the table, "roll back" returns to the best check's state (`EarlyStop`), and training goes on.
     """
     check_config(cfg)
     device = pick_device(cfg.device)

@@ -41,6 +41,10 @@ class WeightAverage:
             rate = max(1.0 - self.decay, 1.0 / self.steps)
             torch._foreach_lerp_(self._mean, [p.detach() for p in params], rate)
 
+    def restart(self) -> None:
+        """Start the average over at the next step (the weights went back to an earlier state)."""
+        self._key, self._mean, self.steps = None, None, 0
+
     def apply(self) -> bool:
         """Put the average into the model's parameters (in place); False when nothing was averaged."""
         if self._mean is None or self.steps < 2:
