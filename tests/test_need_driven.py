@@ -188,6 +188,19 @@ def test_a_check_far_worse_than_the_best_of_its_form_rolls_back(monkeypatch):
     assert decide(_model_at(10)).action == "roll back"  # against the grid's best
 
 
+def test_the_finished_model_is_measured_once_more_and_rolls_back_only_when_far_worse(monkeypatch):
+    """At the end of the budget the rule decides nothing but "finish" or "roll back" (no growth, no keeping the
+    mesh, whatever the alternative's curve says): the final verdict weighs the finished model."""
+    now = [0.0]
+    decide = _rule(monkeypatch, [2.0, 2.1, 3.0], now, target=0.1, budget_slope=lambda log2: -0.5, max_log2=12)
+    now[0] = 10.0
+    assert decide(_model_at(10)).action == "grow"  # far from the level, growth pays (no curve)
+    now[0] = 100.0
+    end = decide.at_end(_model_at(10))
+    assert (end.action, end.reason) == ("finish", "the budget is spent") and decide.keep_mesh is None
+    assert decide.at_end(_model_at(10)).action == "roll back"  # 3.0 > 1.15 x 2.0
+
+
 def test_checks_score_a_low_bit_table_at_eight_bits_until_it_is_on_its_grid():
     """The checks' score rounds a 6-bit table not yet on its grid to 8 bits (what its last phase recovers), and to
     its own 6 bits once it trains through them; the training's own model is left as it is."""

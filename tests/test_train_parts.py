@@ -128,6 +128,36 @@ def test_a_check_far_worse_than_the_best_sends_training_back_to_the_best_check_s
     assert not stop.best.restore(model, opt, (6, True, False))
 
 
+def test_a_training_whose_finished_model_reads_far_worse_ends_on_the_best_check_s_weights(blob):
+    """A real training, its checks' scores scripted: 1.0, then 0.5 (the best), then 0.55 (within the spread); the
+    finished model reads 0.9 (> 1.15 x 0.5): train() returns the 0.5 check's weights."""
+    from nbvh_core.decision.checks import CheckRule
+
+    _, bvh, tracer, _ = blob
+    scores, at_best = iter([1.0, 0.5]), []
+
+    def score(model):
+        mse = next(scores, 0.55)
+        if mse == 0.5:
+            at_best.extend(p.detach().clone() for p in model.parameters())
+        return mse
+
+    class Scripted(CheckRule):
+        def at_end(self, model):
+            self.score = lambda m: 0.9
+            return super().at_end(model)
+
+    rule = Scripted(score, target=1e-9, max_log2=6, budget_s=1.0, bytes_at=lambda log2: 1000)
+    said = []
+    cfg = TrainConfig(steps=None, time_limit_s=1.0, rays_per_step=256, target_check_every_s=0.15, progress_every_s=0)
+    model = _model(bvh)
+    train(model, bvh, tracer, cfg, events=said.append, target_reached=rule)
+    assert [d.action for d in rule.decisions][-1] == "roll back" and len(rule.decisions) >= 4
+    assert all(d.action == "train on" for d in rule.decisions[:-1])
+    assert all(torch.equal(p, b) for p, b in zip(model.parameters(), at_best))
+    assert any("the finished model read 0.9" in e.get("message", "") for e in said)
+
+
 _EXTRA = {"settings": {}, "mesh": {"triangles": 1}}
 
 

@@ -75,28 +75,50 @@ class CheckRule:
     def __call__(self, model) -> CheckDecision:
         """Measure `model` now and decide: the check's record (its action one of CHECK_ACTIONS), also kept in
         `decisions`."""
+        d, form, best = self._measure(model)
+        d.projected_mse = self.projected(d.log2_table)
+        d.action, d.reason = self._decide(d)
+        if d.action == "stop: level met" and not form[1]:
+            d.action, d.reason = "train on", f"{d.reason}; its final low-bit phase is still to run"
+        elif d.action != "stop: level met" and self._rolls_back(d, best):
+            d.projected_mse = d.alternative_bytes = None  # a projection from a state training leaves is moot
+        self._note_best(d, form, best)
+        if d.action == "stop: keep the mesh":
+            self.keep_mesh = d
+        return d
+
+    def at_end(self, model) -> CheckDecision:
+        """The finished model (its budget spent) measured once more: "roll back" when it reads far worse than the
+        best check of its form (ROLLBACK_FACTOR), else "finish". Nothing else is decided here: the final verdict
+        weighs the finished model on the held-out views."""
+        d, form, best = self._measure(model)
+        d.action, d.reason = "finish", "the budget is spent"
+        self._rolls_back(d, best)
+        self._note_best(d, form, best)
+        return d
+
+    def _measure(self, model) -> tuple[CheckDecision, tuple, float | None]:
+        """A new record of `model`'s check MSE now, its form (table size, shipped form or not) and that form's best."""
         began = time.perf_counter()
         seconds = round(began - self._start - self._measuring_s, 2)  # training time: the checks' own is not
         mse = self.score(model)
         self._measuring_s += time.perf_counter() - began
         log2 = model.cfg.encoding.log2_table
         self.decisions.append(CheckDecision(seconds, log2, mse, None, self.bytes_at(log2), None, "train on", ""))
-        d = self.decisions[-1]
-        d.projected_mse = self.projected(log2)
         form = (log2, self.shipped_form is None or self.shipped_form(model))
-        best = self._best.get(form)
-        d.action, d.reason = self._decide(d)
-        if d.action == "stop: level met" and not form[1]:
-            d.action, d.reason = "train on", f"{d.reason}; its final low-bit phase is still to run"
-        elif d.action != "stop: level met" and best is not None and d.mse > ROLLBACK_FACTOR * best:
-            d.projected_mse = d.alternative_bytes = None  # a projection from a state training leaves is moot
-            d.action, d.reason = "roll back", (f"MSE {d.mse:.4g} > {ROLLBACK_FACTOR} x the best check's {best:.4g}: "
-                                               "back to that check's weights")
+        return self.decisions[-1], form, self._best.get(form)
+
+    def _rolls_back(self, d: CheckDecision, best: float | None) -> bool:
+        """Whether `d` reads more than ROLLBACK_FACTOR x its form's best check (then its action says so)."""
+        if best is None or d.mse <= ROLLBACK_FACTOR * best:
+            return False
+        d.action, d.reason = "roll back", (f"MSE {d.mse:.4g} > {ROLLBACK_FACTOR} x the best check's {best:.4g}: "
+                                           "back to that check's weights")
+        return True
+
+    def _note_best(self, d: CheckDecision, form: tuple, best: float | None) -> None:
         if d.action != "roll back":
             self._best[form] = min(d.mse, best if best is not None else math.inf)
-        if d.action == "stop: keep the mesh":
-            self.keep_mesh = d
-        return d
 
     def _decide(self, d: CheckDecision) -> tuple[str, str]:
         if d.mse <= EARLY_STOP_MARGIN * self.target:

@@ -6,7 +6,7 @@ from dataclasses import asdict, dataclass, field
 #: The kinds of step a run's account (`RunNote`) tells.
 NOTE_KINDS = ("plan", "resumed", "restart", "growth", "search", "early stop")
 #: What a training check decided.
-CHECK_ACTIONS = ("train on", "grow", "roll back", "stop: level met", "stop: keep the mesh")
+CHECK_ACTIONS = ("train on", "grow", "roll back", "finish", "stop: level met", "stop: keep the mesh")
 
 
 @dataclass(frozen=True)
