@@ -209,11 +209,12 @@ def test_checks_score_a_low_bit_table_at_eight_bits_until_it_is_on_its_grid():
     import numpy as np
     import torch
     from meshes import icosphere
-    from nbvh_core.app.pipeline import _stored_mse, low_bit_grid_pending
+    from nbvh_core.app.pipeline import _stored_mse
     from nbvh_core.geometry.bvh import build_bvh
     from nbvh_core.neural.model import NeuralBVH
     from nbvh_core.neural.quantize import StorageConfig
     from nbvh_core.planning.settings import preset
+    from nbvh_core.training.train import grid_phase_pending
 
     mesh = icosphere(2)
     model = NeuralBVH(build_bvh(mesh, 15).nodes, preset("tiny").model_config(), mesh.transform)
@@ -229,10 +230,10 @@ def test_checks_score_a_low_bit_table_at_eight_bits_until_it_is_on_its_grid():
 
     storage = StorageConfig(table_bits=6, network_bits=8, node_bits=32)
     before = model.encoding.table.detach().clone()
-    assert low_bit_grid_pending(model, storage)
+    assert grid_phase_pending(model, storage.table_bits)
     _stored_mse(Scorer(), storage)(model)
     model.encoding.qat_affine = (np.zeros((2, 4), np.float32), np.full((2, 4), 1e-3, np.float32))
-    assert not low_bit_grid_pending(model, storage)
+    assert not grid_phase_pending(model, storage.table_bits)
     _stored_mse(Scorer(), storage)(model)
     assert bits_seen[0] == 8 and bits_seen[1] <= 6
     assert torch.equal(model.encoding.table, before) and not model.encoding.quantized

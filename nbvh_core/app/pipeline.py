@@ -34,7 +34,7 @@ from ..planning.settings import PRESETS, Settings, estimate_file_bytes, preset  
 from ..planning import sizing
 from ..planning.run_config import LookConfig, RunConfig, plan_run
 from ..planning.sizing import LOG2_RANGE, assess, load_fit, mesh_features, predictor
-from ..training.train import TrainResult, train
+from ..training.train import TrainResult, grid_phase_pending, train
 from ..decision.alternative_curve import AlternativeCurve, CurvePoint
 from ..decision.checks import CheckRule
 from ..decision.size_search import search_size
@@ -141,22 +141,18 @@ def _stored_mse(scorer: ViewScorer, storage):
     """score(model) for the training's checks: the image MSE of `model` as its file would hold it (a copy at its
     stored precision; the training's own model is left as it is): the float32 model read 4.7% (spiky sphere) to 18%
     (bunny, its table grown late) below the stored one. A low-bit table is scored at 8 bits until it trains through
-    its own grid (`low_bit_grid_pending`): that last phase recovers the rounding (6 bits: +3.1% over the float model
-    after it, 1.24x rounded without it; `tests/test_quantize.py`), and growth decided on the rounded score grew the
-    bunny's table in both runs so scored (bench/results/target_runs.md, 5c9d155)."""
+    its own grid (`training.train.grid_phase_pending`): that last phase recovers the rounding (6 bits: +3.1% over
+    the float model after it, 1.24x rounded without it; `tests/test_quantize.py`), and growth decided on the rounded
+    score grew the bunny's table in both runs so scored (bench/results/target_runs.md, 5c9d155)."""
     def score(model) -> float:
         stored = copy.deepcopy(model)
         stored.eval()
-        pending = low_bit_grid_pending(model, storage)
+        pending = grid_phase_pending(model, storage.table_bits)
         stored.finalize_storage(dataclasses.replace(storage, table_bits=8) if pending else storage)
         with torch.no_grad():
             return scorer.score_model(stored)[0].mse
     return score
 
-
-def low_bit_grid_pending(model: NeuralBVH, storage) -> bool:
-    """Whether `model`'s table ships below 8 bits and has not yet been put on that grid (its training's last phase)."""
-    return storage.table_bits < 8 and getattr(model.encoding, "qat_affine", None) is None
 
 
 def _train_with_restarts(mesh, bvh, tracer, run: RunConfig, events, should_cancel, checkpoint_path, resume_from=None,
@@ -326,7 +322,7 @@ class _SizeSearch:
 
     def shipped_form(self, model: NeuralBVH) -> bool:
         """Whether a check may stop `model`'s training: its table is in the form the file stores (`CheckRule`)."""
-        return not low_bit_grid_pending(model, self.run.storage)
+        return not grid_phase_pending(model, self.run.storage.table_bits)
 
     def bytes_at(self, log2_table: int) -> int:
         """The file's bytes at table size 2^log2_table as it ships: geometry, look, header."""

@@ -49,6 +49,18 @@ from .rays import RayConfig, TrainingSamples, label_samples, sample_rays
 LOW_BITS_QAT_FRACTION = 0.25
 
 
+def trains_through_grid(table_bits: int | None) -> bool:
+    """Whether a table stored at `table_bits` trains through its grid in its last phase (below 8 bits: see
+    LOW_BITS_QAT_FRACTION); at 8 bits and above it is put on its grid and held there."""
+    return bool(table_bits) and table_bits < 8
+
+
+def grid_phase_pending(model: NeuralBVH, table_bits: int | None) -> bool:
+    """Whether `model`'s table is to train through its `table_bits` grid and has not reached that phase yet: until
+    then it is not in the form it ships in (a check scores it at 8 bits and does not stop it: `decision.checks`)."""
+    return trains_through_grid(table_bits) and getattr(model.encoding, "qat_affine", None) is None
+
+
 @dataclass
 class TrainConfig:
     """labels: 'ownership' | 'consistent'. Budget: `steps`, or `time_limit_s` (whichever ends first; at least
@@ -359,7 +371,7 @@ class EncodingPhases:
 
     def before_step(self, fraction: float) -> str:
         enc, cfg = self.model.encoding, self.cfg
-        low_bits = bool(cfg.table_bits) and cfg.table_bits < 8
+        low_bits = trains_through_grid(cfg.table_bits)
         if enc.freeze_due(fraction, cfg):
             self.freeze()
             self.phase = "finetune"
