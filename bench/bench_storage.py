@@ -4,7 +4,7 @@ variants (the compact ray-traceable mesh; that mesh xz'd) and Draco 11-bit of th
 decoded and a BVH built before tracing). One metric for all: `harness.product_scorer` (16 held-out views, 256 px).
 
     .venv/bin/python bench/bench_storage.py [--meshes bunny spiky knot gyroid] [--preset default] [--seconds 200]
-        [--table-bits 8|4]
+        [--table-bits 8|6|4]   (default: the preset's)
 
 The decimation: quadric (fast-simplification), bisected on the triangle count until its decoded compact mesh
 reaches the model's MSE. Resumable: one row per (mesh, preset, seconds, table bits, the preset's model shape, the file format) in
@@ -155,8 +155,9 @@ def main() -> None:
     ap.add_argument("--meshes", nargs="+", default=["bunny", "spiky", "knot", "gyroid"])
     ap.add_argument("--preset", default="default")
     ap.add_argument("--seconds", type=float, default=200.0)
-    ap.add_argument("--table-bits", type=int, default=8, choices=[8, 4])
+    ap.add_argument("--table-bits", type=int, default=None, choices=[8, 6, 4], help="default: the preset's")
     args = ap.parse_args()
+    args.table_bits = args.table_bits or preset(args.preset).table_bits
     done = {(r["mesh"], r["preset"], float(r["train_s"]), _bits(r), row_shape(r), row_format(r))
             for r in read_rows(OUT)}
     for name in args.meshes:
