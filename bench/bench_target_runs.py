@@ -1,7 +1,7 @@
 """How reliably a run with a target meets it: the CLI's `compress MESH --target-mse X --force` (the need-driven
 default: one growing training, its checks, the held-out evaluation) repeated over seeds, each run's file bytes,
-held-out and check-view MSE, steps, growth and the checks' trajectory ([training s, log2 T, check MSE], ...) in one
-row. Answers "does the bunny meet 0.0004 in <= 95,000 B within the default budget, and in how many runs of how many?"
+held-out and check-view MSE, steps, growth, how many checks sent training back to the best check's weights, and the
+checks' trajectory ([training s, log2 T, check MSE], ...) in one row. Answers "does the bunny meet 0.0004 in <= 95,000 B within the default budget, and in how many runs of how many?"
 with a count rather than one lucky run.
 
     .venv/bin/python bench/bench_target_runs.py --mesh bunny --target 0.0004 --seeds 0 1 2 3
@@ -38,6 +38,7 @@ def one_run(mesh_name: str, target: float, seed: int, time_limit_s: float | None
             "target_met": bool(res.target_met), "log2_table": res.settings.log2_table, "steps": res.training.steps,
             "train_s": round(res.training.seconds, 1), "checks": len(checks),
             "stopped_early": res.training.stopped_early,
+            "rolled_back": sum(c["action"] == "roll back" for c in checks),
             "check_trajectory": json.dumps([[c["seconds"], c["log2_table"], round(c["mse"], 7)] for c in checks])}
 
 
