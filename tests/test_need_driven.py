@@ -201,6 +201,42 @@ def test_the_finished_model_is_measured_once_more_and_rolls_back_only_when_far_w
     assert decide.at_end(_model_at(10)).action == "roll back"  # 3.0 > 1.15 x 2.0
 
 
+def test_a_training_started_again_after_a_divergence_starts_its_checks_over(monkeypatch):
+    """A divergence restarts the training from scratch (`pipeline._train_with_restarts`): the rule's clock and best
+    checks start over with it (the new training's early checks are not rolled back against the old one's best, nor
+    projected with its checks), and the first training's decisions stay on record."""
+    from types import SimpleNamespace
+
+    import nbvh_core.app.pipeline as pipeline
+    from nbvh_core.geometry.bvh import build_bvh
+    from nbvh_core.planning.run_config import plan_run
+    from nbvh_core.protocol.process import TrainingDiverged
+
+    now = [0.0]
+    rule = _rule(monkeypatch, [0.5, 2.0], now, target=0.1, max_log2=10)
+    now[0] = 50.0
+    assert rule(_model_at(10)).action == "train on"
+    calls = []
+
+    def train(model, bvh, tracer, cfg, **kw):
+        calls.append(cfg.lr)
+        if len(calls) == 1:
+            raise TrainingDiverged("loss jumped")
+        now[0] = 60.0
+        return SimpleNamespace(decision=kw["target_reached"](_model_at(10)))
+
+    monkeypatch.setattr(pipeline, "train", train)
+    mesh = icosphere(2)
+    run = plan_run(preset("tiny"), mesh)
+    _, tr, used, notes = pipeline._train_with_restarts(mesh, build_bvh(mesh, 15), None, run, lambda e: None,
+                                                       lambda: False, None, target_reached=rule)
+    assert calls == [run.training.lr, run.training.lr * 0.1] and notes[0].kind == "restart"
+    # 2.0 > 1.15 x 0.5 at the first training's 50 s, but a new training: its clock at 10 s, its first check (no
+    # projection: the old 0.5 would have read as no progress, inf), and both decisions on record
+    assert (tr.decision.action, tr.decision.seconds, tr.decision.projected_mse) == ("train on", 10.0, None)
+    assert len(rule.decisions) == 2
+
+
 def test_checks_score_a_low_bit_table_at_eight_bits_until_it_is_on_its_grid():
     """The checks' score rounds a 6-bit table not yet on its grid to 8 bits (what its last phase recovers), and to
     its own 6 bits once it trains through them; the training's own model is left as it is."""

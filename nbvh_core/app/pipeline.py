@@ -158,9 +158,12 @@ def _stored_mse(scorer: ViewScorer, storage):
 def _train_with_restarts(mesh, bvh, tracer, run: RunConfig, events, should_cancel, checkpoint_path, resume_from=None,
                          target_reached=None) -> tuple[NeuralBVH, TrainResult, RunConfig, tuple]:
     """Train a fresh model (or resume `resume_from`); on divergence restart from scratch at a 10x lower learning rate
-    (at most DIVERGENCE_RETRIES times). Returns (model, TrainResult, the run as used, the restarts' notes)."""
+    (at most DIVERGENCE_RETRIES times; the checks start over with it). Returns (model, TrainResult, the run as used,
+    the restarts' notes)."""
     notes: tuple = ()
     for attempt in range(DIVERGENCE_RETRIES + 1):
+        if attempt and target_reached is not None and hasattr(target_reached, "start_over"):
+            target_reached.start_over()
         model = NeuralBVH(bvh.nodes, run.model, mesh.transform)
         try:
             extra = {"settings": run.request.to_dict(), "mesh": mesh_identity(mesh)}

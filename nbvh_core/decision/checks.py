@@ -50,16 +50,23 @@ class CheckRule:
         self.bytes_at, self.curve, self.budget_slope, self.grow_gain = bytes_at, curve, budget_slope, grow_gain
         self.force, self.shipped_form = force, shipped_form
         self.decisions: list[CheckDecision] = []
-        self.keep_mesh: CheckDecision | None = None
+        self.start_over()
+
+    def start_over(self) -> None:
+        """For a training started again from scratch (after a divergence): the clock and the best checks start over;
+        the decisions so far stay on record."""
         self._start = time.perf_counter()
         self._measuring_s = 0.0  # spent in score(): the training's clock stops for it (`training.train`)
         self._best: dict[tuple, float] = {}  # the best check's MSE of each form (table size, shipped form or not)
+        self.keep_mesh: CheckDecision | None = None
+        self._first = len(self.decisions)  # this training's first decision (projections read its checks only)
 
     def projected(self, log2: int) -> float | None:
         """The MSE at the end of the budget from this size's checks; None: not enough checks yet. The projection is
         MSE x (budget / now)^slope: the predictor's exponent at this size (the learning rate decays over the budget,
         so the slope between two checks mid-way underestimates the end: bench/results/need.csv), else two checks'."""
-        points = [(d.seconds, d.mse) for d in self.decisions if d.log2_table == log2 and d.action != "roll back"]
+        points = [(d.seconds, d.mse) for d in self.decisions[self._first:]
+                  if d.log2_table == log2 and d.action != "roll back"]
         t, m = max(points[-1][0], 1e-6), points[-1][1]
         if self.budget_slope is not None:
             slope = self.budget_slope(log2)
