@@ -18,8 +18,9 @@ class BestWeights:
     """`offer(model, opt, mse, form)` at each check; `restore(model, opt)` puts the best offered state back.
 
     mse: the check's score (lower is better); form: anything that changes when the model's parameters change
-    meaning (compared by ==). Held in memory: the trainable parameters and the optimizer's state, about 3x the
-    parameters' bytes (the bunny's default model: ~1 MB)."""
+    meaning (compared by ==). Held in memory, not in checkpoints (a resumed training starts its record afresh): the
+    trainable parameters and the optimizer's state, about 3x the parameters' bytes (the bunny's default model:
+    ~1 MB)."""
 
     def __init__(self):
         self.mse: float | None = None

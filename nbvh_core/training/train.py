@@ -528,10 +528,12 @@ class EarlyStop:
         return bool(decision)
 
     def at_end(self, model: NeuralBVH, opt, phases: EncodingPhases, events: EventSink, stopped_early: bool) -> None:
-        """When the budget is spent (not after an early stop): a callback with an `at_end(model)` method (`CheckRule.at_end`) measures the
-        finished model once more, and its "roll back" puts the best check's state in its place. The finished state
-        can read far worse than the last check: the bunny's seed 9 (target 0.0004) ended at 1.31x and 1.32x its
-        last check's MSE in two sessions, where 26 other runs ended at 0.84-1.01x (bench/results/target_runs.csv)."""
+        """When the budget is spent (not after an early stop): a callback with an `at_end(model)` method
+        (`CheckRule.at_end`) measures the finished model once more, and its "roll back" puts the best check's state
+        in its place (after the weight average; the result's loss and seconds are the finished model's). The
+        finished state can read far worse than the last check: the bunny's seed 9 (target 0.0004) ended at 1.31x and
+        1.32x its last check's MSE in two sessions, where 26 other runs ended at 0.84-1.01x
+        (bench/results/target_runs.csv)."""
         ask = getattr(self.target_reached, "at_end", None)
         if ask is None or self.best.mse is None or stopped_early:
             return
