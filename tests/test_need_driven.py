@@ -188,6 +188,20 @@ def test_a_check_far_worse_than_the_best_of_its_form_rolls_back(monkeypatch):
     assert decide(_model_at(10)).action == "roll back"  # against the grid's best
 
 
+def test_the_rule_keys_its_best_checks_by_the_training_s_state_form(monkeypatch):
+    """An 8-bit table is in its shipped form all along, but its snap onto the grid (the last 5%) is a new form of its
+    parameters for the training (`training.train.state_form`): a check after the snap is not rolled back against a
+    state from before it, which the training could not restore; without state_form it would be."""
+    for state_form, after_snap in ((lambda model: (10, snapped[0], True), "train on"), (None, "roll back")):
+        now, snapped = [0.0], [False]
+        decide = _rule(monkeypatch, [1.0, 1.3], now, target=0.1, max_log2=10, budget_slope=lambda log2: -0.5,
+                       state_form=state_form)
+        now[0] = 10.0
+        assert decide(_model_at(10)).action == "train on"
+        snapped[0], now[0] = True, 20.0
+        assert decide(_model_at(10)).action == after_snap
+
+
 def test_the_finished_model_is_measured_once_more_and_rolls_back_only_when_far_worse(monkeypatch):
     """At the end of the budget the rule decides nothing but "finish" or "roll back" (no growth, no keeping the
     mesh, whatever the alternative's curve says): the final verdict weighs the finished model."""

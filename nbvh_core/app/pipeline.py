@@ -34,7 +34,7 @@ from ..planning.settings import PRESETS, Settings, estimate_file_bytes, preset  
 from ..planning import sizing
 from ..planning.run_config import LookConfig, RunConfig, plan_run
 from ..planning.sizing import LOG2_RANGE, assess, load_fit, mesh_features, predictor
-from ..training.train import TrainResult, grid_phase_pending, train
+from ..training.train import TrainResult, grid_phase_pending, state_form, train
 from ..decision.alternative_curve import AlternativeCurve, CurvePoint
 from ..decision.checks import CheckRule
 from ..decision.size_search import search_size
@@ -341,7 +341,7 @@ class _SizeSearch:
             gain = lambda l2: math.exp(fit.predict_log_mse(l2 + 1, feats, run.nodes, budget)  # noqa: E731
                                        - fit.predict_log_mse(l2, feats, run.nodes, budget))
         return CheckRule(self.score_stored, run.decision.target_mse, top, budget, self.bytes_at, self.weighing.curve,
-                         slope, gain, run.decision.force, self.shipped_form)
+                         slope, gain, run.decision.force, self.shipped_form, state_form)
 
     def grow(self) -> int:
         """One training that starts GROW_START_BELOW sizes under the planned T and grows its table while the checks
@@ -405,8 +405,8 @@ class _SizeSearch:
         run_try = self.run if log2_table == self.run.log2_table else self.run.at_table(log2_table)
         target, budget = run_try.decision.target_mse, run_try.training.time_limit_s or 0.0
         # a fixed size: the checks only stop the training once the level is met (no growth, no alternative)
-        stop = (CheckRule(self.score_stored, target, log2_table, budget, self.bytes_at, shipped_form=self.shipped_form)
-                if target is not None and self.evaluate_quality else None)
+        stop = (CheckRule(self.score_stored, target, log2_table, budget, self.bytes_at, shipped_form=self.shipped_form,
+                          state_form=state_form) if target is not None and self.evaluate_quality else None)
         model, tr, run_used, notes = _train_with_restarts(self.mesh, self.bvh, self.tracer, run_try, self.events,
                                                           self.should_cancel, self.checkpoint_path, self.resume_from,
                                                           stop)

@@ -40,15 +40,18 @@ class CheckRule:
     alternative on the check views (None: no alternative measured); force: train on even above the curve;
     shipped_form(model) -> whether the model already has the form it ships in (None: always): until then a met
     level trains on, since the phase still to come (a low-bit table's training through its grid) is what makes the
-    score hold. A check far worse than the best of its form (ROLLBACK_FACTOR) answers "roll back". After training,
-    `decisions` holds every check and `keep_mesh` the decision that stopped it for the mesh."""
+    score hold. A check far worse than the best of its form (ROLLBACK_FACTOR) answers "roll back"; state_form(model)
+    -> the form of the model's parameters, as the training keys the states it can go back to
+    (`training.train.state_form`; None: table size and shipped form). After training, `decisions` holds every check
+    and `keep_mesh` the decision that stopped it for the mesh."""
 
     def __init__(self, score: Callable, target: float, max_log2: int, budget_s: float,
                  bytes_at: Callable[[int], int], curve: AlternativeCurve | None = None, budget_slope=None,
-                 grow_gain=None, force: bool = False, shipped_form: Callable | None = None):
+                 grow_gain=None, force: bool = False, shipped_form: Callable | None = None,
+                 state_form: Callable | None = None):
         self.score, self.target, self.max_log2, self.budget_s = score, target, max_log2, budget_s
         self.bytes_at, self.curve, self.budget_slope, self.grow_gain = bytes_at, curve, budget_slope, grow_gain
-        self.force, self.shipped_form = force, shipped_form
+        self.force, self.shipped_form, self.state_form = force, shipped_form, state_form
         self.decisions: list[CheckDecision] = []
         self.start_over()
 
@@ -57,7 +60,7 @@ class CheckRule:
         the decisions so far stay on record."""
         self._start = time.perf_counter()
         self._measuring_s = 0.0  # spent in score(): the training's clock stops for it (`training.train`)
-        self._best: dict[tuple, float] = {}  # the best check's MSE of each form (table size, shipped form or not)
+        self._best: dict[tuple, float] = {}  # the best check's MSE of each form (`state_form`)
         self.keep_mesh: CheckDecision | None = None
         self._first = len(self.decisions)  # this training's first decision (projections read its checks only)
 
@@ -82,10 +85,10 @@ class CheckRule:
     def __call__(self, model) -> CheckDecision:
         """Measure `model` now and decide: the check's record (its action one of CHECK_ACTIONS), also kept in
         `decisions`."""
-        d, form, best = self._measure(model)
+        d, shipped, form, best = self._measure(model)
         d.projected_mse = self.projected(d.log2_table)
         d.action, d.reason = self._decide(d)
-        if d.action == "stop: level met" and not form[1]:
+        if d.action == "stop: level met" and not shipped:
             d.action, d.reason = "train on", f"{d.reason}; its final low-bit phase is still to run"
         elif d.action != "stop: level met" and self._rolls_back(d, best):
             d.projected_mse = d.alternative_bytes = None  # a projection from a state training leaves is moot
@@ -98,22 +101,24 @@ class CheckRule:
         """The finished model (its budget spent) measured once more: "roll back" when it reads far worse than the
         best check of its form (ROLLBACK_FACTOR), else "finish". Nothing else is decided here: the final verdict
         weighs the finished model on the held-out views."""
-        d, form, best = self._measure(model)
+        d, _, form, best = self._measure(model)
         d.action, d.reason = "finish", "the budget is spent"
         self._rolls_back(d, best)
         self._note_best(d, form, best)
         return d
 
-    def _measure(self, model) -> tuple[CheckDecision, tuple, float | None]:
-        """A new record of `model`'s check MSE now, its form (table size, shipped form or not) and that form's best."""
+    def _measure(self, model) -> tuple[CheckDecision, bool, tuple, float | None]:
+        """A new record of `model`'s check MSE now; whether the model is in its shipped form; its form (`state_form`)
+        and that form's best check."""
         began = time.perf_counter()
         seconds = round(began - self._start - self._measuring_s, 2)  # training time: the checks' own is not
         mse = self.score(model)
         self._measuring_s += time.perf_counter() - began
         log2 = model.cfg.encoding.log2_table
         self.decisions.append(CheckDecision(seconds, log2, mse, None, self.bytes_at(log2), None, "train on", ""))
-        form = (log2, self.shipped_form is None or self.shipped_form(model))
-        return self.decisions[-1], form, self._best.get(form)
+        shipped = self.shipped_form is None or self.shipped_form(model)
+        form = tuple(self.state_form(model)) if self.state_form is not None else (log2, shipped)
+        return self.decisions[-1], shipped, form, self._best.get(form)
 
     def _rolls_back(self, d: CheckDecision, best: float | None) -> bool:
         """Whether `d` reads more than ROLLBACK_FACTOR x its form's best check (then its action says so)."""

@@ -515,7 +515,7 @@ class EarlyStop:
                 phases.average.restart()
             return False
         if self.last_mse is not None:
-            self.best.offer(model, opt, self.last_mse, _form(model, phases))
+            self.best.offer(model, opt, self.last_mse, state_form(model))
         if decision == "grow":
             grown = grow_table(model, opt, checkpoints)
             self.grew.append((step, round(elapsed, 1), grown))
@@ -543,7 +543,7 @@ class EarlyStop:
             self._roll_back(model, opt, phases, events, "the finished model")
 
     def _roll_back(self, model, opt, phases, events: EventSink, what: str) -> bool:
-        if not self.best.restore(model, opt, _form(model, phases)):
+        if not self.best.restore(model, opt, state_form(model)):
             return False
         events(wire.phase(phase=phases.phase, message=f"{what} read {self.last_mse:.4g}, far above the best check "
                                                       f"({self.best.mse:.4g}): back to that check's weights"))
@@ -571,9 +571,11 @@ class EarlyStop:
         return bool(answer)
 
 
-def _form(model: NeuralBVH, phases: EncodingPhases) -> tuple:
-    """What a kept state must share with the model to be put back in it: table size, on its grid, index frozen."""
-    return model.cfg.encoding.log2_table, phases.qat_on, model.encoding.frozen
+def state_form(model: NeuralBVH) -> tuple:
+    """What a kept state must share with the model to be put back in it (`best_weights`, and the checks' record of
+    the best of each form: `decision.checks.CheckRule`): table size, table on its grid, index frozen."""
+    return (model.cfg.encoding.log2_table, getattr(model.encoding, "qat_affine", None) is not None,
+            model.encoding.frozen)
 
 
 def grow_table(model: NeuralBVH, opt: torch.optim.Optimizer, checkpoints: "Checkpoints") -> int:
