@@ -154,7 +154,6 @@ def _stored_mse(scorer: ViewScorer, storage):
     return score
 
 
-
 def _train_with_restarts(mesh, bvh, tracer, run: RunConfig, events, should_cancel, checkpoint_path, resume_from=None,
                          target_reached=None) -> tuple[NeuralBVH, TrainResult, RunConfig, tuple]:
     """Train a fresh model (or resume `resume_from`); on divergence restart from scratch at a 10x lower learning rate
@@ -162,7 +161,7 @@ def _train_with_restarts(mesh, bvh, tracer, run: RunConfig, events, should_cance
     the restarts' notes)."""
     notes: tuple = ()
     for attempt in range(DIVERGENCE_RETRIES + 1):
-        if attempt and target_reached is not None and hasattr(target_reached, "start_over"):
+        if attempt and target_reached is not None:  # a CheckRule
             target_reached.start_over()
         model = NeuralBVH(bvh.nodes, run.model, mesh.transform)
         try:

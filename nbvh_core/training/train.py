@@ -404,7 +404,7 @@ class EncodingPhases:
 
     def after_step(self, fraction: float) -> None:
         """After the optimizer's step: the weights into the average (a snap or a freeze starts it over)."""
-        self.average.update(fraction, (self.qat_on, self.model.encoding.frozen))
+        self.average.update(fraction, state_form(self.model))
 
     def freeze(self) -> None:
         self.losses["soft"] = self.held_out_loss()
@@ -511,8 +511,7 @@ class EarlyStop:
     def _act(self, model, opt, checkpoints, events, phases, step: int, fraction: float, elapsed: float) -> bool:
         decision = self.reached(model, fraction, elapsed, phases.ready_to_stop)
         if decision == "roll back":
-            if self._roll_back(model, opt, phases, events, f"check at step {step}"):
-                phases.average.restart()
+            self._roll_back(model, opt, phases, events, f"check at step {step}")
             return False
         if self.last_mse is not None:
             self.best.offer(model, opt, self.last_mse, state_form(model))
@@ -542,12 +541,12 @@ class EarlyStop:
         if getattr(answer, "action", answer) == "roll back":
             self._roll_back(model, opt, phases, events, "the finished model")
 
-    def _roll_back(self, model, opt, phases, events: EventSink, what: str) -> bool:
+    def _roll_back(self, model, opt, phases, events: EventSink, what: str) -> None:
         if not self.best.restore(model, opt, state_form(model)):
-            return False
+            return
+        phases.average.restart()  # the steps since the best check are not the weights' neighbourhood any more
         events(wire.phase(phase=phases.phase, message=f"{what} read {self.last_mse:.4g}, far above the best check "
                                                       f"({self.best.mse:.4g}): back to that check's weights"))
-        return True
 
     def reached(self, model: NeuralBVH, fraction: float, elapsed: float, ready: bool) -> bool | str:
         """False (no check due, or train on), "grow" (honoured only while growth can pay), "roll back", or True
