@@ -6,7 +6,8 @@ import pytest
 import torch
 
 from nbvh_core import kernels
-from nbvh_core.app.pipeline import GROW_START_BELOW, compress_mesh, preset
+from nbvh_core.app.pipeline import compress_mesh, preset
+from nbvh_core.decision.growth import GROW_START_BELOW
 from nbvh_core.geometry.bundled_samples import sample_path
 from nbvh_core.geometry.mesh import load_mesh
 from nbvh_core.neural.encodings.base import EncodingConfig, vertex_resolution

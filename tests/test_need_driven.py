@@ -414,11 +414,35 @@ def test_the_alternative_carries_the_assets_look_in_its_bytes():
     assert [p.bytes for p in AlternativeCurve.from_alternatives(alt).points] == [1700, 3900]
 
 
+def test_a_run_with_a_target_plans_every_size_it_may_train_once(sample_meshes):
+    """`at_table` reads the sizes planned with the run (nothing is derived again later): each is the run planned
+    afresh at that size, the grid's resolution kept (a growing table) or re-chosen for the size (the retrain
+    search); a size the run did not plan is refused; a fixed-size run plans its own size only."""
+    from nbvh_core.planning.run_config import plan_run
+    from nbvh_core.planning.sizing import choose_resolution
+
+    mesh = sample_meshes["bunny"]
+    run = plan_run(preset("default").with_overrides(target_mse=0.0005, eval_views=2, eval_resolution=32), mesh)
+    for log2_table in (run.log2_table - 1, run.log2_table + 1):
+        kept = run.at_table(log2_table, regrid=False)
+        fresh = plan_run(dataclasses.replace(run.request, log2_table=log2_table, target_mse=None), mesh, resumed=True)
+        assert kept.model == fresh.model and kept.file_bytes == fresh.file_bytes
+        assert kept.request.log2_table == log2_table and kept.training == run.training
+        regridded = run.at_table(log2_table)
+        assert regridded.model.encoding.n_max == regridded.request.n_max == choose_resolution(run.grid, log2_table)[0]
+    assert run.at_table(run.log2_table, regrid=False) is run
+    with pytest.raises(ValueError, match="not planned"):
+        run.at_table(LOG2_RANGE[-1] + 1)
+    fixed = plan_run(preset("default").with_overrides(log2_table=9, eval_views=2, eval_resolution=32), mesh)
+    assert fixed.sizes == {} and fixed.growth is None
+
+
 def test_a_run_with_a_target_is_weighed_at_the_size_expected_to_meet_it(sample_meshes, sample_tracers):
     """The verdict before training weighs the model at the size the predictor expects to meet the target (no safety
     factor), as the decimation is weighed at the target; training starts GROW_START_BELOW sizes under the planned
     size (which has the safety factor); without a target the planned size is weighed."""
-    from nbvh_core.app.pipeline import GROW_START_BELOW, grow_start, weigh
+    from nbvh_core.app.pipeline import weigh
+    from nbvh_core.decision.growth import GROW_START_BELOW
     from nbvh_core.planning.run_config import plan_run
     from nbvh_core.planning.sizing import expected_table
 
@@ -432,7 +456,7 @@ def test_a_run_with_a_target_is_weighed_at_the_size_expected_to_meet_it(sample_m
     # the smallest size whose median prediction meets the target, at most the planned (safety-factored) size
     assert fit.predict_log_mse(expected, feats, budget_s=s.time_limit_s) <= np.log(0.0005)
     assert expected == LOG2_RANGE[0] or fit.predict_log_mse(expected - 1, feats, budget_s=s.time_limit_s) > np.log(0.0005)
-    assert expected <= run.log2_table and grow_start(run) == max(6, run.log2_table - GROW_START_BELOW)
+    assert expected <= run.log2_table and run.growth.start_log2 == max(6, run.log2_table - GROW_START_BELOW)
     weighed, _ = weigh(mesh, run, sample_tracers["bunny"])
     assert weighed.model_bytes == run.at_table(expected, regrid=False).file_bytes
     assert run.at_table(12).expected_log2_table == expected  # carried through a search's sizes

@@ -57,7 +57,8 @@ def test_the_cli_job_and_batch_take_this_route():
 
 def test_a_run_is_planned_once_into_parts_that_agree_with_its_request():
     """plan_run: every part says what the request says; a look takes its share of the budget from the geometry's
-    training (the request keeps the budget asked); a table size or a training knob changed changes both."""
+    training (the request keeps the budget asked); a table size (planned with a run that has a target) or a training
+    knob changed changes both."""
     from nbvh_core.geometry.demo_assets import crate
     from nbvh_core.planning.run_config import plan_run
 
@@ -74,7 +75,44 @@ def test_a_run_is_planned_once_into_parts_that_agree_with_its_request():
     assert looked.look.budget_s == pytest.approx(100.0 * s.appearance_share)
     assert looked.training.time_limit_s == pytest.approx(100.0 * (1 - s.appearance_share))
     assert looked.request.time_limit_s == 100.0
-    bigger = run.at_table(12)
-    assert bigger.log2_table == bigger.request.log2_table == 12 and bigger.file_bytes > run.file_bytes
+    searched = plan_run(s.with_overrides(target_mse=0.001), icosphere(3))  # a target: every size is planned
+    bigger = searched.at_table(searched.log2_table + 1)
+    assert bigger.log2_table == bigger.request.log2_table == searched.log2_table + 1
+    assert bigger.file_bytes > searched.file_bytes
     slower = run.with_training(lr=run.training.lr / 10)
     assert slower.training.lr == slower.request.lr == run.training.lr / 10 and run.training.lr == s.lr
+
+
+def test_every_default_of_the_request_is_the_default_of_the_part_that_uses_it():
+    """One place for every default: a Settings field named as a field of a run's part (training, encoding, network,
+    storage, metric, decision, appearance head) defaults to that part's value; every preset names its budget."""
+    import dataclasses
+
+    from nbvh_core.decision.config import DecisionConfig
+    from nbvh_core.neural.appearance import AppearanceConfig
+    from nbvh_core.neural.encodings import EncodingConfig
+    from nbvh_core.neural.networks import NetworkConfig
+    from nbvh_core.neural.quantize import StorageConfig
+    from nbvh_core.planning.settings import PRESETS, Settings
+    from nbvh_core.rendering.metrics import MetricConfig
+    from nbvh_core.training.train import TrainConfig
+
+    request = {f.name: f.default for f in dataclasses.fields(Settings)}
+    renamed = {MetricConfig: {"views": "eval_views", "resolution": "eval_resolution"},
+               DecisionConfig: {"check_every_s": "target_check_every_s"},
+               AppearanceConfig: {"log2_table": "appearance_log2_table", "target": "appearance_target"}}
+    compared = 0
+    for part in (TrainConfig, EncodingConfig, NetworkConfig, StorageConfig, MetricConfig, DecisionConfig,
+                 AppearanceConfig):
+        for f in dataclasses.fields(part):
+            name = renamed.get(part, {}).get(f.name, f.name)
+            if part is AppearanceConfig and name == f.name or name not in request:
+                continue  # the head's own fields (its slots, patches) are the asset's, not the request's
+            if f.default is dataclasses.MISSING or name in ("normal_loss", "normal_weight", "normal_unit_weight",
+                                                            "table_bits", "network_bits"):
+                continue  # None: the network's own, resolved in planning; TrainConfig's bits: None unless low-bit
+            assert request[name] == f.default, f"Settings.{name} = {request[name]!r}, {part.__name__}: {f.default!r}"
+            compared += 1
+    assert compared >= 25
+    for name, s in PRESETS.items():
+        assert s.steps is not None or s.time_limit_s is not None, name

@@ -29,7 +29,7 @@ from ..geometry.mesh import Mesh
 from ..rendering.metrics import Quality, ViewScorer, view_sets
 from ..neural.model import NeuralBVH
 from ..protocol.process import Cancelled, NotWorthCompressing, TrainingDiverged
-from ..neural.quantize import snap_nodes
+from ..neural.quantize import StorageConfig, snap_nodes
 from ..planning.settings import PRESETS, Settings, estimate_file_bytes, preset  # noqa: F401  (re-exported)
 from ..planning import sizing
 from ..planning.run_config import LookConfig, RunConfig, plan_run
@@ -37,19 +37,14 @@ from ..planning.sizing import LOG2_RANGE, assess, load_fit, mesh_features, predi
 from ..training.train import TrainResult, grid_phase_pending, state_form, train
 from ..decision.alternative_curve import AlternativeCurve, CurvePoint
 from ..decision.checks import CheckRule
+from ..decision.growth import GrowthPlan
 from ..decision.size_search import search_size
+from ..decision.verdict import mesh_kept
 from ..decision.records import Assessment, RunNote, why_of
 from ..decision.final_verdict import final_verdict
 
 #: A diverged training restarts from scratch at a 10x lower learning rate, at most this many times.
 DIVERGENCE_RETRIES = 2
-#: size_search "grow": the training starts this many table sizes below the predicted one, and its checks
-#: (`decision.checks.CheckRule`, every budget / GROW_CHECKS seconds at most) grow it while growing pays. The
-#: prediction aims above the level by the fit's safety factor (1.14x, about a third of a size), so the start is one
-#: size below it. (Two sizes while the predictor over-predicted the presets' shape 2.4x, about two sizes: the gyroid
-#: then kept 2^12 where 2^11 met the level, bench/results/grow.md; sizing_fit.json's shape_shift now corrects that.)
-GROW_START_BELOW = 1
-GROW_CHECKS = 12
 
 
 @dataclass
@@ -202,11 +197,6 @@ class Weighing:
     look_bytes: int = 0
 
 
-def grow_start(run: RunConfig) -> int:
-    """log2 T a growing training starts at: GROW_START_BELOW sizes under the planned one (2^6 at least)."""
-    return max(6, run.log2_table - GROW_START_BELOW)
-
-
 def weigh(mesh: Mesh, run: RunConfig, tracer: ExactTracer, made=None) -> tuple[Assessment, Weighing]:
     """The verdict before training, the same for a run and a library batch's measurement: the model `run` plans,
     with what its file adds for the asset's look (the head `made`, `make_head`; the images it keeps), weighed
@@ -214,10 +204,9 @@ def weigh(mesh: Mesh, run: RunConfig, tracer: ExactTracer, made=None) -> tuple[A
     target the model is weighed at the size the predictor expects to meet it (`RunConfig.expected_log2_table`, no
     safety factor), as the decimation is weighed at the target: the safety factor says where training starts, and
     the checks weigh every size the training reaches against the measured alternative."""
-    checks, held_out = view_sets(tracer, mesh.transform, run.metric)
     expected = run.expected_log2_table
-    model_bytes = (run.at_table(expected, regrid=False).file_bytes if expected not in (None, run.log2_table)
-                   else run.file_bytes)
+    model_bytes = run.at_table(expected, regrid=False).file_bytes if expected is not None else run.file_bytes
+    checks, held_out = view_sets(tracer, mesh.transform, run.metric)
     look_bytes = 0
     if mesh.look is not None:
         look_bytes = sum(look_stored_bytes(made[0].cfg if made else None, _shipped_materials(mesh, made),
@@ -257,18 +246,9 @@ def _measure_decimation(mesh: Mesh, weighing: Weighing, assessment):
 
 def _keep_the_mesh(assessment, verdict, events: EventSink):
     """NotWorthCompressing for a decision taken on measurements (a check's or the final verdict's): the assessment
-    now recommends the measured decimation (or the whole mesh) that the CLI writes."""
-    alt = dict(assessment.alternatives)
-    rec = "mesh"
-    if verdict is not None and verdict.decimation is not None and verdict.decimation["requested_triangles"]:
-        rec = "decimate"
-        alt["decimation"] = next((e for e in alt.get("decimations_tried", [])
-                                  if e["requested_triangles"] == verdict.decimation["requested_triangles"]),
-                                 alt.get("decimation"))
-    message = verdict.message if verdict is not None else assessment.message
-    kept = dataclasses.replace(assessment, worth_compressing=False, recommendation=rec, message=message,
-                               alternatives=alt, final=verdict.to_dict() if verdict is not None else None)
-    events(wire.verdict(worth_compressing=False, message=message, assessment=kept.to_dict()))
+    now recommends the measured decimation (or the whole mesh) that the CLI writes (`decision.verdict.mesh_kept`)."""
+    kept = mesh_kept(assessment, verdict)
+    events(wire.verdict(worth_compressing=False, message=kept.message, assessment=kept.to_dict()))
     return NotWorthCompressing(kept)
 
 
@@ -330,38 +310,31 @@ class _SizeSearch:
         """The file's bytes at table size 2^log2_table as it ships: geometry, look, header."""
         return self.run.at_table(log2_table, regrid=False).file_bytes + self.weighing.look_bytes
 
-    def _rule(self, top: int, budget: float) -> CheckRule:
+    def _rule(self, growth: GrowthPlan) -> CheckRule:
+        """The growing training's checks: the plan's predicted time slopes and growth gains (none without a size
+        fit), the file's bytes at each size, the alternative's curve on the check views."""
         run = self.run
-        fit = load_fit()
-        slope = fit.budget_slope if fit is not None and fit.budget_coef else None
-        gain = None
-        if fit is not None:
-            feats = mesh_features(self.mesh)
-            gain = lambda l2: math.exp(fit.predict_log_mse(l2 + 1, feats, run.nodes, budget)  # noqa: E731
-                                       - fit.predict_log_mse(l2, feats, run.nodes, budget))
-        return CheckRule(self.score_stored, run.decision.target_mse, top, budget, self.bytes_at, self.weighing.curve,
-                         slope, gain, run.decision.force, self.shipped_form, state_form)
+        slope = growth.budget_slopes.__getitem__ if growth.budget_slopes else None
+        gain = growth.grow_gains.__getitem__ if growth.grow_gains else None
+        return CheckRule(self.score_stored, run.decision.target_mse, growth.max_log2, growth.budget_s, self.bytes_at,
+                         self.weighing.curve, slope, gain, run.decision.force, self.shipped_form, state_form)
 
     def grow(self) -> int:
-        """One training that starts GROW_START_BELOW sizes under the planned T and grows its table while the checks
-        say growing pays (up to one size above the planned T); returns the final log2 T."""
+        """One training that starts below the planned T and grows its table while the checks say growing pays
+        (`RunConfig.growth`); returns the final log2 T."""
         t = time.perf_counter()
-        run = self.run
-        top = min(run.log2_table + 1, LOG2_RANGE[-1])  # never past the sizes the predictor knows
-        start = grow_start(run)
-        budget = run.training.time_limit_s or 200.0
-        every = run.decision.check_every_s
-        run_start = run.at_table(start, regrid=False).with_training(target_check_every_s=min(every,
-                                                                                            budget / GROW_CHECKS))
-        self.rule = rule = self._rule(top, budget)
+        run, growth = self.run, self.run.growth
+        run_start = run.at_table(growth.start_log2, regrid=False).with_training(
+            target_check_every_s=growth.check_every_s)
+        self.rule = rule = self._rule(growth)
         model, tr, run_used, notes = _train_with_restarts(self.mesh, self.bvh, self.tracer, run_start, self.events,
                                                           self.should_cancel, self.checkpoint_path, self.resume_from,
                                                           rule)
         tr.checks = [(d.seconds, d.log2_table, d.mse) for d in rule.decisions]
         final = model.cfg.encoding.log2_table
-        run_used = run_used.at_table(final, regrid=False).with_training(target_check_every_s=every)
+        run_used = run_used.at_table(final, regrid=False).with_training(target_check_every_s=run.decision.check_every_s)
         trail = ", ".join(f"T=2^{log2} at {sec:g} s" for _, sec, log2 in tr.grew) or "no growth"
-        notes += (RunNote("growth", f"one training from T=2^{start} growing its table to meet "
+        notes += (RunNote("growth", f"one training from T=2^{growth.start_log2} growing its table to meet "
                                     f"{run.decision.target_mse:g}: {trail}"),)
         if tr.stopped_early:
             notes += (RunNote("early stop", f"stopped after {tr.seconds:.0f} s: {rule.decisions[-1].action}"),)
@@ -447,11 +420,11 @@ def _metadata(mesh: Mesh, run: RunConfig, notes: list, assessment, tr: TrainResu
             "torch": torch.__version__, "machine": platform.machine()}
 
 
-def _appearance(model: NeuralBVH, mesh: Mesh, tracer: ExactTracer, look: LookConfig, run: RunConfig, made,
-                tr: TrainResult, events: EventSink, should_cancel, seconds: dict) -> dict:
+def _appearance(model: NeuralBVH, mesh: Mesh, tracer: ExactTracer, look: LookConfig, storage: StorageConfig,
+                seed: int, made, tr: TrainResult, events: EventSink, should_cancel, seconds: dict) -> dict:
     """Give the model the mesh's materials and, when its look needs one, train the appearance head (`look.budget_s`,
-    or without a time budget `look.share` of the geometry's training time added) and hold it as the file stores it
-    (`run.storage`). Returns what the file's metadata records of it ({} for a bare shape)."""
+    or without a time budget `look.share` of the geometry's training time added; `seed`: the run's) and hold it as
+    the file stores it (`storage`). Returns what the file's metadata records of it ({} for a bare shape)."""
     if mesh.look is None:
         return {}
     model.materials = _shipped_materials(mesh, made)
@@ -464,14 +437,13 @@ def _appearance(model: NeuralBVH, mesh: Mesh, tracer: ExactTracer, look: LookCon
                                                   f"{', texture coordinates' if cfg.uv else ''}: {budget:.0f} s"))
     t = time.perf_counter()
     head = head.to(model.device)
-    seed = run.training.seed
     torch.manual_seed(seed)
     labels = SurfaceLabels(mesh, tracer, np.random.default_rng(seed + 1), face_patch, colour=cfg.target == "colour")
     result = train_head(head, labels, budget, should_stop=should_cancel,
                         pool_size=1 << 19 if look.budget_s else 1 << 15)
     if should_cancel():
         raise Cancelled("cancelled while training the appearance head")
-    finalize_head(head, run.storage.table_bits, run.storage.network_bits)
+    finalize_head(head, storage.table_bits, storage.network_bits)
     model.appearance = head
     seconds["appearance"] = time.perf_counter() - t
     return {"slots": cfg.slots, "patches": cfg.patches, "head": {"steps": result.steps, "seconds": round(result.seconds, 2),
@@ -513,7 +485,8 @@ def _compress(mesh: Mesh, run: RunConfig, out_path, events: EventSink, should_ca
         d = search.rule.keep_mesh
         raise _keep_the_mesh(assessment, final_verdict(d.model_bytes, d.projected_mse, target, weighing.curve), events)
     notes += search.notes + list(trained_notes)
-    look_info = _appearance(model, mesh, tracer, run.look, run_used, head, tr, events, should_cancel, seconds)
+    look_info = _appearance(model, mesh, tracer, run.look, run_used.storage, run_used.training.seed, head, tr, events,
+                            should_cancel, seconds)
     metadata = _metadata(mesh, run_used, notes, assessment, tr, quality)
     if look_info:
         metadata["appearance"] = look_info

@@ -3,6 +3,10 @@ smallest measured decimation that meets the target, each held in the layout the 
 measured and exact byte counts (`planning.sizing.assess` measures them); the smaller of the alternatives wins."""
 from __future__ import annotations
 
+import dataclasses
+
+from .records import Assessment, FinalVerdict
+
 #: What the verdict recommends: train the model, keep the mesh as it is, or ship the measured decimation.
 RECOMMENDATIONS = ("neural", "mesh", "decimate")
 
@@ -44,3 +48,19 @@ def verdict_before_training(model: int, triangles: int, resident: int, compact: 
                 f"{held_text(layout, decimation['resident_bytes'], decimation['compact_bytes'])}: "
                 f"{dec_held / model:.2f}x the model")
     return "neural", msg + draco_text
+
+
+def mesh_kept(assessment: Assessment, verdict: FinalVerdict | None) -> Assessment:
+    """The assessment after a decision taken on measurements kept the mesh (a training check's, or the final
+    verdict's, `verdict`; None: the check kept the whole mesh): it recommends the measured decimation that verdict
+    names (or the whole mesh) and carries the verdict's message and record."""
+    alt = dict(assessment.alternatives)
+    rec = "mesh"
+    if verdict is not None and verdict.decimation is not None and verdict.decimation["requested_triangles"]:
+        rec = "decimate"
+        alt["decimation"] = next((e for e in alt.get("decimations_tried", [])
+                                  if e["requested_triangles"] == verdict.decimation["requested_triangles"]),
+                                 alt.get("decimation"))
+    return dataclasses.replace(assessment, worth_compressing=False, recommendation=rec,
+                               message=verdict.message if verdict is not None else assessment.message,
+                               alternatives=alt, final=verdict.to_dict() if verdict is not None else None)

@@ -8,15 +8,19 @@ files and checkpoints keep) into the parts each stage of a run takes, and nothin
     RunConfig.decision  -> decision.*                      (level, layout, size search, checks, force)
     RunConfig.metric    -> rendering.metrics.view_sets     (views, resolution)
     RunConfig.look      -> training.appearance_training    (the appearance head and its share of the budget)
+    RunConfig.sizes     -> RunConfig.at_table              (with a target: every table size the run may train)
+    RunConfig.growth    -> decision.checks.CheckRule       (with a target: the growing training's plan)
 
+The run is planned once: a size search or a growing table reads the sizes planned here, nothing derives them again.
 Every default lives once, on the part that uses it (TrainConfig, StorageConfig, ...); `Settings` takes its defaults
 from them and the presets set what the product uses."""
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from ..decision.config import DecisionConfig
+from ..decision.growth import SMALLEST_START, GrowthPlan, plan_growth
 from ..decision.records import RunNote
 from ..geometry.mesh import Mesh
 from ..neural.appearance import AppearanceConfig
@@ -25,7 +29,8 @@ from ..neural.quantize import StorageConfig
 from ..rendering.metrics import MetricConfig
 from ..training.train import TrainConfig
 from .settings import Settings, estimate_file_bytes
-from .sizing import GridMeasures, choose_resolution, expected_table, grid_measures, resolve
+from .sizing import (LOG2_RANGE, GridMeasures, choose_resolution, expected_table, grid_measures, load_fit,
+                     mesh_features, resolve)
 
 
 @dataclass(frozen=True)
@@ -40,13 +45,26 @@ class LookConfig:
 
 
 @dataclass(frozen=True)
+class SizePlan:
+    """The run at one table size: its model's configuration, the grid's finest resolution it records (`n_max`) and
+    its file's bytes (exact payload + typical header, the look not included)."""
+
+    model: ModelConfig
+    n_max: int | None
+    file_bytes: int
+
+
+@dataclass(frozen=True)
 class RunConfig:
     """What one run does, by part. request: the resolved flat Settings this configuration was made from (written
     into the file's header and checkpoints); file_bytes: the model's file at these sizes (exact payload + typical
     header, the look not included); grid: the mesh's measures when the grid's finest resolution follows the mesh
     (re-chosen at every table size a search tries), else None; notes: why these sizes (typed, for the report);
     expected_log2_table: with a target, the table the predictor expects to meet it (`sizing.expected_table`: what
-    the verdict before training weighs), else None."""
+    the verdict before training weighs), else None; sizes: every other table size a run with a target may train,
+    planned with the run ({(log2 T, grid re-chosen): SizePlan}; `at_table` reads them); growth: with a target and
+    size_search "grow", the growing training's plan (`decision.growth`: start and largest table, clock, check
+    period), else None."""
 
     request: Settings
     nodes: int
@@ -60,19 +78,26 @@ class RunConfig:
     grid: GridMeasures | None = None
     notes: tuple[RunNote, ...] = ()
     expected_log2_table: int | None = None
+    sizes: dict = field(default_factory=dict, compare=False)
+    growth: GrowthPlan | None = None
 
     @property
     def log2_table(self) -> int:
         return self.model.encoding.log2_table
 
     def at_table(self, log2_table: int, regrid: bool = True) -> "RunConfig":
-        """The same run with a table of 2^log2_table rows; regrid: the grid's finest resolution re-chosen for the
-        mesh at that size when it follows the mesh (a growing table keeps the resolution it was planned for)."""
-        request = dataclasses.replace(self.request, log2_table=log2_table)
-        if self.grid is not None and regrid:
-            request.n_max = choose_resolution(self.grid, log2_table)[0]
-        return dataclasses.replace(_parts(request, self.look, self.grid, self.notes),
-                                   expected_log2_table=self.expected_log2_table)
+        """The same run with a table of 2^log2_table rows, as planned (`sizes`); regrid: the grid's finest
+        resolution the one chosen for the mesh at that size when it follows the mesh (a growing table keeps the
+        resolution it was planned for). Raises ValueError for a size the run did not plan."""
+        regrid = regrid and self.grid is not None
+        if log2_table == self.log2_table and not regrid:
+            return self
+        plan = self.sizes.get((log2_table, regrid))
+        if plan is None:
+            raise ValueError(f"table size 2^{log2_table} was not planned for this run (a run with a target plans "
+                             f"2^{SMALLEST_START}-2^{LOG2_RANGE[-1]})")
+        request = dataclasses.replace(self.request, log2_table=log2_table, n_max=plan.n_max)
+        return dataclasses.replace(self, request=request, model=plan.model, file_bytes=plan.file_bytes)
 
     def with_training(self, **changes) -> "RunConfig":
         """The same run with some training knobs changed (a restart's learning rate, a check period): the request
@@ -93,7 +118,37 @@ def plan_run(settings: Settings, mesh: Mesh, resumed: bool = False) -> RunConfig
     look = LookConfig(AppearanceConfig(target=resolved.appearance_target, log2_table=resolved.appearance_log2_table),
                       share, budget * share if mesh.look is not None and budget else None)
     run = _parts(resolved, look, grid, (RunNote("plan", plan_note),))
-    return run if resumed else dataclasses.replace(run, expected_log2_table=expected_table(resolved, mesh))
+    if resumed or resolved.target_mse is None:  # a fixed size: the run trains the one planned table
+        return run
+    growth = _growth(run, mesh) if run.decision.size_search == "grow" else None
+    return dataclasses.replace(run, expected_log2_table=expected_table(resolved, mesh), sizes=_sizes(resolved, grid),
+                               growth=growth)
+
+
+def _growth(run: RunConfig, mesh: Mesh) -> GrowthPlan:
+    """The growing training's plan, with the size predictor's slopes and growth gains for this mesh (none without
+    a fit)."""
+    fit = load_fit()
+    slope = log_mse = None
+    if fit is not None:
+        feats = mesh_features(mesh)
+        slope = fit.budget_slope if fit.budget_coef else None
+        log_mse = lambda l2, budget: fit.predict_log_mse(l2, feats, run.nodes, budget)  # noqa: E731
+    return plan_growth(run.log2_table, LOG2_RANGE[-1], run.training.time_limit_s, run.decision.check_every_s,
+                       slope, log_mse)
+
+
+def _sizes(s: Settings, grid: GridMeasures | None) -> dict:
+    """{(log2 T, grid re-chosen): SizePlan} for every size a run with a target may train: a growing training's
+    start (from 2^SMALLEST_START) up to the predictor's largest size, with the planned grid resolution and, when the
+    grid follows the mesh, with the one chosen for each size (the retrain search's)."""
+    sizes = {}
+    for log2_table in range(SMALLEST_START, LOG2_RANGE[-1] + 1):
+        for regrid in (False, True) if grid is not None else (False,):
+            n_max = choose_resolution(grid, log2_table)[0] if regrid else s.n_max
+            sized = dataclasses.replace(s, log2_table=log2_table, n_max=n_max)
+            sizes[(log2_table, regrid)] = SizePlan(sized.model_config(), n_max, estimate_file_bytes(sized))
+    return sizes
 
 
 def _parts(s: Settings, look: LookConfig, grid: GridMeasures | None, notes: tuple) -> RunConfig:

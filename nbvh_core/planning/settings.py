@@ -71,8 +71,10 @@ class Settings:
     normal_unit_weight: float | None = None
     labels: str = TrainConfig.labels
     lr: float = TrainConfig.lr
-    steps: int | None = None
-    time_limit_s: float | None = 180.0
+    #: The training's budget: `steps`, or `time_limit_s` seconds (whichever ends first; TrainConfig's). Every
+    #: preset names its own.
+    steps: int | None = TrainConfig.steps
+    time_limit_s: float | None = TrainConfig.time_limit_s
     rays_per_step: int = TrainConfig.rays_per_step
     anneal_fraction: float = TrainConfig.anneal_fraction
     #: HashVQAD: the last fraction of training run on the frozen (argmax) codes (TrainConfig.finetune_fraction).
@@ -102,10 +104,9 @@ class Settings:
     #: With a target MSE: seconds between quality checks during training (the evaluation's views and resolution);
     #: training stops once the MSE is below EARLY_STOP_MARGIN x the target (the evaluation after it confirms or not).
     target_check_every_s: float = DecisionConfig.check_every_s
-    #: With a target MSE, how the size is found: "grow" (default) - one training that starts GROW_START_BELOW sizes
-    #: under the predicted T and doubles its table in place (the function unchanged: HashGrid.grow) whenever the
-    #: checks project a miss at its size by the end of the budget, up to one size above the predicted T
-    #: (pipeline._grow_check); "retrain" - predict T, train, measure, correct (up to TARGET_TRAININGS trainings).
+    #: With a target MSE, how the size is found: "grow" (default) - one training that starts below the predicted T
+    #: and doubles its table in place (the function unchanged: HashGrid.grow) when its checks say growing pays
+    #: (`decision.growth`, `decision.checks`); "retrain" - predict T, train, measure, correct (`decision.size_search`).
     size_search: str = DecisionConfig.size_search
     #: The mesh layout the verdict weighs the model against (MESH_LAYOUTS): "compact", the strongest ray-traceable
     #: mesh (`compact_mesh`, ~3.6-4.8 B per triangle), or "plain", as Embree or Cycles hold it (~44 B per triangle).
@@ -225,16 +226,21 @@ PRESETS: dict[str, Settings] = {
     # resolution follows the mesh and the table (n_max None: `sizing.choose_resolution`; N_max 64 beat the
     # paper's 128 by 13-32% at T=2^12, bench/bench_resolution.py).
     "preview": Settings(encoding="hashgrid", network="mlp", nodes=1023, log2_table=10, levels=10, features=4,
-                        hidden=2, k=4, table_bits=6, network_bits=8, n_max=None, time_limit_s=60.0, eval_views=8),
+                        hidden=2, k=4, table_bits=6, network_bits=8, n_max=None, steps=None, time_limit_s=60.0,
+                        eval_views=8),
     "default": Settings(encoding="hashgrid", network="mlp", log2_table=11, levels=10, features=4, hidden=2, k=4,
-                        table_bits=6, network_bits=8, n_max=None, time_limit_s=200.0),
+                        table_bits=6, network_bits=8, n_max=None, steps=None, time_limit_s=200.0),
     "high": Settings(encoding="hashgrid", network="mlp", nodes=4095, log2_table=12, levels=10, features=4,
-                     hidden=2, k=4, table_bits=6, network_bits=8, n_max=None, time_limit_s=600.0),
-    # The paper's method steps (same size knobs as `default`), for ablations.
-    "base": Settings(encoding="hashgrid", network="mlp", labels="ownership", log2_table=11),
-    "I": Settings(encoding="hashgrid", network="kmlp", labels="ownership", log2_table=11),
-    "II": Settings(encoding="hashgrid", network="kmlp", labels="consistent", log2_table=11),
-    "III": Settings(encoding="hashvqad", network="kmlp", labels="consistent", log2_table=10),
+                     hidden=2, k=4, table_bits=6, network_bits=8, n_max=None, steps=None, time_limit_s=600.0),
+    # The paper's method steps (same size knobs as `default`), for ablations, each trained 180 s.
+    "base": Settings(encoding="hashgrid", network="mlp", labels="ownership", log2_table=11, steps=None,
+                     time_limit_s=180.0),
+    "I": Settings(encoding="hashgrid", network="kmlp", labels="ownership", log2_table=11, steps=None,
+                  time_limit_s=180.0),
+    "II": Settings(encoding="hashgrid", network="kmlp", labels="consistent", log2_table=11, steps=None,
+                   time_limit_s=180.0),
+    "III": Settings(encoding="hashvqad", network="kmlp", labels="consistent", log2_table=10, steps=None,
+                    time_limit_s=180.0),
     # For tests and smoke runs: tiny and fast, not a quality setting.
     "tiny": Settings(nodes=63, log2_table=6, levels=2, features=4, k=4, time_limit_s=None, steps=20,
                      rays_per_step=512, eval_views=2, eval_resolution=32),
@@ -250,10 +256,10 @@ HEADER_BYTES = 1700
 def estimate_file_bytes(s: Settings) -> int:
     """Exact payload bytes of a model with these settings (BVH + tables + index + network + checksum) plus the
     header's typical size; the real file differs by the header's few hundred bytes of metadata at most."""
+    model_cfg, storage = s.model_config(), s.storage()
     with torch.device("meta"):  # shapes only
-        model = NeuralBVH(np.zeros(s.nodes, NODE_DTYPE), s.model_config())
-    comps = model.stored_bytes(s.storage())
-    return sum(comps.values()) + HEADER_BYTES
+        model = NeuralBVH(np.zeros(s.nodes, NODE_DTYPE), model_cfg)
+    return sum(model.stored_bytes(storage).values()) + HEADER_BYTES
 
 
 def preset(name: str) -> Settings:
