@@ -329,6 +329,28 @@ def test_a_check_keeps_the_mesh_when_the_model_stays_above_a_measured_decimation
     assert top(_model_at(10)).action == "train on" and top.decisions[0].action == "train on"
 
 
+def test_a_mesh_kept_after_training_began_carries_the_checks_that_led_there():
+    """`decision.verdict.mesh_kept`: the assessment recommends the decimation the verdict names (the one measured
+    for it), says the verdict's message, and keeps its record and the training's checks for the report."""
+    from nbvh_core.decision.records import Assessment, CheckDecision, FinalVerdict
+    from nbvh_core.decision.verdict import mesh_kept
+
+    tried = [{"requested_triangles": 500, "triangles": 498}, {"requested_triangles": 900, "triangles": 897}]
+    before = Assessment(model_bytes=9000, resident={}, worth_compressing=True, message="train",
+                        alternatives={"decimations_tried": tried, "decimation": tried[0]})
+    checks = [CheckDecision(20.0, 10, 0.002, 0.0011, 9000, 4000.0, "train on", "projected to meet the level"),
+              CheckDecision(40.0, 10, 0.0019, 0.0012, 9000, 3900.0, "stop: keep the mesh", "above the curve")]
+    verdict = FinalVerdict(9000, 0.0019, 3900.0, "decimation", {"triangles": 897, "requested_triangles": 900,
+                                                                "compact_bytes": 3900, "mse": 0.0018},
+                           False, False, "kept as a mesh: a decimation to 897 triangles")
+    kept = mesh_kept(before, verdict, checks)
+    assert (kept.worth_compressing, kept.recommendation, kept.message) == (False, "decimate", verdict.message)
+    assert kept.alternatives["decimation"] is tried[1] and before.alternatives["decimation"] is tried[0]
+    assert kept.final == verdict.to_dict() and [c["action"] for c in kept.checks] == ["train on", "stop: keep the mesh"]
+    whole = mesh_kept(before, None)
+    assert whole.recommendation == "mesh" and whole.message == "train" and whole.checks == [] and whole.final is None
+
+
 def test_the_final_verdict_ships_the_smaller_at_the_same_measured_mse():
     from nbvh_core.decision.final_verdict import final_verdict
 

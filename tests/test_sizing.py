@@ -316,6 +316,10 @@ def test_a_decimation_verdict_writes_the_decimation_beside_the_output(tmp_path, 
     # the bytes written are the bytes the verdict counted (encoded as counted, then placed in original units)
     assert len(cmsh) == _verdict_compact_bytes(tmp_path)
     assert len(decoded.faces) == dec.n_triangles and report is None
+    # why, beside them: the assessment that kept the mesh (decided before training: no checks)
+    why = json.loads((tmp_path / "bunny.verdict.json").read_text())
+    assert why["recommendation"] == "decimate" and not why["worth_compressing"] and why["checks"] == []
+    assert why["alternatives"]["decimation"]["triangles"] == dec.n_triangles and why["message"]
     lo = dec.transform.to_original(dec.vertices).min(axis=0)  # original coordinates, like the PLY
     assert np.allclose(decoded.vertices.min(axis=0), lo, atol=1e-3 * float(np.ptp(dec.transform.to_original(dec.vertices))))
     # original coordinates: the same box as the source (a decimation keeps the silhouette's extent)

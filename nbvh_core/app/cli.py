@@ -146,7 +146,8 @@ def _write_alternative(mesh, assessment, stem: Path, mesh_path: Path, args, sink
     coordinates; written atomically; an existing file only with --overwrite): a winning decimation as
     NAME.decimated.ply, and, when the verdict weighed the compact layout, the winner (the decimation, or the whole
     mesh) as NAME.compact.cmsh, the compact ray-traceable mesh whose bytes the verdict counted
-    (`compact_mesh.encode_compact`)."""
+    (`compact_mesh.encode_compact`); and why, as NAME.verdict.json: the assessment with the measured alternatives,
+    the final verdict and the training's checks when training had begun (no model report: no model was written)."""
     from ..geometry.compact_mesh import encode_compact, in_original_units
     from ..protocol.outputs import check_outputs, write_atomic
     from ..planning.sizing import mesh_file_bytes, winning_decimation
@@ -159,6 +160,7 @@ def _write_alternative(mesh, assessment, stem: Path, mesh_path: Path, args, sink
         winner = dec if dec is not None else mesh  # encoded as the verdict counted it, placed in original units
         files[Path(f"{stem}.compact.cmsh")] = in_original_units(encode_compact(winner), winner.transform.scale,
                                                                 winner.transform.offset)
+    files[Path(f"{stem}.verdict.json")] = json.dumps(assessment.to_dict(), indent=1, default=str).encode()
     for path, data in files.items():
         try:
             check_outputs([path], [mesh_path], overwrite=args.overwrite)
@@ -166,6 +168,9 @@ def _write_alternative(mesh, assessment, stem: Path, mesh_path: Path, args, sink
             print(f"the winning mesh was not written: {exc}", file=sys.stderr)
             continue
         write_atomic(path, data)
+        if path.suffix == ".json":
+            print(f"why: {path}", file=sys.stderr)
+            continue
         if args.events:
             sink(wire.written(files=[str(path)], kind="decimation" if dec is not None else "mesh",
                               triangles=(dec or mesh).n_triangles))

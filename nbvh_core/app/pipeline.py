@@ -244,10 +244,11 @@ def _measure_decimation(mesh: Mesh, weighing: Weighing, assessment):
     return measure
 
 
-def _keep_the_mesh(assessment, verdict, events: EventSink):
+def _keep_the_mesh(assessment, verdict, events: EventSink, checks: list):
     """NotWorthCompressing for a decision taken on measurements (a check's or the final verdict's): the assessment
-    now recommends the measured decimation (or the whole mesh) that the CLI writes (`decision.verdict.mesh_kept`)."""
-    kept = mesh_kept(assessment, verdict)
+    now recommends the measured decimation (or the whole mesh) that the CLI writes, with the training's `checks`
+    (`decision.verdict.mesh_kept`)."""
+    kept = mesh_kept(assessment, verdict, checks)
     events(wire.verdict(worth_compressing=False, message=kept.message, assessment=kept.to_dict()))
     return NotWorthCompressing(kept)
 
@@ -483,7 +484,8 @@ def _compress(mesh: Mesh, run: RunConfig, out_path, events: EventSink, should_ca
     target = run.decision.target_mse
     if search.rule is not None and search.rule.keep_mesh is not None:
         d = search.rule.keep_mesh
-        raise _keep_the_mesh(assessment, final_verdict(d.model_bytes, d.projected_mse, target, weighing.curve), events)
+        raise _keep_the_mesh(assessment, final_verdict(d.model_bytes, d.projected_mse, target, weighing.curve), events,
+                             search.rule.decisions)
     notes += search.notes + list(trained_notes)
     look_info = _appearance(model, mesh, tracer, run.look, run_used.storage, run_used.training.seed, head, tr, events,
                             should_cancel, seconds)
@@ -496,7 +498,7 @@ def _compress(mesh: Mesh, run: RunConfig, out_path, events: EventSink, should_ca
         verdict = final_verdict(len(data), quality.mse, target, weighing.curve_held_out, run.decision.force,
                                 _measure_decimation(mesh, weighing, assessment))
         if verdict.shipped != "model":
-            raise _keep_the_mesh(assessment, verdict, events)
+            raise _keep_the_mesh(assessment, verdict, events, search.rule.decisions if search.rule else [])
     as_shipped = quality
     if quality is not None and look_info:  # the file read back with its look: what a user sees
         events(wire.phase(phase="eval", message=f"the file as shipped: {weighing.held_out.name}"))

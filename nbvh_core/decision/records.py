@@ -98,6 +98,8 @@ class Assessment:
     layout: str = "compact"
     #: The decision that kept the mesh after training began (`decision.records.FinalVerdict` as a dict), or None.
     final: dict | None = None
+    #: When a decision after training began kept the mesh: the training's checks until then (`CheckDecision` as dicts).
+    checks: list = field(default_factory=list)
 
     def to_dict(self) -> dict:
         return asdict(self)

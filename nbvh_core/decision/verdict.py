@@ -50,10 +50,11 @@ def verdict_before_training(model: int, triangles: int, resident: int, compact: 
     return "neural", msg + draco_text
 
 
-def mesh_kept(assessment: Assessment, verdict: FinalVerdict | None) -> Assessment:
+def mesh_kept(assessment: Assessment, verdict: FinalVerdict | None, checks: list | tuple = ()) -> Assessment:
     """The assessment after a decision taken on measurements kept the mesh (a training check's, or the final
     verdict's, `verdict`; None: the check kept the whole mesh): it recommends the measured decimation that verdict
-    names (or the whole mesh) and carries the verdict's message and record."""
+    names (or the whole mesh) and carries the verdict's message and record, and the training's `checks`
+    (`CheckDecision`s) that led there."""
     alt = dict(assessment.alternatives)
     rec = "mesh"
     if verdict is not None and verdict.decimation is not None and verdict.decimation["requested_triangles"]:
@@ -63,4 +64,5 @@ def mesh_kept(assessment: Assessment, verdict: FinalVerdict | None) -> Assessmen
                                  alt.get("decimation"))
     return dataclasses.replace(assessment, worth_compressing=False, recommendation=rec,
                                message=verdict.message if verdict is not None else assessment.message,
-                               alternatives=alt, final=verdict.to_dict() if verdict is not None else None)
+                               alternatives=alt, final=verdict.to_dict() if verdict is not None else None,
+                               checks=[d.to_dict() for d in checks])
