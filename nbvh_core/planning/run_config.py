@@ -86,9 +86,9 @@ class RunConfig:
         return self.model.encoding.log2_table
 
     def at_table(self, log2_table: int, regrid: bool = True) -> "RunConfig":
-        """The same run with a table of 2^log2_table rows, as planned (`sizes`); regrid: the grid's finest
-        resolution the one chosen for the mesh at that size when it follows the mesh (a growing table keeps the
-        resolution it was planned for). Raises ValueError for a size the run did not plan."""
+        """The same run with a table of 2^log2_table rows, as planned (`sizes`); regrid: with the grid's finest
+        resolution chosen for the mesh at that size, when it follows the mesh (a growing table keeps the resolution
+        it was planned for). Raises ValueError for a size the run did not plan."""
         regrid = regrid and self.grid is not None
         if log2_table == self.log2_table and not regrid:
             return self
