@@ -14,7 +14,8 @@ Per asset (real ones from `real_assets.py`, generated ones from `bench_meshes.py
    (>= 1: nothing smaller was left on the table; < 1: the default shipped more than the alternative at equal
    quality).
 
-Rows land in bench/results/shipped.csv as they finish (a rerun resumes); shipped.md has the table.
+Rows land in bench/results/shipped.csv as they finish; a rerun at the same commit resumes, and an asset measured at
+another commit is measured again, its row replaced. shipped.md has the table.
 """
 from __future__ import annotations
 
@@ -26,7 +27,7 @@ import time
 from pathlib import Path
 
 from bench_meshes import MADE, bench_mesh
-from harness import RESULTS, ROOT, SMOKE, append_row, markdown_table, num, read_rows, write_markdown
+from harness import RESULTS, ROOT, SMOKE, commit_of, markdown_table, num, read_rows, write_markdown, write_rows
 from real_assets import REAL_ASSETS, asset_path
 
 CSV = RESULTS / ("shipped_smoke.csv" if SMOKE else "shipped.csv")
@@ -132,7 +133,7 @@ def measure(name: str, args, work: Path, prior: dict | None = None) -> None:
            "alternative_bytes": round(alt) if alt != float("inf") else "", "ratio":
            round(alt / nbytes, 3) if alt != float("inf") else "", "views": args.views, "size": args.size,
            "curve": ";".join(f"{b}:{m:.6g}:{t}" for b, m, t in pts), "verdict": verdict[:300]}
-    append_row(CSV, row)
+    write_rows(CSV, [*(r for r in read_rows(CSV) if r["asset"] != name), row])  # one row per asset
     print({k: row[k] for k in ("asset", "shipped", "shipped_bytes", "mse", "alternative_bytes", "ratio", "wall_s")},
           flush=True)
 
@@ -172,7 +173,7 @@ def main() -> None:
         for name in args.assets:
             if args.rescore and name in prior:
                 measure(name, args, work, prior[name])
-            elif name not in prior:
+            elif name not in prior or prior[name]["commit"] != commit_of(ROOT):
                 measure(name, args, work)
     report()
 

@@ -2,8 +2,9 @@
 Markdown tables, and the smoke switch.
 
 * `RESULTS`: bench/results, or $NBVH_BENCH_RESULTS (the smoke test writes into a temporary folder).
-* `stamp()`: commit, machine, kernel plan and command; every CSV row carries it (`append_rows` adds it to rows that
-  lack it), every Markdown report starts with it.
+* `stamp()`: commit (+ "-dirty" when tracked code differs from it; the results themselves excepted), machine,
+  kernel plan and command; every CSV row carries it (`append_rows` adds it to rows that lack it), every Markdown
+  report starts with it.
 * `append_rows`: rows appended as they land, so a long run is resumable and its partial CSV can be committed; a
   CSV learns new columns without shifting old rows.
 * `SMOKE` ($NBVH_BENCH_SMOKE=1): tests/test_bench_smoke.py runs every benchmark at a tiny budget; a benchmark
@@ -36,16 +37,23 @@ def stamp() -> dict:
     plan (which path ran: `kernels.describe()`), the command that made the row, and when (UTC)."""
     from nbvh_core import kernels
 
+    return {"commit": commit_of(ROOT), "machine": machine(), "kernel_plan": kernels.describe(),
+            "command": " ".join([f"bench/{Path(sys.argv[0]).name}", *sys.argv[1:]]),
+            "utc": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M")}
+
+
+def commit_of(root: Path) -> str:
+    """The checkout's short commit hash, + '-dirty' when a tracked file differs from it, the benchmarks' results
+    (bench/results) excepted: a benchmark's own rows, appended as they land, are no change to the code they measure
+    (else every row after a run's first would read -dirty)."""
     def git(*args: str) -> str:
-        out = subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True)
+        out = subprocess.run(["git", *args], cwd=root, capture_output=True, text=True)
         return out.stdout.strip() if out.returncode == 0 else ""
 
     commit = git("rev-parse", "--short", "HEAD") or "unknown"
-    if git("status", "--porcelain", "--untracked-files=no"):
+    if git("status", "--porcelain", "--untracked-files=no", "--", ".", ":(exclude)bench/results"):
         commit += "-dirty"
-    return {"commit": commit, "machine": machine(), "kernel_plan": kernels.describe(),
-            "command": " ".join([f"bench/{Path(sys.argv[0]).name}", *sys.argv[1:]]),
-            "utc": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M")}
+    return commit
 
 
 def machine() -> str:
@@ -88,9 +96,16 @@ def append_row(path: str | os.PathLike, row: dict) -> None:
 
 
 def write_rows(path: str | os.PathLike, rows: list[dict], run_stamp: dict | None = None) -> None:
-    """Replace the CSV at `path` with `rows` (stamped like `append_rows`)."""
-    Path(path).unlink(missing_ok=True)
-    append_rows(path, rows, run_stamp)
+    """Replace the CSV at `path` with `rows` (stamped like `append_rows`), in one step: a run killed while writing
+    leaves the previous file."""
+    path = Path(path)
+    if not rows:
+        path.unlink(missing_ok=True)
+        return
+    staged = path.with_name(path.name + ".partial")
+    staged.unlink(missing_ok=True)
+    append_rows(staged, rows, run_stamp)
+    os.replace(staged, path)
 
 
 def read_rows(path: str | os.PathLike) -> list[dict]:

@@ -101,3 +101,30 @@ def test_benchmark_runs_at_a_tiny_budget_and_stamps_its_rows(name, tmp_path):
             assert rows and all(r.get(field) for r in rows), f"{path.name}: rows without {field}"
         assert all(r["command"].startswith(f"bench/{name}") for r in rows)
     shutil.rmtree(tmp_path, ignore_errors=True)
+
+
+def test_the_stamp_says_dirty_for_changed_code_not_for_the_benchmarks_own_results(tmp_path):
+    """`harness.commit_of`: a row appended to bench/results leaves the commit clean (a run's second row was stamped
+    -dirty by its first); a changed source file, or a changed result beside it, still says -dirty."""
+    sys.path.insert(0, str(BENCH))
+    try:
+        from harness import commit_of
+    finally:
+        sys.path.remove(str(BENCH))
+
+    def git(*args):
+        subprocess.run(["git", "-c", "user.email=t@t", "-c", "user.name=t", *args], cwd=tmp_path, check=True,
+                       capture_output=True)
+
+    (tmp_path / "bench" / "results").mkdir(parents=True)
+    (tmp_path / "code.py").write_text("x = 1\n")
+    (tmp_path / "bench" / "results" / "rows.csv").write_text("commit\n")
+    git("init", "-q")
+    git("add", "-A")
+    git("commit", "-qm", "x")
+    clean = commit_of(tmp_path)
+    assert clean and not clean.endswith("-dirty")
+    (tmp_path / "bench" / "results" / "rows.csv").write_text("commit\nabc\n")
+    assert commit_of(tmp_path) == clean
+    (tmp_path / "code.py").write_text("x = 2\n")
+    assert commit_of(tmp_path) == clean + "-dirty"
