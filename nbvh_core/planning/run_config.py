@@ -29,8 +29,8 @@ from ..neural.quantize import StorageConfig
 from ..rendering.metrics import MetricConfig
 from ..training.train import TrainConfig
 from .settings import Settings, estimate_file_bytes
-from .sizing import (LOG2_RANGE, GridMeasures, choose_resolution, expected_table, grid_measures, load_fit,
-                     mesh_features, resolve)
+from .sizing import (LOG2_RANGE, GridMeasures, MeshFeatures, SizeFit, choose_resolution, expected_table,
+                     grid_measures, load_fit, mesh_features, resolve)
 
 
 @dataclass(frozen=True)
@@ -120,18 +120,18 @@ def plan_run(settings: Settings, mesh: Mesh, resumed: bool = False) -> RunConfig
     run = _parts(resolved, look, grid, (RunNote("plan", plan_note),))
     if resumed or resolved.target_mse is None:  # a fixed size: the run trains the one planned table
         return run
-    growth = _growth(run, mesh) if run.decision.size_search == "grow" else None
-    return dataclasses.replace(run, expected_log2_table=expected_table(resolved, mesh), sizes=_sizes(resolved, grid),
-                               growth=growth)
-
-
-def _growth(run: RunConfig, mesh: Mesh) -> GrowthPlan:
-    """The growing training's plan, with the size predictor's slopes and growth gains for this mesh (none without
-    a fit)."""
     fit = load_fit()
+    feats = mesh_features(mesh) if fit is not None else None  # measured once for the expected size and the growth
+    growth = _growth(run, fit, feats) if run.decision.size_search == "grow" else None
+    return dataclasses.replace(run, expected_log2_table=expected_table(resolved, mesh, feats),
+                               sizes=_sizes(resolved, grid), growth=growth)
+
+
+def _growth(run: RunConfig, fit: SizeFit | None, feats: MeshFeatures | None) -> GrowthPlan:
+    """The growing training's plan, with the size predictor's slopes and growth gains for the mesh of `feats` (none
+    without a fit)."""
     slope = log_mse = None
     if fit is not None:
-        feats = mesh_features(mesh)
         slope = fit.budget_slope if fit.budget_coef else None
         log_mse = lambda l2, budget: fit.predict_log_mse(l2, feats, run.nodes, budget)  # noqa: E731
     return plan_growth(run.log2_table, LOG2_RANGE[-1], run.training.time_limit_s, run.decision.check_every_s,

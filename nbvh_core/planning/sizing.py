@@ -377,17 +377,18 @@ def resolve(s: Settings, mesh: Mesh | None = None, grid: GridMeasures | None = N
     return s, "fixed settings"
 
 
-def expected_table(s: Settings, mesh: Mesh) -> int | None:
+def expected_table(s: Settings, mesh: Mesh, features: MeshFeatures | None = None) -> int | None:
     """log2 T of the smallest file the predictor expects to meet `s.target_mse` on `mesh` (its median prediction: no
     safety factor; the node count as `resolve` chooses it; the largest size when none does): the model the verdict
     before training weighs against the decimation measured at the target, since both then stand at the level (the
-    safety factor only says where a training starts). None without a target, a mesh or a fit."""
+    safety factor only says where a training starts). features: `mesh_features(mesh)` when the caller has them.
+    None without a target, a mesh or a fit."""
     fit = load_fit()
     if s.target_mse is None or mesh is None or fit is None:
         return None
     size_of = lambda lt, n: estimate_file_bytes(dataclasses.replace(s, log2_table=lt, nodes=n))  # noqa: E731
-    l2, _, _, _ = choose_table_and_nodes(fit, mesh_features(mesh), s.target_mse, size_of, s.time_limit_s,
-                                         safety=1.0)
+    l2, _, _, _ = choose_table_and_nodes(fit, features or mesh_features(mesh), s.target_mse, size_of,
+                                         s.time_limit_s, safety=1.0)
     return l2
 
 
