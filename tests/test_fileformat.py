@@ -67,6 +67,27 @@ def test_file_size_equals_component_bytes(trained, enc):
     assert info.components["header"] < 4096 and info.components["padding"] < 64
 
 
+@pytest.mark.parametrize("enc", ["hashgrid", "hashvqad"])
+def test_the_planned_bytes_are_the_written_tensors(trained, enc):
+    """The planner sizes a model with the reader's shape table (`payload_bytes`): equal to the written file's tensor
+    bytes, and to a shapes-only model's count at every storage precision."""
+    import itertools
+    from nbvh_core.geometry.bvh import NODE_DTYPE
+    from nbvh_core.neural.model import NeuralBVH
+    from nbvh_core.storage.fileformat import payload_bytes
+
+    path, res = trained[enc]
+    cfg, storage, n = res.model.cfg, res.settings.storage(), len(res.model.nodes)
+    info = read_info(path)
+    tensors = sum(v for k, v in info.components.items() if k not in ("header", "padding", "checksum"))
+    assert payload_bytes(cfg, storage, n) == tensors
+    for bits in itertools.product((4, 6, 8, 16, 32), (4, 8, 16, 32), (8, 32)):
+        st = StorageConfig(*bits)
+        with torch.device("meta"):
+            shapes_only = NeuralBVH(np.zeros(n, NODE_DTYPE), cfg)
+        assert payload_bytes(cfg, st, n) == sum(shapes_only.stored_bytes(st).values()), bits
+
+
 def test_hashvqad_file_keeps_the_reachable_codes_and_full_index_files_still_load(trained, tmp_path, monkeypatch):
     """Format 2.2 stores the codes of the index entries a vertex can select (the tiny grid's dense coarse level
     reaches 17^3 of its 8,192); a 2.1 file, which stored all L x H, loads to the same model."""

@@ -79,6 +79,13 @@ def test_a_run_is_planned_once_into_parts_that_agree_with_its_request():
     bigger = searched.at_table(searched.log2_table + 1)
     assert bigger.log2_table == bigger.request.log2_table == searched.log2_table + 1
     assert bigger.file_bytes > searched.file_bytes
+    from nbvh_core.planning.sizing import LOG2_RANGE, load_fit, mesh_features, predictor
+    fit = load_fit()  # the retrain search's predictions are planned too: the size predictor's, at the budget
+    if fit is not None:
+        predict = predictor(fit, mesh_features(icosphere(3)), None, searched.training.time_limit_s)
+        assert set(searched.predicted_log_mse) >= set(LOG2_RANGE)
+        assert all(searched.predicted_log_mse[l2] == pytest.approx(predict(l2)) for l2 in LOG2_RANGE)
+    assert run.predicted_log_mse == {}
     slower = run.with_training(lr=run.training.lr / 10)
     assert slower.training.lr == slower.request.lr == run.training.lr / 10 and run.training.lr == s.lr
 

@@ -33,7 +33,7 @@ from ..neural.quantize import StorageConfig, snap_nodes
 from ..planning.settings import PRESETS, Settings, estimate_file_bytes, preset  # noqa: F401  (re-exported)
 from ..planning import sizing
 from ..planning.run_config import LookConfig, RunConfig, plan_run
-from ..planning.sizing import LOG2_RANGE, assess, load_fit, mesh_features, predictor
+from ..planning.sizing import LOG2_RANGE, assess
 from ..training.train import TrainResult, grid_phase_pending, state_form, train
 from ..decision.alternative_curve import AlternativeCurve, CurvePoint
 from ..decision.checks import CheckRule
@@ -294,10 +294,8 @@ class _SizeSearch:
             return run.log2_table
         if run.decision.size_search == "grow":
             return self.grow()
-        fit = load_fit()
-        feats = mesh_features(self.mesh) if fit is not None else None
-        chosen, measured = search_size(predictor(fit, feats, None, run.training.time_limit_s), target,
-                                       run.log2_table, self._measure_next, LOG2_RANGE)
+        predict = run.predicted_log_mse.__getitem__ if run.predicted_log_mse else None
+        chosen, measured = search_size(predict, target, run.log2_table, self._measure_next, LOG2_RANGE)
         if len(measured) > 1:
             trail = ", ".join(f"T=2^{l2}: {mse:.4g}" for l2, mse in measured.items())
             self.notes.append(RunNote("search", f"measured {trail} (target {target:g}): kept T=2^{chosen}"))

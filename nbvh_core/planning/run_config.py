@@ -10,6 +10,7 @@ files and checkpoints keep) into the parts each stage of a run takes, and nothin
     RunConfig.look      -> training.appearance_training    (the appearance head and its share of the budget)
     RunConfig.sizes     -> RunConfig.at_table              (with a target: every table size the run may train)
     RunConfig.growth    -> decision.checks.CheckRule       (with a target: the growing training's plan)
+    RunConfig.predicted_log_mse -> decision.size_search  (with a target: the retrain search's predictions)
 
 The run is planned once: a size search or a growing table reads the sizes planned here, nothing derives them again.
 Every default lives once, on the part that uses it (TrainConfig, StorageConfig, ...); `Settings` takes its defaults
@@ -64,7 +65,9 @@ class RunConfig:
     the verdict before training weighs), else None; sizes: every other table size a run with a target may train,
     planned with the run ({(log2 T, grid re-chosen): SizePlan}; `at_table` reads them); growth: with a target and
     size_search "grow", the growing training's plan (`decision.growth`: start and largest table, clock, check
-    period), else None."""
+    period), else None; predicted_log_mse: with a target, the size predictor's ln MSE at each table size in
+    LOG2_RANGE (and the planned one) at the training's budget ({log2 T: ln MSE}; empty without a fit: the retrain
+    search's guide)."""
 
     request: Settings
     nodes: int
@@ -80,6 +83,7 @@ class RunConfig:
     expected_log2_table: int | None = None
     sizes: dict = field(default_factory=dict, compare=False)
     growth: GrowthPlan | None = None
+    predicted_log_mse: dict = field(default_factory=dict, compare=False)
 
     @property
     def log2_table(self) -> int:
@@ -113,18 +117,21 @@ def plan_run(settings: Settings, mesh: Mesh, resumed: bool = False) -> RunConfig
     keeps the budget asked). resumed: the sizes are the checkpoint's (fixed; the grid is not re-chosen). Raises
     ValueError (one line) for settings no run can use."""
     grid = grid_measures(mesh) if settings.n_max is None and not resumed else None
-    resolved, plan_note = resolve(settings, mesh, grid)
+    fit = load_fit() if settings.target_mse is not None and not resumed else None
+    feats = mesh_features(mesh) if fit is not None else None  # measured once: the sizes, the expected size, the growth
+    resolved, plan_note = resolve(settings, mesh, grid, feats)
     share, budget = resolved.appearance_share, resolved.time_limit_s
     look = LookConfig(AppearanceConfig(target=resolved.appearance_target, log2_table=resolved.appearance_log2_table),
                       share, budget * share if mesh.look is not None and budget else None)
     run = _parts(resolved, look, grid, (RunNote("plan", plan_note),))
     if resumed or resolved.target_mse is None:  # a fixed size: the run trains the one planned table
         return run
-    fit = load_fit()
-    feats = mesh_features(mesh) if fit is not None else None  # measured once for the expected size and the growth
     growth = _growth(run, fit, feats) if run.decision.size_search == "grow" else None
+    searched = range(min(LOG2_RANGE[0], run.log2_table), max(LOG2_RANGE[-1], run.log2_table) + 1)
+    predicted = ({l2: fit.predict_log_mse(l2, feats, None, run.training.time_limit_s) for l2 in searched}
+                 if fit is not None else {})
     return dataclasses.replace(run, expected_log2_table=expected_table(resolved, mesh, feats),
-                               sizes=_sizes(resolved, grid), growth=growth)
+                               sizes=_sizes(resolved, grid), growth=growth, predicted_log_mse=predicted)
 
 
 def _growth(run: RunConfig, fit: SizeFit | None, feats: MeshFeatures | None) -> GrowthPlan:

@@ -12,18 +12,15 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
-import numpy as np
-import torch
-
-from ..geometry.bvh import NODE_DTYPE
 from ..neural.encodings import EncodingConfig
-from ..neural.model import ModelConfig, NeuralBVH
+from ..neural.model import ModelConfig
 from ..neural.networks import NetworkConfig
 from ..neural.appearance import AppearanceConfig
 from ..neural.quantize import StorageConfig
 from ..decision.config import MESH_LAYOUTS, SIZE_SEARCHES, DecisionConfig
 from ..rendering.metrics import MetricConfig
 from ..training.train import TrainConfig
+from ..storage.fileformat import payload_bytes
 
 
 NORMAL_LOSSES = ("facing", "oriented", "unoriented")
@@ -254,12 +251,10 @@ HEADER_BYTES = 1700
 
 
 def estimate_file_bytes(s: Settings) -> int:
-    """Exact payload bytes of a model with these settings (BVH + tables + index + network + checksum) plus the
-    header's typical size; the real file differs by the header's few hundred bytes of metadata at most."""
-    model_cfg, storage = s.model_config(), s.storage()
-    with torch.device("meta"):  # shapes only
-        model = NeuralBVH(np.zeros(s.nodes, NODE_DTYPE), model_cfg)
-    return sum(model.stored_bytes(storage).values()) + HEADER_BYTES
+    """Bytes of a bare model's file with these settings: its tensors exactly, as the file format lays them out
+    (`fileformat.payload_bytes`: BVH, tables, index, network), plus the header's typical size; the real file
+    differs by the header's few hundred bytes of metadata at most. An asset's look adds its own bytes."""
+    return payload_bytes(s.model_config(), s.storage(), s.nodes) + HEADER_BYTES
 
 
 def preset(name: str) -> Settings:

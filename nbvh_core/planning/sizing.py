@@ -315,7 +315,8 @@ def choose_table_and_nodes(fit: SizeFit, features: MeshFeatures, target_mse: flo
 
 
 
-def resolve(s: Settings, mesh: Mesh | None = None, grid: GridMeasures | None = None) -> tuple[Settings, str]:
+def resolve(s: Settings, mesh: Mesh | None = None, grid: GridMeasures | None = None,
+            features: MeshFeatures | None = None) -> tuple[Settings, str]:
     """Turn a byte budget or a quality target into concrete sizes; returns (settings, why).
 
     Budget: the largest (T, nodes) of the grid T in 2^5..2^13, nodes in 255..8191 whose file fits the budget
@@ -323,16 +324,16 @@ def resolve(s: Settings, mesh: Mesh | None = None, grid: GridMeasures | None = N
     for (sizing_fit.json: HashGrid + MLP + consistent labels) at the smallest T whose predicted MSE meets the
     target (`sizing.choose_table_and_nodes`); `compress_mesh` then measures and corrects (`decision.size_search`).
     n_max None: the grid's finest resolution is chosen for the mesh and the chosen T (`choose_resolution`; `grid`:
-    its measures when the caller has them).
+    its measures when the caller has them). features: `mesh_features(mesh)` when the caller has them.
     """
     if s.n_max is None:
         if mesh is None:
             s, grid_why = dataclasses.replace(s, n_max=PAPER_N_MAX), f"grid N_max {PAPER_N_MAX} (no mesh to measure)"
         else:
-            chosen, why = resolve(dataclasses.replace(s, n_max=PAPER_N_MAX), mesh)  # sizes first, then their grid
+            chosen, why = resolve(dataclasses.replace(s, n_max=PAPER_N_MAX), mesh, None, features)  # sizes, then grid
             n_max, grid_why = choose_resolution(grid or mesh, chosen.log2_table)
             return dataclasses.replace(chosen, n_max=n_max), f"{why}; {grid_why}"
-        chosen, why = resolve(s, mesh)
+        chosen, why = resolve(s, mesh, None, features)
         return chosen, f"{why}; {grid_why}"
     if s.budget_kb is not None:
         budget = s.budget_kb * 1024
@@ -359,7 +360,7 @@ def resolve(s: Settings, mesh: Mesh | None = None, grid: GridMeasures | None = N
             chosen = dataclasses.replace(s, nodes=base.nodes, log2_table=base.log2_table)
             return chosen, (f"target MSE {s.target_mse:g}: no size predictor available, used preset sizes "
                             f"(T=2^{base.log2_table}, {base.nodes} nodes)")
-        feats = mesh_features(mesh)
+        feats = features or mesh_features(mesh)
         fitted = PRESETS[fit.method]
         base = dataclasses.replace(s, encoding=fitted.encoding, network=fitted.network, labels=fitted.labels)
         l2, nodes, pred, reachable = choose_table_and_nodes(

@@ -405,6 +405,14 @@ def _expected_tensors(cfg: ModelConfig, storage: StorageConfig, n_nodes: int,
     return out
 
 
+def payload_bytes(cfg: ModelConfig, storage: StorageConfig, n_nodes: int) -> int:
+    """Bytes of the tensors a file of this config holds for `n_nodes` nodes laid out by `bvh.layout_cut` (every
+    trained tree; the 8-bit BVH as shape bits), header and checksum excluded: the reader's own shape table
+    (`_expected_tensors`), so the planner sizes exactly what the writer writes and the reader checks."""
+    tensors = _expected_tensors(cfg, storage, n_nodes, shape_only=True)
+    return sum(_nbytes(shape, kind) for shape, kind in tensors.values())
+
+
 def _table_shapes(name: str, levels: int, rows: int, features: int, bits: int) -> dict[str, tuple[tuple, str]]:
     """name -> (shape, dtype) of a feature table's stored tensors (see `_table_tensors`)."""
     if bits <= 8:
