@@ -216,12 +216,12 @@ def test_the_finished_model_is_measured_once_more_and_rolls_back_only_when_far_w
 
 
 def test_a_training_started_again_after_a_divergence_starts_its_checks_over(monkeypatch):
-    """A divergence restarts the training from scratch (`pipeline._train_with_restarts`): the rule's clock and best
+    """A divergence restarts the training from scratch (`trainings.train_with_restarts`): the rule's clock and best
     checks start over with it (the new training's early checks are not rolled back against the old one's best, nor
     projected with its checks), and the first training's decisions stay on record."""
     from types import SimpleNamespace
 
-    import nbvh_core.app.pipeline as pipeline
+    import nbvh_core.app.trainings as trainings
     from nbvh_core.geometry.bvh import build_bvh
     from nbvh_core.planning.run_config import plan_run
     from nbvh_core.protocol.process import TrainingDiverged
@@ -239,10 +239,10 @@ def test_a_training_started_again_after_a_divergence_starts_its_checks_over(monk
         now[0] = 60.0
         return SimpleNamespace(decision=kw["target_reached"](_model_at(10)))
 
-    monkeypatch.setattr(pipeline, "train", train)
+    monkeypatch.setattr(trainings, "train", train)
     mesh = icosphere(2)
     run = plan_run(preset("tiny"), mesh)
-    _, tr, used, notes = pipeline._train_with_restarts(mesh, build_bvh(mesh, 15), None, run, lambda e: None,
+    _, tr, used, notes = trainings.train_with_restarts(mesh, build_bvh(mesh, 15), None, run, lambda e: None,
                                                        lambda: False, None, target_reached=rule)
     assert calls == [run.training.lr, run.training.lr * 0.1] and notes[0].kind == "restart"
     # 2.0 > 1.15 x 0.5 at the first training's 50 s, but a new training: its clock at 10 s, its first check (no
@@ -259,7 +259,7 @@ def test_checks_score_a_low_bit_table_at_eight_bits_until_it_is_on_its_grid():
     import numpy as np
     import torch
     from meshes import icosphere
-    from nbvh_core.app.pipeline import _stored_mse
+    from nbvh_core.app.trainings import stored_mse
     from nbvh_core.geometry.bvh import build_bvh
     from nbvh_core.neural.model import NeuralBVH
     from nbvh_core.neural.quantize import StorageConfig
@@ -281,10 +281,10 @@ def test_checks_score_a_low_bit_table_at_eight_bits_until_it_is_on_its_grid():
     storage = StorageConfig(table_bits=6, network_bits=8, node_bits=32)
     before = model.encoding.table.detach().clone()
     assert grid_phase_pending(model, storage.table_bits)
-    _stored_mse(Scorer(), storage)(model)
+    stored_mse(Scorer(), storage)(model)
     model.encoding.qat_affine = (np.zeros((2, 4), np.float32), np.full((2, 4), 1e-3, np.float32))
     assert not grid_phase_pending(model, storage.table_bits)
-    _stored_mse(Scorer(), storage)(model)
+    stored_mse(Scorer(), storage)(model)
     assert bits_seen[0] == 8 and bits_seen[1] <= 6
     assert torch.equal(model.encoding.table, before) and not model.encoding.quantized
 
@@ -463,7 +463,7 @@ def test_a_run_with_a_target_is_weighed_at_the_size_expected_to_meet_it(sample_m
     """The verdict before training weighs the model at the size the predictor expects to meet the target (no safety
     factor), as the decimation is weighed at the target; training starts GROW_START_BELOW sizes under the planned
     size (which has the safety factor); without a target the planned size is weighed."""
-    from nbvh_core.app.pipeline import weigh
+    from nbvh_core.app.weighing import weigh
     from nbvh_core.decision.growth import GROW_START_BELOW
     from nbvh_core.planning.run_config import plan_run
     from nbvh_core.planning.sizing import expected_table

@@ -6,7 +6,7 @@
   arrays, and .blend files - each mesh object one asset, exported by a `blender` binary, `blend_export.py`) or a
   list file (one path per line, relative to the list). A file that cannot be read becomes a failed row, not a stop.
 * **Decide first** (`measure_asset`, one Ray task per asset): triangles, resident bytes as a ray tracer holds the
-  mesh, its Draco size, the run's own verdict (`pipeline.weigh`) and a thumbnail, before any training; the first report is
+  mesh, its Draco size, the run's own verdict (`weighing.weigh`) and a thumbnail, before any training; the first report is
   written as soon as every asset is measured.
 * **Train second** (`compress_asset`): only assets worth compressing, largest predicted savings first, each one task
   sized by its need (CPUs and memory from the triangle count, a GPU when the cluster has one). A task returns its
@@ -203,10 +203,10 @@ def measure_asset(asset: dict, spec: dict) -> dict:
     """Ray task: measure one asset and decide (see the module docstring). Never raises: a failure is a row."""
     from ..geometry.exact import ExactTracer
     from ..neural.appearance import make_head
-    from .pipeline import mesh_identity, weigh
+    from .trainings import mesh_identity
+    from .weighing import weigh
     from ..planning.run_config import plan_run
     from ..rendering.render import orbit_cameras, png_bytes, render_reference
-    from ..planning.sizing import mesh_file_bytes, winning_decimation
 
     t0 = time.perf_counter()
     out = {"name": asset["name"], "worker": _worker_id()}

@@ -1,0 +1,221 @@
+"""The trainings of one run: a fresh model trained (restarted at a lower learning rate when it diverges), and with a
+target the growing training or the retrain search over table sizes (`SizeSearch`), each finalized to its stored
+precision and scored on the held-out views. The decisions themselves live in `decision` (checks, size search);
+this module runs the trainings they ask for."""
+from __future__ import annotations
+
+import copy
+import dataclasses
+import hashlib
+import math
+import time
+from typing import NamedTuple
+
+import torch
+
+from ..decision.checks import CheckRule
+from ..decision.growth import GrowthPlan
+from ..decision.records import RunNote
+from ..decision.size_search import search_size
+from ..geometry.mesh import Mesh
+from ..neural.model import NeuralBVH
+from ..planning.run_config import RunConfig
+from ..planning.sizing import LOG2_RANGE
+from ..protocol import events as wire
+from ..protocol.process import Cancelled, TrainingDiverged
+from ..rendering.metrics import Quality, ViewScorer
+from ..training.train import TrainResult, grid_phase_pending, state_form, train
+from .weighing import Weighing
+
+#: A diverged training restarts from scratch at a 10x lower learning rate, at most this many times.
+DIVERGENCE_RETRIES = 2
+
+
+class Trained(NamedTuple):
+    """One training of compress_mesh's size search."""
+
+    model: NeuralBVH
+    result: TrainResult
+    run: RunConfig  # as used (a divergence restart lowers lr; growth changes the table)
+    notes: tuple  # what this training adds to the run's account (RunNote: restarts, growth, an early stop)
+    quality: Quality | None
+
+def mesh_identity(mesh: Mesh) -> dict:
+    """What a checkpoint records of its mesh, to refuse resuming on another one: counts and a content hash."""
+    h = hashlib.sha256(mesh.vertices.tobytes())
+    h.update(mesh.faces.tobytes())
+    return {"triangles": mesh.n_triangles, "vertices": mesh.n_vertices, "sha256": h.hexdigest()}
+
+def stored_mse(scorer: ViewScorer, storage):
+    """score(model) for the training's checks: the image MSE of `model` as its file would hold it (a copy at its
+    stored precision; the training's own model is left as it is): the float32 model read 4.7% (spiky sphere) to 18%
+    (bunny, its table grown late) below the stored one. A low-bit table is scored at 8 bits until it trains through
+    its own grid (`training.train.grid_phase_pending`): that last phase recovers the rounding (6 bits: +3.1% over
+    the float model after it, 1.24x rounded without it; `tests/test_quantize.py`), and growth decided on the rounded
+    score grew the bunny's table in both runs so scored (bench/results/target_runs.md, 5c9d155)."""
+    def score(model) -> float:
+        stored = copy.deepcopy(model)
+        stored.eval()
+        pending = grid_phase_pending(model, storage.table_bits)
+        stored.finalize_storage(dataclasses.replace(storage, table_bits=8) if pending else storage)
+        with torch.no_grad():
+            return scorer.score_model(stored)[0].mse
+    return score
+
+def train_with_restarts(mesh, bvh, tracer, run: RunConfig, events, should_cancel, checkpoint_path, resume_from=None,
+                         target_reached=None) -> tuple[NeuralBVH, TrainResult, RunConfig, tuple]:
+    """Train a fresh model (or resume `resume_from`); on divergence restart from scratch at a 10x lower learning rate
+    (at most DIVERGENCE_RETRIES times; the checks start over with it). Returns (model, TrainResult, the run as used,
+    the restarts' notes)."""
+    notes: tuple = ()
+    for attempt in range(DIVERGENCE_RETRIES + 1):
+        if attempt and target_reached is not None:  # a CheckRule
+            target_reached.start_over()
+        model = NeuralBVH(bvh.nodes, run.model, mesh.transform)
+        try:
+            extra = {"settings": run.request.to_dict(), "mesh": mesh_identity(mesh)}
+            tr = train(model, bvh, tracer, run.training, events=events, should_cancel=should_cancel,
+                       checkpoint_path=checkpoint_path, resume_from=resume_from if attempt == 0 else None,
+                       checkpoint_extra=extra, target_reached=target_reached)
+            return model, tr, run, notes
+        except TrainingDiverged as exc:
+            if attempt == DIVERGENCE_RETRIES:
+                raise TrainingDiverged(f"{exc} (after {attempt} restarts at lower learning rates)") from None
+            lr = run.training.lr
+            notes += (RunNote("restart", f"training diverged at lr {lr:g} ({exc}), restarted at lr {lr * 0.1:g}"),)
+            events(wire.warning(message=f"training diverged ({exc}); restarting from scratch with the "
+                                        f"learning rate {lr:g} -> {lr * 0.1:g}"))
+            run = run.with_training(lr=lr * 0.1)
+    raise AssertionError("unreachable")
+
+class SizeSearch:
+    """The trainings of one compress_mesh call: one at the planned size, or with a target MSE one growing training
+    (`grow`, the default: `decision.checks.CheckRule`) or the predict-train-measure-correct search over T
+    (`decision.size_search`, at most TARGET_TRAININGS). Each training is finalized to the stored precision and scored
+    on the held-out views; `trained[log2 T]` keeps them all, `notes` the search's own account."""
+
+    def __init__(self, mesh, bvh, tracer, run: RunConfig, events, should_cancel, checkpoint_path, resume_from,
+                 evaluate_quality: bool, compare_float32: bool, seconds: dict, weighing: Weighing):
+        self.mesh, self.bvh, self.tracer, self.run = mesh, bvh, tracer, run
+        self.events, self.should_cancel = events, should_cancel
+        self.checkpoint_path, self.resume_from = checkpoint_path, resume_from
+        self.evaluate_quality, self.compare_float32, self.seconds = evaluate_quality, compare_float32, seconds
+        self.weighing = weighing
+        self.trained: dict[int, Trained] = {}
+        self.notes: list[RunNote] = []
+        self.rule: CheckRule | None = None  # the growing training's checks, once it ran
+        self.check_views_mse: float | None = None  # the kept model on the check views (the report gives both)
+        self.score_stored = stored_mse(weighing.checks, run.storage)
+        seconds.update(train=0.0, eval=0.0)
+
+    def search(self) -> int:
+        """Train (and search); returns the chosen log2 T."""
+        target, run = self.run.decision.target_mse, self.run
+        if target is None or not self.evaluate_quality:
+            self.train_and_measure(run.log2_table)
+            return run.log2_table
+        if run.decision.size_search == "grow":
+            return self.grow()
+        predict = run.predicted_log_mse.__getitem__ if run.predicted_log_mse else None
+        chosen, measured = search_size(predict, target, run.log2_table, self._measure_next, LOG2_RANGE)
+        if len(measured) > 1:
+            trail = ", ".join(f"T=2^{l2}: {mse:.4g}" for l2, mse in measured.items())
+            self.notes.append(RunNote("search", f"measured {trail} (target {target:g}): kept T=2^{chosen}"))
+        return chosen
+
+    def shipped_form(self, model: NeuralBVH) -> bool:
+        """Whether a check may stop `model`'s training: its table is in the form the file stores (`CheckRule`)."""
+        return not grid_phase_pending(model, self.run.storage.table_bits)
+
+    def bytes_at(self, log2_table: int) -> int:
+        """The file's bytes at table size 2^log2_table as it ships: geometry, look, header."""
+        return self.run.at_table(log2_table, regrid=False).file_bytes + self.weighing.look_bytes
+
+    def _rule(self, growth: GrowthPlan) -> CheckRule:
+        """The growing training's checks: the plan's predicted time slopes and growth gains (none without a size
+        fit), the file's bytes at each size, the alternative's curve on the check views."""
+        run = self.run
+        slope = growth.budget_slopes.__getitem__ if growth.budget_slopes else None
+        gain = growth.grow_gains.__getitem__ if growth.grow_gains else None
+        return CheckRule(self.score_stored, run.decision.target_mse, growth.max_log2, growth.budget_s, self.bytes_at,
+                         self.weighing.curve, slope, gain, run.decision.force, self.shipped_form, state_form)
+
+    def grow(self) -> int:
+        """One training that starts below the planned T and grows its table while the checks say growing pays
+        (`RunConfig.growth`); returns the final log2 T."""
+        t = time.perf_counter()
+        run, growth = self.run, self.run.growth
+        run_start = run.at_table(growth.start_log2, regrid=False).with_training(
+            target_check_every_s=growth.check_every_s)
+        self.rule = rule = self._rule(growth)
+        model, tr, run_used, notes = train_with_restarts(self.mesh, self.bvh, self.tracer, run_start, self.events,
+                                                          self.should_cancel, self.checkpoint_path, self.resume_from,
+                                                          rule)
+        tr.checks = [(d.seconds, d.log2_table, d.mse) for d in rule.decisions]
+        final = model.cfg.encoding.log2_table
+        run_used = run_used.at_table(final, regrid=False).with_training(target_check_every_s=run.decision.check_every_s)
+        trail = ", ".join(f"T=2^{log2} at {sec:g} s" for _, sec, log2 in tr.grew) or "no growth"
+        notes += (RunNote("growth", f"one training from T=2^{growth.start_log2} growing its table to meet "
+                                    f"{run.decision.target_mse:g}: {trail}"),)
+        if tr.stopped_early:
+            notes += (RunNote("early stop", f"stopped after {tr.seconds:.0f} s: {rule.decisions[-1].action}"),)
+        self.seconds["train"] += time.perf_counter() - t
+        if rule.keep_mesh is not None:  # nothing worth finishing: the verdict is the mesh
+            self.trained[final] = Trained(model, tr, run_used, notes, None)
+            return final
+        self._keep(final, model, tr, run_used, notes)
+        return final
+
+    def _keep(self, log2_table: int, model, tr, run_used: RunConfig, notes: tuple) -> Quality | None:
+        """Finalize a trained model to its stored precision, score it, keep it as `trained[log2_table]` (with its
+        notes); returns its quality (None without an evaluation)."""
+        model.eval()
+        if self.compare_float32 and self.evaluate_quality:  # the same training before its storage is quantized
+            self.seconds["mse_float32"] = self.weighing.held_out.score_model(model)[0].mse
+        model.finalize_storage(run_used.storage)  # measure the model the file stores, not its float32 original
+        quality = self._score(model) if self.evaluate_quality else None
+        if quality is not None and run_used.decision.target_mse is not None:  # the same model on the check views
+            self.check_views_mse = self.weighing.checks.score_model(model)[0].mse
+        self.trained[log2_table] = Trained(model, tr, run_used, notes, quality)
+        return quality
+
+    def _measure_next(self, log2_table: int) -> float:
+        """A search step: says why this size comes next (after the first), then trains it."""
+        if self.trained:
+            target = self.run.decision.target_mse
+            prev = list(self.trained)[-1]
+            mse_prev = self.trained[prev].quality.mse
+            verdict = "missed" if mse_prev > target else "met"
+            step = "larger" if log2_table > prev else "smaller"
+            said = wire.warning if verdict == "missed" else wire.phase
+            self.events(said(phase="search", message=f"measured MSE {mse_prev:.4g} {verdict} the target {target:g} "
+                                                     f"at T=2^{prev}: trying T=2^{log2_table} ({step})"))
+        return self.train_and_measure(log2_table)
+
+    def train_and_measure(self, log2_table: int) -> float:
+        """One training at table size 2^log2_table, finalized and scored; its MSE (inf without an evaluation)."""
+        t = time.perf_counter()
+        run_try = self.run if log2_table == self.run.log2_table else self.run.at_table(log2_table)
+        target, budget = run_try.decision.target_mse, run_try.training.time_limit_s or 0.0
+        # a fixed size: the checks only stop the training once the level is met (no growth, no alternative)
+        stop = (CheckRule(self.score_stored, target, log2_table, budget, self.bytes_at, shipped_form=self.shipped_form,
+                          state_form=state_form) if target is not None and self.evaluate_quality else None)
+        model, tr, run_used, notes = train_with_restarts(self.mesh, self.bvh, self.tracer, run_try, self.events,
+                                                          self.should_cancel, self.checkpoint_path, self.resume_from,
+                                                          stop)
+        if tr.stopped_early:
+            notes += (RunNote("early stop", f"T=2^{log2_table}: training stopped after {tr.seconds:.0f} s of the "
+                                            f"{budget:.0f} s budget, the target being met"),)
+        self.seconds["train"] += time.perf_counter() - t
+        quality = self._keep(log2_table, model, tr, run_used, notes)
+        return quality.mse if quality is not None else math.inf
+
+    def _score(self, model: NeuralBVH) -> Quality:
+        """The final evaluation: the held-out views (no check used them)."""
+        if self.should_cancel():
+            raise Cancelled("cancelled before evaluation")
+        self.events(wire.phase(phase="eval", message=self.weighing.held_out.name))
+        t = time.perf_counter()
+        quality, _ = self.weighing.held_out.score_model(model)
+        self.seconds["eval"] += time.perf_counter() - t
+        return quality

@@ -1,0 +1,69 @@
+"""What a run's decisions are weighed with, before and after training: the check and held-out view sets (one metric
+for every contender), the alternative's measured curve on each, and the bytes the asset's look adds to every model.
+The same verdict serves a run (`pipeline.compress_mesh`) and a library batch's measurement before any training."""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+from ..decision.alternative_curve import AlternativeCurve, CurvePoint
+from ..decision.records import Assessment
+from ..geometry.exact import ExactTracer
+from ..geometry.mesh import Mesh
+from ..planning import sizing
+from ..planning.run_config import RunConfig
+from ..planning.sizing import assess
+from ..rendering.metrics import ViewScorer, view_sets
+from ..storage.fileformat import look_stored_bytes
+
+
+def shipped_materials(mesh: Mesh, made) -> list:
+    """The slots' materials as the file keeps them: without their images when the head `made` learns the colour."""
+    materials = list(mesh.look.materials)
+    if made is not None and made[0].cfg.target == "colour":  # the colour is learnt: the images are not kept
+        materials = [dataclasses.replace(m, image=None, _linear=None) for m in materials]
+    return materials
+
+@dataclass
+class Weighing:
+    """What a run's decisions are measured and weighed with: the check views and the held-out views (one metric for
+    every contender), the alternative's curve on each (None without a target), and the bytes the asset's look adds
+    to every model (appearance head and textures, as stored)."""
+
+    checks: ViewScorer
+    held_out: ViewScorer
+    curve: AlternativeCurve | None = None
+    curve_held_out: AlternativeCurve | None = None
+    look_bytes: int = 0
+
+
+def weigh(mesh: Mesh, run: RunConfig, tracer: ExactTracer, made=None) -> tuple[Assessment, Weighing]:
+    """The verdict before training, the same for a run and a library batch's measurement: the model `run` plans,
+    with what its file adds for the asset's look (the head `made`, `make_head`; the images it keeps), weighed
+    against the mesh and, with a target, the measured decimations (`sizing.assess`, on the run's view sets). With a
+    target the model is weighed at the size the predictor expects to meet it (`RunConfig.expected_log2_table`, no
+    safety factor), as the decimation is weighed at the target: the safety factor says where training starts, and
+    the checks weigh every size the training reaches against the measured alternative."""
+    expected = run.expected_log2_table
+    model_bytes = run.at_table(expected, regrid=False).file_bytes if expected is not None else run.file_bytes
+    checks, held_out = view_sets(tracer, mesh.transform, run.metric)
+    look_bytes = 0
+    if mesh.look is not None:
+        look_bytes = sum(look_stored_bytes(made[0].cfg if made else None, shipped_materials(mesh, made),
+                                           run.storage).values())
+    measured = run.decision.target_mse is not None
+    assessment = assess(mesh, model_bytes, run.decision, checks if measured else None, held_out, look_bytes)
+    return assessment, Weighing(checks, held_out, AlternativeCurve.from_alternatives(assessment.alternatives),
+                                AlternativeCurve.from_alternatives(assessment.alternatives, held_out=True), look_bytes)
+
+def measure_decimation(mesh: Mesh, weighing: Weighing, assessment):
+    """measure(triangles) -> CurvePoint for the final verdict: one more decimation scored on the held-out views
+    (and recorded with the others, so the one that ships can be written)."""
+    def measure(count: int) -> CurvePoint:
+        entry = sizing.decimation_entry(mesh, count, weighing.checks, weighing.held_out, None)
+        if not entry["triangles"]:
+            return CurvePoint(2 ** 62, math.inf, 0, count)
+        assessment.alternatives.setdefault("decimations_tried", []).append(entry)
+        return CurvePoint.from_entry(entry, held_out=True)
+    return measure
