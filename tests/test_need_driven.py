@@ -237,7 +237,7 @@ def test_a_training_started_again_after_a_divergence_starts_its_checks_over(monk
         if len(calls) == 1:
             raise TrainingDiverged("loss jumped")
         now[0] = 60.0
-        return SimpleNamespace(decision=kw["target_reached"](_model_at(10)))
+        return SimpleNamespace(decision=kw["target_reached"](_model_at(10)), recovered=[])
 
     monkeypatch.setattr(trainings, "train", train)
     mesh = icosphere(2)

@@ -309,3 +309,66 @@ def test_too_high_learning_rate_is_detected_and_retried_lower(blob_setup, tmp_pa
     assert res.settings.lr < 2.0 and "restarted at lr" in res.why
     losses = [loss for _, loss in res.training.history]
     assert np.mean(losses[-10:]) < np.mean(losses[:5])  # the run that was kept learned
+
+
+def _poison_steps(monkeypatch, bad_calls):
+    """Make the training step diverge at the calls in `bad_calls` (a parameter turned NaN, the loss NaN)."""
+    import nbvh_core.training.train as train_mod
+
+    real_make_step = train_mod.make_step
+    calls = [0]
+
+    def make_step(model, device, plan):
+        step = real_make_step(model, device, plan)
+
+        def poisoned(batch, want_raw):
+            calls[0] += 1
+            loss, parts = step(batch, want_raw)
+            if bad_calls(calls[0]):
+                with torch.no_grad():
+                    next(model.network.parameters()).fill_(float("nan"))
+                return float("nan"), parts
+            return loss, parts
+        return poisoned
+
+    monkeypatch.setattr(train_mod, "make_step", make_step)
+    return calls
+
+
+def test_a_late_divergence_goes_back_to_the_last_healthy_state_inside_the_budget(blob_setup, monkeypatch):
+    """A divergence after a healthy state was kept (`recovery.Recovery`) puts that state back, lowers the learning
+    rate 10x and trains on to the end of the same budget: a finite model, every budgeted step taken, one warning."""
+    mesh, bvh, tracer = blob_setup
+    cfg = preset("tiny").with_overrides(steps=300, time_limit_s=None).train_config()
+    model = NeuralBVH(bvh.nodes, preset("tiny").model_config(), mesh.transform)
+    calls = _poison_steps(monkeypatch, lambda n: n == 200)
+    events = []
+    res = train(model, bvh, tracer, cfg, events=events.append)
+    assert res.steps == 300 and calls[0] == 301  # the diverged step was dropped, not counted
+    assert [(step, scale) for step, _, scale in res.recovered] == [(199, pytest.approx(0.1))]
+    assert all(torch.isfinite(p).all() for p in model.parameters())
+    assert [e for e in events if e["event"] == "warning" and "back to its state" in e["message"]]
+    losses = [loss for _, loss in res.history]
+    assert np.isfinite(losses).all() and np.mean(losses[-10:]) < np.mean(losses[:5])
+
+
+def test_a_divergence_with_no_healthy_state_or_no_recovery_left_ends_the_training(blob_setup, monkeypatch):
+    """Before the first kept state (5% of the budget, 50 settled steps) a divergence ends the training as before (the
+    run starts over); so does the third late one."""
+    mesh, bvh, tracer = blob_setup
+    cfg = preset("tiny").with_overrides(steps=300, time_limit_s=None).train_config()
+    _poison_steps(monkeypatch, lambda n: n == 20)
+    with pytest.raises(TrainingDiverged, match="nan"):
+        train(NeuralBVH(bvh.nodes, preset("tiny").model_config(), mesh.transform), bvh, tracer, cfg)
+    _poison_steps(monkeypatch, lambda n: n >= 200)
+    with pytest.raises(TrainingDiverged, match="nan"):
+        train(NeuralBVH(bvh.nodes, preset("tiny").model_config(), mesh.transform), bvh, tracer, cfg)
+
+
+def test_a_run_that_recovers_says_so_and_does_not_start_over(blob_setup, monkeypatch):
+    mesh, _, _ = blob_setup
+    calls = _poison_steps(monkeypatch, lambda n: n == 150)
+    res = compress_mesh(mesh, preset("tiny").with_overrides(steps=200, time_limit_s=None))
+    kinds = [n.kind for n in res.notes]
+    assert "recovered" in kinds and "restart" not in kinds and calls[0] == 201
+    assert "went back to its last healthy state" in res.why

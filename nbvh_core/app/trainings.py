@@ -27,7 +27,8 @@ from ..rendering.metrics import Quality, ViewScorer
 from ..training.train import TrainResult, grid_phase_pending, state_form, train
 from .weighing import Weighing
 
-#: A diverged training restarts from scratch at a 10x lower learning rate, at most this many times.
+#: A training that diverged and could not go back (`training.recovery`) restarts from scratch at a 10x lower
+#: learning rate, at most this many times.
 DIVERGENCE_RETRIES = 2
 
 
@@ -64,9 +65,10 @@ def stored_mse(scorer: ViewScorer, storage):
 
 def train_with_restarts(mesh, bvh, tracer, run: RunConfig, events, should_cancel, checkpoint_path, resume_from=None,
                          target_reached=None) -> tuple[NeuralBVH, TrainResult, RunConfig, tuple]:
-    """Train a fresh model (or resume `resume_from`); on divergence restart from scratch at a 10x lower learning rate
-    (at most DIVERGENCE_RETRIES times; the checks start over with it). Returns (model, TrainResult, the run as used,
-    the restarts' notes)."""
+    """Train a fresh model (or resume `resume_from`). A divergence the training cannot recover from in place
+    (`training.recovery`: before its first healthy state, or a third time) restarts it from scratch at a 10x lower
+    learning rate (at most DIVERGENCE_RETRIES times; the checks start over with it). Returns (model, TrainResult, the
+    run as used, the notes of its restarts and recoveries)."""
     notes: tuple = ()
     for attempt in range(DIVERGENCE_RETRIES + 1):
         if attempt and target_reached is not None:  # a CheckRule
@@ -77,6 +79,9 @@ def train_with_restarts(mesh, bvh, tracer, run: RunConfig, events, should_cancel
             tr = train(model, bvh, tracer, run.training, events=events, should_cancel=should_cancel,
                        checkpoint_path=checkpoint_path, resume_from=resume_from if attempt == 0 else None,
                        checkpoint_extra=extra, target_reached=target_reached)
+            for step, seconds, scale in tr.recovered:
+                notes += (RunNote("recovered", f"training diverged at {seconds:g} s (step {step}) and went back to "
+                                               f"its last healthy state at learning rate x{scale:g}"),)
             return model, tr, run, notes
         except TrainingDiverged as exc:
             if attempt == DIVERGENCE_RETRIES:

@@ -4,7 +4,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 
 #: The kinds of step a run's account (`RunNote`) tells.
-NOTE_KINDS = ("plan", "resumed", "restart", "growth", "search", "early stop")
+NOTE_KINDS = ("plan", "resumed", "restart", "recovered", "growth", "search", "early stop")
 #: What a training check decided.
 CHECK_ACTIONS = ("train on", "grow", "roll back", "finish", "stop: level met", "stop: keep the mesh")
 

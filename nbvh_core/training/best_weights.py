@@ -14,34 +14,27 @@ import copy
 import torch
 
 
-class BestWeights:
-    """`offer(model, opt, mse, form)` at each check; `restore(model, opt)` puts the best offered state back.
-
-    mse: the check's score (lower is better); form: anything that changes when the model's parameters change
-    meaning (compared by ==). Held in memory, not in checkpoints (a resumed training starts its record afresh): the
-    trainable parameters and the optimizer's state, about 3x the parameters' bytes (the bunny's default model:
-    ~1 MB)."""
+class KeptState:
+    """One kept training state: the trainable parameters and Adam's moments (not the learning rate: the schedule runs
+    on), about 3x the parameters' bytes (the bunny's default model: ~1 MB), with the form the model had (anything that
+    changes when the parameters change meaning, compared by ==). Held in memory, not in checkpoints."""
 
     def __init__(self):
-        self.mse: float | None = None
         self.form = None
         self._params: list[torch.Tensor] | None = None
         self._opt: dict | None = None
         self.restored = 0  # how many times training went back
 
-    def offer(self, model: torch.nn.Module, opt: torch.optim.Optimizer, mse: float, form) -> bool:
-        """Keep this state if it is the best of its form (True when kept)."""
-        if form == self.form and self.mse is not None and mse >= self.mse:
-            return False
-        self.mse, self.form = mse, form
+    def keep(self, model: torch.nn.Module, opt: torch.optim.Optimizer, form) -> None:
+        """Keep the model's and optimizer's state now, in place of the one held."""
+        self.form = form
         with torch.no_grad():
             self._params = [p.detach().clone() for p in _trainable(model)]
         self._opt = copy.deepcopy(opt.state_dict())
-        return True
 
     def restore(self, model: torch.nn.Module, opt: torch.optim.Optimizer, form) -> bool:
-        """Put the best state of `form` back into `model` and `opt` (the learning rate is left as it is now); False
-        when none is held for that form."""
+        """Put the kept state back into `model` and `opt` (the learning rate is left as it is now); False when none
+        is held for `form`."""
         params = _trainable(model)
         if (self._params is None or form != self.form
                 or [p.shape for p in params] != [p.shape for p in self._params]):
@@ -54,6 +47,23 @@ class BestWeights:
         for g, lr in zip(opt.param_groups, lrs):
             g["lr"] = lr
         self.restored += 1
+        return True
+
+
+class BestWeights(KeptState):
+    """`offer(model, opt, mse, form)` at each check; `restore(model, opt, form)` puts the best offered state back.
+    mse: the check's score (lower is better). A resumed training starts its record afresh."""
+
+    def __init__(self):
+        super().__init__()
+        self.mse: float | None = None
+
+    def offer(self, model: torch.nn.Module, opt: torch.optim.Optimizer, mse: float, form) -> bool:
+        """Keep this state if it is the best of its form (True when kept)."""
+        if form == self.form and self.mse is not None and mse >= self.mse:
+            return False
+        self.mse = mse
+        self.keep(model, opt, form)
         return True
 
 

@@ -38,6 +38,7 @@ from ..geometry.exact import ExactTracer
 from ..neural.model import NeuralBVH
 from ..protocol.process import Cancelled, TrainingDiverged
 from .best_weights import BestWeights
+from .recovery import Recovery
 from .network_quantization import NetworkQuantization
 from .weight_average import WeightAverage
 from .rays import RayConfig, TrainingSamples, label_samples, sample_rays
@@ -91,6 +92,10 @@ class TrainConfig:
     device: str = "auto"
     divergence_factor: float = 50.0
     rise_factor: float = 3.0
+    #: A divergence after the first healthy state was kept goes back to the last one at a 10x lower learning rate,
+    #: at most this many times in one training (`recovery.Recovery`); before it, or after these, training ends with
+    #: TrainingDiverged (the run then starts over at a lower rate).
+    divergence_recoveries: int = 2
     checkpoint_every: int = 0
     #: With a checkpoint path: also write one every this many seconds of training (0 = off); a kill loses at most one
     #: period.
@@ -165,6 +170,8 @@ class TrainResult:
     #: (seconds since the start, log2 T, image MSE) of each quality check of a training with a target (the trajectory
     #: of a growing training through its sizes; filled by the caller's check)
     checks: list = field(default_factory=list)
+    #: (step, seconds, learning rate scale after) of each divergence the training recovered from (`recovery`)
+    recovered: list = field(default_factory=list)
 
 
 def pick_device(name: str = "auto") -> torch.device:
@@ -206,6 +213,7 @@ class Schedule:
 
     def __init__(self, cfg: TrainConfig):
         self.cfg = cfg
+        self.scale = 1.0  # lowered after a divergence (`recovery.Recovery`)
 
     def fraction(self, step: int, elapsed_s: float) -> float:
         cfg = self.cfg
@@ -213,7 +221,7 @@ class Schedule:
 
     def set_lr(self, opt: torch.optim.Optimizer, fraction: float) -> None:
         for g in opt.param_groups:
-            g["lr"] = self.cfg.lr * g["lr_factor"] * self.cfg.lr_final_factor ** fraction
+            g["lr"] = self.cfg.lr * self.scale * g["lr_factor"] * self.cfg.lr_final_factor ** fraction
 
 
 class DivergenceGuard:
@@ -225,12 +233,22 @@ class DivergenceGuard:
         self.cfg, self.start_step = cfg, start_step
         self.ema: float | None = None
         self.first: list[float] = []  # the first 5 losses; [0] is the untrained model's
+        self.warm_from = start_step  # the running mean counts from here (the start, or the last going back)
+
+    def settled(self, step: int) -> bool:
+        """Whether the running mean has 50+ steps behind it (a state now is one to go back to)."""
+        return self.ema is not None and step - self.warm_from > 50
+
+    def went_back(self, step: int) -> None:
+        """The model went back to an earlier state (`recovery.Recovery`): the running mean starts again; the
+        untrained loss stays the reference for the rise and the end's checks."""
+        self.ema, self.warm_from = None, step
 
     def observe(self, step: int, loss: float) -> None:
         cfg, ran = self.cfg, step - self.start_step
         if not math.isfinite(loss):
             raise TrainingDiverged(f"loss became {loss} at step {step}")
-        if self.ema is not None and ran > 50 and loss > cfg.divergence_factor * self.ema:
+        if self.settled(step) and loss > cfg.divergence_factor * self.ema:
             raise TrainingDiverged(f"loss jumped to {loss:.4g} (running mean {self.ema:.4g}) at step {step}")
         self.ema = loss if self.ema is None else 0.98 * self.ema + 0.02 * loss
         if len(self.first) < 5:
@@ -692,8 +710,7 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
     check_config(cfg)
     device = pick_device(cfg.device)
     torch.manual_seed(cfg.seed)
-    model.to(device)
-    plan = kernels.plan(model, device)
+    plan = kernels.plan(model.to(device), device)
     opt = make_optimizer(model, cfg, plan)
     ck = load_checkpoint(resume_from, model, opt, device) if resume_from is not None else {}
     step, elapsed_before, history = ck.get("step", 0), ck.get("elapsed", 0.0), ck.get("history", [])
@@ -702,6 +719,7 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
     batches, leaf_errors, cut = _training_data(model, bvh, tracer, cfg, ck, device, plan,
                                                np.random.default_rng(cfg.seed), events)
     schedule, guard, progress = Schedule(cfg), DivergenceGuard(cfg, step), Progress(events, cfg, elapsed_before)
+    recovery = Recovery(guard, schedule, cfg.divergence_recoveries, events, state_form)
     phases = EncodingPhases(model, cfg, events, _held_out_loss(model, batches, tracer, cfg, device), before_freeze,
                             ck.get("qat_affine"))
     checkpoints, early = Checkpoints(checkpoint_path, cfg, checkpoint_extra, elapsed_before), EarlyStop(target_reached, cfg, elapsed_before)
@@ -729,8 +747,9 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
             batch = batches.next()
             opt.zero_grad(set_to_none=True)
             loss, parts = train_step(batch, leaf_errors is not None)
+            if not recovery.step_is_healthy(model, opt, phases.average, step, loss, frac, elapsed):
+                continue  # diverged: back to the last healthy state, this step's gradients dropped
             _note_leaf_errors(leaf_errors, model, batch, parts)
-            guard.observe(step, loss)
             phases.after_backward()
             opt.step()
             phases.after_step(frac)
@@ -751,7 +770,7 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
                          samples_per_s=progress.samples_per_s(seconds),
                          final_loss=guard.ema if guard.ema is not None else loss, device=str(device),
                          history=history, compute_path=plan.describe(), kernel_plan=plan.to_dict(),
-                         stopped_early=stopped_early, grew=early.grew)
+                         stopped_early=stopped_early, grew=early.grew, recovered=recovery.recovered)
     progress.emit(phases.phase, step, 1.0, result.final_loss, seconds, 0.0)
     phases.finish(result)
     early.at_end(model, opt, phases, events, stopped_early)

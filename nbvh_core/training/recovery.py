@@ -1,0 +1,59 @@
+"""A training that diverges after it has learnt something goes back to its last healthy state and trains on at a 10x
+lower learning rate, inside the same budget, rather than starting over.
+
+Starting over from scratch (`app.trainings.train_with_restarts`, still the answer to a divergence before the first
+healthy state is kept) costs a whole new budget: a run asked for 200 s that diverged at 150 s took ~350 s, and its
+model was trained at the lower rate from the start. Here at most KEEP_EVERY of the budget is lost. Only a state of
+the model's present form can be put back (`training.train.state_form`: a grown table, a frozen index or a table put
+on its grid since then makes the divergence end the training as before)."""
+from __future__ import annotations
+
+from typing import Callable
+
+import torch
+
+from ..protocol import events as wire
+from ..protocol.events import EventSink
+from ..protocol.process import TrainingDiverged
+from .best_weights import KeptState
+
+#: A healthy state is kept every this fraction of the budget (a divergence loses at most this much training).
+KEEP_EVERY = 0.05
+#: Each recovery multiplies the learning rate by this.
+LR_FACTOR_AFTER = 0.1
+
+
+class Recovery:
+    """Watches each step's loss through `guard` (`training.train.DivergenceGuard`), keeps the model's state every
+    KEEP_EVERY of the budget once the guard has settled, and on a divergence puts it back and lowers `schedule`'s
+    learning rate (`Schedule.scale`), at most `recoveries` times. `recovered`: (step, seconds, learning rate scale
+    after) of each."""
+
+    def __init__(self, guard, schedule, recoveries: int, events: EventSink, form: Callable[[torch.nn.Module], tuple]):
+        self.guard, self.schedule, self.left, self.events, self.form = guard, schedule, recoveries, events, form
+        self.kept = KeptState()
+        self.kept_at_s: float | None = None
+        self.next_keep = KEEP_EVERY
+        self.recovered: list[tuple[int, float, float]] = []
+
+    def step_is_healthy(self, model, opt, average, step: int, loss: float, fraction: float, elapsed: float) -> bool:
+        """True: apply this step. False: it diverged and the model went back (skip the step; its gradients are not
+        applied). Raises TrainingDiverged when no state of the model's form is kept or no recovery is left.
+        average: the weight average (`WeightAverage`), started over after going back."""
+        try:
+            self.guard.observe(step, loss)
+        except TrainingDiverged as exc:
+            if self.left <= 0 or not self.kept.restore(model, opt, self.form(model)):
+                raise
+            self.left -= 1
+            self.schedule.scale *= LR_FACTOR_AFTER
+            self.guard.went_back(step)
+            average.restart()
+            self.recovered.append((step, round(elapsed, 1), self.schedule.scale))
+            self.events(wire.warning(message=f"training diverged at step {step} ({exc}): back to its state at "
+                                             f"{self.kept_at_s:.0f} s, learning rate x{self.schedule.scale:g}"))
+            return False
+        if fraction >= self.next_keep and self.guard.settled(step):
+            self.kept.keep(model, opt, self.form(model))
+            self.kept_at_s, self.next_keep = elapsed, fraction + KEEP_EVERY
+        return True
