@@ -485,3 +485,30 @@ def test_a_run_with_a_target_is_weighed_at_the_size_expected_to_meet_it(sample_m
     fixed = plan_run(preset("default").with_overrides(log2_table=9, eval_views=2, eval_resolution=32), mesh)
     assert fixed.expected_log2_table is None
     assert weigh(mesh, fixed, sample_tracers["bunny"])[0].model_bytes == fixed.file_bytes
+
+
+def test_a_runs_initial_weights_are_its_seeds_whatever_ran_before(monkeypatch):
+    """A library batch or a benchmark runs many assets in one process: each training starts from the weights its seed
+    gives, not from whatever the random generator was left at."""
+    from types import SimpleNamespace
+
+    import torch
+    import nbvh_core.app.trainings as trainings
+    from nbvh_core.geometry.bvh import build_bvh
+    from nbvh_core.planning.run_config import plan_run
+
+    starts = []
+
+    def train(model, bvh, tracer, cfg, **kw):
+        starts.append([p.detach().clone() for p in model.parameters()])
+        return SimpleNamespace(recovered=[])
+
+    monkeypatch.setattr(trainings, "train", train)
+    mesh = icosphere(2)
+    bvh = build_bvh(mesh, 15)
+    for seed, noise in ((0, 10), (0, 1000), (1, 10)):
+        torch.rand(noise)  # what ran before
+        run = plan_run(preset("tiny").with_overrides(seed=seed), mesh)
+        trainings.train_with_restarts(mesh, bvh, None, run, lambda e: None, lambda: False, None)
+    assert all(torch.equal(a, b) for a, b in zip(starts[0], starts[1]))
+    assert not all(torch.equal(a, b) for a, b in zip(starts[0], starts[2]))

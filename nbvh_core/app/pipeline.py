@@ -212,6 +212,7 @@ def _compress(mesh: Mesh, run: RunConfig, out_path, events: EventSink, should_ca
     notes = list(run.notes) + ([RunNote("resumed", f"resumed from the checkpoint {resume_from}")] if resume_from else [])
     seconds: dict = {}
     tracer = ExactTracer(mesh)  # one Embree scene for the alternatives, the labels and the evaluation
+    torch.manual_seed(run.training.seed)  # the head's initial weights too (a batch runs many assets in one process)
     head = make_head(mesh, run.look.head)
     assessment, weighing = _verdict(mesh, run, tracer, head, events, seconds)
     bvh = _training_bvh(mesh, run.nodes, run.storage.node_bits, events, seconds)

@@ -73,6 +73,7 @@ def train_with_restarts(mesh, bvh, tracer, run: RunConfig, events, should_cancel
     for attempt in range(DIVERGENCE_RETRIES + 1):
         if attempt and target_reached is not None:  # a CheckRule
             target_reached.start_over()
+        torch.manual_seed(run.training.seed)  # the initial weights are the seed's, whatever this process ran before
         model = NeuralBVH(bvh.nodes, run.model, mesh.transform)
         try:
             extra = {"settings": run.request.to_dict(), "mesh": mesh_identity(mesh)}
