@@ -372,3 +372,22 @@ def test_a_run_that_recovers_says_so_and_does_not_start_over(blob_setup, monkeyp
     kinds = [n.kind for n in res.notes]
     assert "recovered" in kinds and "restart" not in kinds and calls[0] == 201
     assert "went back to its last healthy state" in res.why
+
+
+def test_a_checkpoint_after_a_recovery_resumes_at_the_lowered_learning_rate(blob_setup, monkeypatch, tmp_path):
+    from nbvh_core.storage.checkpoint import read_checkpoint
+    from nbvh_core.training.train import load_checkpoint, make_optimizer
+    from nbvh_core import kernels
+
+    mesh, bvh, tracer = blob_setup
+    import dataclasses
+
+    cfg = dataclasses.replace(preset("tiny").with_overrides(steps=300, time_limit_s=None).train_config(),
+                              checkpoint_every=250)
+    _poison_steps(monkeypatch, lambda n: n == 200)
+    path = tmp_path / "run.ckpt"
+    train(NeuralBVH(bvh.nodes, preset("tiny").model_config(), mesh.transform), bvh, tracer, cfg, checkpoint_path=path)
+    assert read_checkpoint(path).header["lr_scale"] == pytest.approx(0.1)
+    model = NeuralBVH(bvh.nodes, preset("tiny").model_config(), mesh.transform)
+    opt = make_optimizer(model, cfg, kernels.plan(model, torch.device("cpu")))
+    assert load_checkpoint(path, model, opt, torch.device("cpu"))["lr_scale"] == pytest.approx(0.1)

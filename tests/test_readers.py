@@ -98,6 +98,7 @@ HEADER_CASES = {
     "kind": ("kind", "something-else", "not a checkpoint"),
     "step": ("step", -1, "'step'"),
     "elapsed": ("elapsed", "soon", "'elapsed'"),
+    "learning rate scale": ("lr_scale", 1e300, "'lr_scale'"),
     "rng kind": ("numpy_rng.chunk_state.bit_generator", "MT19937", "PCG64"),
     "rng range": ("numpy_rng.chunk_state.state.inc", 1 << 130, "'inc'"),
     "huge table": ("extra.settings.log2_table", 30, "log2_table"),

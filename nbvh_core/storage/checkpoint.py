@@ -10,7 +10,8 @@ Layout (safetensors, https://github.com/huggingface/safetensors: u64 header leng
   `leaf_errors`, `leaf_weights` (float64 per leaf), `cut` (int64 full-tree nodes), `qat_offset`, `qat_scale`
   ((L, F) float32);
 * `__metadata__["nbvh"]`: JSON {kind, version, step, elapsed, numpy_rng {chunk_state, index},
-  tree_cut_rounds_done, train_config, extra (the caller's: the pipeline's {settings, mesh})}.
+  tree_cut_rounds_done, lr_scale (a recovery's lowered learning rate; absent: 1), train_config, extra (the caller's:
+  the pipeline's {settings, mesh})}.
 
 The reader trusts nothing: the file must be a regular file under MAX_BYTES; pickles (the format torch.save
 writes) are recognised by their first bytes and refused without being opened; the header's length, JSON, names,
@@ -64,7 +65,7 @@ class Checkpoint:
 def encode_checkpoint(state: dict) -> bytes:
     """A training state (see `train._checkpoint_state`) -> safetensors bytes. Keys of `state`: model (state_dict),
     optimizer (Adam's state_dict), step, elapsed, history [(step, loss)], numpy_rng {chunk_state, index,
-    leaf_weights}, torch_rng, leaf_errors, cut, tree_cut_rounds_done, qat_affine, train_config, extra."""
+    leaf_weights}, torch_rng, leaf_errors, cut, tree_cut_rounds_done, lr_scale, qat_affine, train_config, extra."""
     from safetensors.torch import save
 
     tensors = {f"model.{k}": v for k, v in state["model"].items()}
@@ -81,6 +82,7 @@ def encode_checkpoint(state: dict) -> bytes:
     header = {"kind": KIND, "version": VERSION, "step": int(state.get("step", 0)),
               "elapsed": float(state.get("elapsed", 0.0)), "numpy_rng": _json_rng(rng),
               "tree_cut_rounds_done": int(state.get("tree_cut_rounds_done") or 0),
+              "lr_scale": float(state.get("lr_scale", 1.0)),
               "train_config": state.get("train_config") or {}, "extra": state.get("extra") or {}}
     tensors = {k: v.detach().to("cpu").contiguous().clone() for k, v in tensors.items()}
     return save(tensors, metadata={"nbvh": json.dumps(header)})
@@ -207,6 +209,9 @@ def _check_header(meta: str, where: str) -> dict:
     elapsed = header.get("elapsed")
     if not isinstance(elapsed, (int, float)) or isinstance(elapsed, bool) or not 0 <= elapsed < 1e9:
         raise CheckpointError(f"{where}: header field 'elapsed' must be a number of seconds, got {str(elapsed)[:40]}")
+    scale = header.setdefault("lr_scale", 1.0)  # absent before recoveries (read as the schedule's own rate)
+    if not isinstance(scale, (int, float)) or isinstance(scale, bool) or not 1e-9 <= scale <= 1.0:
+        raise CheckpointError(f"{where}: header field 'lr_scale' must be a number in (0, 1], got {str(scale)[:40]}")
     for key in ("train_config", "extra"):
         if not isinstance(header.get(key), dict):
             raise CheckpointError(f"{where}: header field {key!r} must be an object")

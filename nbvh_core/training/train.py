@@ -311,7 +311,7 @@ def load_checkpoint(path: str | os.PathLike, model: NeuralBVH, opt: torch.optim.
     """Load a checkpoint's model, optimizer moments and torch RNG state into `model` and `opt`, after checking every
     tensor against what this model holds (names, shapes, dtypes); returns the rest for the other parts: step,
     elapsed, history [(step, loss)], numpy_rng {chunk_state, index, leaf_weights}, leaf_errors, cut,
-    tree_cut_rounds_done, qat_affine. Raises CheckpointError (one line) for a file that does not fit."""
+    tree_cut_rounds_done, lr_scale, qat_affine. Raises CheckpointError (one line) for a file that does not fit."""
     ck = read_checkpoint(path)
     where = str(path)
     codes = ck.get("model.encoding.codes")
@@ -326,7 +326,7 @@ def load_checkpoint(path: str | os.PathLike, model: NeuralBVH, opt: torch.optim.
     return {"step": h["step"], "elapsed": float(h["elapsed"]),
             "history": [(int(s), float(v)) for s, v in ck.tensors["history"].tolist()], "numpy_rng": rng,
             "leaf_errors": ck.get("leaf_errors"), "cut": None if ck.get("cut") is None else ck.get("cut").tolist(),
-            "tree_cut_rounds_done": h["tree_cut_rounds_done"],
+            "tree_cut_rounds_done": h["tree_cut_rounds_done"], "lr_scale": h["lr_scale"],
             "qat_affine": None if qat[0] is None else (qat[0].numpy(), qat[1].numpy())}
 
 
@@ -668,9 +668,17 @@ def _training_data(model, bvh, tracer, cfg, ck, device, plan, rng, events):
     return batches, leaf_errors, cut
 
 
+def _resumed_at(ck: dict, events: EventSink) -> tuple[int, float, list]:
+    """(step, elapsed seconds, loss history) a training starts from: a checkpoint's (said), or the beginning."""
+    if ck:
+        events(wire.phase(phase="train", message=f"resumed at step {ck['step']}"))
+    return ck.get("step", 0), ck.get("elapsed", 0.0), ck.get("history", [])
+
+
 def _checkpoint_state(model, opt, step, elapsed, history, batches, leaf_errors, cut, phases) -> dict:
     """What a checkpoint holds (see load_checkpoint): model, optimizer, step, elapsed seconds, loss history, the
-    generators' states, the per-leaf errors, the tree cut, the quantization-aware phase's affine map."""
+    generators' states, the per-leaf errors, the tree cut, the quantization-aware phase's affine map (the caller adds
+    the learning rate's scale, `Schedule.scale`)."""
     return {"model": model.state_dict(), "optimizer": opt.state_dict(), "step": step, "elapsed": elapsed,
             "history": history, "numpy_rng": batches.rng_state(), "torch_rng": torch.get_rng_state(),
             "leaf_errors": None if leaf_errors is None else leaf_errors.error.clone(),
@@ -713,12 +721,11 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
     plan = kernels.plan(model.to(device), device)
     opt = make_optimizer(model, cfg, plan)
     ck = load_checkpoint(resume_from, model, opt, device) if resume_from is not None else {}
-    step, elapsed_before, history = ck.get("step", 0), ck.get("elapsed", 0.0), ck.get("history", [])
-    if ck:
-        events(wire.phase(phase="train", message=f"resumed at step {step}"))
+    step, elapsed_before, history = _resumed_at(ck, events)
     batches, leaf_errors, cut = _training_data(model, bvh, tracer, cfg, ck, device, plan,
                                                np.random.default_rng(cfg.seed), events)
     schedule, guard, progress = Schedule(cfg), DivergenceGuard(cfg, step), Progress(events, cfg, elapsed_before)
+    schedule.scale = ck.get("lr_scale", 1.0)  # lowered by a recovery before the checkpoint
     recovery = Recovery(guard, schedule, cfg.divergence_recoveries, events, state_form)
     phases = EncodingPhases(model, cfg, events, _held_out_loss(model, batches, tracer, cfg, device), before_freeze,
                             ck.get("qat_affine"))
@@ -728,7 +735,8 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
                                                            f"{cfg.labels} labels, {plan.describe()}"))
 
     def state() -> dict:  # what a checkpoint holds now
-        return _checkpoint_state(model, opt, step, time.perf_counter() - t0, history, batches, leaf_errors, cut, phases)
+        return dict(_checkpoint_state(model, opt, step, time.perf_counter() - t0, history, batches, leaf_errors, cut,
+                                      phases), lr_scale=schedule.scale)
 
     t0 = time.perf_counter() - elapsed_before
     stopped_early, loss = False, float("nan")
