@@ -41,7 +41,7 @@ SMOKE = {
     "bench_quality.py": ["--quick", "--meshes", "knot"],
     "bench_rd_compact.py": ["--meshes", "blob"],
     "bench_rollback.py": ["--mesh", "gear", "--target", "0.01", "--time-limit", "2"],
-    "bench_recovery.py": ["--mesh", "blob", "--preset", "tiny", "--time-limit", "3", "--fail-at", "0.6"],
+    "bench_recovery.py": ["--mesh", "blob", "--preset", "tiny", "--time-limit", "1.5", "--fail-at", "0.6"],
     "bench_resolution.py": ["--meshes", "blob", "--n-max", "32", "--preset", "tiny", "--steps", "5"],
     "bench_shipped.py": ["--assets", "gear", "--time-limit", "2"],
     "bench_samples.py": ["--preset", "tiny", "--out", "{tmp}/samples"],
