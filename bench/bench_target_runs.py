@@ -39,7 +39,10 @@ def one_run(mesh_name: str, target: float, seed: int, time_limit_s: float | None
             "train_s": round(res.training.seconds, 1), "checks": len(checks),
             "stopped_early": res.training.stopped_early,
             "rolled_back": sum(c["action"] == "roll back" for c in checks),
-            "check_trajectory": json.dumps([[c["seconds"], c["log2_table"], round(c["mse"], 7)] for c in checks])}
+            "check_trajectory": json.dumps([[c["seconds"], c["log2_table"], round(c["mse"], 7)] for c in checks]),
+            # what each check projected for the end of the budget (None before two checks): the checks' weak decision
+            "check_projections": json.dumps([None if c.get("projected_mse") is None else round(c["projected_mse"], 7)
+                                             for c in checks])}
 
 
 def summarise(rows: list[dict]) -> list[str]:
