@@ -13,7 +13,7 @@ Parts (rows are appended to CSVs as they finish; a rerun skips rows already ther
   run, and failure-subset errors (below). Seeds 1 and 2 repeat the middle size on some meshes (stability).
 * budgets (quality.csv, part=time): the default preset at several training budgets (MSE against training time).
 * baselines (baselines.csv): Draco (DracoPy) of the original mesh at several quantisation bits, and quadric
-  decimation (fast-simplification) to several triangle counts followed by Draco at 11 bits; each decoded mesh is
+  decimation (`geometry.decimation.decimate`) to several triangle counts followed by Draco at 11 bits; each decoded mesh is
   ray traced with Embree and scored with the same metric. Two memory axes: storage bytes (the Draco file) and
   resident bytes while ray tracing (float32 vertices + normals, int32 indices, a BVH with <= 4 triangles per
   leaf: `sizing.mesh_resident_bytes`); the neural model is traced as stored, so its two axes are the same.

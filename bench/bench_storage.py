@@ -6,7 +6,7 @@ decoded and a BVH built before tracing). One metric for all: `harness.product_sc
     .venv/bin/python bench/bench_storage.py [--meshes bunny spiky knot gyroid] [--preset default] [--seconds 200]
         [--table-bits 8|6|4]   (default: the preset's)
 
-The decimation: quadric (fast-simplification), bisected on the triangle count until its decoded compact mesh
+The decimation: `geometry.decimation.decimate` (meshoptimizer), bisected on the triangle count until its decoded compact mesh
 reaches the model's MSE. Resumable: one row per (mesh, preset, seconds, table bits, the preset's model shape, the file format) in
 bench/results/storage.csv; storage.md and
 the chart storage.png are rewritten after every row. Train on an otherwise idle CPU (the budget is wall-clock).

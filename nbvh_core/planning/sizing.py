@@ -33,6 +33,7 @@ import numpy as np
 
 from ..geometry.bvh import build_full_tree, resident_bvh_nodes
 from ..geometry.mesh import Mesh
+from ..geometry.decimation import decimate, simplifier_missing  # noqa: F401  (decimate re-exported for benches)
 from ..protocol.quality_levels import QUALITY_LEVELS  # noqa: F401  (re-exported)
 from ..decision.config import DecisionConfig
 from ..decision.records import Assessment
@@ -402,15 +403,6 @@ def mesh_like(mesh: Mesh, vertices: np.ndarray, faces: np.ndarray) -> Mesh:
     return Mesh(vertices=np.asarray(vertices, np.float32), faces=f[keep], transform=mesh.transform, name=mesh.name)
 
 
-def decimate(mesh: Mesh, triangles: int) -> Mesh:
-    """Quadric decimation (fast-simplification) of `mesh` to about `triangles` triangles (< mesh.n_triangles)."""
-    import fast_simplification
-
-    v, f = fast_simplification.simplify(mesh.vertices.astype(np.float64), mesh.faces,
-                                        target_reduction=1 - triangles / mesh.n_triangles)
-    return mesh_like(mesh, v, f)
-
-
 #: Decimation sizes tried first (triangles, x4 apart; those >= DECIMATE_MAX_SHARE of the mesh are not tried), then
 #: DECIMATE_REFINE bisections (in log space) between the last that missed and the first that met: the decimation
 #: reported is within 2^(2 / 2^DECIMATE_REFINE) = 1.19x of the smallest that meets the target. One size x4 above the
@@ -440,7 +432,7 @@ def look_carried_bytes(mesh: Mesh, n_vertices: int, n_triangles: int) -> int:
 
 
 def decimation_entry(mesh: Mesh, count: int, checks, held_out, draco) -> dict:
-    """One point of the alternative: the quadric decimation to ~`count` triangles, plainly and as a compact mesh
+    """One point of the alternative: the decimation (`geometry.decimation.decimate`) to ~`count` triangles, plainly and as a compact mesh
     (exact bytes; the decoded compact mesh scored on the check views and, when given, the held-out views)."""
     from ..geometry.compact_mesh import compact_mesh
 
@@ -461,8 +453,8 @@ def decimation_entry(mesh: Mesh, count: int, checks, held_out, draco) -> dict:
 
 
 def alternatives(mesh: Mesh, target_mse: float | None, checks=None, held_out=None, tree=None) -> dict:
-    """What a user could ship instead, measured: Draco (11-bit, storage bytes) of the mesh, and quadric decimations
-    (fast-simplification) up to the smallest whose image MSE meets `target_mse` (see DECIMATE_COUNTS), each with its
+    """What a user could ship instead, measured: Draco (11-bit, storage bytes) of the mesh, and decimations
+    (`geometry.decimation.decimate`: meshoptimizer, the look kept) up to the smallest whose image MSE meets `target_mse` (see DECIMATE_COUNTS), each with its
     resident and compact-mesh bytes and the compact mesh's MSE, scored by the run's own metric: `checks` (a
     rendering.metrics.ViewScorer: the training checks' views) and `held_out` (the final evaluation's). The whole
     mesh as a compact mesh is scored too ('mesh_compact'; `tree`: its `bvh.build_full_tree` when the caller has one).
@@ -477,10 +469,10 @@ def alternatives(mesh: Mesh, target_mse: float | None, checks=None, held_out=Non
         out["draco11_bytes"] = len(DracoPy.encode(mesh.vertices, mesh.faces, quantization_bits=11, compression_level=7))
     if target_mse is None:
         return out
-    try:
-        import fast_simplification  # noqa: F401  (decimate's dependency)
-    except ImportError:
-        out["note"] = (out.get("note", "") + "; " if "note" in out else "") + "fast-simplification not installed"
+    missing = simplifier_missing()
+    if missing:  # said, not silent: the verdict then weighs no decimation, and the report says why
+        out["note"] = (out.get("note", "") + "; " if "note" in out else "") + missing
+        out["no_alternative"] = missing
         return out
     out["metric"] = checks.name
     tried: dict[int, dict] = {}
@@ -533,8 +525,8 @@ def _whole_mesh_entry(mesh: Mesh, checks, held_out, tree=None) -> dict:
 
 
 def winning_decimation(mesh: Mesh, assessment: "Assessment") -> Mesh | None:
-    """The decimation the verdict recommends instead of a model (rebuilt exactly: quadric decimation is
-    deterministic), or None when the verdict is not 'decimate'."""
+    """The decimation the verdict recommends instead of a model (rebuilt exactly: the simplifier is deterministic
+    and moves no vertex), or None when the verdict is not 'decimate'."""
     dec = assessment.alternatives.get("decimation")
     if assessment.recommendation != "decimate" or not dec:
         return None
