@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 
 import bpy
+import numpy as np
 
 from . import compress_session, previews
 from .job import most_trainings
@@ -262,8 +263,9 @@ def decimation_offers(context) -> dict:
 
 
 class NBVH_OT_apply_decimation(bpy.types.Operator):
-    """Add a Decimate modifier that gives the decimation the verdict found (it meets the quality level with fewer
-    bytes than a model): non-destructive, undoable, the mesh data untouched"""
+    """Add the decimation the verdict measured (it meets the quality level with fewer bytes than a model) as a copy of
+    the object: new mesh data from the job's NAME.glb, the object's own materials, UVs and transform. Undoable;
+    the original object is not touched"""
 
     bl_idname = "nbvh.apply_decimation"
     bl_label = "Use the decimation"
@@ -271,16 +273,58 @@ class NBVH_OT_apply_decimation(bpy.types.Operator):
 
     object_name: bpy.props.StringProperty()
     ratio: bpy.props.FloatProperty(min=0.0, max=1.0)
+    glb: bpy.props.StringProperty(description="The measured decimation the job wrote (NAME.glb)")
 
     def execute(self, context):
         obj = bpy.data.objects.get(self.object_name)
         if obj is None or obj.type != "MESH":
             self.report({"ERROR"}, f"{self.object_name!r} is not a mesh object")
             return {"CANCELLED"}
-        mod = obj.modifiers.get("NBVH decimation") or obj.modifiers.new("NBVH decimation", "DECIMATE")
-        mod.decimate_type, mod.ratio = "COLLAPSE", self.ratio
-        self.report({"INFO"}, f"{obj.name}: Decimate modifier, ratio {self.ratio:.4f}")
+        if not self.glb:  # no file from the job (an older result): Blender's own decimation at the same share
+            mod = obj.modifiers.get("NBVH decimation") or obj.modifiers.new("NBVH decimation", "DECIMATE")
+            mod.decimate_type, mod.ratio = "COLLAPSE", self.ratio
+            self.report({"INFO"}, f"{obj.name}: Decimate modifier, ratio {self.ratio:.4f}")
+            return {"FINISHED"}
+        try:
+            copy = decimated_copy(obj, Path(self.glb))
+        except (OSError, ValueError) as exc:
+            self.report({"ERROR"}, f"{obj.name}: the decimation could not be read: {exc}")
+            return {"CANCELLED"}
+        for o in context.selected_objects:
+            o.select_set(False)
+        copy.select_set(True)
+        context.view_layer.objects.active = copy
+        self.report({"INFO"}, f"{copy.name}: {len(copy.data.polygons):,} triangles, the measured decimation")
         return {"FINISHED"}
+
+
+def decimated_copy(obj, glb: Path):
+    """A new object beside `obj` (its collections, transform and material slots) whose mesh data is the decimation
+    in `glb` (object-local coordinates, as the job was sent them); `obj` and its data are not modified."""
+    try:
+        from .nbvh_core.protocol.glb_reader import read_glb
+    except ImportError:
+        from nbvh_core.protocol.glb_reader import read_glb
+    arrays = read_glb(glb.read_bytes(), glb.name)
+    faces = arrays["faces"]
+    mesh = bpy.data.meshes.new(f"{obj.data.name} NBVH decimation")
+    mesh.from_pydata(arrays["positions"].astype(float).tolist(), [], faces.tolist())
+    n_slots = len(obj.material_slots)
+    for slot in obj.material_slots:
+        mesh.materials.append(slot.material)
+    if n_slots:
+        mesh.polygons.foreach_set("material_index", np.clip(arrays["face_material"], 0, n_slots - 1).astype(np.int32))
+    if arrays["uvs"] is not None:
+        layer = mesh.uv_layers.new(name="UVMap")
+        layer.data.foreach_set("uv", arrays["uvs"][faces.reshape(-1)].astype(np.float32).reshape(-1))
+    if arrays["normals"] is not None:
+        mesh.polygons.foreach_set("use_smooth", np.ones(len(faces), bool))
+    mesh.update()
+    copy = bpy.data.objects.new(f"{obj.name} decimated", mesh)
+    copy.matrix_world = obj.matrix_world.copy()
+    for collection in obj.users_collection:
+        collection.objects.link(copy)
+    return copy
 
 
 CLASSES = (NBVH_OT_compress, NBVH_OT_cancel, NBVH_OT_apply_decimation, NBVH_OT_toggle_preview, NBVH_OT_open_folder,

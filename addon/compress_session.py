@@ -170,16 +170,19 @@ def finish_done(session: Session, scene) -> None:
         elif job.state == "skipped":
             session.kept_as_mesh[obj_name] = job.verdict
             if job.decimation:
-                session.decimations[obj_name] = decimation_offer(job.decimation, session.triangles.get(obj_name, 0))
+                glb = next((f for f in job.kept_files if f.endswith(".glb")), None)
+                session.decimations[obj_name] = decimation_offer(job.decimation, session.triangles.get(obj_name, 0),
+                                                                 glb)
         elif job.state in ("failed", "cancelled"):
             session.failures[obj_name] = job.error or job.state
 
 
-def decimation_offer(decimation: dict, source_triangles: int) -> dict:
-    """What the panel offers for an object kept as a mesh: a Decimate modifier (collapse) whose ratio gives the
-    verdict's decimation, with its triangles, image MSE and bytes (plain and as a compact mesh)."""
+def decimation_offer(decimation: dict, source_triangles: int, glb: str | None = None) -> dict:
+    """What the panel offers for an object kept as a mesh: the measured decimation itself (`glb`: the NAME.glb the
+    job wrote, added as a copy of the object), with its triangles, image MSE and bytes (plain and as a compact
+    mesh); ratio: its share of the object's triangles (a Decimate modifier's, where no file was written)."""
     ratio = min(1.0, decimation["triangles"] / max(source_triangles, 1))
-    return {"ratio": ratio, "triangles": int(decimation["triangles"]), "mse": float(decimation["mse"]),
+    return {"ratio": ratio, "glb": glb or "", "triangles": int(decimation["triangles"]), "mse": float(decimation["mse"]),
             "resident_bytes": int(decimation["resident_bytes"]),
             "compact_bytes": int(decimation.get("compact_bytes") or 0)}
 

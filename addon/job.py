@@ -99,6 +99,7 @@ class Job:
     error: str | None = None
     verdict: str | None = None
     decimation: dict | None = None  # the verdict's winning decimation (triangles, mse, resident and compact bytes)
+    kept_files: list = field(default_factory=list)  # what the job wrote in place of a model (NAME.glb, .compact.cmsh)
     log: list = field(default_factory=list)
     started: float | None = None
     clock: "JobClock" = field(default_factory=lambda: JobClock())
@@ -145,6 +146,8 @@ class Job:
                 assessment = ev.get("assessment") or {}
                 if assessment.get("recommendation") == "decimate":
                     self.decimation = (assessment.get("alternatives") or {}).get("decimation")
+            elif kind == "written":  # the kept mesh's files, the CLI's own (nbvh_core.app.kept_mesh)
+                self.kept_files = [str(f) for f in ev.get("files") or []]
             elif kind == "error" and ev.get("kind") == "not_worth":
                 self.verdict = ev.get("message", "not worth compressing")
             elif kind == "error":

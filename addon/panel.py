@@ -180,7 +180,7 @@ class NBVH_PT_panel(bpy.types.Panel):
         for name, offer in compress_ops.decimation_offers(context).items():
             op = layout.operator("nbvh.apply_decimation", icon="MOD_DECIM",
                                  text=f"Decimate {name[:24]} to {offer['triangles']:,} triangles")
-            op.object_name, op.ratio = name, offer["ratio"]
+            op.object_name, op.ratio, op.glb = name, offer["ratio"], offer.get("glb", "")
         out = compress_session.output_dir(props.output_dir)
         row = layout.row()
         row.label(text=f"Output: {_short_path(out, context)}", icon="FILE_FOLDER")

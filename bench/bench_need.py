@@ -5,7 +5,7 @@
 Per mesh (written to a PLY first, so every run reads a file like a user's):
 * `default`: `nbvh compress MESH -o OUT` with no options: the verdict, then (when a model is worth it) one training
   that grows its table until the default quality level is met. A verdict of "keep as a mesh" must come in seconds
-  with the alternative written (NAME.decimated.ply when a decimation wins).
+  with the alternative written (NAME.glb when a decimation wins).
 * `preset default`: `--preset default --force`, one training of the default preset (T=2^12, 2,047 nodes, 200 s): the
   wall time a user waited before.
 * `fixed 2^k`: `--preset default --log2-table k --nodes N --force` (N: the nodes the default run chose), at the
@@ -51,7 +51,7 @@ def cli(mesh_file: Path, out: Path, extra: list[str]) -> tuple[int, float, dict]
 def row_of(mesh: str, mode: str, rc: int, wall: float, data: dict, out: Path, level: float) -> dict:
     q = data.get("quality") or {}
     s = data.get("settings") or {}
-    alt = [p for p in (out.with_name(out.stem + ".decimated.ply"), out.with_name(out.stem + ".compact.cmsh"))
+    alt = [p for p in (out.with_name(out.stem + ".glb"), out.with_name(out.stem + ".compact.cmsh"))
            if p.exists()]
     return {"mesh": mesh, "mode": mode, "level": level, "exit_code": rc, "wall_s": round(wall, 1),
             "log2_table": s.get("log2_table", ""), "nodes": s.get("nodes", ""), "file_bytes": data.get("file_bytes", ""),

@@ -89,7 +89,7 @@ def shipped_score(mesh, out: Path, scorer) -> tuple[str, int, float]:
         return "model", model.stat().st_size, scorer.score_model(load_nbvh(model))[0].mse
     cmsh = out / f"{mesh.name}.compact.cmsh"
     dec = decode_compact(cmsh.read_bytes())
-    kind = "decimation" if (out / f"{mesh.name}.decimated.ply").exists() else "mesh"
+    kind = "decimation" if (out / f"{mesh.name}.glb").exists() else "mesh"
     held = Mesh(vertices=mesh.transform.to_normalised(dec.vertices).astype("float32"), faces=dec.faces,
                 transform=mesh.transform, name=mesh.name)
     return kind, cmsh.stat().st_size, scorer.score_mesh(held).mse

@@ -300,28 +300,62 @@ def test_resume_refuses_a_crafted_checkpoint_and_runs_nothing():
     assert not (out / "Blob.nbvh").exists() and checkpoint.exists()  # nothing written, the user's file kept
 
 
+def _textured_copy(obj, name: str):
+    """A copy of `obj` (its own mesh data) with a planar UV map and one material whose Base Color is an image."""
+    copy = obj.copy()
+    copy.data = obj.data.copy()
+    copy.name = name
+    bpy.context.scene.collection.objects.link(copy)
+    me = copy.data
+    co = np.empty(len(me.vertices) * 3, np.float32)
+    me.vertices.foreach_get("co", co)
+    loops = np.empty(len(me.loops), np.int32)
+    me.loops.foreach_get("vertex_index", loops)
+    xy = co.reshape(-1, 3)[loops][:, :2]
+    uv = (xy - xy.min(0)) / np.ptp(xy, 0).max()
+    me.uv_layers.new(name="UVMap").data.foreach_set("uv", uv.astype(np.float32).ravel())
+    image = bpy.data.images.new(f"{name}-albedo", 64, 64)
+    image.pixels.foreach_set(np.random.default_rng(0).random(64 * 64 * 4).astype(np.float32))
+    mat = bpy.data.materials.new(f"{name}-material")
+    mat.use_nodes = True
+    tex = mat.node_tree.nodes.new("ShaderNodeTexImage")
+    tex.image = image
+    bsdf = next(n for n in mat.node_tree.nodes if n.type == "BSDF_PRINCIPLED")
+    mat.node_tree.links.new(tex.outputs["Color"], bsdf.inputs["Base Color"])
+    me.materials.append(mat)
+    return copy
+
+
 def test_a_decimation_verdict_is_offered_as_one_click():
-    """With a quality target the blob's verdict is a decimation: the panel offers it, the report lists it, and one
-    click adds a Decimate modifier with the found ratio; the mesh data stays as it was."""
+    """With a quality target a textured blob's verdict is a decimation: the panel offers it, the report lists it, and
+    one click adds the measured decimation (the job's NAME.glb) as a new object: exactly its triangles, with UVs
+    and the object's material; the original object is untouched (the operator is registered for Undo)."""
     blob = bpy.data.objects.get("Blob") or setup_scene()
-    before = mesh_fingerprint(blob)
+    textured = _textured_copy(blob, "TexBlob")
+    before = mesh_fingerprint(textured)
     props = bpy.context.scene.nbvh_props
     props.output_dir = str(Path(ARGS.work) / "decimation_out")
     props.mode, props.target, props.force = "TARGET", "STANDARD", False
-    select("Blob")
-    bpy.context.view_layer.objects.active = blob
+    select("TexBlob")
+    bpy.context.view_layer.objects.active = textured
     assert bpy.ops.nbvh.compress() == {"FINISHED"}
     run_operator_until_done()
     props.mode = "PRESET"
     offers = ADDON["compress_ops"].decimation_offers(bpy.context)
-    assert "Blob" in offers and 0 < offers["Blob"]["ratio"] < 0.5, (props.last_note, props.last_error, offers)
+    assert "TexBlob" in offers and 0 < offers["TexBlob"]["ratio"] < 0.5, (props.last_note, props.last_error, offers)
+    offer = offers["TexBlob"]
+    assert offer["glb"].endswith("TexBlob.glb") and Path(offer["glb"]).exists(), offer
     scene_json = json.loads(Path(props.report_html).with_suffix(".json").read_text())
-    assert scene_json["kept_as_mesh"][0]["decimation"]["triangles"] == offers["Blob"]["triangles"]
-    assert bpy.ops.nbvh.apply_decimation(object_name="Blob", ratio=offers["Blob"]["ratio"]) == {"FINISHED"}
-    mod = blob.modifiers["NBVH decimation"]
-    assert mod.type == "DECIMATE" and abs(mod.ratio - offers["Blob"]["ratio"]) < 1e-6
-    assert mesh_fingerprint(blob) == before  # a modifier: the mesh data and transform untouched
-    blob.modifiers.remove(mod)
+    assert scene_json["kept_as_mesh"][0]["decimation"]["triangles"] == offer["triangles"]
+    n_objects = len(bpy.data.objects)
+    assert bpy.ops.nbvh.apply_decimation(object_name="TexBlob", ratio=offer["ratio"], glb=offer["glb"]) == {"FINISHED"}
+    copy = bpy.data.objects["TexBlob decimated"]
+    assert len(copy.data.polygons) == offer["triangles"] and len(bpy.data.objects) == n_objects + 1
+    assert len(copy.data.uv_layers) == 1 and copy.data.materials[0] == textured.data.materials[0]
+    assert np.allclose(np.array(copy.matrix_world), np.array(textured.matrix_world))
+    assert mesh_fingerprint(textured) == before and not textured.modifiers  # the original untouched
+    bpy.data.objects.remove(copy)
+    bpy.data.objects.remove(textured)
 
 
 def test_textures_of_an_object_s_materials_are_counted():

@@ -244,6 +244,10 @@ def test_a_decimation_verdict_writes_the_decimation_and_the_report_lists_it(tmp_
     row = next(csv.DictReader(open(out / "report.csv")))
     assert row["status"] == "not_worth" and int(row["decimation_triangles"]) > 0, row
     assert 0 < int(row["decimation_compact_bytes"]) < int(row["compact_bytes"]) < int(row["mesh_resident_bytes"])
-    written = list(out.glob("assets/*/blob.decimated.ply"))
+    written = list(out.glob("assets/*/blob.glb"))
     assert len(written) == 1 and load_mesh(written[0]).n_triangles == int(row["decimation_triangles"])
-    assert "blob.decimated.ply" in (out / "report.html").read_text()
+    assert "blob.glb" in (out / "report.html").read_text()
+    # the compact mesh written beside it is the bytes the verdict counted
+    cmsh = list(out.glob("assets/*/blob.compact.cmsh"))
+    assert len(cmsh) == 1 and cmsh[0].stat().st_size == int(row["decimation_compact_bytes"]) \
+        == int(row["decimation_written_bytes"])

@@ -374,9 +374,13 @@ def test_the_final_verdict_ships_the_smaller_at_the_same_measured_mse():
     short = final_verdict(5000, 0.0019, 0.0001, _curve([(500, 0.01), (2000, 0.0018), (8000, 0.0005)]))
     assert short.shipped == "decimation" and short.decimation["compact_bytes"] == 2000 and "out of reach" in \
         short.message and not short.at_level
-    missing = lambda count: asked.append(count) or CurvePoint(2100, 0.0025, count, count)  # noqa: E731
-    assert final_verdict(5000, 0.0019, 0.0005, _curve([(500, 0.01), (2000, 0.002), (8000, 0.0005), (40000, 1e-5)]),
-                         measure=missing).shipped == "model" and len(asked) == 1 + 3  # three tries, all missed
+    # the line says ~2,070 B but every decimation measured misses the model's MSE: measuring goes on (1.41x up)
+    # until one outweighs the model's 5,000 B file; only then does the model ship, on measurements, not the line
+    asked.clear()
+    missing = lambda count: asked.append(count) or CurvePoint(4 * count, 0.0025, count, count)  # noqa: E731
+    kept = final_verdict(5000, 0.0019, 0.0005, _curve([(500, 0.01), (2000, 0.002), (8000, 0.0005), (40000, 1e-5)]),
+                         measure=missing)
+    assert kept.shipped == "model" and len(asked) == 4 and 4 * asked[-1] >= 5000 > 4 * asked[-2]
     won = final_verdict(5000, 0.0004, 0.0005, curve)
     assert won.shipped == "model" and won.level_met and won.ratio > 1 and "smaller" in won.message
     forced = final_verdict(9000, 0.0019, 0.0005, curve, force=True)
@@ -384,6 +388,20 @@ def test_the_final_verdict_ships_the_smaller_at_the_same_measured_mse():
     # forced past a smaller measured decimation: the message says which, not that none reaches the MSE
     assert "none measured" not in forced.message and "x smaller than the model" in forced.message
     assert final_verdict(100, 0.1, 0.0005, None).shipped == "model"
+
+
+def test_a_model_without_a_measured_quality_never_ships():
+    """A NaN (or infinite) held-out MSE ships the mesh, forced or not: the smallest measured one at the level, else
+    the best measured; with no alternative measured there is nothing to ship (ValueError, the run ends)."""
+    from nbvh_core.decision.final_verdict import final_verdict
+
+    curve = _curve([(500, 0.01), (2000, 0.002), (8000, 0.0005), (40000, 1e-5)])
+    for force in (False, True):
+        v = final_verdict(100, float("nan"), 0.0005, curve, force=force)
+        assert v.shipped == "decimation" and v.decimation["compact_bytes"] == 8000 and "nan" in v.message
+    assert final_verdict(100, float("inf"), 1e-7, curve).shipped == "mesh"  # no decimation meets it: the whole mesh
+    with pytest.raises(ValueError, match="cannot ship"):
+        final_verdict(100, float("nan"), 0.0005, None)
 
 
 def test_a_final_verdict_the_line_gives_the_model_narrowly_is_measured():

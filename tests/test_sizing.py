@@ -296,13 +296,13 @@ def test_grid_resolution_follows_the_measured_detail():
 
 
 def test_a_decimation_verdict_writes_the_decimation_beside_the_output(tmp_path, capsys):
-    """The user gets the mesh that wins: NAME.decimated.ply, in the original coordinates, meeting the target."""
+    """The user gets the mesh that wins: NAME.glb, in the original coordinates, meeting the target."""
     from nbvh_core.app.cli import main
     from nbvh_core.geometry.mesh import load_mesh
     from nbvh_core.geometry.bundled_samples import sample_path
 
     assert main(["compress", "bunny", "-o", str(tmp_path) + "/", "--target-mse", "0.01"]) == 4
-    written = tmp_path / "bunny.decimated.ply"
+    written = tmp_path / "bunny.glb"
     assert "kept as a mesh" in capsys.readouterr().err and not (tmp_path / "bunny.nbvh").exists()
     dec, full = load_mesh(written), load_mesh(sample_path("bunny"))
     assert 0 < dec.n_triangles < full.n_triangles / 20
@@ -320,6 +320,8 @@ def test_a_decimation_verdict_writes_the_decimation_beside_the_output(tmp_path, 
     why = json.loads((tmp_path / "bunny.verdict.json").read_text())
     assert why["recommendation"] == "decimate" and not why["worth_compressing"] and why["checks"] == []
     assert why["alternatives"]["decimation"]["triangles"] == dec.n_triangles and why["message"]
+    assert why["files"] == {"bunny.glb": written.stat().st_size, "bunny.compact.cmsh": len(cmsh)}
+    assert why["counted_compact_bytes"] == len(cmsh)
     lo = dec.transform.to_original(dec.vertices).min(axis=0)  # original coordinates, like the PLY
     assert np.allclose(decoded.vertices.min(axis=0), lo, atol=1e-3 * float(np.ptp(dec.transform.to_original(dec.vertices))))
     # original coordinates: the same box as the source (a decimation keeps the silhouette's extent)

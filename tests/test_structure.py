@@ -16,7 +16,7 @@ MAX_FUNCTION_LINES = 80
 LONG_FUNCTIONS: dict[str, str] = {}
 #: The core modules the add-on imports inside Blender's process (addon/job.py), which has no torch.
 TORCH_FREE = ("nbvh_core.protocol.events", "nbvh_core.protocol.outputs", "nbvh_core.protocol.quality_levels",
-              "nbvh_core.protocol.process", "nbvh_core.geometry.look")
+              "nbvh_core.protocol.process", "nbvh_core.geometry.look", "nbvh_core.protocol.glb_reader")
 #: nbvh_core's layers, lowest first, in the order data flows: a module imports from its own layer or below only
 #: (function-local imports included). The package's __init__ and __main__ are entry points above them all. The
 #: decision rules are pure (measurements in, typed records out), so every stage that decides can use them.

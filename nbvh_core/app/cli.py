@@ -142,25 +142,20 @@ def cmd_compress(args: argparse.Namespace) -> int:
 
 
 def _write_alternative(mesh, assessment, stem: Path, mesh_path: Path, args, sink) -> None:
-    """When the verdict keeps a mesh, the user gets the mesh that wins, beside where the model would have gone (original
-    coordinates; written atomically; an existing file only with --overwrite): a winning decimation as
-    NAME.decimated.ply, and, when the verdict weighed the compact layout, the winner (the decimation, or the whole
-    mesh) as NAME.compact.cmsh, the compact ray-traceable mesh whose bytes the verdict counted
-    (`compact_mesh.encode_compact`); and why, as NAME.verdict.json: the assessment with the measured alternatives,
-    the final verdict and the training's checks when training had begun (no model report: no model was written)."""
-    from ..geometry.compact_mesh import encode_compact, in_original_units
+    """When the verdict keeps a mesh, the user gets the mesh that wins, beside where the model would have gone
+    (`kept_mesh.kept_mesh_files`: NAME.glb with its look, NAME.compact.cmsh of exactly the bytes the verdict counted;
+    written atomically; an existing file only with --overwrite), and why, as NAME.verdict.json: the assessment with
+    the measured alternatives, the final verdict, the training's checks when training had begun, and each file's
+    bytes (no model report: no model was written)."""
     from ..protocol.outputs import check_outputs, write_atomic
-    from ..planning.sizing import mesh_file_bytes, winning_decimation
+    from ..planning.sizing import winning_decimation
+    from .kept_mesh import counted_compact_bytes, kept_mesh_files
 
-    dec = winning_decimation(mesh, assessment)
-    files: dict[Path, bytes] = {}
-    if dec is not None:
-        files[Path(f"{stem}.decimated.ply")] = mesh_file_bytes(dec)
-    if assessment.layout == "compact" and assessment.recommendation in ("mesh", "decimate"):
-        winner = dec if dec is not None else mesh  # encoded as the verdict counted it, placed in original units
-        files[Path(f"{stem}.compact.cmsh")] = in_original_units(encode_compact(winner), winner.transform.scale,
-                                                                winner.transform.offset)
-    files[Path(f"{stem}.verdict.json")] = json.dumps(assessment.to_dict(), indent=1, default=str).encode()
+    dec = winning_decimation(mesh, assessment) if assessment.recommendation == "decimate" else None
+    files = {Path(f"{stem}{suffix}"): data for suffix, data in kept_mesh_files(mesh, assessment).items()}
+    why = {**assessment.to_dict(), "files": {p.name: len(d) for p, d in files.items()},
+           "counted_compact_bytes": counted_compact_bytes(assessment)}
+    files[Path(f"{stem}.verdict.json")] = json.dumps(why, indent=1, default=str).encode()
     for path, data in files.items():
         try:
             check_outputs([path], [mesh_path], overwrite=args.overwrite)

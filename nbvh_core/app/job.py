@@ -117,8 +117,28 @@ def run_job(request: dict, events, should_cancel) -> dict:
         return _run_locked(request, events, should_cancel, mesh, settings, scene_split, files, name)
 
 
+def _write_kept_mesh(mesh, assessment, model_path: Path, events) -> None:
+    """The kept mesh's files (`kept_mesh.kept_mesh_files`: NAME.glb, NAME.compact.cmsh) beside where the model would
+    have gone, each written atomically, announced in one `written` event (files, kind, triangles, bytes each)."""
+    from ..protocol.outputs import write_atomic
+    from .kept_mesh import kept_mesh_files
+
+    files = kept_mesh_files(mesh, assessment)
+    paths = []
+    for suffix, data in files.items():
+        path = model_path.with_name(model_path.stem + suffix)
+        write_atomic(path, data)
+        paths.append(str(path))
+    if paths:
+        dec = assessment.alternatives.get("decimation") if assessment.recommendation == "decimate" else None
+        events(wire.written(files=paths, kind="decimation" if dec else "mesh",
+                            triangles=int(dec["triangles"]) if dec else mesh.n_triangles,
+                            bytes={Path(p).name: len(d) for p, d in zip(paths, files.values())}))
+
+
 def _run_locked(request, events, should_cancel, mesh, settings, scene_split, files, name) -> dict:
     from ..protocol.outputs import checkpoint_for
+    from ..protocol.process import NotWorthCompressing
     from .pipeline import compress_mesh
     from .result_bundle import ROLES, LoadedResult, View, make_bundle, write_bundle
     from ..rendering.render import Camera, orbit_cameras
@@ -133,8 +153,12 @@ def _run_locked(request, events, should_cancel, mesh, settings, scene_split, fil
         info = read_info(request["model"])
         result = LoadedResult(model, info, str(request["model"]))
     else:
-        result = compress_mesh(mesh, settings, None, events=events, should_cancel=should_cancel,
-                               checkpoint_path=checkpoint_for(model_path), resume_from=request.get("resume"))
+        try:
+            result = compress_mesh(mesh, settings, None, events=events, should_cancel=should_cancel,
+                                   checkpoint_path=checkpoint_for(model_path), resume_from=request.get("resume"))
+        except NotWorthCompressing as exc:  # the mesh wins: the same files as the CLI's, then the verdict ends it
+            _write_kept_mesh(mesh, exc.assessment, model_path, events)
+            raise
     cam_spec = request.get("camera")
     view = View(orbit_cameras(1)[0])
     if cam_spec:

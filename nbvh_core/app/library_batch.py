@@ -73,7 +73,8 @@ class Row:
     compact_bytes: int | None = None  # the mesh as a compact ray-traceable mesh (compact_mesh)
     texture_bytes: int | None = None  # the asset's images as held (width x height x channels), kept either way
     decimation_triangles: int | None = None  # the verdict's winning decimation (written beside the results)
-    decimation_compact_bytes: int | None = None
+    decimation_compact_bytes: int | None = None  # what the verdict counted for it as a compact mesh
+    decimation_written_bytes: int | None = None  # the NAME.compact.cmsh written: equal to the count
     predicted_model_bytes: int | None = None
     #: After training, the compact decimation's bytes at the model's own held-out MSE (decision.final_verdict)
     alternative_bytes: int | None = None
@@ -275,13 +276,13 @@ def _rounded(x) -> int | None:
 def _decimation_fields(mesh, assessment) -> dict:
     """The row's fields for the decimation a verdict keeps instead of a model (none when it keeps no decimation):
     the mesh that wins as a file the head writes (workers may not share its disk)."""
-    from ..planning.sizing import mesh_file_bytes, winning_decimation
+    from .kept_mesh import counted_compact_bytes, kept_mesh_files
 
-    dec = winning_decimation(mesh, assessment)
-    if dec is None:
+    if assessment.recommendation != "decimate":
         return {}
-    return {"decimation_triangles": dec.n_triangles, "decimation_ply": mesh_file_bytes(dec),
-            "decimation_compact_bytes": assessment.alternatives["decimation"].get("compact_bytes")}
+    files = kept_mesh_files(mesh, assessment)
+    return {"decimation_triangles": assessment.alternatives["decimation"]["triangles"], "decimation_files": files,
+            "decimation_compact_bytes": counted_compact_bytes(assessment)}
 
 
 def task_resources(triangles: int, cluster: dict) -> dict:
@@ -414,13 +415,16 @@ class _Library:
                 setattr(row, k, r[k])
         if "thumb" in r:
             row.thumb_original = self.thumb(name, "original", r.get("thumb"))
-        if r.get("decimation_ply"):
+        for suffix, data in (r.get("decimation_files") or {}).items():  # the CLI's files (kept_mesh), written here
             from ..protocol.outputs import write_atomic
+            from .kept_mesh import COMPACT, GLB
 
-            path = self.out / "assets" / row.key / f"{_safe(name)}.decimated.ply"
+            path = self.out / "assets" / row.key / f"{_safe(name)}{suffix}"
             path.parent.mkdir(parents=True, exist_ok=True)
-            write_atomic(path, r["decimation_ply"])
-            row.files["decimation"] = str(path.relative_to(self.out))
+            write_atomic(path, data)
+            row.files[{GLB: "decimation", COMPACT: "decimation_compact"}[suffix]] = str(path.relative_to(self.out))
+            if suffix == COMPACT:
+                row.decimation_written_bytes = len(data)
         self.events(wire.asset(phase="measure", **_event_fields(row)))
 
     def trained(self, name: str, r: dict) -> None:

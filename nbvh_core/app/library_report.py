@@ -11,7 +11,8 @@ import json
 from pathlib import Path
 
 CSV_COLUMNS = ("name", "source", "status", "verdict", "triangles", "mesh_resident_bytes", "draco_bytes",
-               "compact_bytes", "texture_bytes", "decimation_triangles", "decimation_compact_bytes", "predicted_model_bytes", "model_bytes", "alternative_bytes", "saved_vs_alternative_bytes",
+               "compact_bytes", "texture_bytes", "decimation_triangles", "decimation_compact_bytes", "decimation_written_bytes",
+               "predicted_model_bytes", "model_bytes", "alternative_bytes", "saved_vs_alternative_bytes",
                "model_resident_bytes", "saved_bytes", "mse", "iou",
                "train_seconds", "measure_seconds", "worker", "error")
 

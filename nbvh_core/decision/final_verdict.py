@@ -8,8 +8,10 @@ from .alternative_curve import AlternativeCurve
 from .records import FinalVerdict
 
 
-#: Decimations measured to settle a verdict the curve's interpolation leaves open (each 1.41x above the last).
-SETTLE_TRIES = 3
+#: Decimations measured to settle a verdict the curve's interpolation leaves open: each 1.41x above the last, until
+#: one reaches the model's MSE or outweighs its file (a line alone never ships a model it says is larger); at most
+#: SETTLE_TRIES, which 1.41x steps from the line's count to the whole mesh never need (2^12 of the count).
+SETTLE_TRIES = 24
 SETTLE_STEP = 2 ** 0.5
 #: A line between measured decimations (x2 apart) decides a verdict either way: on the CAD engine
 #: (bench/bench_shipped.py) the product's line put the decimation at the model's MSE at 1.14x the 310,580 B model
@@ -22,7 +24,7 @@ SETTLE_WINDOW = 1.5
 def _settle(curve: AlternativeCurve, model_bytes: int, model_mse: float, measure) -> None:
     """Measure, rather than interpolate, where the curve's line is what decides: when the line is below the model
     but no measured decimation reaching its MSE is smaller, the decimation the line expects there (then 1.41x larger,
-    up to SETTLE_TRIES); when the line is above the model by less than SETTLE_WINDOW, the largest decimation
+    until one settles it); when the line is above the model by less than SETTLE_WINDOW, the largest decimation
     smaller than the model's file (bytes grow with triangles), once."""
     point = curve.cheapest_meeting(model_mse)
     if measure is None or (point and point.bytes < model_bytes):
@@ -40,8 +42,25 @@ def _settle(curve: AlternativeCurve, model_bytes: int, model_mse: float, measure
         if got.mse <= model_mse or got.bytes >= model_bytes:
             return
         count = int(count * SETTLE_STEP) + 1
-        if count >= max(p.triangles for p in curve.points):
+        if count >= max(p.triangles for p in curve.points):  # the whole mesh is the last measured point
             return
+
+
+def _without_quality(model_bytes: int, model_mse: float, target: float | None, curve: AlternativeCurve | None,
+                     force: bool) -> FinalVerdict:
+    """A model whose held-out MSE is not a number never ships, forced or not: the smallest measured mesh that meets
+    the target ships, else the best measured one (the whole mesh). Without a curve there is nothing to ship:
+    ValueError (the run ends as diverged)."""
+    if curve is None:
+        raise ValueError(f"the model's held-out MSE is {model_mse}: it cannot ship, and no alternative was measured")
+    ship = (curve.cheapest_meeting(target) if target is not None else None) or curve.points[-1]
+    what = f"a decimation to {ship.triangles:,} triangles" if ship.requested is not None else "the whole mesh"
+    return FinalVerdict(model_bytes, model_mse, None, "decimation" if ship.requested else "mesh",
+                        {"triangles": ship.triangles, "requested_triangles": ship.requested,
+                         "compact_bytes": ship.bytes, "mse": ship.mse}, False, force,
+                        f"kept as a mesh: the model's held-out MSE is {model_mse} (no quality measured), so it cannot "
+                        f"ship; {what} reaches MSE {ship.mse:.4g} in {ship.bytes:,} B as a compact mesh",
+                        at_level=target is not None and ship.mse <= target)
 
 
 def final_verdict(model_bytes: int, model_mse: float, target: float | None, curve: AlternativeCurve | None,
@@ -51,7 +70,10 @@ def final_verdict(model_bytes: int, model_mse: float, target: float | None, curv
     instead, unless `force`; when the model also missed `target`, the mesh that ships is the smallest measured one
     that meets the target, where one does (the level asked for; else the one at the model's MSE). A missed level is
     said, and a model that misses it ships only while it is the better value at its own MSE.
-    measure(triangles) -> CurvePoint: measures one more decimation on the same views (None: the curve as it is)."""
+    measure(triangles) -> CurvePoint: measures one more decimation on the same views (None: the curve as it is).
+    A non-finite `model_mse` never ships the model (`_without_quality`)."""
+    if not math.isfinite(model_mse):
+        return _without_quality(model_bytes, model_mse, target, curve, force)
     level_met = None if target is None else model_mse <= target
     if curve is None:
         return FinalVerdict(model_bytes, model_mse, None, "model", None, level_met, force,

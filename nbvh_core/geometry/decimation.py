@@ -67,6 +67,22 @@ def wedges(mesh: Mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.nd
     return wedge_vertex, corners, wedge_slot, wedge_uv
 
 
+def _with_attributes():
+    """meshoptimizer's `meshopt_simplifyWithAttributes`, declared here: the PyPI wrapper (0.2.30a0) declares no
+    argument types for it, so its own call cannot pass the target error (a float). Its own library handle, so the
+    wrapper's declarations are left as they are."""
+    import ctypes
+
+    from meshoptimizer import _loader
+
+    fn = ctypes.CDLL(_loader.lib._name).meshopt_simplifyWithAttributes
+    u32p, f32p, size = ctypes.POINTER(ctypes.c_uint), ctypes.POINTER(ctypes.c_float), ctypes.c_size_t
+    fn.argtypes = [u32p, u32p, size, f32p, size, size, f32p, size, f32p, size, ctypes.POINTER(ctypes.c_ubyte), size,
+                   ctypes.c_float, ctypes.c_uint, f32p]
+    fn.restype = size
+    return fn
+
+
 def simplify_indices(positions: np.ndarray, corners: np.ndarray, triangles: int,
                      attributes: np.ndarray | None = None, weights: np.ndarray | None = None) -> np.ndarray:
     """meshoptimizer's simplifier to at most `triangles` triangles.
@@ -74,10 +90,10 @@ def simplify_indices(positions: np.ndarray, corners: np.ndarray, triangles: int,
     positions: (W, 3) float32; corners: (F, 3) int indices into positions; attributes: (W, A) float32 weighed by
     weights (A,) float32, or None. Returns (F', 3) int64 (F' <= triangles unless the simplifier stops early, which
     it does only where every remaining collapse would break a seam or a border)."""
+    missing = simplifier_missing()
+    if missing:
+        raise DecimationUnavailable(missing)
     import meshoptimizer
-
-    if simplifier_missing():
-        raise DecimationUnavailable(simplifier_missing())
     pos = np.ascontiguousarray(positions, np.float32)
     idx = np.ascontiguousarray(corners.reshape(-1), np.uint32)
     out = np.zeros(idx.size, np.uint32)
@@ -85,9 +101,15 @@ def simplify_indices(positions: np.ndarray, corners: np.ndarray, triangles: int,
     if attributes is None:
         n = meshoptimizer.simplify(out, idx, pos, target_index_count=target, target_error=UNBOUNDED_ERROR)
     else:
-        n = meshoptimizer.simplify_with_attributes(
-            out, idx, pos, np.ascontiguousarray(attributes, np.float32), np.ascontiguousarray(weights, np.float32),
-            target_index_count=target, target_error=UNBOUNDED_ERROR)
+        import ctypes
+
+        attr = np.ascontiguousarray(attributes, np.float32)
+        w = np.ascontiguousarray(weights, np.float32)
+        u32p, f32p = ctypes.POINTER(ctypes.c_uint), ctypes.POINTER(ctypes.c_float)
+        n = _with_attributes()(out.ctypes.data_as(u32p), idx.ctypes.data_as(u32p), idx.size,
+                               pos.ctypes.data_as(f32p), len(pos), 12, attr.ctypes.data_as(f32p),
+                               attr.shape[1] * 4, w.ctypes.data_as(f32p), w.size, None, target, UNBOUNDED_ERROR, 0,
+                               None)
     return out[:n].astype(np.int64).reshape(-1, 3)
 
 
@@ -110,7 +132,10 @@ def decimate(mesh: Mesh, triangles: int) -> Mesh:
     if mesh.look is not None:
         slots = (np.zeros(len(kept), np.int32) if wedge_slot is None else wedge_slot[kept[:, 0]])
         look = Look(slots, None if wedge_uv is None else wedge_uv[kept], mesh.look.materials)
-    keep = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
+    # Distinct vertices at one position (a globe's pole, welded CAD parts) can meet in a triangle of no area: dropped,
+    # as the mesh reader drops them (else the file written would read back with fewer triangles than counted).
+    tri = mesh.vertices[used][faces].astype(np.float64)
+    keep = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1) > 0
     if look is not None and not keep.all():
         look = look.subset(keep)
     return Mesh(vertices=mesh.vertices[used], faces=faces[keep], transform=mesh.transform, name=mesh.name,

@@ -1,0 +1,38 @@
+"""The files a user gets when the verdict keeps a mesh, the same in every path (CLI, library batch, the add-on's
+job): the winning decimation as NAME.glb (its materials, slots, texture coordinates and textures, in the asset's
+units: what Blender and engines open), and the winner (the decimation or the whole mesh) as NAME.compact.cmsh, the
+compact ray-traceable mesh whose bytes the verdict counted, byte for byte."""
+from __future__ import annotations
+
+from ..decision.records import Assessment
+from ..geometry.mesh import Mesh
+
+#: suffix of each kept file, after the asset's name
+GLB, COMPACT = ".glb", ".compact.cmsh"
+
+
+def kept_mesh_files(mesh: Mesh, assessment: Assessment) -> dict[str, bytes]:
+    """suffix -> bytes of each file the kept mesh is written as ({} when the verdict ships a model). The decimation
+    is rebuilt exactly as measured (`sizing.winning_decimation`: deterministic)."""
+    from ..geometry.compact_mesh import encode_compact, in_original_units
+    from ..geometry.glb import encode_glb
+    from ..planning.sizing import winning_decimation
+
+    dec = winning_decimation(mesh, assessment)
+    files: dict[str, bytes] = {}
+    if dec is not None:
+        files[GLB] = encode_glb(dec)
+    if assessment.layout == "compact" and assessment.recommendation in ("mesh", "decimate"):
+        winner = dec if dec is not None else mesh  # encoded as the verdict counted it, placed in original units
+        files[COMPACT] = in_original_units(encode_compact(winner), winner.transform.scale, winner.transform.offset)
+    return files
+
+
+def counted_compact_bytes(assessment: Assessment) -> int | None:
+    """The compact mesh's bytes the verdict counted for what it keeps (without the look's bytes, which the .glb
+    carries), or None when it keeps no mesh."""
+    if assessment.recommendation == "decimate":
+        return int(assessment.alternatives["decimation"]["compact_bytes"])
+    if assessment.recommendation == "mesh" and "mesh_compact" in assessment.alternatives:
+        return int(assessment.alternatives["mesh_compact"]["compact_bytes"])
+    return None
