@@ -223,7 +223,9 @@ def _compress(mesh: Mesh, run: RunConfig, out_path, events: EventSink, should_ca
     target = run.decision.target_mse
     if search.rule is not None and search.rule.keep_mesh is not None:
         d = search.rule.keep_mesh
-        raise _keep_the_mesh(assessment, final_verdict(d.model_bytes, d.projected_mse, target, weighing.curve), events,
+        # The mesh kept is chosen on the held-out views, as every keep is (the check views only decided to stop).
+        kept_on = weighing.curve_held_out or weighing.curve
+        raise _keep_the_mesh(assessment, final_verdict(d.model_bytes, d.projected_mse, target, kept_on), events,
                              search.rule.decisions)
     notes += search.notes + list(trained_notes)
     look_info = _appearance(model, mesh, tracer, run.look, run_used.storage, run_used.training.seed, head, tr, events,
