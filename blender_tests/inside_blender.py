@@ -316,14 +316,19 @@ def _textured_copy(obj, name: str):
     me.uv_layers.new(name="UVMap").data.foreach_set("uv", uv.astype(np.float32).ravel())
     image = bpy.data.images.new(f"{name}-albedo", 64, 64)
     image.pixels.foreach_set(np.random.default_rng(0).random(64 * 64 * 4).astype(np.float32))
-    mat = bpy.data.materials.new(f"{name}-material")
+    me.materials.append(image_material(f"{name}-material", image))
+    return copy
+
+
+def image_material(name: str, image):
+    """A node material whose Principled BSDF's Base Color is `image` (an Image Texture node)."""
+    mat = bpy.data.materials.new(name)
     mat.use_nodes = True
     tex = mat.node_tree.nodes.new("ShaderNodeTexImage")
     tex.image = image
     bsdf = next(n for n in mat.node_tree.nodes if n.type == "BSDF_PRINCIPLED")
     mat.node_tree.links.new(tex.outputs["Color"], bsdf.inputs["Base Color"])
-    me.materials.append(mat)
-    return copy
+    return mat
 
 
 def test_a_decimation_verdict_is_offered_as_one_click():
@@ -365,13 +370,7 @@ def test_textures_of_an_object_s_materials_are_counted():
     obj = make_mesh_object("Textured", verts, np.array([[0, 1, 2], [1, 3, 2]]))
     image = bpy.data.images.new("nbvh-test-albedo", 256, 128, alpha=True)
     for i in range(2):  # two slots, the same image in both: counted once
-        mat = bpy.data.materials.new(f"nbvh-test-mat{i}")
-        mat.use_nodes = True
-        tex = mat.node_tree.nodes.new("ShaderNodeTexImage")
-        tex.image = image
-        bsdf = next(n for n in mat.node_tree.nodes if n.type == "BSDF_PRINCIPLED")
-        mat.node_tree.links.new(tex.outputs["Color"], bsdf.inputs["Base Color"])
-        obj.data.materials.append(mat)
+        obj.data.materials.append(image_material(f"nbvh-test-mat{i}", image))
     images, slots = export.asset_textures(obj)
     assert slots == 2 and list(images) == ["nbvh-test-albedo"], (images, slots)
     assert images["nbvh-test-albedo"]["blender_bytes"] == 256 * 128 * 4
