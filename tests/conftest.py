@@ -1,3 +1,12 @@
+import os
+
+import torch
+
+# The card's Triton kernels run in Triton's CPU interpreter where there is no GPU (tests/test_triton_kernels.py);
+# it is read when Triton is first imported, so it is set before anything imports it.
+if not torch.cuda.is_available():
+    os.environ.setdefault("TRITON_INTERPRET", "1")
+
 import pytest
 
 from nbvh_core.geometry.bvh import build_bvh

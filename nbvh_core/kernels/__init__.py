@@ -17,13 +17,16 @@ The kernels:
   memory and runs torch's layers over them.
 * `vqad_soft_forward` / `vqad_soft_backward` - HashVQAD's soft row table (softmax over t candidates) and its
   backward into the rows and the logits.
+
+The card's twins are Triton kernels (`triton/`: the hash-grid lookup and its backward, a whole MLP per kernel),
+tested on the CPU by Triton's interpreter; `plan.py` picks them for CUDA tensors.
 """
 from .library import (HEADER, PATHS, abi_hash, build, current_path, describe, fast_enabled, keep_freed_memory,
                       library_path, load, set_path, threads, using_path)
-from .plan import (KernelPlan, encoding_kernel, network_kernel, optimizer_kernel, plan, soft_table_kernel,
-                   train_step_kernel, traversal_kernel)
+from .plan import (KernelPlan, encoding_kernel, mlp_kernel, network_kernel, optimizer_kernel, plan, soft_table_kernel,
+                   train_step_kernel, traversal_kernel, triton_serves)
 
 __all__ = ["HEADER", "PATHS", "abi_hash", "build", "current_path", "describe", "fast_enabled",
            "keep_freed_memory", "library_path", "load", "set_path", "threads", "using_path", "KernelPlan",
            "encoding_kernel", "network_kernel", "optimizer_kernel", "plan", "soft_table_kernel", "train_step_kernel",
-           "traversal_kernel"]
+           "traversal_kernel", "mlp_kernel", "triton_serves"]

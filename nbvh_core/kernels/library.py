@@ -81,7 +81,12 @@ def describe(device: torch.device | str = "cpu") -> str:
     if _path == "reference":
         return "reference (pure torch)"
     if torch.device(device).type != "cpu":
-        return f"fast path on {torch.device(device).type}: torch kernels (the fused kernels are CPU-only)"
+        from .triton import triton_missing
+
+        kind = torch.device(device).type
+        missing = triton_missing() if kind == "cuda" else "the C++ kernels are CPU-only, the Triton ones CUDA-only"
+        return (f"fast path on {kind}: Triton kernels (encoding, network) and torch" if missing is None
+                else f"fast path on {kind}: torch kernels ({missing})")
     if load() is None:
         return f"reference (pure torch): fused kernels unavailable ({_load_error})"
     return f"fast (fused C++ kernels, {threads()} threads)"

@@ -17,8 +17,41 @@ from dataclasses import asdict, dataclass
 import torch
 
 from .library import current_path, describe, fast_enabled, threads
+from .triton import triton_missing
 
 TORCH = "torch"
+
+
+def triton_serves(device: torch.device | str) -> bool:
+    """True when the Triton kernels serve `device`: CUDA tensors, the fast path chosen, Triton importable."""
+    return current_path() == "fast" and torch.device(device).type == "cuda" and triton_missing() is None
+
+
+def triton_encoding_gap(encoding) -> str | None:
+    """Why the Triton lookup does not cover `encoding` (None when it does): it reads a HashGrid's float32 rows or
+    uint8 codes."""
+    if encoding.learned_index:
+        return "HashVQAD's index (its rows are chosen per vertex)"
+    if not encoding.grid_lookup:
+        return "not a grid lookup"
+    features = encoding.cfg.features
+    if features & (features - 1) or (not encoding.quantized and encoding.table.dtype != torch.float32):
+        return f"rows of {features} {str(encoding.table.dtype).replace('torch.', '')} features"
+    return None
+
+
+def triton_network_gap(net) -> str | None:
+    """Why the Triton MLP does not cover `net` (an nn.Sequential of Linear/ReLU; None when it does)."""
+    widths = [m.out_features for m in net if isinstance(m, torch.nn.Linear)][:-1]
+    if not widths or widths[0] < 16 or widths[0] & (widths[0] - 1) or len(set(widths)) != 1:
+        return f"hidden widths {widths} (one power of two >= 16 is covered)"
+    return None
+
+
+def mlp_kernel(net, device: torch.device | str) -> str:
+    """A network's layers at inference (no autograd) on `device`: 'triton' or 'torch' (training's layers are torch's
+    own: cuBLAS on a card, with autograd)."""
+    return "triton" if triton_serves(device) and triton_network_gap(net) is None else TORCH
 
 
 def traversal_kernel(device: torch.device | str) -> str:
@@ -27,7 +60,12 @@ def traversal_kernel(device: torch.device | str) -> str:
 
 
 def encoding_kernel(encoding, device: torch.device | str) -> str:
-    """'fused f32' | 'fused f16' | 'fused u8' (the row type the kernel reads) or 'torch'."""
+    """'fused f32' | 'fused f16' | 'fused u8' (the C++ kernel on the CPU, by the row type it reads), 'triton f32' |
+    'triton u8' (the Triton kernel on a card) or 'torch'."""
+    if triton_serves(device):
+        if triton_encoding_gap(encoding) is not None:
+            return TORCH
+        return "triton u8" if encoding.quantized else "triton f32"
     if not (encoding.grid_lookup and fast_enabled(device)):
         return TORCH
     if encoding.quantized:
@@ -51,6 +89,8 @@ def network_kernel(model, device: torch.device | str | None = None) -> str:
     lookup and every layer in one call) or 'torch' (the encoding's stage, then torch's layers)."""
     net, enc = model.network, model.encoding
     device = model.device if device is None else device
+    if triton_serves(device):  # the layers fused on the card; points and lookup are the encoding's stage
+        return f"triton {net.fused_kind or 'layers'}" if mlp_kernel(net.net, device) != TORCH else TORCH
     if (net.fused_kind is None or not enc.grid_lookup or not fast_enabled(device)
             or enc.table.dtype != torch.float32):
         return TORCH
@@ -64,7 +104,7 @@ def train_step_kernel(model, device: torch.device | str | None = None) -> str:
     'autograd' (torch autograd over the encoding's and the soft table's stages)."""
     fused = network_kernel(model, device)
     trainable = not model.encoding.quantized and next(model.network.parameters()).dtype == torch.float32
-    return fused.replace(" f16 weights", "") if fused != TORCH and trainable else "autograd"
+    return fused.replace(" f16 weights", "") if fused.startswith("fused") and trainable else "autograd"
 
 
 def optimizer_kernel() -> str:
@@ -108,6 +148,11 @@ def plan(model, device: torch.device | str | None = None) -> KernelPlan:
     device = torch.device(device if device is not None else model.device)
     enc = model.encoding
     note = "" if fast_enabled(device) or current_path() == "reference" else describe(device)
+    if triton_serves(device):
+        gaps = [f"encoding: {g}" for g in [triton_encoding_gap(enc)] if g]
+        gaps += [f"network: {g}" for g in [triton_network_gap(model.network.net)] if g]
+        note = ("Triton kernels on the card; torch for traversal and the training step's autograd"
+                + (f"; torch where not covered ({'; '.join(gaps)})" if gaps else ""))
     traversal = traversal_kernel(device)
     if traversal == "fused" and model.compact_nodes is not None:
         traversal = "fused 8-bit nodes"

@@ -25,7 +25,7 @@ from .networks import linear_weight
 
 def applies(model) -> bool:
     """True when a model's queries run fused (`kernels.plan`: its network stage is 'fused mlp' / 'fused kmlp')."""
-    return network_kernel(model) != "torch"
+    return network_kernel(model).startswith("fused")
 
 
 def _is_kmlp(model) -> bool:
@@ -34,7 +34,7 @@ def _is_kmlp(model) -> bool:
 
 def trains(model) -> bool:
     """True when a training step runs fused (`kernels.plan`: its train_step stage is fused)."""
-    return train_step_kernel(model) != "autograd"
+    return train_step_kernel(model).startswith("fused")
 
 
 def _linears(model) -> list[nn.Linear]:

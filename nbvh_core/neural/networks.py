@@ -32,6 +32,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from .. import kernels
+
 
 NORMAL_LOSSES = ("oriented", "unoriented")
 #: Weight of the normal L1 per network. The MLP's 0.5 is N-BVH's (its L1 on (n + 1) / 2). KMLP's loss adds the
@@ -103,13 +105,30 @@ def linear_weight(m: nn.Linear, dtype: torch.dtype) -> torch.Tensor:
 def run_layers(net: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
     """`net(x)` for weights held in any form (a finalized model keeps its network as stored: float16, or int8 rows
     with scales): each Linear runs in x's dtype (a transient cast of its weights on this reference path; the fused
-    kernels read float16 weights as they are)."""
+    kernels read float16 weights as they are). At inference on a card the layers run as one Triton kernel
+    (`kernels.triton.mlp`, the weights packed once per change of the network)."""
+    if not torch.is_grad_enabled() and x.dim() >= 2 and kernels.mlp_kernel(net, x.device) == "triton":
+        return _triton_layers(net, x)
     for m in net:
         if isinstance(m, nn.Linear):
             x = F.linear(x, linear_weight(m, x.dtype), m.bias.to(x.dtype))
         else:
             x = m(x)
     return x
+
+
+def _triton_layers(net: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
+    """`run_layers` through the Triton MLP: x (..., n_in) -> (..., n_out) float32 (the packed weights are cached on
+    `net`, keyed by every parameter's version, so training steps between queries repack)."""
+    from ..kernels.triton.mlp import mlp_forward, pack_mlp
+
+    key = tuple((id(p), p._version) for p in net.parameters())
+    cached = getattr(net, "_triton_pack", None)
+    if cached is None or cached[0] != key:
+        cached = (key, pack_mlp(net, lambda m: linear_weight(m, torch.float32)))
+        net._triton_pack = cached
+    flat = x.reshape(-1, x.shape[-1]).float()
+    return mlp_forward(flat, cached[1]).reshape(*x.shape[:-1], -1).to(x.dtype)
 
 
 def _l1(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:

@@ -38,6 +38,7 @@ class HashGrid(Encoding):
         #: (offset, scale) (L, F) float32 numpy the quantization-aware phase snapped the table to (train.py).
         self.qat_affine: tuple | None = None
         self._spec: GridSpec | None = None
+        self._triton_geometry: tuple | None = None
         #: Inference with a float16 copy of the feature rows (fast path, no grad): half the bytes to gather.
         self.half_tables = False
         self._half: tuple | None = None
@@ -108,7 +109,7 @@ class HashGrid(Encoding):
         rows = self.grown_like(self.table.data)
         self.cfg = dataclasses.replace(self.cfg, log2_table=self.cfg.log2_table + 1)
         self.table = nn.Parameter(rows, requires_grad=self.table.requires_grad)
-        self._spec, self._half = None, None
+        self._spec, self._half, self._triton_geometry = None, None, None
         return self.table
 
     def row_table(self) -> torch.Tensor:
@@ -121,9 +122,25 @@ class HashGrid(Encoding):
         return idx
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
-        if kernels.encoding_kernel(self, points.device) != "torch":
+        kind = kernels.encoding_kernel(self, points.device)
+        if kind.startswith("triton"):
+            return self._triton_forward(points)
+        if kind != "torch":
             return self._fused_forward(points)
         return self.reference_forward(points)
+
+    def _triton_forward(self, points: torch.Tensor) -> torch.Tensor:
+        """The Triton lookup (`kernels.triton.hashgrid`; differentiable in `table` through its atomic backward; a
+        shipped table's uint8 codes read as they are held)."""
+        from ...kernels.triton.hashgrid import grid_encode, grid_encode_codes, level_geometry
+
+        size = self._vertex_table_size()
+        if self._triton_geometry is None or self._triton_geometry[0].device != points.device:
+            self._triton_geometry = level_geometry(self.scales, [vertex_resolution(s) for s in self.scales], size,
+                                                   points.device)
+        if self.quantized:
+            return grid_encode_codes(points, self.qcodes, self.qoffset, self.qscale, self._triton_geometry)
+        return grid_encode(points, self.table, self._triton_geometry)
 
     def _fused_forward(self, points: torch.Tensor) -> torch.Tensor:
         look = self.fused_lookup()

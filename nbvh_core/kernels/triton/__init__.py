@@ -1,0 +1,36 @@
+"""The GPU twin of the fused kernels: Triton, one file per component, each beside its reference (the torch code in
+`nbvh_core.neural`, the oracle) and tested against it on the CPU by Triton's interpreter (`TRITON_INTERPRET=1`,
+tests/test_triton_kernels.py). `kernels.plan` decides when they run (CUDA tensors, Triton importable) and records
+it; anything they do not cover runs the torch path, and the plan's note says which and why.
+
+* `hashgrid` - the multiresolution hash-grid lookup fused per point (cell, hash or dense index, trilinear weights,
+  the 8-row weighted sum of every level) and its backward (atomic adds into the table's gradient).
+* `mlp` - a whole MLP (Linear + ReLU layers, the last without) over rows of inputs through `tl.dot`, K-blocked,
+  the activations kept on chip between layers.
+"""
+from __future__ import annotations
+
+import os
+
+import torch
+
+
+def triton_missing() -> str | None:
+    """None when Triton can run kernels here, else one line saying why not."""
+    try:
+        import triton  # noqa: F401
+    except ImportError:
+        return "Triton is not installed (it comes with torch's CUDA builds on Linux)"
+    return None
+
+
+def interpreted() -> bool:
+    """True when Triton runs its kernels in its CPU interpreter (tests), where they take CPU tensors."""
+    return os.environ.get("TRITON_INTERPRET") == "1"
+
+
+def serves(device: torch.device | str) -> bool:
+    """True when the Triton kernels serve tensors on `device`: CUDA with Triton importable, or the CPU under the
+    interpreter (tests only: the C++ kernels are the CPU's fast path)."""
+    kind = torch.device(device).type
+    return triton_missing() is None and (kind == "cuda" or (kind == "cpu" and interpreted()))
