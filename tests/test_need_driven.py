@@ -530,3 +530,24 @@ def test_a_runs_initial_weights_are_its_seeds_whatever_ran_before(monkeypatch):
         trainings.train_with_restarts(mesh, bvh, None, run, lambda e: None, lambda: False, None)
     assert all(torch.equal(a, b) for a, b in zip(starts[0], starts[1]))
     assert not all(torch.equal(a, b) for a, b in zip(starts[0], starts[2]))
+
+
+def test_a_resumed_run_keeps_its_target_and_ends_with_the_final_verdict(tmp_path, sample_meshes):
+    """`resume_settings` keeps the checkpoint's target (it dropped it: a resumed run shipped unweighed); the resumed
+    run trains the checkpoint's own size, measures the alternative, and the final verdict weighs the model."""
+    from nbvh_core.app.pipeline import compress_mesh, resume_settings
+    from nbvh_core.protocol.process import NotWorthCompressing
+
+    mesh = sample_meshes["blob"]
+    ck = tmp_path / "c.ckpt"
+    asked = preset("tiny").with_overrides(force=True, target_mse=0.05, checkpoint_every_s=1e-9)
+    first = compress_mesh(mesh, asked, None, evaluate_quality=False, checkpoint_path=ck)
+    settings = resume_settings(ck, mesh)
+    assert settings.target_mse == 0.05 and settings.log2_table == first.settings.log2_table
+    try:
+        result = compress_mesh(mesh, dataclasses.replace(settings, force=False), None, resume_from=ck)
+        final, log2 = result.decisions["final"], result.settings.log2_table
+    except NotWorthCompressing as kept:  # the final verdict kept the mesh: said with its record
+        final, log2 = kept.assessment.final, first.settings.log2_table
+    assert final is not None and final["shipped"] in ("model", "decimation", "mesh") and final["message"]
+    assert log2 == first.settings.log2_table  # the checkpoint's size, not a new search

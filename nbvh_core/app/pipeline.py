@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import platform
 import time
 from dataclasses import dataclass, field
@@ -99,18 +100,24 @@ def resume_settings(checkpoint_path: str | Path, mesh: Mesh) -> Settings:
         triangles = extra["mesh"].get("triangles")
         raise ValueError(f"{checkpoint_path}: the checkpoint was made for another mesh "
                          f"({str(triangles)[:20]} triangles; this one has {mesh.n_triangles})")
-    return dataclasses.replace(settings, target_mse=None, budget_kb=None)
+    # The size is the checkpoint's; a target stays: the resumed run measures the alternative and ends with the final
+    # verdict, as the run it continues would have.
+    return dataclasses.replace(settings, budget_kb=None)
 
 
-def _verdict(mesh: Mesh, run: RunConfig, tracer: ExactTracer, made, events: EventSink, seconds: dict):
-    """Is the model worth training (`weigh`)? Raises NotWorthCompressing unless forced; returns (Assessment,
-    Weighing); in seconds['plan']."""
+def _verdict(mesh: Mesh, run: RunConfig, tracer: ExactTracer, made, events: EventSink, seconds: dict,
+             resumed: bool = False):
+    """Is the model worth training (`weigh`)? Raises NotWorthCompressing unless forced or `resumed` (the run it
+    continues decided to train; its final verdict still weighs the model); returns (Assessment, Weighing); in
+    seconds['plan']."""
     t = time.perf_counter()
     events(wire.phase(phase="plan", message=why_of(run.notes)))
     assessment, weighing = weigh(mesh, run, tracer, made)
     seconds["plan"] = time.perf_counter() - t
     if not assessment.worth_compressing:
-        if not run.decision.force:
+        if resumed and not run.decision.force:
+            events(wire.warning(message=assessment.message + " (resumed: training on; the final verdict decides)"))
+        elif not run.decision.force:
             events(wire.verdict(worth_compressing=False, message=assessment.message, assessment=assessment.to_dict()))
             raise NotWorthCompressing(assessment)
         events(wire.warning(message=assessment.message + " (training anyway: forced)"))
@@ -144,7 +151,8 @@ def _metadata(mesh: Mesh, run: RunConfig, notes: list, assessment, tr: TrainResu
     them typed), verdict, training, quality, provenance."""
     training = {"steps": tr.steps, "seconds": round(tr.seconds, 2), "samples": tr.samples,
                 "stopped_early": tr.stopped_early, "samples_per_s": round(tr.samples_per_s),
-                "final_loss": tr.final_loss, "device": tr.device, "compute_path": tr.compute_path,  # the kernel plan, exactly
+                # None when no step ran (a checkpoint resumed at its end): a file's header holds no NaN
+                "final_loss": tr.final_loss if math.isfinite(tr.final_loss) else None, "device": tr.device, "compute_path": tr.compute_path,  # the kernel plan, exactly
                 "soft_loss_before_freeze": tr.soft_loss_before_freeze,
                 "frozen_loss": tr.frozen_loss, "finetuned_loss": tr.finetuned_loss}
     q = quality.to_dict() if quality else None
@@ -214,7 +222,7 @@ def _compress(mesh: Mesh, run: RunConfig, out_path, events: EventSink, should_ca
     tracer = ExactTracer(mesh)  # one Embree scene for the alternatives, the labels and the evaluation
     torch.manual_seed(run.training.seed)  # the head's initial weights too (a batch runs many assets in one process)
     head = make_head(mesh, run.look.head)
-    assessment, weighing = _verdict(mesh, run, tracer, head, events, seconds)
+    assessment, weighing = _verdict(mesh, run, tracer, head, events, seconds, resumed=resume_from is not None)
     bvh = _training_bvh(mesh, run.nodes, run.storage.node_bits, events, seconds)
     search = SizeSearch(mesh, bvh, tracer, run, events, should_cancel, checkpoint_path, resume_from,
                          evaluate_quality, compare_float32, seconds, weighing)

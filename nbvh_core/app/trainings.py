@@ -117,7 +117,7 @@ class SizeSearch:
     def search(self) -> int:
         """Train (and search); returns the chosen log2 T."""
         target, run = self.run.decision.target_mse, self.run
-        if target is None or not self.evaluate_quality:
+        if target is None or not self.evaluate_quality or self.resume_from is not None:  # resumed: its one size
             self.train_and_measure(run.log2_table)
             return run.log2_table
         if run.decision.size_search == "grow":

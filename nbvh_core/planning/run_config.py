@@ -119,7 +119,11 @@ def plan_run(settings: Settings, mesh: Mesh, resumed: bool = False) -> RunConfig
     grid = grid_measures(mesh) if settings.n_max is None and not resumed else None
     fit = load_fit() if settings.target_mse is not None and not resumed else None
     feats = mesh_features(mesh) if fit is not None else None  # measured once: the sizes, the expected size, the growth
-    resolved, plan_note = resolve(settings, mesh, grid, feats)
+    # A resumed run trains the checkpoint's size: its target only decides (checks, final verdict), sizes nothing.
+    resolved, plan_note = resolve(dataclasses.replace(settings, target_mse=None) if resumed else settings, mesh, grid,
+                                  feats)
+    if resumed:
+        resolved = dataclasses.replace(resolved, target_mse=settings.target_mse)
     share, budget = resolved.appearance_share, resolved.time_limit_s
     look = LookConfig(AppearanceConfig(target=resolved.appearance_target, log2_table=resolved.appearance_log2_table),
                       share, budget * share if mesh.look is not None and budget else None)
