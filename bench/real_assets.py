@@ -8,7 +8,7 @@
     fuze              - a real textured scan: the Fuze bottle (1,000 triangles, Meshlab-processed, one 1024 px image
                         atlas), from the pyrender repository's examples (github.com/mmatl/pyrender; no registry
                         ships a textured scan: a snapshot is read from $NBVH_GIT_MIRRORS/mmatl+pyrender/repo when
-                        present, else `git clone --depth 1`)
+                        that variable names a folder of mirrors, else `git clone --depth 1`)
 
 `asset_path(name)` fetches what is missing into ~/.cache/nbvh/real_assets (npm, apt-get) and returns the file.
 """
@@ -32,7 +32,9 @@ REAL_ASSETS = {
 }
 #: the files a git asset needs beside the one named (an OBJ's MTL and image)
 GIT_COMPANIONS = {"fuze": ("examples/models/fuze.obj.mtl", "examples/models/fuze_uv.jpg")}
-MIRRORS = Path(os.environ.get("NBVH_GIT_MIRRORS", "/work/.mirror"))
+#: A folder of bare git mirrors the user made (owner+name/repo), named by the environment; no default: no folder is
+#: known to exist on a user's machine.
+MIRRORS = Path(os.environ["NBVH_GIT_MIRRORS"]) if os.environ.get("NBVH_GIT_MIRRORS") else None
 
 
 def asset_path(name: str) -> Path:
@@ -75,8 +77,8 @@ def _git_asset(name: str, repo: str, inner: str) -> Path:
     if all((folder / Path(f).name).exists() for f in files):
         return folder / Path(inner).name
     folder.mkdir(parents=True, exist_ok=True)
-    mirror = MIRRORS / repo.replace("/", "+") / "repo"
-    if not mirror.exists():
+    mirror = MIRRORS / repo.replace("/", "+") / "repo" if MIRRORS is not None else None
+    if mirror is None or not mirror.exists():
         mirror = folder / "clone"
         if not mirror.exists():
             proc = subprocess.run(["git", "clone", "--depth", "1", f"https://github.com/{repo}", str(mirror)],

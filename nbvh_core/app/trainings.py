@@ -53,7 +53,7 @@ def stored_mse(scorer: ViewScorer, storage):
     (bunny, its table grown late) below the stored one. A low-bit table is scored at 8 bits until it trains through
     its own grid (`training.train.grid_phase_pending`): that last phase recovers the rounding (6 bits: +3.1% over
     the float model after it, 1.24x rounded without it; `tests/test_quantize.py`), and growth decided on the rounded
-    score grew the bunny's table in both runs so scored (bench/results/target_runs.md, 5c9d155)."""
+    score grew the bunny's table in both runs so scored (bench/results/target_runs.md)."""
     def score(model) -> float:
         stored = copy.deepcopy(model)
         stored.eval()

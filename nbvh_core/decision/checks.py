@@ -14,8 +14,8 @@ from .records import CheckDecision
 #: A check below this fraction of the target stops the training; the held-out evaluation after it confirms or not.
 #: The margin is for the check views' error against the held-out views' and the training still moving: at the end of
 #: six target runs (stored-precision checks) the held-out views read 0.93-1.05x the last check (bench/results/need.csv).
-#: 0.8 was tried (bench_shipped at 20b83ca, in git): on eight assets nothing shipped differently from 0.9's run at
-#: 8cbaa54; the bunny, the sheet and the 48k dragon took 107, 39 and 23 s longer (the checks' time off the clock in part).
+#: 0.8 was tried (bench_shipped's history in git): on eight assets nothing shipped differently from 0.9; the bunny, the
+#: sheet and the 48k dragon took 107, 39 and 23 s longer (the checks' time off the clock in part).
 EARLY_STOP_MARGIN = 0.9
 #: A table grows only while at least this share of the budget is left: a table grown later trains too briefly to beat
 #: the one it replaces. Measured on the bunny (target 0.0004, 200 s, 6x4 features): grown 2^11 -> 2^12 at 53 s and
