@@ -51,6 +51,7 @@ SMOKE = {
     "bench_speed.py": ["--quick", "--asset", "blob", "--train-s", "1", "--steps", "3"],
     "bench_trace_speed.py": ["{tmp}/a.nbvh", "{tmp}/b.nbvh", "--make-tiny", "--size", "16", "--repeats", "1",
                              "--views", "1"],
+    "bench_textured_keep.py": ["--asset", "globe", "--levels", "1", "--time-limit", "2"],
     "bench_target_runs.py": ["--mesh", "gear", "--target", "0.01", "--seeds", "0", "--time-limit", "2"],
     "bench_table_bits.py": ["--meshes", "blob", "--seconds", "1", "--pairs", "8:6", "4:7"],
     "bench_table5.py": ["--steps", "5", "--meshes", "blob", "--methods", "base", "III"],

@@ -322,6 +322,10 @@ def test_a_decimation_verdict_writes_the_decimation_beside_the_output(tmp_path, 
     assert why["alternatives"]["decimation"]["triangles"] == dec.n_triangles and why["message"]
     assert why["files"] == {"bunny.glb": written.stat().st_size, "bunny.compact.cmsh": len(cmsh)}
     assert why["counted_compact_bytes"] == len(cmsh)
+    # the kept decimation scored against the bunny on the held-out views, as the verdict measured it (the plain
+    # decimation, so at most the compact mesh's MSE plus its grid's own error), with FLIP of what people see
+    kept = why["kept_quality"]
+    assert kept["mse"] <= 1.1 * why["alternatives"]["decimation"]["compact_mse_held_out"] and 0 < kept["flip"] < 0.2
     lo = dec.transform.to_original(dec.vertices).min(axis=0)  # original coordinates, like the PLY
     assert np.allclose(decoded.vertices.min(axis=0), lo, atol=1e-3 * float(np.ptp(dec.transform.to_original(dec.vertices))))
     # original coordinates: the same box as the source (a decimation keeps the silhouette's extent)

@@ -145,16 +145,17 @@ def _write_alternative(mesh, assessment, stem: Path, mesh_path: Path, args, sink
     """When the verdict keeps a mesh, the user gets the mesh that wins, beside where the model would have gone
     (`kept_mesh.kept_mesh_files`: NAME.glb with its look, NAME.compact.cmsh of exactly the bytes the verdict counted;
     written atomically; an existing file only with --overwrite), and why, as NAME.verdict.json: the assessment with
-    the measured alternatives, the final verdict, the training's checks when training had begun, and each file's
-    bytes (no model report: no model was written)."""
+    the measured alternatives, the final verdict, the training's checks when training had begun, each file's
+    bytes and the kept decimation's quality with its look (`kept_mesh.kept_quality`: FLIP, colour and image MSE on
+    the held-out views; no model report: no model was written)."""
     from ..protocol.outputs import check_outputs, write_atomic
     from ..planning.sizing import winning_decimation
-    from .kept_mesh import counted_compact_bytes, kept_mesh_files
+    from .kept_mesh import counted_compact_bytes, kept_mesh_files, kept_quality
 
     dec = winning_decimation(mesh, assessment) if assessment.recommendation == "decimate" else None
     files = {Path(f"{stem}{suffix}"): data for suffix, data in kept_mesh_files(mesh, assessment).items()}
     why = {**assessment.to_dict(), "files": {p.name: len(d) for p, d in files.items()},
-           "counted_compact_bytes": counted_compact_bytes(assessment)}
+           "counted_compact_bytes": counted_compact_bytes(assessment), "kept_quality": kept_quality(mesh, assessment)}
     files[Path(f"{stem}.verdict.json")] = json.dumps(why, indent=1, default=str).encode()
     for path, data in files.items():
         try:

@@ -36,3 +36,22 @@ def counted_compact_bytes(assessment: Assessment) -> int | None:
     if assessment.recommendation == "mesh" and "mesh_compact" in assessment.alternatives:
         return int(assessment.alternatives["mesh_compact"]["compact_bytes"])
     return None
+
+
+def kept_quality(mesh: Mesh, assessment: Assessment) -> dict | None:
+    """The kept decimation with its look, scored against `mesh` on the held-out views (the run's metric: 16 at
+    256 px): image MSE, colour MSE (linear albedo, where the asset has a look) and FLIP of the displayed images
+    (what people see). None when no decimation is kept."""
+    from ..geometry.exact import ExactTracer
+    from ..planning.sizing import winning_decimation
+    from ..rendering.metrics import MetricConfig, ViewScorer
+    from ..rendering.render import render_reference
+
+    dec = winning_decimation(mesh, assessment)
+    if dec is None:
+        return None
+    metric = MetricConfig()
+    scorer = ViewScorer(ExactTracer(mesh), mesh.transform, metric.views, metric.resolution, held_out=True)
+    kept = ExactTracer(dec)
+    q, _ = scorer.score(lambda cam, w, h: render_reference(kept, cam, w, h), flip=True)
+    return {"mse": q.mse, "colour_mse": q.colour_mse, "flip": q.flip, "views": scorer.name}
