@@ -123,3 +123,23 @@ def test_normal_targets_are_each_networks_own_unless_set():
     assert unoriented.train_config().normal_loss == "unoriented" and unoriented.model_config().network.normal_loss == "unoriented"
     with pytest.raises(ValueError, match="normal loss"):
         preset("default").with_overrides(normal_loss="sideways").model_config()
+
+
+@pytest.mark.parametrize("offset,scale", [(1e6, 1.0), (0.0, 1e-6), (-3e7, 250.0)],
+                         ids=["georeferenced-1e6", "tiny-1e-6", "offset-and-scaled"])
+def test_an_offset_or_scaled_copy_ends_as_the_original_does(offset, scale, sample_meshes):
+    """A georeferenced scan (coordinates near 10^6 and beyond) or a tiny one (10^-6) is normalised in double
+    precision before anything is float32: the same training (seed, steps) gives the same model's quality, and the
+    report speaks the copy's own units."""
+    import numpy as np
+
+    from nbvh_core.geometry.mesh import mesh_from_arrays
+
+    blob = sample_meshes["blob"]
+    copy = mesh_from_arrays(blob.transform.to_original(blob.vertices) * scale + offset, blob.faces, name="copy")
+    assert np.abs(copy.vertices - blob.vertices).max() < 1e-6
+    settings = preset("tiny").with_overrides(force=True)
+    a, b = compress_mesh(blob, settings), compress_mesh(copy, settings)
+    payload = lambda r: {k: v for k, v in r.components.items() if k != "header"}  # noqa: E731  (the header: names, times)
+    assert payload(a) == payload(b) and abs(b.quality.mse - a.quality.mse) <= 0.02 * a.quality.mse + 1e-6
+    assert np.isclose(b.quality.depth_error_original_units, a.quality.depth_error_original_units * scale, rtol=0.05)
