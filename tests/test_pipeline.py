@@ -143,3 +143,51 @@ def test_an_offset_or_scaled_copy_ends_as_the_original_does(offset, scale, sampl
     payload = lambda r: {k: v for k, v in r.components.items() if k != "header"}  # noqa: E731  (the header: names, times)
     assert payload(a) == payload(b) and abs(b.quality.mse - a.quality.mse) <= 0.02 * a.quality.mse + 1e-6
     assert np.isclose(b.quality.depth_error_original_units, a.quality.depth_error_original_units * scale, rtol=0.05)
+
+
+def _failure_class(name: str, blob):
+    """(vertices, faces) of one failure class, made from the blob where it needs a shape."""
+    import numpy as np
+    import trimesh
+
+    v, f = blob.vertices.astype(np.float64), blob.faces
+    if name == "inside-out":
+        return v, f[:, ::-1]
+    if name == "every face twice":
+        return v, np.concatenate([f, f])
+    if name == "1000 pieces":
+        ball, rng = trimesh.creation.icosphere(1), np.random.default_rng(0)
+        return (np.concatenate([ball.vertices * 0.01 + rng.random(3) for _ in range(1000)]),
+                np.concatenate([ball.faces + i * len(ball.vertices) for i in range(1000)]))
+    plane = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], float)
+    return {"one triangle": (plane[:3], np.array([[0, 1, 2]])),
+            "zero-thickness plane": (plane, np.array([[0, 1, 2], [0, 2, 3]])),
+            "long slivers": (np.array([[0, 0, 0], [1, 0, 0], [0.5, 1e-4, 0], [0.5, -1e-4, 0]], float),
+                             np.array([[0, 1, 2], [0, 3, 1]]))}[name]
+
+
+FAILURE_CLASSES = ("inside-out", "every face twice", "1000 pieces", "one triangle", "zero-thickness plane",
+                   "long slivers")
+
+
+@pytest.mark.parametrize("name", FAILURE_CLASSES)
+def test_each_failure_class_ends_with_a_clear_answer(name, sample_meshes):
+    """Through compress_mesh, sized by need: each class ends with the mesh kept and one line saying why (none of
+    them is worth a model at the tiny preset's size); forced, each trains a model whose held-out quality is a
+    number. Inside-out winding and doubled faces end exactly as the blob itself does (recorded: MSE 0.0949)."""
+    import math
+
+    from nbvh_core.geometry.mesh import mesh_from_arrays
+    from nbvh_core.protocol.process import NotWorthCompressing
+
+    blob = sample_meshes["blob"]
+    mesh = mesh_from_arrays(*_failure_class(name, blob), name=name.replace(" ", "_"))
+    with pytest.raises(NotWorthCompressing) as kept:
+        compress_mesh(mesh, preset("tiny").with_overrides(target_mse=0.0005))
+    assert "\n" not in str(kept.value) and kept.value.assessment.recommendation in ("mesh", "decimate")
+    forced = compress_mesh(mesh, preset("tiny").with_overrides(force=True))
+    assert math.isfinite(forced.quality.mse) and 0 <= forced.quality.mse < 0.3
+    if name in ("inside-out", "every face twice"):
+        original = compress_mesh(blob, preset("tiny").with_overrides(force=True))
+        assert forced.quality.mse == pytest.approx(original.quality.mse, rel=0.02)
+        assert forced.quality.mse == pytest.approx(0.0949, rel=0.15)
