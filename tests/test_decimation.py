@@ -163,3 +163,23 @@ def test_the_addon_s_glb_reader_reads_what_the_writer_wrote_and_refuses_the_rest
         with pytest.raises(ValueError) as err:
             read_glb(bad, "crafted.glb")
         assert "crafted.glb" in str(err.value) and "\n" not in str(err.value)
+
+
+def test_the_glb_s_normals_are_smooth_on_a_curved_surface_and_split_at_hard_edges(sphere_mesh):
+    """A box's 8 corners become 24 vertices with the sides' own normals (90-degree edges stay hard); a sphere keeps
+    one vertex per position with its smooth normal (CREASE_DEGREES)."""
+    import trimesh
+
+    from nbvh_core.geometry.glb import encode_glb
+    from nbvh_core.protocol.glb_reader import read_glb
+
+    box = trimesh.creation.box()
+    cube = mesh_from_arrays(np.asarray(box.vertices), np.asarray(box.faces), name="box")
+    got = read_glb(encode_glb(cube))
+    assert len(got["positions"]) == 24
+    assert np.allclose(np.abs(got["normals"]).max(1), 1.0, atol=1e-6)  # each an axis: a side's own normal
+    ball = read_glb(encode_glb(sphere_mesh))
+    assert len(ball["positions"]) == sphere_mesh.n_vertices
+    radial = ball["positions"] - ball["positions"].mean(0)
+    radial /= np.linalg.norm(radial, axis=1, keepdims=True)
+    assert np.einsum("ij,ij->i", radial, ball["normals"]).min() > 0.99
