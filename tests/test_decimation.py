@@ -183,3 +183,19 @@ def test_the_glb_s_normals_are_smooth_on_a_curved_surface_and_split_at_hard_edge
     radial = ball["positions"] - ball["positions"].mean(0)
     radial /= np.linalg.norm(radial, axis=1, keepdims=True)
     assert np.einsum("ij,ij->i", radial, ball["normals"]).min() > 0.99
+
+
+def test_a_triangle_soup_decimates_as_the_indexed_mesh_does(sample_meshes, tmp_path):
+    """An STL file reads as a soup (three vertices per triangle): welded by position, it decimates to the count and
+    to the same mesh as the indexed original (unwelded, every edge would be a seam and nothing could collapse)."""
+    import trimesh
+
+    from nbvh_core.geometry.mesh import load_mesh
+
+    blob = sample_meshes["blob"]
+    path = tmp_path / "blob.stl"
+    trimesh.Trimesh(blob.transform.to_original(blob.vertices), blob.faces, process=False).export(path)
+    soup = load_mesh(path)
+    assert soup.n_vertices == 3 * soup.n_triangles  # what the reader gives
+    a, b = decimate(soup, 800), decimate(blob, 800)
+    assert 700 <= a.n_triangles <= 800 and abs(a.n_triangles - b.n_triangles) <= 8

@@ -26,6 +26,10 @@ from .mesh import Mesh
 UV_WEIGHT = 0.5
 #: The simplifier stops at the target count, not at an error bound: the curve asks for counts.
 UNBOUNDED_ERROR = 1e9
+#: When the simplifier stops above this multiple of the count asked (every further collapse would cross the border
+#: of one of many parts: a CAD assembly), it runs again allowed to drop whole small parts. On the engine asked for
+#: 8.8k triangles: 10,781 at MSE 0.00510 plain, 8,195 at 0.00514 pruning (fast-simplification: 0.0134 at 8,825).
+PRUNE_ABOVE = 1.2
 
 
 class DecimationUnavailable(RuntimeError):
@@ -42,26 +46,29 @@ def simplifier_missing() -> str | None:
 
 
 def wedges(mesh: Mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
-    """The mesh as a glTF-style vertex buffer: one wedge per distinct (vertex, slot, texture coordinate).
+    """The mesh as a glTF-style vertex buffer: one wedge per distinct (position, slot, texture coordinate).
 
-    Returns (wedge_vertex (W,) int64 index into mesh.vertices, corners (F, 3) int64 wedge per corner,
-    wedge_slot (W,) int32 or None without several slots, wedge_uv (W, 2) float32 or None without coordinates)."""
+    Vertices are welded by position first: a triangle soup (an STL file reads as one: three vertices per triangle)
+    or a CAD part split at its hard edges would otherwise be all seams, and nothing could collapse.
+    Returns (wedge_vertex (W,) int64 index into mesh.vertices (the first vertex at its position), corners (F, 3)
+    int64 wedge per corner, wedge_slot (W,) int32 or None without several slots, wedge_uv (W, 2) float32 or None
+    without coordinates)."""
     look = mesh.look
-    faces = mesh.faces.astype(np.int64)
+    bits = np.ascontiguousarray(mesh.vertices, np.float32).view(np.int32)
+    _, first_vertex, position = np.unique(bits, axis=0, return_index=True, return_inverse=True)
+    welded = position.reshape(-1)[mesh.faces.astype(np.int64)]
     slots = None if look is None or look.n_slots <= 1 else look.face_slots
     uvs = None if look is None else look.corner_uvs
-    if slots is None and uvs is None:
-        return np.arange(mesh.n_vertices, dtype=np.int64), faces, None, None
-    cols = [faces.reshape(-1)]
+    cols = [welded.reshape(-1)]
     if slots is not None:
         cols.append(np.repeat(slots.astype(np.int64), 3))
     if uvs is not None:  # exact float bits: equal coordinates are one wedge, any difference is a seam
-        bits = np.ascontiguousarray(uvs.reshape(-1, 2), np.float32).view(np.int32).astype(np.int64)
-        cols += [bits[:, 0], bits[:, 1]]
+        uv_bits = np.ascontiguousarray(uvs.reshape(-1, 2), np.float32).view(np.int32).astype(np.int64)
+        cols += [uv_bits[:, 0], uv_bits[:, 1]]
     keys = np.stack(cols, axis=1)
     unique, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
     corners = inverse.reshape(-1, 3)
-    wedge_vertex = unique[:, 0]
+    wedge_vertex = first_vertex[unique[:, 0]].astype(np.int64)
     wedge_slot = None if slots is None else unique[:, 1].astype(np.int32)
     wedge_uv = None if uvs is None else uvs.reshape(-1, 2)[first].astype(np.float32)
     return wedge_vertex, corners, wedge_slot, wedge_uv
@@ -88,29 +95,39 @@ def simplify_indices(positions: np.ndarray, corners: np.ndarray, triangles: int,
     """meshoptimizer's simplifier to at most `triangles` triangles.
 
     positions: (W, 3) float32; corners: (F, 3) int indices into positions; attributes: (W, A) float32 weighed by
-    weights (A,) float32, or None. Returns (F', 3) int64 (F' <= triangles unless the simplifier stops early, which
-    it does only where every remaining collapse would break a seam or a border)."""
+    weights (A,) float32, or None. Returns (F', 3) int64: F' <= triangles unless the simplifier stops early (every
+    remaining collapse would break a seam or a border; past PRUNE_ABOVE it may drop whole small parts instead)."""
     missing = simplifier_missing()
     if missing:
         raise DecimationUnavailable(missing)
     import meshoptimizer
+
     pos = np.ascontiguousarray(positions, np.float32)
     idx = np.ascontiguousarray(corners.reshape(-1), np.uint32)
     out = np.zeros(idx.size, np.uint32)
     target = int(max(triangles, 1)) * 3
-    if attributes is None:
-        n = meshoptimizer.simplify(out, idx, pos, target_index_count=target, target_error=UNBOUNDED_ERROR)
-    else:
-        import ctypes
-
-        attr = np.ascontiguousarray(attributes, np.float32)
-        w = np.ascontiguousarray(weights, np.float32)
-        u32p, f32p = ctypes.POINTER(ctypes.c_uint), ctypes.POINTER(ctypes.c_float)
-        n = _with_attributes()(out.ctypes.data_as(u32p), idx.ctypes.data_as(u32p), idx.size,
-                               pos.ctypes.data_as(f32p), len(pos), 12, attr.ctypes.data_as(f32p),
-                               attr.shape[1] * 4, w.ctypes.data_as(f32p), w.size, None, target, UNBOUNDED_ERROR, 0,
-                               None)
+    n = _simplify(meshoptimizer, out, idx, pos, target, attributes, weights, 0)
+    if n > PRUNE_ABOVE * target:  # stuck at the borders of many parts: let it drop whole small parts
+        pruned = np.zeros_like(out)
+        m = _simplify(meshoptimizer, pruned, idx, pos, target, attributes, weights, meshoptimizer.SIMPLIFY_PRUNE)
+        if m > 0:  # never every part: a decimation of nothing is no alternative
+            out, n = pruned, m
     return out[:n].astype(np.int64).reshape(-1, 3)
+
+
+def _simplify(meshoptimizer, out, idx, pos, target, attributes, weights, options: int) -> int:
+    """One simplifier call into `out`; returns the index count."""
+    if attributes is None:
+        return meshoptimizer.simplify(out, idx, pos, target_index_count=target, target_error=UNBOUNDED_ERROR,
+                                      options=options)
+    import ctypes
+
+    attr = np.ascontiguousarray(attributes, np.float32)
+    w = np.ascontiguousarray(weights, np.float32)
+    u32p, f32p = ctypes.POINTER(ctypes.c_uint), ctypes.POINTER(ctypes.c_float)
+    return _with_attributes()(out.ctypes.data_as(u32p), idx.ctypes.data_as(u32p), idx.size, pos.ctypes.data_as(f32p),
+                              len(pos), 12, attr.ctypes.data_as(f32p), attr.shape[1] * 4, w.ctypes.data_as(f32p),
+                              w.size, None, target, UNBOUNDED_ERROR, options, None)
 
 
 def decimate(mesh: Mesh, triangles: int) -> Mesh:
