@@ -40,14 +40,21 @@ def _corner(x, y, z, scale, res, dense, T: tl.constexpr, cx: tl.constexpr, cy: t
 
 
 @triton.jit
+def _points(points_ptr, rows, live):
+    """The block's points, clamped to [0, 1]^3 as the reference clamps them."""
+    x = tl.minimum(tl.maximum(tl.load(points_ptr + rows * 3 + 0, mask=live, other=0.0), 0.0), 1.0)
+    y = tl.minimum(tl.maximum(tl.load(points_ptr + rows * 3 + 1, mask=live, other=0.0), 0.0), 1.0)
+    z = tl.minimum(tl.maximum(tl.load(points_ptr + rows * 3 + 2, mask=live, other=0.0), 0.0), 1.0)
+    return x, y, z
+
+
+@triton.jit
 def _encode_forward(points_ptr, table_ptr, scales_ptr, res_ptr, dense_ptr, out_ptr, n, offset_ptr, scale_ptr,
                     L: tl.constexpr, T: tl.constexpr, F: tl.constexpr, BLOCK_N: tl.constexpr, CODES: tl.constexpr):
     rows = tl.program_id(0) * BLOCK_N + tl.arange(0, BLOCK_N)
     live = rows < n
     feats = tl.arange(0, F)
-    x = tl.minimum(tl.maximum(tl.load(points_ptr + rows * 3 + 0, mask=live, other=0.0), 0.0), 1.0)
-    y = tl.minimum(tl.maximum(tl.load(points_ptr + rows * 3 + 1, mask=live, other=0.0), 0.0), 1.0)
-    z = tl.minimum(tl.maximum(tl.load(points_ptr + rows * 3 + 2, mask=live, other=0.0), 0.0), 1.0)
+    x, y, z = _points(points_ptr, rows, live)
     for level in tl.static_range(L):
         scale = tl.load(scales_ptr + level)
         res = tl.load(res_ptr + level)
@@ -72,9 +79,7 @@ def _encode_backward(points_ptr, grad_ptr, scales_ptr, res_ptr, dense_ptr, grad_
     rows = tl.program_id(0) * BLOCK_N + tl.arange(0, BLOCK_N)
     live = rows < n
     feats = tl.arange(0, F)
-    x = tl.minimum(tl.maximum(tl.load(points_ptr + rows * 3 + 0, mask=live, other=0.0), 0.0), 1.0)
-    y = tl.minimum(tl.maximum(tl.load(points_ptr + rows * 3 + 1, mask=live, other=0.0), 0.0), 1.0)
-    z = tl.minimum(tl.maximum(tl.load(points_ptr + rows * 3 + 2, mask=live, other=0.0), 0.0), 1.0)
+    x, y, z = _points(points_ptr, rows, live)
     for level in tl.static_range(L):
         scale = tl.load(scales_ptr + level)
         res = tl.load(res_ptr + level)
