@@ -11,14 +11,13 @@ from ..geometry.mesh import Mesh
 GLB, COMPACT = ".glb", ".compact.cmsh"
 
 
-def kept_mesh_files(mesh: Mesh, assessment: Assessment) -> dict[str, bytes]:
-    """suffix -> bytes of each file the kept mesh is written as ({} when the verdict ships a model). The decimation
-    is rebuilt exactly as measured (`sizing.winning_decimation`: deterministic)."""
+def kept_mesh_files(mesh: Mesh, assessment: Assessment, dec: Mesh | None) -> dict[str, bytes]:
+    """suffix -> bytes of each file the kept mesh is written as ({} when the verdict ships a model). dec: the
+    decimation the verdict keeps, rebuilt exactly as measured (`sizing.winning_decimation`: deterministic; None
+    when it keeps none), built once by the caller for every use."""
     from ..geometry.compact_mesh import encode_compact, in_original_units
     from ..geometry.glb import encode_glb
-    from ..planning.sizing import winning_decimation
 
-    dec = winning_decimation(mesh, assessment)
     files: dict[str, bytes] = {}
     if dec is not None:
         files[GLB] = encode_glb(dec)
@@ -38,16 +37,14 @@ def counted_compact_bytes(assessment: Assessment) -> int | None:
     return None
 
 
-def kept_quality(mesh: Mesh, assessment: Assessment) -> dict | None:
-    """The kept decimation with its look, scored against `mesh` on the held-out views (the run's metric: 16 at
+def kept_quality(mesh: Mesh, dec: Mesh | None) -> dict | None:
+    """The kept decimation `dec` with its look, scored against `mesh` on the held-out views (the run's metric: 16 at
     256 px): image MSE, colour MSE (linear albedo, where the asset has a look) and FLIP of the displayed images
     (what people see). None when no decimation is kept."""
     from ..geometry.exact import ExactTracer
-    from ..planning.sizing import winning_decimation
     from ..rendering.metrics import MetricConfig, ViewScorer
     from ..rendering.render import render_reference
 
-    dec = winning_decimation(mesh, assessment)
     if dec is None:
         return None
     metric = MetricConfig()

@@ -276,11 +276,12 @@ def _rounded(x) -> int | None:
 def _decimation_fields(mesh, assessment) -> dict:
     """The row's fields for the decimation a verdict keeps instead of a model (none when it keeps no decimation):
     the mesh that wins as a file the head writes (workers may not share its disk)."""
+    from ..planning.sizing import winning_decimation
     from .kept_mesh import counted_compact_bytes, kept_mesh_files
 
     if assessment.recommendation != "decimate":
         return {}
-    files = kept_mesh_files(mesh, assessment)
+    files = kept_mesh_files(mesh, assessment, winning_decimation(mesh, assessment))
     return {"decimation_triangles": assessment.alternatives["decimation"]["triangles"], "decimation_files": files,
             "decimation_compact_bytes": counted_compact_bytes(assessment)}
 

@@ -152,7 +152,8 @@ def _metadata(mesh: Mesh, run: RunConfig, notes: list, assessment, tr: TrainResu
     training = {"steps": tr.steps, "seconds": round(tr.seconds, 2), "samples": tr.samples,
                 "stopped_early": tr.stopped_early, "samples_per_s": round(tr.samples_per_s),
                 # None when no step ran (a checkpoint resumed at its end): a file's header holds no NaN
-                "final_loss": tr.final_loss if math.isfinite(tr.final_loss) else None, "device": tr.device, "compute_path": tr.compute_path,  # the kernel plan, exactly
+                "final_loss": tr.final_loss if math.isfinite(tr.final_loss) else None, "device": tr.device,
+                "compute_path": tr.compute_path,  # the kernel plan, exactly
                 "soft_loss_before_freeze": tr.soft_loss_before_freeze,
                 "frozen_loss": tr.frozen_loss, "finetuned_loss": tr.finetuned_loss}
     q = quality.to_dict() if quality else None

@@ -4,14 +4,15 @@ attribute-aware quadric simplifier, as gltfpack uses it), with the asset's look 
 The simplifier works on *wedges*: one vertex per distinct (position, material slot, texture coordinate), the way a
 glTF file holds them. Where two wedges share a position (a UV seam, a slot boundary) the simplifier sees a seam
 and only collapses along it, so seams stay closed and slots keep their borders; texture coordinates are weighed in
-the error (ATTRIBUTE_WEIGHTS), so islands are not stretched. Open borders only collapse along themselves. The
+the error (UV_WEIGHT), so islands are not stretched. Open borders only collapse along themselves. The
 simplifier moves no vertex (every kept vertex is an input vertex), so the result maps back onto the input's
 positions, slots and coordinates exactly, and the same call gives the same mesh again.
 
     dec = decimate(mesh, 12_000)        # Mesh with ~12k triangles, its look (slots, UVs, materials) kept
 
-Why meshoptimizer: scored by the product's metric (16 held-out views, 256 px image MSE) its plain `simplify` beat
-fast-simplification at equal triangle counts on every asset tried (bench/results/decimators.md).
+Why meshoptimizer: scored by the product's metric (16 held-out views, 256 px image MSE) this decimation reads
+1.09-10.6x lower MSE than fast-simplification at equal requested triangles on 16 of 18 points of six assets, 1.04x
+and 1.11x higher on two coarse ones (bench/results/decimators.md).
 """
 from __future__ import annotations
 
@@ -21,14 +22,15 @@ from .look import Look
 from .mesh import Mesh
 
 #: Weight of the texture coordinates against positions in the simplifier's error (positions are measured in the
-#: mesh's extent, coordinates in texture space). 0.5 keeps islands from stretching without blocking collapses
-#: inside them; measured on the textured bench assets (bench/results/decimators.md).
+#: mesh's extent, coordinates in texture space). 0.5 is a starting value, not tuned: no asset of
+#: bench/results/decimators.md has coordinates; the textured Fuze scan kept at it read FLIP 0.0065
+#: (bench/results/textured_keep.md).
 UV_WEIGHT = 0.5
 #: The simplifier stops at the target count, not at an error bound: the curve asks for counts.
 UNBOUNDED_ERROR = 1e9
 #: When the simplifier stops above this multiple of the count asked (every further collapse would cross the border
 #: of one of many parts: a CAD assembly), it runs again allowed to drop whole small parts. On the engine asked for
-#: 8.8k triangles: 10,781 at MSE 0.00510 plain, 8,195 at 0.00514 pruning (fast-simplification: 0.0134 at 8,825).
+#: 2,206 triangles: 3,588 at MSE 0.0085 plain, 1,031 at 0.0139 pruning (fast-simplification: 2,205 at 0.0157).
 PRUNE_ABOVE = 1.2
 
 
