@@ -68,6 +68,13 @@ def test_divergence_guard_catches_each_failure_and_passes_a_falling_loss():
         flat.observe(step, 1.0)
     with pytest.raises(TrainingDiverged, match="did not fall"):
         flat.finish(torch.nn.Linear(1, 1), 60)
+    dead = torch.nn.Linear(2, 1)  # dead ReLUs before it: gradient reaches the output bias alone
+    dead.weight.grad, dead.bias.grad = torch.zeros(1, 2), torch.ones(1)
+    with pytest.raises(TrainingDiverged, match="did not fall"):
+        flat.finish(dead, 60)
+    slow = torch.nn.Linear(2, 1)  # alive, learning slowly at a low rate: kept
+    slow.weight.grad, slow.bias.grad = torch.full((1, 2), 1e-3), torch.ones(1)
+    flat.finish(slow, 60)
     good = DivergenceGuard(cfg, 0)
     for step in range(60):
         good.observe(step, 1.0 / (1 + step))
