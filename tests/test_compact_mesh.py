@@ -94,3 +94,31 @@ def test_the_decoded_mesh_renders_like_the_original(sample_meshes):
     q, _ = evaluate_renderer(lambda cam, w, h: render_reference(tracer, cam, w, h), ExactTracer(mesh),
                              mesh.transform, 16, 256)
     assert q.mse < 2e-5 and q.silhouette_iou > 0.995 and nbytes < 6 * mesh.n_triangles
+
+
+def test_the_compiled_encoder_writes_the_reference_bytes(bunny, sample_meshes):
+    """kernels/native/mesh_codec.cpp against the Python strip (`_encode_cluster`): the same bytes, on a scan and on
+    a mesh whose triangles are wound against their neighbours (every escape code), at two grid resolutions."""
+    from nbvh_core.kernels import library
+
+    if library.load() is None:
+        pytest.skip(f"no compiled kernels here: {library.describe()}")
+    mesh, tree, data = bunny
+    flipped = sample_meshes["blob"]
+    flipped = type(flipped)(vertices=flipped.vertices, faces=np.where((np.arange(flipped.n_triangles) % 3 == 0)[:, None],
+                                                                      flipped.faces[:, ::-1], flipped.faces),
+                            transform=flipped.transform, name="half flipped")
+    for m, t, bits in ((mesh, tree, 14), (flipped, None, 14), (flipped, None, 9)):
+        fast = encode_compact(m, t, bits)
+        with library.using_path("reference"):
+            assert encode_compact(m, t, bits) == fast, (m.name, bits)
+
+
+def test_the_compact_mesh_weighed_is_the_one_its_bytes_decode_to(bunny):
+    """compact_mesh's triangles (taken from the encoder) are decode_compact's, corner for corner on the grid."""
+    mesh, tree, data = bunny
+    nbytes, snapped = compact_mesh(mesh, tree)
+    dec = decode_compact(data)
+    assert nbytes == len(data)
+    key = lambda v, f: _canonical(np.rint((v[f].astype(np.float64) - dec.vertices.min(axis=0)) / dec.step).astype(np.int64))
+    assert np.array_equal(key(snapped.vertices, snapped.faces), key(dec.vertices, dec.faces))

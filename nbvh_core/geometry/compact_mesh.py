@@ -213,9 +213,59 @@ def _encode_cluster(grid_pts: np.ndarray, local: np.ndarray) -> tuple[bytes, int
     return payload, widths[0] | widths[1] << 5 | widths[2] << 10, anchor.tolist(), perm
 
 
+def payload_bound(triangles: np.ndarray) -> np.ndarray:
+    """Each cluster's largest possible payload in bytes (int64, per triangle count): 3 x 16 bits per vertex (at
+    most 3 per triangle) and per triangle 3 code bits and three references of 1 + 8 bits (mesh_codec.cpp's bound)."""
+    t = np.asarray(triangles, np.int64)
+    return (3 * t * 48 + 7) // 8 + (t * 30 + 7) // 8 + 2
+
+
+def _native_encoder() -> bool:
+    """Whether the compiled cluster encoder serves (`kernels.native/mesh_codec.cpp`, byte for byte the reference)."""
+    from ..kernels import library
+
+    return library.current_path() == "fast" and library.load() is not None
+
+
+def _cluster_payloads(faces: np.ndarray, grid: np.ndarray, tri_sets: list[np.ndarray]):
+    """Every cluster's payload: (payload bytes list, packed widths (C,) int64, vertex counts (C,) int64, grid boxes
+    lo and hi (C, 3) int64). The compiled encoder where it builds (~1 us per triangle in Python: 65 s of a
+    1.2M-triangle lattice's plan), else `_encode_cluster` per cluster."""
+    n = len(tri_sets)
+    if _native_encoder():
+        from ..kernels import bindings
+
+        counts = np.array([len(t) for t in tri_sets], np.int64)
+        start = np.concatenate(([0], np.cumsum(counts))).astype(np.int64)
+        order = np.ascontiguousarray(np.concatenate(tri_sets).astype(np.int64))
+        out = np.zeros(int(payload_bound(counts).sum()), np.uint8)
+        offset, widths, n_verts = np.zeros(n + 1, np.int64), np.zeros(n, np.int64), np.zeros(n, np.int64)
+        lo, hi = np.zeros((n, 3), np.int64), np.zeros((n, 3), np.int64)
+        bindings.encode_clusters(faces=np.ascontiguousarray(faces, np.int32), grid=np.ascontiguousarray(grid, np.int64),
+                                 cluster_tris=order, t=len(order), cluster_start=start, c=n, out=out,
+                                 out_bytes=len(out), out_offset=offset, widths=widths, n_verts=n_verts, grid_lo=lo,
+                                 grid_hi=hi)
+        data = out.tobytes()
+        return [data[offset[k]:offset[k + 1]] for k in range(n)], widths, n_verts, lo, hi
+    payloads, widths, n_verts = [], np.zeros(n, np.int64), np.zeros(n, np.int64)
+    lo, hi = np.zeros((n, 3), np.int64), np.zeros((n, 3), np.int64)
+    for k, tris in enumerate(tri_sets):
+        verts = np.unique(faces[tris])
+        local = np.searchsorted(verts, faces[tris])
+        payload, widths[k], _, _ = _encode_cluster(grid[verts], local)
+        payloads.append(payload)
+        n_verts[k], lo[k], hi[k] = len(verts), grid[verts].min(axis=0), grid[verts].max(axis=0)
+    return payloads, widths, n_verts, lo, hi
+
+
 def encode_compact(mesh: Mesh, tree=None, grid_bits: int = GRID_BITS) -> bytes:
     """`mesh` in the compact layout (module docstring). tree: the mesh's `bvh.build_full_tree` when the caller has
     one (clusters are cut from it), else one is built. grid_bits: the global grid's bits per axis (<= 16)."""
+    return _encode(mesh, tree, grid_bits)[0]
+
+
+def _encode(mesh: Mesh, tree=None, grid_bits: int = GRID_BITS) -> tuple[bytes, np.ndarray, np.ndarray]:
+    """(the compact layout's bytes, every vertex as the layout decodes it (V, 3) float32, the grid (V, 3) int64)."""
     if not 4 <= grid_bits <= 16:
         raise ValueError(f"grid_bits must be 4..16, got {grid_bits}")
     tree = tree if tree is not None else build_full_tree(mesh)
@@ -223,24 +273,20 @@ def encode_compact(mesh: Mesh, tree=None, grid_bits: int = GRID_BITS) -> bytes:
     origin, step = _grid(mesh.vertices, grid_bits)
     grid = np.rint((mesh.vertices.astype(np.float64) - origin) / np.float64(step)).astype(np.int64)
     decoded = (origin + grid * np.float64(step)).astype(np.float32)
-    records, data = [], []
-    offset = 0
-    cluster_lo, cluster_hi = [], []
-    for tris in tri_sets:
-        verts = np.unique(mesh.faces[tris])
-        local = np.searchsorted(verts, mesh.faces[tris])
-        payload, widths, anchor, _ = _encode_cluster(grid[verts], local)
-        records.append(_CLUSTER.pack(*anchor, widths, len(verts) - 1, len(tris) - 1, offset))
-        data.append(payload)
-        offset += len(payload)
-        cluster_lo.append(decoded[verts].min(axis=0))
-        cluster_hi.append(decoded[verts].max(axis=0))
+    payloads, widths, n_verts, grid_lo, grid_hi = _cluster_payloads(mesh.faces, grid, tri_sets)
+    offsets = np.concatenate(([0], np.cumsum([len(p) for p in payloads])))
+    records = [_CLUSTER.pack(*map(int, grid_lo[k]), int(widths[k]), int(n_verts[k]) - 1, len(tris) - 1,
+                             int(offsets[k])) for k, tris in enumerate(tri_sets)]
+    # a vertex decodes to origin + grid x step (float64, then float32): monotone in the grid point, so a cluster's
+    # decoded box is its grid box decoded
+    cluster_lo = (origin + grid_lo * np.float64(step)).astype(np.float32)
+    cluster_hi = (origin + grid_hi * np.float64(step)).astype(np.float32)
     links, _ = _cluster_tree(len(records))
-    nodes = _encode_nodes(links, np.asarray(cluster_lo), np.asarray(cluster_hi))
+    nodes = _encode_nodes(links, cluster_lo, cluster_hi)
     root_lo = np.nextafter(np.min(cluster_lo, axis=0), -np.inf).astype(np.float32)
     root_hi = np.nextafter(np.max(cluster_hi, axis=0), np.inf).astype(np.float32)
     header = _HEADER.pack(MAGIC, len(links), len(records), *origin, step, *root_lo, *root_hi)
-    return header + nodes + b"".join(records) + b"".join(data)
+    return header + nodes + b"".join(records) + b"".join(payloads), decoded, grid
 
 
 def _quantize_box(lo, hi, plo, phi) -> np.ndarray:
@@ -394,9 +440,10 @@ def compact_bytes(mesh: Mesh, tree=None) -> int:
 def compact_mesh(mesh: Mesh, tree=None) -> tuple[int, Mesh]:
     """(exact bytes of `mesh` in the compact layout, the decoded triangles as a Mesh in the same normalised
     coordinates, for measuring the image error of what the layout holds)."""
-    data = encode_compact(mesh, tree)
-    dec = decode_compact(data)
+    # The layout's triangles are the mesh's on its vertices snapped to the grid (what decode_compact reads back:
+    # tests/test_compact_mesh.py), so they are taken from the encoder instead of decoding the bytes again.
+    data, snapped, _ = _encode(mesh, tree)
     # a sliver the grid collapsed to zero area is never hit (Embree skips it) and has no normal: left out
-    tri = dec.vertices[dec.faces].astype(np.float64)
+    tri = snapped[mesh.faces].astype(np.float64)
     keep = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1) > 0
-    return len(data), Mesh(vertices=dec.vertices, faces=dec.faces[keep], transform=mesh.transform, name=mesh.name)
+    return len(data), Mesh(vertices=snapped, faces=mesh.faces[keep], transform=mesh.transform, name=mesh.name)

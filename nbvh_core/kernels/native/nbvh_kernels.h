@@ -137,4 +137,14 @@ void* nbvh_leaves_traverse(const float* rays_o /* (n, 3) */, const float* inv_d 
 void nbvh_leaves_collect(void* handle, int64_t* out_node /* (?) null */, float* out_te /* (?) null */,
                          float* out_tx /* (?) null */);
 
+// ---- mesh_codec.cpp: the compact mesh's cluster payloads (geometry/compact_mesh.py's encoder, byte for byte) ----
+// Cluster k is faces[cluster_tris[cluster_start[k]:cluster_start[k + 1]]] (at most 64) on the global grid points
+// `grid`; its payload is out[out_offset[k]:out_offset[k + 1]]. `out` holds at least the bound
+// compact_mesh.payload_bound gives; per cluster: packed bit widths, vertex count, grid box (lo, hi).
+void nbvh_encode_clusters(const int32_t* faces /* (?, 3) */, const int64_t* grid /* (?, 3) */,
+                          const int64_t* cluster_tris /* (t) */, int64_t t, const int64_t* cluster_start /* (c + 1) */,
+                          int64_t c, uint8_t* out /* (out_bytes) */, int64_t out_bytes,
+                          int64_t* out_offset /* (c + 1) */, int64_t* widths /* (c) */, int64_t* n_verts /* (c) */,
+                          int64_t* grid_lo /* (c, 3) */, int64_t* grid_hi /* (c, 3) */, int threads);
+
 }  // extern "C"
