@@ -136,3 +136,21 @@ def test_tree_cut_refinement_splits_the_worst_leaves_up_to_the_budget(sample_mes
     # Never beyond the budget: asking for 1000 splits stops at 128 leaves (255 nodes).
     full_cut, _ = refine_cut(refined, np.ones(refined.n_leaves), 1000)
     assert full_cut.n_leaves == 128 and full_cut.n_nodes == 255
+
+
+def test_the_compiled_tree_builder_builds_the_numpy_tree_node_for_node(sample_meshes):
+    """kernels/native/tree_build.cpp against the numpy build: the same boxes, links, ranges, depths and triangle
+    order, on a scan, on every face twice (coincident centroids: the median split) and with 4 triangles per leaf."""
+    from nbvh_core.kernels import library
+
+    if library.load() is None:
+        pytest.skip(f"no compiled kernels here: {library.describe()}")
+    bunny, blob = sample_meshes["bunny"], sample_meshes["blob"]
+    doubled = type(blob)(vertices=blob.vertices, faces=np.concatenate([blob.faces, blob.faces]),
+                         transform=blob.transform, name="every face twice")
+    for mesh, leaf in ((bunny, 1), (doubled, 1), (bunny, 4)):
+        fast = build_full_tree(mesh, max_leaf_size=leaf)
+        with library.using_path("reference"):
+            ref = build_full_tree(mesh, max_leaf_size=leaf)
+        for field in ("lo", "hi", "left", "start", "count", "depth", "tri_order"):
+            assert np.array_equal(getattr(fast, field), getattr(ref, field)), (mesh.name, leaf, field)

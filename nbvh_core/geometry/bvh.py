@@ -137,8 +137,11 @@ def build_full_tree(mesh: Mesh, max_leaf_size: int = 1, n_bins: int = 16, median
     tri = mesh.triangles()
     tri_lo = tri.min(axis=1)
     tri_hi = tri.max(axis=1)
+    del tri
     centroid = ((tri_lo.astype(np.float64) + tri_hi) * 0.5)
-    n_tri = tri.shape[0]
+    n_tri = tri_lo.shape[0]
+    if _native_tree_builder() and n_tri:
+        return _build_full_tree_native(tri_lo, tri_hi, centroid, max_leaf_size, n_bins, median_below)
 
     lo_list = [tri_lo.min(axis=0, keepdims=True)]
     hi_list = [tri_hi.max(axis=0, keepdims=True)]
@@ -203,6 +206,33 @@ def build_full_tree(mesh: Mesh, max_leaf_size: int = 1, n_bins: int = 16, median
     return FullTree(lo=np.concatenate(lo_list), hi=np.concatenate(hi_list), left=np.concatenate(left_list),
                     start=np.concatenate(start_list), count=np.concatenate(count_list),
                     depth=np.concatenate(depth_list), tri_order=order)
+
+
+def _native_tree_builder() -> bool:
+    """Whether the compiled builder serves (`kernels/native/tree_build.cpp`: node for node the numpy build below)."""
+    from ..kernels import library
+
+    return library.current_path() == "fast" and library.load() is not None
+
+
+def _build_full_tree_native(tri_lo: np.ndarray, tri_hi: np.ndarray, centroid: np.ndarray, max_leaf_size: int,
+                            n_bins: int, median_below: int) -> FullTree:
+    """build_full_tree by the compiled builder (the same tree; ~20x faster than the level-wise numpy sorts)."""
+    from ..kernels import bindings
+
+    n = len(tri_lo)
+    cap = 2 * n - 1 if max_leaf_size <= 1 else 2 * n
+    lo, hi = np.empty((cap, 3), np.float32), np.empty((cap, 3), np.float32)
+    left, start, count = np.empty(cap, np.int64), np.empty(cap, np.int64), np.empty(cap, np.int64)
+    depth, order, used = np.empty(cap, np.int32), np.empty(n, np.int64), np.zeros(1, np.int64)
+    bindings.build_full_tree(tri_lo=np.ascontiguousarray(tri_lo, np.float32),
+                             tri_hi=np.ascontiguousarray(tri_hi, np.float32), centroid=centroid, n=n,
+                             max_leaf_size=max_leaf_size, n_bins=n_bins, median_below=median_below, capacity=cap,
+                             node_lo=lo, node_hi=hi, left=left, start=start, count=count, depth=depth, order=order,
+                             n_nodes=used)
+    m = int(used[0])
+    return FullTree(lo=lo[:m].copy(), hi=hi[:m].copy(), left=left[:m].copy(), start=start[:m].copy(),
+                    count=count[:m].copy(), depth=depth[:m].copy(), tri_order=order)
 
 
 def _level_bins(order: np.ndarray, active_start: np.ndarray, active_count: np.ndarray, centroid: np.ndarray,

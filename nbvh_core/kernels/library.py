@@ -37,7 +37,7 @@ _tried = False
 
 
 def sources() -> list[Path]:
-    """The C++ translation units, one per component (encode, networks, vqad, traversal, mesh_codec, abi)."""
+    """The C++ translation units, one per component (encode, networks, vqad, traversal, mesh_codec, tree_build, abi)."""
     return sorted(NATIVE.glob("*.cpp"))
 
 
