@@ -9,6 +9,7 @@ from dataclasses import dataclass
 
 from ..decision.alternative_curve import AlternativeCurve, CurvePoint
 from ..decision.records import Assessment
+from ..geometry.decimation import Decimator
 from ..geometry.exact import ExactTracer
 from ..geometry.mesh import Mesh
 from ..planning import sizing
@@ -36,6 +37,8 @@ class Weighing:
     curve: AlternativeCurve | None = None
     curve_held_out: AlternativeCurve | None = None
     look_bytes: int = 0
+    #: the mesh's decimation chain: the final verdict's extra points come from it, never from a fresh pass
+    decimator: Decimator | None = None
 
 
 def weigh(mesh: Mesh, run: RunConfig, tracer: ExactTracer, made=None) -> tuple[Assessment, Weighing]:
@@ -53,15 +56,18 @@ def weigh(mesh: Mesh, run: RunConfig, tracer: ExactTracer, made=None) -> tuple[A
         look_bytes = sum(look_stored_bytes(made[0].cfg if made else None, shipped_materials(mesh, made),
                                            run.storage).values())
     measured = run.decision.target_mse is not None
-    assessment = assess(mesh, model_bytes, run.decision, checks if measured else None, held_out, look_bytes)
+    decimator = Decimator(mesh)
+    assessment = assess(mesh, model_bytes, run.decision, checks if measured else None, held_out, look_bytes,
+                        decimator)
     return assessment, Weighing(checks, held_out, AlternativeCurve.from_alternatives(assessment.alternatives),
-                                AlternativeCurve.from_alternatives(assessment.alternatives, held_out=True), look_bytes)
+                                AlternativeCurve.from_alternatives(assessment.alternatives, held_out=True), look_bytes,
+                                decimator)
 
 def measure_decimation(mesh: Mesh, weighing: Weighing, assessment):
     """measure(triangles) -> CurvePoint for the final verdict: one more decimation scored on the held-out views
     (and recorded with the others, so the one that ships can be written)."""
     def measure(count: int) -> CurvePoint:
-        entry = sizing.decimation_entry(mesh, count, weighing.checks, weighing.held_out, None)
+        entry = sizing.decimation_entry(mesh, count, weighing.checks, weighing.held_out, None, weighing.decimator)
         if not entry["triangles"]:
             return CurvePoint(2 ** 62, math.inf, 0, count)
         assessment.alternatives.setdefault("decimations_tried", []).append(entry)

@@ -47,6 +47,22 @@ def simplifier_missing() -> str | None:
     return None
 
 
+def unique_rows(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """np.unique(keys, axis=0, return_index=True, return_inverse=True) for an (N, K) integer array, by one stable
+    lexsort (np.unique sorts rows as opaque records: 1.6 s per call on a 1.2M-triangle mesh's corners, most of
+    its decimation's time). Returns (unique rows (U, K) in ascending row order, the first index of each (U,),
+    each row's unique index (N,))."""
+    keys = np.asarray(keys)
+    order = np.lexsort(keys.T[::-1])
+    ranked = keys[order]
+    new = np.ones(len(keys), bool)
+    new[1:] = (ranked[1:] != ranked[:-1]).any(axis=1)
+    group = np.cumsum(new) - 1
+    inverse = np.empty(len(keys), np.int64)
+    inverse[order] = group
+    return ranked[new], order[new], inverse
+
+
 def wedges(mesh: Mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
     """The mesh as a glTF-style vertex buffer: one wedge per distinct (position, slot, texture coordinate).
 
@@ -57,7 +73,7 @@ def wedges(mesh: Mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.nd
     without coordinates)."""
     look = mesh.look
     bits = np.ascontiguousarray(mesh.vertices, np.float32).view(np.int32)
-    _, first_vertex, position = np.unique(bits, axis=0, return_index=True, return_inverse=True)
+    _, first_vertex, position = unique_rows(bits)
     welded = position.reshape(-1)[mesh.faces.astype(np.int64)]
     slots = None if look is None or look.n_slots <= 1 else look.face_slots
     uvs = None if look is None else look.corner_uvs
@@ -68,7 +84,7 @@ def wedges(mesh: Mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.nd
         uv_bits = np.ascontiguousarray(uvs.reshape(-1, 2), np.float32).view(np.int32).astype(np.int64)
         cols += [uv_bits[:, 0], uv_bits[:, 1]]
     keys = np.stack(cols, axis=1)
-    unique, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+    unique, first, inverse = unique_rows(keys)
     corners = inverse.reshape(-1, 3)
     wedge_vertex = first_vertex[unique[:, 0]].astype(np.int64)
     wedge_slot = None if slots is None else unique[:, 1].astype(np.int32)
@@ -132,30 +148,75 @@ def _simplify(meshoptimizer, out, idx, pos, target, attributes, weights, options
                               w.size, None, target, UNBOUNDED_ERROR, options, None)
 
 
-def decimate(mesh: Mesh, triangles: int) -> Mesh:
-    """`mesh` simplified to about `triangles` triangles (< mesh.n_triangles), its look kept.
+#: The chain's levels (triangles, x4 apart): a decimation to N triangles is simplified from the chain's level just
+#: above N (itself from the level above it, the top from the mesh), not from the whole mesh: one pass over a heavy
+#: mesh serves every count of the alternative's curve (`Decimator`).
+CHAIN_LEVELS = (250, 1_000, 4_000, 16_000, 64_000, 256_000, 1_024_000, 4_096_000, 16_384_000)
 
-    Positions are the input's (normalised coordinates, same transform); each kept triangle keeps its material slot
-    and its corners' texture coordinates. Deterministic: the same mesh and count give the same result.
-    Raises DecimationUnavailable without meshoptimizer."""
-    wedge_vertex, corners, wedge_slot, wedge_uv = wedges(mesh)
-    positions = mesh.vertices[wedge_vertex]
-    if wedge_uv is None:
-        kept = simplify_indices(positions, corners, triangles)
-    else:
-        kept = simplify_indices(positions, corners, triangles, wedge_uv, np.full(2, UV_WEIGHT, np.float32))
-    faces = wedge_vertex[kept]
-    used, faces = np.unique(faces.reshape(-1), return_inverse=True)
-    faces = faces.reshape(-1, 3).astype(np.int32)
-    look = None
-    if mesh.look is not None:
-        slots = (np.zeros(len(kept), np.int32) if wedge_slot is None else wedge_slot[kept[:, 0]])
-        look = Look(slots, None if wedge_uv is None else wedge_uv[kept], mesh.look.materials)
-    # Distinct vertices at one position (a globe's pole, welded CAD parts) can meet in a triangle of no area: dropped,
-    # as the mesh reader drops them (else the file written would read back with fewer triangles than counted).
-    tri = mesh.vertices[used][faces].astype(np.float64)
-    keep = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1) > 0
-    if look is not None and not keep.all():
-        look = look.subset(keep)
-    return Mesh(vertices=mesh.vertices[used], faces=faces[keep], transform=mesh.transform, name=mesh.name,
-                look=look)
+
+class Decimator:
+    """One mesh's decimations at any counts, its look kept. The wedges are built once; a count is simplified from
+    the decimation at the next CHAIN_LEVELS level above it (kept once made), so every count costs a pass over a
+    mesh at most 4x its size, and only the chain's top pass reads the whole mesh. The chain depends on the count
+    alone: the same mesh and count give the same decimation, whatever was asked before.
+
+    chained=False simplifies every count from the whole mesh (`decimate`)."""
+
+    def __init__(self, mesh: Mesh, chained: bool = True):
+        self.mesh, self.chained = mesh, chained
+        self._wedges: tuple | None = None
+        self._levels: dict[int, np.ndarray] = {}
+
+    def _wedge_data(self) -> tuple:
+        if self._wedges is None:
+            wedge_vertex, corners, wedge_slot, wedge_uv = wedges(self.mesh)
+            self._wedges = (wedge_vertex, corners, wedge_slot, wedge_uv, self.mesh.vertices[wedge_vertex])
+        return self._wedges
+
+    def source_level(self, triangles: int) -> int | None:
+        """The chain level a decimation to `triangles` is simplified from (None: the whole mesh)."""
+        if not self.chained:
+            return None
+        return next((lv for lv in CHAIN_LEVELS if triangles < lv < self.mesh.n_triangles), None)
+
+    def kept_corners(self, triangles: int) -> np.ndarray:
+        """(F', 3) int64 wedge corners of the decimation to `triangles` (F' <= triangles unless the simplifier
+        stops early: `simplify_indices`)."""
+        wedge_vertex, corners, _, wedge_uv, positions = self._wedge_data()
+        level = self.source_level(triangles)
+        if level is not None and level not in self._levels:
+            self._levels[level] = self.kept_corners(level)
+        source = corners if level is None else self._levels[level]
+        if wedge_uv is None:
+            return simplify_indices(positions, source, triangles)
+        return simplify_indices(positions, source, triangles, wedge_uv, np.full(2, UV_WEIGHT, np.float32))
+
+    def __call__(self, triangles: int) -> Mesh:
+        """The decimation to about `triangles` triangles (< the mesh's) as a Mesh: the input's positions
+        (normalised coordinates, same transform), each kept triangle with its slot and its corners' coordinates.
+        Raises DecimationUnavailable without meshoptimizer."""
+        wedge_vertex, _, wedge_slot, wedge_uv, _ = self._wedge_data()
+        kept = self.kept_corners(triangles)
+        mesh = self.mesh
+        faces = wedge_vertex[kept]
+        used, faces = np.unique(faces.reshape(-1), return_inverse=True)
+        faces = faces.reshape(-1, 3).astype(np.int32)
+        look = None
+        if mesh.look is not None:
+            slots = (np.zeros(len(kept), np.int32) if wedge_slot is None else wedge_slot[kept[:, 0]])
+            look = Look(slots, None if wedge_uv is None else wedge_uv[kept], mesh.look.materials)
+        # Distinct vertices at one position (a globe's pole, welded CAD parts) can meet in a triangle of no area:
+        # dropped, as the mesh reader drops them (else the file written would read back with fewer triangles).
+        tri = mesh.vertices[used][faces].astype(np.float64)
+        keep = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1) > 0
+        if look is not None and not keep.all():
+            look = look.subset(keep)
+        return Mesh(vertices=mesh.vertices[used], faces=faces[keep], transform=mesh.transform, name=mesh.name,
+                    look=look)
+
+
+def decimate(mesh: Mesh, triangles: int, chained: bool = True) -> Mesh:
+    """`mesh` simplified to about `triangles` triangles (< mesh.n_triangles), its look kept (`Decimator`: the
+    same result as a Decimator of the mesh gives for that count). chained=False: simplified from the whole mesh.
+    Deterministic. Raises DecimationUnavailable without meshoptimizer."""
+    return Decimator(mesh, chained)(triangles)

@@ -33,7 +33,7 @@ import numpy as np
 
 from ..geometry.bvh import build_full_tree, resident_bvh_nodes
 from ..geometry.mesh import Mesh
-from ..geometry.decimation import decimate, simplifier_missing  # noqa: F401  (decimate re-exported for benches)
+from ..geometry.decimation import Decimator, decimate, simplifier_missing  # noqa: F401  (decimate: for benches)
 from ..protocol.quality_levels import QUALITY_LEVELS  # noqa: F401  (re-exported)
 from ..decision.config import DecisionConfig
 from ..decision.records import Assessment
@@ -431,17 +431,19 @@ def look_carried_bytes(mesh: Mesh, n_vertices: int, n_triangles: int) -> int:
     return int(textures + uv + slots)
 
 
-def decimation_entry(mesh: Mesh, count: int, checks, held_out, draco) -> dict:
-    """One point of the alternative: the decimation (`geometry.decimation.decimate`) to ~`count` triangles, plainly and as a compact mesh
+def decimation_entry(mesh: Mesh, count: int, checks, held_out, draco, decimator: Decimator | None = None) -> dict:
+    """One point of the alternative: the decimation to ~`count` triangles (`decimator`, the mesh's
+    `geometry.decimation.Decimator`: one chain for every point; else one is made), plainly and as a compact mesh
     (exact bytes; the decoded compact mesh scored on the check views and, when given, the held-out views)."""
     from ..geometry.compact_mesh import compact_mesh
 
-    dec = decimate(mesh, count)
+    dec = (decimator or Decimator(mesh))(count)
     if dec.n_triangles == 0:
         return {"triangles": 0, "requested_triangles": count, "mse": math.inf, "compact_mse": math.inf}
+    tree = build_full_tree(dec)  # one tree for the resident count and the compact layout's clusters
     entry = {"triangles": dec.n_triangles, "requested_triangles": count, "mse": checks.score_mesh(dec).mse,
-             "resident_bytes": mesh_resident_bytes(dec)["total"]}
-    nbytes, decoded = compact_mesh(dec)
+             "resident_bytes": mesh_resident_bytes(dec, tree)["total"]}
+    nbytes, decoded = compact_mesh(dec, tree)
     entry["compact_bytes"] = nbytes
     entry["look_bytes"] = look_carried_bytes(mesh, dec.n_vertices, dec.n_triangles)
     entry["compact_mse"] = checks.score_mesh(decoded).mse
@@ -452,13 +454,15 @@ def decimation_entry(mesh: Mesh, count: int, checks, held_out, draco) -> dict:
     return entry
 
 
-def alternatives(mesh: Mesh, target_mse: float | None, checks=None, held_out=None, tree=None) -> dict:
+def alternatives(mesh: Mesh, target_mse: float | None, checks=None, held_out=None, tree=None,
+                 decimator: Decimator | None = None) -> dict:
     """What a user could ship instead, measured: Draco (11-bit, storage bytes) of the mesh, and decimations
     (`geometry.decimation.decimate`: meshoptimizer, the look kept) up to the smallest whose image MSE meets `target_mse` (see DECIMATE_COUNTS), each with its
     resident and compact-mesh bytes and the compact mesh's MSE, scored by the run's own metric: `checks` (a
     rendering.metrics.ViewScorer: the training checks' views) and `held_out` (the final evaluation's). The whole
     mesh as a compact mesh is scored too ('mesh_compact'; `tree`: its `bvh.build_full_tree` when the caller has one).
-    Missing optional packages give a note instead of numbers. With a target, `checks` is required."""
+    Missing optional packages give a note instead of numbers. With a target, `checks` is required. decimator:
+    the mesh's `Decimator` (its chain serves later points too), else one is made."""
     out: dict = {}
     try:
         import DracoPy
@@ -476,9 +480,10 @@ def alternatives(mesh: Mesh, target_mse: float | None, checks=None, held_out=Non
         return out
     out["metric"] = checks.name
     tried: dict[int, dict] = {}
+    decimator = decimator or Decimator(mesh)
 
     def measure(count: int) -> dict:
-        tried[count] = decimation_entry(mesh, count, checks, held_out, DracoPy)
+        tried[count] = decimation_entry(mesh, count, checks, held_out, DracoPy, decimator)
         return tried[count]
 
     def meets(entry: dict) -> bool:  # on the check views and, when measured, the held-out views alike
@@ -543,23 +548,25 @@ def mesh_file_bytes(mesh: Mesh) -> bytes:
 
 # ---------------------------------------------------------------------------------------------------- verdict
 def assess(mesh: Mesh, model_bytes: int, decision: DecisionConfig, checks=None, held_out=None,
-           look_bytes: int = 0) -> Assessment:
+           look_bytes: int = 0, decimator: Decimator | None = None, tree=None) -> Assessment:
     """Weigh a model of `model_bytes` (its file, `RunConfig.file_bytes`) against the mesh and, with a target MSE
     (`decision.target_mse`) and the run's view sets (`checks`, `held_out`: `rendering.metrics.view_sets`), against
     the smallest decimation that meets it, each held in `decision.mesh_layout` (see MESH_LAYOUTS; both layouts are
     reported): 'mesh' when the whole mesh is no larger than the model, 'decimate' when the decimation is not, else
     'neural'. Draco's size (storage only) is reported beside. look_bytes: what the model's file adds for the
     asset's look (appearance head and textures, `fileformat.look_stored_bytes`), so the model is weighed as it will
-    ship."""
+    ship. decimator: the mesh's `Decimator` (the caller's, to measure more points later); tree: the mesh's
+    `bvh.build_full_tree` when the caller has one."""
     from ..geometry.compact_mesh import compact_bytes
 
     layout = decision.mesh_layout
     model = model_bytes + look_bytes
-    tree = build_full_tree(mesh)
+    tree = tree if tree is not None else build_full_tree(mesh)
     resident_bytes = mesh_resident_bytes(mesh, tree)
     resident = resident_bytes["total"]
     # The Draco size always (cheap: shows which tool wins for storage alone); decimations only with a target.
-    alt = alternatives(mesh, decision.target_mse if checks is not None else None, checks, held_out, tree)
+    alt = alternatives(mesh, decision.target_mse if checks is not None else None, checks, held_out, tree,
+                       decimator)
     compact = alt["mesh_compact"]["compact_bytes"] if "mesh_compact" in alt else compact_bytes(mesh, tree)
     dec = alt.get("decimation")
     # A mesh weighed against the model carries the asset's look too (the model's head and images are in `model`).
