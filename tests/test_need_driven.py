@@ -551,3 +551,29 @@ def test_a_resumed_run_keeps_its_target_and_ends_with_the_final_verdict(tmp_path
         final, log2 = kept.assessment.final, first.settings.log2_table
     assert final is not None and final["shipped"] in ("model", "decimation", "mesh") and final["message"]
     assert log2 == first.settings.log2_table  # the checkpoint's size, not a new search
+
+
+def test_the_plan_reports_each_measurement_and_cancel_stops_it_between_two(sample_meshes):
+    """A heavy mesh's plan takes minutes: each measurement is a progress event (what, how far, an ETA from the
+    steps so far), and Cancel is answered before the next one or before the BVH, never after training."""
+    from nbvh_core.app.pipeline import compress_mesh
+    from nbvh_core.planning.settings import settings_from_request
+    from nbvh_core.protocol.process import Cancelled
+
+    mesh = sample_meshes["blob"]
+    events: list = []
+    plan = lambda: [e for e in events if e["event"] == "progress" and e.get("phase") == "plan"]  # noqa: E731
+    with pytest.raises(Cancelled, match="measuring the alternative"):
+        compress_mesh(mesh, settings_from_request({"time_limit_s": 2, "force": True}), None, events=events.append,
+                      should_cancel=lambda: len(plan()) >= 2)
+    ticks = plan()
+    assert len(ticks) == 2 and ticks[0]["message"].startswith("decimation to 250 ")
+    assert ticks[0]["eta_s"] is None and ticks[1]["eta_s"] is not None and 0 < ticks[1]["fraction"] < 1
+    assert not [e for e in events if e["event"] == "phase" and e["phase"] == "bvh"]
+
+    events.clear()
+    whole = lambda: any("whole mesh" in e.get("message", "") for e in plan())  # noqa: E731
+    with pytest.raises(Cancelled, match="before the BVH"):
+        compress_mesh(mesh, settings_from_request({"time_limit_s": 2, "force": True}), None, events=events.append,
+                      should_cancel=whole)
+    assert whole() and not [e for e in events if e["event"] == "phase" and e["phase"] == "bvh"]

@@ -20,7 +20,7 @@ import torch
 from ..decision.final_verdict import final_verdict
 from ..decision.records import RunNote, why_of
 from ..decision.verdict import mesh_kept
-from ..geometry.bvh import NODE_DTYPE, build_bvh
+from ..geometry.bvh import NODE_DTYPE, build_bvh, cut_tree
 from ..geometry.exact import ExactTracer
 from ..geometry.mesh import Mesh
 from ..neural.appearance import finalize_head, make_head
@@ -106,13 +106,13 @@ def resume_settings(checkpoint_path: str | Path, mesh: Mesh) -> Settings:
 
 
 def _verdict(mesh: Mesh, run: RunConfig, tracer: ExactTracer, made, events: EventSink, seconds: dict,
-             resumed: bool = False):
+             resumed: bool = False, should_cancel: Callable[[], bool] = lambda: False):
     """Is the model worth training (`weigh`)? Raises NotWorthCompressing unless forced or `resumed` (the run it
     continues decided to train; its final verdict still weighs the model); returns (Assessment, Weighing); in
     seconds['plan']."""
     t = time.perf_counter()
     events(wire.phase(phase="plan", message=why_of(run.notes)))
-    assessment, weighing = weigh(mesh, run, tracer, made)
+    assessment, weighing = weigh(mesh, run, tracer, made, events, should_cancel)
     seconds["plan"] = time.perf_counter() - t
     if not assessment.worth_compressing:
         if resumed and not run.decision.force:
@@ -133,13 +133,13 @@ def _keep_the_mesh(assessment, verdict, events: EventSink, checks: list):
     return NotWorthCompressing(kept)
 
 
-def _training_bvh(mesh: Mesh, nodes: int, node_bits: int, events: EventSink, seconds: dict):
-    """The BVH the model is trained on: `nodes` nodes, snapped to 8-bit boxes when the file stores them so
-    (node_bits 8: each contains its exact box). A size search retrains with another T only, never another node
-    count."""
+def _training_bvh(mesh: Mesh, nodes: int, node_bits: int, events: EventSink, seconds: dict, tree=None):
+    """The BVH the model is trained on: `nodes` nodes cut from the mesh's full tree (`tree`, the plan's, else
+    built), snapped to 8-bit boxes when the file stores them so (node_bits 8: each contains its exact box). A size
+    search retrains with another T only, never another node count."""
     t = time.perf_counter()
     events(wire.phase(phase="bvh", message=f"{mesh.n_triangles} triangles -> {nodes} nodes"))
-    bvh = build_bvh(mesh, nodes)
+    bvh = build_bvh(mesh, nodes) if tree is None else cut_tree(tree, nodes)
     if node_bits == 8:
         bvh = dataclasses.replace(bvh, nodes=snap_nodes(bvh.nodes))
     seconds["bvh"] = time.perf_counter() - t
@@ -223,8 +223,11 @@ def _compress(mesh: Mesh, run: RunConfig, out_path, events: EventSink, should_ca
     tracer = ExactTracer(mesh)  # one Embree scene for the alternatives, the labels and the evaluation
     torch.manual_seed(run.training.seed)  # the head's initial weights too (a batch runs many assets in one process)
     head = make_head(mesh, run.look.head)
-    assessment, weighing = _verdict(mesh, run, tracer, head, events, seconds, resumed=resume_from is not None)
-    bvh = _training_bvh(mesh, run.nodes, run.storage.node_bits, events, seconds)
+    assessment, weighing = _verdict(mesh, run, tracer, head, events, seconds, resume_from is not None, should_cancel)
+    if should_cancel():
+        raise Cancelled("cancelled before the BVH was built")
+    bvh = _training_bvh(mesh, run.nodes, run.storage.node_bits, events, seconds, weighing.tree)
+    weighing.tree = None  # the full tree (~100 B per triangle) is not needed past the cut
     search = SizeSearch(mesh, bvh, tracer, run, events, should_cancel, checkpoint_path, resume_from,
                          evaluate_quality, compare_float32, seconds, weighing)
     chosen_log2 = search.search()

@@ -5,10 +5,13 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import time
+from typing import Callable
 from dataclasses import dataclass
 
 from ..decision.alternative_curve import AlternativeCurve, CurvePoint
 from ..decision.records import Assessment
+from ..geometry.bvh import FullTree, build_full_tree
 from ..geometry.decimation import Decimator
 from ..geometry.exact import ExactTracer
 from ..geometry.mesh import Mesh
@@ -16,6 +19,9 @@ from ..planning import sizing
 from ..planning.run_config import RunConfig
 from ..planning.sizing import assess
 from ..rendering.metrics import ViewScorer, view_sets
+from ..protocol import events as wire
+from ..protocol.events import EventSink, null_sink
+from ..protocol.process import Cancelled
 from ..storage.fileformat import look_stored_bytes
 
 
@@ -39,15 +45,38 @@ class Weighing:
     look_bytes: int = 0
     #: the mesh's decimation chain: the final verdict's extra points come from it, never from a fresh pass
     decimator: Decimator | None = None
+    #: the mesh's full tree (`bvh.build_full_tree`), built once for the plan; the training's BVH is cut from it
+    tree: FullTree | None = None
 
 
-def weigh(mesh: Mesh, run: RunConfig, tracer: ExactTracer, made=None) -> tuple[Assessment, Weighing]:
+class PlanProgress:
+    """tick(message, planned) for the plan's measurements (`sizing.alternatives`): a progress event per step
+    (fraction of the most steps it may take, elapsed and an ETA from the mean step so far) and a Cancel point."""
+
+    def __init__(self, events: EventSink, should_cancel: Callable[[], bool]):
+        self.events, self.should_cancel = events, should_cancel
+        self.t0, self.done = time.perf_counter(), 0
+
+    def __call__(self, message: str, planned: int) -> None:
+        if self.should_cancel():
+            raise Cancelled(f"cancelled while measuring the alternative (before the {message})")
+        elapsed = time.perf_counter() - self.t0
+        eta = elapsed / self.done * max(planned - self.done, 0) if self.done else None
+        self.events(wire.progress(min(self.done / max(planned, 1), 0.99), phase="plan", message=message,
+                                  step=self.done, total=planned, elapsed_s=round(elapsed, 1),
+                                  eta_s=None if eta is None else round(eta, 1)))
+        self.done += 1
+
+
+def weigh(mesh: Mesh, run: RunConfig, tracer: ExactTracer, made=None, events: EventSink = null_sink,
+          should_cancel: Callable[[], bool] = lambda: False) -> tuple[Assessment, Weighing]:
     """The verdict before training, the same for a run and a library batch's measurement: the model `run` plans,
     with what its file adds for the asset's look (the head `made`, `make_head`; the images it keeps), weighed
     against the mesh and, with a target, the measured decimations (`sizing.assess`, on the run's view sets). With a
     target the model is weighed at the size the predictor expects to meet it (`RunConfig.expected_log2_table`, no
     safety factor), as the decimation is weighed at the target: the safety factor says where training starts, and
-    the checks weigh every size the training reaches against the measured alternative."""
+    the checks weigh every size the training reaches against the measured alternative. events, should_cancel:
+    the plan's progress and Cancel between its measurements (`PlanProgress`)."""
     expected = run.expected_log2_table
     model_bytes = run.at_table(expected, regrid=False).file_bytes if expected is not None else run.file_bytes
     checks, held_out = view_sets(tracer, mesh.transform, run.metric)
@@ -56,12 +85,12 @@ def weigh(mesh: Mesh, run: RunConfig, tracer: ExactTracer, made=None) -> tuple[A
         look_bytes = sum(look_stored_bytes(made[0].cfg if made else None, shipped_materials(mesh, made),
                                            run.storage).values())
     measured = run.decision.target_mse is not None
-    decimator = Decimator(mesh)
+    decimator, tree = Decimator(mesh), build_full_tree(mesh)
     assessment = assess(mesh, model_bytes, run.decision, checks if measured else None, held_out, look_bytes,
-                        decimator)
+                        decimator, tree, PlanProgress(events, should_cancel))
     return assessment, Weighing(checks, held_out, AlternativeCurve.from_alternatives(assessment.alternatives),
                                 AlternativeCurve.from_alternatives(assessment.alternatives, held_out=True), look_bytes,
-                                decimator)
+                                decimator, tree)
 
 def measure_decimation(mesh: Mesh, weighing: Weighing, assessment):
     """measure(triangles) -> CurvePoint for the final verdict: one more decimation scored on the held-out views

@@ -455,14 +455,15 @@ def decimation_entry(mesh: Mesh, count: int, checks, held_out, draco, decimator:
 
 
 def alternatives(mesh: Mesh, target_mse: float | None, checks=None, held_out=None, tree=None,
-                 decimator: Decimator | None = None) -> dict:
+                 decimator: Decimator | None = None, tick=None) -> dict:
     """What a user could ship instead, measured: Draco (11-bit, storage bytes) of the mesh, and decimations
     (`geometry.decimation.decimate`: meshoptimizer, the look kept) up to the smallest whose image MSE meets `target_mse` (see DECIMATE_COUNTS), each with its
     resident and compact-mesh bytes and the compact mesh's MSE, scored by the run's own metric: `checks` (a
     rendering.metrics.ViewScorer: the training checks' views) and `held_out` (the final evaluation's). The whole
     mesh as a compact mesh is scored too ('mesh_compact'; `tree`: its `bvh.build_full_tree` when the caller has one).
     Missing optional packages give a note instead of numbers. With a target, `checks` is required. decimator:
-    the mesh's `Decimator` (its chain serves later points too), else one is made."""
+    the mesh's `Decimator` (its chain serves later points too), else one is made. tick(message, planned): called
+    before each measurement (`planned`: the most it may take in all; progress, and a Cancel point: it may raise)."""
     out: dict = {}
     try:
         import DracoPy
@@ -482,7 +483,12 @@ def alternatives(mesh: Mesh, target_mse: float | None, checks=None, held_out=Non
     tried: dict[int, dict] = {}
     decimator = decimator or Decimator(mesh)
 
+    counts = [c for c in DECIMATE_COUNTS if c < mesh.n_triangles * DECIMATE_MAX_SHARE]
+    planned = len(counts) + DECIMATE_REFINE + 3  # the ladder, the top, the refinements, one above, the whole mesh
+
     def measure(count: int) -> dict:
+        if tick is not None:
+            tick(f"decimation to {count:,} triangles", planned)
         tried[count] = decimation_entry(mesh, count, checks, held_out, DracoPy, decimator)
         return tried[count]
 
@@ -490,7 +496,6 @@ def alternatives(mesh: Mesh, target_mse: float | None, checks=None, held_out=Non
         return max(entry["compact_mse"], entry.get("compact_mse_held_out", 0.0)) <= target_mse
 
     missed, met = None, None
-    counts = [c for c in DECIMATE_COUNTS if c < mesh.n_triangles * DECIMATE_MAX_SHARE]
     for i, count in enumerate(counts):
         if meets(measure(count)):
             met = count
@@ -513,6 +518,8 @@ def alternatives(mesh: Mesh, target_mse: float | None, checks=None, held_out=Non
                 lo = mid
         out["decimation"] = tried[met]
     out["decimations_tried"] = [tried[c] for c in sorted(tried)]
+    if tick is not None:
+        tick(f"the whole mesh ({mesh.n_triangles:,} triangles) as a compact mesh", planned)
     out["mesh_compact"] = _whole_mesh_entry(mesh, checks, held_out, tree)
     return out
 
@@ -548,7 +555,7 @@ def mesh_file_bytes(mesh: Mesh) -> bytes:
 
 # ---------------------------------------------------------------------------------------------------- verdict
 def assess(mesh: Mesh, model_bytes: int, decision: DecisionConfig, checks=None, held_out=None,
-           look_bytes: int = 0, decimator: Decimator | None = None, tree=None) -> Assessment:
+           look_bytes: int = 0, decimator: Decimator | None = None, tree=None, tick=None) -> Assessment:
     """Weigh a model of `model_bytes` (its file, `RunConfig.file_bytes`) against the mesh and, with a target MSE
     (`decision.target_mse`) and the run's view sets (`checks`, `held_out`: `rendering.metrics.view_sets`), against
     the smallest decimation that meets it, each held in `decision.mesh_layout` (see MESH_LAYOUTS; both layouts are
@@ -556,7 +563,7 @@ def assess(mesh: Mesh, model_bytes: int, decision: DecisionConfig, checks=None, 
     'neural'. Draco's size (storage only) is reported beside. look_bytes: what the model's file adds for the
     asset's look (appearance head and textures, `fileformat.look_stored_bytes`), so the model is weighed as it will
     ship. decimator: the mesh's `Decimator` (the caller's, to measure more points later); tree: the mesh's
-    `bvh.build_full_tree` when the caller has one."""
+    `bvh.build_full_tree` when the caller has one; tick: `alternatives`'."""
     from ..geometry.compact_mesh import compact_bytes
 
     layout = decision.mesh_layout
@@ -566,7 +573,7 @@ def assess(mesh: Mesh, model_bytes: int, decision: DecisionConfig, checks=None, 
     resident = resident_bytes["total"]
     # The Draco size always (cheap: shows which tool wins for storage alone); decimations only with a target.
     alt = alternatives(mesh, decision.target_mse if checks is not None else None, checks, held_out, tree,
-                       decimator)
+                       decimator, tick)
     compact = alt["mesh_compact"]["compact_bytes"] if "mesh_compact" in alt else compact_bytes(mesh, tree)
     dec = alt.get("decimation")
     # A mesh weighed against the model carries the asset's look too (the model's head and images are in `model`).

@@ -60,7 +60,8 @@ def phase(phase: str, message: str, **more) -> dict:
 
 def progress(fraction: float, **detail) -> dict:
     """How far a phase is, `fraction` in [0, 1]; detail: a training's phase, step, total, loss, samples_per_s,
-    elapsed_s, eta_s; a batch's phase, done, total; a render's channel, id."""
+    elapsed_s, eta_s; the plan's phase, message (what it measures now), step, total, elapsed_s, eta_s; a batch's
+    phase, done, total; a render's channel, id."""
     return event("progress", fraction=fraction, **detail)
 
 
@@ -206,6 +207,8 @@ def progress_bar(stream: TextIO = sys.stderr, width: int = 28, min_interval: flo
             bar = "#" * int(frac * width) + "-" * (width - int(frac * width))
             if "done" in event:  # a library batch: assets, not steps
                 what = f"{event.get('phase', '')} {event['done']}/{event.get('total')} assets"
+            elif "message" in event:  # the plan: what it measures now
+                what = f"{event.get('phase', '')}: {event['message']}"
             else:
                 what = (f"{event.get('phase', '')} step {event.get('step')} loss {event.get('loss', float('nan')):.4f} "
                         f"{event.get('samples_per_s', 0):,.0f} samples/s")
