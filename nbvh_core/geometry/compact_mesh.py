@@ -307,7 +307,51 @@ def _dequantize_box(q: np.ndarray, plo: np.ndarray, phi: np.ndarray) -> tuple[np
 
 def _encode_nodes(links: list[int], cluster_lo: np.ndarray, cluster_hi: np.ndarray) -> bytes:
     """Node boxes (bottom-up from the decoded clusters' boxes) quantized top-down against their parents' decoded
-    boxes, and their links. links: `_cluster_tree`'s."""
+    boxes, and their links. links: `_cluster_tree`'s (BFS order: a node's children come after it). One depth at a
+    time, vectorised (node by node in Python: 18 s of a 10M-triangle mesh's 825k nodes); the same float32 and
+    float64 operations as `_quantize_box` / `_dequantize_box`, so the same bytes."""
+    links = np.asarray(links, np.int64)
+    n = len(links)
+    inner = np.flatnonzero(links >= 0)
+    parent = np.full(n, -1, np.int64)
+    parent[links[inner]] = inner
+    parent[links[inner] + 1] = inner
+    levels = [np.zeros(1, np.int64)]
+    while True:
+        c = links[levels[-1]]
+        c = c[c >= 0]
+        if not c.size:
+            break
+        levels.append(np.sort(np.concatenate((c, c + 1))))
+    lo = np.zeros((n, 3), np.float32)
+    hi = np.zeros((n, 3), np.float32)
+    leaf = np.flatnonzero(links < 0)
+    lo[leaf], hi[leaf] = cluster_lo[-1 - links[leaf]], cluster_hi[-1 - links[leaf]]
+    for nodes in reversed(levels):
+        nodes = nodes[links[nodes] >= 0]
+        c = links[nodes]
+        lo[nodes], hi[nodes] = np.minimum(lo[c], lo[c + 1]), np.maximum(hi[c], hi[c + 1])
+    dlo, dhi = np.zeros_like(lo), np.zeros_like(hi)
+    dlo[0], dhi[0] = np.nextafter(lo[0], -np.inf), np.nextafter(hi[0], np.inf)
+    q = np.zeros((n, 6), np.uint8)
+    for nodes in levels:
+        up = np.where(nodes == 0, 0, parent[nodes])
+        plo, phi = dlo[up], dhi[up]
+        ext = np.maximum(phi - plo, np.float32(1e-30))
+        qlo = np.clip(np.floor((lo[nodes] - plo) / ext * 255.0), 0, 255)
+        qhi = np.clip(np.ceil((hi[nodes] - plo) / ext * 255.0), 0, 255)
+        q[nodes] = np.concatenate((qlo, qhi), axis=1).astype(np.uint8)
+        ext64 = (phi - plo).astype(np.float64)
+        dlo[nodes] = np.nextafter((plo + q[nodes, :3] / 255.0 * ext64).astype(np.float32), -np.inf)
+        dhi[nodes] = np.nextafter((plo + q[nodes, 3:] / 255.0 * ext64).astype(np.float32), np.inf)
+    record = np.zeros(n, np.dtype([("q", np.uint8, 6), ("link", "<u4")], align=False))
+    record["q"] = q
+    record["link"] = np.where(links < 0, LEAF_BIT | (-1 - links), links).astype(np.uint32)
+    return record.tobytes()
+
+
+def _encode_nodes_reference(links: list[int], cluster_lo: np.ndarray, cluster_hi: np.ndarray) -> bytes:
+    """`_encode_nodes` node by node (the reference its test compares with)."""
     n = len(links)
     lo = np.zeros((n, 3), np.float32)
     hi = np.zeros((n, 3), np.float32)
