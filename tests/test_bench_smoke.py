@@ -46,6 +46,7 @@ SMOKE = {
     "bench_recovery.py": ["--mesh", "blob", "--preset", "tiny", "--time-limit", "1.5", "--fail-at", "0.6"],
     "bench_resolution.py": ["--meshes", "blob", "--n-max", "32", "--preset", "tiny", "--steps", "5"],
     "bench_shipped.py": ["--assets", "gear", "--time-limit", "2"],
+    "bench_heavy.py": ["--lattices", "40", "--time-limit", "2"],
     "bench_samples.py": ["--preset", "tiny", "--out", "{tmp}/samples"],
     "bench_storage.py": ["--meshes", "blob", "--preset", "tiny", "--seconds", "1"],
     "bench_speed.py": ["--quick", "--asset", "blob", "--train-s", "1", "--steps", "3"],

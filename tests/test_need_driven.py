@@ -564,7 +564,7 @@ def test_the_plan_reports_each_measurement_and_cancel_stops_it_between_two(sampl
     events: list = []
     plan = lambda: [e for e in events if e["event"] == "progress" and e.get("phase") == "plan"]  # noqa: E731
     with pytest.raises(Cancelled, match="measuring the alternative"):
-        compress_mesh(mesh, settings_from_request({"time_limit_s": 2, "force": True}), None, events=events.append,
+        compress_mesh(mesh, settings_from_request({"time_limit_s": 200, "force": True}), None, events=events.append,
                       should_cancel=lambda: len(plan()) >= 2)
     ticks = plan()
     assert len(ticks) == 2 and ticks[0]["message"].startswith("decimation to 250 ")
@@ -574,6 +574,29 @@ def test_the_plan_reports_each_measurement_and_cancel_stops_it_between_two(sampl
     events.clear()
     whole = lambda: any("whole mesh" in e.get("message", "") for e in plan())  # noqa: E731
     with pytest.raises(Cancelled, match="before the BVH"):
-        compress_mesh(mesh, settings_from_request({"time_limit_s": 2, "force": True}), None, events=events.append,
+        compress_mesh(mesh, settings_from_request({"time_limit_s": 200, "force": True}), None, events=events.append,
                       should_cancel=whole)
     assert whole() and not [e for e in events if e["event"] == "phase" and e["phase"] == "bvh"]
+
+
+def test_a_plan_past_its_share_of_the_budget_says_what_it_skipped_and_decides(monkeypatch, sample_meshes):
+    """The plan may take weighing.PLAN_SHARE of the training budget; past it (here: none at all) the run measures
+    no further decimation, says so in one warning, and still ends with an answer on what it measured."""
+    import nbvh_core.app.weighing as weighing
+    from nbvh_core.app.pipeline import compress_mesh
+    from nbvh_core.planning.settings import settings_from_request
+    from nbvh_core.protocol.process import NotWorthCompressing
+
+    monkeypatch.setattr(weighing, "PLAN_SHARE", 0.0)
+    monkeypatch.setattr(weighing, "PLAN_MIN_S", 0.0)
+    events: list = []
+    try:
+        res = compress_mesh(sample_meshes["blob"], settings_from_request({"time_limit_s": 2}), None,
+                            events=events.append)
+        alt = res.assessment["alternatives"]
+    except NotWorthCompressing as kept:
+        alt = kept.assessment.alternatives
+    warned = [e["message"] for e in events if e["event"] == "warning" and "not measured" in e["message"]]
+    assert len(warned) == 1 and "decimations from 250 triangles up" in warned[0] and "take 0 s" in warned[0]
+    assert "decimation" not in alt and alt["decimations_tried"] == [] and "compact_mse" not in alt["mesh_compact"]
+    assert alt["mesh_compact"]["compact_bytes"] > 0

@@ -151,11 +151,13 @@ def _write_alternative(mesh, assessment, stem: Path, mesh_path: Path, args, sink
     from ..protocol.outputs import check_outputs, write_atomic
     from ..planning.sizing import winning_decimation
     from .kept_mesh import counted_compact_bytes, kept_mesh_files, kept_quality
+    from .pipeline import memory_record
 
     dec = winning_decimation(mesh, assessment)  # built once: the files and the quality read the same mesh
     files = {Path(f"{stem}{suffix}"): data for suffix, data in kept_mesh_files(mesh, assessment, dec).items()}
     why = {**assessment.to_dict(), "files": {p.name: len(d) for p, d in files.items()},
-           "counted_compact_bytes": counted_compact_bytes(assessment), "kept_quality": kept_quality(mesh, dec)}
+           "counted_compact_bytes": counted_compact_bytes(assessment), "kept_quality": kept_quality(mesh, dec),
+           "memory": memory_record(mesh)}
     files[Path(f"{stem}.verdict.json")] = json.dumps(why, indent=1, default=str).encode()
     for path, data in files.items():
         try:

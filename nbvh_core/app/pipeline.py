@@ -62,6 +62,8 @@ class CompressResult:
     quality_as_shipped: Quality | None = None
     #: The run's account in order (decision.records.RunNote): the plan, a resume, restarts, growth, the search.
     notes: list = field(default_factory=list)
+    #: The process's peak resident memory so far (`peak_resident_bytes`) and per input triangle.
+    memory: dict = field(default_factory=dict)
 
     def summary(self) -> dict:
         return {"path": self.path, "file_bytes": self.file_bytes, "components": self.components,
@@ -71,7 +73,26 @@ class CompressResult:
                 "training": {k: v for k, v in dataclasses.asdict(self.training).items() if k != "history"},
                 "settings": self.settings.to_dict(), "seconds": self.seconds, "why": self.why,
                 "notes": [n.to_dict() for n in self.notes],
-                "target_met": self.target_met, "assessment": self.assessment, "decisions": self.decisions}
+                "target_met": self.target_met, "assessment": self.assessment, "decisions": self.decisions,
+                "memory": self.memory}
+
+
+def peak_resident_bytes() -> int | None:
+    """The process's peak resident memory in bytes (its whole life: in a batch, the largest asset's so far), or
+    None where the platform does not say (Windows)."""
+    try:
+        import resource
+    except ImportError:
+        return None
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return int(peak if platform.system() == "Darwin" else peak * 1024)  # macOS says bytes, Linux kilobytes
+
+
+def memory_record(mesh: Mesh) -> dict:
+    """{'peak_resident_bytes', 'per_triangle'} for the run's report (empty where the platform does not say)."""
+    peak = peak_resident_bytes()
+    return {} if peak is None else {"peak_resident_bytes": peak,
+                                    "per_triangle": round(peak / max(mesh.n_triangles, 1), 1)}
 
 
 def resume_settings(checkpoint_path: str | Path, mesh: Mesh) -> Settings:
@@ -265,7 +286,7 @@ def _compress(mesh: Mesh, run: RunConfig, out_path, events: EventSink, should_ca
                             seconds={k: (v if k.startswith("mse") else round(v, 2)) for k, v in seconds.items()},
                             model=model, tracer=tracer, why=why_of(notes), target_met=metadata["target_met"],
                             assessment=assessment.to_dict(), data=data, decisions=decisions,
-                            quality_as_shipped=as_shipped, notes=notes)
+                            quality_as_shipped=as_shipped, notes=notes, memory=memory_record(mesh))
     return _ship(out_path, result, metadata["quality"], events, should_cancel)
 
 

@@ -49,13 +49,25 @@ class Weighing:
     tree: FullTree | None = None
 
 
+#: The share of the training's time budget the plan's measurements may take: past it the optional ones are skipped
+#: (`sizing.alternatives`). A 10M-triangle lattice's plan took 809 s against a 200 s training before this.
+PLAN_SHARE = 0.25
+#: ...but never less than this (seconds): a short budget (a preview, a test) still weighs a light mesh fully (the
+#: bundled bunny's whole plan takes ~5 s on 2 cores).
+PLAN_MIN_S = 15.0
+
+
 class PlanProgress:
     """tick(message, planned) for the plan's measurements (`sizing.alternatives`): a progress event per step
-    (fraction of the most steps it may take, elapsed and an ETA from the mean step so far) and a Cancel point."""
+    (fraction of the most steps it may take, elapsed and an ETA from the mean step so far) and a Cancel point.
+    over_budget(): the plan has spent its `budget_s` (None: no limit, a budget in steps)."""
 
-    def __init__(self, events: EventSink, should_cancel: Callable[[], bool]):
-        self.events, self.should_cancel = events, should_cancel
+    def __init__(self, events: EventSink, should_cancel: Callable[[], bool], budget_s: float | None = None):
+        self.events, self.should_cancel, self.budget_s = events, should_cancel, budget_s
         self.t0, self.done = time.perf_counter(), 0
+
+    def over_budget(self) -> bool:
+        return self.budget_s is not None and time.perf_counter() - self.t0 > self.budget_s
 
     def __call__(self, message: str, planned: int) -> None:
         if self.should_cancel():
@@ -85,9 +97,14 @@ def weigh(mesh: Mesh, run: RunConfig, tracer: ExactTracer, made=None, events: Ev
         look_bytes = sum(look_stored_bytes(made[0].cfg if made else None, shipped_materials(mesh, made),
                                            run.storage).values())
     measured = run.decision.target_mse is not None
+    limit = run.training.time_limit_s
+    ticker = PlanProgress(events, should_cancel, max(PLAN_SHARE * limit, PLAN_MIN_S) if limit else None)
     decimator, tree = Decimator(mesh), build_full_tree(mesh)
     assessment = assess(mesh, model_bytes, run.decision, checks if measured else None, held_out, look_bytes,
-                        decimator, tree, PlanProgress(events, should_cancel))
+                        decimator, tree, ticker)
+    if assessment.alternatives.get("skipped"):
+        events(wire.warning(message=f"{assessment.alternatives['skipped']} (the plan may take {ticker.budget_s:g} s: "
+                                    f"{PLAN_SHARE:.0%} of the {limit:g} s training budget, at least {PLAN_MIN_S:g} s)"))
     return assessment, Weighing(checks, held_out, AlternativeCurve.from_alternatives(assessment.alternatives),
                                 AlternativeCurve.from_alternatives(assessment.alternatives, held_out=True), look_bytes,
                                 decimator, tree)

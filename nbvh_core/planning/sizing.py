@@ -115,7 +115,9 @@ def _cell_roughness(centre: np.ndarray, area: np.ndarray, normal: np.ndarray, r:
     """Triangles binned by centre into r^3 cells of the unit box: (area-weighted mean over occupied cells of
     1 - |mean normal|, occupied cells)."""
     cell = np.clip((centre * r).astype(np.int64), 0, r - 1)
-    _, cid = np.unique((cell[:, 0] * r + cell[:, 1]) * r + cell[:, 2], return_inverse=True)
+    key = (cell[:, 0] * r + cell[:, 1]) * r + cell[:, 2]
+    # up to 2^24 cells: the key is the bin (no sort; np.unique sorted 10M keys per resolution, ~1 s each)
+    cid = key if r ** 3 <= 1 << 24 else np.unique(key, return_inverse=True)[1]
     cell_area = np.bincount(cid, weights=area)
     summed = np.stack([np.bincount(cid, weights=area * normal[:, a]) for a in range(3)], 1)
     occupied = cell_area > 0
@@ -495,22 +497,39 @@ def alternatives(mesh: Mesh, target_mse: float | None, checks=None, held_out=Non
     def meets(entry: dict) -> bool:  # on the check views and, when measured, the held-out views alike
         return max(entry["compact_mse"], entry.get("compact_mse_held_out", 0.0)) <= target_mse
 
+    # Past the plan's time budget (`tick.over_budget`) the optional points go first: the one above the level, the
+    # refinements, then the rest of the ladder; the run says what it skipped and decides on what it measured (the
+    # final verdict measures the decimation at the model's quality either way).
+    over = getattr(tick, "over_budget", lambda: False)
+    skipped: list[str] = []
     missed, met = None, None
     for i, count in enumerate(counts):
+        if over():
+            skipped.append(f"the decimations from {count:,} triangles up")
+            break
         if meets(measure(count)):
             met = count
             if i + 1 < len(counts):
-                measure(counts[i + 1])
+                if over():
+                    skipped.append(f"the decimation to {counts[i + 1]:,} (one above the level)")
+                else:
+                    measure(counts[i + 1])
             break
         missed = count
     top = int(mesh.n_triangles * DECIMATE_MAX_SHARE)
-    if met is None and counts and counts[-1] < top and meets(measure(top)):  # the gap up to the whole mesh
-        missed, met = counts[-1], top
+    if met is None and not skipped and counts and counts[-1] < top:  # the gap up to the whole mesh
+        if over():
+            skipped.append(f"the decimation to {top:,} triangles")
+        elif meets(measure(top)):
+            missed, met = counts[-1], top
     if met is not None:
         lo = missed if missed is not None else max(met // 4, 4)
         for _ in range(DECIMATE_REFINE):
             mid = int(round(math.sqrt(lo * met)))
             if mid in (lo, met):
+                break
+            if over():
+                skipped.append(f"the refinement between {lo:,} and {met:,} triangles")
                 break
             if meets(measure(mid)):
                 met = mid
@@ -520,17 +539,26 @@ def alternatives(mesh: Mesh, target_mse: float | None, checks=None, held_out=Non
     out["decimations_tried"] = [tried[c] for c in sorted(tried)]
     if tick is not None:
         tick(f"the whole mesh ({mesh.n_triangles:,} triangles) as a compact mesh", planned)
-    out["mesh_compact"] = _whole_mesh_entry(mesh, checks, held_out, tree)
+    scored = not over()
+    if not scored:
+        skipped.append("the whole mesh's image error (its bytes are exact)")
+    out["mesh_compact"] = _whole_mesh_entry(mesh, checks if scored else None, held_out if scored else None, tree)
+    if skipped:
+        out["skipped"] = "past the plan's time budget, not measured: " + "; ".join(skipped)
     return out
 
 
 def _whole_mesh_entry(mesh: Mesh, checks, held_out, tree=None) -> dict:
-    """The whole mesh as a compact mesh: its exact bytes and the grid's own error on both view sets."""
+    """The whole mesh as a compact mesh: its exact bytes and the grid's own error on both view sets (without
+    `checks`: the bytes alone)."""
     from ..geometry.compact_mesh import compact_mesh
 
     nbytes, decoded = compact_mesh(mesh, tree)
-    entry = {"triangles": mesh.n_triangles, "compact_bytes": nbytes, "compact_mse": checks.score_mesh(decoded).mse,
+    entry = {"triangles": mesh.n_triangles, "compact_bytes": nbytes,
              "look_bytes": look_carried_bytes(mesh, mesh.n_vertices, mesh.n_triangles)}
+    if checks is None:
+        return entry
+    entry["compact_mse"] = checks.score_mesh(decoded).mse
     if held_out is not None:
         entry["compact_mse_held_out"] = held_out.score_mesh(decoded).mse
     return entry

@@ -1,0 +1,137 @@
+"""Heavy assets through the need-driven default: wall per stage, peak memory, and what shipped against the compact
+decimation at equal measured quality.
+
+    .venv/bin/python bench/bench_heavy.py --lattices 180 320 560 --assets dragon
+
+Per asset (generated lattices of fine repeated detail, `bench_meshes.lattice(n)`: ~1.0M, 3.3M and 10M triangles
+at n = 180, 320, 560; real ones from `real_assets.py`), the mesh is written to a binary PLY and compressed as a
+user would: `nbvh compress FILE -o OUT/ --events` (level standard, 200 s of training). Each stage's wall is taken
+from the arrival of the run's phase events (load, plan, bvh, train, ...); the peak resident memory from the run's
+own report (NAME.report.json, or NAME.verdict.json when it kept a mesh) and from the OS; the decision and the ratio
+(the alternative's bytes at the shipped MSE / the shipped bytes, on the run's own measured curve) from its final
+verdict, or its verdict before training.
+
+Rows land in bench/results/heavy.csv (one per asset, replaced when measured at another commit); heavy.md has the
+table. One run at a time, on an otherwise idle machine.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from harness import RESULTS, ROOT, SMOKE, commit_of, markdown_table, num, read_rows, write_markdown, write_rows
+
+CSV = RESULTS / ("heavy_smoke.csv" if SMOKE else "heavy.csv")
+
+
+def source(name: str, work: Path) -> Path:
+    """The asset as a file: lattice-N generated (cached by bench_meshes), else a real asset."""
+    if name.startswith("lattice-"):
+        from bench_meshes import lattice
+        from nbvh_core.planning.sizing import mesh_file_bytes
+
+        path = work / f"{name}.ply"
+        if not path.exists():
+            path.write_bytes(mesh_file_bytes(lattice(int(name.split("-")[1]))))
+        return path
+    from real_assets import asset_path
+
+    return asset_path(name)
+
+
+def run(path: Path, out: Path, time_limit: float | None) -> tuple[int, float, dict, str]:
+    """The CLI on `path`: (exit code, wall s, seconds per stage from the phase events, the verdict's line)."""
+    extra = ["--time-limit", str(time_limit)] if time_limit else []
+    t0 = time.perf_counter()
+    proc = subprocess.Popen([sys.executable, "-m", "nbvh_core", "compress", str(path), "-o", f"{out}/", "--overwrite",
+                             "--events", *extra], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    stages, current, since = {}, "load", t0
+    for line in proc.stdout:
+        try:
+            ev = json.loads(line)
+        except ValueError:
+            continue
+        if ev.get("event") == "phase":
+            now = time.perf_counter()
+            stages[current] = stages.get(current, 0.0) + now - since
+            current, since = ev["phase"], now
+    err = proc.stderr.read()
+    code = proc.wait()
+    wall = time.perf_counter() - t0
+    stages[current] = stages.get(current, 0.0) + time.perf_counter() - since
+    verdict = next((ln for ln in err.splitlines() if ln.startswith(("verdict:", "not worth", "kept as", "decided"))),
+                   err.strip().splitlines()[-1] if err.strip() else "")
+    return code, wall, {k: round(v, 1) for k, v in stages.items()}, verdict
+
+
+def measure(name: str, args, work: Path) -> None:
+    from nbvh_core.geometry.mesh import load_mesh
+
+    path = source(name, work)
+    triangles = load_mesh(path).n_triangles
+    out = work / name
+    out.mkdir(exist_ok=True)
+    code, wall, stages, verdict = run(path, out, args.time_limit)
+    if code not in (0, 4):
+        print(f"{name}: exit {code}: {verdict}", file=sys.stderr)
+        return
+    os_peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024  # the largest child so far
+    report = out / f"{path.stem}.report.json"
+    record = json.loads((report if report.exists() else out / f"{path.stem}.verdict.json").read_text())
+    final = (record.get("decisions") or {}).get("final") or record.get("final") or {}
+    peak = (record.get("memory") or {}).get("peak_resident_bytes")
+    shipped = final.get("shipped") or ("model" if report.exists() else record.get("recommendation"))
+    row = {"asset": name, "triangles": triangles, "exit_code": code, "wall_s": round(wall, 1),
+           "load_s": stages.get("load", ""), "plan_s": stages.get("plan", ""), "bvh_s": stages.get("bvh", ""),
+           "train_s": stages.get("train", ""), "rest_s": round(wall - sum(stages.get(k, 0.0) for k in
+                                                                          ("load", "plan", "bvh", "train")), 1),
+           "peak_bytes": peak or "", "peak_per_triangle": round(peak / triangles, 1) if peak else "",
+           "os_peak_bytes": os_peak, "shipped": shipped, "model_bytes": final.get("model_bytes", ""),
+           "model_mse": final.get("model_mse", ""), "alternative_bytes": final.get("alternative_bytes") or "",
+           "ratio": round(final["ratio"], 3) if final.get("ratio") else "", "verdict": verdict[:300]}
+    write_rows(CSV, [*(r for r in read_rows(CSV) if r["asset"] != name), row])
+    print({k: row[k] for k in ("asset", "triangles", "wall_s", "plan_s", "bvh_s", "train_s", "peak_per_triangle",
+                               "shipped", "ratio")}, flush=True)
+
+
+def report() -> None:
+    rows = read_rows(CSV)
+    table = [[r["asset"], f"{int(r['triangles']):,}", r["wall_s"], r["load_s"], r["plan_s"], r["bvh_s"],
+              r["train_s"], r["rest_s"], f"{num(r, 'peak_bytes') / 2**30:.2f}" if r["peak_bytes"] else "-",
+              r["peak_per_triangle"] or "-", r["shipped"], f"{int(num(r, 'model_bytes')):,}" if r["model_bytes"] else "-",
+              f"{num(r, 'model_mse'):.5f}" if r["model_mse"] else "-", r["ratio"] or "-", r["commit"]] for r in rows]
+    write_markdown(CSV.with_suffix(".md"), [
+        "# Heavy assets through the default (level standard, 200 s of training)", "",
+        "Wall seconds per stage from the run's phase events; peak resident memory from the run's report. ratio = "
+        "the compact decimation's bytes at the model's held-out MSE / the model's bytes (the run's own final "
+        "verdict; > 1: the model is smaller).", "",
+        *markdown_table(["asset", "triangles", "wall s", "load s", "plan s", "bvh s", "train s", "rest s",
+                         "peak GiB", "peak B/triangle", "shipped", "model bytes", "model MSE", "ratio", "commit"],
+                        table)])
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--lattices", nargs="*", type=int, default=[180, 320, 560], help="lattice resolutions n")
+    p.add_argument("--assets", nargs="*", default=[], help="real assets (real_assets.py)")
+    p.add_argument("--time-limit", type=float, default=None, help="training budget (default: the product's)")
+    p.add_argument("--work", default=None, help="folder for the inputs and outputs (default: a temporary one)")
+    args = p.parse_args()
+    prior = {r["asset"]: r for r in read_rows(CSV)}
+    with tempfile.TemporaryDirectory(prefix="nbvh-heavy-") as tmp:
+        work = Path(args.work) if args.work else Path(tmp)
+        work.mkdir(parents=True, exist_ok=True)
+        for name in [f"lattice-{n}" for n in args.lattices] + list(args.assets):
+            if name not in prior or prior[name]["commit"] != commit_of(ROOT):
+                measure(name, args, work)
+    report()
+
+
+if __name__ == "__main__":
+    main()
