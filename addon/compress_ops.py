@@ -82,7 +82,9 @@ def _advance(session) -> bool:
     job = session.queue.active()
     if job is not None:
         props.progress = job.fraction
-        props.phase = f"{job.name}: {job.progress.get('phase', 'starting')}"
+        phase = job.progress.get("phase", "starting")
+        doing = job.progress.get("message", "") if phase == "plan" else ""  # the plan: what it measures now
+        props.phase = f"{job.name}: {phase}" + (f" ({doing[:60]})" if doing else "")
         props.eta = format_eta(job.eta_s(), session.queue.eta_s(), job.clock.trainings, job.request)
     warnings = [f"{session.objects.get(j.id, j.name)}: {w}" for j in session.queue.jobs for w in j.log]
     props.warnings = "; ".join(warnings[-3:])[:400]

@@ -17,7 +17,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 BENCH = ROOT / "bench"
 #: The shared modules of bench/ (not benchmarks themselves).
-LIBRARIES = {"harness.py", "rd_runs.py", "bench_meshes.py", "real_assets.py"}
+LIBRARIES = {"harness.py", "rd_runs.py", "bench_meshes.py", "real_assets.py", "failure_classes.py"}
 #: script -> its arguments at a tiny budget ({tmp}: the case's scratch folder).
 SMOKE = {
     "bench_batch_cluster.py": ["--assets", "blob", "studs", "--preset", "tiny", "--time-limit", "1"],
@@ -47,6 +47,7 @@ SMOKE = {
     "bench_resolution.py": ["--meshes", "blob", "--n-max", "32", "--preset", "tiny", "--steps", "5"],
     "bench_shipped.py": ["--assets", "gear", "--time-limit", "2"],
     "bench_heavy.py": ["--lattices", "40", "--time-limit", "2"],
+    "bench_failures.py": ["--time-limit", "1", "--methods", "default", "base", "--cases", "one triangle", "learning rate x100"],
     "bench_samples.py": ["--preset", "tiny", "--out", "{tmp}/samples"],
     "bench_storage.py": ["--meshes", "blob", "--preset", "tiny", "--seconds", "1"],
     "bench_speed.py": ["--quick", "--asset", "blob", "--train-s", "1", "--steps", "3"],

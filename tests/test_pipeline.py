@@ -145,29 +145,20 @@ def test_an_offset_or_scaled_copy_ends_as_the_original_does(offset, scale, sampl
     assert np.isclose(b.quality.depth_error_original_units, a.quality.depth_error_original_units * scale, rtol=0.05)
 
 
-def _failure_class(name: str, blob):
-    """(vertices, faces) of one failure class, made from the blob where it needs a shape."""
-    import numpy as np
-    import trimesh
+def _failure_classes():
+    """bench/failure_classes.py: the classes the failure matrix measures (bench/bench_failures.py)."""
+    import sys
+    from pathlib import Path
 
-    v, f = blob.vertices.astype(np.float64), blob.faces
-    if name == "inside-out":
-        return v, f[:, ::-1]
-    if name == "every face twice":
-        return v, np.concatenate([f, f])
-    if name == "1000 pieces":
-        ball, rng = trimesh.creation.icosphere(1), np.random.default_rng(0)
-        return (np.concatenate([ball.vertices * 0.01 + rng.random(3) for _ in range(1000)]),
-                np.concatenate([ball.faces + i * len(ball.vertices) for i in range(1000)]))
-    plane = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], float)
-    return {"one triangle": (plane[:3], np.array([[0, 1, 2]])),
-            "zero-thickness plane": (plane, np.array([[0, 1, 2], [0, 2, 3]])),
-            "long slivers": (np.array([[0, 0, 0], [1, 0, 0], [0.5, 1e-4, 0], [0.5, -1e-4, 0]], float),
-                             np.array([[0, 1, 2], [0, 3, 1]]))}[name]
+    bench = str(Path(__file__).resolve().parents[1] / "bench")
+    if bench not in sys.path:
+        sys.path.append(bench)
+    import failure_classes
+
+    return failure_classes
 
 
-FAILURE_CLASSES = ("inside-out", "every face twice", "1000 pieces", "one triangle", "zero-thickness plane",
-                   "long slivers")
+FAILURE_CLASSES = _failure_classes().TESTED
 
 
 @pytest.mark.parametrize("name", FAILURE_CLASSES)
@@ -181,7 +172,7 @@ def test_each_failure_class_ends_with_a_clear_answer(name, sample_meshes):
     from nbvh_core.protocol.process import NotWorthCompressing
 
     blob = sample_meshes["blob"]
-    mesh = mesh_from_arrays(*_failure_class(name, blob), name=name.replace(" ", "_"))
+    mesh = mesh_from_arrays(*_failure_classes().failure_mesh(name), name=name.replace(" ", "_"))
     with pytest.raises(NotWorthCompressing) as kept:
         compress_mesh(mesh, preset("tiny").with_overrides(target_mse=0.0005))
     assert "\n" not in str(kept.value) and kept.value.assessment.recommendation in ("mesh", "decimate")

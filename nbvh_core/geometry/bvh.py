@@ -231,8 +231,9 @@ def _build_full_tree_native(tri_lo: np.ndarray, tri_hi: np.ndarray, centroid: np
                              node_lo=lo, node_hi=hi, left=left, start=start, count=count, depth=depth, order=order,
                              n_nodes=used)
     m = int(used[0])
-    return FullTree(lo=lo[:m].copy(), hi=hi[:m].copy(), left=left[:m].copy(), start=start[:m].copy(),
-                    count=count[:m].copy(), depth=depth[:m].copy(), tri_order=order)
+    if m < cap:  # leaves of several triangles: fewer rows than reserved (one leaf each: exactly 2n - 1, no copy)
+        lo, hi, left, start, count, depth = (a[:m].copy() for a in (lo, hi, left, start, count, depth))
+    return FullTree(lo=lo, hi=hi, left=left, start=start, count=count, depth=depth, tri_order=order)
 
 
 def _level_bins(order: np.ndarray, active_start: np.ndarray, active_count: np.ndarray, centroid: np.ndarray,

@@ -37,7 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .bvh import build_full_tree
-from .mesh import Mesh
+from .mesh import Mesh, face_cross
 
 MAGIC = b"CMS2"
 #: Triangles per cluster (at most 192 distinct vertices: the counts fit a byte).
@@ -488,6 +488,5 @@ def compact_mesh(mesh: Mesh, tree=None) -> tuple[int, Mesh]:
     # tests/test_compact_mesh.py), so they are taken from the encoder instead of decoding the bytes again.
     data, snapped, _ = _encode(mesh, tree)
     # a sliver the grid collapsed to zero area is never hit (Embree skips it) and has no normal: left out
-    tri = snapped[mesh.faces].astype(np.float64)
-    keep = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1) > 0
+    keep = np.linalg.norm(face_cross(snapped, mesh.faces), axis=1) > 0
     return len(data), Mesh(vertices=snapped, faces=mesh.faces[keep], transform=mesh.transform, name=mesh.name)

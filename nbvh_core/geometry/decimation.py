@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from .look import Look
-from .mesh import Mesh
+from .mesh import Mesh, face_cross
 
 #: Weight of the texture coordinates against positions in the simplifier's error (positions are measured in the
 #: mesh's extent, coordinates in texture space). 0.5 is a starting value, not tuned: no asset of
@@ -207,8 +207,7 @@ class Decimator:
             look = Look(slots, None if wedge_uv is None else wedge_uv[kept], mesh.look.materials)
         # Distinct vertices at one position (a globe's pole, welded CAD parts) can meet in a triangle of no area:
         # dropped, as the mesh reader drops them (else the file written would read back with fewer triangles).
-        tri = mesh.vertices[used][faces].astype(np.float64)
-        keep = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1) > 0
+        keep = np.linalg.norm(face_cross(mesh.vertices[used], faces), axis=1) > 0
         if look is not None and not keep.all():
             look = look.subset(keep)
         return Mesh(vertices=mesh.vertices[used], faces=faces[keep], transform=mesh.transform, name=mesh.name,

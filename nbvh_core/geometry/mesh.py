@@ -97,14 +97,35 @@ class Mesh:
 
     def face_normals(self) -> np.ndarray:
         """(F, 3) float32 unit geometric normals, right-handed winding (v1 - v0) x (v2 - v0)."""
-        tri = self.triangles().astype(np.float64)
-        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        return (n / np.linalg.norm(n, axis=1, keepdims=True)).astype(np.float32)
+        out = np.empty((self.n_triangles, 3), np.float32)
+        for a, b, n in face_cross_chunks(self.vertices, self.faces):
+            out[a:b] = n / np.linalg.norm(n, axis=1, keepdims=True)
+        return out
 
     def surface_area(self) -> float:
         """Total area in normalised units squared."""
-        tri = self.triangles().astype(np.float64)
-        return float(0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum())
+        return float(0.5 * np.linalg.norm(face_cross(self.vertices, self.faces), axis=1).sum())
+
+
+#: Triangles per chunk of float64 work on a whole mesh: the temporaries stay bounded (a 10M-triangle mesh's
+#: (F, 3, 3) float64 corner copy alone was 720 MB).
+CROSS_CHUNK = 1 << 20
+
+
+def face_cross_chunks(vertices: np.ndarray, faces: np.ndarray):
+    """Yields (start, stop, (v1 - v0) x (v2 - v0) in float64 (stop - start, 3)) over CROSS_CHUNK triangles at a time
+    (vertices (V, 3), faces (F, 3)): the same values as on the whole array at once."""
+    for a in range(0, len(faces), CROSS_CHUNK):
+        tri = vertices[faces[a:a + CROSS_CHUNK]].astype(np.float64)
+        yield a, a + len(tri), np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+
+
+def face_cross(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(F, 3) float64 (v1 - v0) x (v2 - v0) per triangle (length: twice its area), computed in chunks."""
+    out = np.empty((len(faces), 3), np.float64)
+    for a, b, c in face_cross_chunks(vertices, faces):
+        out[a:b] = c
+    return out
 
 
 def mesh_from_arrays(vertices: np.ndarray, faces: np.ndarray, name: str = "mesh", look: Look | None = None) -> Mesh:
@@ -158,9 +179,7 @@ def mesh_from_arrays(vertices: np.ndarray, faces: np.ndarray, name: str = "mesh"
         except LookError as exc:
             raise MeshError(str(exc)) from None
     repairs: list[str] = []
-    tri = v[f]
-    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    area2 = np.linalg.norm(cross, axis=1)
+    area2 = np.linalg.norm(face_cross(v, f), axis=1)
     extent = float((v.max(axis=0) - v.min(axis=0)).max())
     # Zero area relative to the mesh size: repeated indices, collinear or coincident corners.
     degenerate = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2]) | (area2 <= (1e-12 * extent) ** 2)

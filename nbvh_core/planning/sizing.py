@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from ..geometry.bvh import build_full_tree, resident_bvh_nodes
-from ..geometry.mesh import Mesh
+from ..geometry.mesh import Mesh, face_cross
 from ..geometry.decimation import Decimator, decimate, simplifier_missing  # noqa: F401  (decimate: for benches)
 from ..protocol.quality_levels import QUALITY_LEVELS  # noqa: F401  (re-exported)
 from ..decision.config import DecisionConfig
@@ -97,18 +97,24 @@ class MeshFeatures:
 
 def mesh_features(mesh: Mesh, cells: int = 32) -> MeshFeatures:
     """Measure `mesh` (see MeshFeatures). Linear in the triangle count; ~0.1 s for 100k triangles."""
-    tri, area, normal = _triangle_areas_normals(mesh)
-    roughness, occupied = _cell_roughness(tri.mean(axis=1), area, normal, cells)
+    centre, area, normal = _triangle_areas_normals(mesh)
+    roughness, occupied = _cell_roughness(centre, area, normal, cells)
     return MeshFeatures(triangles=mesh.n_triangles, area=float(area.sum()), occupancy=occupied / cells ** 3,
                         roughness=roughness)
 
 
 def _triangle_areas_normals(mesh: Mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The mesh's triangles (T, 3, 3) float64 in its normalised frame, their areas (T,) and unit normals (T, 3)."""
-    tri = mesh.triangles().astype(np.float64)
-    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    """The mesh's triangle centres (T, 3) float64 in its normalised frame, their areas (T,) and unit normals
+    (T, 3), computed in chunks (`mesh.CROSS_CHUNK`: no (T, 3, 3) float64 copy of a heavy mesh)."""
+    from ..geometry.mesh import CROSS_CHUNK
+
+    cross = face_cross(mesh.vertices, mesh.faces)
+    centre = np.empty((mesh.n_triangles, 3), np.float64)
+    for a in range(0, mesh.n_triangles, CROSS_CHUNK):
+        centre[a:a + CROSS_CHUNK] = mesh.vertices[mesh.faces[a:a + CROSS_CHUNK]].astype(np.float64).mean(axis=1)
     area = 0.5 * np.linalg.norm(cross, axis=1)
-    return tri, area, cross / np.maximum(2 * area, 1e-30)[:, None]
+    cross /= np.maximum(2 * area, 1e-30)[:, None]
+    return centre, area, cross
 
 
 def _cell_roughness(centre: np.ndarray, area: np.ndarray, normal: np.ndarray, r: int) -> tuple[float, int]:
@@ -150,14 +156,14 @@ def surface_cells(mesh: Mesh, resolutions: tuple[int, ...] = DETAIL_RESOLUTIONS,
     """{cells across the unit box: cells of the normalised frame the surface passes through}, counted from
     `samples` area-weighted points on the triangles (fixed seed: the same mesh always gives the same counts; the
     count saturates near `samples` at fine resolutions, where every choice is already far over any table)."""
-    tri, area, _ = _triangle_areas_normals(mesh)
+    area = 0.5 * np.linalg.norm(face_cross(mesh.vertices, mesh.faces), axis=1)
     if not area.sum() > 0:
         return {r: 0 for r in resolutions}
     rng = np.random.default_rng(0)
-    pick = rng.choice(len(tri), samples, p=area / area.sum())
+    pick = rng.choice(len(area), samples, p=area / area.sum())
     uv = rng.random((samples, 2))
     uv = np.where(uv.sum(1, keepdims=True) > 1, 1 - uv, uv)
-    t = tri[pick]
+    t = mesh.vertices[mesh.faces[pick]].astype(np.float64)
     points = t[:, 0] + uv[:, :1] * (t[:, 1] - t[:, 0]) + uv[:, 1:] * (t[:, 2] - t[:, 0])
     out = {}
     for r in resolutions:
@@ -170,8 +176,7 @@ def roughness_at(mesh: Mesh, resolutions: tuple[int, ...] = DETAIL_RESOLUTIONS) 
     """{cells across the unit box: area-weighted mean over occupied cells of 1 - |mean normal|} of the mesh in its
     normalised frame (triangles binned by centroid). It falls as cells shrink toward the scale below which the
     surface is flat; it is 0 once a cell holds one triangle. Linear in triangles (~4 s for 3.3M)."""
-    tri, area, normal = _triangle_areas_normals(mesh)
-    centre = tri.mean(axis=1)
+    centre, area, normal = _triangle_areas_normals(mesh)
     return {r: max(0.0, _cell_roughness(centre, area, normal, r)[0]) for r in resolutions}
 
 
