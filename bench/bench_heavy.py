@@ -94,7 +94,8 @@ def measure(name: str, args, work: Path) -> None:
            "peak_bytes": peak or "", "peak_per_triangle": round(peak / triangles, 1) if peak else "",
            "os_peak_bytes": os_peak, "shipped": shipped, "model_bytes": final.get("model_bytes", ""),
            "model_mse": final.get("model_mse", ""), "alternative_bytes": final.get("alternative_bytes") or "",
-           "ratio": round(final["ratio"], 3) if final.get("ratio") else "", "verdict": verdict[:300]}
+           "ratio": round(final["ratio"], 3) if final.get("ratio") else "",
+           "verdict": (final.get("message") or record.get("message") or verdict)[:300]}
     write_rows(CSV, [*(r for r in read_rows(CSV) if r["asset"] != name), row])
     print({k: row[k] for k in ("asset", "triangles", "wall_s", "plan_s", "bvh_s", "train_s", "peak_per_triangle",
                                "shipped", "ratio")}, flush=True)
@@ -113,7 +114,8 @@ def report() -> None:
         "verdict; > 1: the model is smaller).", "",
         *markdown_table(["asset", "triangles", "wall s", "load s", "plan s", "bvh s", "train s", "rest s",
                          "peak GiB", "peak B/triangle", "shipped", "model bytes", "model MSE", "ratio", "commit"],
-                        table)])
+                        table), "", "What each run's final verdict said:", "",
+        *[f"- {r['asset']}: {r['verdict']}" for r in rows]])
 
 
 def main() -> None:

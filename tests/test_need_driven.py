@@ -600,3 +600,23 @@ def test_a_plan_past_its_share_of_the_budget_says_what_it_skipped_and_decides(mo
     assert len(warned) == 1 and "decimations from 250 triangles up" in warned[0] and "take 0 s" in warned[0]
     assert "decimation" not in alt and alt["decimations_tried"] == [] and "compact_mse" not in alt["mesh_compact"]
     assert alt["mesh_compact"]["compact_bytes"] > 0
+
+
+def test_a_model_better_than_every_measured_point_is_checked_against_the_decimation_of_its_bytes():
+    """A heavy mesh's plan stops at its time share before its decimations reach the model's quality (the 10M-triangle
+    lattice: 4,000 triangles at 0.08, the model at 0.024): the final verdict measures the decimation whose bytes
+    should about equal the model's file; it ships if it reaches the model's MSE, else the model stands, said."""
+    from nbvh_core.decision.alternative_curve import AlternativeCurve, CurvePoint
+    from nbvh_core.decision.final_verdict import final_verdict
+
+    def curve():
+        return AlternativeCurve([CurvePoint(5_000, 0.08, 1_000, 1_000), CurvePoint(16_000, 0.05, 4_000, 4_000)])
+
+    asked = []
+    worse = lambda count: asked.append(count) or CurvePoint(4 * count, 0.03, count, count)  # noqa: E731
+    stood = final_verdict(100_000, 0.02, 0.0005, curve(), measure=worse)
+    assert asked == [int(4_000 * 100_000 / 16_000 * 0.97)] and stood.shipped == "model"
+    assert f"({asked[0]:,} triangles, {4 * asked[0]:,} B) reads 0.03" in stood.message
+    better = lambda count: CurvePoint(4 * count, 0.015, count, count)  # noqa: E731
+    lost = final_verdict(100_000, 0.02, 0.0005, curve(), measure=better)
+    assert lost.shipped == "decimation" and lost.decimation["compact_bytes"] == 4 * asked[0]

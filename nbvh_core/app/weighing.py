@@ -113,6 +113,8 @@ def measure_decimation(mesh: Mesh, weighing: Weighing, assessment):
     """measure(triangles) -> CurvePoint for the final verdict: one more decimation scored on the held-out views
     (and recorded with the others, so the one that ships can be written)."""
     def measure(count: int) -> CurvePoint:
+        if count >= mesh.n_triangles * sizing.DECIMATE_MAX_SHARE:  # no decimation: the whole mesh is the point
+            return CurvePoint(2 ** 62, math.inf, 0, count)
         entry = sizing.decimation_entry(mesh, count, weighing.checks, weighing.held_out, None, weighing.decimator)
         if not entry["triangles"]:
             return CurvePoint(2 ** 62, math.inf, 0, count)

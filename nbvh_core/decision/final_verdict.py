@@ -31,6 +31,9 @@ def _settle(curve: AlternativeCurve, model_bytes: int, model_mse: float, measure
         return
     line = curve.bytes_at(model_mse)
     count = curve.triangles_at(model_mse)
+    if not count and point is None:
+        _settle_beyond(curve, model_bytes, model_mse, measure)
+        return
     if not count or line >= SETTLE_WINDOW * model_bytes:
         return
     if line >= model_bytes:
@@ -44,6 +47,21 @@ def _settle(curve: AlternativeCurve, model_bytes: int, model_mse: float, measure
         count = int(count * SETTLE_STEP) + 1
         if count >= max(p.triangles for p in curve.points):  # the whole mesh is the last measured point
             return
+
+
+def _settle_beyond(curve: AlternativeCurve, model_bytes: int, model_mse: float, measure) -> None:
+    """The model reads lower MSE than every measured point (a heavy mesh whose plan stopped at its time share,
+    before the decimations or the whole mesh reached that quality): measure the decimation whose compact bytes
+    should about equal the model's file (bytes grow with triangles; from the largest decimation measured, 3% under).
+    If it reaches the model's MSE, it ships; if not, every decimation that does is larger than the model."""
+    decimations = [p for p in curve.points if p.requested is not None]
+    if not decimations:
+        return
+    last = max(decimations, key=lambda p: p.triangles)
+    count = int(last.triangles * model_bytes / max(last.bytes, 1) * 0.97)
+    whole = next((p.triangles for p in curve.points if p.requested is None), None)
+    if count > last.triangles and (whole is None or count < whole):
+        curve.add(measure(count))
 
 
 def _without_quality(model_bytes: int, model_mse: float, target: float | None, curve: AlternativeCurve | None,
@@ -107,7 +125,11 @@ def final_verdict(model_bytes: int, model_mse: float, target: float | None, curv
         versus = (f"a measured compact decimation to {beaten_by.triangles:,} triangles reaches MSE {beaten_by.mse:.4g} "
                   f"in {beaten_by.bytes:,} B, {model_bytes / beaten_by.bytes:.2f}x smaller than the model")
     elif alt_bytes is None:
-        versus = "no alternative measured reaches its MSE"
+        under = [p for p in curve.points if p.requested is not None and p.bytes < model_bytes]
+        largest = max(under, key=lambda p: p.triangles) if under else None
+        versus = ("no alternative measured reaches its MSE" if largest is None else
+                  f"no alternative measured reaches its MSE: the largest decimation under the model's bytes "
+                  f"({largest.triangles:,} triangles, {largest.bytes:,} B) reads {largest.mse:.4g}")
     elif alt_bytes >= model_bytes:
         versus = f"the compact decimation at the same MSE ~{alt_bytes:,.0f} B: the model is {alt_bytes / model_bytes:.2f}x smaller"
     else:  # the line between measured points says smaller, no measurement does
