@@ -23,7 +23,8 @@ def compact_row(pays: dict) -> dict:
     """One pays.csv row -> its compact-mesh comparison."""
     from bench_meshes import bench_mesh
     from nbvh_core.geometry.compact_mesh import compact_mesh
-    from nbvh_core.planning.sizing import decimate, mesh_resident_bytes
+    from nbvh_core.geometry.decimation import decimate
+    from nbvh_core.planning.sizing import mesh_resident_bytes
 
     mesh = bench_mesh(pays["mesh"])
     t0 = time.perf_counter()

@@ -20,7 +20,7 @@ from harness import append_rows, markdown_table, product_scorer, read_rows, resu
 
 def fast_simplification(mesh, count):
     import fast_simplification as fs
-    from nbvh_core.planning.sizing import mesh_like
+    from nbvh_core.geometry.mesh import mesh_like
 
     v, f = fs.simplify(mesh.vertices.astype(np.float64), mesh.faces, target_reduction=1 - count / mesh.n_triangles)
     return mesh_like(mesh, v, f)
@@ -28,7 +28,7 @@ def fast_simplification(mesh, count):
 
 def meshopt_plain(mesh, count):
     from nbvh_core.geometry.decimation import simplify_indices
-    from nbvh_core.planning.sizing import mesh_like
+    from nbvh_core.geometry.mesh import mesh_like
 
     return mesh_like(mesh, mesh.vertices, simplify_indices(mesh.vertices, mesh.faces, count))
 

@@ -137,9 +137,9 @@ def bench_mesh(name: str) -> Mesh:
 
 @functools.lru_cache(maxsize=None)
 def bench_grid(name: str):
-    """The bench mesh's grid measures (`sizing.grid_measures`), taken once per process: loading and measuring the
+    """The bench mesh's grid measures (`mesh_measures.grid_measures`), taken once per process: loading and measuring the
     3.3M-triangle lattice takes seconds, and several benches choose a grid per (mesh, table size)."""
-    from nbvh_core.planning.sizing import grid_measures
+    from nbvh_core.planning.mesh_measures import grid_measures
 
     return grid_measures(bench_mesh(name))
 

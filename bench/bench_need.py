@@ -26,7 +26,7 @@ from pathlib import Path
 
 from bench_meshes import bench_mesh
 from harness import RESULTS, ROOT, SMOKE, append_row, markdown_table, num, read_rows, write_markdown
-from nbvh_core.planning.sizing import mesh_file_bytes
+from nbvh_core.geometry.mesh import mesh_file_bytes
 from nbvh_core.protocol.quality_levels import DEFAULT_LEVEL, QUALITY_LEVELS
 
 CSV = RESULTS / ("need_smoke.csv" if SMOKE else "need.csv")

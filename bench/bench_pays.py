@@ -25,7 +25,9 @@ from nbvh_core import kernels
 from nbvh_core.geometry.exact import ExactTracer
 from nbvh_core.app.pipeline import compress_mesh, estimate_file_bytes, preset
 from nbvh_core.planning.settings import NORMAL_LOSS_BY_NETWORK
-from nbvh_core.planning.sizing import choose_resolution, decimate, mesh_resident_bytes
+from nbvh_core.geometry.decimation import decimate
+from nbvh_core.planning.mesh_measures import choose_resolution
+from nbvh_core.planning.sizing import mesh_resident_bytes
 
 FIELDS = ["mesh", "triangles", "preset", "storage", "train_s", "steps", "file_bytes", "model_resident_bytes",
           "mse", "mse_float32", "iou", "mesh_resident_bytes", "equal_mse_decimation_triangles",

@@ -41,7 +41,9 @@ from harness import RESULTS, append_row, num, read_rows, save_figure, write_mark
 from nbvh_core import kernels
 from nbvh_core.app.pipeline import compress_mesh, preset
 from nbvh_core.geometry.exact import ExactTracer
-from nbvh_core.planning.sizing import decimate, mesh_like, mesh_resident_bytes
+from nbvh_core.geometry.decimation import decimate
+from nbvh_core.geometry.mesh import mesh_like
+from nbvh_core.planning.sizing import mesh_resident_bytes
 from nbvh_core.rendering.metrics import ViewScorer
 from nbvh_core.training.train import TrainingDiverged
 from rd_runs import METHODS, SIZES, SUBSETS, MeshCache, Plan, interp_bytes_for_mse, run_neural

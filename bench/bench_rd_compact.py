@@ -32,7 +32,8 @@ def measure(name: str, done: set) -> None:
     from nbvh_core.geometry.compact_mesh import compact_mesh
     from nbvh_core.geometry.exact import ExactTracer
     from nbvh_core.rendering.metrics import ViewScorer
-    from nbvh_core.planning.sizing import decimate, mesh_resident_bytes
+    from nbvh_core.geometry.decimation import decimate
+    from nbvh_core.planning.sizing import mesh_resident_bytes
 
     mesh = bench_mesh(name)
     scorer = ViewScorer(ExactTracer(mesh), mesh.transform, VIEWS, SIZE, held_out=True)

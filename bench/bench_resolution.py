@@ -6,7 +6,7 @@ busy machine), scored with the one metric (16 views, 128 px). Float32 storage, s
     .venv/bin/python bench/bench_resolution.py --levels 2 4 8 [--meshes bunny gyroid studs] [--time-limit 200]
 
 Resumable: one CSV row per (mesh, preset, log2 T, N_max, steps) in bench/results/resolution.csv; resolution.md is
-rewritten after every row with `sizing.choose_resolution`'s pick beside the best measured.
+rewritten after every row with `mesh_measures.choose_resolution`'s pick beside the best measured.
 
 `--levels`: the grid's levels traded against its rows at the preset's table bytes (levels x T x features constant:
 L = 2, 4, 8 at T = 2^13, 2^12, 2^11 for the default preset), each grid's N_max chosen for its T as the presets do. A
@@ -27,7 +27,7 @@ from bench_meshes import bench_grid, bench_mesh
 from harness import RESULTS, append_row, read_rows, write_markdown
 from nbvh_core import kernels
 from nbvh_core.app.pipeline import compress_mesh, preset
-from nbvh_core.planning.sizing import TABLE_LOAD, choose_resolution
+from nbvh_core.planning.mesh_measures import TABLE_LOAD, choose_resolution
 
 FIELDS = ["mesh", "preset", "log2_table", "n_max", "steps", "train_s", "mse", "iou", "surface_cells", "created"]
 

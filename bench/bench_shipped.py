@@ -36,7 +36,7 @@ CSV = RESULTS / ("shipped_smoke.csv" if SMOKE else "shipped.csv")
 def source_file(name: str, work: Path) -> Path:
     if name in REAL_ASSETS or name == "bunny":
         return asset_path(name)
-    from nbvh_core.planning.sizing import mesh_file_bytes
+    from nbvh_core.geometry.mesh import mesh_file_bytes
 
     path = work / f"{name}.ply"
     if not path.exists():
@@ -47,9 +47,10 @@ def source_file(name: str, work: Path) -> Path:
 def curve_point(mesh, scorer, count: int | None) -> tuple[int, float, int]:
     """(bytes, MSE, triangles) of the compact decimation to ~`count` triangles (None: the whole mesh) scored by
     `scorer`; its bytes count what it needs to carry the asset's look, as the product's verdicts count them
-    (`sizing.look_carried_bytes`: 0 for a bare shape)."""
+    (`alternatives.look_carried_bytes`: 0 for a bare shape)."""
     from nbvh_core.geometry.compact_mesh import compact_mesh
-    from nbvh_core.planning.sizing import decimate, look_carried_bytes
+    from nbvh_core.app.alternatives import look_carried_bytes
+    from nbvh_core.geometry.decimation import decimate
 
     nbytes, decoded = compact_mesh(mesh if count is None else decimate(mesh, count))
     carried = look_carried_bytes(mesh, decoded.n_vertices, decoded.n_triangles)

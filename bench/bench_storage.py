@@ -22,7 +22,7 @@ from bench_meshes import named_mesh
 from harness import RESULTS, append_rows, markdown_table, product_scorer, read_rows, save_figure, write_markdown
 from nbvh_core.app.pipeline import compress_mesh, preset
 from nbvh_core.geometry.compact_mesh import compact_mesh, encode_compact
-from nbvh_core.planning.sizing import decimate
+from nbvh_core.geometry.decimation import decimate
 from nbvh_core.storage import fileformat
 from nbvh_core.storage.packed import pack
 

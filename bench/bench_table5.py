@@ -13,7 +13,7 @@ with its network's own normal targets (`settings.NORMAL_LOSS_BY_NETWORK`: the ML
 facing the ray); `--normal-loss facing|oriented|unoriented` gives every method one loss, in its own CSV
 (table5_facing_loss.csv, table5_oriented_loss.csv, table5_unoriented_loss.csv); normal_loss.md compares the older
 three.
-`--n-max auto` (default) lets every method's grid be chosen from the mesh and its table (`sizing.choose_resolution`,
+`--n-max auto` (default) lets every method's grid be chosen from the mesh and its table (`mesh_measures.choose_resolution`,
 as the user presets do; base and III alike), `--n-max 128` is the paper's fixed grid (stem suffix `_nmax128`).
 Older runs (KMLP normal weight 0.5, N_max 128) are kept as table5_kmlp_weight05_{facing,oriented,unoriented}_loss.csv.
 `--time-limit S` trains every model for S seconds instead of a step count (the default preset's 200 s is the users'

@@ -34,7 +34,8 @@ import numpy as np
 from bench_meshes import named_mesh
 from harness import RESULTS, ROOT, SMOKE, markdown_table, read_rows, write_markdown
 from nbvh_core.planning.settings import PRESETS
-from nbvh_core.planning.sizing import FIT_PATH, SizeFit, load_fit, mesh_features
+from nbvh_core.planning.mesh_measures import mesh_features
+from nbvh_core.planning.sizing import FIT_PATH, SizeFit, load_fit
 
 BASE_S = 15.0
 GRID_PART = "grid4"

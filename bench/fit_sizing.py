@@ -34,8 +34,9 @@ from bench_meshes import bench_mesh
 from nbvh_core import kernels
 from nbvh_core.app.pipeline import estimate_file_bytes, preset
 from nbvh_core.decision.size_search import search_size
-from nbvh_core.planning.sizing import (FEATURE_NAMES, FIT_PATH, LOG2_RANGE, QUALITY_LEVELS, choose_table_and_nodes,
-                                       fit_size_model, mesh_features, predictor)
+from nbvh_core.planning.mesh_measures import FEATURE_NAMES, mesh_features
+from nbvh_core.planning.sizing import (FIT_PATH, LOG2_RANGE, QUALITY_LEVELS, choose_table_and_nodes, fit_size_model,
+                                       predictor)
 from nbvh_core.protocol.quality_levels import TARGET_TRAININGS
 
 #: From the smallest table the search may choose (2^8: a size the grid lacks would end a simulated search

@@ -77,7 +77,7 @@ def test_decimation_beats_the_quadric_one_it_replaced(sample_meshes):
     recorded 0.000256 against fast-simplification's 0.000598 (bench/results/decimators.md: every real asset)."""
     fs = pytest.importorskip("fast_simplification")
     from nbvh_core.geometry.exact import ExactTracer
-    from nbvh_core.planning.sizing import mesh_like
+    from nbvh_core.geometry.mesh import mesh_like
     from nbvh_core.rendering.metrics import ViewScorer
 
     mesh = sample_meshes["bunny"]

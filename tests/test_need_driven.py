@@ -9,8 +9,9 @@ from meshes import icosphere
 from nbvh_core.geometry.exact import ExactTracer
 from nbvh_core.decision.config import DecisionConfig
 from nbvh_core.planning.settings import estimate_file_bytes, preset
-from nbvh_core.planning.sizing import (DECIMATE_REFINE, LOG2_RANGE, MeshFeatures, alternatives, assess,
-                                       choose_table_and_nodes, load_fit, max_nodes_for, mesh_features, resolve)
+from nbvh_core.app.alternatives import DECIMATE_REFINE, alternatives, assess
+from nbvh_core.planning.mesh_measures import MeshFeatures, mesh_features
+from nbvh_core.planning.sizing import LOG2_RANGE, choose_table_and_nodes, load_fit, max_nodes_for, resolve
 
 
 def test_the_verdict_weighs_the_model_against_the_layout_asked_for():
@@ -438,7 +439,7 @@ def test_the_alternative_carries_the_assets_look_in_its_bytes():
     from nbvh_core.geometry import demo_assets
     from meshes import icosphere
     from nbvh_core.neural.quantize import StorageConfig
-    from nbvh_core.planning.sizing import look_carried_bytes
+    from nbvh_core.app.alternatives import look_carried_bytes
     from nbvh_core.storage.fileformat import look_stored_bytes
 
     globe = demo_assets.globe(16, 8, texture=32)
@@ -459,7 +460,7 @@ def test_a_run_with_a_target_plans_every_size_it_may_train_once(sample_meshes):
     afresh at that size, the grid's resolution kept (a growing table) or re-chosen for the size (the retrain
     search); a size the run did not plan is refused; a fixed-size run plans its own size only."""
     from nbvh_core.planning.run_config import plan_run
-    from nbvh_core.planning.sizing import choose_resolution
+    from nbvh_core.planning.mesh_measures import choose_resolution
 
     mesh = sample_meshes["bunny"]
     run = plan_run(preset("default").with_overrides(target_mse=0.0005, eval_views=2, eval_resolution=32), mesh)
@@ -616,7 +617,8 @@ def test_a_model_better_than_every_measured_point_is_checked_against_the_decimat
     worse = lambda count: asked.append(count) or CurvePoint(4 * count, 0.03, count, count)  # noqa: E731
     stood = final_verdict(100_000, 0.02, 0.0005, curve(), measure=worse)
     assert asked == [int(4_000 * 100_000 / 16_000 * 0.97)] and stood.shipped == "model"
-    assert f"({asked[0]:,} triangles, {4 * asked[0]:,} B) reads 0.03" in stood.message
+    assert f"({asked[0]:,} triangles, {4 * asked[0]:,} B, 0.97x the model) reads 0.03" in stood.message
+    assert stood.alternative_above == 4 * asked[0] and stood.ratio is None
     better = lambda count: CurvePoint(4 * count, 0.015, count, count)  # noqa: E731
     lost = final_verdict(100_000, 0.02, 0.0005, curve(), measure=better)
     assert lost.shipped == "decimation" and lost.decimation["compact_bytes"] == 4 * asked[0]

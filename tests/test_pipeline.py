@@ -46,7 +46,8 @@ def test_target_maps_to_a_preset_and_is_checked(sample_meshes, tmp_path):
 def test_small_mesh_is_reported_not_worth_compressing(sample_meshes):
     from nbvh_core.decision.config import DecisionConfig
     from nbvh_core.planning.settings import estimate_file_bytes
-    from nbvh_core.planning.sizing import assess, mesh_resident_bytes
+    from nbvh_core.app.alternatives import assess
+    from nbvh_core.planning.sizing import mesh_resident_bytes
 
     from meshes import icosphere
 

@@ -79,7 +79,8 @@ def test_a_run_is_planned_once_into_parts_that_agree_with_its_request():
     bigger = searched.at_table(searched.log2_table + 1)
     assert bigger.log2_table == bigger.request.log2_table == searched.log2_table + 1
     assert bigger.file_bytes > searched.file_bytes
-    from nbvh_core.planning.sizing import LOG2_RANGE, load_fit, mesh_features, predictor
+    from nbvh_core.planning.mesh_measures import mesh_features
+    from nbvh_core.planning.sizing import LOG2_RANGE, load_fit, predictor
     fit = load_fit()  # the retrain search's predictions are planned too: the size predictor's, at the budget
     if fit is not None:
         predict = predictor(fit, mesh_features(icosphere(3)), None, searched.training.time_limit_s)

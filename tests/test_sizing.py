@@ -13,8 +13,10 @@ from nbvh_core.app.pipeline import compress_mesh, estimate_file_bytes, preset
 from nbvh_core.decision.config import DecisionConfig
 from nbvh_core.geometry.exact import ExactTracer
 from nbvh_core.rendering.metrics import MetricConfig, view_sets
-from nbvh_core.planning.sizing import (LOG2_RANGE, QUALITY_LEVELS, MeshFeatures, SizeFit, assess, choose_size, resolve,
-                              fit_size_model, load_fit, mesh_features, predictor)
+from nbvh_core.app.alternatives import assess
+from nbvh_core.planning.mesh_measures import MeshFeatures, mesh_features
+from nbvh_core.planning.sizing import (LOG2_RANGE, QUALITY_LEVELS, SizeFit, choose_size, resolve, fit_size_model,
+                                       load_fit, predictor)
 from nbvh_core.decision.scene_budget import split_budget
 from nbvh_core.decision.size_search import search_size
 
@@ -263,7 +265,7 @@ def test_cli_plan_and_the_jobs_share_one_scene_plan(tmp_path, capsys, sample_mes
 
 def test_grid_resolution_follows_the_measured_detail():
     from nbvh_core.planning.settings import PAPER_N_MAX
-    from nbvh_core.planning.sizing import N_MAX_RANGE, TABLE_LOAD, choose_resolution, grid_measures, roughness_at
+    from nbvh_core.planning.mesh_measures import N_MAX_RANGE, TABLE_LOAD, choose_resolution, grid_measures, roughness_at
 
     smooth = icosphere(5)
     sphere = icosphere(6)

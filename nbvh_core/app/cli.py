@@ -149,7 +149,7 @@ def _write_alternative(mesh, assessment, stem: Path, mesh_path: Path, args, sink
     bytes and the kept decimation's quality with its look (`kept_mesh.kept_quality`: FLIP, colour and image MSE on
     the held-out views; no model report: no model was written)."""
     from ..protocol.outputs import check_outputs, write_atomic
-    from ..planning.sizing import winning_decimation
+    from .alternatives import winning_decimation
     from .kept_mesh import counted_compact_bytes, kept_mesh_files, kept_quality
     from .pipeline import memory_record
 

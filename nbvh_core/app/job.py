@@ -120,7 +120,7 @@ def run_job(request: dict, events, should_cancel) -> dict:
 def _write_kept_mesh(mesh, assessment, model_path: Path, events) -> None:
     """The kept mesh's files (`kept_mesh.kept_mesh_files`: NAME.glb, NAME.compact.cmsh) beside where the model would
     have gone, each written atomically, announced in one `written` event (files, kind, triangles, bytes each)."""
-    from ..planning.sizing import winning_decimation
+    from .alternatives import winning_decimation
     from ..protocol.outputs import write_atomic
     from .kept_mesh import kept_mesh_files
 

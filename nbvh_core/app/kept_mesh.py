@@ -13,7 +13,7 @@ GLB, COMPACT = ".glb", ".compact.cmsh"
 
 def kept_mesh_files(mesh: Mesh, assessment: Assessment, dec: Mesh | None) -> dict[str, bytes]:
     """suffix -> bytes of each file the kept mesh is written as ({} when the verdict ships a model). dec: the
-    decimation the verdict keeps, rebuilt exactly as measured (`sizing.winning_decimation`: deterministic; None
+    decimation the verdict keeps, rebuilt exactly as measured (`alternatives.winning_decimation`: deterministic; None
     when it keeps none), built once by the caller for every use."""
     from ..geometry.compact_mesh import encode_compact, in_original_units
     from ..geometry.glb import encode_glb

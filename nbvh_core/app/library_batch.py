@@ -276,7 +276,7 @@ def _rounded(x) -> int | None:
 def _decimation_fields(mesh, assessment) -> dict:
     """The row's fields for the decimation a verdict keeps instead of a model (none when it keeps no decimation):
     the mesh that wins as a file the head writes (workers may not share its disk)."""
-    from ..planning.sizing import winning_decimation
+    from .alternatives import winning_decimation
     from .kept_mesh import counted_compact_bytes, kept_mesh_files
 
     if assessment.recommendation != "decimate":

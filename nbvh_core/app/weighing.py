@@ -15,9 +15,9 @@ from ..geometry.bvh import FullTree, build_full_tree
 from ..geometry.decimation import Decimator
 from ..geometry.exact import ExactTracer
 from ..geometry.mesh import Mesh
-from ..planning import sizing
 from ..planning.run_config import RunConfig
-from ..planning.sizing import assess
+from . import alternatives
+from .alternatives import assess
 from ..rendering.metrics import ViewScorer, view_sets
 from ..protocol import events as wire
 from ..protocol.events import EventSink, null_sink
@@ -50,7 +50,7 @@ class Weighing:
 
 
 #: The share of the training's time budget the plan's measurements may take: past it the optional ones are skipped
-#: (`sizing.alternatives`). A 10M-triangle lattice's plan took 809 s against a 200 s training before this.
+#: (`alternatives.alternatives`). A 10M-triangle lattice's plan took 809 s against a 200 s training before this.
 PLAN_SHARE = 0.25
 #: ...but never less than this (seconds): a short budget (a preview, a test) still weighs a light mesh fully (the
 #: bundled bunny's whole plan takes ~5 s on 2 cores).
@@ -58,7 +58,7 @@ PLAN_MIN_S = 15.0
 
 
 class PlanProgress:
-    """tick(message, planned) for the plan's measurements (`sizing.alternatives`): a progress event per step
+    """tick(message, planned) for the plan's measurements (`alternatives.alternatives`): a progress event per step
     (fraction of the most steps it may take, elapsed and an ETA from the mean step so far) and a Cancel point.
     over_budget(): the plan has spent its `budget_s` (None: no limit, a budget in steps)."""
 
@@ -84,7 +84,7 @@ def weigh(mesh: Mesh, run: RunConfig, tracer: ExactTracer, made=None, events: Ev
           should_cancel: Callable[[], bool] = lambda: False) -> tuple[Assessment, Weighing]:
     """The verdict before training, the same for a run and a library batch's measurement: the model `run` plans,
     with what its file adds for the asset's look (the head `made`, `make_head`; the images it keeps), weighed
-    against the mesh and, with a target, the measured decimations (`sizing.assess`, on the run's view sets). With a
+    against the mesh and, with a target, the measured decimations (`alternatives.assess`, on the run's view sets). With a
     target the model is weighed at the size the predictor expects to meet it (`RunConfig.expected_log2_table`, no
     safety factor), as the decimation is weighed at the target: the safety factor says where training starts, and
     the checks weigh every size the training reaches against the measured alternative. events, should_cancel:
@@ -113,9 +113,9 @@ def measure_decimation(mesh: Mesh, weighing: Weighing, assessment):
     """measure(triangles) -> CurvePoint for the final verdict: one more decimation scored on the held-out views
     (and recorded with the others, so the one that ships can be written)."""
     def measure(count: int) -> CurvePoint:
-        if count >= mesh.n_triangles * sizing.DECIMATE_MAX_SHARE:  # no decimation: the whole mesh is the point
+        if count >= mesh.n_triangles * alternatives.DECIMATE_MAX_SHARE:  # no decimation: the whole mesh is the point
             return CurvePoint(2 ** 62, math.inf, 0, count)
-        entry = sizing.decimation_entry(mesh, count, weighing.checks, weighing.held_out, None, weighing.decimator)
+        entry = alternatives.decimation_entry(mesh, count, weighing.checks, weighing.held_out, None, weighing.decimator)
         if not entry["triangles"]:
             return CurvePoint(2 ** 62, math.inf, 0, count)
         assessment.alternatives.setdefault("decimations_tried", []).append(entry)

@@ -1,5 +1,5 @@
 """The alternative a model must beat, as a curve: compact-mesh bytes against image MSE, measured once per run on
-the decimations `planning.sizing.alternatives` tried and the whole mesh, each scored by the run's own metric.
+the decimations `app.alternatives.alternatives` tried and the whole mesh, each scored by the run's own metric.
 
 Between two measured points the curve is the straight line in log bytes / log MSE (decimation sizes 4x apart; a
 prediction that flatters the alternative next to the whole mesh, whose MSE is only the grid's: a verdict that
@@ -25,8 +25,8 @@ class CurvePoint:
 
     @classmethod
     def from_entry(cls, entry: dict, held_out: bool = False, whole: bool = False) -> "CurvePoint":
-        """A measured decimation (`sizing.decimation_entry`; whole: the whole mesh's entry) as a point: its bytes are
-        the compact mesh and what it needs to carry the asset's look (`sizing.look_carried_bytes`), its MSE on the
+        """A measured decimation (`app.alternatives.decimation_entry`; whole: the whole mesh's entry) as a point: its bytes are
+        the compact mesh and what it needs to carry the asset's look (`app.alternatives.look_carried_bytes`), its MSE on the
         check views or (held_out) the held-out views."""
         key = "compact_mse_held_out" if held_out else "compact_mse"
         return cls(int(entry["compact_bytes"]) + int(entry.get("look_bytes", 0)), float(entry[key]),
@@ -50,7 +50,7 @@ class AlternativeCurve:
 
     @classmethod
     def from_alternatives(cls, alt: dict, held_out: bool = False) -> "AlternativeCurve | None":
-        """The curve of `sizing.alternatives`'s result on its check views, or (held_out) on the held-out views;
+        """The curve of `app.alternatives.alternatives`'s result on its check views, or (held_out) on the held-out views;
         None when no decimation was measured."""
         key = "compact_mse_held_out" if held_out else "compact_mse"
         entries = list(alt.get("decimations_tried", []))

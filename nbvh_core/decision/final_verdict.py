@@ -121,15 +121,18 @@ def final_verdict(model_bytes: int, model_mse: float, target: float | None, curv
                             {"triangles": ship.triangles, "requested_triangles": ship.requested,
                              "compact_bytes": ship.bytes, "mse": ship.mse},
                             level_met, force, message, at_level=ship is at_level)
+    above = None
     if beaten:  # forced: say what the user gives up
         versus = (f"a measured compact decimation to {beaten_by.triangles:,} triangles reaches MSE {beaten_by.mse:.4g} "
                   f"in {beaten_by.bytes:,} B, {model_bytes / beaten_by.bytes:.2f}x smaller than the model")
     elif alt_bytes is None:
-        under = [p for p in curve.points if p.requested is not None and p.bytes < model_bytes]
-        largest = max(under, key=lambda p: p.triangles) if under else None
+        missing = [p for p in curve.points if p.requested is not None and p.mse > model_mse]
+        largest = max(missing, key=lambda p: p.bytes) if missing else None
+        above = largest.bytes if largest is not None else None
         versus = ("no alternative measured reaches its MSE" if largest is None else
-                  f"no alternative measured reaches its MSE: the largest decimation under the model's bytes "
-                  f"({largest.triangles:,} triangles, {largest.bytes:,} B) reads {largest.mse:.4g}")
+                  f"no alternative measured reaches its MSE: the largest decimation measured ({largest.triangles:,} "
+                  f"triangles, {largest.bytes:,} B, {largest.bytes / model_bytes:.2f}x the model) reads "
+                  f"{largest.mse:.4g}")
     elif alt_bytes >= model_bytes:
         versus = f"the compact decimation at the same MSE ~{alt_bytes:,.0f} B: the model is {alt_bytes / model_bytes:.2f}x smaller"
     else:  # the line between measured points says smaller, no measurement does
@@ -139,4 +142,5 @@ def final_verdict(model_bytes: int, model_mse: float, target: float | None, curv
                   + (f" (the smallest that does: {nearest:,} B)" if nearest else ""))
     forced = "; shipped because forced" if beaten else ""
     return FinalVerdict(model_bytes, model_mse, alt_bytes, "model", None, level_met, force,
-                        f"the model: {model_bytes:,} B at MSE {model_mse:.4g}; {versus}{level}{forced}")
+                        f"the model: {model_bytes:,} B at MSE {model_mse:.4g}; {versus}{level}{forced}",
+                        alternative_above=above)

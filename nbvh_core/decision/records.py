@@ -59,7 +59,7 @@ class FinalVerdict:
     'decimation' or 'mesh'; decimation: the measured decimation shipped instead (its triangles, requested count,
     compact bytes and held-out MSE) or None; level_met: the model met the target on the held-out views;
     forced: the user asked for the model whatever the verdict; message: one line for people; at_level: the mesh
-    shipped was chosen at the target (the model missed it), not at the model's MSE."""
+    shipped was chosen at the target (the model missed it), not at the model's MSE; alternative_above: see below."""
 
     model_bytes: int
     model_mse: float
@@ -70,6 +70,9 @@ class FinalVerdict:
     forced: bool
     message: str
     at_level: bool = False
+    #: Where no measured point reaches the model's MSE: the bytes of the largest measured decimation that misses it
+    #: (any decimation reaching it is larger: bytes grow with triangles), else None.
+    alternative_above: int | None = None
 
     @property
     def ratio(self) -> float | None:
@@ -84,7 +87,7 @@ class FinalVerdict:
 class Assessment:
     """model_bytes: the .nbvh size (exact payload + typical header); resident: `planning.sizing.mesh_resident_bytes(mesh)`;
     compact_bytes: the mesh in the compact ray-traceable layout; layout: the one the model was weighed against
-    (decision.config.MESH_LAYOUTS); alternatives: `planning.sizing.alternatives(...)` when measured; recommendation: what to use (decision.verdict.RECOMMENDATIONS: 'neural',
+    (decision.config.MESH_LAYOUTS); alternatives: `app.alternatives.alternatives(...)` when measured; recommendation: what to use (decision.verdict.RECOMMENDATIONS: 'neural',
     'mesh': the mesh as it is, 'decimate': the decimation in alternatives['decimation'])."""
 
     model_bytes: int

@@ -1,6 +1,6 @@
 """The verdict before training: is a model of this size worth training at all, against the whole mesh and the
 smallest measured decimation that meets the target, each held in the layout the run weighs against? A rule on
-measured and exact byte counts (`planning.sizing.assess` measures them); the smaller of the alternatives wins."""
+measured and exact byte counts (`app.alternatives.assess` measures them); the smaller of the alternatives wins."""
 from __future__ import annotations
 
 import dataclasses

@@ -378,3 +378,19 @@ def _material_of(material, index: int) -> Material:
         image = getattr(material, "image", None)
     c = np.resize(c, 4) if len(c) != 4 else c
     return Material(name=name, base_color=np.clip(c, 0, 1).astype(np.float32), image=image_from_pil(image))
+
+
+def mesh_like(mesh: Mesh, vertices: np.ndarray, faces: np.ndarray) -> Mesh:
+    """Another triangulation of `mesh` (a decimation, a Draco-decoded copy) in the same normalised coordinates:
+    no re-normalisation, triangles with a repeated index dropped."""
+    f = np.asarray(faces, np.int32).reshape(-1, 3)
+    keep = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])
+    return Mesh(vertices=np.asarray(vertices, np.float32), faces=f[keep], transform=mesh.transform, name=mesh.name)
+
+
+def mesh_file_bytes(mesh: Mesh) -> bytes:
+    """`mesh` in its original coordinates as a binary PLY (what a user imports back into Blender)."""
+    import trimesh
+
+    original = mesh.transform.to_original(mesh.vertices)
+    return trimesh.Trimesh(original, mesh.faces, process=False).export(file_type="ply", encoding="binary")

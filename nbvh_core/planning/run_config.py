@@ -30,8 +30,8 @@ from ..neural.quantize import StorageConfig
 from ..rendering.metrics import MetricConfig
 from ..training.train import TrainConfig
 from .settings import Settings, estimate_file_bytes
-from .sizing import (LOG2_RANGE, GridMeasures, MeshFeatures, SizeFit, choose_resolution, expected_table,
-                     grid_measures, load_fit, mesh_features, resolve)
+from .mesh_measures import GridMeasures, MeshFeatures, choose_resolution, grid_measures, mesh_features
+from .sizing import LOG2_RANGE, SizeFit, expected_table, load_fit, resolve
 
 
 @dataclass(frozen=True)

@@ -48,7 +48,7 @@ class Settings:
     levels: int = EncodingConfig.levels
     features: int = EncodingConfig.features
     #: The grid's coarsest and finest resolutions (cells across the unit box; EncodingConfig.n_min / n_max).
-    #: n_max None: chosen from the mesh's measured detail (`sizing.choose_resolution`, in `sizing.resolve`).
+    #: n_max None: chosen from the mesh's measured detail (`mesh_measures.choose_resolution`, in `sizing.resolve`).
     n_min: int = EncodingConfig.n_min
     n_max: int | None = EncodingConfig.n_max
     #: HashVQAD's index entries per feature row, H / T (the paper's 2^7; EncodingConfig.index_factor).
@@ -220,7 +220,7 @@ PRESETS: dict[str, Settings] = {
     # segment (a narrow first layer trains more steps in the budget; frontier.md); 10 levels at 6 bits per value
     # in the bytes of 8 levels at 8 (bunny, 200 s: 0.000320 / 0.000334 in 91,172 B against 0.000376 in 93,156 B;
     # at 60 s 4-8% lower on the dragon, gyroid and knot, within 2% on the terrain and spiky). The grid's finest
-    # resolution follows the mesh and the table (n_max None: `sizing.choose_resolution`; N_max 64 beat the
+    # resolution follows the mesh and the table (n_max None: `mesh_measures.choose_resolution`; N_max 64 beat the
     # paper's 128 by 13-32% at T=2^12, bench/bench_resolution.py).
     "preview": Settings(encoding="hashgrid", network="mlp", nodes=1023, log2_table=10, levels=10, features=4,
                         hidden=2, k=4, table_bits=6, network_bits=8, n_max=None, steps=None, time_limit_s=60.0,

@@ -2,8 +2,7 @@
 
 * **What it replaces** (`mesh_resident_bytes`): a ray tracer keeps float32 vertices, int32 indices, float32
   vertex normals and a BVH with <= 4 triangles per leaf (32-byte nodes) resident before it traces one ray; the
-  .nbvh model is traced as stored. `alternatives` also measures the smallest quadric decimation that meets a
-  quality target (rendered with Embree, scored with the same metric) and the Draco size of the mesh (storage).
+  .nbvh model is traced as stored. What a user could ship instead is measured in `app/alternatives.py`.
 * **Cheap predictor** (`mesh_features`, `predict_mse`): image MSE after training as a linear function in log
   space of the table size log2 T, properties of the mesh (how much its normals vary locally, triangle count) and
   the training budget (ln budget, and its product with log2 T: a larger table gains more from a longer budget),
@@ -14,9 +13,6 @@
   (T, node count) of fewest file bytes whose predicted MSE meets the target; `pipeline.compress_mesh` trains it,
   measures and corrects (`decision.size_search`: up to TARGET_TRAININGS trainings, calibrated by each measurement).
   `choose_size` is the same over T alone (scenes).
-* **Verdict** (`assess`): when the mesh as it is, or the smallest decimation of it that meets the target, is no
-  larger than the model held as a compact ray-traceable mesh (or, with mesh_layout "plain", as a plain ray tracer
-  holds it), compressing is not worth it; the result says so with all sizes (a user can still force the model).
 * **Scenes** (`plan_scene`; the rule: `decision.scene_budget`): one byte budget over several meshes, shared by need: every mesh gets the
   smallest T that meets a common quality level (scaled by its weight, e.g. its size on screen), with the level
   set as strict as the budget allows.
@@ -26,19 +22,16 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from ..geometry.bvh import build_full_tree, resident_bvh_nodes
-from ..geometry.mesh import Mesh, face_cross
-from ..geometry.decimation import Decimator, decimate, simplifier_missing  # noqa: F401  (decimate: for benches)
+from ..geometry.mesh import Mesh
+from .mesh_measures import FEATURE_NAMES, GridMeasures, MeshFeatures, choose_resolution, mesh_features
 from ..protocol.quality_levels import QUALITY_LEVELS  # noqa: F401  (re-exported)
-from ..decision.config import DecisionConfig
-from ..decision.records import Assessment
 from ..decision.scene_budget import split_budget
-from ..decision.verdict import verdict_before_training
 from .settings import PAPER_N_MAX, PRESETS, Settings, estimate_file_bytes
 
 FIT_PATH = Path(__file__).with_name("sizing_fit.json")
@@ -59,7 +52,6 @@ def max_nodes_for(triangles: int) -> int:
     while nodes < 4095 and (nodes + 1) * MIN_TRIANGLES_PER_LEAF <= triangles:
         nodes = 2 * nodes + 1
     return nodes
-FEATURE_NAMES = ("log_area", "occupancy", "roughness", "log10_triangles")
 
 
 def mesh_resident_bytes(mesh: Mesh, tree=None) -> dict:
@@ -71,143 +63,6 @@ def mesh_resident_bytes(mesh: Mesh, tree=None) -> dict:
            "bvh": nodes * 32}
     out["total"] = sum(out.values())
     return out
-
-
-# ------------------------------------------------------------------------------------------------ mesh features
-@dataclass
-class MeshFeatures:
-    """Cheap shape measures (normalised unit box). area: surface area; occupancy: fraction of the 32^3 cells of the
-    box the surface passes through; roughness: area-weighted mean over occupied cells of 1 - |mean normal| (0 for
-    a flat patch per cell, near 1 for detail that turns within a cell); triangles: count."""
-
-    triangles: int
-    area: float
-    occupancy: float
-    roughness: float
-
-    def vector(self, names: tuple | list = FEATURE_NAMES) -> np.ndarray:
-        """The predictor's inputs besides log2 T, by name (FEATURE_NAMES)."""
-        values = {"log_area": math.log(max(self.area, 1e-6)), "occupancy": self.occupancy,
-                  "roughness": self.roughness, "log10_triangles": math.log10(max(self.triangles, 1))}
-        return np.array([values[n] for n in names])
-
-    def to_dict(self) -> dict:
-        return asdict(self)
-
-
-def mesh_features(mesh: Mesh, cells: int = 32) -> MeshFeatures:
-    """Measure `mesh` (see MeshFeatures). Linear in the triangle count; ~0.1 s for 100k triangles."""
-    centre, area, normal = _triangle_areas_normals(mesh)
-    roughness, occupied = _cell_roughness(centre, area, normal, cells)
-    return MeshFeatures(triangles=mesh.n_triangles, area=float(area.sum()), occupancy=occupied / cells ** 3,
-                        roughness=roughness)
-
-
-def _triangle_areas_normals(mesh: Mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The mesh's triangle centres (T, 3) float64 in its normalised frame, their areas (T,) and unit normals
-    (T, 3), computed in chunks (`mesh.CROSS_CHUNK`: no (T, 3, 3) float64 copy of a heavy mesh)."""
-    from ..geometry.mesh import CROSS_CHUNK
-
-    cross = face_cross(mesh.vertices, mesh.faces)
-    centre = np.empty((mesh.n_triangles, 3), np.float64)
-    for a in range(0, mesh.n_triangles, CROSS_CHUNK):
-        centre[a:a + CROSS_CHUNK] = mesh.vertices[mesh.faces[a:a + CROSS_CHUNK]].astype(np.float64).mean(axis=1)
-    area = 0.5 * np.linalg.norm(cross, axis=1)
-    cross /= np.maximum(2 * area, 1e-30)[:, None]
-    return centre, area, cross
-
-
-def _cell_roughness(centre: np.ndarray, area: np.ndarray, normal: np.ndarray, r: int) -> tuple[float, int]:
-    """Triangles binned by centre into r^3 cells of the unit box: (area-weighted mean over occupied cells of
-    1 - |mean normal|, occupied cells)."""
-    cell = np.clip((centre * r).astype(np.int64), 0, r - 1)
-    key = (cell[:, 0] * r + cell[:, 1]) * r + cell[:, 2]
-    # up to 2^24 cells: the key is the bin (no sort; np.unique sorted 10M keys per resolution, ~1 s each)
-    cid = key if r ** 3 <= 1 << 24 else np.unique(key, return_inverse=True)[1]
-    cell_area = np.bincount(cid, weights=area)
-    summed = np.stack([np.bincount(cid, weights=area * normal[:, a]) for a in range(3)], 1)
-    occupied = cell_area > 0
-    coherence = np.linalg.norm(summed[occupied], axis=1) / cell_area[occupied]
-    return float(np.sum((1 - coherence) * cell_area[occupied]) / max(cell_area.sum(), 1e-30)), int(occupied.sum())
-
-
-# ------------------------------------------------------------------------------------------ grid resolution
-#: Resolutions (cells across the unit box) at which the surface is measured, and the range N_max is chosen in.
-DETAIL_RESOLUTIONS = (16, 32, 64, 128, 256, 512, 1024)
-N_MAX_RANGE = (64, 1024)
-#: A surface is "resolved" at the first resolution whose cells are this close to flat (area-weighted mean of
-#: 1 - |mean normal| per cell; 0.01 ~ normals within ~8 degrees of their cell's mean); no level needs to be finer
-#: than DETAIL_FACTOR x that.
-RESOLVED_ROUGHNESS = 0.01
-DETAIL_FACTOR = 2
-#: The finest level may touch at most TABLE_LOAD x T surface cells: beyond that its vertices collide in the T rows
-#: faster than they add detail. Measured (bench/bench_resolution.py; default preset, T=2^12, 1,500 steps, image
-#: MSE at N_max 32 / 64 / 128 / 256): bunny 0.00123 / 0.00120 / 0.00138 / 0.00171 (surface cells at 64: 3.1 T, at
-#: 128: 11 T), knot - / 0.00074 / 0.00079 / - (1.4 T, 5.2 T), gyroid 0.0095 / 0.0096 / 0.0114 / -, blob - / 0.00040 /
-#: 0.00059 / -, studs - / 0.0168 / 0.0172 / 0.0225, lattice - / 0.0545 / 0.0595 / 0.0596: every mesh measured, the
-#: 3.3M-triangle lattice of fine detail included, is best at 64 at this table size, and 128 loses from 5.2 T on.
-TABLE_LOAD = 4.0
-#: Surface samples (area-weighted) for counting the cells the surface passes through.
-SURFACE_SAMPLES = 200_000
-
-
-def surface_cells(mesh: Mesh, resolutions: tuple[int, ...] = DETAIL_RESOLUTIONS,
-                  samples: int = SURFACE_SAMPLES) -> dict[int, int]:
-    """{cells across the unit box: cells of the normalised frame the surface passes through}, counted from
-    `samples` area-weighted points on the triangles (fixed seed: the same mesh always gives the same counts; the
-    count saturates near `samples` at fine resolutions, where every choice is already far over any table)."""
-    area = 0.5 * np.linalg.norm(face_cross(mesh.vertices, mesh.faces), axis=1)
-    if not area.sum() > 0:
-        return {r: 0 for r in resolutions}
-    rng = np.random.default_rng(0)
-    pick = rng.choice(len(area), samples, p=area / area.sum())
-    uv = rng.random((samples, 2))
-    uv = np.where(uv.sum(1, keepdims=True) > 1, 1 - uv, uv)
-    t = mesh.vertices[mesh.faces[pick]].astype(np.float64)
-    points = t[:, 0] + uv[:, :1] * (t[:, 1] - t[:, 0]) + uv[:, 1:] * (t[:, 2] - t[:, 0])
-    out = {}
-    for r in resolutions:
-        cell = np.clip((points * r).astype(np.int64), 0, r - 1)
-        out[r] = int(len(np.unique((cell[:, 0] * r + cell[:, 1]) * r + cell[:, 2])))
-    return out
-
-
-def roughness_at(mesh: Mesh, resolutions: tuple[int, ...] = DETAIL_RESOLUTIONS) -> dict[int, float]:
-    """{cells across the unit box: area-weighted mean over occupied cells of 1 - |mean normal|} of the mesh in its
-    normalised frame (triangles binned by centroid). It falls as cells shrink toward the scale below which the
-    surface is flat; it is 0 once a cell holds one triangle. Linear in triangles (~4 s for 3.3M)."""
-    centre, area, normal = _triangle_areas_normals(mesh)
-    return {r: max(0.0, _cell_roughness(centre, area, normal, r)[0]) for r in resolutions}
-
-
-@dataclass
-class GridMeasures:
-    """What the grid choice reads: roughness and surface cells by resolution (see the functions above)."""
-
-    roughness: dict
-    cells: dict
-
-
-def grid_measures(mesh: Mesh) -> GridMeasures:
-    return GridMeasures(roughness_at(mesh), surface_cells(mesh))
-
-
-def choose_resolution(mesh: Mesh | GridMeasures, log2_table: int) -> tuple[int, str]:
-    """The grid's finest resolution N_max for this mesh and table size T = 2^log2_table, and why: the finest
-    resolution whose surface cells fit TABLE_LOAD x T (the table's capacity), no finer than DETAIL_FACTOR x the
-    resolution at which the surface is flat within cells (the detail's need), in N_MAX_RANGE. The paper fixes 128
-    for every model; here the default preset's T=2^12 gives 64 on every benchmark mesh (measured better there), a
-    larger table finer grids where the surface is small (the knot at T=2^13: 128)."""
-    m = mesh if isinstance(mesh, GridMeasures) else grid_measures(mesh)
-    table = 1 << log2_table
-    resolved = next((r for r, v in m.roughness.items() if v <= RESOLVED_ROUGHNESS), max(m.roughness))
-    detail_cap = DETAIL_FACTOR * resolved
-    fits = [r for r, c in m.cells.items() if c <= TABLE_LOAD * table]
-    table_cap = max(fits) if fits else min(m.cells)
-    n_max = int(min(max(min(detail_cap, table_cap), N_MAX_RANGE[0]), N_MAX_RANGE[1]))
-    return n_max, (f"grid N_max {n_max}: the surface is flat within cells from {resolved} across (need <= "
-                   f"{detail_cap}); at {table_cap} it touches {m.cells.get(table_cap, 0):,} cells, within "
-                   f"{TABLE_LOAD:g} x T={table:,} rows (table capacity)")
 
 
 # -------------------------------------------------------------------------------------------------- predictor
@@ -399,226 +254,6 @@ def expected_table(s: Settings, mesh: Mesh, features: MeshFeatures | None = None
     l2, _, _, _ = choose_table_and_nodes(fit, features or mesh_features(mesh), s.target_mse, size_of,
                                          s.time_limit_s, safety=1.0)
     return l2
-
-
-# ----------------------------------------------------------------------------------------------- alternatives
-def mesh_like(mesh: Mesh, vertices: np.ndarray, faces: np.ndarray) -> Mesh:
-    """Another triangulation of `mesh` (a decimation, a Draco-decoded copy) in the same normalised coordinates:
-    no re-normalisation, triangles with a repeated index dropped."""
-    f = np.asarray(faces, np.int32).reshape(-1, 3)
-    keep = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])
-    return Mesh(vertices=np.asarray(vertices, np.float32), faces=f[keep], transform=mesh.transform, name=mesh.name)
-
-
-#: Decimation sizes tried first (triangles, x4 apart; those >= DECIMATE_MAX_SHARE of the mesh are not tried), then
-#: DECIMATE_REFINE bisections (in log space) between the last that missed and the first that met: the decimation
-#: reported is within 2^(2 / 2^DECIMATE_REFINE) = 1.19x of the smallest that meets the target. One size x4 above the
-#: first that met is measured too, so the alternative's curve (`decision.alternative_curve`) reaches models that
-#: beat the target by measurement, not by extrapolation.
-DECIMATE_COUNTS = (250, 1000, 4000, 16000, 64000, 256000, 1024000)
-DECIMATE_MAX_SHARE = 0.7
-DECIMATE_REFINE = 3
-
-
-def look_carried_bytes(mesh: Mesh, n_vertices: int, n_triangles: int) -> int:
-    """The bytes a mesh of `n_vertices` / `n_triangles` (the asset or a decimation of it) needs to carry the asset's
-    look, as a compact mesh would hold it: the same slot images the model stores (`Material.stored_image`),
-    16-bit texture coordinates per vertex when images are sampled, and a slot id per triangle (ceil(log2 slots)
-    bits) when there are several slots. Counted, not written: the compact mesh this product writes is geometry only
-    (Blender's Decimate modifier, which the add-on offers, keeps the object's UVs and slots). 0 for a bare shape."""
-    look = mesh.look
-    if look is None:
-        return 0
-    from ..neural.quantize import StorageConfig
-    from ..storage.fileformat import look_stored_bytes
-
-    textures = look_stored_bytes(None, look.materials, StorageConfig())["textures"]  # each image encoded once
-    uv = 4 * n_vertices if look.textured else 0
-    slots = math.ceil(n_triangles * math.ceil(math.log2(look.n_slots)) / 8) if look.n_slots > 1 else 0
-    return int(textures + uv + slots)
-
-
-def decimation_entry(mesh: Mesh, count: int, checks, held_out, draco, decimator: Decimator | None = None) -> dict:
-    """One point of the alternative: the decimation to ~`count` triangles (`decimator`, the mesh's
-    `geometry.decimation.Decimator`: one chain for every point; else one is made), plainly and as a compact mesh
-    (exact bytes; the decoded compact mesh scored on the check views and, when given, the held-out views)."""
-    from ..geometry.compact_mesh import compact_mesh
-
-    dec = (decimator or Decimator(mesh))(count)
-    if dec.n_triangles == 0:
-        return {"triangles": 0, "requested_triangles": count, "mse": math.inf, "compact_mse": math.inf}
-    tree = build_full_tree(dec)  # one tree for the resident count and the compact layout's clusters
-    entry = {"triangles": dec.n_triangles, "requested_triangles": count, "mse": checks.score_mesh(dec).mse,
-             "resident_bytes": mesh_resident_bytes(dec, tree)["total"]}
-    nbytes, decoded = compact_mesh(dec, tree)
-    entry["compact_bytes"] = nbytes
-    entry["look_bytes"] = look_carried_bytes(mesh, dec.n_vertices, dec.n_triangles)
-    entry["compact_mse"] = checks.score_mesh(decoded).mse
-    if held_out is not None:
-        entry["compact_mse_held_out"] = held_out.score_mesh(decoded).mse
-    if draco is not None:
-        entry["draco11_bytes"] = len(draco.encode(dec.vertices, dec.faces, quantization_bits=11, compression_level=7))
-    return entry
-
-
-def alternatives(mesh: Mesh, target_mse: float | None, checks=None, held_out=None, tree=None,
-                 decimator: Decimator | None = None, tick=None) -> dict:
-    """What a user could ship instead, measured: Draco (11-bit, storage bytes) of the mesh, and decimations
-    (`geometry.decimation.decimate`: meshoptimizer, the look kept) up to the smallest whose image MSE meets `target_mse` (see DECIMATE_COUNTS), each with its
-    resident and compact-mesh bytes and the compact mesh's MSE, scored by the run's own metric: `checks` (a
-    rendering.metrics.ViewScorer: the training checks' views) and `held_out` (the final evaluation's). The whole
-    mesh as a compact mesh is scored too ('mesh_compact'; `tree`: its `bvh.build_full_tree` when the caller has one).
-    Missing optional packages give a note instead of numbers. With a target, `checks` is required. decimator:
-    the mesh's `Decimator` (its chain serves later points too), else one is made. tick(message, planned): called
-    before each measurement (`planned`: the most it may take in all; progress, and a Cancel point: it may raise)."""
-    out: dict = {}
-    try:
-        import DracoPy
-    except ImportError:
-        DracoPy = None
-        out["note"] = "DracoPy not installed: no Draco sizes"
-    if DracoPy is not None:
-        out["draco11_bytes"] = len(DracoPy.encode(mesh.vertices, mesh.faces, quantization_bits=11, compression_level=7))
-    if target_mse is None:
-        return out
-    missing = simplifier_missing()
-    if missing:  # said, not silent: the verdict then weighs no decimation, and the report says why
-        out["note"] = (out.get("note", "") + "; " if "note" in out else "") + missing
-        out["no_alternative"] = missing
-        return out
-    out["metric"] = checks.name
-    tried: dict[int, dict] = {}
-    decimator = decimator or Decimator(mesh)
-
-    counts = [c for c in DECIMATE_COUNTS if c < mesh.n_triangles * DECIMATE_MAX_SHARE]
-    planned = len(counts) + DECIMATE_REFINE + 3  # the ladder, the top, the refinements, one above, the whole mesh
-
-    def measure(count: int) -> dict:
-        if tick is not None:
-            tick(f"decimation to {count:,} triangles", planned)
-        tried[count] = decimation_entry(mesh, count, checks, held_out, DracoPy, decimator)
-        return tried[count]
-
-    def meets(entry: dict) -> bool:  # on the check views and, when measured, the held-out views alike
-        return max(entry["compact_mse"], entry.get("compact_mse_held_out", 0.0)) <= target_mse
-
-    # Past the plan's time budget (`tick.over_budget`) the optional points go first: the one above the level, the
-    # refinements, then the rest of the ladder; the run says what it skipped and decides on what it measured (the
-    # final verdict measures the decimation at the model's quality either way).
-    over = getattr(tick, "over_budget", lambda: False)
-    skipped: list[str] = []
-    missed, met = None, None
-    for i, count in enumerate(counts):
-        if over():
-            skipped.append(f"the decimations from {count:,} triangles up")
-            break
-        if meets(measure(count)):
-            met = count
-            if i + 1 < len(counts):
-                if over():
-                    skipped.append(f"the decimation to {counts[i + 1]:,} (one above the level)")
-                else:
-                    measure(counts[i + 1])
-            break
-        missed = count
-    top = int(mesh.n_triangles * DECIMATE_MAX_SHARE)
-    if met is None and not skipped and counts and counts[-1] < top:  # the gap up to the whole mesh
-        if over():
-            skipped.append(f"the decimation to {top:,} triangles")
-        elif meets(measure(top)):
-            missed, met = counts[-1], top
-    if met is not None:
-        lo = missed if missed is not None else max(met // 4, 4)
-        for _ in range(DECIMATE_REFINE):
-            mid = int(round(math.sqrt(lo * met)))
-            if mid in (lo, met):
-                break
-            if over():
-                skipped.append(f"the refinement between {lo:,} and {met:,} triangles")
-                break
-            if meets(measure(mid)):
-                met = mid
-            else:
-                lo = mid
-        out["decimation"] = tried[met]
-    out["decimations_tried"] = [tried[c] for c in sorted(tried)]
-    if tick is not None:
-        tick(f"the whole mesh ({mesh.n_triangles:,} triangles) as a compact mesh", planned)
-    scored = not over()
-    if not scored:
-        skipped.append("the whole mesh's image error (its bytes are exact)")
-    out["mesh_compact"] = _whole_mesh_entry(mesh, checks if scored else None, held_out if scored else None, tree)
-    if skipped:
-        out["skipped"] = "past the plan's time budget, not measured: " + "; ".join(skipped)
-    return out
-
-
-def _whole_mesh_entry(mesh: Mesh, checks, held_out, tree=None) -> dict:
-    """The whole mesh as a compact mesh: its exact bytes and the grid's own error on both view sets (without
-    `checks`: the bytes alone)."""
-    from ..geometry.compact_mesh import compact_mesh
-
-    nbytes, decoded = compact_mesh(mesh, tree)
-    entry = {"triangles": mesh.n_triangles, "compact_bytes": nbytes,
-             "look_bytes": look_carried_bytes(mesh, mesh.n_vertices, mesh.n_triangles)}
-    if checks is None:
-        return entry
-    entry["compact_mse"] = checks.score_mesh(decoded).mse
-    if held_out is not None:
-        entry["compact_mse_held_out"] = held_out.score_mesh(decoded).mse
-    return entry
-
-
-def winning_decimation(mesh: Mesh, assessment: "Assessment") -> Mesh | None:
-    """The decimation the verdict recommends instead of a model (rebuilt exactly: the simplifier is deterministic
-    and moves no vertex), or None when the verdict is not 'decimate'."""
-    dec = assessment.alternatives.get("decimation")
-    if assessment.recommendation != "decimate" or not dec:
-        return None
-    return decimate(mesh, int(dec["requested_triangles"]))
-
-
-def mesh_file_bytes(mesh: Mesh) -> bytes:
-    """`mesh` in its original coordinates as a binary PLY (what a user imports back into Blender)."""
-    import trimesh
-
-    original = mesh.transform.to_original(mesh.vertices)
-    return trimesh.Trimesh(original, mesh.faces, process=False).export(file_type="ply", encoding="binary")
-
-
-# ---------------------------------------------------------------------------------------------------- verdict
-def assess(mesh: Mesh, model_bytes: int, decision: DecisionConfig, checks=None, held_out=None,
-           look_bytes: int = 0, decimator: Decimator | None = None, tree=None, tick=None) -> Assessment:
-    """Weigh a model of `model_bytes` (its file, `RunConfig.file_bytes`) against the mesh and, with a target MSE
-    (`decision.target_mse`) and the run's view sets (`checks`, `held_out`: `rendering.metrics.view_sets`), against
-    the smallest decimation that meets it, each held in `decision.mesh_layout` (see MESH_LAYOUTS; both layouts are
-    reported): 'mesh' when the whole mesh is no larger than the model, 'decimate' when the decimation is not, else
-    'neural'. Draco's size (storage only) is reported beside. look_bytes: what the model's file adds for the
-    asset's look (appearance head and textures, `fileformat.look_stored_bytes`), so the model is weighed as it will
-    ship. decimator: the mesh's `Decimator` (the caller's, to measure more points later); tree: the mesh's
-    `bvh.build_full_tree` when the caller has one; tick: `alternatives`'."""
-    from ..geometry.compact_mesh import compact_bytes
-
-    layout = decision.mesh_layout
-    model = model_bytes + look_bytes
-    tree = tree if tree is not None else build_full_tree(mesh)
-    resident_bytes = mesh_resident_bytes(mesh, tree)
-    resident = resident_bytes["total"]
-    # The Draco size always (cheap: shows which tool wins for storage alone); decimations only with a target.
-    alt = alternatives(mesh, decision.target_mse if checks is not None else None, checks, held_out, tree,
-                       decimator, tick)
-    compact = alt["mesh_compact"]["compact_bytes"] if "mesh_compact" in alt else compact_bytes(mesh, tree)
-    dec = alt.get("decimation")
-    # A mesh weighed against the model carries the asset's look too (the model's head and images are in `model`).
-    whole_look = look_carried_bytes(mesh, mesh.n_vertices, mesh.n_triangles)
-    resident, compact = resident + whole_look, compact + whole_look
-    if dec is not None and dec.get("look_bytes"):
-        dec = {**dec, "resident_bytes": dec["resident_bytes"] + dec["look_bytes"],
-               "compact_bytes": dec["compact_bytes"] + dec["look_bytes"]}
-    rec, msg = verdict_before_training(model, mesh.n_triangles, resident, compact, dec, alt.get("draco11_bytes"),
-                                       layout)
-    return Assessment(model_bytes=model, resident=resident_bytes, worth_compressing=rec == "neural", message=msg,
-                      alternatives=alt, recommendation=rec, compact_bytes=compact, layout=layout)
 
 
 # ------------------------------------------------------------------------------------------------------ scenes

@@ -1,0 +1,233 @@
+"""What a user could ship instead of a model, measured, and the verdict before training.
+
+* **The alternative** (`alternatives`): decimations of the mesh (`geometry.decimation.Decimator`: meshoptimizer,
+  the look kept, one chain per mesh) up to the smallest that meets the quality target, each held as the compact
+  ray-traceable mesh (`geometry.compact_mesh`: exact bytes) and scored by the run's metric on the check and the
+  held-out views; the whole mesh as a compact mesh; Draco's size of the mesh (storage alone). The plan's progress,
+  Cancel points and time share come in through `tick` (`weighing.PlanProgress`).
+* **The verdict before training** (`assess`): when the mesh as it is, or the smallest decimation of it that meets
+  the target, is no larger than the model held as a compact ray-traceable mesh (or, with mesh_layout "plain", as a
+  plain ray tracer holds it), compressing is not worth it; the result says so with all sizes (a user can still
+  force the model).
+"""
+from __future__ import annotations
+
+import math
+
+from ..decision.config import DecisionConfig
+from ..decision.records import Assessment
+from ..decision.verdict import verdict_before_training
+from ..geometry.bvh import build_full_tree
+from ..geometry.decimation import Decimator, decimate, simplifier_missing
+from ..geometry.mesh import Mesh
+from ..planning.sizing import mesh_resident_bytes
+
+
+#: Decimation sizes tried first (triangles, x4 apart; those >= DECIMATE_MAX_SHARE of the mesh are not tried), then
+#: DECIMATE_REFINE bisections (in log space) between the last that missed and the first that met: the decimation
+#: reported is within 2^(2 / 2^DECIMATE_REFINE) = 1.19x of the smallest that meets the target. One size x4 above the
+#: first that met is measured too, so the alternative's curve (`decision.alternative_curve`) reaches models that
+#: beat the target by measurement, not by extrapolation.
+DECIMATE_COUNTS = (250, 1000, 4000, 16000, 64000, 256000, 1024000)
+DECIMATE_MAX_SHARE = 0.7
+DECIMATE_REFINE = 3
+
+
+def look_carried_bytes(mesh: Mesh, n_vertices: int, n_triangles: int) -> int:
+    """The bytes a mesh of `n_vertices` / `n_triangles` (the asset or a decimation of it) needs to carry the asset's
+    look, as a compact mesh would hold it: the same slot images the model stores (`Material.stored_image`),
+    16-bit texture coordinates per vertex when images are sampled, and a slot id per triangle (ceil(log2 slots)
+    bits) when there are several slots. Counted, not written: the compact mesh this product writes is geometry only
+    (Blender's Decimate modifier, which the add-on offers, keeps the object's UVs and slots). 0 for a bare shape."""
+    look = mesh.look
+    if look is None:
+        return 0
+    from ..neural.quantize import StorageConfig
+    from ..storage.fileformat import look_stored_bytes
+
+    textures = look_stored_bytes(None, look.materials, StorageConfig())["textures"]  # each image encoded once
+    uv = 4 * n_vertices if look.textured else 0
+    slots = math.ceil(n_triangles * math.ceil(math.log2(look.n_slots)) / 8) if look.n_slots > 1 else 0
+    return int(textures + uv + slots)
+
+
+def decimation_entry(mesh: Mesh, count: int, checks, held_out, draco, decimator: Decimator | None = None) -> dict:
+    """One point of the alternative: the decimation to ~`count` triangles (`decimator`, the mesh's
+    `geometry.decimation.Decimator`: one chain for every point; else one is made), plainly and as a compact mesh
+    (exact bytes; the decoded compact mesh scored on the check views and, when given, the held-out views)."""
+    from ..geometry.compact_mesh import compact_mesh
+
+    dec = (decimator or Decimator(mesh))(count)
+    if dec.n_triangles == 0:
+        return {"triangles": 0, "requested_triangles": count, "mse": math.inf, "compact_mse": math.inf}
+    tree = build_full_tree(dec)  # one tree for the resident count and the compact layout's clusters
+    entry = {"triangles": dec.n_triangles, "requested_triangles": count, "mse": checks.score_mesh(dec).mse,
+             "resident_bytes": mesh_resident_bytes(dec, tree)["total"]}
+    nbytes, decoded = compact_mesh(dec, tree)
+    entry["compact_bytes"] = nbytes
+    entry["look_bytes"] = look_carried_bytes(mesh, dec.n_vertices, dec.n_triangles)
+    entry["compact_mse"] = checks.score_mesh(decoded).mse
+    if held_out is not None:
+        entry["compact_mse_held_out"] = held_out.score_mesh(decoded).mse
+    if draco is not None:
+        entry["draco11_bytes"] = len(draco.encode(dec.vertices, dec.faces, quantization_bits=11, compression_level=7))
+    return entry
+
+
+def alternatives(mesh: Mesh, target_mse: float | None, checks=None, held_out=None, tree=None,
+                 decimator: Decimator | None = None, tick=None) -> dict:
+    """What a user could ship instead, measured: Draco (11-bit, storage bytes) of the mesh, and decimations
+    (`geometry.decimation.decimate`: meshoptimizer, the look kept) up to the smallest whose image MSE meets `target_mse` (see DECIMATE_COUNTS), each with its
+    resident and compact-mesh bytes and the compact mesh's MSE, scored by the run's own metric: `checks` (a
+    rendering.metrics.ViewScorer: the training checks' views) and `held_out` (the final evaluation's). The whole
+    mesh as a compact mesh is scored too ('mesh_compact'; `tree`: its `bvh.build_full_tree` when the caller has one).
+    Missing optional packages give a note instead of numbers. With a target, `checks` is required. decimator:
+    the mesh's `Decimator` (its chain serves later points too), else one is made. tick(message, planned): called
+    before each measurement (`planned`: the most it may take in all; progress, and a Cancel point: it may raise)."""
+    out: dict = {}
+    try:
+        import DracoPy
+    except ImportError:
+        DracoPy = None
+        out["note"] = "DracoPy not installed: no Draco sizes"
+    if DracoPy is not None:
+        out["draco11_bytes"] = len(DracoPy.encode(mesh.vertices, mesh.faces, quantization_bits=11, compression_level=7))
+    if target_mse is None:
+        return out
+    missing = simplifier_missing()
+    if missing:  # said, not silent: the verdict then weighs no decimation, and the report says why
+        out["note"] = (out.get("note", "") + "; " if "note" in out else "") + missing
+        out["no_alternative"] = missing
+        return out
+    out["metric"] = checks.name
+    tried: dict[int, dict] = {}
+    decimator = decimator or Decimator(mesh)
+
+    counts = [c for c in DECIMATE_COUNTS if c < mesh.n_triangles * DECIMATE_MAX_SHARE]
+    planned = len(counts) + DECIMATE_REFINE + 3  # the ladder, the top, the refinements, one above, the whole mesh
+
+    def measure(count: int) -> dict:
+        if tick is not None:
+            tick(f"decimation to {count:,} triangles", planned)
+        tried[count] = decimation_entry(mesh, count, checks, held_out, DracoPy, decimator)
+        return tried[count]
+
+    def meets(entry: dict) -> bool:  # on the check views and, when measured, the held-out views alike
+        return max(entry["compact_mse"], entry.get("compact_mse_held_out", 0.0)) <= target_mse
+
+    over = getattr(tick, "over_budget", lambda: False)
+    met, skipped = _smallest_meeting(counts, int(mesh.n_triangles * DECIMATE_MAX_SHARE), measure, meets, over)
+    if met is not None:
+        out["decimation"] = tried[met]
+    out["decimations_tried"] = [tried[c] for c in sorted(tried)]
+    if tick is not None:
+        tick(f"the whole mesh ({mesh.n_triangles:,} triangles) as a compact mesh", planned)
+    scored = not over()
+    if not scored:
+        skipped.append("the whole mesh's image error (its bytes are exact)")
+    out["mesh_compact"] = _whole_mesh_entry(mesh, checks if scored else None, held_out if scored else None, tree)
+    if skipped:
+        out["skipped"] = "past the plan's time budget, not measured: " + "; ".join(skipped)
+    return out
+
+
+def _smallest_meeting(counts: list[int], top: int, measure, meets, over) -> tuple[int | None, list[str]]:
+    """The search over decimation counts: the ladder `counts` up to the first whose measurement meets the level (and
+    the one above it), the gap up to `top` when none did, then DECIMATE_REFINE bisections. Past the plan's time
+    budget (`over()`) the optional points go first: the one above the level, the refinements, then the rest of the
+    ladder; the run says what it skipped and decides on what it measured (the final verdict measures the
+    decimation at the model's quality either way). Returns (the smallest count measured to meet, or None; what was
+    skipped)."""
+    skipped: list[str] = []
+    missed, met = None, None
+    for i, count in enumerate(counts):
+        if over():
+            skipped.append(f"the decimations from {count:,} triangles up")
+            break
+        if meets(measure(count)):
+            met = count
+            if i + 1 < len(counts):
+                if over():
+                    skipped.append(f"the decimation to {counts[i + 1]:,} (one above the level)")
+                else:
+                    measure(counts[i + 1])
+            break
+        missed = count
+    if met is None and not skipped and counts and counts[-1] < top:  # the gap up to the whole mesh
+        if over():
+            skipped.append(f"the decimation to {top:,} triangles")
+        elif meets(measure(top)):
+            missed, met = counts[-1], top
+    if met is not None:
+        lo = missed if missed is not None else max(met // 4, 4)
+        for _ in range(DECIMATE_REFINE):
+            mid = int(round(math.sqrt(lo * met)))
+            if mid in (lo, met):
+                break
+            if over():
+                skipped.append(f"the refinement between {lo:,} and {met:,} triangles")
+                break
+            if meets(measure(mid)):
+                met = mid
+            else:
+                lo = mid
+    return met, skipped
+
+
+def _whole_mesh_entry(mesh: Mesh, checks, held_out, tree=None) -> dict:
+    """The whole mesh as a compact mesh: its exact bytes and the grid's own error on both view sets (without
+    `checks`: the bytes alone)."""
+    from ..geometry.compact_mesh import compact_mesh
+
+    nbytes, decoded = compact_mesh(mesh, tree)
+    entry = {"triangles": mesh.n_triangles, "compact_bytes": nbytes,
+             "look_bytes": look_carried_bytes(mesh, mesh.n_vertices, mesh.n_triangles)}
+    if checks is None:
+        return entry
+    entry["compact_mse"] = checks.score_mesh(decoded).mse
+    if held_out is not None:
+        entry["compact_mse_held_out"] = held_out.score_mesh(decoded).mse
+    return entry
+
+
+def winning_decimation(mesh: Mesh, assessment: "Assessment") -> Mesh | None:
+    """The decimation the verdict recommends instead of a model (rebuilt exactly: the simplifier is deterministic
+    and moves no vertex), or None when the verdict is not 'decimate'."""
+    dec = assessment.alternatives.get("decimation")
+    if assessment.recommendation != "decimate" or not dec:
+        return None
+    return decimate(mesh, int(dec["requested_triangles"]))
+
+
+def assess(mesh: Mesh, model_bytes: int, decision: DecisionConfig, checks=None, held_out=None,
+           look_bytes: int = 0, decimator: Decimator | None = None, tree=None, tick=None) -> Assessment:
+    """Weigh a model of `model_bytes` (its file, `RunConfig.file_bytes`) against the mesh and, with a target MSE
+    (`decision.target_mse`) and the run's view sets (`checks`, `held_out`: `rendering.metrics.view_sets`), against
+    the smallest decimation that meets it, each held in `decision.mesh_layout` (see MESH_LAYOUTS; both layouts are
+    reported): 'mesh' when the whole mesh is no larger than the model, 'decimate' when the decimation is not, else
+    'neural'. Draco's size (storage only) is reported beside. look_bytes: what the model's file adds for the
+    asset's look (appearance head and textures, `fileformat.look_stored_bytes`), so the model is weighed as it will
+    ship. decimator: the mesh's `Decimator` (the caller's, to measure more points later); tree: the mesh's
+    `bvh.build_full_tree` when the caller has one; tick: `alternatives`'."""
+    from ..geometry.compact_mesh import compact_bytes
+
+    layout = decision.mesh_layout
+    model = model_bytes + look_bytes
+    tree = tree if tree is not None else build_full_tree(mesh)
+    resident_bytes = mesh_resident_bytes(mesh, tree)
+    resident = resident_bytes["total"]
+    # The Draco size always (cheap: shows which tool wins for storage alone); decimations only with a target.
+    alt = alternatives(mesh, decision.target_mse if checks is not None else None, checks, held_out, tree,
+                       decimator, tick)
+    compact = alt["mesh_compact"]["compact_bytes"] if "mesh_compact" in alt else compact_bytes(mesh, tree)
+    dec = alt.get("decimation")
+    # A mesh weighed against the model carries the asset's look too (the model's head and images are in `model`).
+    whole_look = look_carried_bytes(mesh, mesh.n_vertices, mesh.n_triangles)
+    resident, compact = resident + whole_look, compact + whole_look
+    if dec is not None and dec.get("look_bytes"):
+        dec = {**dec, "resident_bytes": dec["resident_bytes"] + dec["look_bytes"],
+               "compact_bytes": dec["compact_bytes"] + dec["look_bytes"]}
+    rec, msg = verdict_before_training(model, mesh.n_triangles, resident, compact, dec, alt.get("draco11_bytes"),
+                                       layout)
+    return Assessment(model_bytes=model, resident=resident_bytes, worth_compressing=rec == "neural", message=msg,
+                      alternatives=alt, recommendation=rec, compact_bytes=compact, layout=layout)

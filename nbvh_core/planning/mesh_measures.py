@@ -1,0 +1,149 @@
+"""What the planner reads of a mesh: cheap shape measures for the size predictor (`mesh_features`: area,
+occupancy, roughness, triangle count) and the surface's detail by resolution for the grid's finest level
+(`grid_measures`, `choose_resolution`). Linear in the triangle count; float64 work in chunks
+(`geometry.mesh.CROSS_CHUNK`)."""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from ..geometry.mesh import Mesh, face_cross
+
+FEATURE_NAMES = ("log_area", "occupancy", "roughness", "log10_triangles")
+
+
+@dataclass
+class MeshFeatures:
+    """Cheap shape measures (normalised unit box). area: surface area; occupancy: fraction of the 32^3 cells of the
+    box the surface passes through; roughness: area-weighted mean over occupied cells of 1 - |mean normal| (0 for
+    a flat patch per cell, near 1 for detail that turns within a cell); triangles: count."""
+
+    triangles: int
+    area: float
+    occupancy: float
+    roughness: float
+
+    def vector(self, names: tuple | list = FEATURE_NAMES) -> np.ndarray:
+        """The predictor's inputs besides log2 T, by name (FEATURE_NAMES)."""
+        values = {"log_area": math.log(max(self.area, 1e-6)), "occupancy": self.occupancy,
+                  "roughness": self.roughness, "log10_triangles": math.log10(max(self.triangles, 1))}
+        return np.array([values[n] for n in names])
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def mesh_features(mesh: Mesh, cells: int = 32) -> MeshFeatures:
+    """Measure `mesh` (see MeshFeatures). Linear in the triangle count; ~0.1 s for 100k triangles."""
+    centre, area, normal = _triangle_areas_normals(mesh)
+    roughness, occupied = _cell_roughness(centre, area, normal, cells)
+    return MeshFeatures(triangles=mesh.n_triangles, area=float(area.sum()), occupancy=occupied / cells ** 3,
+                        roughness=roughness)
+
+
+def _triangle_areas_normals(mesh: Mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The mesh's triangle centres (T, 3) float64 in its normalised frame, their areas (T,) and unit normals
+    (T, 3), computed in chunks (`mesh.CROSS_CHUNK`: no (T, 3, 3) float64 copy of a heavy mesh)."""
+    from ..geometry.mesh import CROSS_CHUNK
+
+    cross = face_cross(mesh.vertices, mesh.faces)
+    centre = np.empty((mesh.n_triangles, 3), np.float64)
+    for a in range(0, mesh.n_triangles, CROSS_CHUNK):
+        centre[a:a + CROSS_CHUNK] = mesh.vertices[mesh.faces[a:a + CROSS_CHUNK]].astype(np.float64).mean(axis=1)
+    area = 0.5 * np.linalg.norm(cross, axis=1)
+    cross /= np.maximum(2 * area, 1e-30)[:, None]
+    return centre, area, cross
+
+
+def _cell_roughness(centre: np.ndarray, area: np.ndarray, normal: np.ndarray, r: int) -> tuple[float, int]:
+    """Triangles binned by centre into r^3 cells of the unit box: (area-weighted mean over occupied cells of
+    1 - |mean normal|, occupied cells)."""
+    cell = np.clip((centre * r).astype(np.int64), 0, r - 1)
+    key = (cell[:, 0] * r + cell[:, 1]) * r + cell[:, 2]
+    # up to 2^24 cells: the key is the bin (no sort; np.unique sorted 10M keys per resolution, ~1 s each)
+    cid = key if r ** 3 <= 1 << 24 else np.unique(key, return_inverse=True)[1]
+    cell_area = np.bincount(cid, weights=area)
+    summed = np.stack([np.bincount(cid, weights=area * normal[:, a]) for a in range(3)], 1)
+    occupied = cell_area > 0
+    coherence = np.linalg.norm(summed[occupied], axis=1) / cell_area[occupied]
+    return float(np.sum((1 - coherence) * cell_area[occupied]) / max(cell_area.sum(), 1e-30)), int(occupied.sum())
+
+
+#: Resolutions (cells across the unit box) at which the surface is measured, and the range N_max is chosen in.
+DETAIL_RESOLUTIONS = (16, 32, 64, 128, 256, 512, 1024)
+N_MAX_RANGE = (64, 1024)
+#: A surface is "resolved" at the first resolution whose cells are this close to flat (area-weighted mean of
+#: 1 - |mean normal| per cell; 0.01 ~ normals within ~8 degrees of their cell's mean); no level needs to be finer
+#: than DETAIL_FACTOR x that.
+RESOLVED_ROUGHNESS = 0.01
+DETAIL_FACTOR = 2
+#: The finest level may touch at most TABLE_LOAD x T surface cells: beyond that its vertices collide in the T rows
+#: faster than they add detail. Measured (bench/bench_resolution.py; default preset, T=2^12, 1,500 steps, image
+#: MSE at N_max 32 / 64 / 128 / 256): bunny 0.00123 / 0.00120 / 0.00138 / 0.00171 (surface cells at 64: 3.1 T, at
+#: 128: 11 T), knot - / 0.00074 / 0.00079 / - (1.4 T, 5.2 T), gyroid 0.0095 / 0.0096 / 0.0114 / -, blob - / 0.00040 /
+#: 0.00059 / -, studs - / 0.0168 / 0.0172 / 0.0225, lattice - / 0.0545 / 0.0595 / 0.0596: every mesh measured, the
+#: 3.3M-triangle lattice of fine detail included, is best at 64 at this table size, and 128 loses from 5.2 T on.
+TABLE_LOAD = 4.0
+#: Surface samples (area-weighted) for counting the cells the surface passes through.
+SURFACE_SAMPLES = 200_000
+
+
+def surface_cells(mesh: Mesh, resolutions: tuple[int, ...] = DETAIL_RESOLUTIONS,
+                  samples: int = SURFACE_SAMPLES) -> dict[int, int]:
+    """{cells across the unit box: cells of the normalised frame the surface passes through}, counted from
+    `samples` area-weighted points on the triangles (fixed seed: the same mesh always gives the same counts; the
+    count saturates near `samples` at fine resolutions, where every choice is already far over any table)."""
+    area = 0.5 * np.linalg.norm(face_cross(mesh.vertices, mesh.faces), axis=1)
+    if not area.sum() > 0:
+        return {r: 0 for r in resolutions}
+    rng = np.random.default_rng(0)
+    pick = rng.choice(len(area), samples, p=area / area.sum())
+    uv = rng.random((samples, 2))
+    uv = np.where(uv.sum(1, keepdims=True) > 1, 1 - uv, uv)
+    t = mesh.vertices[mesh.faces[pick]].astype(np.float64)
+    points = t[:, 0] + uv[:, :1] * (t[:, 1] - t[:, 0]) + uv[:, 1:] * (t[:, 2] - t[:, 0])
+    out = {}
+    for r in resolutions:
+        cell = np.clip((points * r).astype(np.int64), 0, r - 1)
+        out[r] = int(len(np.unique((cell[:, 0] * r + cell[:, 1]) * r + cell[:, 2])))
+    return out
+
+
+def roughness_at(mesh: Mesh, resolutions: tuple[int, ...] = DETAIL_RESOLUTIONS) -> dict[int, float]:
+    """{cells across the unit box: area-weighted mean over occupied cells of 1 - |mean normal|} of the mesh in its
+    normalised frame (triangles binned by centroid). It falls as cells shrink toward the scale below which the
+    surface is flat; it is 0 once a cell holds one triangle. Linear in triangles (~4 s for 3.3M)."""
+    centre, area, normal = _triangle_areas_normals(mesh)
+    return {r: max(0.0, _cell_roughness(centre, area, normal, r)[0]) for r in resolutions}
+
+
+@dataclass
+class GridMeasures:
+    """What the grid choice reads: roughness and surface cells by resolution (see the functions above)."""
+
+    roughness: dict
+    cells: dict
+
+
+def grid_measures(mesh: Mesh) -> GridMeasures:
+    return GridMeasures(roughness_at(mesh), surface_cells(mesh))
+
+
+def choose_resolution(mesh: Mesh | GridMeasures, log2_table: int) -> tuple[int, str]:
+    """The grid's finest resolution N_max for this mesh and table size T = 2^log2_table, and why: the finest
+    resolution whose surface cells fit TABLE_LOAD x T (the table's capacity), no finer than DETAIL_FACTOR x the
+    resolution at which the surface is flat within cells (the detail's need), in N_MAX_RANGE. The paper fixes 128
+    for every model; here the default preset's T=2^12 gives 64 on every benchmark mesh (measured better there), a
+    larger table finer grids where the surface is small (the knot at T=2^13: 128)."""
+    m = mesh if isinstance(mesh, GridMeasures) else grid_measures(mesh)
+    table = 1 << log2_table
+    resolved = next((r for r, v in m.roughness.items() if v <= RESOLVED_ROUGHNESS), max(m.roughness))
+    detail_cap = DETAIL_FACTOR * resolved
+    fits = [r for r, c in m.cells.items() if c <= TABLE_LOAD * table]
+    table_cap = max(fits) if fits else min(m.cells)
+    n_max = int(min(max(min(detail_cap, table_cap), N_MAX_RANGE[0]), N_MAX_RANGE[1]))
+    return n_max, (f"grid N_max {n_max}: the surface is flat within cells from {resolved} across (need <= "
+                   f"{detail_cap}); at {table_cap} it touches {m.cells.get(table_cap, 0):,} cells, within "
+                   f"{TABLE_LOAD:g} x T={table:,} rows (table capacity)")
