@@ -9,8 +9,9 @@ repeated detail, a huge offset, a tiny scale, inside-out winding, every face twi
 non-manifold edges, a zero-thickness plane, one triangle, 1M+ triangles) and training conditions on the blob (the
 learning rate x10 and x100, 4-bit tables, a divergence injected late). Each cell records: how it ended (a model,
 a kept mesh, or the one-line error), the held-out MSE and silhouette IoU of what it made (16 views at 256 px; for
-a kept mesh, its measured decimation), which guard fired (restart, recovery, roll back, growth), the wall seconds
-and what the product said.
+a kept mesh, its measured decimation), the training steps it took in its budget, which guard fired (restart,
+recovery, roll back, growth), the wall seconds and what the product said. Run it on an otherwise idle machine: the
+budget is in seconds, so a busy machine gives fewer steps.
 
 Rows land in bench/results/failures.csv (resumable per cell and commit); failures.md has the matrix and
 failures.png the chart (log10 MSE per cell, how each ended).
@@ -66,7 +67,7 @@ def one_cell(method: str, case: str, time_limit: float) -> dict:
         fired = sorted({n.kind for n in res.notes if n.kind not in ("plan", "search")}
                        | ({"roll back"} if any(c.get("action") == "roll back" for c in checks) else set()))
         row.update(ended="model", mse=res.quality.mse, iou=res.quality.silhouette_iou, bytes=res.file_bytes,
-                   fired=" ".join(fired), said=res.why[:200])
+                   steps=res.training.steps, fired=" ".join(fired), said=res.why[:200])
     except NotWorthCompressing as kept:
         a = kept.assessment
         dec = a.alternatives.get("decimation") or {}
@@ -144,14 +145,15 @@ def main() -> None:
     rows = [r for r in read_rows(path) if r["commit"] == run_stamp["commit"]]
     chart(rows, result_path(CSV.replace(".csv", ".png")))
     table = [[r["case"], r["method"], r["ended"], f"{num(r, 'mse'):.5f}" if r["mse"] else "-",
-              f"{num(r, 'iou'):.3f}" if r["iou"] else "-", r["fired"] or "-", r["wall_s"], r["said"][:90]]
-             for r in rows]
+              f"{num(r, 'iou'):.3f}" if r["iou"] else "-", r.get("steps") or "-", r["fired"] or "-", r["wall_s"],
+              r["said"][:90]] for r in rows]
     write_markdown(result_path(CSV.replace(".csv", ".md")), [
         f"# The failure matrix ({len({r['method'] for r in rows})} methods x {len({r['case'] for r in rows})} "
         f"classes, {rows[0]['time_limit_s'] if rows else '-'} s of training per cell)", "",
         "ended: a model, a kept decimation or mesh (the need-driven default), or the error's type. MSE / IoU: "
         "16 held-out views at 256 px (a kept mesh: its measured decimation). fired: the guards that acted.", "",
-        *markdown_table(["class", "method", "ended", "MSE", "IoU", "fired", "wall s", "what it said"], table)],
+        *markdown_table(["class", "method", "ended", "MSE", "IoU", "steps", "fired", "wall s", "what it said"],
+                        table)],
         run_stamp)
 
 

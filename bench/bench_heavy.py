@@ -6,7 +6,8 @@ decimation at equal measured quality.
 Per asset (generated lattices of fine repeated detail, `bench_meshes.lattice(n)`: ~1.0M, 3.3M and 10M triangles
 at n = 180, 320, 560; real ones from `real_assets.py`), the mesh is written to a binary PLY and compressed as a
 user would: `nbvh compress FILE -o OUT/ --events` (level standard, 200 s of training). Each stage's wall is taken
-from the arrival of the run's phase events (load, plan, bvh, train, ...); the peak resident memory from the run's
+from the arrival of the run's phase events (load: from the process's start to the plan, its imports, the file read
+and the predictor's measures of the mesh; then plan, bvh, train, ...); the peak resident memory from the run's
 own report (NAME.report.json, or NAME.verdict.json when it kept a mesh) and from the OS; the decision and the ratio
 (the alternative's bytes at the shipped MSE / the shipped bytes, on the run's own measured curve) from its final
 verdict, or its verdict before training.
