@@ -72,9 +72,16 @@ def test_divergence_guard_catches_each_failure_and_passes_a_falling_loss():
     dead.weight.grad, dead.bias.grad = torch.zeros(1, 2), torch.ones(1)
     with pytest.raises(TrainingDiverged, match="did not fall"):
         flat.finish(dead, 60)
-    slow = torch.nn.Linear(2, 1)  # alive, learning slowly at a low rate: kept
+    slow = torch.nn.Linear(2, 1)  # alive, learning slowly at a low rate: kept while too short to judge
     slow.weight.grad, slow.bias.grad = torch.full((1, 2), 1e-3), torch.ones(1)
     flat.finish(slow, 60)
+    from nbvh_core.training.train import FLAT_JUDGED_STEPS
+
+    long_flat = DivergenceGuard(cfg, 0)
+    for step in range(FLAT_JUDGED_STEPS):
+        long_flat.observe(step, 1.0)
+    with pytest.raises(TrainingDiverged, match="did not fall"):  # alive but flat for long enough: too high a rate
+        long_flat.finish(slow, FLAT_JUDGED_STEPS)
     good = DivergenceGuard(cfg, 0)
     for step in range(60):
         good.observe(step, 1.0 / (1 + step))
