@@ -18,7 +18,7 @@ from ..decision.config import DecisionConfig
 from ..decision.records import Assessment
 from ..decision.verdict import verdict_before_training
 from ..geometry.bvh import build_full_tree
-from ..geometry.decimation import Decimator, decimate, simplifier_missing
+from ..geometry.decimation import CHAIN_LEVELS, Decimator, decimate, simplifier_missing
 from ..geometry.mesh import Mesh
 from ..planning.sizing import mesh_resident_bytes
 
@@ -27,8 +27,9 @@ from ..planning.sizing import mesh_resident_bytes
 #: DECIMATE_REFINE bisections (in log space) between the last that missed and the first that met: the decimation
 #: reported is within 2^(2 / 2^DECIMATE_REFINE) = 1.19x of the smallest that meets the target. One size x4 above the
 #: first that met is measured too, so the alternative's curve (`decision.alternative_curve`) reaches models that
-#: beat the target by measurement, not by extrapolation.
-DECIMATE_COUNTS = (250, 1000, 4000, 16000, 64000, 256000, 1024000)
+#: beat the target by measurement, not by extrapolation. The ladder is the decimation chain's levels up to ~1M: each
+#: count measured is a level the smaller ones are simplified from.
+DECIMATE_COUNTS = CHAIN_LEVELS[:7]
 DECIMATE_MAX_SHARE = 0.7
 DECIMATE_REFINE = 3
 
@@ -37,8 +38,8 @@ def look_carried_bytes(mesh: Mesh, n_vertices: int, n_triangles: int) -> int:
     """The bytes a mesh of `n_vertices` / `n_triangles` (the asset or a decimation of it) needs to carry the asset's
     look, as a compact mesh would hold it: the same slot images the model stores (`Material.stored_image`),
     16-bit texture coordinates per vertex when images are sampled, and a slot id per triangle (ceil(log2 slots)
-    bits) when there are several slots. Counted, not written: the compact mesh this product writes is geometry only
-    (Blender's Decimate modifier, which the add-on offers, keeps the object's UVs and slots). 0 for a bare shape."""
+    bits) when there are several slots. The compact mesh written is geometry only; the .glb written beside it
+    carries the look (`kept_mesh.kept_mesh_files`). 0 for a bare shape."""
     look = mesh.look
     if look is None:
         return 0

@@ -132,15 +132,15 @@ def build_full_tree(mesh: Mesh, max_leaf_size: int = 1, n_bins: int = 16, median
     All nodes of one depth are split at once: per node and axis, triangle centroids are binned into `n_bins`
     bins, the SAH cost of the n_bins - 1 candidate planes is swept from both sides, the cheapest plane wins.
     Nodes of at most `median_below` triangles, and nodes SAH cannot separate (all centroids in one bin), are
-    split at the median of their longest centroid axis.
-    """
+    split at the median of their longest centroid axis."""
+    from ..kernels import library
+
     tri = mesh.triangles()
-    tri_lo = tri.min(axis=1)
-    tri_hi = tri.max(axis=1)
+    tri_lo, tri_hi = tri.min(axis=1), tri.max(axis=1)
     del tri
     centroid = ((tri_lo.astype(np.float64) + tri_hi) * 0.5)
     n_tri = tri_lo.shape[0]
-    if _native_tree_builder() and n_tri:
+    if library.fast_enabled() and n_tri:  # kernels/native/tree_build.cpp: node for node the numpy build below
         return _build_full_tree_native(tri_lo, tri_hi, centroid, max_leaf_size, n_bins, median_below)
 
     lo_list = [tri_lo.min(axis=0, keepdims=True)]
@@ -208,20 +208,13 @@ def build_full_tree(mesh: Mesh, max_leaf_size: int = 1, n_bins: int = 16, median
                     depth=np.concatenate(depth_list), tri_order=order)
 
 
-def _native_tree_builder() -> bool:
-    """Whether the compiled builder serves (`kernels/native/tree_build.cpp`: node for node the numpy build below)."""
-    from ..kernels import library
-
-    return library.current_path() == "fast" and library.load() is not None
-
-
 def _build_full_tree_native(tri_lo: np.ndarray, tri_hi: np.ndarray, centroid: np.ndarray, max_leaf_size: int,
                             n_bins: int, median_below: int) -> FullTree:
     """build_full_tree by the compiled builder (the same tree; ~20x faster than the level-wise numpy sorts)."""
     from ..kernels import bindings
 
     n = len(tri_lo)
-    cap = 2 * n - 1 if max_leaf_size <= 1 else 2 * n
+    cap = 2 * n - 1  # a binary tree over n triangles has at most 2n - 1 nodes
     lo, hi = np.empty((cap, 3), np.float32), np.empty((cap, 3), np.float32)
     left, start, count = np.empty(cap, np.int64), np.empty(cap, np.int64), np.empty(cap, np.int64)
     depth, order, used = np.empty(cap, np.int32), np.empty(n, np.int64), np.zeros(1, np.int64)

@@ -220,19 +220,14 @@ def payload_bound(triangles: np.ndarray) -> np.ndarray:
     return (3 * t * 48 + 7) // 8 + (t * 30 + 7) // 8 + 2
 
 
-def _native_encoder() -> bool:
-    """Whether the compiled cluster encoder serves (`kernels.native/mesh_codec.cpp`, byte for byte the reference)."""
-    from ..kernels import library
-
-    return library.current_path() == "fast" and library.load() is not None
-
-
 def _cluster_payloads(faces: np.ndarray, grid: np.ndarray, tri_sets: list[np.ndarray]):
     """Every cluster's payload: (payload bytes list, packed widths (C,) int64, vertex counts (C,) int64, grid boxes
     lo and hi (C, 3) int64). The compiled encoder where it builds (~1 us per triangle in Python: 65 s of a
     1.2M-triangle lattice's plan), else `_encode_cluster` per cluster."""
+    from ..kernels import library
+
     n = len(tri_sets)
-    if _native_encoder():
+    if library.fast_enabled():  # kernels/native/mesh_codec.cpp: byte for byte `_encode_cluster`
         from ..kernels import bindings
 
         counts = np.array([len(t) for t in tri_sets], np.int64)
@@ -264,8 +259,8 @@ def encode_compact(mesh: Mesh, tree=None, grid_bits: int = GRID_BITS) -> bytes:
     return _encode(mesh, tree, grid_bits)[0]
 
 
-def _encode(mesh: Mesh, tree=None, grid_bits: int = GRID_BITS) -> tuple[bytes, np.ndarray, np.ndarray]:
-    """(the compact layout's bytes, every vertex as the layout decodes it (V, 3) float32, the grid (V, 3) int64)."""
+def _encode(mesh: Mesh, tree=None, grid_bits: int = GRID_BITS) -> tuple[bytes, np.ndarray]:
+    """(the compact layout's bytes, every vertex as the layout decodes it (V, 3) float32)."""
     if not 4 <= grid_bits <= 16:
         raise ValueError(f"grid_bits must be 4..16, got {grid_bits}")
     tree = tree if tree is not None else build_full_tree(mesh)
@@ -286,21 +281,22 @@ def _encode(mesh: Mesh, tree=None, grid_bits: int = GRID_BITS) -> tuple[bytes, n
     root_lo = np.nextafter(np.min(cluster_lo, axis=0), -np.inf).astype(np.float32)
     root_hi = np.nextafter(np.max(cluster_hi, axis=0), np.inf).astype(np.float32)
     header = _HEADER.pack(MAGIC, len(links), len(records), *origin, step, *root_lo, *root_hi)
-    return header + nodes + b"".join(records) + b"".join(payloads), decoded, grid
+    return header + nodes + b"".join(records) + b"".join(payloads), decoded
 
 
 def _quantize_box(lo, hi, plo, phi) -> np.ndarray:
-    """A child box as 6 u8 in 1/255ths of its parent's box, rounded outward (the decoded box contains it)."""
+    """A child box as 6 u8 in 1/255ths of its parent's box, rounded outward (the decoded box contains it); any
+    leading shape: (..., 3) float32 boxes give (..., 6)."""
     ext = np.maximum(phi - plo, np.float32(1e-30))
     qlo = np.clip(np.floor((lo - plo) / ext * 255.0), 0, 255)
     qhi = np.clip(np.ceil((hi - plo) / ext * 255.0), 0, 255)
-    return np.concatenate((qlo, qhi)).astype(np.uint8)
+    return np.concatenate((qlo, qhi), axis=-1).astype(np.uint8)
 
 
 def _dequantize_box(q: np.ndarray, plo: np.ndarray, phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     ext = (phi - plo).astype(np.float64)
-    lo = plo + q[:3] / 255.0 * ext
-    hi = plo + q[3:] / 255.0 * ext
+    lo = plo + q[..., :3] / 255.0 * ext
+    hi = plo + q[..., 3:] / 255.0 * ext
     # float rounding must never shrink a box: widen by one ulp each way
     return (np.nextafter(lo.astype(np.float32), -np.inf), np.nextafter(hi.astype(np.float32), np.inf))
 
@@ -308,8 +304,7 @@ def _dequantize_box(q: np.ndarray, plo: np.ndarray, phi: np.ndarray) -> tuple[np
 def _encode_nodes(links: list[int], cluster_lo: np.ndarray, cluster_hi: np.ndarray) -> bytes:
     """Node boxes (bottom-up from the decoded clusters' boxes) quantized top-down against their parents' decoded
     boxes, and their links. links: `_cluster_tree`'s (BFS order: a node's children come after it). One depth at a
-    time, vectorised (node by node in Python: 18 s of a 10M-triangle mesh's 825k nodes); the same float32 and
-    float64 operations as `_quantize_box` / `_dequantize_box`, so the same bytes."""
+    time through `_quantize_box` / `_dequantize_box` (node by node: 18 s of a 10M-triangle mesh's 825k nodes)."""
     links = np.asarray(links, np.int64)
     n = len(links)
     inner = np.flatnonzero(links >= 0)
@@ -337,13 +332,8 @@ def _encode_nodes(links: list[int], cluster_lo: np.ndarray, cluster_hi: np.ndarr
     for nodes in levels:
         up = np.where(nodes == 0, 0, parent[nodes])
         plo, phi = dlo[up], dhi[up]
-        ext = np.maximum(phi - plo, np.float32(1e-30))
-        qlo = np.clip(np.floor((lo[nodes] - plo) / ext * 255.0), 0, 255)
-        qhi = np.clip(np.ceil((hi[nodes] - plo) / ext * 255.0), 0, 255)
-        q[nodes] = np.concatenate((qlo, qhi), axis=1).astype(np.uint8)
-        ext64 = (phi - plo).astype(np.float64)
-        dlo[nodes] = np.nextafter((plo + q[nodes, :3] / 255.0 * ext64).astype(np.float32), -np.inf)
-        dhi[nodes] = np.nextafter((plo + q[nodes, 3:] / 255.0 * ext64).astype(np.float32), np.inf)
+        q[nodes] = _quantize_box(lo[nodes], hi[nodes], plo, phi)
+        dlo[nodes], dhi[nodes] = _dequantize_box(q[nodes], plo, phi)
     record = np.zeros(n, np.dtype([("q", np.uint8, 6), ("link", "<u4")], align=False))
     record["q"] = q
     record["link"] = np.where(links < 0, LEAF_BIT | (-1 - links), links).astype(np.uint32)
@@ -486,7 +476,7 @@ def compact_mesh(mesh: Mesh, tree=None) -> tuple[int, Mesh]:
     coordinates, for measuring the image error of what the layout holds)."""
     # The layout's triangles are the mesh's on its vertices snapped to the grid (what decode_compact reads back:
     # tests/test_compact_mesh.py), so they are taken from the encoder instead of decoding the bytes again.
-    data, snapped, _ = _encode(mesh, tree)
+    data, snapped = _encode(mesh, tree)
     # a sliver the grid collapsed to zero area is never hit (Embree skips it) and has no normal: left out
     keep = np.linalg.norm(face_cross(snapped, mesh.faces), axis=1) > 0
     return len(data), Mesh(vertices=snapped, faces=mesh.faces[keep], transform=mesh.transform, name=mesh.name)

@@ -182,14 +182,20 @@ class Decimator:
     def kept_corners(self, triangles: int) -> np.ndarray:
         """(F', 3) int64 wedge corners of the decimation to `triangles` (F' <= triangles unless the simplifier
         stops early: `simplify_indices`)."""
+        if triangles in self._levels:  # a chain level made as another count's source
+            return self._levels[triangles]
         wedge_vertex, corners, _, wedge_uv, positions = self._wedge_data()
         level = self.source_level(triangles)
         if level is not None and level not in self._levels:
             self._levels[level] = self.kept_corners(level)
         source = corners if level is None else self._levels[level]
         if wedge_uv is None:
-            return simplify_indices(positions, source, triangles)
-        return simplify_indices(positions, source, triangles, wedge_uv, np.full(2, UV_WEIGHT, np.float32))
+            kept = simplify_indices(positions, source, triangles)
+        else:
+            kept = simplify_indices(positions, source, triangles, wedge_uv, np.full(2, UV_WEIGHT, np.float32))
+        if self.chained and triangles in CHAIN_LEVELS:  # the alternative's ladder asks for the levels themselves
+            self._levels[triangles] = kept
+        return kept
 
     def __call__(self, triangles: int) -> Mesh:
         """The decimation to about `triangles` triangles (< the mesh's) as a Mesh: the input's positions

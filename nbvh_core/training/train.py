@@ -272,8 +272,8 @@ class DivergenceGuard:
         # A live network at a lowered learning rate on a slow machine can stay within 2% for a few hundred steps
         # (CI: blob, lr 5e-4, 188 steps): below FLAT_JUDGED_STEPS only a network that no longer learns (no gradient
         # past its output bias) is thrown away; from there a flat loss is judged as it always was.
-        judged = ran >= FLAT_JUDGED_STEPS or not gradients_pass_output_bias(model)
-        if start is not None and ran >= 50 and self.ema >= 0.98 * start and judged:
+        flat = start is not None and ran >= 50 and self.ema >= 0.98 * start
+        if flat and (ran >= FLAT_JUDGED_STEPS or not gradients_pass_output_bias(model)):
             # Dead ReLUs predict the prior and the loss stays at its start: such a model is useless; never saved.
             raise TrainingDiverged(f"the loss did not fall in {ran} steps ({start:.4g} -> {self.ema:.4g}): "
                                    f"the learning rate {self.cfg.lr:g} is too high for this model, or it cannot learn")

@@ -16,10 +16,6 @@ inline double half_area(const float* lo, const float* hi) {
     return d[0] * d[1] + d[1] * d[2] + d[2] * d[0];
 }
 
-struct Split {
-    std::vector<char> right;  // per triangle of the node, in its current order
-};
-
 // One node's split (what one level of the numpy build decides for it): go_right per triangle of order[s, s + n).
 void split_node(const int64_t* tris, int64_t n, const float* tri_lo, const float* tri_hi, const double* centroid,
                 int n_bins, int median_below, std::vector<char>& right) {
