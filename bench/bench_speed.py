@@ -64,8 +64,8 @@ def train_throughput(bvh, tracer, s, mesh, device, steps: int) -> tuple[float, f
     return res.samples_per_s, res.seconds, res.compute_path
 
 
-def render_time(model, o, d, device, repeat: int) -> tuple[float, int, int]:
-    """Best-of-`repeat` seconds to query all rays, hits, segments evaluated."""
+def render_time(model, o, d, device, repeat: int):
+    """Best-of-`repeat` seconds to query all rays, and the last query's result (`QueryResult`)."""
     best, q = float("inf"), None
     for _ in range(repeat):
         sync(device)
@@ -73,7 +73,15 @@ def render_time(model, o, d, device, repeat: int) -> tuple[float, int, int]:
         q = model.query(o, d)
         sync(device)
         best = min(best, time.perf_counter() - t)
-    return best, int(q.hit.sum()), q.leaves_evaluated
+    return best, q
+
+
+def agreement(q, ref) -> dict:
+    """How a path's first hits agree with the reference path's on the same rays: the share of rays whose hit
+    decision is the same, and the largest |t| difference (model units) where both hit."""
+    both = q.hit & ref.hit
+    t_err = float((q.t[both] - ref.t[both]).abs().max()) if bool(both.any()) else 0.0
+    return {"hit_agreement": float((q.hit == ref.hit).float().mean()), "t_max_error": t_err}
 
 
 def main() -> None:
@@ -115,17 +123,22 @@ def main() -> None:
     for size in sizes:
         o_np, d_np = cam.rays(size, size)
         o, d = torch.from_numpy(o_np).to(device), torch.from_numpy(d_np).to(device)
+        results = {}
         for path in kernels.PATHS:
             with kernels.using_path(path):
-                sec, hits, segs = render_time(model, o, d, device, 1 if (path == "reference" and size > 512) else 3)
-                used = kernels.describe(device)
+                sec, q = render_time(model, o, d, device, 1 if (path == "reference" and size > 512) else 3)
+                used = kernels.describe(device) + f", query {kernels.query_kernel(model, device)}"
+            results[path] = q
+            hits, segs = int(q.hit.sum()), q.leaves_evaluated
             rows.append({"what": "render", "path": used, "size": size, "seconds": sec,
                          "items": size * size, "per_s": size * size / sec, "unit": "rays/s", "segments": segs,
                          "segments_per_s": segs / sec, "gflops": segs * per_seg / sec / 1e9, "hits": hits})
             print(rows[-1], flush=True)
+        rows[-len(kernels.PATHS)].update(agreement(results["fast"], results["reference"]))
         if device.type == "cpu":
             model.half_tables = True
-            sec, hits, segs = render_time(model, o, d, device, 3)
+            sec, q = render_time(model, o, d, device, 3)
+            hits, segs = int(q.hit.sum()), q.leaves_evaluated
             model.half_tables = False
             rows.append({"what": "render", "path": kernels.describe(device) + ", float16 tables", "size": size,
                          "seconds": sec, "items": size * size, "per_s": size * size / sec, "unit": "rays/s",

@@ -1,13 +1,14 @@
 """The one prepared check for a lent card (H100 / H200), at most ~5 minutes, run in every session that has one:
 
 1. kernel agreement on the card: tests/test_triton_kernels.py on CUDA tensors (no interpreter);
-2. speed: `bench_speed.py --device cuda` (the Triton path against torch on the card, Embree on the host's cores:
-   renders at 512 and 1000 px, training samples/s) and the same on the host's CPU (the fused C++ path);
+2. speed: `bench_speed.py --device cuda` (the Triton path - the ray query one kernel - against torch on the card,
+   Embree on the host's cores: renders at 512 and 1000 px with the share of rays that decide as the reference,
+   training samples/s) and the same on the host's CPU (the fused C++ path);
 3. the bunny at level standard on the card (`nbvh compress bunny --quality standard --device cuda`): wall seconds,
    whether the level was met, bytes.
 
 Writes bench/results/gpu/: summary.csv (one row per figure: figure, value, device, commit, machine, command; the
-figures render_1mp_ms, train_samples_per_s, bunny_standard_wall_s, kernel_tests_passed), speed*.{csv,md}
+figures render_1mp_ms, render_hit_agreement, train_samples_per_s, bunny_standard_wall_s, kernel_tests_passed), speed*.{csv,md}
 from each speed run and the compress log. A figure whose step failed is written empty with the reason.
 
     .venv/bin/python bench/device_check.py             # on the card (device tool: one call, timeout 420 s)
@@ -76,6 +77,9 @@ def main() -> None:
     fast = [r for r in rows if r["what"] == "render" and r["size"] == size and r["path"].startswith("fast")]
     figure("render_1mp_ms", round(float(fast[0]["seconds"]) * 1000, 3) if fast else "",
            fast[0]["path"] if fast else "no fast-path render row")
+    agree = fast[0].get("hit_agreement", "") if fast else ""
+    figure("render_hit_agreement", agree, f"share of rays deciding as the reference path (t max error "
+                                          f"{fast[0].get('t_max_error', '')})" if fast else "no fast-path render row")
     train = [r for r in rows if r["what"] == "train" and "reference" not in r["path"]]
     figure("train_samples_per_s", round(float(train[0]["per_s"])) if train else "",
            train[0]["path"] if train else "no training row")

@@ -26,6 +26,7 @@ SMOKE = {
     "bench_decimators.py": ["--assets", "blob", "--shares", "0.1", "--views", "1", "--size", "32"],
     "device_check.py": ["--smoke", "--out", "{tmp}/gpu"],
     "bench_engine.py": ["{tmp}/models", "--frames", "1"],
+    "kernel_registers.py": ["--cases", "1"],
     "bench_foundation.py": ["--quick", "--rays", "2000", "--nodes", "64"],
     "bench_grow.py": ["--meshes", "blob", "--preset", "tiny", "--sizes", "7", "--time-limit", "2"],
     "bench_need.py": ["--meshes", "gear", "--time-limit", "2"],

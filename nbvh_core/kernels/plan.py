@@ -6,7 +6,8 @@ probes for methods. The call sites ask the stage functions below; `plan(model, d
 `KernelPlan` a result records (`TrainResult.compute_path`, `kernel_plan`), so a number says exactly which code
 produced it.
 
-Stages: traversal (leaf streams and training label lists), encoding (grid lookups outside the fused network),
+Stages: query (a model's first hits: one Triton kernel on a card, else the leaf stream and the network stage),
+traversal (leaf streams and training label lists), encoding (grid lookups outside the fused network),
 soft_table (HashVQAD's softmax row table while its index is soft), network (inference per segment), train_step
 (forward, loss and backward of one step), optimizer (Adam's update).
 """
@@ -52,6 +53,17 @@ def mlp_kernel(net, device: torch.device | str) -> str:
     """A network's layers at inference (no autograd) on `device`: 'triton' or 'torch' (training's layers are torch's
     own: cuBLAS on a card, with autograd)."""
     return "triton" if triton_serves(device) and triton_network_gap(net) is None else TORCH
+
+
+def query_kernel(model, device: torch.device | str | None = None) -> str:
+    """A model's ray query (first hits) on `device` (default: the model's): 'triton' (traversal, points, lookup,
+    network and decode in one kernel, `triton/ray_query.py`) where the card's kernels cover the encoding and the
+    network, else 'stream' (the leaf stream's traversal, then the network stage per wave of segments)."""
+    device = model.device if device is None else device
+    if not triton_serves(device) or model.network.fused_kind is None:
+        return "stream"
+    gaps = triton_encoding_gap(model.encoding) or triton_network_gap(model.network.net)
+    return "stream" if gaps else "triton"
 
 
 def traversal_kernel(device: torch.device | str) -> str:
@@ -120,6 +132,7 @@ class KernelPlan:
     path: str  # 'fast' | 'reference': the switch
     device: str
     traversal: str
+    query: str
     encoding: str
     soft_table: str | None
     network: str
@@ -130,8 +143,8 @@ class KernelPlan:
 
     def describe(self) -> str:
         """One line for results, e.g. 'fast on cpu (2 threads): traversal fused, train step fused kmlp, ...'."""
-        stages = [f"traversal {self.traversal}", f"train step {self.train_step}", f"network {self.network}",
-                  f"encoding {self.encoding}"]
+        stages = [f"query {self.query}", f"traversal {self.traversal}", f"train step {self.train_step}",
+                  f"network {self.network}", f"encoding {self.encoding}"]
         if self.soft_table is not None:
             stages.append(f"soft table {self.soft_table}")
         stages.append(self.optimizer)
@@ -151,12 +164,14 @@ def plan(model, device: torch.device | str | None = None) -> KernelPlan:
     if triton_serves(device):
         gaps = [f"encoding: {g}" for g in [triton_encoding_gap(enc)] if g]
         gaps += [f"network: {g}" for g in [triton_network_gap(model.network.net)] if g]
-        note = ("Triton kernels on the card; torch for traversal and the training step's autograd"
+        note = ("Triton kernels on the card (the ray query one kernel); torch for training's traversal and the"
+                " training step's autograd"
                 + (f"; torch where not covered ({'; '.join(gaps)})" if gaps else ""))
     traversal = traversal_kernel(device)
     if traversal == "fused" and model.compact_nodes is not None:
         traversal = "fused 8-bit nodes"
     return KernelPlan(path=current_path(), device=device.type, traversal=traversal,
+                      query=query_kernel(model, device),
                       encoding=encoding_kernel(enc, device), soft_table=soft_table_kernel(enc, device),
                       network=network_kernel(model, device), train_step=train_step_kernel(model, device),
                       optimizer=optimizer_kernel(), threads=threads(), note=note)

@@ -149,6 +149,8 @@ class NeuralBVH(nn.Module):
         dev = self.device
         rays_o = rays_o.to(dev, torch.float32).contiguous()
         rays_d = rays_d.to(dev, torch.float32).contiguous()
+        if kernels.query_kernel(self, dev) == "triton":
+            return self._triton_query(rays_o, rays_d)
         n = rays_o.shape[0]
         hit = torch.zeros(n, dtype=torch.bool, device=dev)
         t_out = torch.full((n,), torch.inf, device=dev)
@@ -164,6 +166,23 @@ class NeuralBVH(nn.Module):
         # Normals face the ray, whatever sign the network learnt (unoriented loss; rays that started inside).
         normal = torch.where(((normal * rays_d).sum(-1, keepdim=True) > 0), -normal, normal)
         return QueryResult(hit=hit, t=t_out, normal=normal, leaves_evaluated=evaluated)
+
+    def _triton_query(self, rays_o: torch.Tensor, rays_d: torch.Tensor) -> QueryResult:
+        """`query` as one Triton kernel on the card (`kernels.triton.ray_query`): every ray in one launch, no
+        stacks in memory, no host sync until the result."""
+        from ..kernels.triton.ray_query import first_hits
+        from .networks import triton_packed
+
+        tree = self.tree()
+        if isinstance(tree, CompactBVH):  # the CPU's fused stream reads the 8-bit nodes (the interpreter's tests)
+            tree = TorchBVH.from_nodes(self.nodes, self.device)
+        k = self.cfg.network.k
+        frac = torch.linspace(0.0, 1.0, k, device=rays_o.device, dtype=torch.float32)
+        found = first_hits(rays_o, rays_d, tree.records, tree.max_depth, frac,
+                           self.encoding.triton_rows(rays_o.device), triton_packed(self.network.net),
+                           self.network.fused_kind)
+        normal = torch.where(((found.normal * rays_d).sum(-1, keepdim=True) > 0), -found.normal, found.normal)
+        return QueryResult(hit=found.hit, t=found.t, normal=normal, leaves_evaluated=int(found.segments.sum()))
 
     def _query_chunk(self, rays_o: torch.Tensor, rays_d: torch.Tensor, hit: torch.Tensor, t_out: torch.Tensor,
                      normal: torch.Tensor, fused: tuple | None, batch: int) -> int:

@@ -120,15 +120,24 @@ def run_layers(net: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
 def _triton_layers(net: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
     """`run_layers` through the Triton MLP: x (..., n_in) -> (..., n_out) float32 (the packed weights are cached on
     `net`, keyed by every parameter's version, so training steps between queries repack)."""
-    from ..kernels.triton.mlp import mlp_forward, pack_mlp
+    from ..kernels.triton.mlp import mlp_forward
+
+    flat = x.reshape(-1, x.shape[-1]).float()
+    return mlp_forward(flat, triton_packed(net)).reshape(*x.shape[:-1], -1).to(x.dtype)
+
+
+def triton_packed(net: nn.Sequential):
+    """`net`'s layers laid out for the Triton kernels (`mlp.pack_mlp`, weights dequantized to float32 by
+    `linear_weight`), cached on `net` and keyed by every parameter's version: training steps between queries
+    repack."""
+    from ..kernels.triton.mlp import pack_mlp
 
     key = tuple((id(p), p._version) for p in net.parameters())
     cached = getattr(net, "_triton_pack", None)
     if cached is None or cached[0] != key:
         cached = (key, pack_mlp(net, lambda m: linear_weight(m, torch.float32)))
         net._triton_pack = cached
-    flat = x.reshape(-1, x.shape[-1]).float()
-    return mlp_forward(flat, cached[1]).reshape(*x.shape[:-1], -1).to(x.dtype)
+    return cached[1]
 
 
 def _l1(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:

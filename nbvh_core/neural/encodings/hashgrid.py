@@ -132,15 +132,31 @@ class HashGrid(Encoding):
     def _triton_forward(self, points: torch.Tensor) -> torch.Tensor:
         """The Triton lookup (`kernels.triton.hashgrid`; differentiable in `table` through its atomic backward; a
         shipped table's uint8 codes read as they are held)."""
-        from ...kernels.triton.hashgrid import grid_encode, grid_encode_codes, level_geometry
+        from ...kernels.triton.hashgrid import grid_encode, grid_encode_codes
 
-        size = self._vertex_table_size()
-        if self._triton_geometry is None or self._triton_geometry[0].device != points.device:
-            self._triton_geometry = level_geometry(self.scales, [vertex_resolution(s) for s in self.scales], size,
-                                                   points.device)
+        geometry = self.triton_geometry(points.device)
         if self.quantized:
-            return grid_encode_codes(points, self.qcodes, self.qoffset, self.qscale, self._triton_geometry)
-        return grid_encode(points, self.table, self._triton_geometry)
+            return grid_encode_codes(points, self.qcodes, self.qoffset, self.qscale, geometry)
+        return grid_encode(points, self.table, geometry)
+
+    def triton_geometry(self, device: torch.device) -> tuple:
+        """The levels as the Triton kernels read them (`hashgrid.level_geometry`), built once per device."""
+        from ...kernels.triton.hashgrid import level_geometry
+
+        if self._triton_geometry is None or self._triton_geometry[0].device != torch.device(device):
+            self._triton_geometry = level_geometry(self.scales, [vertex_resolution(s) for s in self.scales],
+                                                   self._vertex_table_size(), device)
+        return self._triton_geometry
+
+    def triton_rows(self, device: torch.device):
+        """What the Triton ray query reads (`ray_query.GridRows`): the uint8 codes with their affine when the table
+        is held as a file stores it, else the float32 table."""
+        from ...kernels.triton.ray_query import GridRows
+
+        geometry = self.triton_geometry(device)
+        if self.quantized:
+            return GridRows(self.qcodes, geometry, self.qoffset, self.qscale)
+        return GridRows(self.table.detach(), geometry)
 
     def _fused_forward(self, points: torch.Tensor) -> torch.Tensor:
         look = self.fused_lookup()

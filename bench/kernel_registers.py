@@ -1,0 +1,124 @@
+"""What the card's Triton kernels cost in registers, without a card: each kernel compiled for an NVIDIA target
+(sm_90a, the H100/H200's) by Triton on this machine and assembled by the ptxas Triton ships, `ptxas -v` read back.
+A kernel that spills registers to local memory on the card is slow however correct the interpreter finds it; this
+is the one measure of that available where no card is lent (the speed itself needs one: bench/device_check.py).
+
+    .venv/bin/python bench/kernel_registers.py            # bench/results/kernel_registers.{csv,md}
+
+Rows: kernel (ray query mlp | kmlp, table f32 | u8 codes), the default preset's shape (10 levels x 4 features,
+k = 4, 2 hidden layers of 64), registers per thread, spill store bytes, local stack bytes, compile seconds.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+
+os.environ.pop("TRITON_INTERPRET", None)  # the kernels are compiled, not interpreted: read when Triton is imported
+
+from harness import append_rows, markdown_table, result_path, stamp, write_markdown
+
+TARGET_ARCH, TARGET_SM = 90, "sm_90a"  # Hopper: what the lent cards are
+
+
+@dataclass(frozen=True)
+class CardBuild:
+    """A kernel as ptxas assembled it: registers per thread, bytes spilled (stores) and the local stack."""
+
+    registers: int
+    spill_store_bytes: int
+    stack_bytes: int
+    compile_s: float
+
+
+def _ray_query_signature(kind: str, codes: bool, levels: int, features: int, k: int, width: int,
+                         hidden: int) -> tuple[dict, dict]:
+    from nbvh_core.kernels.triton import ray_query
+
+    pointers = dict(o_ptr="*fp32", d_ptr="*fp32", inv_ptr="*fp32", n="i32", rec_f_ptr="*fp32", rec_i_ptr="*i32",
+                    frac_ptr="*fp32", table_ptr="*u8" if codes else "*fp32", offset_ptr="*fp32", scale_ptr="*fp32",
+                    scales_ptr="*fp32", res_ptr="*i32", dense_ptr="*i32", w_in_ptr="*fp32", b_in_ptr="*fp32",
+                    w_hid_ptr="*fp32", b_hid_ptr="*fp32", w_out_ptr="*fp32", b_out_ptr="*fp32", hit_ptr="*i8",
+                    t_ptr="*fp32", normal_ptr="*fp32", segments_ptr="*i32")
+    n_in = (2 if kind == "kmlp" else k) * levels * features
+    constants = dict(L=levels, T=2048, F=features, CODES=codes, K=k, K_PAD=-(-n_in // 32) * 32, W=width,
+                     HIDDEN=hidden - 1, OUT_PAD=16, KMLP=kind == "kmlp", DEPTH=32, BR=ray_query.BLOCK_R,
+                     PRECISION="tf32")
+    return pointers, constants
+
+
+def build_ray_query(kind: str = "mlp", codes: bool = True, levels: int = 10, features: int = 4, k: int = 4,
+                    width: int = 64, hidden: int = 2) -> CardBuild:
+    """Compile the ray-query kernel for `TARGET_SM` as `first_hits` launches it (BLOCK_R rays, WARPS warps, TF32)
+    and read ptxas's report. Raises RuntimeError when ptxas fails."""
+    import triton
+    from triton.backends.compiler import GPUTarget
+    from triton.compiler import ASTSource
+
+    from nbvh_core.kernels.triton import ray_query
+
+    pointers, constants = _ray_query_signature(kind, codes, levels, features, k, width, hidden)
+    signature = dict(pointers, **{name: "constexpr" for name in constants})
+    names = list(signature)
+    source = ASTSource(fn=ray_query._ray_query, signature=signature,
+                       constexprs={(names.index(name),): value for name, value in constants.items()})
+    start = time.perf_counter()
+    compiled = triton.compile(source, target=GPUTarget("cuda", TARGET_ARCH, 32),
+                              options={"num_warps": ray_query.WARPS})
+    seconds = time.perf_counter() - start
+    ptxas = os.path.join(os.path.dirname(triton.__file__), "backends", "nvidia", "bin", "ptxas")
+    with tempfile.TemporaryDirectory() as tmp:
+        ptx = os.path.join(tmp, "kernel.ptx")
+        with open(ptx, "w") as f:
+            f.write(compiled.asm["ptx"])
+        out = subprocess.run([ptxas, f"-arch={TARGET_SM}", "-v", ptx, "-o", os.path.join(tmp, "kernel.cubin")],
+                             capture_output=True, text=True)
+    if out.returncode != 0:
+        raise RuntimeError(f"ptxas failed: {out.stderr.strip().splitlines()[-1:]}")
+    return _parse(out.stderr, seconds)
+
+
+def _parse(report: str, seconds: float) -> CardBuild:
+    registers = re.search(r"Used (\d+) registers", report)
+    spills = re.search(r"(\d+) bytes spill stores", report)
+    stack = re.search(r"(\d+) bytes stack frame", report)
+    if registers is None:
+        raise RuntimeError("ptxas printed no register count")
+    return CardBuild(int(registers.group(1)), int(spills.group(1)) if spills else 0,
+                     int(stack.group(1)) if stack else 0, round(seconds, 1))
+
+
+CASES = [("ray query mlp, u8 codes", "mlp", True), ("ray query mlp, f32 table", "mlp", False),
+         ("ray query kmlp, u8 codes", "kmlp", True), ("ray query kmlp, f32 table", "kmlp", False)]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--cases", type=int, default=len(CASES), help="how many of the cases to build (smoke: 1)")
+    args = ap.parse_args()
+    run = stamp()
+    rows = []
+    for label, kind, codes in CASES[:args.cases]:
+        build = build_ray_query(kind, codes)
+        row = {"kernel": label, "target": TARGET_SM, "registers": build.registers,
+               "spill_store_bytes": build.spill_store_bytes, "stack_bytes": build.stack_bytes,
+               "compile_s": build.compile_s}
+        print(row, flush=True)
+        rows.append(row)
+    append_rows(result_path("kernel_registers.csv"), rows, run)
+    table = markdown_table(["kernel", "target", "registers", "spill stores (B)", "stack (B)", "compile (s)"],
+                           [[r["kernel"], r["target"], r["registers"], r["spill_store_bytes"], r["stack_bytes"],
+                             r["compile_s"]] for r in rows])
+    write_markdown(result_path("kernel_registers.md"),
+                   ["# The card's Triton kernels as ptxas assembles them", "",
+                    "The default preset's shape, compiled for the card without one (no timing: "
+                    "bench/device_check.py on a card).", "", *table], run)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
