@@ -43,6 +43,7 @@ class Session:
     loaded: dict = field(default_factory=dict)  # object name -> load_result dict
     failures: dict = field(default_factory=dict)  # object name -> message
     kept_as_mesh: dict = field(default_factory=dict)  # object name -> the "not worth compressing" verdict
+    scene_split: dict | None = None  # a scene budget's split, from a job that kept its mesh (trained ones report it)
     decimations: dict = field(default_factory=dict)  # object name -> the decimation that wins (`decimation_offer`)
     triangles: dict = field(default_factory=dict)  # object name -> exported triangles
     textures: dict = field(default_factory=dict)  # object name -> export.asset_textures (images, material slots)
@@ -169,6 +170,7 @@ def finish_done(session: Session, scene) -> None:
             session.loaded[obj_name]["result"] = job.result
         elif job.state == "skipped":
             session.kept_as_mesh[obj_name] = job.verdict
+            session.scene_split = session.scene_split or job.scene_split
             if job.decimation:
                 glb = next((f for f in job.kept_files if f.endswith(".glb")), None)
                 session.decimations[obj_name] = decimation_offer(job.decimation, session.triangles.get(obj_name, 0),
@@ -198,4 +200,4 @@ def write_scene_report(session: Session) -> tuple[Path, Path] | None:
     kept = [{"name": n, "blender_mesh_bytes": session.blender_bytes[n], "verdict": v,
              "decimation": session.decimations.get(n), "textures": session.textures.get(n, ({}, 0))[0]}
             for n, v in session.kept_as_mesh.items()]
-    return report.write_report(report.build_report(entries, kept), session.out_dir)
+    return report.write_report(report.build_report(entries, kept, session.scene_split), session.out_dir)

@@ -100,6 +100,7 @@ class Job:
     verdict: str | None = None
     decimation: dict | None = None  # the verdict's winning decimation (triangles, mse, resident and compact bytes)
     kept_files: list = field(default_factory=list)  # what the job wrote in place of a model (NAME.glb, .compact.cmsh)
+    scene_split: dict | None = None  # a scene budget's split as the job planned it (also when the mesh is kept)
     log: list = field(default_factory=list)
     started: float | None = None
     clock: "JobClock" = field(default_factory=lambda: JobClock())
@@ -139,7 +140,9 @@ class Job:
             kind = ev.get("event")
             self.clock.see(ev)
             if kind in ("progress", "phase"):
-                self.progress.update({k: v for k, v in ev.items() if k != "event"})
+                if ev.get("scene_split"):
+                    self.scene_split = ev["scene_split"]
+                self.progress.update({k: v for k, v in ev.items() if k not in ("event", "scene_split")})
             elif kind == "result":
                 self.result = ev
             elif kind == "verdict":  # the decimation that meets the level, when it is what wins

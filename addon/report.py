@@ -74,10 +74,12 @@ def object_entry(name: str, blender_bytes: dict, job_report: dict, textures: dic
     }
 
 
-def build_report(entries: list[dict], kept_as_mesh: list[dict] | None = None) -> dict:
+def build_report(entries: list[dict], kept_as_mesh: list[dict] | None = None,
+                 scene_split: dict | None = None) -> dict:
     """The scene report: trained `entries` (object_entry), and the objects whose verdict kept them as meshes
-    ({name, blender_mesh_bytes, verdict, decimation}: nothing was trained for them; decimation: the one that wins,
-    compress_session.decimation_offer, or None)."""
+    ({name, blender_mesh_bytes, verdict, decimation}: no model ships for them; decimation: the one that wins,
+    compress_session.decimation_offer, or None); scene_split: a scene budget's split when no trained entry carries
+    it (every object kept)."""
     totals = {"blender_mesh_bytes": sum(e["blender_mesh_bytes"]["total"] for e in entries),
               "ray_tracing_resident_bytes": sum(e["ray_tracing_resident_bytes"]["total"] for e in entries),
               "nbvh_bytes": sum(e["nbvh_bytes"] for e in entries)}
@@ -88,7 +90,7 @@ def build_report(entries: list[dict], kept_as_mesh: list[dict] | None = None) ->
     if totals["nbvh_bytes"]:
         totals["ratio_blender_mesh_to_nbvh"] = totals["blender_mesh_bytes"] / totals["nbvh_bytes"]
         totals["ratio_resident_to_nbvh"] = totals["ray_tracing_resident_bytes"] / totals["nbvh_bytes"]
-    split = next((e["scene_split"] for e in entries if e.get("scene_split")), None)
+    split = next((e["scene_split"] for e in entries if e.get("scene_split")), scene_split)
     return {"objects": entries, "totals": totals, "scene_split": split, "kept_as_mesh": kept_as_mesh or []}
 
 

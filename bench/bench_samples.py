@@ -1,4 +1,5 @@
-"""Compress every bundled sample with one preset and tabulate size, quality, time and speed.
+"""Compress every bundled sample with one preset and tabulate size, quality, time and speed (forced: the model of
+each, whatever the verdict).
 
     .venv/bin/python bench/bench_samples.py [--preset default] [--out out/samples]
     .venv/bin/python bench/bench_samples.py --summarise out/default     # only tabulate existing NAME.report.json reports
@@ -81,7 +82,7 @@ def main() -> None:
     for name in SAMPLE_NAMES:
         t = time.perf_counter()
         subprocess.run([sys.executable, "-m", "nbvh_core", "compress", name, "-o", str(folder / f"{name}.nbvh"),
-                        "--preset", args.preset, "--events"], check=True, stdout=subprocess.DEVNULL)
+                        "--preset", args.preset, "--force", "--events"], check=True, stdout=subprocess.DEVNULL)
         wall[name] = round(time.perf_counter() - t, 1)
     summarise(folder, args.preset, wall)
 

@@ -504,14 +504,17 @@ def test_scene_budget_is_split_by_need_and_suzanne_is_not_worth_it():
     assert split["total_bytes"] <= 1500 * 1024
     # The files written hold the budget, not only the plan: every .nbvh in the output folder, counted on disk.
     written = {p.stem: p.stat().st_size for p in Path(props.output_dir).glob("*.nbvh")}
-    assert written and sum(written.values()) <= 1500 * 1024, written
+    assert sum(written.values()) <= 1500 * 1024, written
     by_name = {o["name"]: o for o in split["objects"]}
     # Suzanne (968 triangles) is far smaller as a mesh than any model: the split gives it nothing, its verdict ends
-    # its job before training, and the report and the panel say it was kept as a mesh.
+    # its job before training, and the report and the panel say it was kept as a mesh. The blob's share trains,
+    # and its 5-second model is then weighed as every fixed size is: the whole blob as a compact mesh (72 KB) reads
+    # better in fewer bytes, so it is kept too, and the report still shows the split.
     assert by_name["Suzanne"]["excluded"] and by_name["Suzanne"]["bytes"] == 0 and by_name["Blob"]["bytes"] > 0
-    assert [e["name"] for e in scene_json["objects"]] == ["Blob"]
     kept = {k["name"]: k for k in scene_json["kept_as_mesh"]}
     assert "not worth compressing" in kept["Suzanne"]["verdict"]
+    assert [e["name"] for e in scene_json["objects"]] == [] and "kept as a mesh" in kept["Blob"]["verdict"], kept
+    assert not written
     assert "Suzanne kept as a mesh" in props.last_note
     page = Path(props.report_html).read_text()
     assert "Scene budget split" in page and "Kept as meshes" in page

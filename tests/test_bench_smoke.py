@@ -40,7 +40,7 @@ SMOKE = {
     "bench_look_head.py": ["--assets", "crate", "--seconds", "1", "--device", "cpu"],
     "bench_method_speed.py": ["--steps", "3", "--repeats", "1", "--renders", "1"],
     "bench_pays.py": ["--meshes", "blob", "--presets", "tiny", "--time-limit", "1"],
-    "bench_preset_curves.py": ["--mesh", "blob", "--budgets", "tiny=1"],
+    "bench_preset_curves.py": ["--meshes", "blob", "--budgets", "tiny=1"],
     "bench_quality.py": ["--quick", "--meshes", "knot"],
     "bench_rd_compact.py": ["--meshes", "blob"],
     "bench_rollback.py": ["--mesh", "gear", "--target", "0.01", "--time-limit", "2"],

@@ -32,7 +32,7 @@ def test_check_python():
 def test_job_produces_all_outputs_and_result(tmp_path, sample_meshes):
     q = JobQueue(sys.executable)
     # Enough training that the model predicts surface hits (20 tiny steps may predict none: an empty proxy).
-    job = q.submit("blob", make_request(tmp_path, sample_meshes, steps=150, rays_per_step=1024))
+    job = q.submit("blob", make_request(tmp_path, sample_meshes, steps=150, rays_per_step=1024, force=True))
     seen = []
     q.wait(on_event=lambda j, e: seen.append(e), timeout=300)
     assert job.state == "done", job.error

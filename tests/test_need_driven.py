@@ -624,3 +624,21 @@ def test_a_model_better_than_every_measured_point_is_checked_against_the_decimat
     better = lambda count: CurvePoint(4 * count, 0.015, count, count)  # noqa: E731
     lost = final_verdict(100_000, 0.02, 0.0005, curve(), measure=better)
     assert lost.shipped == "decimation" and lost.decimation["compact_bytes"] == 4 * first
+
+
+def test_a_fixed_size_is_weighed_after_training_and_ships_by_the_same_rule(sample_meshes):
+    """A preset has no target, so nothing is measured before training; after its evaluation the decimation of the
+    model's bytes is measured on the held-out views. A 20-step model of the bunny (MSE ~0.05) loses to it and the
+    mesh is kept, the decimation named; forced, the model ships without that measurement."""
+    from nbvh_core.app.pipeline import compress_mesh
+    from nbvh_core.protocol.process import NotWorthCompressing
+
+    mesh = sample_meshes["bunny"]
+    with pytest.raises(NotWorthCompressing) as kept:
+        compress_mesh(mesh, preset("tiny"))
+    a = kept.value.assessment
+    dec = a.alternatives["decimation"]
+    assert a.recommendation == "decimate" and "kept as a mesh" in a.message
+    assert dec["compact_bytes"] < a.model_bytes and dec["compact_mse_held_out"] < 0.01
+    forced = compress_mesh(mesh, preset("tiny").with_overrides(force=True))
+    assert forced.quality.mse > 0.01 and forced.decisions["final"] is None

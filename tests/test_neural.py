@@ -291,7 +291,7 @@ def test_divergence_is_detected_and_nothing_saved(blob_setup, tmp_path, monkeypa
 def test_compress_mesh_writes_file_with_quality(blob_setup, tmp_path):
     mesh, _, _ = blob_setup
     events = []
-    res = compress_mesh(mesh, preset("tiny"), tmp_path / "blob.nbvh", events=events.append)
+    res = compress_mesh(mesh, preset("tiny").with_overrides(force=True), tmp_path / "blob.nbvh", events=events.append)
     assert (tmp_path / "blob.nbvh").stat().st_size == res.file_bytes == sum(res.components.values())
     assert 0 <= res.quality.silhouette_iou <= 1 and 0 < res.quality.mse < 1  # a scored image (quality: test_regression)
     kinds = [e["event"] for e in events]
@@ -301,7 +301,7 @@ def test_compress_mesh_writes_file_with_quality(blob_setup, tmp_path):
 
 def test_too_high_learning_rate_is_detected_and_retried_lower(blob_setup, tmp_path):
     mesh, _, _ = blob_setup
-    settings = preset("tiny").with_overrides(encoding="hashgrid", network="mlp", lr=2.0, steps=120)
+    settings = preset("tiny").with_overrides(encoding="hashgrid", network="mlp", lr=2.0, steps=120, force=True)
     events = []
     res = compress_mesh(mesh, settings, tmp_path / "blob.nbvh", events=events.append)
     warnings = [e["message"] for e in events if e["event"] == "warning" and "diverged" in e["message"]]
@@ -368,7 +368,7 @@ def test_a_divergence_with_no_healthy_state_or_no_recovery_left_ends_the_trainin
 def test_a_run_that_recovers_says_so_and_does_not_start_over(blob_setup, monkeypatch):
     mesh, _, _ = blob_setup
     calls = _poison_steps(monkeypatch, lambda n: n == 150)
-    res = compress_mesh(mesh, preset("tiny").with_overrides(steps=200, time_limit_s=None))
+    res = compress_mesh(mesh, preset("tiny").with_overrides(steps=200, time_limit_s=None, force=True))
     kinds = [n.kind for n in res.notes]
     assert "recovered" in kinds and "restart" not in kinds and calls[0] == 201
     assert "went back to its last healthy state" in res.why

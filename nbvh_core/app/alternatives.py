@@ -126,7 +126,7 @@ def alternatives(mesh: Mesh, target_mse: float | None, checks=None, held_out=Non
     scored = not over()
     if not scored:
         skipped.append("the whole mesh's image error (its bytes are exact)")
-    out["mesh_compact"] = _whole_mesh_entry(mesh, checks if scored else None, held_out if scored else None, tree)
+    out["mesh_compact"] = whole_mesh_entry(mesh, checks if scored else None, held_out if scored else None, tree)
     if skipped:
         out["skipped"] = "past the plan's time budget, not measured: " + "; ".join(skipped)
     return out
@@ -175,7 +175,7 @@ def _smallest_meeting(counts: list[int], top: int, measure, meets, over) -> tupl
     return met, skipped
 
 
-def _whole_mesh_entry(mesh: Mesh, checks, held_out, tree=None) -> dict:
+def whole_mesh_entry(mesh: Mesh, checks, held_out, tree=None) -> dict:
     """The whole mesh as a compact mesh: its exact bytes and the grid's own error on both view sets (without
     `checks`: the bytes alone)."""
     from ..geometry.compact_mesh import compact_mesh

@@ -439,6 +439,8 @@ def cmd_batch(args: argparse.Namespace) -> int:
             spec[key] = value
     if args.steps is not None and args.time_limit is None:
         spec["time_limit_s"] = 0  # steps only
+    if args.force:
+        spec["force"] = True
     sink = json_lines(sys.stdout) if args.events else progress_bar(sys.stderr)
     summary = run_batch(args.library, args.output, spec, sink, install_cancel_handlers(), address=args.address,
                         num_cpus=args.num_cpus, measure_only=args.measure_only, blender=args.blender)
@@ -616,6 +618,7 @@ def _add_batch_parser(sub) -> None:
                                      "default: an embedded Ray on this machine")
     b.add_argument("--num-cpus", type=int, help="CPUs of the embedded Ray (default: all of this machine's)")
     b.add_argument("--measure-only", action="store_true", help="measure and decide every asset; train nothing")
+    b.add_argument("--force", action="store_true", help="ship every asset's model, whatever the verdicts say")
     b.add_argument("--blender", help="Blender binary for .blend files (default: $NBVH_BLENDER or `blender`)")
     b.add_argument("--events", action="store_true", help="JSON-line events on stdout instead of a progress bar")
     b.set_defaults(func=cmd_batch)
@@ -664,7 +667,7 @@ def main(argv: list[str] | None = None) -> int:
         if isinstance(exc, Cancelled):
             print(f"\ncancelled: {exc}; nothing was written", file=sys.stderr)
         elif isinstance(exc, NotWorthCompressing):
-            print(f"{exc}\nno model was trained or written; --force trains anyway", file=sys.stderr)
+            print(f"{exc}\nno model was written; --force ships a model anyway", file=sys.stderr)
         elif end.kind == "diverged":
             print(f"\nerror: {end.message}; nothing was written", file=sys.stderr)
         else:

@@ -209,13 +209,13 @@ def _scene_share(scene: dict, settings, events):
     base = plan["base"]
     if i in plan["excluded"]:
         events(wire.phase(phase="plan", message="scene budget: this object gets nothing (its mesh is no larger than "
-                                                "its model)"))
+                                                "its model)", scene_split=split))
         return dataclasses.replace(base, log2_table=plan["declined_log2"][i]), split
     shared = len(meshes) - len(plan["excluded"])
     kb = plan["bytes"][i] / 1024
     events(wire.phase(phase="plan", message=f"scene budget {scene['budget_kb']:g} KB shared by need over {shared} "
                                             f"objects: this one gets T=2^{plan['log2'][i]} (~{kb:.0f} KB, predicted "
-                                            f"MSE {plan['predicted_mse'][i]:.4g})"))
+                                            f"MSE {plan['predicted_mse'][i]:.4g})", scene_split=split))
     return dataclasses.replace(base, log2_table=plan["log2"][i]), split
 
 

@@ -36,7 +36,7 @@ from ..storage.fileformat import component_bytes, decode_nbvh, encode_nbvh, writ
 from ..training.appearance_training import SurfaceLabels, train_head
 from ..training.train import TrainResult
 from .trainings import SizeSearch, mesh_identity
-from .weighing import measure_decimation, shipped_materials, weigh
+from .weighing import alternative_at_model, measure_decimation, shipped_materials, weigh
 @dataclass
 class CompressResult:
     """What one run produced. `path` is None when nothing was written (no output path given)."""
@@ -268,6 +268,10 @@ def _compress(mesh: Mesh, run: RunConfig, out_path, events: EventSink, should_ca
         metadata["appearance"] = look_info
     data = encode_nbvh(model, metadata, run_used.storage)
     verdict = None
+    if quality is not None and weighing.curve_held_out is None and math.isfinite(quality.mse) \
+            and not run.decision.force:  # a fixed size measured nothing before training: weigh it now
+        events(wire.phase(phase="eval", message="the alternative at the model's quality"))
+        weighing.curve_held_out = alternative_at_model(mesh, weighing, assessment, len(data))
     if quality is not None and weighing.curve_held_out is not None:
         verdict = final_verdict(len(data), quality.mse, target, weighing.curve_held_out, run.decision.force,
                                 measure_decimation(mesh, weighing, assessment))

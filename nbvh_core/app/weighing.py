@@ -109,6 +109,39 @@ def weigh(mesh: Mesh, run: RunConfig, tracer: ExactTracer, made=None, events: Ev
                                 AlternativeCurve.from_alternatives(assessment.alternatives, held_out=True), look_bytes,
                                 decimator, tree)
 
+#: Decimations aimed at a fixed-size model's bytes after its evaluation, at most (`alternative_at_model`).
+AIM_TRIES = 3
+
+
+def alternative_at_model(mesh: Mesh, weighing: Weighing, assessment, model_bytes: int) -> AlternativeCurve | None:
+    """For a run without a target (a preset, a byte budget, a scene's share), which measured nothing before
+    training: the alternative at the model's own quality, measured after its evaluation and held on the held-out
+    views, so that it ships by the same rule as the need-driven default. Decimations are aimed at the model's bytes
+    (from the whole mesh's bytes per triangle, 3% under) until one fits within them (a small decimation carries
+    more bytes per triangle: at most AIM_TRIES); the final verdict measures on from there (`final_verdict._settle`).
+    A model about as large as the whole mesh meets the whole mesh itself. Bytes are compact, as in every final
+    verdict (a run weighed plainly before training meets the compact mesh after it: the file kept is one). None (said
+    in the assessment's `no_alternative`) without the simplifier."""
+    missing = alternatives.simplifier_missing()
+    if missing:
+        assessment.alternatives["no_alternative"] = missing
+        return None
+    count = int(mesh.n_triangles * model_bytes / max(assessment.compact_bytes, 1) * 0.97)
+    if count >= mesh.n_triangles * alternatives.DECIMATE_MAX_SHARE:
+        whole = alternatives.whole_mesh_entry(mesh, weighing.checks, weighing.held_out, weighing.tree)
+        assessment.alternatives["mesh_compact"] = whole
+        return AlternativeCurve([CurvePoint.from_entry(whole, held_out=True, whole=True)])
+    measure, points = measure_decimation(mesh, weighing, assessment), []
+    for _ in range(AIM_TRIES):
+        points.append(measure(max(count, 4)))
+        last = points[-1]
+        if not math.isfinite(last.mse) or last.bytes < model_bytes or count <= 4:
+            break
+        count = int(last.triangles * model_bytes / last.bytes * 0.97)
+    curve = AlternativeCurve(points)
+    return curve if curve.points else None
+
+
 def measure_decimation(mesh: Mesh, weighing: Weighing, assessment):
     """measure(triangles) -> CurvePoint for the final verdict: one more decimation scored on the held-out views
     (and recorded with the others, so the one that ships can be written)."""

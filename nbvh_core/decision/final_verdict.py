@@ -105,7 +105,7 @@ def final_verdict(model_bytes: int, model_mse: float, target: float | None, curv
     level_met = None if target is None else model_mse <= target
     if curve is None:
         return FinalVerdict(model_bytes, model_mse, None, "model", None, level_met, force,
-                            f"the model: {model_bytes:,} B at MSE {model_mse:.4g} (no alternative measured: fixed size)")
+                            f"the model: {model_bytes:,} B at MSE {model_mse:.4g} (no alternative measured: forced, or no simplifier)")
     if not force:
         _settle(curve, model_bytes, model_mse, measure)
     alt = curve.bytes_at(model_mse)

@@ -21,8 +21,9 @@ class TrainingDiverged(RuntimeError):
 
 
 class NotWorthCompressing(Exception):
-    """The verdict before training: the mesh (or a decimation meeting the target) is smaller than the model would
-    be. Nothing was trained or written; `assessment` (decision.records.Assessment) has the sizes and the alternatives."""
+    """The mesh is kept: the mesh (or a measured decimation) is smaller than the model would be (the verdict before
+    training), or than the model is at its measured quality (a training check, the final verdict). No model file was
+    written; `assessment` (decision.records.Assessment) has the sizes and the alternatives."""
 
     def __init__(self, assessment):
         super().__init__(assessment.message)
