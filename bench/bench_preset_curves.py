@@ -61,7 +61,7 @@ def chart(rows: list[dict]) -> None:
     ax.set_yscale("log")
     ax.set_ylabel(f"held-out image MSE ({VIEWS} views, {RESOLUTION} px)")
     bx.axhline(1.0, color="grey", ls="--", lw=0.8, label="above: the model is smaller")
-    bx.set_ylabel("compact decimation bytes / model file bytes, equal MSE")
+    bx.set_ylabel("decimation bytes / model bytes (equal MSE)")
     budgets = sorted({float(r["train_s"]) for r in rows})
     for a in (ax, bx):
         a.set_xscale("log")

@@ -10,11 +10,10 @@ from __future__ import annotations
 import numpy as np
 
 #: The classes the tests run through compress_mesh at small sizes (each a few seconds).
-TESTED = ("inside-out", "every face twice", "1000 pieces", "one triangle", "zero-thickness plane", "long slivers",
-          "non-manifold edges")
+TESTED = ("thin walls", "huge offset (1e6)", "tiny scale (1e-6)", "inside-out", "every face twice", "1000 pieces",
+          "one triangle", "zero-thickness plane", "long slivers", "non-manifold edges")
 #: Mesh classes of the matrix: the tested ones, and the ones that need a larger mesh or a bench shape.
-MESH_CLASSES = ("thin walls", "open sheet", "dense repeated detail", "huge offset (1e6)", "tiny scale (1e-6)",
-                *TESTED, "1M+ triangles")
+MESH_CLASSES = (*TESTED, "open sheet", "dense repeated detail", "1M+ triangles")
 CONDITIONS = ("learning rate x10", "learning rate x100", "4-bit tables", "divergence injected late")
 
 

@@ -163,7 +163,9 @@ def main() -> int:
         t0 = time.monotonic()
         fwork = work / name.replace(" ", "_")
         fwork.mkdir()
-        env = dict(os.environ, NBVH_PYTHON=JOB_PYTHON, BLENDER_USER_RESOURCES=str(fwork / "user"),
+        # NBVH_WORK_RATIO: budgets read as on the predictor's own machine (tests/conftest.py says why)
+        env = dict(os.environ, NBVH_WORK_RATIO="1", NBVH_PYTHON=JOB_PYTHON,
+                   BLENDER_USER_RESOURCES=str(fwork / "user"),
                    BLENDER_USER_CONFIG=str(fwork / "user" / "config"), BLENDER_USER_SCRIPTS=str(fwork / "user" / "scripts"),
                    BLENDER_USER_EXTENSIONS=str(fwork / "user" / "extensions"))
         env.pop("PYTHONPATH", None)

@@ -7,6 +7,11 @@ import torch
 if not torch.cuda.is_available():
     os.environ.setdefault("TRITON_INTERPRET", "1")
 
+# Budgets are read as the work they buy (planning/machine_rate.py): the tests pin this machine to the size
+# predictor's own (a probe's rounding could otherwise move a pinned prediction on a much faster or slower machine);
+# subprocesses inherit it. tests/test_machine_rate.py measures the probe itself.
+os.environ.setdefault("NBVH_WORK_RATIO", "1")
+
 import pytest
 
 from nbvh_core.geometry.bvh import build_bvh

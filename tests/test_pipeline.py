@@ -166,7 +166,8 @@ FAILURE_CLASSES = _failure_classes().TESTED
 def test_each_failure_class_ends_with_a_clear_answer(name, sample_meshes):
     """Through compress_mesh, sized by need: each class ends with the mesh kept and one line saying why (none of
     them is worth a model at the tiny preset's size); forced, each trains a model whose held-out quality is a
-    number. Inside-out winding and doubled faces end exactly as the blob itself does (recorded: MSE 0.0949)."""
+    number. Inside-out winding, doubled faces, a 1e6 offset and a 1e-6 scale end exactly as the blob itself does
+    (recorded: MSE 0.0949): the normalisation and the labels see the same shape."""
     import math
 
     from nbvh_core.geometry.mesh import mesh_from_arrays
@@ -179,7 +180,28 @@ def test_each_failure_class_ends_with_a_clear_answer(name, sample_meshes):
     assert "\n" not in str(kept.value) and kept.value.assessment.recommendation in ("mesh", "decimate")
     forced = compress_mesh(mesh, preset("tiny").with_overrides(force=True))
     assert math.isfinite(forced.quality.mse) and 0 <= forced.quality.mse < 0.3
-    if name in ("inside-out", "every face twice"):
+    if name in ("inside-out", "every face twice", "huge offset (1e6)", "tiny scale (1e-6)"):
         original = compress_mesh(blob, preset("tiny").with_overrides(force=True))
         assert forced.quality.mse == pytest.approx(original.quality.mse, rel=0.02)
         assert forced.quality.mse == pytest.approx(0.0949, rel=0.15)
+
+
+def _condition_settings(condition: str):
+    """The tiny preset, forced, 60 steps, under a training condition of the failure matrix (bench_failures'
+    `settings_for` applies the same overrides to its methods)."""
+    s = preset("tiny").with_overrides(force=True, steps=60)
+    return {"learning rate x10": lambda: s.with_overrides(lr=s.lr * 10),
+            "learning rate x100": lambda: s.with_overrides(lr=min(s.lr * 100, 10.0)),
+            "4-bit tables": lambda: s.with_overrides(table_bits=4)}[condition]()
+
+
+@pytest.mark.parametrize("condition,restarted", [("learning rate x10", False), ("learning rate x100", True),
+                                                 ("4-bit tables", False)])
+def test_each_training_condition_ends_with_a_model_whose_quality_is_a_number(condition, restarted, sample_meshes):
+    """Through compress_mesh on the blob: a 10x rate trains on, a 100x rate diverges and the run restarts at a
+    lower rate (its notes say so), 4-bit tables ship; each ends with a finite held-out MSE."""
+    import math
+
+    res = compress_mesh(sample_meshes["blob"], _condition_settings(condition))
+    assert math.isfinite(res.quality.mse) and res.quality.mse < 0.3, res.quality.mse
+    assert any(n.kind == "restart" for n in res.notes) == restarted, [n.to_dict() for n in res.notes]

@@ -63,3 +63,14 @@ def test_every_result_the_readme_names_exists():
     assert named
     missing = sorted(n for n in named if not (ROOT / n).exists())
     assert not missing, missing
+
+
+def test_the_speed_against_accuracy_figures_are_preset_curves_csv():
+    rows = {(r["mesh"], float(r["time_limit_s"])): r for r in _rows("preset_curves.csv")}
+    text = " ".join(README[README.index("Speed against accuracy (`bench"):].split("\n\n")[0].split())
+    for mesh in ("bunny", "spiky"):
+        first, last = rows[(mesh, 25.0)], rows[(mesh, 200.0)]
+        assert f"{float(first['mse']):.5f} -> {float(last['mse']):.5f}" in text, mesh
+    assert f"{float(rows[('bunny', 25.0)]['decimation_to_model']):.2f}x -> " \
+           f"{float(rows[('bunny', 200.0)]['decimation_to_model']):.2f}x" in text
+    assert f"{float(rows[('spiky', 200.0)]['decimation_to_model']):.2f}x smaller at 200 s" in text

@@ -31,6 +31,7 @@ from ..rendering.metrics import MetricConfig
 from ..training.train import TrainConfig
 from .settings import Settings, estimate_file_bytes
 from .mesh_measures import GridMeasures, MeshFeatures, choose_resolution, grid_measures, mesh_features
+from .machine_rate import reference_budget_s
 from .sizing import LOG2_RANGE, SizeFit, expected_table, load_fit, resolve
 
 
@@ -117,7 +118,7 @@ def plan_run(settings: Settings, mesh: Mesh, resumed: bool = False) -> RunConfig
     keeps the budget asked). resumed: the sizes are the checkpoint's (fixed; the grid is not re-chosen). Raises
     ValueError (one line) for settings no run can use."""
     grid = grid_measures(mesh) if settings.n_max is None and not resumed else None
-    fit = load_fit() if settings.target_mse is not None and not resumed else None
+    fit = load_fit(device=settings.device) if settings.target_mse is not None and not resumed else None
     feats = mesh_features(mesh) if fit is not None else None  # measured once: the sizes, the expected size, the growth
     # A resumed run trains the checkpoint's size: its target only decides (checks, final verdict), sizes nothing.
     resolved, plan_note = resolve(dataclasses.replace(settings, target_mse=None) if resumed else settings, mesh, grid,
@@ -127,7 +128,13 @@ def plan_run(settings: Settings, mesh: Mesh, resumed: bool = False) -> RunConfig
     share, budget = resolved.appearance_share, resolved.time_limit_s
     look = LookConfig(AppearanceConfig(target=resolved.appearance_target, log2_table=resolved.appearance_log2_table),
                       share, budget * share if mesh.look is not None and budget else None)
-    run = _parts(resolved, look, grid, (RunNote("plan", plan_note),))
+    notes = (RunNote("plan", plan_note),)
+    if fit is not None and fit.work_ratio != 1.0 and resolved.time_limit_s:
+        notes += (RunNote("plan", f"this machine trains {fit.work_ratio:.3g}x as fast as the one the size predictor "
+                                  f"was fitted on: its {resolved.time_limit_s:g} s budget is read as "
+                                  f"{reference_budget_s(resolved.time_limit_s, fit.work_ratio):.0f} s of that "
+                                  f"machine's work"),)
+    run = _parts(resolved, look, grid, notes)
     if resumed or resolved.target_mse is None:  # a fixed size: the run trains the one planned table
         return run
     growth = _growth(run, fit, feats) if run.decision.size_search == "grow" else None

@@ -32,6 +32,7 @@ from ..geometry.mesh import Mesh
 from .mesh_measures import FEATURE_NAMES, GridMeasures, MeshFeatures, choose_resolution, mesh_features
 from ..protocol.quality_levels import QUALITY_LEVELS  # noqa: F401  (re-exported)
 from ..decision.scene_budget import split_budget
+from .machine_rate import reference_budget_s, work_ratio
 from .settings import PAPER_N_MAX, PRESETS, Settings, estimate_file_bytes
 
 FIT_PATH = Path(__file__).with_name("sizing_fit.json")
@@ -91,17 +92,22 @@ class SizeFit:
     #: ln of the presets' present shape's MSE over what the slopes predict (fitted on its own rows, bench/fit_budget.py:
     #: the slopes were measured on older shapes that need a larger table for the same MSE); added to every prediction.
     shape_shift: float = 0.0
+    #: This machine's training seconds in the fit machine's (`machine_rate.work_ratio`; 1 as shipped): a budget is
+    #: read as the work it buys here (`load_fit(device=...)` sets it).
+    work_ratio: float = 1.0
 
     def predict_log_mse(self, log2_table: int, features: MeshFeatures, nodes: int | None = None,
                         budget_s: float | None = None) -> float:
         """ln of the image MSE a model of table 2^log2_table on a mesh with `features` reaches after `budget_s`
-        seconds of training (None: the fit's own train_s) at `nodes` BVH nodes (None: nodes_ref)."""
+        seconds of training here (None: the fit's own train_s; read in the fit machine's seconds through
+        `work_ratio`) at `nodes` BVH nodes (None: nodes_ref)."""
         x = np.concatenate([[1.0, float(log2_table)], features.vector(self.features)])
         out = float(np.dot(self.coef, x)) + self.shape_shift
         if nodes is not None and self.nodes_coef:
             out += self.nodes_coef * (math.log2(nodes + 1) - math.log2(self.nodes_ref + 1))
         if budget_s and self.budget_coef:
-            out += self.budget_slope(log2_table) * math.log(budget_s / self.train_s)
+            out += self.budget_slope(log2_table) * math.log(reference_budget_s(budget_s, self.work_ratio)
+                                                           / self.train_s)
         return out
 
     def budget_slope(self, log2_table: int) -> float:
@@ -124,12 +130,17 @@ def fit_size_model(rows: list[tuple[int, MeshFeatures, float]], method: str, tra
                    features=list(features))
 
 
-def load_fit(path: Path = FIT_PATH) -> SizeFit | None:
-    """The shipped fit (bench/fit_sizing.py writes it); None when missing or unreadable."""
+def load_fit(path: Path = FIT_PATH, device: str | None = None) -> SizeFit | None:
+    """The shipped fit (bench/fit_sizing.py writes it); None when missing or unreadable. device: the training's
+    ('auto', 'cpu', 'cuda'): the fit then reads budgets as the work they buy there (`machine_rate.work_ratio`, a
+    probe of a few seconds once per machine); None: as fitted."""
     try:
-        return SizeFit(**json.loads(Path(path).read_text()))
+        fit = SizeFit(**json.loads(Path(path).read_text()))
     except (OSError, ValueError, TypeError):
         return None
+    if device is not None:
+        fit.work_ratio = work_ratio(device)
+    return fit
 
 
 def predict_mse(fit: SizeFit, log2_table: int, features: MeshFeatures, nodes: int | None = None,
@@ -216,7 +227,7 @@ def resolve(s: Settings, mesh: Mesh | None = None, grid: GridMeasures | None = N
     if s.target_mse is not None:
         if s.target_mse <= 0:
             raise ValueError(f"target MSE must be > 0, got {s.target_mse:g}")
-        fit = load_fit()
+        fit = load_fit(device=s.device)
         if fit is None or mesh is None:
             base = PRESETS["high" if s.target_mse < QUALITY_LEVELS["standard"]
                            else "default" if s.target_mse < QUALITY_LEVELS["preview"] else "preview"]
@@ -247,7 +258,7 @@ def expected_table(s: Settings, mesh: Mesh, features: MeshFeatures | None = None
     before training weighs against the decimation measured at the target, since both then stand at the level (the
     safety factor only says where a training starts). features: `mesh_features(mesh)` when the caller has them.
     None without a target, a mesh or a fit."""
-    fit = load_fit()
+    fit = load_fit(device=s.device)
     if s.target_mse is None or mesh is None or fit is None:
         return None
     size_of = lambda lt, n: estimate_file_bytes(dataclasses.replace(s, log2_table=lt, nodes=n))  # noqa: E731
@@ -323,7 +334,7 @@ def plan_scene(meshes: list[Mesh], budget_bytes: float, settings: Settings, weig
     triangles, log2_table, bytes, predicted_mse, excluded) and 'base': the settings each share applies to
     (`dataclasses.replace(plan['base'], log2_table=row['log2_table'])`). Raises ValueError without a size
     predictor or when the budget is too small."""
-    fit = fit or load_fit()
+    fit = fit or load_fit(device=settings.device)
     if fit is None:
         raise ValueError("a scene budget needs the size predictor (nbvh_core/planning/sizing_fit.json), which is missing; "
                          "run bench/fit_sizing.py")
