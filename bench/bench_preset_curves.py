@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import math
-from pathlib import Path
 
 from bench_meshes import named_mesh
 from harness import RESULTS, append_rows, markdown_table, read_rows, save_figure, stamp, write_markdown

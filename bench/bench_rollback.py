@@ -18,7 +18,7 @@ import json
 import torch
 
 import nbvh_core.decision.checks as checks
-import nbvh_core.training.train as training
+import nbvh_core.training.encoding_phases as phases
 from harness import append_rows, markdown_table, read_rows, result_path, stamp, write_markdown
 from bench_target_runs import one_run
 
@@ -30,7 +30,7 @@ def struck_once(at: float, noise: float):
     """Inside: the training's phases add noise to the table at the first step past `at` of the budget; yields a list
     that gets the budget fraction at which it struck."""
     struck: list = []
-    original = training.EncodingPhases.before_step
+    original = phases.EncodingPhases.before_step
 
     def striking(self, fraction: float) -> str:
         if not struck and fraction >= at:
@@ -41,11 +41,11 @@ def struck_once(at: float, noise: float):
             struck.append(round(fraction, 3))
         return original(self, fraction)
 
-    training.EncodingPhases.before_step = striking
+    phases.EncodingPhases.before_step = striking
     try:
         yield struck
     finally:
-        training.EncodingPhases.before_step = original
+        phases.EncodingPhases.before_step = original
 
 
 def main() -> None:

@@ -5,7 +5,7 @@ pickles carrying a payload, each case read in its own (forked) process under a t
     .venv/bin/python bench/fuzz_files.py --kind mesh --cases 5000
 
 A checkpoint case goes the whole way `compress --resume` goes before training (`pipeline.resume_settings`, the
-model its settings describe, `train.load_checkpoint` into it); a mesh case through `batch.load_asset` (every mesh
+model its settings describe, `training.checkpoints.load_checkpoint` into it); a mesh case through `batch.load_asset` (every mesh
 format `load_mesh` reads, and the job's .npz arrays). Outcomes: read (a usable result), refused (a ValueError,
 one line), other (any other exception: a reader bug), crash (the process died of a signal), hang (past the time
 cap), executed (a payload created the canary file), over_memory (peak resident memory grew by more than
@@ -158,7 +158,8 @@ def read_checkpoint_case(path: Path, mesh) -> str:
     from nbvh_core.geometry.bvh import build_bvh
     from nbvh_core.neural.model import NeuralBVH
     from nbvh_core.app.pipeline import resume_settings
-    from nbvh_core.training.train import load_checkpoint, make_optimizer
+    from nbvh_core.training.checkpoints import load_checkpoint
+    from nbvh_core.training.train import make_optimizer
 
     settings = resume_settings(path, mesh)
     bvh = build_bvh(mesh, settings.nodes)

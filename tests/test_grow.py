@@ -14,7 +14,7 @@ from nbvh_core.neural.encodings.base import EncodingConfig, vertex_resolution
 from nbvh_core.neural.encodings.hashgrid import HashGrid, grown_rows
 from nbvh_core.neural.encodings.hashvqad import HashVQAD
 from nbvh_core.storage.fileformat import load_nbvh
-from nbvh_core.training.train import grow_table
+from nbvh_core.training.early_stop import grow_table
 
 
 @pytest.mark.parametrize("path", ["reference", "fast"])
@@ -50,7 +50,8 @@ def test_adam_goes_on_with_grown_moments():
     from nbvh_core.neural.model import ModelConfig, NeuralBVH
     from nbvh_core.neural.networks import NetworkConfig
     from nbvh_core.geometry.bvh import build_bvh
-    from nbvh_core.training.train import Checkpoints, TrainConfig
+    from nbvh_core.training.checkpoints import Checkpoints
+    from nbvh_core.training.train import TrainConfig
 
     mesh = load_mesh(sample_path("blob"))
     bvh = build_bvh(mesh, 63)

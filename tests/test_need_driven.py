@@ -191,7 +191,7 @@ def test_a_check_far_worse_than_the_best_of_its_form_rolls_back(monkeypatch):
 
 def test_the_rule_keys_its_best_checks_by_the_training_s_state_form(monkeypatch):
     """An 8-bit table is in its shipped form all along, but its snap onto the grid (the last 5%) is a new form of its
-    parameters for the training (`training.train.state_form`): a check after the snap is not rolled back against a
+    parameters for the training (`training.encoding_phases.state_form`): a check after the snap is not rolled back against a
     state from before it, which the training could not restore; without state_form it would be."""
     for state_form, after_snap in ((lambda model: (10, snapped[0], True), "train on"), (None, "roll back")):
         now, snapped = [0.0], [False]
@@ -265,7 +265,7 @@ def test_checks_score_a_low_bit_table_at_eight_bits_until_it_is_on_its_grid():
     from nbvh_core.neural.model import NeuralBVH
     from nbvh_core.neural.quantize import StorageConfig
     from nbvh_core.planning.settings import preset
-    from nbvh_core.training.train import grid_phase_pending
+    from nbvh_core.training.encoding_phases import grid_phase_pending
 
     mesh = icosphere(2)
     model = NeuralBVH(build_bvh(mesh, 15).nodes, preset("tiny").model_config(), mesh.transform)
@@ -642,3 +642,23 @@ def test_a_fixed_size_is_weighed_after_training_and_ships_by_the_same_rule(sampl
     assert dec["compact_bytes"] < a.model_bytes and dec["compact_mse_held_out"] < 0.01
     forced = compress_mesh(mesh, preset("tiny").with_overrides(force=True))
     assert forced.quality.mse > 0.01 and forced.decisions["final"] is None
+
+
+def test_the_kept_decimation_is_rebuilt_from_the_run_s_own_chain(sample_meshes):
+    """A run that keeps a decimation hands its decimation chain along (NotWorthCompressing.decimator): the files
+    are rebuilt from the levels it already holds (at 10M triangles the chain's first pass is ~15 s), and the mesh
+    is exactly the one a fresh chain gives."""
+    import numpy as np
+
+    from nbvh_core.app.alternatives import winning_decimation
+    from nbvh_core.app.pipeline import compress_mesh
+    from nbvh_core.protocol.process import NotWorthCompressing
+
+    mesh = sample_meshes["bunny"]
+    with pytest.raises(NotWorthCompressing) as kept:
+        compress_mesh(mesh, preset("tiny").with_overrides(target_mse=0.001, eval_views=2, eval_resolution=32))
+    a, chain = kept.value.assessment, kept.value.decimator
+    assert a.recommendation == "decimate" and chain is not None and chain.mesh is mesh
+    reused, fresh = winning_decimation(mesh, a, chain), winning_decimation(mesh, a)
+    assert reused.n_triangles == a.alternatives["decimation"]["triangles"]
+    assert np.array_equal(reused.faces, fresh.faces) and np.array_equal(reused.vertices, fresh.vertices)

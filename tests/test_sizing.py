@@ -193,7 +193,7 @@ def test_compress_mesh_retrains_at_the_size_the_measurement_calls_for(sample_mes
     # A fit that thinks this mesh is easy (predicted MSE 0.0067 at 2^8): it picks 2^8 for 0.008; the 20-step tiny
     # model misses that by far, the calibrated prediction finds no size that meets it, and the search takes the
     # largest (the top of LOG2_RANGE), which misses too.
-    monkeypatch.setattr(sizing, "load_fit", lambda *a: _line_fit())
+    monkeypatch.setattr(sizing, "load_fit", lambda *a, **kw: _line_fit())
     mesh = sample_meshes["blob"]
     events = []
     res = compress_mesh(mesh, preset("tiny").with_overrides(target_mse=0.008, force=True, size_search="retrain"), events=events.append)

@@ -17,8 +17,10 @@ from nbvh_core.neural.model import ModelConfig, NeuralBVH
 from nbvh_core.neural.networks import NetworkConfig
 from nbvh_core.protocol.process import Cancelled, NotWorthCompressing, TrainingDiverged, outcome
 from nbvh_core.training.rays import label_samples, root_box, sample_rays
-from nbvh_core.training.train import (Checkpoints, DivergenceGuard, EarlyStop, EncodingPhases, Schedule, TrainConfig,
-                             make_optimizer, make_step, train)
+from nbvh_core.training.checkpoints import Checkpoints
+from nbvh_core.training.early_stop import EarlyStop
+from nbvh_core.training.encoding_phases import EncodingPhases
+from nbvh_core.training.train import DivergenceGuard, Schedule, TrainConfig, make_optimizer, make_step, train
 
 VQAD = dict(kind="hashvqad", log2_table=6, levels=2, features=4, index_factor=4, candidates=4)
 GRID = dict(kind="hashgrid", log2_table=6, levels=2, features=4)
@@ -356,7 +358,7 @@ def test_the_weight_average_is_a_mean_then_a_moving_average_and_restarts_with_th
 def test_an_eight_bit_table_trained_with_the_weight_average_ends_on_its_grid(blob):
     """The average restarts at the table's snap, so the table it hands back is on the 8-bit grid the network
     adapted to (the file stores it exactly), and the network's weights are the average, not the last step's."""
-    from nbvh_core.training.train import _on_grid
+    from nbvh_core.training.encoding_phases import _on_grid
 
     _, bvh, tracer, _ = blob
     model = _model(bvh)

@@ -191,13 +191,15 @@ def whole_mesh_entry(mesh: Mesh, checks, held_out, tree=None) -> dict:
     return entry
 
 
-def winning_decimation(mesh: Mesh, assessment: "Assessment") -> Mesh | None:
+def winning_decimation(mesh: Mesh, assessment: "Assessment", decimator: Decimator | None = None) -> Mesh | None:
     """The decimation the verdict recommends instead of a model (rebuilt exactly: the simplifier is deterministic
-    and moves no vertex), or None when the verdict is not 'decimate'."""
+    and moves no vertex; from the run's `decimator` when given, whose chain already holds the levels above it), or
+    None when the verdict is not 'decimate'."""
     dec = assessment.alternatives.get("decimation")
     if assessment.recommendation != "decimate" or not dec:
         return None
-    return decimate(mesh, int(dec["requested_triangles"]))
+    count = int(dec["requested_triangles"])
+    return decimator(count) if decimator is not None else decimate(mesh, count)
 
 
 def assess(mesh: Mesh, model_bytes: int, decision: DecisionConfig, checks=None, held_out=None,

@@ -141,7 +141,7 @@ def cmd_compress(args: argparse.Namespace) -> int:
         raise
 
 
-def _write_alternative(mesh, assessment, stem: Path, mesh_path: Path, args, sink) -> None:
+def _write_alternative(mesh, assessment, stem: Path, mesh_path: Path, args, sink, decimator=None) -> None:
     """When the verdict keeps a mesh, the user gets the mesh that wins, beside where the model would have gone
     (`kept_mesh.kept_mesh_files`: NAME.glb with its look, NAME.compact.cmsh of exactly the bytes the verdict counted;
     written atomically; an existing file only with --overwrite), and why, as NAME.verdict.json: the assessment with
@@ -153,7 +153,7 @@ def _write_alternative(mesh, assessment, stem: Path, mesh_path: Path, args, sink
     from .kept_mesh import counted_compact_bytes, kept_mesh_files, kept_quality
     from .pipeline import memory_record
 
-    dec = winning_decimation(mesh, assessment)  # built once: the files and the quality read the same mesh
+    dec = winning_decimation(mesh, assessment, decimator)  # once: the files and the quality read the same mesh
     files = {Path(f"{stem}{suffix}"): data for suffix, data in kept_mesh_files(mesh, assessment, dec).items()}
     why = {**assessment.to_dict(), "files": {p.name: len(d) for p, d in files.items()},
            "counted_compact_bytes": counted_compact_bytes(assessment), "kept_quality": kept_quality(mesh, dec),
@@ -216,7 +216,7 @@ def _compress_locked(args, mesh, mesh_path, paths, sink) -> int:
         result = compress_mesh(mesh, settings, None, events=sink, should_cancel=install_cancel_handlers(),
                                checkpoint_path=checkpoint, resume_from=args.resume)
     except NotWorthCompressing as exc:
-        _write_alternative(mesh, exc.assessment, stem, mesh_path, args, sink)
+        _write_alternative(mesh, exc.assessment, stem, mesh_path, args, sink, exc.decimator)
         raise
     except BaseException:
         if checkpoint.exists():

@@ -117,14 +117,14 @@ def run_job(request: dict, events, should_cancel) -> dict:
         return _run_locked(request, events, should_cancel, mesh, settings, scene_split, files, name)
 
 
-def _write_kept_mesh(mesh, assessment, model_path: Path, events) -> None:
+def _write_kept_mesh(mesh, assessment, model_path: Path, events, decimator=None) -> None:
     """The kept mesh's files (`kept_mesh.kept_mesh_files`: NAME.glb, NAME.compact.cmsh) beside where the model would
     have gone, each written atomically, announced in one `written` event (files, kind, triangles, bytes each)."""
     from .alternatives import winning_decimation
     from ..protocol.outputs import write_atomic
     from .kept_mesh import kept_mesh_files
 
-    files = kept_mesh_files(mesh, assessment, winning_decimation(mesh, assessment))
+    files = kept_mesh_files(mesh, assessment, winning_decimation(mesh, assessment, decimator))
     paths = []
     for suffix, data in files.items():
         path = model_path.with_name(model_path.stem + suffix)
@@ -158,7 +158,7 @@ def _run_locked(request, events, should_cancel, mesh, settings, scene_split, fil
             result = compress_mesh(mesh, settings, None, events=events, should_cancel=should_cancel,
                                    checkpoint_path=checkpoint_for(model_path), resume_from=request.get("resume"))
         except NotWorthCompressing as exc:  # the mesh wins: the same files as the CLI's, then the verdict ends it
-            _write_kept_mesh(mesh, exc.assessment, model_path, events)
+            _write_kept_mesh(mesh, exc.assessment, model_path, events, exc.decimator)
             raise
     cam_spec = request.get("camera")
     view = View(orbit_cameras(1)[0])

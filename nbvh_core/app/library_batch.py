@@ -217,7 +217,7 @@ def measure_asset(asset: dict, spec: dict) -> dict:
         mesh = load_asset(asset["path"], asset["name"])
         run = plan_run(settings_from_request(spec), mesh)
         tracer = ExactTracer(mesh)
-        a, _ = weigh(mesh, run, tracer, make_head(mesh, run.look.head))  # the run's own verdict, its look weighed
+        a, weighing = weigh(mesh, run, tracer, make_head(mesh, run.look.head))  # the run's verdict, its look weighed
         thumb = render_reference(tracer, orbit_cameras(1)[0], THUMBNAIL_PX, THUMBNAIL_PX).display
         out.update(status="measured" if a.worth_compressing or run.decision.force else "not_worth",
                    triangles=mesh.n_triangles,
@@ -225,7 +225,7 @@ def measure_asset(asset: dict, spec: dict) -> dict:
                    predicted_model_bytes=a.model_bytes, verdict=a.message, recommendation=a.recommendation,
                    key=settings_key(mesh_identity(mesh)["sha256"], spec), thumb=png_bytes(thumb),
                    compact_bytes=a.compact_bytes, texture_bytes=mesh.look.texture_bytes() if mesh.look else 0)
-        out.update(_decimation_fields(mesh, a))
+        out.update(_decimation_fields(mesh, a, weighing.decimator))
     except Exception as exc:  # a bad asset is a row with its error, never the end of the run
         out.update(status="failed", error=f"{type(exc).__name__}: {exc}")
     out["measure_seconds"] = round(time.perf_counter() - t0, 3)
@@ -262,7 +262,8 @@ def compress_asset(asset: dict, spec: dict) -> dict:
                    verdict=(res.decisions.get("final") or {}).get("message"))
     except NotWorthCompressing as exc:  # a measurement during or after training kept the mesh
         a = exc.assessment
-        out.update(status="not_worth", verdict=a.message, recommendation=a.recommendation, **_decimation_fields(mesh, a))
+        out.update(status="not_worth", verdict=a.message, recommendation=a.recommendation,
+                   **_decimation_fields(mesh, a, exc.decimator))
     except Exception as exc:
         out.update(status="failed", error=f"{type(exc).__name__}: {exc}")
     out["task_seconds"] = round(time.perf_counter() - t0, 2)
@@ -273,7 +274,7 @@ def _rounded(x) -> int | None:
     return None if x is None else int(round(x))
 
 
-def _decimation_fields(mesh, assessment) -> dict:
+def _decimation_fields(mesh, assessment, decimator=None) -> dict:
     """The row's fields for the decimation a verdict keeps instead of a model (none when it keeps no decimation):
     the mesh that wins as a file the head writes (workers may not share its disk)."""
     from .alternatives import winning_decimation
@@ -281,7 +282,7 @@ def _decimation_fields(mesh, assessment) -> dict:
 
     if assessment.recommendation != "decimate":
         return {}
-    files = kept_mesh_files(mesh, assessment, winning_decimation(mesh, assessment))
+    files = kept_mesh_files(mesh, assessment, winning_decimation(mesh, assessment, decimator))
     return {"decimation_triangles": assessment.alternatives["decimation"]["triangles"], "decimation_files": files,
             "decimation_compact_bytes": counted_compact_bytes(assessment)}
 

@@ -140,18 +140,18 @@ def _verdict(mesh: Mesh, run: RunConfig, tracer: ExactTracer, made, events: Even
             events(wire.warning(message=assessment.message + " (resumed: training on; the final verdict decides)"))
         elif not run.decision.force:
             events(wire.verdict(worth_compressing=False, message=assessment.message, assessment=assessment.to_dict()))
-            raise NotWorthCompressing(assessment)
+            raise NotWorthCompressing(assessment, weighing.decimator)
         events(wire.warning(message=assessment.message + " (training anyway: forced)"))
     return assessment, weighing
 
 
-def _keep_the_mesh(assessment, verdict, events: EventSink, checks: list):
+def _keep_the_mesh(assessment, verdict, events: EventSink, checks: list, decimator=None):
     """NotWorthCompressing for a decision taken on measurements (a check's or the final verdict's): the assessment
     now recommends the measured decimation (or the whole mesh) that the CLI writes, with the training's `checks`
-    (`decision.verdict.mesh_kept`)."""
+    (`decision.verdict.mesh_kept`); decimator: the run's chain, which the files are rebuilt from."""
     kept = mesh_kept(assessment, verdict, checks)
     events(wire.verdict(worth_compressing=False, message=kept.message, assessment=kept.to_dict()))
-    return NotWorthCompressing(kept)
+    return NotWorthCompressing(kept, decimator)
 
 
 def _training_bvh(mesh: Mesh, nodes: int, node_bits: int, events: EventSink, seconds: dict, tree=None):
@@ -259,7 +259,7 @@ def _compress(mesh: Mesh, run: RunConfig, out_path, events: EventSink, should_ca
         # The mesh kept is chosen on the held-out views, as every keep is (the check views only decided to stop).
         kept_on = weighing.curve_held_out or weighing.curve
         raise _keep_the_mesh(assessment, final_verdict(d.model_bytes, d.projected_mse, target, kept_on), events,
-                             search.rule.decisions)
+                             search.rule.decisions, weighing.decimator)
     notes += search.notes + list(trained_notes)
     look_info = _appearance(model, mesh, tracer, run.look, run_used.storage, run_used.training.seed, head, tr, events,
                             should_cancel, seconds)
@@ -276,7 +276,8 @@ def _compress(mesh: Mesh, run: RunConfig, out_path, events: EventSink, should_ca
         verdict = final_verdict(len(data), quality.mse, target, weighing.curve_held_out, run.decision.force,
                                 measure_decimation(mesh, weighing, assessment))
         if verdict.shipped != "model":
-            raise _keep_the_mesh(assessment, verdict, events, search.rule.decisions if search.rule else [])
+            raise _keep_the_mesh(assessment, verdict, events, search.rule.decisions if search.rule else [],
+                                 weighing.decimator)
     as_shipped = quality
     if quality is not None and look_info:  # the file read back with its look: what a user sees
         events(wire.phase(phase="eval", message=f"the file as shipped: {weighing.held_out.name}"))

@@ -24,7 +24,8 @@ from ..planning.sizing import LOG2_RANGE
 from ..protocol import events as wire
 from ..protocol.process import Cancelled, TrainingDiverged
 from ..rendering.metrics import Quality, ViewScorer
-from ..training.train import TrainResult, grid_phase_pending, state_form, train
+from ..training.encoding_phases import grid_phase_pending, state_form
+from ..training.train import TrainResult, train
 from .weighing import Weighing
 
 #: A training that diverged and could not go back (`training.recovery`) restarts from scratch at a 10x lower
@@ -51,7 +52,7 @@ def stored_mse(scorer: ViewScorer, storage):
     """score(model) for the training's checks: the image MSE of `model` as its file would hold it (a copy at its
     stored precision; the training's own model is left as it is): the float32 model read 4.7% (spiky sphere) to 18%
     (bunny, its table grown late) below the stored one. A low-bit table is scored at 8 bits until it trains through
-    its own grid (`training.train.grid_phase_pending`): that last phase recovers the rounding (6 bits: +3.1% over
+    its own grid (`training.encoding_phases.grid_phase_pending`): that last phase recovers the rounding (6 bits: +3.1% over
     the float model after it, 1.24x rounded without it; `tests/test_quantize.py`), and growth decided on the rounded
     score grew the bunny's table in both runs so scored (bench/results/target_runs.md)."""
     def score(model) -> float:

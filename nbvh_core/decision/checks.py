@@ -42,7 +42,7 @@ class CheckRule:
     level trains on, since the phase still to come (a low-bit table's training through its grid) is what makes the
     score hold. A check far worse than the best of its form (ROLLBACK_FACTOR) answers "roll back"; state_form(model)
     -> the form of the model's parameters, as the training keys the states it can go back to
-    (`training.train.state_form`; None: table size and shipped form). After training, `decisions` holds every check
+    (`training.encoding_phases.state_form`; None: table size and shipped form). After training, `decisions` holds every check
     and `keep_mesh` the decision that stopped it for the mesh."""
 
     def __init__(self, score: Callable, target: float, max_log2: int, budget_s: float,

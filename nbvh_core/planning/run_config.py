@@ -28,7 +28,7 @@ from ..neural.appearance import AppearanceConfig
 from ..neural.model import ModelConfig
 from ..neural.quantize import StorageConfig
 from ..rendering.metrics import MetricConfig
-from ..training.train import TrainConfig
+from ..training.config import TrainConfig
 from .settings import Settings, estimate_file_bytes
 from .mesh_measures import GridMeasures, MeshFeatures, choose_resolution, grid_measures, mesh_features
 from .machine_rate import reference_budget_s

@@ -19,7 +19,7 @@ from ..neural.appearance import AppearanceConfig
 from ..neural.quantize import StorageConfig
 from ..decision.config import MESH_LAYOUTS, SIZE_SEARCHES, DecisionConfig
 from ..rendering.metrics import MetricConfig
-from ..training.train import TrainConfig
+from ..training.config import TrainConfig
 from ..storage.fileformat import payload_bytes
 
 

@@ -25,9 +25,12 @@ class NotWorthCompressing(Exception):
     training), or than the model is at its measured quality (a training check, the final verdict). No model file was
     written; `assessment` (decision.records.Assessment) has the sizes and the alternatives."""
 
-    def __init__(self, assessment):
+    def __init__(self, assessment, decimator=None):
         super().__init__(assessment.message)
         self.assessment = assessment
+        #: the run's decimation chain (`geometry.decimation.Decimator`), so the kept decimation is rebuilt from the
+        #: levels it already holds (at 10M triangles the chain's first pass is ~15 s); None: rebuilt from the mesh
+        self.decimator = decimator
 
 
 class Outcome(NamedTuple):

@@ -17,7 +17,7 @@ The reader trusts nothing: the file must be a regular file under MAX_BYTES; pick
 writes) are recognised by their first bytes and refused without being opened; the header's length, JSON, names,
 dtypes, shapes and offsets are checked against the file's size before a tensor is made, so allocations are
 bounded by the file's own size; every header field is typed and ranged. What a tensor must look like for a given
-model (shapes, dtypes) is checked where the model is known (`train.load_checkpoint`), and the settings by
+model (shapes, dtypes) is checked where the model is known (`training.checkpoints.load_checkpoint`), and the settings by
 `settings.settings_from_dict`.
 """
 from __future__ import annotations
@@ -63,7 +63,7 @@ class Checkpoint:
 
 # ------------------------------------------------------------------------------------------------- writing
 def encode_checkpoint(state: dict) -> bytes:
-    """A training state (see `train._checkpoint_state`) -> safetensors bytes. Keys of `state`: model (state_dict),
+    """A training state (see `training.checkpoints.checkpoint_state`) -> safetensors bytes. Keys of `state`: model (state_dict),
     optimizer (Adam's state_dict), step, elapsed, history [(step, loss)], numpy_rng {chunk_state, index,
     leaf_weights}, torch_rng, leaf_errors, cut, tree_cut_rounds_done, lr_scale, qat_affine, train_config, extra."""
     from safetensors.torch import save

@@ -5,7 +5,7 @@ Starting over from scratch (`app.trainings.train_with_restarts`, still the answe
 healthy state is kept) costs a whole new budget, and the model trains at the lower rate from the start: the bunny
 made to diverge at 120 s of 200 took 324.1 s for a held-out MSE of 0.00062 starting over, 205.7 s for 0.00031 going
 back (bench/results/recovery.md). Here at most KEEP_EVERY of the budget is lost. Only a state of
-the model's present form can be put back (`training.train.state_form`: a grown table, a frozen index or a table put
+the model's present form can be put back (`training.encoding_phases.state_form`: a grown table, a frozen index or a table put
 on its grid since then makes the divergence end the training as before)."""
 from __future__ import annotations
 
