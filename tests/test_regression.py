@@ -1,8 +1,6 @@
 """Seeded small trainings pinned to their recorded quality, where the other tests only catch a collapse: an older
 shape within 1.5x (a 2x regression fails), and the default preset's shape as it ships within 1.15x (shown failing
 at half the learning rate: 4.75x)."""
-import pytest
-
 from nbvh_core.app.pipeline import compress_mesh
 from nbvh_core.planning.settings import preset
 
@@ -15,15 +13,21 @@ RECORDED_MSE = 0.0054
 BAND = 1.5
 
 
-def test_a_seeded_small_training_keeps_its_recorded_quality(sample_meshes):
-    s = preset("preview").with_overrides(steps=300, force=True, eval_views=8, eval_resolution=64, seed=0,
-                                         log2_table=10, nodes=255, levels=4, features=8, hidden=4, k=8)
-    s.time_limit_s = None
-    res = compress_mesh(sample_meshes["blob"], s, None)
+def _pinned(mesh, settings, recorded: float, band: float):
+    """The run of `settings` (forced, steps only) on `mesh`, its held-out MSE asserted within `band` of `recorded`."""
+    settings = settings.with_overrides(force=True, eval_views=8, eval_resolution=64, seed=0)
+    settings.time_limit_s = None
+    res = compress_mesh(mesh, settings, None)
     mse = res.quality.mse
-    assert RECORDED_MSE / BAND < mse < RECORDED_MSE * BAND, (
-        f"MSE {mse:.5f} is {mse / RECORDED_MSE:.2f}x the recorded {RECORDED_MSE}: a regression (or an improvement "
-        "to re-record)")
+    assert recorded / band < mse < recorded * band, (
+        f"MSE {mse:.6f} is {mse / recorded:.3f}x the recorded {recorded}: a regression (or an improvement to "
+        "re-record)")
+    return res
+
+
+def test_a_seeded_small_training_keeps_its_recorded_quality(sample_meshes):
+    s = preset("preview").with_overrides(steps=300, log2_table=10, nodes=255, levels=4, features=8, hidden=4, k=8)
+    res = _pinned(sample_meshes["blob"], s, RECORDED_MSE, BAND)
     assert res.quality.silhouette_iou > 0.93
 
 
@@ -36,12 +40,6 @@ SHIPPED_BAND = 1.15
 
 
 def test_the_shipped_default_shape_keeps_its_recorded_quality(sample_meshes):
-    s = preset("default").with_overrides(steps=600, force=True, eval_views=8, eval_resolution=64, seed=0, n_max=64,
-                                         log2_table=11)
-    s.time_limit_s = None
-    res = compress_mesh(sample_meshes["blob"], s, None)
-    mse = res.quality.mse
-    assert SHIPPED_RECORDED_MSE / SHIPPED_BAND < mse < SHIPPED_RECORDED_MSE * SHIPPED_BAND, (
-        f"MSE {mse:.6f} is {mse / SHIPPED_RECORDED_MSE:.3f}x the recorded {SHIPPED_RECORDED_MSE}: a regression (or an "
-        "improvement to re-record)")
+    s = preset("default").with_overrides(steps=600, n_max=64, log2_table=11)
+    res = _pinned(sample_meshes["blob"], s, SHIPPED_RECORDED_MSE, SHIPPED_BAND)
     assert res.file_bytes < 92_000 and res.quality.silhouette_iou > 0.98
