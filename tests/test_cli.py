@@ -5,6 +5,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from nbvh_core.app.cli import main
 
@@ -43,7 +44,7 @@ def test_compress_writes_the_result_bundle(tiny_model):
     assert preview.std() > 0 and reference.std() > 0  # the object, not an empty frame
 
 
-def test_info_eval_render(tiny_model, tmp_path):
+def test_info_eval_render(tiny_model, tmp_path, capsys):
     r = run_cli("info", str(tiny_model), "--json", "--mesh", "blob")
     assert r.returncode == 0, r.stderr
     info = json.loads(r.stdout)
@@ -55,6 +56,11 @@ def test_info_eval_render(tiny_model, tmp_path):
     assert 0 <= q["silhouette_iou"] <= 1 and q["views"] == 2
     png = tmp_path / "view.png"
     assert main(["render", str(tiny_model), "-o", str(png), "--width", "48"]) == 0 and png.stat().st_size > 0
+    said = "on cuda: query triton" if torch.cuda.is_available() else "on cpu: query stream"
+    assert said in capsys.readouterr().out  # the path that answered, said (the card by default where there is one)
+    if not torch.cuda.is_available():  # a card asked for where there is none: one line, exit 2
+        assert main(["render", str(tiny_model), "-o", str(png), "--device", "cuda"]) == 2
+        assert "no CUDA GPU" in capsys.readouterr().err
 
 
 def test_bad_inputs_exit_2_with_message(tmp_path, capsys):

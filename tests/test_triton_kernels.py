@@ -160,6 +160,29 @@ def test_a_model_s_query_is_one_triton_kernel_matching_the_reference(network, no
     assert got.leaves_evaluated == want.leaves_evaluated > len(o)
 
 
+def test_a_ray_query_kernel_that_fails_leaves_the_stream_path_answering_and_says_why(sample_meshes, triton_here,
+                                                                                  monkeypatch):
+    """A card or driver the kernel does not build for: the query warns once with the reason, the leaf stream answers
+    (the reference path's hits), and the plan names the fallback."""
+    from nbvh_core.kernels.triton import ray_query
+
+    model = _query_model(sample_meshes["blob"], "mlp", 7, 16, 2, 4)
+    assert kernels.plan(model, DEVICE).query == "triton"
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("PTX .version 9.9 does not support .target sm_200\nmore lines")
+
+    monkeypatch.setattr(ray_query, "first_hits", broken)
+    o, d = _rays(64)
+    with pytest.warns(RuntimeWarning, match="Triton ray query failed .*sm_200.*leaf stream answers"):
+        got = model.query(o, d)
+    with kernels.using_path("reference"):
+        want = model.query(o, d)
+    assert torch.equal(got.hit, want.hit) and torch.allclose(got.t[want.hit], want.t[want.hit], atol=1e-3)
+    p = kernels.plan(model, DEVICE)
+    assert p.query == "stream" and "ray query: the Triton ray query failed" in p.note, p
+
+
 def test_the_ray_query_compiles_for_the_card_without_spilling(tmp_path):
     """The interpreter checks what the kernel computes, not that the card's compiler takes it: here Triton compiles
     it for sm_90a (the H100/H200) and its own ptxas assembles it, no card needed (bench/kernel_registers.py). At the

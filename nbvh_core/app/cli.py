@@ -273,10 +273,12 @@ def _print_result(result, summary: dict, out: Path, paths: dict) -> None:
 
 
 def cmd_render(args: argparse.Namespace) -> int:
+    from .. import kernels
     from ..storage.fileformat import load_nbvh
     from ..rendering.render import Camera, orbit_cameras, render_neural, save_png
+    from ..training.train import pick_device
 
-    model = load_nbvh(args.model)
+    model = load_nbvh(args.model, pick_device(args.device))
     model.half_tables = args.half
     if args.position is not None:
         cam = Camera(position=np.asarray(args.position, float), target=np.asarray(args.target, float),
@@ -288,7 +290,9 @@ def cmd_render(args: argparse.Namespace) -> int:
     dt = time.perf_counter() - t
     save_png(args.output, res.display)
     n = res.image.size
-    print(f"wrote {args.output} ({args.width}x{args.height or args.width}, {dt:.2f} s, {n / dt:,.0f} rays/s)")
+    plan = kernels.plan(model)
+    print(f"wrote {args.output} ({args.width}x{args.height or args.width}, {dt:.2f} s, {n / dt:,.0f} rays/s on "
+          f"{plan.device}: query {plan.query}{'; ' + plan.note if plan.note else ''})")
     return 0
 
 
@@ -550,6 +554,9 @@ def _add_render_parser(sub) -> None:
     r.add_argument("--target", type=float, nargs=3, default=[0.5, 0.5, 0.5])
     r.add_argument("--fov", type=float, default=40.0)
     r.add_argument("--half", action="store_true", help="float16 feature rows while rendering (faster on the CPU)")
+    r.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto",
+                   help="where the model answers rays (auto: the card when there is one; its ray query is one Triton "
+                        "kernel, the line printed says which path ran)")
     r.set_defaults(func=cmd_render)
 
 

@@ -60,7 +60,7 @@ def query_kernel(model, device: torch.device | str | None = None) -> str:
     network and decode in one kernel, `triton/ray_query.py`) where the card's kernels cover the encoding and the
     network, else 'stream' (the leaf stream's traversal, then the network stage per wave of segments)."""
     device = model.device if device is None else device
-    if not triton_serves(device) or model.network.fused_kind is None:
+    if not triton_serves(device) or model.network.fused_kind is None or getattr(model, "triton_query_failure", None):
         return "stream"
     gaps = triton_encoding_gap(model.encoding) or triton_network_gap(model.network.net)
     return "stream" if gaps else "triton"
@@ -164,6 +164,7 @@ def plan(model, device: torch.device | str | None = None) -> KernelPlan:
     if triton_serves(device):
         gaps = [f"encoding: {g}" for g in [triton_encoding_gap(enc)] if g]
         gaps += [f"network: {g}" for g in [triton_network_gap(model.network.net)] if g]
+        gaps += [f"ray query: {g}" for g in [getattr(model, "triton_query_failure", None)] if g]
         note = ("Triton kernels on the card (the ray query one kernel); torch for training's traversal and the"
                 " training step's autograd"
                 + (f"; torch where not covered ({'; '.join(gaps)})" if gaps else ""))

@@ -7,6 +7,7 @@ coordinates (the unit box); `Transform` maps them back.
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -65,6 +66,8 @@ class NeuralBVH(nn.Module):
         self.network = make_network(self.encoding.out_dim, cfg.network)
         self._tree: TorchBVH | None = None
         self.metadata: dict = {}  # what the file's header carried (training, quality, source)
+        #: Why the card's ray query kernel could not answer (then the leaf stream does; `kernels.plan` says so).
+        self.triton_query_failure: str | None = None
         #: The asset's materials, one per slot (`look.Material`; empty: a bare shape, shaded grey).
         self.materials: list = []
         #: The appearance head (`appearance.AppearanceHead`): slot and texture coordinates per hit point; None
@@ -150,7 +153,13 @@ class NeuralBVH(nn.Module):
         rays_o = rays_o.to(dev, torch.float32).contiguous()
         rays_d = rays_d.to(dev, torch.float32).contiguous()
         if kernels.query_kernel(self, dev) == "triton":
-            return self._triton_query(rays_o, rays_d)
+            try:
+                return self._triton_query(rays_o, rays_d)
+            except Exception as exc:  # a card or driver the kernel does not build for: the stream path answers
+                self.triton_query_failure = (f"the Triton ray query failed ({type(exc).__name__}: "
+                                             f"{str(exc).splitlines()[0][:160] if str(exc) else ''}); the leaf "
+                                             "stream answers")
+                warnings.warn(self.triton_query_failure, RuntimeWarning, stacklevel=2)
         n = rays_o.shape[0]
         hit = torch.zeros(n, dtype=torch.bool, device=dev)
         t_out = torch.full((n,), torch.inf, device=dev)

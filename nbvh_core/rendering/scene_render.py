@@ -183,12 +183,15 @@ class MeshShape:
 
 
 def load_shape(path: str, kind: str):
-    """A NeuralShape from an .nbvh (kind "model") or a MeshShape from an .npz (kind "mesh"). Raises ValueError
-    (NBVHFileError, MeshError) or OSError with a message naming the file."""
+    """A NeuralShape from an .nbvh (kind "model": on the card when there is one, its rays answered by the Triton
+    ray query, else on the CPU) or a MeshShape from an .npz (kind "mesh"). Raises ValueError (NBVHFileError,
+    MeshError) or OSError with a message naming the file."""
     if kind == "model":
+        import torch
+
         from ..storage.fileformat import load_nbvh
 
-        return NeuralShape(load_nbvh(path))
+        return NeuralShape(load_nbvh(path, "cuda" if torch.cuda.is_available() else "cpu"))
     from ..geometry.mesh_arrays import mesh_from_npz
 
     return MeshShape(mesh_from_npz(path, Path(path).stem))

@@ -47,11 +47,12 @@ from .rays import TrainingSamples, label_samples, sample_rays
 
 
 def pick_device(name: str = "auto") -> torch.device:
-    """'auto' -> CUDA when available, else CPU; 'cuda' without a GPU raises a clear error."""
+    """'auto' -> CUDA when available, else CPU; 'cuda' without a GPU raises ValueError (one line: the CLI's exit 2)."""
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     if name.startswith("cuda") and not torch.cuda.is_available():
-        raise RuntimeError("device 'cuda' requested but no CUDA GPU is available to PyTorch")
+        raise ValueError("device 'cuda' requested but no CUDA GPU is available to PyTorch (--device auto uses the "
+                         "card when there is one)")
     return torch.device(name)
 
 
