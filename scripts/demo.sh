@@ -2,7 +2,8 @@
 # The main job on a bundled sample: compress it into neural geometry and write the model, its report and a
 # previews (the model and the mesh from the same view) to out/<name>/.
 # Usage: scripts/demo.sh [SAMPLE or MESH FILE] [compress options, e.g. --preset preview]   (default: bunny)
-#        (no options: --preset default; --need: the need-driven default, which may answer "keep as a mesh")
+#        (no options: --preset default --force, the model whatever the verdict, which its report and the last line
+#        state; --need: the need-driven default, which may answer "keep as a mesh")
 set -euo pipefail
 source "$(dirname "${BASH_SOURCE[0]}")/ensure_venv.sh"
 cd "$NBVH_ROOT"
@@ -11,7 +12,7 @@ shift || true
 name=$(basename "${sample%%.*}")
 mkdir -p "out/$name"
 if [ $# -eq 0 ]; then
-  set -- --preset default
+  set -- --preset default --force
 elif [ "$1" = "--need" ]; then
   shift
 fi
@@ -26,4 +27,4 @@ elif [ "$rc" -ne 0 ]; then
 fi
 "$NBVH_PY" -m nbvh_core info "out/$name/$name.nbvh" --mesh "$sample"
 # one line: what was decided and why (the final verdict of a sized run, else the verdict before training)
-"$NBVH_PY" -c 'import json, sys; r = json.load(open(sys.argv[1])); f = (r.get("decisions") or {}).get("final"); print("decided: " + (f["message"] if f else "the model (a fixed preset measures no decimation; before training: " + r["assessment"]["message"] + ")"))' "out/$name/$name.report.json"
+"$NBVH_PY" -c 'import json, sys; r = json.load(open(sys.argv[1])); f = (r.get("decisions") or {}).get("final"); print("decided: " + (f["message"] if f else "the model (no alternative measured; before training: " + r["assessment"]["message"] + ")"))' "out/$name/$name.report.json"

@@ -629,7 +629,8 @@ def test_a_model_better_than_every_measured_point_is_checked_against_the_decimat
 def test_a_fixed_size_is_weighed_after_training_and_ships_by_the_same_rule(sample_meshes):
     """A preset has no target, so nothing is measured before training; after its evaluation the decimation of the
     model's bytes is measured on the held-out views. A 20-step model of the bunny (MSE ~0.05) loses to it and the
-    mesh is kept, the decimation named; forced, the model ships without that measurement."""
+    mesh is kept, the decimation named; forced, the model ships and its verdict says what the decimation would
+    have taken."""
     from nbvh_core.app.pipeline import compress_mesh
     from nbvh_core.protocol.process import NotWorthCompressing
 
@@ -641,7 +642,9 @@ def test_a_fixed_size_is_weighed_after_training_and_ships_by_the_same_rule(sampl
     assert a.recommendation == "decimate" and "kept as a mesh" in a.message
     assert dec["compact_bytes"] < a.model_bytes and dec["compact_mse_held_out"] < 0.01
     forced = compress_mesh(mesh, preset("tiny").with_overrides(force=True))
-    assert forced.quality.mse > 0.01 and forced.decisions["final"] is None
+    final = forced.decisions["final"]
+    assert forced.quality.mse > 0.01 and final["shipped"] == "model" and final["forced"]
+    assert "decimation" in final["message"] and "smaller than the model" in final["message"], final["message"]
 
 
 def test_the_kept_decimation_is_rebuilt_from_the_run_s_own_chain(sample_meshes):

@@ -268,8 +268,8 @@ def _compress(mesh: Mesh, run: RunConfig, out_path, events: EventSink, should_ca
         metadata["appearance"] = look_info
     data = encode_nbvh(model, metadata, run_used.storage)
     verdict = None
-    if quality is not None and weighing.curve_held_out is None and math.isfinite(quality.mse) \
-            and not run.decision.force:  # a fixed size measured nothing before training: weigh it now
+    if quality is not None and weighing.curve_held_out is None and math.isfinite(quality.mse):
+        # a fixed size measured nothing before training: weigh it now (forced, the verdict says what is given up)
         events(wire.phase(phase="eval", message="the alternative at the model's quality"))
         weighing.curve_held_out = alternative_at_model(mesh, weighing, assessment, len(data))
     if quality is not None and weighing.curve_held_out is not None:
