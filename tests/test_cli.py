@@ -53,7 +53,7 @@ def test_info_eval_render(tiny_model, tmp_path, capsys):
     r = run_cli("eval", "blob", str(tiny_model), "--json", "--views", "2", "--resolution", "32")
     assert r.returncode == 0, r.stderr
     q = json.loads(r.stdout)
-    assert 0 <= q["silhouette_iou"] <= 1 and q["views"] == 2
+    assert q["silhouette_iou"] > 0.8 and q["mse"] < 0.08 and q["views"] == 2  # recorded: IoU 0.90, MSE 0.051
     png = tmp_path / "view.png"
     assert main(["render", str(tiny_model), "-o", str(png), "--width", "48"]) == 0 and png.stat().st_size > 0
     said = "on cuda: query triton" if torch.cuda.is_available() else "on cpu: query stream"

@@ -41,14 +41,15 @@ def test_the_decoded_triangles_are_the_source_s_on_one_global_grid_with_their_wi
     assert err <= 0.5 * dec.step * 1.001 + 1e-7 and dec.step < 1e-4 * float(np.ptp(mesh.vertices))
 
 
-def test_a_real_scan_is_at_most_6_bytes_per_triangle_with_its_bvh_and_the_count_is_exact(bunny):
+def test_a_real_scan_is_about_4_bytes_per_triangle_with_its_bvh_and_the_count_is_exact(bunny):
     mesh, tree, data = bunny
     dec = decode_compact(data)
     n_clusters = int(dec.cluster_of_face.max()) + 1
     assert len(data) > 48 + NODE_BYTES * len(dec.node_link) + CLUSTER_BYTES * n_clusters
     assert compact_bytes(mesh, tree) == len(data)  # what the verdict weighs is what compress writes
     per_triangle = len(data) / mesh.n_triangles
-    assert per_triangle <= 6.0, per_triangle  # a DGF-class size: 4.1 B here (16-bit offsets, 8-bit indices: 8.5)
+    # a DGF-class size: 4.12 B recorded (16-bit offsets, 8-bit indices: 8.5); a 5% drift fails
+    assert 3.9 <= per_triangle <= 4.33, per_triangle
     assert len(dec.faces) == mesh.n_triangles
 
 

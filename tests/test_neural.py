@@ -293,7 +293,8 @@ def test_compress_mesh_writes_file_with_quality(blob_setup, tmp_path):
     events = []
     res = compress_mesh(mesh, preset("tiny").with_overrides(force=True), tmp_path / "blob.nbvh", events=events.append)
     assert (tmp_path / "blob.nbvh").stat().st_size == res.file_bytes == sum(res.components.values())
-    assert 0 <= res.quality.silhouette_iou <= 1 and 0 < res.quality.mse < 1  # a scored image (quality: test_regression)
+    # the tiny blob model's held-out quality, as recorded (MSE 0.0948, IoU 0.661: 20 steps are coarse)
+    assert res.quality.silhouette_iou > 0.55 and 0.066 < res.quality.mse < 0.123, res.quality
     kinds = [e["event"] for e in events]
     assert "progress" in kinds and kinds[-1] == "result"
     json.dumps(events)  # every event is JSON-serialisable
