@@ -109,6 +109,7 @@ def weigh(mesh: Mesh, run: RunConfig, tracer: ExactTracer, made=None, events: Ev
                                 AlternativeCurve.from_alternatives(assessment.alternatives, held_out=True), look_bytes,
                                 decimator, tree)
 
+
 #: Decimations aimed at a fixed-size model's bytes after its evaluation, at most (`alternative_at_model`).
 AIM_TRIES = 3
 

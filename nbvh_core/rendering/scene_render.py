@@ -187,11 +187,10 @@ def load_shape(path: str, kind: str):
     ray query, else on the CPU) or a MeshShape from an .npz (kind "mesh"). Raises ValueError (NBVHFileError,
     MeshError) or OSError with a message naming the file."""
     if kind == "model":
-        import torch
-
         from ..storage.fileformat import load_nbvh
+        from ..training.train import pick_device
 
-        return NeuralShape(load_nbvh(path, "cuda" if torch.cuda.is_available() else "cpu"))
+        return NeuralShape(load_nbvh(path, pick_device("auto")))
     from ..geometry.mesh_arrays import mesh_from_npz
 
     return MeshShape(mesh_from_npz(path, Path(path).stem))
