@@ -1,6 +1,8 @@
 import itertools
 import json
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -351,6 +353,30 @@ def test_a_late_divergence_goes_back_to_the_last_healthy_state_inside_the_budget
     assert [e for e in events if e["event"] == "warning" and "back to its state" in e["message"]]
     losses = [loss for _, loss in res.history]
     assert np.isfinite(losses).all() and np.mean(losses[-10:]) < np.mean(losses[:5])
+
+
+def test_losses_read_every_eight_steps_train_the_same_and_still_catch_a_late_divergence(blob_setup, monkeypatch):
+    """The card's loop reads the loss every 16 steps (`training.loss_reads`); run here every 8: the same history as
+    reading every step, and a divergence seen at the next read still goes back to the last healthy state (the steps
+    run since on the poisoned model are undone with it)."""
+    mesh, bvh, tracer = blob_setup
+    base = preset("tiny").with_overrides(steps=120, time_limit_s=None).train_config()
+    histories = []
+    for every in (1, 8):
+        torch.manual_seed(0)
+        model = NeuralBVH(bvh.nodes, preset("tiny").model_config(), mesh.transform)
+        histories.append(train(model, bvh, tracer, dataclasses.replace(base, loss_read_every=every)).history)
+    assert [s for s, _ in histories[0]] == [s for s, _ in histories[1]] == list(range(1, 121))
+    assert np.allclose([v for _, v in histories[0]], [v for _, v in histories[1]], rtol=1e-5)
+    cfg = dataclasses.replace(preset("tiny").with_overrides(steps=300, time_limit_s=None).train_config(),
+                              loss_read_every=8)
+    model = NeuralBVH(bvh.nodes, preset("tiny").model_config(), mesh.transform)
+    calls = _poison_steps(monkeypatch, lambda n: n == 197)  # step 196; read with 197-199 at step 199
+    res = train(model, bvh, tracer, cfg)
+    assert res.steps == 300 and calls[0] == 301  # three steps ran on the poisoned model before the read, undone
+    assert [(step, scale) for step, _, scale in res.recovered] == [(196, pytest.approx(0.1))]
+    assert all(torch.isfinite(p).all() for p in model.parameters())
+    assert np.isfinite([v for _, v in res.history]).all()
 
 
 def test_a_divergence_with_no_healthy_state_or_no_recovery_left_ends_the_training(blob_setup, monkeypatch):

@@ -240,7 +240,7 @@ def test_the_step_hides_fused_vs_autograd(blob, net):
             step = make_step(model, torch.device("cpu"), plan)
             model.zero_grad(set_to_none=True)
             loss, parts = step(batch, True)
-            grads[path] = (loss, {n: p.grad.clone() for n, p in model.named_parameters()}, parts["raw"].shape)
+            grads[path] = (float(loss), {n: p.grad.clone() for n, p in model.named_parameters()}, parts["raw"].shape)
     (l_r, g_r, raw_r), (l_f, g_f, raw_f) = grads["reference"], grads["fast"]
     assert l_f == pytest.approx(l_r, rel=1e-4) and raw_r == raw_f
     for name in g_r:

@@ -50,6 +50,9 @@ class TrainConfig:
     # while the GPU trains); on a 2-core CPU it was slower (bunny, default preset, 150 steps: 130k vs 149-154k
     # samples/s without), since labelling and training compete for the same two cores.
     prefetch: bool | None = None
+    #: Steps between reads of the loss to the host (`loss_reads`): None = 16 on a card (the host queues steps ahead
+    #: of the card instead of waiting for each), 1 on the CPU.
+    loss_read_every: int | None = None
     # Rays for this many steps are drawn and labelled in one pass, then handed out one step at a time (the same
     # distribution; per-call work is amortised: bunny, 4096 rays/step, 5.3 / 4.1 / 3.4 ms per step at 8 / 16 / 32,
     # 11.0 ms one step at a time before this and the label kernels' other changes).

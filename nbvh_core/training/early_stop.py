@@ -86,12 +86,16 @@ class EarlyStop:
         events(wire.phase(phase=phases.phase, message=f"{what} read {self.last_mse:.4g}, far above the best check "
                                                       f"({self.best.mse:.4g}): back to that check's weights"))
 
+    def due(self, fraction: float, elapsed: float, ready: bool) -> bool:
+        """Whether a check is asked at this point of the budget (`reached` asks it)."""
+        return (self.target_reached is not None and fraction >= 0.1 and ready
+                and elapsed - self.last_s >= self.cfg.target_check_every_s)
+
     def reached(self, model: NeuralBVH, fraction: float, elapsed: float, ready: bool) -> bool | str:
         """False (no check due, or train on), "grow" (honoured only while growth can pay), "roll back", or True
         (stop)."""
         self.last_mse = None
-        if (self.target_reached is None or fraction < 0.1 or not ready
-                or elapsed - self.last_s < self.cfg.target_check_every_s):
+        if not self.due(fraction, elapsed, ready):
             return False
         self.last_s = elapsed
         answer = self.target_reached(model)

@@ -44,8 +44,10 @@ class Batches:
     """
 
     def __init__(self, bvh: BVH, tracer: ExactTracer, cfg, rng: np.random.Generator,
-                 prefetch: bool = False, resume: dict | None = None, leaf_errors: LeafErrors | None = None):
+                 prefetch: bool = False, resume: dict | None = None, leaf_errors: LeafErrors | None = None,
+                 pin: bool = False):
         self.bvh, self.tracer, self.cfg, self.rng = bvh, tracer, cfg, rng
+        self.pin = pin  # batches in page-locked memory (training on a card: its copies do not stall the host)
         self.lo, self.hi = root_box(bvh)
         self.tree = TorchBVH.from_bvh(bvh)
         self._pending: list = []  # batches of the current chunk not yet handed out
@@ -88,7 +90,7 @@ class Batches:
         o, d = self._draw(per * n_steps, weights)
         chunk = label_samples(self.bvh, self.tracer, o, d, self.cfg.labels, tree=self.tree,
                               normal_loss=self.cfg.normal_loss)
-        return [(part, {"chunk_state": chunk_state, "index": i, "leaf_weights": weights})
+        return [(part.pinned() if self.pin else part, {"chunk_state": chunk_state, "index": i, "leaf_weights": weights})
                 for i, part in enumerate(split_samples(chunk, per))]
 
     def set_bvh(self, bvh: BVH) -> None:

@@ -85,6 +85,16 @@ class TrainingSamples:
         """(S, 3) label points o + t_hit d (meaningful where `hit`)."""
         return self.rays_o[self.ray] + self.t_hit[:, None] * self.rays_d[self.ray]
 
+    def pinned(self) -> "TrainingSamples":
+        """The same samples in page-locked host memory: a card copies them with `non_blocking=True` while the host
+        goes on (a pageable copy makes the host wait for it)."""
+        tensors = {f: getattr(self, f).pin_memory() for f in TENSOR_FIELDS}
+        return TrainingSamples(**tensors, mode=self.mode, stats=self.stats)
+
+
+#: The per-sample tensors of `TrainingSamples` (what moves to the training device).
+TENSOR_FIELDS = ("rays_o", "rays_d", "ray", "leaf", "t_enter", "t_exit", "hit", "t_hit", "normal", "rank")
+
 
 def root_box(bvh: BVH) -> tuple[np.ndarray, np.ndarray]:
     """(3,), (3,) float32 min and max of the BVH root."""

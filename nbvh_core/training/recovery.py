@@ -37,24 +37,33 @@ class Recovery:
         self.next_keep = KEEP_EVERY
         self.recovered: list[tuple[int, float, float]] = []
 
-    def step_is_healthy(self, model, opt, average, step: int, loss: float, fraction: float, elapsed: float) -> bool:
-        """True: apply this step. False: it diverged and the model went back (skip the step; its gradients are not
-        applied). Raises TrainingDiverged when no state of the model's form is kept or no recovery is left.
-        average: the weight average (`WeightAverage`), started over after going back."""
-        try:
-            self.guard.observe(step, loss)
-        except TrainingDiverged as exc:
-            if self.left <= 0 or not self.kept.restore(model, opt, self.form(model)):
-                raise
-            self.left -= 1
-            self.schedule.scale *= LR_FACTOR_AFTER
-            self.guard.went_back(step)
-            average.restart()
-            self.recovered.append((step, round(elapsed, 1), self.schedule.scale))
-            self.events(wire.warning(message=f"training diverged at step {step} ({exc}): back to its state at "
-                                             f"{self.kept_at_s:.0f} s, learning rate x{self.schedule.scale:g}"))
-            return False
-        if fraction >= self.next_keep and self.guard.settled(step):
-            self.kept.keep(model, opt, self.form(model))
+    def read_is_healthy(self, model, opt, average, losses: list[tuple[int, float]], fraction: float,
+                        elapsed: float, vouched: bool = True) -> bool:
+        """losses: (step, loss) of each step since the last read, in order (`loss_reads.PendingLosses`); vouched: the
+        last is this step's, computed on the model as it is now (only then may the state be kept). True: apply this
+        step. False: one diverged and the model
+        went back (skip the step; its gradients are not applied). Raises TrainingDiverged when no state of the
+        model's form is kept or no recovery is left. average: the weight average (`WeightAverage`), started over
+        after going back."""
+        for step, loss in losses:
+            try:
+                self.guard.observe(step, loss)
+            except TrainingDiverged as exc:
+                self._go_back(model, opt, average, step, elapsed, exc)
+                return False
+        step = losses[-1][0]
+        if vouched and fraction >= self.next_keep and self.guard.settled(step):
+            self.kept.keep(model, opt, self.form(model))  # the last loss vouches for the model as it is now
             self.kept_at_s, self.next_keep = elapsed, fraction + KEEP_EVERY
         return True
+
+    def _go_back(self, model, opt, average, step: int, elapsed: float, exc: TrainingDiverged) -> None:
+        if self.left <= 0 or not self.kept.restore(model, opt, self.form(model)):
+            raise exc
+        self.left -= 1
+        self.schedule.scale *= LR_FACTOR_AFTER
+        self.guard.went_back(step)
+        average.restart()
+        self.recovered.append((step, round(elapsed, 1), self.schedule.scale))
+        self.events(wire.warning(message=f"training diverged at step {step} ({exc}): back to its state at "
+                                         f"{self.kept_at_s:.0f} s, learning rate x{self.schedule.scale:g}"))

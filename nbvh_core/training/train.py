@@ -42,6 +42,7 @@ from .checkpoints import Checkpoints, checkpoint_state, load_checkpoint, resumed
 from .config import TrainConfig, TrainResult
 from .early_stop import EarlyStop
 from .encoding_phases import EncodingPhases, state_form
+from .loss_reads import PendingLosses, read_every
 from .recovery import Recovery
 from .rays import TrainingSamples, label_samples, sample_rays
 
@@ -59,10 +60,15 @@ def pick_device(name: str = "auto") -> torch.device:
 def samples_loss(model: NeuralBVH, s: TrainingSamples, device: torch.device, want_raw: bool = False):
     """Loss of the model on labelled samples (moved to `device`): (loss, parts); with want_raw, parts['raw'] holds
     the network's raw outputs (detached)."""
-    r = s.ray.to(device)
-    o, d = s.rays_o.to(device)[r], s.rays_d.to(device)[r]
-    raw = model(o, d, s.t_enter.to(device), s.t_exit.to(device))
-    loss, parts = model.network.loss(raw, s.hit.to(device), s.local_t.to(device), s.normal.to(device))
+    def on(t: torch.Tensor) -> torch.Tensor:  # pinned batches (`Batches.pin`) copy while the host goes on
+        return t.to(device, non_blocking=True)
+
+    r = on(s.ray)
+    o, d = on(s.rays_o)[r], on(s.rays_d)[r]
+    t_enter, t_exit = on(s.t_enter), on(s.t_exit)
+    raw = model(o, d, t_enter, t_exit)
+    local_t = ((on(s.t_hit) - t_enter) / (t_exit - t_enter).clamp_min(1e-12)).clamp(0.0, 1.0)  # as s.local_t
+    loss, parts = model.network.loss(raw, on(s.hit), local_t, on(s.normal))
     if want_raw:
         parts["raw"] = raw.detach()
     return loss, parts
@@ -161,16 +167,17 @@ def gradients_pass_output_bias(model: torch.nn.Module) -> bool:
 
 def make_step(model: NeuralBVH, device: torch.device, plan: kernels.KernelPlan):
     """The training step the plan chose, hiding fused vs autograd: step(batch, want_raw) -> (loss, parts) with every
-    parameter's .grad set (parts['raw']: the network's raw outputs when want_raw)."""
+    parameter's .grad set (parts['raw']: the network's raw outputs when want_raw); loss: a float (the fused CPU
+    step) or a 0-d tensor on the training device, read to the host later (`loss_reads`)."""
     if plan.train_step != "autograd":  # forward, loss and backward in one kernel call (neural/fused_mlp.py)
         from ..neural import fused_mlp
 
         return lambda batch, want_raw: fused_mlp.train_step(model, batch, want_raw=want_raw)
 
-    def autograd_step(batch: TrainingSamples, want_raw: bool) -> tuple[float, dict]:
+    def autograd_step(batch: TrainingSamples, want_raw: bool) -> tuple[torch.Tensor, dict]:
         loss, parts = samples_loss(model, batch, device, want_raw=want_raw)
         loss.backward()
-        return float(loss.detach()), parts
+        return loss.detach(), parts  # read to the host with the next steps' (`loss_reads`)
 
     return autograd_step
 
@@ -248,7 +255,7 @@ def _training_data(model, bvh, tracer, cfg, ck, device, plan, rng, events):
             raise CheckpointError(f"the checkpoint's leaf errors do not fit this BVH ({bvh.n_leaves} leaves)")
         leaf_errors.error = ck["leaf_errors"].clone()
     batches = Batches(bvh, tracer, cfg, rng, prefetch=prefetch, resume=ck.get("numpy_rng"),
-                      leaf_errors=leaf_errors if cfg.leaf_sampling == "loss" else None)
+                      leaf_errors=leaf_errors if cfg.leaf_sampling == "loss" else None, pin=device.type == "cuda")
     return batches, leaf_errors, cut
 
 
@@ -299,15 +306,27 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
     events(wire.phase(phase="train", message=f"{model.cfg.encoding.kind}+{model.cfg.network.kind}, "
                                                            f"{cfg.labels} labels, {plan.describe()}"))
 
+    pending = PendingLosses(read_every(cfg.loss_read_every, device))
+
     def state() -> dict:  # what a checkpoint holds now
-        return dict(checkpoint_state(model, opt, step, time.perf_counter() - t0, history, batches, leaf_errors, cut,
-                                      phases), lr_scale=schedule.scale)
+        read = [(s + 1, v) for s, v in pending.peek()]
+        return dict(checkpoint_state(model, opt, step, time.perf_counter() - t0, history + read, batches,
+                                     leaf_errors, cut, phases), lr_scale=schedule.scale)
+
+    def read_losses(frac: float, elapsed: float, vouched: bool = False) -> bool:  # False: the model went back
+        read = pending.take()  # vouched: the last loss read is this step's, on the model as it is now
+        if not read or not recovery.read_is_healthy(model, opt, phases.average, read, frac, elapsed, vouched):
+            return not read
+        history.extend((s + 1, v) for s, v in read)  # (steps done, the loss before that step's update)
+        return True
 
     t0 = time.perf_counter() - elapsed_before
-    stopped_early, loss = False, float("nan")
+    stopped_early = False
     gc.freeze()  # what exists now (torch, the model, the data) lives on: full collections skip it (were ~8% of a step)
     try:
         while (frac := schedule.fraction(step, elapsed := time.perf_counter() - t0)) < 1.0:
+            if early.due(frac, elapsed, phases.ready_to_stop):
+                read_losses(frac, elapsed)  # a check may roll back or grow the model: judge the steps before it
             stopped_early = early.act(model, opt, checkpoints, events, phases, step, frac, elapsed)
             t0 += early.spent_s  # a check measures: its time is not the budget's (nor the schedule's)
             if stopped_early:
@@ -320,7 +339,8 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
             batch = batches.next()
             opt.zero_grad(set_to_none=True)
             loss, parts = train_step(batch, leaf_errors is not None)
-            if not recovery.step_is_healthy(model, opt, phases.average, step, loss, frac, elapsed):
+            pending.add(step, loss)
+            if pending.due() and not read_losses(frac, elapsed, vouched=True):
                 continue  # diverged: back to the last healthy state, this step's gradients dropped
             _note_leaf_errors(leaf_errors, model, batch, parts)
             phases.after_backward()
@@ -330,10 +350,11 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
             if cut is not None:
                 cut.after_step(frac, batches, leaf_errors, phase)
             progress.samples += len(batch)
-            history.append((step, loss))
             now = time.perf_counter() - t0
             checkpoints.maybe_save(step, now, state)
-            progress.maybe_emit(phase, step, frac, loss, now)
+            if history:
+                progress.maybe_emit(phase, step, frac, history[-1][1], now)
+        read_losses(frac, time.perf_counter() - t0)  # the last steps' losses, judged as every other
     finally:
         batches.close()
         gc.unfreeze()
@@ -341,7 +362,7 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
     seconds = time.perf_counter() - t0
     result = TrainResult(steps=step, seconds=seconds, samples=progress.samples,
                          samples_per_s=progress.samples_per_s(seconds),
-                         final_loss=guard.ema if guard.ema is not None else loss, device=str(device),
+                         final_loss=guard.ema if guard.ema is not None else float("nan"), device=str(device),
                          history=history, compute_path=plan.describe(), kernel_plan=plan.to_dict(),
                          stopped_early=stopped_early, grew=early.grew, recovered=recovery.recovered)
     progress.emit(phases.phase, step, 1.0, result.final_loss, seconds, 0.0)
