@@ -23,7 +23,7 @@ from harness import RESULTS, append_rows, markdown_table, product_scorer, read_r
 from nbvh_core.app.pipeline import compress_mesh, preset
 from nbvh_core.geometry.compact_mesh import compact_mesh, encode_compact
 from nbvh_core.geometry.decimation import decimate
-from nbvh_core.storage import fileformat
+from nbvh_core.storage import container
 from nbvh_core.storage.packed import pack
 
 OUT = RESULTS / "storage.csv"
@@ -94,7 +94,7 @@ def row_shape(row: dict) -> str:
 
 
 #: The .nbvh format the rows are written in (2.5 stores the BVH's shape in 1 bit a node instead of 4 bytes of links).
-FORMAT = f"{fileformat.VERSION_MAJOR}.{fileformat.VERSION_MINOR}"
+FORMAT = "{}.{}".format(*container.writer_version())
 
 
 def row_format(row: dict) -> str:

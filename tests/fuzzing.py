@@ -11,16 +11,16 @@ import zlib
 
 import numpy as np
 
-from nbvh_core.storage.fileformat import (_PREFIX, VERSION_MAJOR, VERSION_MINOR, NBVHFileError, decode_nbvh,
-                                         header_bytes, header_json)
+from nbvh_core.storage.container import PREFIX, VERSION_MAJOR, VERSION_MINOR, header_bytes, header_json
+from nbvh_core.storage.fileformat import NBVHFileError, decode_nbvh
 from nbvh_core.rendering.render import orbit_cameras, render_neural
 
 
 def split(data: bytes) -> tuple[dict, bytes]:
     """(header dict, payload bytes) of a file."""
-    _, major, minor, hlen = _PREFIX.unpack_from(data, 0)
-    return (json.loads(header_json(data[_PREFIX.size:_PREFIX.size + hlen], (major, minor), "<split>")),
-            data[_PREFIX.size + hlen:-4])
+    _, major, minor, hlen = PREFIX.unpack_from(data, 0)
+    return (json.loads(header_json(data[PREFIX.size:PREFIX.size + hlen], (major, minor), "<split>")),
+            data[PREFIX.size + hlen:-4])
 
 
 def craft(header, payload: bytes, major: int = 2, minor: int | None = None) -> bytes:
@@ -28,7 +28,7 @@ def craft(header, payload: bytes, major: int = 2, minor: int | None = None) -> b
     writer's own for major 2, else 0 - the tensor layout the payload came with)."""
     minor = (VERSION_MINOR if major == VERSION_MAJOR else 0) if minor is None else minor
     hdr = header_bytes(header, (major, minor))
-    body = _PREFIX.pack(b"NBVH\x00\r\n\x1a", major, minor, len(hdr)) + hdr + payload
+    body = PREFIX.pack(b"NBVH\x00\r\n\x1a", major, minor, len(hdr)) + hdr + payload
     return body + struct.pack("<I", zlib.crc32(body))
 
 

@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 import torch
 
-from nbvh_core.storage.fileformat import (MAGIC, NBVHFileError, component_bytes, load_nbvh, pack_codes, read_info,
-                                  save_nbvh, unpack_codes)
+from nbvh_core.storage.container import MAGIC, pack_codes, unpack_codes
+from nbvh_core.storage.fileformat import NBVHFileError, component_bytes, load_nbvh, read_info, save_nbvh
 from nbvh_core.app.pipeline import compress_mesh, preset
 from nbvh_core.neural.quantize import StorageConfig
 from nbvh_core.rendering.render import orbit_cameras, render_neural
@@ -74,7 +74,7 @@ def test_the_planned_bytes_are_the_written_tensors(trained, enc):
     import itertools
     from nbvh_core.geometry.bvh import NODE_DTYPE
     from nbvh_core.neural.model import NeuralBVH
-    from nbvh_core.storage.fileformat import payload_bytes
+    from nbvh_core.storage.layout import payload_bytes
 
     path, res = trained[enc]
     cfg, storage, n = res.model.cfg, res.settings.storage(), len(res.model.nodes)
@@ -91,7 +91,7 @@ def test_the_planned_bytes_are_the_written_tensors(trained, enc):
 def test_hashvqad_file_keeps_the_reachable_codes_and_full_index_files_still_load(trained, tmp_path, monkeypatch):
     """Format 2.2 stores the codes of the index entries a vertex can select (the tiny grid's dense coarse level
     reaches 17^3 of its 8,192); a 2.1 file, which stored all L x H, loads to the same model."""
-    import nbvh_core.storage.fileformat as fileformat
+    import nbvh_core.storage.container as container
 
     path, res = trained["hashvqad"]
     enc = res.model.encoding
@@ -103,7 +103,7 @@ def test_hashvqad_file_keeps_the_reachable_codes_and_full_index_files_still_load
     new = load_nbvh(path)
     assert torch.equal(new.encoding.codes, enc.codes)
     old = tmp_path / "full_index.nbvh"
-    monkeypatch.setattr(fileformat, "VERSION_MINOR", 1)  # as a 2.1 writer wrote it
+    monkeypatch.setattr(container, "VERSION_MINOR", 1)  # as a 2.1 writer wrote it
     save_nbvh(res.model, old, storage=res.settings.storage())
     monkeypatch.undo()
     assert old.read_bytes()[8:12] == bytes([2, 0, 1, 0])
@@ -294,25 +294,26 @@ def test_the_header_is_stored_compressed_and_a_crafted_one_is_refused_in_one_lin
     import zlib
 
     from fuzzing import craft, split
-    from nbvh_core.storage.fileformat import _PREFIX, MAX_HEADER_BYTES, decode_nbvh
+    from nbvh_core.storage.container import MAX_HEADER_BYTES, PREFIX
+    from nbvh_core.storage.fileformat import decode_nbvh
 
     path, _ = trained["hashgrid"]
     data = path.read_bytes()
     header, payload = split(data)
-    hlen = _PREFIX.unpack_from(data, 0)[3]
+    hlen = PREFIX.unpack_from(data, 0)[3]
     assert hlen < 0.6 * len(json.dumps(header, separators=(",", ":")))
-    import nbvh_core.storage.fileformat as fileformat
+    import nbvh_core.storage.container as container
 
     path_24, res = tmp_path / "as_2_4.nbvh", trained["hashgrid"][1]
-    monkeypatch.setattr(fileformat, "VERSION_MINOR", 4)  # links and leaf ordinals, as 2.3 and 2.4 wrote them
+    monkeypatch.setattr(container, "VERSION_MINOR", 4)  # links and leaf ordinals, as 2.3 and 2.4 wrote them
     save_nbvh(res.model, path_24, storage=res.settings.storage())
     monkeypatch.undo()
     old = decode_nbvh(craft(*split(path_24.read_bytes()), minor=3))  # plain JSON, as 2.3 wrote it
     assert old.n_nodes == load_nbvh(path).n_nodes
 
     def with_raw_header(raw: bytes) -> bytes:
-        raw += b"\0" * ((-(_PREFIX.size + len(raw))) % 8)
-        body = _PREFIX.pack(MAGIC, 2, 4, len(raw)) + raw + payload
+        raw += b"\0" * ((-(PREFIX.size + len(raw))) % 8)
+        body = PREFIX.pack(MAGIC, 2, 4, len(raw)) + raw + payload
         return body + struct.pack("<I", zlib.crc32(body))
 
     bomb = zlib.compress(b"{" + b" " * (MAX_HEADER_BYTES + 10) + b"}", 9)

@@ -109,7 +109,7 @@ def test_an_image_read_from_a_jpeg_file_is_stored_as_its_own_bytes(tmp_path):
     loss, no re-encoding larger than the asset's own file); bytes of another image are never used."""
     from PIL import Image
 
-    from nbvh_core.storage.fileformat import look_stored_bytes
+    from nbvh_core.storage.layout import look_stored_bytes
 
     Image.fromarray(_photograph(64)).save(tmp_path / "tex.jpg", quality=70)
     (tmp_path / "a.mtl").write_text("newmtl tex\nKd 1 1 1\nmap_Kd tex.jpg\n")
@@ -319,7 +319,7 @@ def _many_slots_with_seams(slots: int, textured: tuple = ()) -> "Mesh":
 def test_plain_slots_cost_one_patch_each_however_many_islands_they_have():
     """120 flat-colour slots over 1,280 one-face islands: a patch per used slot (a palette and a class each), not an
     island each; beside a textured slot, only that slot is cut by its islands."""
-    from nbvh_core.storage.fileformat import look_stored_bytes
+    from nbvh_core.storage.layout import look_stored_bytes
 
     mesh = _many_slots_with_seams(120)
     head, face_patch = make_head(mesh, AppearanceConfig())

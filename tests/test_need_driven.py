@@ -440,7 +440,7 @@ def test_the_alternative_carries_the_assets_look_in_its_bytes():
     from meshes import icosphere
     from nbvh_core.neural.quantize import StorageConfig
     from nbvh_core.app.alternatives import look_carried_bytes
-    from nbvh_core.storage.fileformat import look_stored_bytes
+    from nbvh_core.storage.layout import look_stored_bytes
 
     globe = demo_assets.globe(16, 8, texture=32)
     pngs = look_stored_bytes(None, globe.look.materials, StorageConfig())["textures"]

@@ -126,7 +126,8 @@ def test_a_four_bit_file_keeps_its_appearance_head_at_eight_bits():
     """The head trains no quantization-aware phase, so a 4-bit geometry table leaves the head's table at 8 bits: the
     file's head bytes are what the estimate before training counted, and the head reads back code for code."""
     from nbvh_core.geometry.demo_assets import crate
-    from nbvh_core.storage.fileformat import decode_nbvh, look_stored_bytes
+    from nbvh_core.storage.fileformat import decode_nbvh
+    from nbvh_core.storage.layout import look_stored_bytes
 
     mesh = crate(cells=2, texture=64)
     s = preset("tiny").with_overrides(steps=30, force=True, table_bits=4)

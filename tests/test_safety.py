@@ -112,14 +112,15 @@ def test_failed_or_cancelled_rerun_keeps_the_previous_result(tmp_path, sample_me
 def with_links(path: Path) -> bytes:
     """The model file as format 2.4 wrote it: the BVH's links and leaf ordinals (2.5 stores the builder's layout as
     shape bits, which hold no link to break)."""
-    import nbvh_core.storage.fileformat as fileformat
+    import nbvh_core.storage.container as container
+    from nbvh_core.storage.fileformat import encode_nbvh
 
-    model, minor = load_nbvh(path), fileformat.VERSION_MINOR
-    fileformat.VERSION_MINOR = 4
+    model, minor = load_nbvh(path), container.VERSION_MINOR
+    container.VERSION_MINOR = 4
     try:
-        return fileformat.encode_nbvh(model, {}, model.storage)
+        return encode_nbvh(model, {}, model.storage)
     finally:
-        fileformat.VERSION_MINOR = minor
+        container.VERSION_MINOR = minor
 
 
 def test_bvh_cycle_is_refused(model_file):
@@ -198,11 +199,11 @@ def test_crafted_headers_and_nodes_refused_by_the_cli(model_file, tmp_path, case
 
 def test_format_1_files_still_load(model_file, sample_meshes, tmp_path, monkeypatch):
     """A file as the previous release wrote it (format 1.0: float32 nodes, tables and weights) loads and renders."""
-    import nbvh_core.storage.fileformat as fileformat
+    import nbvh_core.storage.container as container
     from nbvh_core.storage.fileformat import encode_nbvh
 
     model = load_nbvh(model_file)
-    monkeypatch.setattr(fileformat, "VERSION_MINOR", 1)  # HashVQAD's index for all L x H entries, as 1.0 had it
+    monkeypatch.setattr(container, "VERSION_MINOR", 1)  # HashVQAD's index for all L x H entries, as 1.0 had it
     v2 = encode_nbvh(model, {}, None)  # float32 everywhere: the v1 tensor set
     monkeypatch.undo()
     header, payload = split(v2)

@@ -44,7 +44,7 @@ def look_carried_bytes(mesh: Mesh, n_vertices: int, n_triangles: int) -> int:
     if look is None:
         return 0
     from ..neural.quantize import StorageConfig
-    from ..storage.fileformat import look_stored_bytes
+    from ..storage.layout import look_stored_bytes
 
     textures = look_stored_bytes(None, look.materials, StorageConfig())["textures"]  # each image encoded once
     uv = 4 * n_vertices if look.textured else 0
@@ -209,7 +209,7 @@ def assess(mesh: Mesh, model_bytes: int, decision: DecisionConfig, checks=None, 
     the smallest decimation that meets it, each held in `decision.mesh_layout` (see MESH_LAYOUTS; both layouts are
     reported): 'mesh' when the whole mesh is no larger than the model, 'decimate' when the decimation is not, else
     'neural'. Draco's size (storage only) is reported beside. look_bytes: what the model's file adds for the
-    asset's look (appearance head and textures, `fileformat.look_stored_bytes`), so the model is weighed as it will
+    asset's look (appearance head and textures, `storage.layout.look_stored_bytes`), so the model is weighed as it will
     ship. decimator: the mesh's `Decimator` (the caller's, to measure more points later); tree: the mesh's
     `bvh.build_full_tree` when the caller has one; tick: `alternatives`'."""
     from ..geometry.compact_mesh import compact_bytes

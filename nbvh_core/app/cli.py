@@ -324,9 +324,9 @@ def cmd_info(args: argparse.Namespace) -> int:
     meta = info.metadata
     out = {"path": info.path, "bytes": info.total_bytes, "stored_bytes": info.stored_bytes,
            "components": info.components,
-           "config": info.header["config"], "storage": info.storage.to_dict(),
+           "config": info.header.fields["config"], "storage": info.storage.to_dict(),
            "source": meta.get("source"), "training": meta.get("training"), "quality": meta.get("quality"),
-           "appearance": info.header.get("appearance"), "textures": info.textures}
+           "appearance": info.header.fields.get("appearance"), "textures": info.textures}
     if args.mesh:
         mesh = _load_mesh_reporting(args.mesh)
         res = mesh_resident_bytes(mesh)
@@ -342,11 +342,11 @@ def cmd_info(args: argparse.Namespace) -> int:
              else ""))
     for k, v in info.components.items():
         print(f"  {k:10s} {v:>10,} B  {100 * v / info.total_bytes:5.1f}%")
-    c = info.header["config"]
+    c = info.header.fields["config"]
     st = info.storage
     print(f"  model: {c['encoding']['kind']} T=2^{c['encoding']['log2_table']}, {c['network']['kind']} k={c['network']['k']}; "
           f"stored with {st.table_bits}-bit features, {st.network_bits}-bit weights, {st.node_bits}-bit boxes")
-    look = info.header.get("appearance")
+    look = info.header.fields.get("appearance")
     if look:
         def image(i: int, m: dict) -> str:
             t = info.textures.get(i, {})

@@ -22,7 +22,7 @@ from ..rendering.metrics import ViewScorer, view_sets
 from ..protocol import events as wire
 from ..protocol.events import EventSink, null_sink
 from ..protocol.process import Cancelled
-from ..storage.fileformat import look_stored_bytes
+from ..storage.layout import look_stored_bytes
 
 
 def shipped_materials(mesh: Mesh, made) -> list:

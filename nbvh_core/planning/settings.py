@@ -20,7 +20,7 @@ from ..neural.quantize import StorageConfig
 from ..decision.config import MESH_LAYOUTS, SIZE_SEARCHES, DecisionConfig
 from ..rendering.metrics import MetricConfig
 from ..training.config import TrainConfig
-from ..storage.fileformat import payload_bytes
+from ..storage.layout import payload_bytes
 
 
 NORMAL_LOSSES = ("facing", "oriented", "unoriented")
@@ -252,7 +252,7 @@ HEADER_BYTES = 1700
 
 def estimate_file_bytes(s: Settings) -> int:
     """Bytes of a bare model's file with these settings: its tensors exactly, as the file format lays them out
-    (`fileformat.payload_bytes`: BVH, tables, index, network), plus the header's typical size; the real file
+    (`storage.layout.payload_bytes`: BVH, tables, index, network), plus the header's typical size; the real file
     differs by the header's few hundred bytes of metadata at most. An asset's look adds its own bytes."""
     return payload_bytes(s.model_config(), s.storage(), s.nodes) + HEADER_BYTES
 

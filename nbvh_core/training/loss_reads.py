@@ -52,3 +52,34 @@ class PendingLosses:
         """The held losses as floats (one host read), no longer held."""
         read, self.items = self.peek(), []
         return read
+
+
+class LossBook:
+    """A training's loss history, (steps done, loss before that step's update), and the losses not yet read, judged
+    at each read by `recovery` (`recovery.Recovery.read_is_healthy`) on the model, optimizer and weight average of
+    `phases` (`encoding_phases.EncodingPhases`)."""
+
+    def __init__(self, every: int, history: list, recovery, model, opt, phases):
+        self.pending, self.history = PendingLosses(every), history
+        self.recovery, self.model, self.opt, self.phases = recovery, model, opt, phases
+
+    def add(self, step: int, loss: torch.Tensor | float) -> bool:
+        """Hold the loss of step `step` (before its update); True when a read is due."""
+        self.pending.add(step, loss)
+        return self.pending.due()
+
+    def read(self, fraction: float, elapsed: float, vouched: bool = False) -> bool:
+        """Read and judge the held losses. vouched: the last one is this step's, on the model as it is now (a
+        state may then be kept). False: one diverged and the model went back."""
+        read = self.pending.take()
+        if not read:
+            return True
+        if not self.recovery.read_is_healthy(self.model, self.opt, self.phases.average, read, fraction, elapsed,
+                                             vouched):
+            return False
+        self.history.extend((s + 1, v) for s, v in read)
+        return True
+
+    def with_unread(self) -> list[tuple[int, float]]:
+        """The history and the held losses (read, still held): what a checkpoint stores."""
+        return self.history + [(s + 1, v) for s, v in self.pending.peek()]

@@ -42,7 +42,7 @@ from .checkpoints import Checkpoints, checkpoint_state, load_checkpoint, resumed
 from .config import TrainConfig, TrainResult
 from .early_stop import EarlyStop
 from .encoding_phases import EncodingPhases, state_form
-from .loss_reads import PendingLosses, read_every
+from .loss_reads import LossBook, read_every
 from .recovery import Recovery
 from .rays import TrainingSamples, label_samples, sample_rays
 
@@ -90,9 +90,9 @@ class Schedule:
     """The training fraction in [0, 1] (steps or seconds, whichever budget runs out first) and the learning rate
     at a fraction: lr x lr_factor(group) x lr_final_factor ** fraction (exponential decay over the budget)."""
 
-    def __init__(self, cfg: TrainConfig):
+    def __init__(self, cfg: TrainConfig, scale: float = 1.0):
         self.cfg = cfg
-        self.scale = 1.0  # lowered after a divergence (`recovery.Recovery`)
+        self.scale = scale  # lowered after a divergence (`recovery.Recovery`)
 
     def fraction(self, step: int, elapsed_s: float) -> float:
         cfg = self.cfg
@@ -275,13 +275,16 @@ def _note_leaf_errors(leaf_errors: LeafErrors | None, model: NeuralBVH, batch: T
                                                                    batch.normal))
 
 
+def _what_trains(model: NeuralBVH, cfg: TrainConfig, plan: kernels.KernelPlan) -> str:
+    """The training's opening line: encoding + network, labels, the kernel plan."""
+    return f"{model.cfg.encoding.kind}+{model.cfg.network.kind}, {cfg.labels} labels, {plan.describe()}"
+
+
 def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, events: EventSink = null_sink,
           should_cancel: Callable[[], bool] = lambda: False, checkpoint_path: str | os.PathLike | None = None,
           resume_from: str | os.PathLike | None = None, before_freeze: Callable[[NeuralBVH], None] | None = None,
-          checkpoint_extra: dict | None = None,
-          target_reached: Callable[[NeuralBVH], object] | None = None) -> TrainResult:
+          checkpoint_extra: dict | None = None, target_reached: Callable[[NeuralBVH], object] | None = None) -> TrainResult:
     """Train `model` in place on rays around `bvh`, labelled by `tracer`; freezes HashVQAD near the end.
-
     before_freeze(model) is called once just before the HashVQAD freeze (e.g. to score the soft model).
     checkpoint_extra: stored in every checkpoint under 'extra' (the caller's settings and mesh identity).
     target_reached(model) -> bool, a check's action (`records.CHECK_ACTIONS`) or record (`CheckDecision`, as
@@ -296,37 +299,27 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
     step, elapsed_before, history = resumed_at(ck, events)
     batches, leaf_errors, cut = _training_data(model, bvh, tracer, cfg, ck, device, plan,
                                                np.random.default_rng(cfg.seed), events)
-    schedule, guard, progress = Schedule(cfg), DivergenceGuard(cfg, step), Progress(events, cfg, elapsed_before)
-    schedule.scale = ck.get("lr_scale", 1.0)  # lowered by a recovery before the checkpoint
+    schedule = Schedule(cfg, scale=ck.get("lr_scale", 1.0))  # a recovery before the checkpoint lowered the scale
+    guard, progress = DivergenceGuard(cfg, step), Progress(events, cfg, elapsed_before)
     recovery = Recovery(guard, schedule, cfg.divergence_recoveries, events, state_form)
     phases = EncodingPhases(model, cfg, events, _held_out_loss(model, batches, tracer, cfg, device), before_freeze,
                             ck.get("qat_affine"))
-    checkpoints, early = Checkpoints(checkpoint_path, cfg, checkpoint_extra, elapsed_before), EarlyStop(target_reached, cfg, elapsed_before)
+    checkpoints = Checkpoints(checkpoint_path, cfg, checkpoint_extra, elapsed_before)
+    early = EarlyStop(target_reached, cfg, elapsed_before)
     train_step = make_step(model, device, plan)
-    events(wire.phase(phase="train", message=f"{model.cfg.encoding.kind}+{model.cfg.network.kind}, "
-                                                           f"{cfg.labels} labels, {plan.describe()}"))
-
-    pending = PendingLosses(read_every(cfg.loss_read_every, device))
+    events(wire.phase(phase="train", message=_what_trains(model, cfg, plan)))
+    losses = LossBook(read_every(cfg.loss_read_every, device), history, recovery, model, opt, phases)
 
     def state() -> dict:  # what a checkpoint holds now
-        read = [(s + 1, v) for s, v in pending.peek()]
-        return dict(checkpoint_state(model, opt, step, time.perf_counter() - t0, history + read, batches,
+        return dict(checkpoint_state(model, opt, step, time.perf_counter() - t0, losses.with_unread(), batches,
                                      leaf_errors, cut, phases), lr_scale=schedule.scale)
 
-    def read_losses(frac: float, elapsed: float, vouched: bool = False) -> bool:  # False: the model went back
-        read = pending.take()  # vouched: the last loss read is this step's, on the model as it is now
-        if not read or not recovery.read_is_healthy(model, opt, phases.average, read, frac, elapsed, vouched):
-            return not read
-        history.extend((s + 1, v) for s, v in read)  # (steps done, the loss before that step's update)
-        return True
-
-    t0 = time.perf_counter() - elapsed_before
-    stopped_early = False
+    t0, stopped_early = time.perf_counter() - elapsed_before, False
     gc.freeze()  # what exists now (torch, the model, the data) lives on: full collections skip it (were ~8% of a step)
     try:
         while (frac := schedule.fraction(step, elapsed := time.perf_counter() - t0)) < 1.0:
             if early.due(frac, elapsed, phases.ready_to_stop):
-                read_losses(frac, elapsed)  # a check may roll back or grow the model: judge the steps before it
+                losses.read(frac, elapsed)  # a check may roll back or grow the model: judge the steps before it
             stopped_early = early.act(model, opt, checkpoints, events, phases, step, frac, elapsed)
             t0 += early.spent_s  # a check measures: its time is not the budget's (nor the schedule's)
             if stopped_early:
@@ -339,8 +332,7 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
             batch = batches.next()
             opt.zero_grad(set_to_none=True)
             loss, parts = train_step(batch, leaf_errors is not None)
-            pending.add(step, loss)
-            if pending.due() and not read_losses(frac, elapsed, vouched=True):
+            if losses.add(step, loss) and not losses.read(frac, elapsed, vouched=True):
                 continue  # diverged: back to the last healthy state, this step's gradients dropped
             _note_leaf_errors(leaf_errors, model, batch, parts)
             phases.after_backward()
@@ -352,9 +344,8 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
             progress.samples += len(batch)
             now = time.perf_counter() - t0
             checkpoints.maybe_save(step, now, state)
-            if history:
-                progress.maybe_emit(phase, step, frac, history[-1][1], now)
-        read_losses(frac, time.perf_counter() - t0)  # the last steps' losses, judged as every other
+            progress.maybe_emit(phase, step, frac, history[-1][1] if history else float("nan"), now)
+        losses.read(frac, time.perf_counter() - t0)  # the last steps' losses, judged as every other
     finally:
         batches.close()
         gc.unfreeze()
