@@ -28,6 +28,10 @@ import numpy as np
 from ..protocol import events as wire
 
 
+#: The settings a library batch takes for every asset (as `compress` offers them).
+BATCH_SETTINGS = ("budget_kb", "target_mse", "time_limit_s", "steps", "force")
+
+
 def _resolve_mesh(arg: str) -> Path:
     from ..geometry.bundled_samples import SAMPLE_NAMES, sample_path
 
@@ -181,6 +185,7 @@ def _write_alternative(mesh, assessment, stem: Path, mesh_path: Path, args, sink
 
 
 def _compress_locked(args, mesh, mesh_path, paths, sink) -> int:
+    from .cli_options import request_from_args
     from ..protocol.outputs import checkpoint_for
     from .pipeline import compress_mesh, resume_settings
     from ..protocol.process import NotWorthCompressing, install_cancel_handlers
@@ -197,19 +202,13 @@ def _compress_locked(args, mesh, mesh_path, paths, sink) -> int:
         print(f"resuming {args.resume}: T=2^{settings.log2_table}, {settings.nodes} nodes, "
               f"{settings.encoding}+{settings.network}", file=sys.stderr)
     else:
-        steps_only = args.steps is not None and args.time_limit is None
-        settings = settings_from_request(dict(
-            preset=args.preset, nodes=args.nodes, encoding=args.encoding, log2_table=args.log2_table,
-            network=args.network, k=args.k, labels=args.labels, lr=args.lr, steps=args.steps,
-            time_limit_s=0 if steps_only else args.time_limit, seed=args.seed, device=args.device,
-            eval_views=args.views, table_bits=16 if args.float16 else args.table_bits,
-            network_bits=16 if args.float16 else args.network_bits, node_bits=args.node_bits,
-            rays_per_step=args.rays_per_step, budget_kb=args.budget_kb, leaf_sampling=args.leaf_sampling,
-            tree_cut=True if args.tree_cut else None, normal_loss=args.normal_loss, n_max=args.n_max,
-            index_factor=args.index_factor, finetune_fraction=args.finetune_fraction,
-            appearance_target=args.appearance, size_search=args.size_search, mesh_layout=args.mesh_layout,
-            target_mse=QUALITY_LEVELS[args.quality] if args.quality else args.target_mse))
-    settings = settings.with_overrides(force=True if args.force else None, checkpoint_every_s=args.checkpoint_every)
+        spec = {**request_from_args(args), "preset": args.preset}
+        if args.float16:
+            spec.update(table_bits=16, network_bits=16)
+        if args.quality:
+            spec["target_mse"] = QUALITY_LEVELS[args.quality]
+        settings = settings_from_request(spec)
+    settings = settings.with_overrides(force=args.force, checkpoint_every_s=args.checkpoint_every_s)
     default_ck = checkpoint_for(out)
     checkpoint = Path(args.checkpoint) if args.checkpoint else default_ck
     try:
@@ -223,7 +222,7 @@ def _compress_locked(args, mesh, mesh_path, paths, sink) -> int:
             print(f"\ntraining state kept in {checkpoint}: continue with "
                   f"`nbvh compress {args.mesh} -o {out} --resume {checkpoint}`", file=sys.stderr)
         raise
-    cam = orbit_cameras(1)[0] if args.view is None else orbit_cameras(args.views or 16)[args.view]
+    cam = orbit_cameras(1)[0] if args.view is None else orbit_cameras(args.eval_views or 16)[args.view]
     bundle = make_bundle(result, mesh, View(cam, args.size, args.size), tuple(paths),
                          extra={"source_file_bytes": mesh_path.stat().st_size})
     write_bundle(paths, bundle)  # the model, its report and its previews appear together, or the previous ones stay
@@ -430,21 +429,16 @@ def cmd_plan(args: argparse.Namespace) -> int:
 
 def cmd_batch(args: argparse.Namespace) -> int:
     """Compress a library on Ray (batch.run_batch): measure and decide every asset, train the worth ones."""
+    from .cli_options import request_from_args
     from .library_batch import run_batch
     from ..protocol.events import json_lines, progress_bar
     from ..protocol.process import install_cancel_handlers
     from ..protocol.quality_levels import QUALITY_LEVELS
 
-    spec = {"preset": args.preset}
-    target = QUALITY_LEVELS[args.quality] if args.quality else args.target_mse
-    for key, value in (("target_mse", target), ("budget_kb", args.budget_kb), ("time_limit_s", args.time_limit),
-                       ("steps", args.steps)):
-        if value is not None:
-            spec[key] = value
-    if args.steps is not None and args.time_limit is None:
-        spec["time_limit_s"] = 0  # steps only
-    if args.force:
-        spec["force"] = True
+    spec = {k: v for k, v in request_from_args(args, BATCH_SETTINGS).items() if v is not None}
+    spec["preset"] = args.preset
+    if args.quality:
+        spec["target_mse"] = QUALITY_LEVELS[args.quality]
     sink = json_lines(sys.stdout) if args.events else progress_bar(sys.stderr)
     summary = run_batch(args.library, args.output, spec, sink, install_cancel_handlers(), address=args.address,
                         num_cpus=args.num_cpus, measure_only=args.measure_only, blender=args.blender)
@@ -469,6 +463,7 @@ def _add_inspect_parser(sub) -> None:
 
 
 def _add_compress_parser(sub) -> None:
+    from .cli_options import add_setting_options
     from ..protocol.quality_levels import QUALITY_LEVELS
     from ..protocol.quality_levels import describe as describe_levels
     from ..planning.settings import PRESETS
@@ -481,68 +476,23 @@ def _add_compress_parser(sub) -> None:
                    help="named fixed settings (preview, default, high; the options below override single fields); "
                         "without a preset or a size the run is sized to the quality level standard: the verdict "
                         "first, then one training that grows its table until the level is met")
-    size = c.add_mutually_exclusive_group()
-    size.add_argument("--budget-kb", type=float, help="size the model to fit this many KB")
-    size.add_argument("--target-mse", type=float, help="size the model for this image MSE (checked after training)")
-    size.add_argument("--quality", choices=list(QUALITY_LEVELS),
-                      help=f"a named target: {describe_levels()}")
-    c.add_argument("--size-search", choices=["grow", "retrain"],
-                   help="with a target: one training that grows its table (default), or a training per size tried")
-    c.add_argument("--mesh-layout", choices=["compact", "plain"],
-                   help="what the verdict weighs the model against: the mesh as a compact ray-traceable mesh "
-                        "(default) or as a plain ray tracer holds it")
-    c.add_argument("--encoding", choices=["hashgrid", "hashvqad"])
-    c.add_argument("--network", choices=["mlp", "kmlp"])
-    c.add_argument("--labels", choices=["ownership", "consistent"])
-    c.add_argument("--nodes", type=int, help="BVH node budget (1..65535)")
-    c.add_argument("--log2-table", type=int, help="log2 of T, feature rows per level")
-    c.add_argument("--k", type=int, help="points per leaf segment")
-    c.add_argument("--lr", type=float)
-    c.add_argument("--steps", type=int, help="step budget (with no --time-limit: steps only)")
-    c.add_argument("--time-limit", type=float, help="training wall-clock budget in seconds")
-    c.add_argument("--rays-per-step", type=int)
-    c.add_argument("--leaf-sampling", choices=["uniform", "loss"],
-                   help="'loss': half of each batch starts in leaves drawn by their running error (N-BVH's resampling)")
-    c.add_argument("--n-max", type=int, help="the grid's finest resolution (default: chosen from the mesh and T)")
-    c.add_argument("--index-factor", type=int, help="HashVQAD's index entries per feature row, H / T (default: the "
-                   "paper's 128)")
-    c.add_argument("--appearance", choices=["coordinates", "colour"],
-                   help="textured assets: 'coordinates' (default: the head answers slot and texture coordinates, the "
-                        "images are kept) or 'colour' (it learns the textured colour, no image stored)")
-    c.add_argument("--finetune-fraction", type=float,
-                   help="HashVQAD: the last fraction of training on its frozen codes (default 0.1)")
-    c.add_argument("--normal-loss", choices=["facing", "oriented", "unoriented"],
-                   help="normal targets: 'oriented' (the paper's, as the mesh winds them), 'facing' (turned toward "
-                        "the ray), 'unoriented' (either sign); default: the network's own (MLP oriented, KMLP "
-                        "facing, as measured)")
-    c.add_argument("--tree-cut", action="store_true",
-                   help="start from half the BVH leaves and split the worst ones during training (N-BVH's tree cut)")
-    c.add_argument("--seed", type=int)
-    c.add_argument("--device", choices=["auto", "cpu", "cuda"])
+    add_setting_options(c, group_extras={"size": lambda g: g.add_argument(  # every Settings field declared with help
+        "--quality", choices=list(QUALITY_LEVELS), help=f"a named target: {describe_levels()}")})
     c.add_argument("--float16", action="store_true", help="store tables and weights as float16 (= --table-bits 16)")
-    c.add_argument("--table-bits", type=int, choices=[32, 16, 8, 6, 4],
-                   help="bits per stored feature value (default 8: per level/feature affine codes; 6 or 4: 3/4 or half "
-                        "the table bytes, the last quarter of training runs through the coarser grid)")
-    c.add_argument("--network-bits", type=int, choices=[32, 16, 8, 4],
-                   help="bits per stored network weight (8 or 4: signed codes with a float16 scale per row; 4 trains "
-                        "through its rows at the end; default: the preset's)")
-    c.add_argument("--node-bits", type=int, choices=[32, 8],
-                   help="bits per BVH box coordinate (default 8: relative to the parent box, conservative)")
-    c.add_argument("--views", type=int, help="evaluation views (default from the preset)")
     c.add_argument("--view", type=int, help="orbit view index of the preview image")
     c.add_argument("--size", type=int, default=256, help="preview image size")
     c.add_argument("--checkpoint", help="checkpoint file written during training (default: .OUT.nbvh.checkpoint "
                                         "beside the output, removed when the run finishes)")
-    c.add_argument("--checkpoint-every", type=float, help="seconds between checkpoints (default 60)")
     c.add_argument("--resume", metavar="CHECKPOINT", help="continue the training a checkpoint holds (same mesh; its "
                                                          "settings are used)")
     c.add_argument("--overwrite", action="store_true", help="replace an existing result at -o")
-    c.add_argument("--force", action="store_true", help="train even when the verdict is 'not worth compressing'")
     c.add_argument("--events", action="store_true", help="print JSON-line events on stdout instead of a bar")
     c.set_defaults(func=cmd_compress)
 
 
 def _add_render_parser(sub) -> None:
+    from ..training.config import DEVICES
+
     r = sub.add_parser("render", help="render a .nbvh model to PNG")
     r.add_argument("model")
     r.add_argument("-o", "--output", required=True)
@@ -554,7 +504,7 @@ def _add_render_parser(sub) -> None:
     r.add_argument("--target", type=float, nargs=3, default=[0.5, 0.5, 0.5])
     r.add_argument("--fov", type=float, default=40.0)
     r.add_argument("--half", action="store_true", help="float16 feature rows while rendering (faster on the CPU)")
-    r.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto",
+    r.add_argument("--device", choices=DEVICES, default="auto",
                    help="where the model answers rays (auto: the card when there is one; its ray query is one Triton "
                         "kernel, the line printed says which path ran)")
     r.set_defaults(func=cmd_render)
@@ -585,6 +535,7 @@ def _add_eval_parser(sub) -> None:
 
 
 def _add_plan_parser(sub) -> None:
+    from ..decision.config import MESH_LAYOUTS
     from ..planning.settings import PRESETS
 
     pl = sub.add_parser("plan", help="share one byte budget among several meshes by need")
@@ -593,7 +544,7 @@ def _add_plan_parser(sub) -> None:
     pl.add_argument("--weights", type=float, nargs="+", help="per mesh, e.g. its share of the screen (default 1)")
     pl.add_argument("--preset", default="default", choices=list(PRESETS),
                     help="the settings each object's model is sized with (its T comes from the split)")
-    pl.add_argument("--mesh-layout", choices=["compact", "plain"], default="compact",
+    pl.add_argument("--mesh-layout", choices=MESH_LAYOUTS, default="compact",
                     help="how a mesh kept as a mesh is held: an object whose mesh is no larger than its share's "
                          "model gets nothing")
     pl.add_argument("--json", action="store_true")
@@ -606,6 +557,7 @@ def _add_samples_parser(sub) -> None:
 
 
 def _add_batch_parser(sub) -> None:
+    from .cli_options import add_setting_options
     from ..protocol.quality_levels import QUALITY_LEVELS
     from ..planning.settings import PRESETS
 
@@ -615,25 +567,22 @@ def _add_batch_parser(sub) -> None:
     b.add_argument("-o", "--output", required=True, help="output folder: report.html/.csv/.json, assets/, thumbs/")
     b.add_argument("--preset", choices=list(PRESETS),
                    help="named fixed settings for every asset (default: each asset sized to the quality level standard)")
-    size = b.add_mutually_exclusive_group()
-    size.add_argument("--quality", choices=list(QUALITY_LEVELS), help="a named target for every asset")
-    size.add_argument("--target-mse", type=float, help="image MSE every asset's model must reach")
-    size.add_argument("--budget-kb", type=float, help="the largest model file per asset")
-    b.add_argument("--time-limit", type=float, help="training seconds per asset (default from the preset)")
-    b.add_argument("--steps", type=int, help="training steps per asset (with no --time-limit: steps only)")
+    add_setting_options(b, BATCH_SETTINGS, group_extras={"size": lambda g: g.add_argument(  # as `compress` has them
+        "--quality", choices=list(QUALITY_LEVELS), help="a named target for every asset")})
     b.add_argument("--address", help="join a Ray cluster ('auto' or HOST:PORT, started with `ray start`); "
                                      "default: an embedded Ray on this machine")
     b.add_argument("--num-cpus", type=int, help="CPUs of the embedded Ray (default: all of this machine's)")
     b.add_argument("--measure-only", action="store_true", help="measure and decide every asset; train nothing")
-    b.add_argument("--force", action="store_true", help="ship every asset's model, whatever the verdicts say")
     b.add_argument("--blender", help="Blender binary for .blend files (default: $NBVH_BLENDER or `blender`)")
     b.add_argument("--events", action="store_true", help="JSON-line events on stdout instead of a progress bar")
     b.set_defaults(func=cmd_batch)
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from ..kernels import PATHS
+
     p = argparse.ArgumentParser(prog="nbvh", description="Neural BVH geometry compression")
-    p.add_argument("--path", choices=["fast", "reference"],
+    p.add_argument("--path", choices=PATHS,
                    help="compute path: fused C++ kernels (fast, default) or pure torch (reference); "
                         "also env NBVH_PATH")
     sub = p.add_subparsers(dest="command", required=True)

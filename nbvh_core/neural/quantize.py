@@ -37,6 +37,8 @@ NONE16 = 65535
 TABLE_BITS = (32, 16, 8, 6, 4)
 #: Bits per stored network weight: float32, float16, or signed codes (8, 4) with a float16 scale per row.
 NETWORK_BITS = (32, 16, 8, 4)
+#: Bits per BVH box coordinate: float32, or 8-bit codes relative to the parent box.
+NODE_BITS = (32, 8)
 #: Below 8 bits a table's grid spans its rows between this percentile and its mirror per (level, feature): a few
 #: outlying rows would otherwise leave most rows two or three codes. Measured after a 60 s bunny training (default
 #: preset, 16 held-out views at 256 px): rounding to 4 bits over the full range read 4.9x the float model's MSE,
@@ -55,7 +57,7 @@ class StorageConfig:
     node_bits: int = 8
 
     def __post_init__(self):
-        for name, allowed in (("table_bits", TABLE_BITS), ("network_bits", NETWORK_BITS), ("node_bits", (32, 8))):
+        for name, allowed in (("table_bits", TABLE_BITS), ("network_bits", NETWORK_BITS), ("node_bits", NODE_BITS)):
             v = getattr(self, name)
             if not isinstance(v, int) or isinstance(v, bool) or v not in allowed:
                 raise ValueError(f"{name} must be one of {allowed}, got {v!r}")

@@ -12,14 +12,15 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
-from ..neural.encodings import EncodingConfig
+from ..neural.encodings import ENCODINGS, EncodingConfig
 from ..neural.model import ModelConfig
-from ..neural.networks import NetworkConfig
-from ..neural.appearance import AppearanceConfig
-from ..neural.quantize import StorageConfig
+from ..neural.networks import NETWORKS, NetworkConfig
+from ..neural.appearance import TARGETS, AppearanceConfig
+from ..neural.quantize import NETWORK_BITS, NODE_BITS, TABLE_BITS, StorageConfig
 from ..decision.config import MESH_LAYOUTS, SIZE_SEARCHES, DecisionConfig
 from ..rendering.metrics import MetricConfig
-from ..training.config import TrainConfig
+from ..training.config import DEVICES, LEAF_SAMPLINGS, TrainConfig
+from ..training.rays import LABEL_MODES
 from ..storage.layout import payload_bytes
 
 
@@ -36,85 +37,122 @@ NORMAL_LOSS_BY_NETWORK = {"mlp": "oriented", "kmlp": "facing"}
 PAPER_N_MAX = 128
 
 
+def knob(default, *, help: str | None = None, choices: tuple | None = None, limits: tuple | None = None,
+         flag: str | None = None, group: str | None = None):
+    """A Settings field with what is declared of it once: `help` (a field with help is a command-line option, as
+    `flag` or --NAME; `group`: options of one group exclude each other), `choices` (the names or numbers it may
+    take) and `limits` ((lo, hi) a request or file may set); `app.cli_options` and `settings_from_dict` read them."""
+    meta = {"help": help, "choices": choices, "limits": limits, "flag": flag, "group": group}
+    return dataclasses.field(default=default, metadata={k: v for k, v in meta.items() if v is not None})
+
+
 @dataclass
 class Settings:
     """Everything one compression run needs. Sizes: `nodes` BVH nodes, `log2_table` = log2 T. The model's shape
     defaults are the encoding's and the network's own (EncodingConfig, NetworkConfig: the paper's); the presets
-    set what the product uses."""
+    set what the product uses. Each field's help, choices and limits are declared on it (`knob`)."""
 
-    nodes: int = 2047
-    encoding: str = EncodingConfig.kind
-    log2_table: int = EncodingConfig.log2_table
-    levels: int = EncodingConfig.levels
-    features: int = EncodingConfig.features
+    nodes: int = knob(2047, limits=(1, 65535), help="BVH node budget (1..65535)")
+    encoding: str = knob(EncodingConfig.kind, choices=tuple(ENCODINGS), help="the feature encoding")
+    log2_table: int = knob(EncodingConfig.log2_table, limits=(1, 24), help="log2 of T, feature rows per level")
+    levels: int = knob(EncodingConfig.levels, limits=(1, 16))
+    features: int = knob(EncodingConfig.features, limits=(1, 64))
     #: The grid's coarsest and finest resolutions (cells across the unit box; EncodingConfig.n_min / n_max).
     #: n_max None: chosen from the mesh's measured detail (`mesh_measures.choose_resolution`, in `sizing.resolve`).
-    n_min: int = EncodingConfig.n_min
-    n_max: int | None = EncodingConfig.n_max
+    n_min: int = knob(EncodingConfig.n_min, limits=(1, 1 << 16))
+    n_max: int | None = knob(EncodingConfig.n_max, limits=(1, 1 << 16),
+                             help="the grid's finest resolution (default: chosen from the mesh and T)")
     #: HashVQAD's index entries per feature row, H / T (the paper's 2^7; EncodingConfig.index_factor).
-    index_factor: int = EncodingConfig.index_factor
-    network: str = NetworkConfig.kind
-    k: int = NetworkConfig.k
+    index_factor: int = knob(EncodingConfig.index_factor, limits=(1, 1024),
+                             help="HashVQAD's index entries per feature row, H / T (default: the paper's 128)")
+    network: str = knob(NetworkConfig.kind, choices=tuple(NETWORKS), help="the network")
+    k: int = knob(NetworkConfig.k, limits=(2, 64), help="points per leaf segment")
     #: The network's hidden layers and their width (NetworkConfig).
-    hidden: int = NetworkConfig.hidden
-    width: int = NetworkConfig.width
+    hidden: int = knob(NetworkConfig.hidden, limits=(0, 16))
+    width: int = knob(NetworkConfig.width, limits=(1, 1024))
     #: 'facing': normal targets flipped to face the ray (rays.label_samples), L1 to them; 'oriented': the
     #: paper's L1 to the normal as the mesh winds it; 'unoriented': L1 to the nearer of +-normal
     #: (NetworkConfig.normal_loss); None: the network's own (NORMAL_LOSS_BY_NETWORK).
-    normal_loss: str | None = None
+    normal_loss: str | None = knob(None, choices=NORMAL_LOSSES,
+                                   help="normal targets: 'oriented' (the paper's, as the mesh winds them), 'facing' "
+                                        "(turned toward the ray), 'unoriented' (either sign); default: the network's "
+                                        "own (MLP oriented, KMLP facing, as measured)")
     #: The normal term's weight in the loss; None: the network's own (networks.NORMAL_WEIGHTS).
-    normal_weight: float | None = None
+    normal_weight: float | None = knob(None, limits=(0.0, 1e6))
     #: The unit pull's weight on raw normals; None: the network's own (networks.NORMAL_UNIT_WEIGHTS).
-    normal_unit_weight: float | None = None
-    labels: str = TrainConfig.labels
-    lr: float = TrainConfig.lr
+    normal_unit_weight: float | None = knob(None, limits=(0.0, 1e6))
+    labels: str = knob(TrainConfig.labels, choices=LABEL_MODES, help="how training rays are labelled per leaf")
+    lr: float = knob(TrainConfig.lr, limits=(0.0, 10.0), help="Adam's learning rate at the start")
     #: The training's budget: `steps`, or `time_limit_s` seconds (whichever ends first; TrainConfig's). Every
     #: preset names its own.
-    steps: int | None = TrainConfig.steps
-    time_limit_s: float | None = TrainConfig.time_limit_s
-    rays_per_step: int = TrainConfig.rays_per_step
-    anneal_fraction: float = TrainConfig.anneal_fraction
+    steps: int | None = knob(TrainConfig.steps, limits=(1, 1 << 40),
+                             help="step budget (with no --time-limit: steps only)")
+    time_limit_s: float | None = knob(TrainConfig.time_limit_s, limits=(0.0, 1e7), flag="--time-limit",
+                                      help="training wall-clock budget in seconds")
+    rays_per_step: int = knob(TrainConfig.rays_per_step, limits=(1, 1 << 22), help="training rays per step")
+    anneal_fraction: float = knob(TrainConfig.anneal_fraction, limits=(0.0, 1.0))
     #: HashVQAD: the last fraction of training run on the frozen (argmax) codes (TrainConfig.finetune_fraction).
-    finetune_fraction: float = TrainConfig.finetune_fraction
+    finetune_fraction: float = knob(TrainConfig.finetune_fraction, limits=(0.0, 1.0),
+                                    help="HashVQAD: the last fraction of training on its frozen codes (default 0.1)")
     #: 'uniform' or 'loss' (N-BVH's loss-proportional resampling of leaves; see TrainConfig.leaf_sampling).
-    leaf_sampling: str = TrainConfig.leaf_sampling
+    leaf_sampling: str = knob(TrainConfig.leaf_sampling, choices=LEAF_SAMPLINGS,
+                              help="'loss': half of each batch starts in leaves drawn by their running error "
+                                   "(N-BVH's resampling)")
     #: N-BVH's tree-cut splitting during training (see TrainConfig.tree_cut).
-    tree_cut: bool = TrainConfig.tree_cut
-    seed: int = TrainConfig.seed
-    device: str = TrainConfig.device
+    tree_cut: bool = knob(TrainConfig.tree_cut, help="start from half the BVH leaves and split the worst ones during "
+                                                     "training (N-BVH's tree cut)")
+    seed: int = knob(TrainConfig.seed, limits=(0, (1 << 63) - 1), help="the run's random seed")
+    device: str = knob(TrainConfig.device, choices=DEVICES,
+                       help="where training runs (auto: the card when there is one)")
     #: Storage (quantize.py): bits per feature value (32/16/8/4), per network weight (32/16/8/4), per node (32/8).
-    table_bits: int = StorageConfig.table_bits
-    network_bits: int = StorageConfig.network_bits
-    node_bits: int = StorageConfig.node_bits
+    table_bits: int = knob(StorageConfig.table_bits, choices=TABLE_BITS, limits=(4, 32),
+                           help="bits per stored feature value (default 8: per level/feature affine codes; 6 or 4: "
+                                "3/4 or half the table bytes, the last quarter of training runs through the coarser "
+                                "grid)")
+    network_bits: int = knob(StorageConfig.network_bits, choices=NETWORK_BITS, limits=(4, 32),
+                             help="bits per stored network weight (8 or 4: signed codes with a float16 scale per "
+                                  "row; 4 trains through its rows at the end; default: the preset's)")
+    node_bits: int = knob(StorageConfig.node_bits, choices=NODE_BITS, limits=(8, 32),
+                          help="bits per BVH box coordinate (default 8: relative to the parent box, conservative)")
     #: The last fraction of training during which the quantized table is fixed and the network adapts to it.
-    qat_fraction: float = TrainConfig.qat_fraction
+    qat_fraction: float = knob(TrainConfig.qat_fraction, limits=(0.0, 1.0))
     #: The one metric every contender of a run is scored by (`rendering.metrics.MetricConfig`).
-    eval_views: int = MetricConfig.views
-    eval_resolution: int = MetricConfig.resolution
+    eval_views: int = knob(MetricConfig.views, limits=(1, 1024), flag="--views",
+                           help="evaluation views (default from the preset)")
+    eval_resolution: int = knob(MetricConfig.resolution, limits=(8, 8192))
     #: Ways to ask for a size instead of fixing it (see `resolve`): a byte budget, or a target image MSE.
-    budget_kb: float | None = None
-    target_mse: float | None = None
+    budget_kb: float | None = knob(None, limits=(0.0, 1e9), group="size", help="size the model to fit this many KB")
+    target_mse: float | None = knob(None, limits=(0.0, 10.0), group="size",
+                                    help="size the model for this image MSE (checked after training)")
     #: Train even when the verdict is "not worth compressing" (otherwise the run ends with the verdict).
-    force: bool = DecisionConfig.force
+    force: bool = knob(DecisionConfig.force, help="train even when the verdict is 'not worth compressing'")
     #: Seconds between checkpoints when a checkpoint path is given (a kill loses at most this much training).
-    checkpoint_every_s: float = TrainConfig.checkpoint_every_s
+    checkpoint_every_s: float = knob(TrainConfig.checkpoint_every_s, limits=(0.0, 1e9), flag="--checkpoint-every",
+                                     help="seconds between checkpoints (default 60)")
     #: With a target MSE: seconds between quality checks during training (the evaluation's views and resolution);
     #: training stops once the MSE is below EARLY_STOP_MARGIN x the target (the evaluation after it confirms or not).
-    target_check_every_s: float = DecisionConfig.check_every_s
+    target_check_every_s: float = knob(DecisionConfig.check_every_s, limits=(0.0, 1e9))
     #: With a target MSE, how the size is found: "grow" (default) - one training that starts below the predicted T
     #: and doubles its table in place (the function unchanged: HashGrid.grow) when its checks say growing pays
     #: (`decision.growth`, `decision.checks`); "retrain" - predict T, train, measure, correct (`decision.size_search`).
-    size_search: str = DecisionConfig.size_search
+    size_search: str = knob(DecisionConfig.size_search, choices=SIZE_SEARCHES,
+                            help="with a target: one training that grows its table (default), or a training per "
+                                 "size tried")
     #: The mesh layout the verdict weighs the model against (MESH_LAYOUTS): "compact", the strongest ray-traceable
     #: mesh (`compact_mesh`, ~3.6-4.8 B per triangle), or "plain", as Embree or Cycles hold it (~44 B per triangle).
-    mesh_layout: str = DecisionConfig.mesh_layout
+    mesh_layout: str = knob(DecisionConfig.mesh_layout, choices=MESH_LAYOUTS,
+                            help="what the verdict weighs the model against: the mesh as a compact ray-traceable "
+                                 "mesh (default) or as a plain ray tracer holds it")
     #: An asset with several material slots or a texture: the share of the time budget (or, without one, of the
     #: geometry's training time, added) the appearance head trains in (`appearance.py`), and its table size.
-    appearance_share: float = 0.15
-    appearance_log2_table: int = AppearanceConfig.log2_table
+    appearance_share: float = knob(0.15, limits=(0.0, 0.9))
+    appearance_log2_table: int = knob(AppearanceConfig.log2_table, limits=(4, 20))
     #: "coordinates": the head answers slot and texture coordinates, the images are kept in the file; "colour": it
     #: learns the textured colour itself and no image is stored (appearance.py; bench/bench_look.py compares them).
-    appearance_target: str = AppearanceConfig.target
+    appearance_target: str = knob(AppearanceConfig.target, choices=TARGETS, flag="--appearance",
+                                  help="textured assets: 'coordinates' (default: the head answers slot and texture "
+                                       "coordinates, the images are kept) or 'colour' (it learns the textured "
+                                       "colour, no image stored)")
 
     def model_config(self) -> ModelConfig:
         normal_loss = self.resolved_normal_loss()
@@ -159,19 +197,10 @@ class Settings:
         return dataclasses.asdict(self)
 
 
-#: Ranges of Settings' numeric fields a file or request may set (sizes bound what a model allocates).
-SETTING_LIMITS = {"nodes": (1, 65535), "log2_table": (1, 24), "levels": (1, 16), "features": (1, 64),
-                  "n_min": (1, 1 << 16), "n_max": (1, 1 << 16), "index_factor": (1, 1024), "k": (2, 64),
-                  "hidden": (0, 16), "width": (1, 1024), "steps": (1, 1 << 40), "rays_per_step": (1, 1 << 22),
-                  "seed": (0, (1 << 63) - 1), "table_bits": (4, 32), "network_bits": (4, 32), "node_bits": (8, 32),
-                  "eval_views": (1, 1024), "eval_resolution": (8, 8192), "lr": (0.0, 10.0),
-                  "time_limit_s": (0.0, 1e7), "anneal_fraction": (0.0, 1.0), "finetune_fraction": (0.0, 1.0),
-                  "qat_fraction": (0.0, 1.0), "budget_kb": (0.0, 1e9), "target_mse": (0.0, 10.0),
-                  "checkpoint_every_s": (0.0, 1e9), "target_check_every_s": (0.0, 1e9),
-                  "normal_weight": (0.0, 1e6), "normal_unit_weight": (0.0, 1e6), "appearance_share": (0.0, 0.9),
-                  "appearance_log2_table": (4, 20)}
-#: Settings whose value is one of a few names (checked in requests and files, like the limits above).
-SETTING_CHOICES = {"size_search": SIZE_SEARCHES, "mesh_layout": MESH_LAYOUTS}
+#: Ranges of Settings' numeric fields a file or request may set (sizes bound what a model allocates), and the
+#: settings whose value is one of a few names or numbers: as declared on each field (`knob`).
+SETTING_LIMITS = {f.name: f.metadata["limits"] for f in dataclasses.fields(Settings) if "limits" in f.metadata}
+SETTING_CHOICES = {f.name: f.metadata["choices"] for f in dataclasses.fields(Settings) if "choices" in f.metadata}
 #: The largest model any setting may ask for (the high preset's is under 1 MB).
 MAX_MODEL_BYTES = 1 << 30
 

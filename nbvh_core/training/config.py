@@ -6,6 +6,11 @@ from dataclasses import asdict, dataclass, field
 
 from .rays import RayConfig
 
+#: Where a training runs: 'auto' (the card when there is one), 'cpu', 'cuda'.
+DEVICES = ("auto", "cpu", "cuda")
+#: How a batch's rays are drawn (TrainConfig.leaf_sampling).
+LEAF_SAMPLINGS = ("uniform", "loss")
+
 
 @dataclass
 class TrainConfig:

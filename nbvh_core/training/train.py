@@ -39,7 +39,7 @@ from ..geometry.exact import ExactTracer
 from ..neural.model import NeuralBVH
 from ..protocol.process import Cancelled, TrainingDiverged
 from .checkpoints import Checkpoints, checkpoint_state, load_checkpoint, resumed_at
-from .config import TrainConfig, TrainResult
+from .config import LEAF_SAMPLINGS, TrainConfig, TrainResult
 from .early_stop import EarlyStop
 from .encoding_phases import EncodingPhases, state_form
 from .loss_reads import LossBook, read_every
@@ -238,8 +238,8 @@ def _held_out_loss(model: NeuralBVH, batches: Batches, tracer: ExactTracer, cfg:
 
 def _training_data(model, bvh, tracer, cfg, ck, device, plan, rng, events):
     """The batches, the leaf errors (loss sampling or tree cut) and the tree-cut hook of one run (resumed from ck)."""
-    if cfg.leaf_sampling not in ("uniform", "loss"):
-        raise ValueError(f"leaf_sampling must be 'uniform' or 'loss', got {cfg.leaf_sampling!r}")
+    if cfg.leaf_sampling not in LEAF_SAMPLINGS:
+        raise ValueError(f"leaf_sampling must be one of {', '.join(LEAF_SAMPLINGS)}, got {cfg.leaf_sampling!r}")
     # Overlapping labels with training is part of the fast path; the reference path stays synchronous.
     prefetch = (device.type == "cuda" if cfg.prefetch is None else cfg.prefetch) and plan.path == "fast"
     cut = None
