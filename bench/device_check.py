@@ -11,8 +11,8 @@ Writes bench/results/gpu/: summary.csv (one row per figure: figure, value, devic
 figures render_1mp_ms, render_hit_agreement, train_samples_per_s, bunny_standard_wall_s, kernel_tests_passed), speed*.{csv,md}
 from each speed run and the compress log. A figure whose step failed is written empty with the reason.
 
-    .venv/bin/python bench/device_check.py             # on the card (device tool: one call, timeout 420 s)
-    .venv/bin/python bench/device_check.py --smoke     # anywhere: the same steps at toy sizes on the CPU
+    .venv/bin/python -m bench.device_check             # on the card (device tool: one call, timeout 420 s)
+    .venv/bin/python -m bench.device_check --smoke     # anywhere: the same steps at toy sizes on the CPU
 """
 from __future__ import annotations
 
@@ -25,7 +25,7 @@ import sys
 import time
 from pathlib import Path
 
-from harness import ROOT, stamp, write_rows
+from bench.harness import ROOT, stamp, write_rows
 
 
 def _run(cmd: list[str], env: dict, timeout: float) -> tuple[int, str, float]:
@@ -68,7 +68,7 @@ def main() -> None:
     # 2. Speed on the card (Triton vs torch, Embree on the host) and on the host's CPU (fused C++).
     quick = ["--quick", "--train-s", "2", "--steps", "3"] if args.smoke else ["--train-s", "30", "--steps", "100"]
     for dev in ([] if args.smoke else ["cuda", "cpu"]):  # bench_speed has its own smoke run
-        code, log, seconds = _run([py, "bench/bench_speed.py", "--device", dev, *quick], env, 240)
+        code, log, seconds = _run([py, "-m", "bench.speed.bench_speed", "--device", dev, *quick], env, 240)
         (out / f"speed_{dev}.log").write_text(log[-20000:])
         if code != 0:
             figure(f"speed_{dev}_failed", "", log.strip().splitlines()[-1][:200] if log.strip() else "")

@@ -10,9 +10,9 @@ Markdown tables, and the smoke switch.
 * `SMOKE` ($NBVH_BENCH_SMOKE=1): tests/test_bench_smoke.py runs every benchmark at a tiny budget; a benchmark
   reads it where its options cannot make a run tiny enough.
 
-Benchmarks run as scripts from the repository root (`.venv/bin/python bench/NAME.py ...`): nbvh_core is installed
-(editable) in the environment and this folder is the script's own; the add-on package (not installed: Blender
-loads it) is reached through the repository root, which this module puts on the path - the one place that does.
+Benchmarks run as modules from the repository root (`python -m bench run SUITE`, `python -m bench.SUITE.NAME ...`;
+bench/registry.py declares each): nbvh_core is installed (editable) in the environment, and the repository root -
+`python -m` puts it on the path - holds this package and the add-on's (not installed: Blender loads it).
 """
 from __future__ import annotations
 
@@ -25,8 +25,6 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.append(str(ROOT))  # for `addon` (bench_engine); nbvh_core comes from the environment either way
 RESULTS = Path(os.environ.get("NBVH_BENCH_RESULTS") or ROOT / "bench" / "results")
 SMOKE = os.environ.get("NBVH_BENCH_SMOKE") == "1"
 STAMP_FIELDS = ("commit", "machine", "kernel_plan", "command", "utc")
@@ -38,8 +36,19 @@ def stamp() -> dict:
     from nbvh_core import kernels
 
     return {"commit": commit_of(ROOT), "machine": machine(), "kernel_plan": kernels.describe(),
-            "command": " ".join([f"bench/{Path(sys.argv[0]).name}", *sys.argv[1:]]),
+            "command": " ".join([command_of(sys.argv[0]), *sys.argv[1:]]),
             "utc": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M")}
+
+
+def command_of(script: str) -> str:
+    """How a benchmark is run again: `python -m bench.SUITE.NAME` for a module of this folder (what `python -m
+    bench run` and `python -m bench.SUITE.NAME` put in sys.argv[0]), else the script's name."""
+    path = Path(script).resolve()
+    try:
+        parts = path.with_suffix("").relative_to(ROOT).parts
+    except ValueError:
+        return path.name
+    return "python -m " + ".".join(parts)
 
 
 def commit_of(root: Path) -> str:

@@ -155,6 +155,6 @@ def named_mesh(name: str) -> Mesh:
     if name in MADE or name in SAMPLE_NAMES:
         return bench_mesh(name)
     from nbvh_core.geometry.mesh import load_mesh
-    from real_assets import asset_path
+    from bench.real_assets import asset_path
 
     return load_mesh(asset_path(name))

@@ -1,4 +1,4 @@
-"""Crafted and fuzzed .nbvh files (shared by tests/test_safety.py and bench/fuzz_reader.py).
+"""Crafted and fuzzed .nbvh files (shared by tests/test_safety.py and bench/fuzzing/fuzz_reader.py).
 
 `craft` rebuilds a file around any header with a valid checksum, so damage reaches the header and structure checks
 instead of stopping at the CRC; `fuzz_cases` yields truncations, bit flips (half of them with a recomputed

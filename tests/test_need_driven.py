@@ -31,7 +31,7 @@ def test_the_verdict_weighs_the_model_against_the_layout_asked_for():
 
 def test_the_predictor_speaks_for_the_presets_present_shape(sample_meshes):
     """The shipped fit on the bunny at the default preset's size and budget, against what that shape measured
-    (bench/results/frontier.csv, the rows bench/fit_budget.py shifts the fit by: 0.00038-0.00043 in six runs): within
+    (bench/results/frontier.csv, the rows bench/fitting/fit_budget.py shifts the fit by: 0.00038-0.00043 in six runs): within
     the fit's safety factor, where the slopes alone (fitted on older shapes) over-predict it 2.9x."""
     import csv
     from pathlib import Path

@@ -147,14 +147,14 @@ def test_an_offset_or_scaled_copy_ends_as_the_original_does(offset, scale, sampl
 
 
 def _failure_classes():
-    """bench/failure_classes.py: the classes the failure matrix measures (bench/bench_failures.py)."""
+    """bench/robustness/failure_classes.py: the classes the failure matrix measures (bench_failures.py beside it)."""
     import sys
     from pathlib import Path
 
-    bench = str(Path(__file__).resolve().parents[1] / "bench")
-    if bench not in sys.path:
-        sys.path.append(bench)
-    import failure_classes
+    root = str(Path(__file__).resolve().parents[1])
+    if root not in sys.path:
+        sys.path.append(root)
+    from bench.robustness import failure_classes
 
     return failure_classes
 

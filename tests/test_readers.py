@@ -339,7 +339,7 @@ def test_a_blend_file_s_own_scripts_never_run_on_export(tmp_path):
 # ------------------------------------------------------------------------------------------------ the fuzz harness
 @pytest.mark.parametrize("kind, cases", [("checkpoint", 14), ("mesh", 12)])
 def test_the_fuzz_harness_runs_and_finds_no_failure_in_a_short_run(tmp_path, kind, cases):
-    """bench/fuzz_files.py at a tiny budget (the long runs' results are in bench/results/fuzz_files.csv)."""
+    """bench/fuzzing/fuzz_files.py at a tiny budget (the long runs' results are in bench/results/fuzz_files.csv)."""
     import csv
 
     out = tmp_path / "fuzz.csv"

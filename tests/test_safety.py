@@ -137,7 +137,7 @@ def test_bvh_cycle_is_refused(model_file):
 
 
 def test_a_config_the_model_does_not_know_is_the_readers_refusal(model_file):
-    """Found by bench/fuzz_reader.py (3 of 6,000 cases): a network config's own check raised a bare ValueError
+    """Found by bench/fuzzing/fuzz_reader.py (3 of 6,000 cases): a network config's own check raised a bare ValueError
     through the reader; every refusal is an NBVHFileError, so callers that catch the reader's errors catch it."""
     from nbvh_core.storage.fileformat import decode_nbvh
 
@@ -180,7 +180,7 @@ def test_crafted_headers_and_nodes_refused_by_the_cli(model_file, tmp_path, case
     elif case == "shape_not_a_tree":  # every node marked internal
         t = tensor(header, "bvh.shape")
         payload = patch_payload(payload, t["offset"], b"\xff" * t["nbytes"])
-    elif case == "unknown_normal_loss":  # found by bench/fuzz_reader.py: a ValueError escaped the reader
+    elif case == "unknown_normal_loss":  # found by bench/fuzzing/fuzz_reader.py: a ValueError escaped the reader
         header["config"]["network"]["normal_loss"] = "x"
     elif case == "nan_box":
         t = tensor(header, "bvh.root")

@@ -12,6 +12,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 CORE = ROOT / "nbvh_core"
 MAX_FUNCTION_LINES = 80
+#: One concern per file: a module past this many lines holds more than one (the house's rule, issue 61).
+MAX_MODULE_LINES = 450
 #: Functions allowed past MAX_FUNCTION_LINES, with the reason (none today; an entry needs one).
 LONG_FUNCTIONS: dict[str, str] = {}
 #: The core modules the add-on imports inside Blender's process (addon/job.py), which has no torch.
@@ -184,6 +186,12 @@ def _calls_the_library(tree: ast.AST) -> list[str]:
                 and isinstance(node.func.value, ast.Name) and node.func.value.id == "kernels"):
             found.append(f"line {node.lineno}: kernels.load()")
     return found
+
+
+def test_no_module_in_nbvh_core_is_longer_than_450_lines():
+    long = {str(p.relative_to(ROOT)): n for p in sorted(CORE.rglob("*.py"))
+            if (n := len(p.read_text().splitlines())) > MAX_MODULE_LINES}
+    assert not long, long
 
 
 def test_only_the_bindings_module_calls_the_compiled_library():

@@ -185,7 +185,7 @@ def test_a_ray_query_kernel_that_fails_leaves_the_stream_path_answering_and_says
 
 def test_the_ray_query_compiles_for_the_card_without_spilling(tmp_path):
     """The interpreter checks what the kernel computes, not that the card's compiler takes it: here Triton compiles
-    it for sm_90a (the H100/H200) and its own ptxas assembles it, no card needed (bench/kernel_registers.py). At the
+    it for sm_90a (the H100/H200) and its own ptxas assembles it, no card needed (bench/speed/kernel_registers.py). At the
     default preset's shape it must spill no register to local memory (224 registers recorded)."""
     import csv
     import os
@@ -196,7 +196,7 @@ def test_the_ray_query_compiles_for_the_card_without_spilling(tmp_path):
     root = Path(__file__).resolve().parents[1]
     env = {k: v for k, v in os.environ.items() if k != "TRITON_INTERPRET"}
     env["NBVH_BENCH_RESULTS"] = str(tmp_path)
-    out = subprocess.run([sys.executable, "bench/kernel_registers.py", "--cases", "1"], cwd=root, env=env,
+    out = subprocess.run([sys.executable, "bench/speed/kernel_registers.py", "--cases", "1"], cwd=root, env=env,
                          capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, out.stderr[-2000:]
     with open(tmp_path / "kernel_registers.csv") as f:

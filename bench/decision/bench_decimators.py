@@ -3,7 +3,7 @@ used), meshoptimizer's plain `simplify`, and the product's decimation (`geometry
 with the look's seams and coordinates). Each at the same requested triangle counts, scored on the held-out views
 (16 at 256 px) as plain triangles and as the compact mesh a verdict weighs.
 
-    .venv/bin/python bench/bench_decimators.py --assets bunny dragon48k dragon engine gyroid
+    .venv/bin/python -m bench.decision.bench_decimators --assets bunny dragon48k dragon engine gyroid
 
 Writes bench/results/decimators.{csv,md}: per asset and count, each decimator's triangles, image MSE, compact
 bytes and seconds, and the ratio of the product's MSE to the better of the two references.
@@ -15,7 +15,7 @@ import time
 
 import numpy as np
 
-from harness import append_rows, markdown_table, product_scorer, read_rows, result_path, stamp, write_markdown
+from bench.harness import append_rows, markdown_table, product_scorer, read_rows, result_path, stamp, write_markdown
 
 
 def fast_simplification(mesh, count):
@@ -49,7 +49,7 @@ def load(name: str):
     try:
         return load_mesh(sample_path(name))
     except (KeyError, FileNotFoundError, ValueError):
-        from real_assets import asset_path
+        from bench.real_assets import asset_path
 
         return load_mesh(asset_path(name))
 

@@ -3,7 +3,7 @@ a quality level, the smallest fixed table meeting the level (a grid of trainings
 (size_search "grow": one training, starting small and doubling its table in place until the level is met), and
 today's retrain search (up to TARGET_TRAININGS trainings).
 
-    .venv/bin/python bench/bench_grow.py --meshes bunny spiky gyroid studs --preset preview --quality standard
+    .venv/bin/python -m bench.decision.bench_grow --meshes bunny spiky gyroid studs --preset preview --quality standard
 
 Rows land in bench/results/grow.csv as they finish (a rerun resumes); grow.md compares, per mesh, the growing
 run's file with the smallest fixed size that met the level and its wall time with one fixed training's.
@@ -13,8 +13,8 @@ from __future__ import annotations
 import argparse
 import time
 
-from bench_meshes import bench_mesh
-from harness import RESULTS, SMOKE, append_row, markdown_table, num, read_rows, write_markdown
+from bench.meshes import bench_mesh
+from bench.harness import RESULTS, SMOKE, append_row, markdown_table, num, read_rows, write_markdown
 from nbvh_core import kernels
 from nbvh_core.app.pipeline import compress_mesh, preset
 from nbvh_core.protocol.quality_levels import QUALITY_LEVELS

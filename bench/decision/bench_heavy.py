@@ -1,7 +1,7 @@
 """Heavy assets through the need-driven default: wall per stage, peak memory, and what shipped against the compact
 decimation at equal measured quality.
 
-    .venv/bin/python bench/bench_heavy.py --lattices 180 320 560 --assets dragon
+    .venv/bin/python -m bench.decision.bench_heavy --lattices 180 320 560 --assets dragon
 
 Per asset (generated lattices of fine repeated detail, `bench_meshes.lattice(n)`: ~1.0M, 3.3M and 10M triangles
 at n = 180, 320, 560; real ones from `real_assets.py`), the mesh is written to a binary PLY and compressed as a
@@ -26,7 +26,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from harness import RESULTS, ROOT, SMOKE, commit_of, markdown_table, num, read_rows, write_markdown, write_rows
+from bench.harness import RESULTS, ROOT, SMOKE, commit_of, markdown_table, num, read_rows, write_markdown, write_rows
 
 CSV = RESULTS / ("heavy_smoke.csv" if SMOKE else "heavy.csv")
 
@@ -34,14 +34,14 @@ CSV = RESULTS / ("heavy_smoke.csv" if SMOKE else "heavy.csv")
 def source(name: str, work: Path) -> Path:
     """The asset as a file: lattice-N generated (cached by bench_meshes), else a real asset."""
     if name.startswith("lattice-"):
-        from bench_meshes import lattice
+        from bench.meshes import lattice
         from nbvh_core.geometry.mesh import mesh_file_bytes
 
         path = work / f"{name}.ply"
         if not path.exists():
             path.write_bytes(mesh_file_bytes(lattice(int(name.split("-")[1]))))
         return path
-    from real_assets import asset_path
+    from bench.real_assets import asset_path
 
     return asset_path(name)
 

@@ -1,6 +1,6 @@
 """The need-driven default against what a user could have fixed, through the command line as a user runs it.
 
-    .venv/bin/python bench/bench_need.py --meshes knot gear spiky sheet gyroid studs
+    .venv/bin/python -m bench.decision.bench_need --meshes knot gear spiky sheet gyroid studs
 
 Per mesh (written to a PLY first, so every run reads a file like a user's):
 * `default`: `nbvh compress MESH -o OUT` with no options: the verdict, then (when a model is worth it) one training
@@ -24,8 +24,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from bench_meshes import bench_mesh
-from harness import RESULTS, ROOT, SMOKE, append_row, markdown_table, num, read_rows, write_markdown
+from bench.meshes import bench_mesh
+from bench.harness import RESULTS, ROOT, SMOKE, append_row, markdown_table, num, read_rows, write_markdown
 from nbvh_core.geometry.mesh import mesh_file_bytes
 from nbvh_core.protocol.quality_levels import DEFAULT_LEVEL, QUALITY_LEVELS
 
@@ -138,7 +138,7 @@ def report() -> None:
                           f"{num(r, 'wall_s') / num(one, 'wall_s'):.2f}x" if one else "-",
                           "-", f"{int(one['file_bytes']):,} B, MSE {num(one, 'mse'):.5f}" if one else "-",
                           r["verdict"][-160:]])
-    lines = ["# The need-driven default against fixed sizes (bench/bench_need.py)", "",
+    lines = ["# The need-driven default against fixed sizes (bench/decision/bench_need.py)", "",
              f"Every run is `nbvh compress` on the mesh as a PLY; the default has no options (level {DEFAULT_LEVEL} = "
              f"MSE {QUALITY_LEVELS[DEFAULT_LEVEL]:g}, the default preset's 200 s). File ratio: the default's file / the "
              "smallest fixed size that met the level at the same budget (fixed runs from the default's own size down "

@@ -2,8 +2,8 @@
 decimation of the same image MSE, on resident bytes; and vs Draco on storage bytes. One metric for every contender:
 `harness.product_scorer` (16 held-out orbit views, 256 px, Embree reference), the one the pipeline reports.
 
-    .venv/bin/python bench/bench_pays.py --meshes bunny --presets default [--table-bits 8 32]
-    .venv/bin/python bench/bench_pays.py --charts    # only the charts, from pays.csv and baselines.csv
+    .venv/bin/python -m bench.decision.bench_pays --meshes bunny --presets default [--table-bits 8 32]
+    .venv/bin/python -m bench.decision.bench_pays --charts    # only the charts, from pays.csv and baselines.csv
 
 Resumable: one CSV row per (mesh, preset, storage), appended as it lands (bench/results/pays.csv); a rerun skips
 rows already there. `bench/results/pays.md` is rewritten from the CSV after every row.
@@ -15,12 +15,12 @@ import json
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 import numpy as np
 
-from bench_meshes import bench_grid, bench_mesh
-from harness import RESULTS, append_row, product_scorer, read_rows, save_figure, write_markdown
+from bench.meshes import bench_grid, bench_mesh
+from bench.harness import RESULTS, append_row, product_scorer, read_rows, save_figure, write_markdown
 from nbvh_core import kernels
 from nbvh_core.geometry.exact import ExactTracer
 from nbvh_core.app.pipeline import compress_mesh, estimate_file_bytes, preset
@@ -68,7 +68,7 @@ def equal_mse_decimation(mesh, tracer, target: float, views: int, res: int) -> d
 
 
 def write_md(rows: list[dict]) -> None:
-    lines = ["# Does compression pay? (bench/bench_pays.py)", "",
+    lines = ["# Does compression pay? (bench/decision/bench_pays.py)", "",
              "Neural model at the preset's own time budget vs the quadric decimation of the same image MSE (16 views,"
              " 128 px, same metric), on this 2-core CPU. Resident = what a ray tracer holds to trace (mesh: vertices,"
              " indices, normals, BVH; model: decoded nodes, table as held, network as held: float16 since the kernels read it so, float32 in rows measured before). File = the .nbvh.", "",

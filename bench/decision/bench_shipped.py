@@ -1,6 +1,6 @@
 """What the default ships, on real assets and generated shapes, with one metric for every contender.
 
-    .venv/bin/python bench/bench_shipped.py --assets bunny dragon48k dragon engine spiky gyroid studs sheet
+    .venv/bin/python -m bench.decision.bench_shipped --assets bunny dragon48k dragon engine spiky gyroid studs sheet
 
 Per asset (real ones from `real_assets.py`, generated ones from `bench_meshes.py` written to a PLY first):
 1. `nbvh compress FILE -o OUT/` with no options: the need-driven default (level standard, 200 s), every decision
@@ -26,9 +26,9 @@ import tempfile
 import time
 from pathlib import Path
 
-from bench_meshes import MADE, bench_mesh
-from harness import RESULTS, ROOT, SMOKE, commit_of, markdown_table, num, read_rows, write_markdown, write_rows
-from real_assets import REAL_ASSETS, asset_path
+from bench.meshes import MADE, bench_mesh
+from bench.harness import RESULTS, ROOT, SMOKE, commit_of, markdown_table, num, read_rows, write_markdown, write_rows
+from bench.real_assets import REAL_ASSETS, asset_path
 
 CSV = RESULTS / ("shipped_smoke.csv" if SMOKE else "shipped.csv")
 

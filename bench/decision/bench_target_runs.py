@@ -4,7 +4,7 @@ held-out and check-view MSE, steps, growth, how many checks sent training back t
 checks' trajectory ([training s, log2 T, check MSE], ...) in one row. Answers "does the bunny meet 0.0004 in <= 95,000 B within the default budget, and in how many runs of how many?"
 with a count rather than one lucky run.
 
-    .venv/bin/python bench/bench_target_runs.py --mesh bunny --target 0.0004 --seeds 0 1 2 3
+    .venv/bin/python -m bench.decision.bench_target_runs --mesh bunny --target 0.0004 --seeds 0 1 2 3
 
 Rows land in bench/results/target_runs.csv as each run ends (resumable: a (mesh, target, seed, commit) already
 there is skipped); bench/results/target_runs.md summarises each (mesh, target, commit). One run at a time on an
@@ -16,8 +16,8 @@ import argparse
 import json
 import statistics
 
-from harness import append_rows, markdown_table, read_rows, result_path, stamp, write_markdown
-from bench_meshes import named_mesh
+from bench.harness import append_rows, markdown_table, read_rows, result_path, stamp, write_markdown
+from bench.meshes import named_mesh
 
 CSV = "target_runs.csv"
 

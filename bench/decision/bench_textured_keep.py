@@ -8,7 +8,7 @@ reader): its triangles, texture coordinates and image; the colour at interior po
 the source's colour at the nearest source surface point; the kept mesh's FLIP and colour MSE against the source on
 the held-out views (from NAME.verdict.json).
 
-    NBVH_GIT_MIRRORS=... .venv/bin/python bench/bench_textured_keep.py [--levels 4]
+    NBVH_GIT_MIRRORS=... .venv/bin/python -m bench.decision.bench_textured_keep [--levels 4]
 
 Writes bench/results/textured_keep.{csv,md}.
 """
@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from harness import ROOT, SMOKE, markdown_table, result_path, stamp, write_markdown, write_rows
+from bench.harness import ROOT, SMOKE, markdown_table, result_path, stamp, write_markdown, write_rows
 
 
 def subdivide(mesh, levels: int):
@@ -93,7 +93,7 @@ def main() -> None:
     args = ap.parse_args()
     from nbvh_core.geometry.glb import encode_glb
     from nbvh_core.geometry.mesh import load_mesh
-    from real_assets import asset_path
+    from bench.real_assets import asset_path
 
     from nbvh_core.geometry import demo_assets
 

@@ -1,8 +1,8 @@
 """Refit the size predictor with the training budget as an input, from measurements at the budgets users run.
 
-    .venv/bin/python bench/fit_budget.py          # fit, check leave-one-mesh-out, write sizing_fit.json + the report
+    .venv/bin/python -m bench.fitting.fit_budget          # fit, check leave-one-mesh-out, write sizing_fit.json + the report
 
-The 15 s grid (bench/fit_sizing.py, quality.csv part grid4: T = 2^8..2^13, 8 meshes) alone predicts the MSE of a
+The 15 s grid (bench/fitting/fit_sizing.py, quality.csv part grid4: T = 2^8..2^13, 8 meshes) alone predicts the MSE of a
 15 s training; a user's training runs 60-600 s, and a larger table gains more from the longer budget (at 60 s the
 bunny's MSE falls ~2x per doubling of T from 2^9 on, at 15 s ~1.3x). Here the same linear model in log space gets two
 more inputs, L = ln(budget / 15 s) and (log2 T - 10) x L, fitted jointly on:
@@ -31,8 +31,8 @@ import math
 
 import numpy as np
 
-from bench_meshes import named_mesh
-from harness import RESULTS, ROOT, SMOKE, markdown_table, read_rows, write_markdown
+from bench.meshes import named_mesh
+from bench.harness import RESULTS, ROOT, SMOKE, markdown_table, read_rows, write_markdown
 from nbvh_core.planning.settings import PRESETS
 from nbvh_core.planning.mesh_measures import mesh_features
 from nbvh_core.planning.sizing import FIT_PATH, SizeFit, load_fit
@@ -107,7 +107,7 @@ def main() -> None:
     shift = shape_shift(present, gap)
     shift_loo = [math.log(mse) - pred(coef, m, l2, b) - shape_shift([r for r in present if r[0] != m], gap)
                  for m, l2, b, mse in present]
-    lines = ["# The size predictor with the budget as an input (bench/fit_budget.py)", "",
+    lines = ["# The size predictor with the budget as an input (bench/fitting/fit_budget.py)", "",
              (f"{len(rows)} measurements on {len({r[0] for r in rows})} meshes" if refit else
               "The slopes as shipped (the 15 s grid rows they were fitted on are not in the results)")
              + f"; ln MSE = coef . [1, log2 T, {', '.join(names)}, L, (log2 T - 10) L] + shape_shift, "

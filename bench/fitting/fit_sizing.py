@@ -1,7 +1,7 @@
 """Fit the size predictor (nbvh_core/planning/sizing.py) on the benchmark meshes and check it against a grid search.
 
-    .venv/bin/python bench/fit_sizing.py            # runs the missing grid points, fits, writes the results
-    .venv/bin/python bench/fit_sizing.py --no-run   # fit and tables from what bench/results/quality.csv has
+    .venv/bin/python -m bench.fitting.fit_sizing            # runs the missing grid points, fits, writes the results
+    .venv/bin/python -m bench.fitting.fit_sizing --no-run   # fit and tables from what bench/results/quality.csv has
 
 Data: the user preset (`default`: HashGrid + MLP + consistent labels, 8 features, int8 weight rows, the grid's
 N_max from the mesh, 2047 nodes) at T = 2^8..2^13 and at 1023 / 4095 nodes (T = 2^11) on every benchmark mesh, trained the quality benchmark's budget (15 s) and scored
@@ -26,11 +26,11 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
-import rd_runs as rd
-from harness import RESULTS, read_rows, write_markdown, write_rows
-from bench_meshes import bench_mesh
+from bench.quality import rd_runs as rd
+from bench.harness import RESULTS, read_rows, write_markdown, write_rows
+from bench.meshes import bench_mesh
 from nbvh_core import kernels
 from nbvh_core.app.pipeline import estimate_file_bytes, preset
 from nbvh_core.decision.size_search import search_size
@@ -250,7 +250,7 @@ def report(study: Study, table: list[dict]) -> list[str]:
          "made by the fit WITHOUT that mesh. Margin (in residual stds) chosen by the count of cases that end within "
          "25% of the grid's best and meet the target, then by fewer trainings: "
          + ", ".join(f"{mg:g}: {c[0]} ({c[2]:.2f} trainings)" for mg, c in study.margin_scores.items())
-         + f" -> {full.margin:g}. Command: `.venv/bin/python bench/fit_sizing.py`.\n",
+         + f" -> {full.margin:g}. Command: `.venv/bin/python -m bench.fitting.fit_sizing`.\n",
          "## Mesh features\n", "| mesh | triangles | area | occupancy | roughness |", "|---|---|---|---|---|"]
     for m in study.meshes:
         f = study.feats[m]

@@ -1,8 +1,8 @@
 """Fuzz the checkpoint and mesh readers: truncations, bit flips, header and table mutations, huge declared sizes and
 pickles carrying a payload, each case read in its own (forked) process under a time and a memory cap.
 
-    .venv/bin/python bench/fuzz_files.py --kind checkpoint --cases 5000   # -> bench/results/fuzz_files.csv
-    .venv/bin/python bench/fuzz_files.py --kind mesh --cases 5000
+    .venv/bin/python -m bench.fuzzing.fuzz_files --kind checkpoint --cases 5000   # -> bench/results/fuzz_files.csv
+    .venv/bin/python -m bench.fuzzing.fuzz_files --kind mesh --cases 5000
 
 A checkpoint case goes the whole way `compress --resume` goes before training (`pipeline.resume_settings`, the
 model its settings describe, `training.checkpoints.load_checkpoint` into it); a mesh case through `batch.load_asset` (every mesh
@@ -28,12 +28,12 @@ import zipfile
 from pathlib import Path
 
 import numpy as np
-from harness import RESULTS, append_rows
+from bench.harness import RESULTS, append_rows
 
 # Every case runs in a forked child: a parent with OpenMP worker threads would hand its children locks no thread
 # will release (they hang), so the parent computes on one thread.
 os.environ["OMP_NUM_THREADS"] = "1"
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 sys.path[:0] = [str(ROOT / "tests")]  # the test suite's mesh makers and mutators, shared
 CASE_SECONDS = 20
 MEMORY_CAP = 4 << 30  # address space a case may add (a runaway allocation fails instead of swapping)

@@ -1,7 +1,7 @@
 """Long fuzz run of the .nbvh reader: many truncated, bit-flipped and header-mutated files (tests/fuzzing.py), each
 decoded and rendered in a worker process, so a crash (a signal) or a hang is counted instead of ending the run.
 
-    .venv/bin/python bench/fuzz_reader.py --cases 5000      # -> bench/results/fuzz.csv (one row per run) + fuzz.md
+    .venv/bin/python -m bench.fuzzing.fuzz_reader --cases 5000      # -> bench/results/fuzz.csv (one row per run) + fuzz.md
 
 Counts: models (loaded and rendered), refusals (one-line NBVHFileError), crashes (the worker died), hangs (a case
 past its time limit), other exceptions (each is a reader bug), and the workers' peak resident memory.
@@ -17,7 +17,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from harness import RESULTS, ROOT, append_rows, write_markdown
+from bench.harness import RESULTS, ROOT, append_rows, write_markdown
 
 WORKER = r"""
 import json, resource, sys
@@ -86,7 +86,7 @@ def main() -> None:
     RESULTS.mkdir(parents=True, exist_ok=True)
     path = RESULTS / "fuzz.csv"
     append_rows(path, [row])
-    lines = ["# Reader fuzz runs (bench/fuzz_reader.py)", "",
+    lines = ["# Reader fuzz runs (bench/fuzzing/fuzz_reader.py)", "",
              "Truncations, bit flips (half with a recomputed checksum, so they reach the parser) and one-field header "
              "mutations of a real model; each case decoded and rendered (12x12) in a worker process.", "",
              "| cases | seed | models | refusals | crashes | hangs | other exceptions | peak RSS MB | seconds |",

@@ -1,7 +1,7 @@
 """The look of textured, multi-material assets through their models: slots, coordinates, colour images, bytes.
 
 For each asset (the generated ones of `nbvh_core.geometry.demo_assets`, plus any mesh .npz with a look given by --npz, e.g.
-the Smart-UV Suzanne `bench/look_suzanne.py` exports) compress with a preset at its own time budget, then from
+the Smart-UV Suzanne `bench/look/look_suzanne.py` exports) compress with a preset at its own time budget, then from
 `--views` orbit views at `--size` px:
 
 * slot accuracy and coordinate error of the head at the exact hit points (what the head learnt) and at the
@@ -12,7 +12,7 @@ the Smart-UV Suzanne `bench/look_suzanne.py` exports) compress with a preset at 
   same materials and light (the paper's head-on shading x albedo);
 * bytes: the whole file, its appearance head, its textures; seconds: geometry training and the head's.
 
-    .venv/bin/python bench/bench_look.py [--preset preview] [--assets globe,crate,ring,patchwork] [--npz X.npz]
+    .venv/bin/python -m bench.look.bench_look [--preset preview] [--assets globe,crate,ring,patchwork] [--npz X.npz]
                                          [--real engine] [--target coordinates|colour]
 
 --target colour: the head learns the textured colour itself and the file keeps no image (the alternative to
@@ -28,10 +28,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
-from harness import RESULTS, append_rows, read_rows, stamp
-from real_assets import asset_path
+from bench.harness import RESULTS, append_rows, read_rows, stamp
+from bench.real_assets import asset_path
 from nbvh_core.geometry.mesh import load_mesh
 from nbvh_core.geometry import demo_assets
 from nbvh_core.geometry.mesh_arrays import mesh_from_npz

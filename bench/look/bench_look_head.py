@@ -1,7 +1,7 @@
 """The appearance head alone, on exact surface labels: how fast it trains on a device and how well its patches and
 coordinates land (no geometry model: what the head can do, apart from the geometry's error).
 
-    .venv/bin/python bench/bench_look_head.py [--assets globe,ring,crate] [--seconds 9] [--device cpu|cuda]
+    .venv/bin/python -m bench.look.bench_look_head [--assets globe,ring,crate] [--seconds 9] [--device cpu|cuda]
                                               [--batch 1024 8192]
 
 For each generated asset (`nbvh_core.geometry.demo_assets`): the head the product makes for it (default
@@ -19,7 +19,7 @@ import time
 import numpy as np
 import torch
 
-from harness import RESULTS, SMOKE, append_rows
+from bench.harness import RESULTS, SMOKE, append_rows
 from nbvh_core.geometry import demo_assets
 from nbvh_core.geometry.exact import ExactTracer
 from nbvh_core.geometry.look import seam_distance, seam_edges

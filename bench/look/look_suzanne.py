@@ -6,7 +6,7 @@ Renders the saved scene with the NBVH engine (final render, bpy in-process: a Bl
 Debian's 3.4 binary) and with Cycles direct light only (0 bounces, no denoising), then scores the NBVH image
 against Cycles: FLIP (NVIDIA, `flip-evaluator`), MSE, and each material's mean colour over its pixels.
 
-    .venv/bin/python bench/look_suzanne.py bench/results/look_suzanne [--seconds 60] [--size 512]
+    .venv/bin/python -m bench.look.look_suzanne bench/results/look_suzanne [--seconds 60] [--size 512]
 
 Writes OUT/figure.png (NBVH | Cycles) and one row in bench/results/look_suzanne.csv; OUT/scene.blend,
 OUT/suzanne.{nbvh,npz} (the add-on's export, for `bench_look.py --npz`), OUT/{nbvh,cycles,masks}.png stay
@@ -20,11 +20,11 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 import bpy
 
-from harness import RESULTS, append_rows, save_image
+from bench.harness import RESULTS, append_rows, save_image
 
 
 def build_scene(size: int):

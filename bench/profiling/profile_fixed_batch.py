@@ -3,7 +3,7 @@ median ms per step over repeated steps, split into its kernel calls, for base (H
 (HashVQAD T=2^9 + KMLP) on frozen codes and in its soft phase. A fixed batch takes batch drawing, labelling and the
 optimiser out of the comparison: what is left is the kernels, old code against new code back to back.
 
-    .venv/bin/python bench/profile_fixed_batch.py [STEPS]    # prints one line per model
+    .venv/bin/python -m bench.profiling.profile_fixed_batch [STEPS]    # prints one line per model
 """
 import statistics
 import sys

@@ -1,6 +1,6 @@
 """Where the time goes: one training step and one neural render, split by stage, for each config.
 
-    .venv/bin/python bench/profile_neural.py [--asset bunny] [--rays 4096] [--size 256] [--paths reference,fast]
+    .venv/bin/python -m bench.profiling.profile_neural [--asset bunny] [--rays 4096] [--size 256] [--paths reference,fast]
 
 Training step stages: ray sampling + exact labelling (Embree, traversal), encoding forward, network forward +
 loss, backward (all of it), optimizer step. Render stages: traversal (LeafStream.next), segment points +
@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 from nbvh_core import kernels
 from nbvh_core.geometry.bvh import build_bvh
@@ -30,7 +30,7 @@ from nbvh_core.rendering.render import orbit_cameras
 from nbvh_core.training.rays import RayConfig, label_samples, root_box, sample_rays
 from nbvh_core.geometry.bundled_samples import sample_path
 from nbvh_core.geometry.traversal import LeafStream, TorchBVH
-from harness import RESULTS, write_markdown
+from bench.harness import RESULTS, write_markdown
 
 CONFIGS = [("hashgrid", "mlp", 11), ("hashgrid", "kmlp", 11), ("hashvqad", "mlp", 10), ("hashvqad", "kmlp", 10)]
 
@@ -135,7 +135,7 @@ def main() -> None:
              + "; ".join(f"{p} = {kernels.describe() if p == 'fast' else 'reference (pure torch)'}" for p in paths) + ". "
              "Models are untrained (random weights), so which leaf stops a ray is arbitrary: the render rows show the "
              "cost split per segment, not a trained model's rays/s (see samples_default.md for those). Command: "
-             f"`.venv/bin/python bench/profile_neural.py --asset {args.asset}`.\n",
+             f"`.venv/bin/python -m bench.profiling.profile_neural --asset {args.asset}`.\n",
              "## Training step (median of 5)\n",
              "| config | path | samples | rays+labels | encoding fwd | network fwd+loss | backward | optimizer | total | samples/s |",
              "|---|---|---|---|---|---|---|---|---|---|"]

@@ -1,7 +1,7 @@
 """Where a training step's time goes, base (HashGrid + MLP) against III in its soft phase (HashVQAD + KMLP): the soft
 row table's forward and backward, the fused train step (which includes both), Adam; bunny, 2047 nodes, F16, N_max 64.
 
-    .venv/bin/python bench/profile_soft_step.py [STEPS]    # prints ms per step by part, and the share of index
+    .venv/bin/python -m bench.profiling.profile_soft_step [STEPS]    # prints ms per step by part, and the share of index
                                                            # entries a step's batch reads
 """
 import sys

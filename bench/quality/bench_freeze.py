@@ -1,6 +1,6 @@
 """HashVQAD: image quality of the soft model just before the argmax freeze vs the frozen model.
 
-    .venv/bin/python bench/bench_freeze.py [--assets blob bunny] [--time 120]
+    .venv/bin/python -m bench.quality.bench_freeze [--assets blob bunny] [--time 120]
 
 Trains HashVQAD (+MLP, consistent labels) with the trainer's schedule (anneal, freeze, fine-tune on the frozen
 codes), scores the soft model just before the freeze (16 views) and the final frozen model. Writes
@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 from nbvh_core.geometry.bvh import build_bvh
 from nbvh_core.geometry.exact import ExactTracer
@@ -21,7 +21,7 @@ from nbvh_core.neural.model import NeuralBVH
 from nbvh_core.app.pipeline import preset
 from nbvh_core.geometry.bundled_samples import sample_path
 from nbvh_core.training.train import train
-from harness import RESULTS, write_markdown
+from bench.harness import RESULTS, write_markdown
 
 
 def main() -> None:
@@ -55,7 +55,7 @@ def main() -> None:
              f"HashVQAD (T=2^10) + MLP, consistent labels, {args.time:.0f} s training: 30% of the budget annealing the "
              f"softmax temperature 1 -> 0.01, freeze at 90%, the last 10% fine-tuning features and MLP on the frozen "
              f"codes. MSE over {args.views} views at 128 px; 2-core CPU. "
-             "Command: `.venv/bin/python bench/bench_freeze.py --assets blob bunny --time 120`.\n",
+             "Command: `.venv/bin/python -m bench.quality.bench_freeze --assets blob bunny --time 120`.\n",
              "| asset | steps | final temperature | MSE soft | MSE frozen | change | IoU soft | IoU frozen |",
              "|---|---|---|---|---|---|---|---|"]
     for r in rows:

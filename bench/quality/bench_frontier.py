@@ -2,7 +2,7 @@
 value, per network weight, table size, nodes, the quantization-aware share of training), each trained at one
 wall-clock budget and scored as stored by the one metric (`harness.product_scorer`: 16 held-out views at 256 px).
 
-    .venv/bin/python bench/bench_frontier.py --meshes bunny --seconds 200 \\
+    .venv/bin/python -m bench.quality.bench_frontier --meshes bunny --seconds 200 \\
         --variants "t8n8=table_bits:8,network_bits:8" "t4n4=table_bits:4,network_bits:4,qat_fraction:0.5"
 
 A variant is LABEL=field:value,...; a field is any `Settings` field (ints, floats, strings as written). The mesh is
@@ -17,8 +17,8 @@ import argparse
 import json
 import time
 
-from bench_meshes import named_mesh
-from harness import (RESULTS, SMOKE, append_rows, markdown_table, product_scorer, read_rows,
+from bench.meshes import named_mesh
+from bench.harness import (RESULTS, SMOKE, append_rows, markdown_table, product_scorer, read_rows,
                      save_bytes_mse_chart, write_markdown)
 from nbvh_core.app.pipeline import compress_mesh, preset
 
@@ -70,7 +70,7 @@ def report(rows: list[dict]) -> None:
               f"{int(r['features_bytes']):,}", f"{int(r['network_bytes']):,}", f"{int(r['bvh_bytes']):,}",
               f"{int(r['header_bytes']):,}", f"{float(r['mse']):.6f}", r["steps"]] for r in rows]
     write_markdown(RESULTS / "frontier.md", [
-        "# Model variants: file bytes against image MSE (bench/bench_frontier.py)", "",
+        "# Model variants: file bytes against image MSE (bench/quality/bench_frontier.py)", "",
         "The default preset's method with the overrides shown, at one wall-clock budget; each model scored as stored "
         "on 16 held-out views at 256 px (the metric every contender gets).", "",
         *markdown_table(["mesh", "train s", "variant", "overrides", "file bytes", "features", "network", "bvh",

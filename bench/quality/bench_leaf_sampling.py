@@ -1,7 +1,7 @@
 """N-BVH reference ideas against our default training, at equal training time: loss-proportional leaf sampling
 (--variant loss, the default) or tree-cut splitting (--variant tree_cut).
 
-    .venv/bin/python bench/bench_leaf_sampling.py [--variant loss|tree_cut] [--train-s 15] [--seeds 2] [--quick]
+    .venv/bin/python -m bench.quality.bench_leaf_sampling [--variant loss|tree_cut] [--train-s 15] [--seeds 2] [--quick]
 
 tree_cut: training starts from an SAH cut with half the leaves and splits the leaves with the highest running error
 in 10 rounds over the first 30% of the time, up to the same 2047 nodes. Writes bench/results/tree_cut.md/.csv.
@@ -20,10 +20,10 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
-import rd_runs as rd
-from harness import RESULTS, write_markdown, write_rows
+from bench.quality import rd_runs as rd
+from bench.harness import RESULTS, write_markdown, write_rows
 from nbvh_core.app.pipeline import compress_mesh, preset
 
 MESHES = ("bunny", "studs", "gyroid", "spiky", "knot", "sheet")
@@ -76,7 +76,7 @@ def main() -> None:
          f"{' (quick)' if plan.quick else ''}\n",
          f"User preset (HashGrid + MLP + consistent labels, 2047 nodes, T=2^11), {train_s:g} s of training per run on "
          f"the 2-core CPU (fast path), {seeds} seed(s) per mesh and mode, scored on {plan.views} views at {plan.res} px. "
-         f"{what}. Command: `.venv/bin/python bench/bench_leaf_sampling.py --variant {v}`.\n",
+         f"{what}. Command: `.venv/bin/python -m bench.quality.bench_leaf_sampling --variant {v}`.\n",
          f"| mesh | MSE uniform | MSE {v} | {v} / uniform | IoU uniform | IoU {v} | "
          + " | ".join(f"{k} uniform | {k} {v}" for k in fail_keys) + " |",
          "|---|---|---|---|---|---|" + "---|---|" * len(fail_keys)]

@@ -4,7 +4,7 @@ held-out image MSE against its training seconds, and what its bytes buy against 
 16 held-out views at 256 px, the one metric). Every model is forced (shipped whatever the verdict) so the curve is
 complete; the ratio says where the verdict would ship it (above 1: the model is smaller).
 
-    .venv/bin/python bench/bench_preset_curves.py [--meshes bunny spiky] [--budgets default=25,50,100,200]
+    .venv/bin/python -m bench.quality.bench_preset_curves [--meshes bunny spiky] [--budgets default=25,50,100,200]
 
 Resumable: one row per (mesh, preset, seconds) in bench/results/preset_curves.csv, appended as it lands; the chart
 bench/results/preset_curves.png and preset_curves.md are rewritten after every row. Needs an otherwise idle CPU
@@ -15,8 +15,8 @@ from __future__ import annotations
 import argparse
 import math
 
-from bench_meshes import named_mesh
-from harness import RESULTS, append_rows, markdown_table, read_rows, save_figure, stamp, write_markdown
+from bench.meshes import named_mesh
+from bench.harness import RESULTS, append_rows, markdown_table, read_rows, save_figure, stamp, write_markdown
 from nbvh_core import kernels
 from nbvh_core.app.alternatives import alternatives
 from nbvh_core.app.pipeline import compress_mesh, preset
@@ -89,7 +89,7 @@ def write_outputs(rows: list[dict]) -> None:
           f"{float(r['mse']):.5f}", f"{int(r['decimation_triangles']):,}, {int(r['decimation_bytes']):,}",
           f"{float(r['decimation_to_model']):.2f}x", f"{int(float(r['neural_rays_per_s'])):,}"] for r in rows])
     write_markdown(RESULTS / "preset_curves.md",
-                   ["# Speed against accuracy (bench/bench_preset_curves.py)", "",
+                   ["# Speed against accuracy (bench/quality/bench_preset_curves.py)", "",
                     "A preset trained for fractions of its own budget (the last point: the preset as users run it), "
                     "forced; each model scored as stored on 16 held-out views at 256 px, and weighed against the "
                     "smallest compact decimation meeting its MSE on the same views (the product's alternative). "

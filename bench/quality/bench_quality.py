@@ -1,9 +1,9 @@
 """Accuracy against bytes, time and speed: the paper's method steps, the baselines users would pick instead, and
 stability where methods fail. One command regenerates everything:
 
-    .venv/bin/python bench/bench_quality.py            # full run (tens of minutes on the 2-core CPU)
-    .venv/bin/python bench/bench_quality.py --quick    # smoke run (a minute): 2 meshes, tiny budgets
-    .venv/bin/python bench/bench_quality.py --charts   # tables and charts again from the CSVs
+    .venv/bin/python -m bench.quality.bench_quality            # full run (tens of minutes on the 2-core CPU)
+    .venv/bin/python -m bench.quality.bench_quality --quick    # smoke run (a minute): 2 meshes, tiny budgets
+    .venv/bin/python -m bench.quality.bench_quality --charts   # tables and charts again from the CSVs
 
 Parts (rows are appended to CSVs as they finish; a rerun skips rows already there, so a stopped run resumes):
 
@@ -36,8 +36,8 @@ import time
 import numpy as np
 import torch
 
-from bench_meshes import BENCH_MESHES, bench_mesh
-from harness import RESULTS, append_row, num, read_rows, save_figure, write_markdown
+from bench.meshes import BENCH_MESHES, bench_mesh
+from bench.harness import RESULTS, append_row, num, read_rows, save_figure, write_markdown
 from nbvh_core import kernels
 from nbvh_core.app.pipeline import compress_mesh, preset
 from nbvh_core.geometry.exact import ExactTracer
@@ -46,7 +46,7 @@ from nbvh_core.geometry.mesh import mesh_like
 from nbvh_core.planning.sizing import mesh_resident_bytes
 from nbvh_core.rendering.metrics import ViewScorer
 from nbvh_core.training.train import TrainingDiverged
-from rd_runs import METHODS, SIZES, SUBSETS, MeshCache, Plan, interp_bytes_for_mse, run_neural
+from bench.quality.rd_runs import METHODS, SIZES, SUBSETS, MeshCache, Plan, interp_bytes_for_mse, run_neural
 
 
 def run_sweep(plan: Plan) -> None:
@@ -136,7 +136,7 @@ def report(plan: Plan) -> str:
     L = [f"# Quality benchmark: method steps, baselines, stability{' (quick smoke run)' if plan.quick else ''}\n",
          f"2-core CPU, torch {torch.__version__}, {kernels.describe()}. Every neural model trained {plan.train_s:g} s "
          f"wall-clock (fast path), scored on {plan.views} orbit views at {plan.res} px (image MSE of the paper's "
-         "shading, silhouette IoU). Bytes are real .nbvh file sizes. Command: `.venv/bin/python bench/bench_quality.py"
+         "shading, silhouette IoU). Bytes are real .nbvh file sizes. Command: `.venv/bin/python -m bench.quality.bench_quality"
          + (" --quick" if plan.quick else "") + "`.\n"]
     L += _steps_lines(sweep) + _reach_lines(plan, sweep)
     L += _baseline_lines(plan, sweep, read_rows(plan.csv("baselines")))

@@ -2,8 +2,8 @@
 several N_max per mesh (equal steps: N_max does not change the cost of a step, and equal steps are robust to a
 busy machine), scored with the one metric (16 views, 128 px). Float32 storage, so only the grid differs.
 
-    .venv/bin/python bench/bench_resolution.py [--meshes bunny gyroid] [--n-max 64 128 256] [--steps 1500]
-    .venv/bin/python bench/bench_resolution.py --levels 2 4 8 [--meshes bunny gyroid studs] [--time-limit 200]
+    .venv/bin/python -m bench.quality.bench_resolution [--meshes bunny gyroid] [--n-max 64 128 256] [--steps 1500]
+    .venv/bin/python -m bench.quality.bench_resolution --levels 2 4 8 [--meshes bunny gyroid studs] [--time-limit 200]
 
 Resumable: one CSV row per (mesh, preset, log2 T, N_max, steps) in bench/results/resolution.csv; resolution.md is
 rewritten after every row with `mesh_measures.choose_resolution`'s pick beside the best measured.
@@ -21,10 +21,10 @@ import argparse
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
-from bench_meshes import bench_grid, bench_mesh
-from harness import RESULTS, append_row, read_rows, write_markdown
+from bench.meshes import bench_grid, bench_mesh
+from bench.harness import RESULTS, append_row, read_rows, write_markdown
 from nbvh_core import kernels
 from nbvh_core.app.pipeline import compress_mesh, preset
 from nbvh_core.planning.mesh_measures import TABLE_LOAD, choose_resolution
@@ -33,7 +33,7 @@ FIELDS = ["mesh", "preset", "log2_table", "n_max", "steps", "train_s", "mse", "i
 
 
 def write_md(rows: list[dict]) -> None:
-    lines = ["# Grid resolution against table capacity (bench/bench_resolution.py)", "",
+    lines = ["# Grid resolution against table capacity (bench/quality/bench_resolution.py)", "",
              "Equal steps per row (the preset's settings, float32 storage, seed 0) on this 2-core CPU; image MSE over "
              "16 views at 128 px. 'cells / T' = the surface cells of the finest level over the table's rows; the "
              f"chooser takes the finest N_max within {TABLE_LOAD:g} x T and the detail's need. (The first 17 rows were "
@@ -58,7 +58,7 @@ LEVEL_FIELDS = ["mesh", "preset", "levels", "steps", "log2_table", "n_max", "tra
 
 
 def write_levels_md(rows: list[dict]) -> None:
-    lines = ["# Grid levels against table rows at equal table bytes (bench/bench_resolution.py --levels)", "",
+    lines = ["# Grid levels against table rows at equal table bytes (bench/quality/bench_resolution.py --levels)", "",
              "Equal steps per row (the preset's settings, levels x T x features constant, float32 storage, seed 0) on "
              "this 2-core CPU; image MSE over 16 views at 128 px; N_max chosen for each T as the presets choose it.",
              "Rows with a time limit trained that many seconds each with the preset's own (quantized) storage; "

@@ -1,8 +1,8 @@
 """Compress every bundled sample with one preset and tabulate size, quality, time and speed (forced: the model of
 each, whatever the verdict).
 
-    .venv/bin/python bench/bench_samples.py [--preset default] [--out out/samples]
-    .venv/bin/python bench/bench_samples.py --summarise out/default     # only tabulate existing NAME.report.json reports
+    .venv/bin/python -m bench.quality.bench_samples [--preset default] [--out out/samples]
+    .venv/bin/python -m bench.quality.bench_samples --summarise out/default     # only tabulate existing NAME.report.json reports
 
 Each sample goes through `python -m nbvh_core compress` (the CLI users run), which writes NAME.nbvh,
 NAME.report.json, NAME.preview.png and NAME.reference.png. Writes bench/results/samples_<preset>.md and .csv.
@@ -16,10 +16,10 @@ import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 from nbvh_core.geometry.bundled_samples import SAMPLE_NAMES
-from harness import RESULTS, write_markdown, write_rows
+from bench.harness import RESULTS, write_markdown, write_rows
 
 
 def summarise(folder: Path, preset: str, wall: dict) -> None:

@@ -1,7 +1,7 @@
 """The paper's Table 5 at equal steps or equal wall time: the bytes each method step needs to reach base's MSE.
 
-    .venv/bin/python bench/bench_table5.py [--steps 1200] [--meshes bunny knot spiky gyroid studs]
-    .venv/bin/python bench/bench_table5.py --time-limit 200 --plan base:11 I:10 III:8 III:9   # equal wall time
+    .venv/bin/python -m bench.quality.bench_table5 [--steps 1200] [--meshes bunny knot spiky gyroid studs]
+    .venv/bin/python -m bench.quality.bench_table5 --time-limit 200 --plan base:11 I:10 III:8 III:9   # equal wall time
 
 Methods (pipeline presets): base = HashGrid + MLP + ownership labels, I = + KMLP, II = + consistent labels,
 III = + HashVQAD. base trains at T=2^11 (its 775 KB file in the paper's float32 storage); I/II at T=2^9, 2^10 and
@@ -26,10 +26,10 @@ import itertools
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
-from bench_meshes import bench_mesh
-from harness import RESULTS, append_row, read_rows, write_markdown
+from bench.meshes import bench_mesh
+from bench.harness import RESULTS, append_row, read_rows, write_markdown
 from nbvh_core import kernels
 from nbvh_core.app.pipeline import compress_mesh, estimate_file_bytes, preset
 
@@ -72,7 +72,7 @@ def write_md(rows: list[dict], steps: int, stem: str = "table5", normal_loss: st
     else:
         title, budget = f"equal wall time ({time_limit:g} s, --time-limit)", f"{time_limit:g} s of training per model"
     loss = f"{normal_loss} normal loss" if normal_loss else "each network's own normal targets (MLP wound, KMLP facing)"
-    lines = [f"# Table 5 at {title} (bench/bench_table5.py --n-max {n_max}), {loss}, {grid}", "",
+    lines = [f"# Table 5 at {title} (bench/quality/bench_table5.py --n-max {n_max}), {loss}, {grid}", "",
              f"{budget} on this 2-core CPU; MSE over 16 views at 128 px. 'reaches at' = the "
              "bytes at which the method's MSE equals base's, interpolated (log-log) between its measured sizes, over "
              "base's bytes (float32 storage, as the paper stores; the default-storage column is the same model's size "

@@ -3,7 +3,7 @@
 table sizes where the two meet in file bytes (4-bit at 2^(k+1) holds the feature bytes of 8-bit at 2^k). Each
 model scored as stored by the one metric (`harness.product_scorer`: 16 held-out views at 256 px).
 
-    .venv/bin/python bench/bench_table_bits.py [--meshes bunny spiky gyroid] [--seconds 60] [--pairs 8:11 4:12 8:12 4:13]
+    .venv/bin/python -m bench.quality.bench_table_bits [--meshes bunny spiky gyroid] [--seconds 60] [--pairs 8:11 4:12 8:12 4:13]
 
 Resumable: one row per (mesh, seconds, bits, log2 T) in bench/results/table_bits.csv; table_bits.md and the chart
 table_bits.png (file bytes against MSE, one line per bit width and mesh) are rewritten after every row. Train on an
@@ -14,8 +14,8 @@ from __future__ import annotations
 import argparse
 import time
 
-from bench_meshes import bench_mesh
-from harness import (RESULTS, append_rows, markdown_table, product_scorer, read_rows,
+from bench.meshes import bench_mesh
+from bench.harness import (RESULTS, append_rows, markdown_table, product_scorer, read_rows,
                      save_bytes_mse_chart, write_markdown)
 from nbvh_core.app.pipeline import compress_mesh, preset
 
@@ -39,7 +39,7 @@ def report(rows: list[dict]) -> None:
               f"{int(r['file_bytes']):,}", f"{int(r['features_bytes']):,}", f"{float(r['mse']):.6f}", r["steps"]]
              for r in rows]
     write_markdown(RESULTS / "table_bits.md", [
-        "# 8-bit against 4-bit feature tables at equal file bytes (bench/bench_table_bits.py)", "",
+        "# 8-bit against 4-bit feature tables at equal file bytes (bench/quality/bench_table_bits.py)", "",
         "The default preset's method at one wall-clock budget; each model scored as stored on 16 held-out views at "
         "256 px. A 4-bit table at 2^(k+1) rows holds the bytes of an 8-bit one at 2^k.", "",
         *markdown_table(["mesh", "train s", "table bits", "T", "file bytes", "features bytes", "MSE", "steps"],

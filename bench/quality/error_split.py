@@ -1,6 +1,6 @@
 """Where a model's image error comes from: silhouette, depth or normals (the same 16 views and 128 px as the metric).
 
-    .venv/bin/python bench/error_split.py terrain --preset default --steps 1000 [--set normal_loss=facing ...]
+    .venv/bin/python -m bench.quality.error_split terrain --preset default --steps 1000 [--set normal_loss=facing ...]
 
 Trains one model (float32 storage, a fixed step count) and splits the shaded image's squared error per pixel:
 silhouette = pixels where exactly one of the reference and the model hits; of the pixels both hit, the normal part is
@@ -13,12 +13,12 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 import numpy as np
 import torch
 
-from bench_meshes import bench_mesh
+from bench.meshes import bench_mesh
 from nbvh_core import kernels
 from nbvh_core.app.pipeline import compress_mesh, preset
 from nbvh_core.rendering.render import orbit_cameras, shade

@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from bench_meshes import BENCH_MESHES, bench_mesh
-from harness import RESULTS, append_row
+from bench.meshes import BENCH_MESHES, bench_mesh
+from bench.harness import RESULTS, append_row
 from nbvh_core.app.pipeline import compress_mesh, preset
 from nbvh_core.geometry.bvh import build_bvh
 from nbvh_core.geometry.exact import ExactTracer

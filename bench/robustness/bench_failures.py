@@ -1,6 +1,6 @@
 """The failure matrix: every method the product offers on every failure class, through `compress_mesh`.
 
-    .venv/bin/python bench/bench_failures.py --time-limit 10
+    .venv/bin/python -m bench.robustness.bench_failures --time-limit 10
 
 Methods: the need-driven default (level standard; it may keep the mesh; forced under a training condition), the
 paper's base / I / II / III, and HashVQAD with the MLP; the fixed methods are forced (a model whatever the
@@ -24,8 +24,8 @@ import json
 import math
 import time
 
-from failure_classes import CONDITIONS, MESH_CLASSES, failure_mesh
-from harness import SMOKE, append_rows, markdown_table, num, read_rows, result_path, save_figure, stamp, write_markdown
+from bench.robustness.failure_classes import CONDITIONS, MESH_CLASSES, failure_mesh
+from bench.harness import SMOKE, append_rows, markdown_table, num, read_rows, result_path, save_figure, stamp, write_markdown
 
 CSV = "failures_smoke.csv" if SMOKE else "failures.csv"
 METHODS = ("default", "base", "I", "II", "III", "hashvqad+mlp")
@@ -92,7 +92,7 @@ def _late_divergence(active: bool, time_limit: float):
     if not active:
         yield
         return
-    from bench_recovery import diverges_once
+    from bench.robustness.bench_recovery import diverges_once
 
     with diverges_once(0.6 * time_limit):
         yield

@@ -2,7 +2,7 @@
 from its periodic checkpoint, against uninterrupted runs of the same command (their spread is the run-to-run
 noise of a time-budgeted training).
 
-    .venv/bin/python bench/bench_kill_resume.py --mesh bunny --preset default --straight 2
+    .venv/bin/python -m bench.robustness.bench_kill_resume --mesh bunny --preset default --straight 2
         -> bench/results/kill_resume.csv (one row per run, stamped with commit and machine)
 
 Per run: image MSE and silhouette IoU (the file's own evaluation), training steps and seconds; for the killed run
@@ -19,9 +19,9 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from harness import RESULTS, append_rows
+from bench.harness import RESULTS, append_rows
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 #: compress options every run of this benchmark takes (--time-limit, --checkpoint-every for a short run)

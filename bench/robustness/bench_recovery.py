@@ -4,7 +4,7 @@ going back to the last healthy state at a 10x lower learning rate inside the sam
 default) or by starting over from scratch at that lower rate (the answer before it, still the one for a divergence
 before the first healthy state). Each row: wall seconds of the whole run, training steps, held-out MSE, file bytes.
 
-    .venv/bin/python bench/bench_recovery.py --mesh bunny --preset default --time-limit 60 --fail-at 0.6
+    .venv/bin/python -m bench.robustness.bench_recovery --mesh bunny --preset default --time-limit 60 --fail-at 0.6
 
 A fixed-size run (the preset's sizes, no target), so both answers train the same model. Rows land in
 bench/results/recovery.csv (resumable per variant and commit); one run at a time on an otherwise idle machine.
@@ -20,8 +20,8 @@ import torch
 
 import nbvh_core.training.recovery as recovery
 import nbvh_core.training.train as training
-from harness import append_rows, markdown_table, read_rows, result_path, stamp, write_markdown
-from bench_meshes import named_mesh
+from bench.harness import append_rows, markdown_table, read_rows, result_path, stamp, write_markdown
+from bench.meshes import named_mesh
 
 CSV = "recovery.csv"
 

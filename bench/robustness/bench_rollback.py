@@ -3,7 +3,7 @@ stand-in for the rare run that leaves a good state for a worse one, like the bun
 back (`decision.checks.ROLLBACK_FACTOR`) and without it. Each row: the run's file bytes, held-out MSE, whether it met
 the target, how many checks went back, and the checks' trajectory.
 
-    .venv/bin/python bench/bench_rollback.py --mesh bunny --target 0.0004 --seed 0 --strike-at 0.62 --noise 1.0
+    .venv/bin/python -m bench.robustness.bench_rollback --mesh bunny --target 0.0004 --seed 0 --strike-at 0.62 --noise 1.0
 
 The strike adds Gaussian noise of `noise` x the table's standard deviation to every row (a fixed generator) at the
 first step past `strike-at` of the budget: between the bunny's 121 s and 137 s checks at 200 s. Rows land in
@@ -19,8 +19,8 @@ import torch
 
 import nbvh_core.decision.checks as checks
 import nbvh_core.training.encoding_phases as phases
-from harness import append_rows, markdown_table, read_rows, result_path, stamp, write_markdown
-from bench_target_runs import one_run
+from bench.harness import append_rows, markdown_table, read_rows, result_path, stamp, write_markdown
+from bench.decision.bench_target_runs import one_run
 
 CSV = "rollback.csv"
 

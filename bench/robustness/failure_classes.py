@@ -1,4 +1,4 @@
-"""The failure classes the product is tested and measured on (tests/test_pipeline.py, bench/bench_failures.py):
+"""The failure classes the product is tested and measured on (tests/test_pipeline.py, bench/robustness/bench_failures.py):
 meshes where methods break, and training conditions that break them. Deterministic, made in code.
 
 Mesh classes: `failure_mesh(name)` -> (vertices (V, 3) float64, faces (F, 3) int64), from the bundled blob where
@@ -54,7 +54,7 @@ def failure_mesh(name: str) -> tuple[np.ndarray, np.ndarray]:
     if name == "thin walls":
         return _thin_box()
     if name in ("open sheet", "dense repeated detail", "1M+ triangles"):
-        from bench_meshes import bench_mesh, lattice
+        from bench.meshes import bench_mesh, lattice
 
         mesh = {"open sheet": lambda: bench_mesh("sheet"), "dense repeated detail": lambda: lattice(60),
                 "1M+ triangles": lambda: lattice(180)}[name]()

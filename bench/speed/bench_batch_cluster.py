@@ -1,6 +1,6 @@
 """A library batch on a local multi-node Ray cluster against the embedded run, on the same 8 assets.
 
-    .venv/bin/python bench/bench_batch_cluster.py [--time-limit 30] [--preset preview]
+    .venv/bin/python -m bench.speed.bench_batch_cluster [--time-limit 30] [--preset preview]
         # -> bench/results/batch_cluster.{csv,md}
 
 The 8 benchmark meshes (bench_meshes.py) are written as .npz into a library folder, then compressed twice with
@@ -25,10 +25,10 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
-from bench_meshes import BENCH_MESHES, bench_mesh
-from harness import RESULTS, write_markdown, write_rows
+from bench.meshes import BENCH_MESHES, bench_mesh
+from bench.harness import RESULTS, write_markdown, write_rows
 
 PORT = 6391
 RAY = str(Path(sys.executable).with_name("ray"))
@@ -94,7 +94,7 @@ def main() -> None:
                          "worker_cluster": c["worker"], "train_s_embedded": e["train_seconds"],
                          "train_s_cluster": c["train_seconds"]})
     write_rows(RESULTS / "batch_cluster.csv", out_rows)
-    lines = ["# Library batch: local 3-node Ray cluster vs embedded Ray (bench/bench_batch_cluster.py)", "",
+    lines = ["# Library batch: local 3-node Ray cluster vs embedded Ray (bench/speed/bench_batch_cluster.py)", "",
              f"{len(args.assets)} assets (bench_meshes.py), preset `{args.preset}`, {args.time_limit:g} s training each, one run on "
              "this 2-core CPU. Embedded: `nbvh batch LIB -o OUT --num-cpus 2`. Cluster: `ray start --head "
              f"--num-cpus 0 --port {PORT}` + 2 x `ray start --address 127.0.0.1:{PORT} --num-cpus 1`, then "

@@ -3,7 +3,7 @@ viewport frames per second at 480x270 for one and for three models (shadows from
 request after another), the first coarse frame's latency, and the final render time at 1920x1080 - each beside
 the same scene drawn from the meshes by Embree in the same worker (geometry "mesh").
 
-    .venv/bin/python bench/bench_engine.py MODELS_DIR [--frames 12]
+    .venv/bin/python -m bench.speed.bench_engine MODELS_DIR [--frames 12]
 
 MODELS_DIR: blob/bunny/studs .npz + .nbvh (blender_tests/engine_scene.py's layout; made there with the `tiny` preset
 when missing). Writes bench/results/engine.csv and engine.md.
@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from harness import RESULTS, SMOKE, write_markdown, write_rows
+from bench.harness import RESULTS, SMOKE, write_markdown, write_rows
 from nbvh_core.rendering.scene_render import look_at, perspective, view_projection
 from addon.render_client import RenderWorker  # after harness: the add-on package is reached through the repository root
 
@@ -124,7 +124,7 @@ def main() -> int:
         worker.stop()
     args.out.mkdir(parents=True, exist_ok=True)
     write_rows(args.out / "engine.csv", rows)
-    lines = ["# NBVH render engine speed (bench/bench_engine.py)", "",
+    lines = ["# NBVH render engine speed (bench/speed/bench_engine.py)", "",
              f"Through the render worker process and its protocol, on {platform.processor() or platform.machine()} "
              f"({__import__('os').cpu_count()} cores), one run. Shadows from one sun; the camera orbits; "
              f"{args.frames} frames per row, median. 'mesh' = the same objects from their meshes (Embree) in the same "

@@ -1,6 +1,6 @@
 """Foundation benchmark: BVH build time, traversal rays/s, training samples/s, beside Embree rays/s.
 
-    .venv/bin/python bench/bench_foundation.py [--rays 200000] [--quick]
+    .venv/bin/python -m bench.speed.bench_foundation [--rays 200000] [--quick]
 
 Writes bench/results/foundation.csv and foundation.md. All numbers of one row come from the same run on the
 same machine, so the ratios (ours / Embree) are what to compare across machines.
@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 from nbvh_core.geometry.bvh import build_full_tree, cut_tree
 from nbvh_core.geometry.exact import ExactTracer
@@ -25,7 +25,7 @@ from nbvh_core.rendering.render import orbit_cameras
 from nbvh_core.training.rays import RayConfig, label_samples, root_box, sample_rays
 from nbvh_core.geometry.bundled_samples import SAMPLE_NAMES, sample_path
 from nbvh_core.geometry.traversal import LeafStream, TorchBVH, leaves_along_rays
-from harness import RESULTS, write_markdown, write_rows
+from bench.harness import RESULTS, write_markdown, write_rows
 
 
 def best_of(fn, repeat: int = 3) -> float:

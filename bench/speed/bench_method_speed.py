@@ -2,7 +2,7 @@
 encoding x network (medians of interleaved rounds; ratios within the run), bunny, 2047 nodes, the default preset's
 other settings.
 
-    .venv/bin/python bench/bench_method_speed.py [--steps 150] [--repeats 3] [--renders 5]
+    .venv/bin/python -m bench.speed.bench_method_speed [--steps 150] [--repeats 3] [--renders 5]
                                                   # -> bench/results/method_speed.{csv,md}
 
 HashVQAD trains in its soft phase (the softmax over t candidates of every index entry each step: the expensive
@@ -16,7 +16,7 @@ import statistics
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 from nbvh_core import kernels
 from nbvh_core.geometry.bvh import build_bvh
@@ -28,7 +28,7 @@ from nbvh_core.rendering.render import orbit_cameras, render_neural
 from nbvh_core.geometry.bundled_samples import sample_path
 from nbvh_core.training.train import train
 
-from harness import RESULTS, write_markdown, write_rows
+from bench.harness import RESULTS, write_markdown, write_rows
 
 # The paper's sizes (16 features, Table 5's T), written out: the default preset's own sizes are not the paper's.
 PAPER = {"features": 16, "n_max": 64}
@@ -95,7 +95,7 @@ def main() -> None:
         r["train_slowdown_vs_base"] = round(base["train_samples_per_s"] / r["train_samples_per_s"], 2)
         r["render_slowdown_vs_base"] = round(r["render_512_s"] / base["render_512_s"], 2)
     write_rows(RESULTS / "method_speed.csv", rows)
-    lines = ["# Method steps on the fast path (bench/bench_method_speed.py)", "",
+    lines = ["# Method steps on the fast path (bench/speed/bench_method_speed.py)", "",
              f"Bunny, 2047 nodes, the paper's 16 features, N_max 64, {args.steps} training steps each; medians of "
              f"{args.repeats} rounds over all methods ({args.renders} renders each per round) on this 2-core CPU; "
              f"`{base['compute_path']}`.", "",

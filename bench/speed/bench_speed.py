@@ -1,6 +1,6 @@
 """Speed of the neural path: fast (fused kernels) against reference (pure torch) and Embree, in one run.
 
-    .venv/bin/python bench/bench_speed.py [--asset bunny] [--train-s 60] [--quick] [--device cpu|cuda]
+    .venv/bin/python -m bench.speed.bench_speed [--asset bunny] [--train-s 60] [--quick] [--device cpu|cuda]
 
 1. Trains one model with the preset (default: `default`) on the fast path for --train-s seconds, so that rays end at
    realistic leaves (a random model stops rays arbitrarily).
@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 from nbvh_core import kernels
 from nbvh_core.geometry.bvh import build_bvh
@@ -33,7 +33,7 @@ from nbvh_core.app.pipeline import preset
 from nbvh_core.rendering.render import orbit_cameras
 from nbvh_core.geometry.bundled_samples import sample_path
 from nbvh_core.training.train import train
-from harness import RESULTS, save_figure, write_markdown, write_rows
+from bench.harness import RESULTS, save_figure, write_markdown, write_rows
 
 
 def matmul_peak_gflops(device: torch.device, n: int = 4096, repeat: int = 5) -> float:
@@ -178,7 +178,7 @@ def write(rows, args, mesh, s, tr, flops, peak, device, half_note: str = "") -> 
     ref_train = next(r for r in rows if r["what"] == "train" and r["path"].startswith("reference"))
     dev_name = torch.cuda.get_device_name(device) if device.type == "cuda" else f"{platform.machine()} CPU, {torch.get_num_threads()} threads"
     lines = [f"# Speed: fast path vs reference path vs Embree ({args.asset}, preset `{args.preset}`)\n",
-             f"Device: {dev_name}; torch {torch.__version__}. Command: `.venv/bin/python bench/bench_speed.py "
+             f"Device: {dev_name}; torch {torch.__version__}. Command: `.venv/bin/python -m bench.speed.bench_speed "
              f"--asset {args.asset} --preset {args.preset} --train-s {args.train_s:g}"
              + (" --quick" if args.quick else "") + (f" --device {args.device}" if args.device != "cpu" else "") + "`.",
              f"Model: {mesh.n_triangles:,}-triangle mesh, {s.nodes} nodes, {s.encoding}+{s.network}, T=2^{s.log2_table}, "

@@ -1,7 +1,7 @@
 """Tracing speed of stored models, side by side in one process: each .nbvh file loaded as a tracer holds it and
 rendered from the same orbit views, in turn (A B A B ...), so the machine's drift falls on both alike.
 
-    .venv/bin/python bench/bench_trace_speed.py OLD.nbvh NEW.nbvh [--size 512] [--repeats 5] [--views 4]
+    .venv/bin/python -m bench.speed.bench_trace_speed OLD.nbvh NEW.nbvh [--size 512] [--repeats 5] [--views 4]
 
 Per file: its bytes, the model's shape (levels x features, hidden layers, k points), the median seconds per frame
 over repeats x views and primary rays per second; the ratio to the first file. Rows are appended to
@@ -14,7 +14,7 @@ import statistics
 import time
 from pathlib import Path
 
-from harness import RESULTS, SMOKE, append_rows, markdown_table, read_rows, write_markdown
+from bench.harness import RESULTS, SMOKE, append_rows, markdown_table, read_rows, write_markdown
 from nbvh_core.rendering.render import orbit_cameras, render_neural
 from nbvh_core.storage.fileformat import load_nbvh
 
@@ -36,7 +36,7 @@ def main() -> None:
     ap.add_argument("--make-tiny", action="store_true", help="train a tiny blob model into each missing path (smoke)")
     args = ap.parse_args()
     if args.make_tiny:
-        from bench_meshes import bench_mesh
+        from bench.meshes import bench_mesh
         from nbvh_core.app.pipeline import compress_mesh, preset
 
         for path in args.models:
@@ -68,7 +68,7 @@ def main() -> None:
     table = [[r["utc"], r["file"], f"{int(r['bytes']):,}", r["shape"], r["size"], r["frames"], r["median_s"],
               r["min_s"], r["max_s"], f"{int(r['rays_per_s']):,}", r["vs_first"]] for r in read_rows(OUT)]
     write_markdown(OUT.with_suffix(".md"), [
-        "# Tracing speed of stored models (bench/bench_trace_speed.py)", "",
+        "# Tracing speed of stored models (bench/speed/bench_trace_speed.py)", "",
         "Each file loaded as a tracer holds it and rendered from the same orbit views in turn, in one process; "
         "seconds per frame (median, min, max over repeats x views); `vs_first`: the median over the first file's "
         "of the same run.", "",

@@ -3,7 +3,7 @@
 A kernel that spills registers to local memory on the card is slow however correct the interpreter finds it; this
 is the one measure of that available where no card is lent (the speed itself needs one: bench/device_check.py).
 
-    .venv/bin/python bench/kernel_registers.py            # bench/results/kernel_registers.{csv,md}
+    .venv/bin/python -m bench.speed.kernel_registers            # bench/results/kernel_registers.{csv,md}
 
 Rows: kernel (ray query mlp | kmlp, table f32 | u8 codes), the default preset's shape (10 levels x 4 features,
 k = 4, 2 hidden layers of 64), registers per thread, spill store bytes, local stack bytes, compile seconds.
@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 os.environ.pop("TRITON_INTERPRET", None)  # the kernels are compiled, not interpreted: read when Triton is imported
 
-from harness import append_rows, markdown_table, result_path, stamp, write_markdown
+from bench.harness import append_rows, markdown_table, result_path, stamp, write_markdown
 
 TARGET_ARCH, TARGET_SM = 90, "sm_90a"  # Hopper: what the lent cards are
 

@@ -3,7 +3,7 @@ for each model row of bench/results/pays.csv (a preset trained at its own budget
 decimation found to meet that MSE), the decimation is rebuilt (deterministic), encoded compactly, decoded, and scored
 with the product's metric (`harness.product_scorer`: 16 held-out views, 256 px, Embree reference).
 
-    .venv/bin/python bench/bench_compact.py [--storage "t8/w8/n8 n_max=auto:64"]   # -> bench/results/compact.csv
+    .venv/bin/python -m bench.storage.bench_compact [--storage "t8/w8/n8 n_max=auto:64"]   # -> bench/results/compact.csv
 
 Columns: the model's file bytes and MSE (from pays.csv), the decimation's triangles, plain resident bytes (~44 B per
 triangle), compact bytes (exact) and bytes per triangle, the decoded compact mesh's MSE, and the ratios
@@ -14,14 +14,14 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
-from harness import RESULTS, append_rows, product_scorer, read_rows
+from bench.harness import RESULTS, append_rows, product_scorer, read_rows
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def compact_row(pays: dict) -> dict:
     """One pays.csv row -> its compact-mesh comparison."""
-    from bench_meshes import bench_mesh
+    from bench.meshes import bench_mesh
     from nbvh_core.geometry.compact_mesh import compact_mesh
     from nbvh_core.geometry.decimation import decimate
     from nbvh_core.planning.sizing import mesh_resident_bytes

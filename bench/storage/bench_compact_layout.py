@@ -1,6 +1,6 @@
 """The compact ray-traceable mesh's own size and exactness, on real scans and generated shapes.
 
-    .venv/bin/python bench/bench_compact_layout.py --assets bunny dragon48k dragon dragon871k engine spiky gyroid studs
+    .venv/bin/python -m bench.storage.bench_compact_layout --assets bunny dragon48k dragon dragon871k engine spiky gyroid studs
 
 Per asset: bytes per triangle of `compact_mesh.encode_compact` (everything: header, cluster BVH, cluster records,
 positions, topology) and where they go, encode and decode seconds, Draco 11-bit bytes of the same mesh (storage
@@ -12,9 +12,9 @@ from __future__ import annotations
 import argparse
 import time
 
-from bench_meshes import bench_mesh
-from harness import RESULTS, SMOKE, append_row, markdown_table, num, read_rows, write_markdown
-from real_assets import REAL_ASSETS, asset_path
+from bench.meshes import bench_mesh
+from bench.harness import RESULTS, SMOKE, append_row, markdown_table, num, read_rows, write_markdown
+from bench.real_assets import REAL_ASSETS, asset_path
 
 CSV = RESULTS / ("compact_layout_smoke.csv" if SMOKE else "compact_layout.csv")
 

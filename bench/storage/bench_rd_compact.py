@@ -4,8 +4,8 @@ scored on its decoded triangles) and as Draco 11-bit (storage only), beside the 
 preset at its own budget, traceable and packed). One metric for all: the product's `ViewScorer`, 16 held-out orbit
 views at 256 px against the full mesh (Embree).
 
-    .venv/bin/python bench/bench_rd_compact.py [--meshes bunny spiky ...]   # -> bench/results/rd_compact.{csv,png}
-    .venv/bin/python bench/bench_rd_compact.py --chart                      # the chart only, from the CSV
+    .venv/bin/python -m bench.storage.bench_rd_compact [--meshes bunny spiky ...]   # -> bench/results/rd_compact.{csv,png}
+    .venv/bin/python -m bench.storage.bench_rd_compact --chart                      # the chart only, from the CSV
 
 Resumable: one CSV row per (mesh, triangles), appended as it lands.
 """
@@ -14,10 +14,10 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
-from bench_storage import row_format, row_shape
-from harness import RESULTS, append_rows, read_rows, save_figure
+from bench.storage.bench_storage import row_format, row_shape
+from bench.harness import RESULTS, append_rows, read_rows, save_figure
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 OUT = RESULTS / "rd_compact.csv"
 COUNTS = (1000, 4000, 16000, 64000, 256000)
 MESHES = ("bunny", "spiky", "gyroid", "knot", "terrain", "lattice", "gear", "sheet")
@@ -28,7 +28,7 @@ def measure(name: str, done: set) -> None:
     """Append the rows of one mesh's decimations not yet in the CSV."""
     import DracoPy
 
-    from bench_meshes import bench_mesh
+    from bench.meshes import bench_mesh
     from nbvh_core.geometry.compact_mesh import compact_mesh
     from nbvh_core.geometry.exact import ExactTracer
     from nbvh_core.rendering.metrics import ViewScorer

@@ -3,7 +3,7 @@ xz on disk and decoded at load: `nbvh pack`) beside the compact decimation of th
 variants (the compact ray-traceable mesh; that mesh xz'd) and Draco 11-bit of the same decimation (storage only:
 decoded and a BVH built before tracing). One metric for all: `harness.product_scorer` (16 held-out views, 256 px).
 
-    .venv/bin/python bench/bench_storage.py [--meshes bunny spiky knot gyroid] [--preset default] [--seconds 200]
+    .venv/bin/python -m bench.storage.bench_storage [--meshes bunny spiky knot gyroid] [--preset default] [--seconds 200]
         [--table-bits 8|6|4]   (default: the preset's)
 
 The decimation: `geometry.decimation.decimate` (meshoptimizer), bisected on the triangle count until its decoded compact mesh
@@ -18,8 +18,8 @@ import lzma
 import math
 import time
 
-from bench_meshes import named_mesh
-from harness import RESULTS, append_rows, markdown_table, product_scorer, read_rows, save_figure, write_markdown
+from bench.meshes import named_mesh
+from bench.harness import RESULTS, append_rows, markdown_table, product_scorer, read_rows, save_figure, write_markdown
 from nbvh_core.app.pipeline import compress_mesh, preset
 from nbvh_core.geometry.compact_mesh import compact_mesh, encode_compact
 from nbvh_core.geometry.decimation import decimate
@@ -116,7 +116,7 @@ def report(rows: list[dict]) -> None:
               f"{int(r['decimation_compact_bytes']) / int(r['model_bytes']):.2f}x",
               f"{int(r['decimation_draco11_bytes']) / int(r['model_packed_bytes']):.2f}x"] for r in rows]
     write_markdown(RESULTS / "storage.md", [
-        "# Storage bytes: the model's two variants, the compact decimation's two, Draco (bench/bench_storage.py)", "",
+        "# Storage bytes: the model's two variants, the compact decimation's two, Draco (bench/storage/bench_storage.py)", "",
         "Each row: a model trained at its preset's budget, its image MSE on 16 held-out views at 256 px, and the "
         "quadric decimation whose decoded compact mesh reaches that MSE. Ratios above 1: the model is smaller.", "",
         *markdown_table(["mesh", "triangles", "preset", "model MSE", "model (traceable)", "model (xz)",

@@ -1,0 +1,1 @@
+"""Benchmarks of one concern; declared in bench/registry.py."""
