@@ -15,7 +15,9 @@ import numpy as np
 import pytest
 
 from meshes import icosphere
-from nbvh_core.app.library_batch import Row, _cached, discover, run_batch, task_resources
+from nbvh_core.app.library_assets import discover
+from nbvh_core.app.library_batch import Row, _cached, run_batch
+from nbvh_core.app.ray_tasks import task_resources
 from nbvh_core.geometry.mesh import load_mesh
 
 ROOT = Path(__file__).resolve().parents[1]

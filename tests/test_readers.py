@@ -343,7 +343,7 @@ def test_the_fuzz_harness_runs_and_finds_no_failure_in_a_short_run(tmp_path, kin
     import csv
 
     out = tmp_path / "fuzz.csv"
-    r = subprocess.run([sys.executable, str(ROOT / "bench" / "fuzz_files.py"), "--kind", kind, "--cases", str(cases),
+    r = subprocess.run([sys.executable, "-m", "bench.fuzzing.fuzz_files", "--kind", kind, "--cases", str(cases),
                         "--out", str(out)], capture_output=True, text=True, timeout=600, cwd=str(ROOT))
     assert r.returncode == 0, r.stderr[-2000:]
     row = next(csv.DictReader(out.open()))

@@ -49,7 +49,7 @@ def test_the_cli_job_and_batch_take_this_route():
     from pathlib import Path
 
     app = Path(__file__).resolve().parents[1] / "nbvh_core" / "app"
-    for name in ("cli.py", "job.py", "library_batch.py"):
+    for name in ("cli_compress.py", "job.py", "library_batch.py"):
         calls = {n.func.id if isinstance(n.func, ast.Name) else getattr(n.func, "attr", "")
                  for n in ast.walk(ast.parse((app / name).read_text())) if isinstance(n, ast.Call)}
         assert "settings_from_request" in calls, name

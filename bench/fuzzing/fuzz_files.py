@@ -250,7 +250,7 @@ def _text_mutation(name: str, data: bytes, rng, counts: bool) -> bytes:
 
 
 def read_mesh_case(path: Path, mesh) -> str:
-    from nbvh_core.app.library_batch import load_asset
+    from nbvh_core.app.library_assets import load_asset
 
     load_asset(str(path), "m")
     return "read"

@@ -35,7 +35,8 @@ from bench.real_assets import asset_path
 from nbvh_core.geometry.mesh import load_mesh
 from nbvh_core.geometry import demo_assets
 from nbvh_core.geometry.mesh_arrays import mesh_from_npz
-from nbvh_core.geometry.look import hit_labels, seam_distance, seam_edges
+from nbvh_core.geometry.look import hit_labels
+from nbvh_core.geometry.uv_patches import seam_distance, seam_edges
 from nbvh_core.app.pipeline import compress_mesh, preset
 from nbvh_core.rendering.render import orbit_cameras, render_neural, render_reference
 

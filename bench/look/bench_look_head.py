@@ -22,7 +22,7 @@ import torch
 from bench.harness import RESULTS, SMOKE, append_rows
 from nbvh_core.geometry import demo_assets
 from nbvh_core.geometry.exact import ExactTracer
-from nbvh_core.geometry.look import seam_distance, seam_edges
+from nbvh_core.geometry.uv_patches import seam_distance, seam_edges
 from nbvh_core.neural.appearance import AppearanceConfig, finalize_head, make_head
 from nbvh_core.training.appearance_training import SurfaceLabels, train_head
 

@@ -20,24 +20,16 @@ import argparse
 import json
 import sys
 import time
-import warnings
 from pathlib import Path
 
 import numpy as np
 
-from ..protocol import events as wire
+from .cli_common import fmt_bytes, load_mesh_reporting, resolve_mesh
+from .cli_compress import add_compress_parser
 
 
 #: The settings a library batch takes for every asset (as `compress` offers them).
 BATCH_SETTINGS = ("budget_kb", "target_mse", "time_limit_s", "steps", "force")
-
-
-def _resolve_mesh(arg: str) -> Path:
-    from ..geometry.bundled_samples import SAMPLE_NAMES, sample_path
-
-    if arg in SAMPLE_NAMES:
-        return sample_path(arg)
-    return Path(arg)
 
 
 def cmd_inspect(args: argparse.Namespace) -> int:
@@ -52,7 +44,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    mesh = _load_mesh_reporting(args.mesh)
+    mesh = load_mesh_reporting(args.mesh)
     t_load = time.perf_counter() - t0
     print(f"{mesh.name}: {mesh.n_vertices} vertices, {mesh.n_triangles} triangles (loaded in {t_load:.2f} s)")
 
@@ -102,173 +94,6 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     (out / "report.json").write_text(json.dumps(report, indent=2))
     print(f"wrote {out / 'report.json'}, {out / 'reference.png'}, {out / 'leaves.png'}")
     return 0
-
-
-def _load_mesh_reporting(arg: str):
-    from ..geometry.mesh import load_mesh
-
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        mesh = load_mesh(_resolve_mesh(arg))
-    for w in caught:
-        print(f"warning: {w.message}", file=sys.stderr)
-    return mesh
-
-
-def _fmt_bytes(n: int) -> str:
-    return f"{n / 1024:,.1f} KB" if n < 1024 ** 2 else f"{n / 1024 ** 2:,.2f} MB"
-
-
-def cmd_compress(args: argparse.Namespace) -> int:
-    """Train, then write the result bundle (result_bundle: the model, its report, its preview and the mesh's from the
-    same view) as one unit: checked before training (never over the input, never over a finished result without
-    --overwrite, writable), one run per output (outputs.OutputLock), checkpoints every --checkpoint-every seconds
-    (resume with --resume)."""
-    from ..protocol.events import json_lines, progress_bar
-    from ..protocol.outputs import OutputLock, check_outputs, resolve_output
-    from ..protocol.process import outcome
-    from .result_bundle import bundle_paths
-
-    sink = json_lines(sys.stdout) if args.events else progress_bar(sys.stderr)
-    try:
-        mesh_path = _resolve_mesh(args.mesh)
-        mesh = _load_mesh_reporting(args.mesh)
-        out = resolve_output(args.output, mesh.name)
-        paths = bundle_paths(out, ("model", "report", "preview", "reference"))
-        inputs = [mesh_path] + ([Path(args.resume)] if args.resume else [])
-        check_outputs(list(paths.values()), inputs, overwrite=args.overwrite)
-        with OutputLock(out):
-            return _compress_locked(args, mesh, mesh_path, paths, sink)
-    except BaseException as exc:  # the event stream says how the run ended, whatever ended it
-        if args.events:
-            sink(wire.error(kind=outcome(exc).kind, message=str(exc)))
-        raise
-
-
-def _write_alternative(mesh, assessment, stem: Path, mesh_path: Path, args, sink, decimator=None) -> None:
-    """When the verdict keeps a mesh, the user gets the mesh that wins, beside where the model would have gone
-    (`kept_mesh.kept_mesh_files`: NAME.glb with its look, NAME.compact.cmsh of exactly the bytes the verdict counted;
-    written atomically; an existing file only with --overwrite), and why, as NAME.verdict.json: the assessment with
-    the measured alternatives, the final verdict, the training's checks when training had begun, each file's
-    bytes and the kept decimation's quality with its look (`kept_mesh.kept_quality`: FLIP, colour and image MSE on
-    the held-out views; no model report: no model was written)."""
-    from ..protocol.outputs import check_outputs, write_atomic
-    from .alternatives import winning_decimation
-    from .kept_mesh import counted_compact_bytes, kept_mesh_files, kept_quality
-    from .pipeline import memory_record
-
-    dec = winning_decimation(mesh, assessment, decimator)  # once: the files and the quality read the same mesh
-    files = {Path(f"{stem}{suffix}"): data for suffix, data in kept_mesh_files(mesh, assessment, dec).items()}
-    why = {**assessment.to_dict(), "files": {p.name: len(d) for p, d in files.items()},
-           "counted_compact_bytes": counted_compact_bytes(assessment), "kept_quality": kept_quality(mesh, dec),
-           "memory": memory_record(mesh)}
-    files[Path(f"{stem}.verdict.json")] = json.dumps(why, indent=1, default=str).encode()
-    for path, data in files.items():
-        try:
-            check_outputs([path], [mesh_path], overwrite=args.overwrite)
-        except ValueError as exc:  # an earlier result there: kept unless --overwrite
-            print(f"the winning mesh was not written: {exc}", file=sys.stderr)
-            continue
-        write_atomic(path, data)
-        if path.suffix == ".json":
-            print(f"why: {path}", file=sys.stderr)
-            continue
-        if args.events:
-            sink(wire.written(files=[str(path)], kind="decimation" if dec is not None else "mesh",
-                              triangles=(dec or mesh).n_triangles))
-        final = assessment.final
-        reached = ("reaches the model's measured quality" if final and not final.get("at_level")
-                   else "meets the target")
-        what = (f"the decimation that {reached} ({dec.n_triangles:,} triangles, MSE "
-                f"{assessment.alternatives['decimation']['compact_mse']:.4g})" if dec is not None else "the mesh")
-        print(f"kept as a mesh: wrote {what} to {path} ({len(data):,} B)", file=sys.stderr)
-
-
-def _compress_locked(args, mesh, mesh_path, paths, sink) -> int:
-    from .cli_options import request_from_args
-    from ..protocol.outputs import checkpoint_for
-    from .pipeline import compress_mesh, resume_settings
-    from ..protocol.process import NotWorthCompressing, install_cancel_handlers
-    from ..planning.settings import settings_from_request
-    from ..rendering.render import orbit_cameras
-    from ..protocol.quality_levels import QUALITY_LEVELS
-    from .result_bundle import View, make_bundle, write_bundle
-
-    out = paths["model"]
-    stem = out.with_suffix("")
-
-    if args.resume:
-        settings = resume_settings(args.resume, mesh)
-        print(f"resuming {args.resume}: T=2^{settings.log2_table}, {settings.nodes} nodes, "
-              f"{settings.encoding}+{settings.network}", file=sys.stderr)
-    else:
-        spec = {**request_from_args(args), "preset": args.preset}
-        if args.float16:
-            spec.update(table_bits=16, network_bits=16)
-        if args.quality:
-            spec["target_mse"] = QUALITY_LEVELS[args.quality]
-        settings = settings_from_request(spec)
-    settings = settings.with_overrides(force=args.force, checkpoint_every_s=args.checkpoint_every_s)
-    default_ck = checkpoint_for(out)
-    checkpoint = Path(args.checkpoint) if args.checkpoint else default_ck
-    try:
-        result = compress_mesh(mesh, settings, None, events=sink, should_cancel=install_cancel_handlers(),
-                               checkpoint_path=checkpoint, resume_from=args.resume)
-    except NotWorthCompressing as exc:
-        _write_alternative(mesh, exc.assessment, stem, mesh_path, args, sink, exc.decimator)
-        raise
-    except BaseException:
-        if checkpoint.exists():
-            print(f"\ntraining state kept in {checkpoint}: continue with "
-                  f"`nbvh compress {args.mesh} -o {out} --resume {checkpoint}`", file=sys.stderr)
-        raise
-    cam = orbit_cameras(1)[0] if args.view is None else orbit_cameras(args.eval_views or 16)[args.view]
-    bundle = make_bundle(result, mesh, View(cam, args.size, args.size), tuple(paths),
-                         extra={"source_file_bytes": mesh_path.stat().st_size})
-    write_bundle(paths, bundle)  # the model, its report and its previews appear together, or the previous ones stay
-    summary = bundle.report
-    if checkpoint == default_ck or args.resume == str(checkpoint):
-        checkpoint.unlink(missing_ok=True)
-    if args.events:
-        sink(wire.written(files=[str(p) for p in paths.values()]))
-    else:
-        _print_result(result, summary, out, paths)
-    return 0
-
-
-def _print_result(result, summary: dict, out: Path, paths: dict) -> None:
-    """What `compress` prints when it wrote its files: the verdict against the strongest alternative first, the
-    bytes, the whole mesh held compactly and plainly, the quality (geometry, and the file as shipped with its
-    look), the training and why."""
-    q = result.quality
-    print(f"\nwrote {out} ({_fmt_bytes(result.file_bytes)}) and, beside it, "
-          f"{', '.join(p.name for role, p in paths.items() if role != 'model')}")
-    final = (result.decisions or {}).get("final")
-    if final:  # the strongest alternative first: the compact decimation at the model's own measured MSE
-        print(f"verdict: {final['message']}")
-    print("bytes: " + ", ".join(f"{k} {v:,}" for k, v in result.components.items()))
-    resident = summary['mesh_resident_bytes']['total']
-    compact = result.assessment.get("compact_bytes")
-    held = [f"as a compact mesh {compact:,} B ({compact / result.file_bytes:.2f}x the model)"] if compact else []
-    held.append(f"as a ray tracer holds it {resident:,} B ({resident / result.file_bytes:.1f}x the model)")
-    print("the whole mesh: " + "; ".join(held))
-    draco = result.assessment.get("alternatives", {}).get("draco11_bytes")
-    if draco:
-        print(f"the mesh as a Draco 11-bit file (storage and transfer only; decoded before tracing): {draco:,} B")
-    if q:
-        print(f"quality ({q.views} {'held-out ' if q.held_out else ''}views, {q.resolution}px): MSE {q.mse:.5f}, "
-              f"silhouette IoU {q.silhouette_iou:.4f}, depth error {q.depth_error:.5f} (unit box)")
-    s = result.quality_as_shipped
-    if s is not None and s.colour_mse is not None:
-        print(f"the file as shipped, its look included ({s.views} held-out views, {s.resolution}px): colour MSE "
-              f"{s.colour_mse:.5f}, FLIP {s.flip:.4f}")
-    t = result.training
-    print(f"training: {t.steps} steps, {t.seconds:.1f} s, {t.samples_per_s:,.0f} samples/s on {t.device}")
-    print(f"why: {result.why}")
-    if result.target_met is not None:
-        print(f"target {'met' if result.target_met else 'MISSED'}: MSE {q.mse:.5f} vs {result.settings.target_mse:g}")
-    if not result.assessment["worth_compressing"]:
-        print(f"note: {result.assessment['message']}")
 
 
 def cmd_render(args: argparse.Namespace) -> int:
@@ -327,16 +152,16 @@ def cmd_info(args: argparse.Namespace) -> int:
            "source": meta.get("source"), "training": meta.get("training"), "quality": meta.get("quality"),
            "appearance": info.header.fields.get("appearance"), "textures": info.textures}
     if args.mesh:
-        mesh = _load_mesh_reporting(args.mesh)
+        mesh = load_mesh_reporting(args.mesh)
         res = mesh_resident_bytes(mesh)
         out["mesh_resident_bytes"] = res
         out["ratio_resident_mesh_to_nbvh"] = res["total"] / info.total_bytes
-        out["source_file_bytes"] = _resolve_mesh(args.mesh).stat().st_size
+        out["source_file_bytes"] = resolve_mesh(args.mesh).stat().st_size
         out["ratio_source_file_to_nbvh"] = out["source_file_bytes"] / info.total_bytes
     if args.json:
         print(json.dumps(out, indent=2))
         return 0
-    print(f"{info.path}: {_fmt_bytes(info.total_bytes)} ({info.total_bytes:,} B)"
+    print(f"{info.path}: {fmt_bytes(info.total_bytes)} ({info.total_bytes:,} B)"
           + (f"; on disk {info.stored_bytes:,} B packed (xz, decoded at load)" if info.stored_bytes != info.total_bytes
              else ""))
     for k, v in info.components.items():
@@ -374,7 +199,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from ..rendering.metrics import evaluate
 
     model = load_nbvh(args.model)
-    mesh = _load_mesh_reporting(args.mesh)
+    mesh = load_mesh_reporting(args.mesh)
     src = model.metadata.get("source", {})
     if src and src.get("triangles") not in (None, mesh.n_triangles):
         print(f"warning: the model was trained on a mesh of {src['triangles']} triangles, this one has "
@@ -404,7 +229,7 @@ def cmd_plan(args: argparse.Namespace) -> int:
     from ..planning.settings import preset
     from ..planning.sizing import plan_scene
 
-    meshes = [_load_mesh_reporting(m) for m in args.meshes]
+    meshes = [load_mesh_reporting(m) for m in args.meshes]
     plan = plan_scene(meshes, args.budget_kb * 1024, preset(args.preset).with_overrides(mesh_layout=args.mesh_layout),
                       args.weights)
     rows = [{"mesh": r["name"], **{k: v for k, v in r.items() if k != "name"}} for r in plan["objects"]]
@@ -445,8 +270,8 @@ def cmd_batch(args: argparse.Namespace) -> int:
     if not args.events:
         t = summary["totals"]
         print(f"\n{t['assets']} assets: " + ", ".join(f"{k} {v}" for k, v in sorted(t["by_status"].items())))
-        print(f"resident memory {_fmt_bytes(t['resident_before_bytes'])} -> {_fmt_bytes(t['resident_after_bytes'])} "
-              f"(saved {_fmt_bytes(t['saved_bytes'])}); model files {_fmt_bytes(t['model_storage_bytes'])}")
+        print(f"resident memory {fmt_bytes(t['resident_before_bytes'])} -> {fmt_bytes(t['resident_after_bytes'])} "
+              f"(saved {fmt_bytes(t['saved_bytes'])}); model files {fmt_bytes(t['model_storage_bytes'])}")
         print(f"report: {summary['html']} (+ report.csv, report.json)")
     return 0
 
@@ -460,34 +285,6 @@ def _add_inspect_parser(sub) -> None:
     q.add_argument("--seed", type=int, default=0)
     q.add_argument("--size", type=int, default=384, help="image size in pixels")
     q.set_defaults(func=cmd_inspect)
-
-
-def _add_compress_parser(sub) -> None:
-    from .cli_options import add_setting_options
-    from ..protocol.quality_levels import QUALITY_LEVELS
-    from ..protocol.quality_levels import describe as describe_levels
-    from ..planning.settings import PRESETS
-
-    c = sub.add_parser("compress", help="train a neural model of a mesh and write OUT.nbvh")
-    c.add_argument("mesh")
-    c.add_argument("-o", "--output", required=True,
-                   help="output .nbvh file (+ .report.json, .preview.png, .reference.png beside it)")
-    c.add_argument("--preset", choices=list(PRESETS),
-                   help="named fixed settings (preview, default, high; the options below override single fields); "
-                        "without a preset or a size the run is sized to the quality level standard: the verdict "
-                        "first, then one training that grows its table until the level is met")
-    add_setting_options(c, group_extras={"size": lambda g: g.add_argument(  # every Settings field declared with help
-        "--quality", choices=list(QUALITY_LEVELS), help=f"a named target: {describe_levels()}")})
-    c.add_argument("--float16", action="store_true", help="store tables and weights as float16 (= --table-bits 16)")
-    c.add_argument("--view", type=int, help="orbit view index of the preview image")
-    c.add_argument("--size", type=int, default=256, help="preview image size")
-    c.add_argument("--checkpoint", help="checkpoint file written during training (default: .OUT.nbvh.checkpoint "
-                                        "beside the output, removed when the run finishes)")
-    c.add_argument("--resume", metavar="CHECKPOINT", help="continue the training a checkpoint holds (same mesh; its "
-                                                         "settings are used)")
-    c.add_argument("--overwrite", action="store_true", help="replace an existing result at -o")
-    c.add_argument("--events", action="store_true", help="print JSON-line events on stdout instead of a bar")
-    c.set_defaults(func=cmd_compress)
 
 
 def _add_render_parser(sub) -> None:
@@ -587,7 +384,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "also env NBVH_PATH")
     sub = p.add_subparsers(dest="command", required=True)
     _add_inspect_parser(sub)
-    _add_compress_parser(sub)
+    add_compress_parser(sub)
     _add_render_parser(sub)
     _add_info_parser(sub)
     _add_eval_parser(sub)

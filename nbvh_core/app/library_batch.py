@@ -34,28 +34,11 @@ from typing import Callable
 
 from ..protocol.events import EventSink, null_sink
 from ..protocol import events as wire
-from ..geometry.mesh import SUPPORTED_EXTENSIONS
-from ..geometry.mesh_arrays import mesh_from_npz
+from .library_assets import Asset, discover, load_asset
+from .ray_tasks import cluster_info, require_ray, run_tasks, start_ray, task_resources
 from ..planning.settings import settings_from_request
 
-#: Files a folder library is searched for (plus .gz variants of the mesh formats).
-ARRAY_EXTENSION = ".npz"
-BLEND_EXTENSION = ".blend"
-#: Ray retries a task whose worker died this many times (an exception inside a task is a result, not retried).
-MAX_RETRIES = 2
 THUMBNAIL_PX = 96
-
-
-@dataclass
-class Asset:
-    """One library entry. name: unique in the library (its path relative to LIBRARY, '/' -> '__', and for a
-    .blend object ':OBJECT'); path: the mesh file (or the exported .npz); source: what the user has (the file, or
-    'FILE.blend:OBJECT')."""
-
-    name: str
-    path: str
-    source: str
-    error: str | None = None  # set when the asset could not even be listed (a .blend without Blender)
 
 
 @dataclass
@@ -119,73 +102,6 @@ class Row:
 
 
 # ------------------------------------------------------------------------------------------------ discovery
-def _is_mesh_file(p: Path) -> bool:
-    suffixes = [s.lower() for s in p.suffixes]
-    if suffixes and suffixes[-1] == ".gz":
-        suffixes = suffixes[:-1]
-    return bool(suffixes) and suffixes[-1] in SUPPORTED_EXTENSIONS + (ARRAY_EXTENSION,)
-
-
-def _asset_name(path: Path, root: Path, keep_suffix: bool = False) -> str:
-    """The path relative to the library, '/' -> '__', without its format suffixes (.ply.gz) unless asked."""
-    try:
-        rel = path.relative_to(root)
-    except ValueError:
-        rel = Path(path.name)
-    text = str(rel)
-    if not keep_suffix:
-        stem = rel.name.split(".")[0] or rel.name
-        text = str(rel.with_name(stem))
-    return text.replace(os.sep, "__")
-
-
-#: A library list file names one asset per line: 16 MB is ~100,000 paths.
-MAX_LIST_BYTES = 16 << 20
-
-
-def discover(library: Path, work_dir: Path, blender: str | None = None) -> list[Asset]:
-    """The assets of `library` (a folder or a list file, see the module docstring), in a stable order; .blend files
-    are exported into `work_dir/blend/`. Raises ValueError when LIBRARY does not exist or lists nothing."""
-    from .blend_export import export_blend
-
-    library = Path(library)
-    if library.is_dir():
-        root, files = library, sorted(p for p in library.rglob("*") if p.is_file() and not p.name.startswith("."))
-        files = [p for p in files if _is_mesh_file(p) or p.suffix.lower() == BLEND_EXTENSION]
-    elif library.is_file():
-        if library.stat().st_size > MAX_LIST_BYTES:
-            raise ValueError(f"{library}: a library list is at most {MAX_LIST_BYTES} bytes (one path per line)")
-        root = library.parent
-        lines = [ln.strip() for ln in library.read_text().splitlines()]
-        files = [(root / ln) if not Path(ln).is_absolute() else Path(ln) for ln in lines if ln and not ln.startswith("#")]
-    else:
-        raise ValueError(f"{library}: no such folder or list file")
-    assets = []
-    stems = [_asset_name(p, root) for p in files]
-    for p, stem in zip(files, stems):
-        name = stem if stems.count(stem) == 1 else _asset_name(p, root, keep_suffix=True)  # blob.ply beside blob.obj
-        if p.suffix.lower() != BLEND_EXTENSION:
-            assets.append(Asset(name=name, path=str(p), source=str(p)))
-            continue
-        try:
-            digest = hashlib.sha256(str(p.resolve()).encode()).hexdigest()[:10]
-            for obj, npz in export_blend(p, work_dir / "blend" / f"{p.stem}-{digest}", blender):
-                assets.append(Asset(name=f"{name}:{obj}", path=str(npz), source=f"{p}:{obj}"))
-        except ValueError as exc:
-            assets.append(Asset(name=name, path=str(p), source=str(p), error=str(exc)))
-    if not assets:
-        raise ValueError(f"{library}: no mesh files found (looked for {', '.join(SUPPORTED_EXTENSIONS)}, "
-                         f"{ARRAY_EXTENSION}, {BLEND_EXTENSION})")
-    return assets
-
-
-def load_asset(path: str, name: str):
-    """The asset's mesh (a mesh file, or an .npz with `vertices` and `faces`). Raises ValueError (MeshError)."""
-    from ..geometry.mesh import load_mesh
-
-    if path.lower().endswith(ARRAY_EXTENSION):
-        return mesh_from_npz(path, name)
-    return load_mesh(path)
 
 
 # -------------------------------------------------------------------------------------------- the two tasks
@@ -287,60 +203,11 @@ def _decimation_fields(mesh, assessment, decimator=None) -> dict:
             "decimation_compact_bytes": counted_compact_bytes(assessment)}
 
 
-def task_resources(triangles: int, cluster: dict) -> dict:
-    """Ray resources of one training task: 1 CPU below 300k triangles, 2 above (at most what one node has), memory
-    ~1 GB + 3 KB per triangle (the Embree scene, the labels, the model), a GPU when the cluster has one."""
-    max_cpus = max(1, int(cluster.get("max_node_cpus", 1)))
-    cpus = min(max_cpus, 1 if triangles < 300_000 else 2)
-    memory = int(1e9 + 3e3 * triangles)
-    memory = min(memory, int(cluster.get("max_node_memory", memory)))
-    res = {"num_cpus": cpus, "memory": memory}
-    if cluster.get("GPU", 0) >= 1:
-        res["num_gpus"] = 1
-    return res
-
-
 # ------------------------------------------------------------------------------------------------ the driver
 def _safe(name: str) -> str:
     import re
 
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", name)[:120]
-
-
-def require_ray():
-    """The ray module, or a clear ValueError naming the pinned version to install (exit code 2, not a crash)."""
-    try:
-        import ray
-    except ImportError:
-        raise ValueError("nbvh batch runs on Ray, which is not installed in this Python: "
-                         "pip install ray==2.60.0 (or rerun the add-on's Install Dependencies)") from None
-    return ray
-
-
-def _start_ray(address: str | None, num_cpus: int | None) -> bool:
-    """Connect to `address` or start an embedded Ray; True when this call started it (and must shut it down)."""
-    ray = require_ray()
-
-    if ray.is_initialized():
-        return False
-    kw = dict(include_dashboard=False, log_to_driver=False, configure_logging=False)
-    if address:
-        ray.init(address=address, **kw)
-    else:
-        ray.init(num_cpus=num_cpus, **kw)
-    return True
-
-
-def cluster_info() -> dict:
-    """The cluster's totals (CPU, GPU, memory) and the largest node's CPUs and memory (a task must fit one node)."""
-    import ray
-
-    total = ray.cluster_resources()
-    nodes = [n for n in ray.nodes() if n.get("Alive")]
-    res = [n.get("Resources", {}) for n in nodes]
-    return {"CPU": total.get("CPU", 1), "GPU": total.get("GPU", 0), "nodes": len(nodes),
-            "max_node_cpus": max((r.get("CPU", 0) for r in res), default=1),
-            "max_node_memory": max((r.get("memory", 0) for r in res), default=0) or int(4e9)}
 
 
 def _cached(out: Path, key: str) -> dict | None:
@@ -355,37 +222,6 @@ def _cached(out: Path, key: str) -> dict | None:
         return result if model.is_file() and model.stat().st_size == result["model_bytes"] else None
     except (OSError, ValueError, KeyError, TypeError):
         return None
-
-
-def _run_tasks(remote, jobs: list[tuple[str, tuple, dict]], phase: str, on_result, events: EventSink,
-               should_cancel: Callable[[], bool]) -> None:
-    """Submit `jobs` [(row name, args, ray options)] in order; call on_result(name, result dict) as each ends (a
-    task whose worker died more than MAX_RETRIES times ends as a failure); progress events with an ETA; raises
-    process.Cancelled (after cancelling what is left) when should_cancel() turns true."""
-    import ray
-
-    from ..protocol.process import Cancelled
-
-    pending = {remote.options(max_retries=MAX_RETRIES, **opts).remote(*args): name for name, args, opts in jobs}
-    total, done, t0 = len(jobs), 0, time.perf_counter()
-    while pending:
-        if should_cancel():
-            for ref in pending:
-                ray.cancel(ref, force=True)
-            raise Cancelled(f"cancelled in the {phase} phase with {total - done} of {total} assets left")
-        ready, _ = ray.wait(list(pending), num_returns=1, timeout=0.5)
-        for ref in ready:
-            name = pending.pop(ref)
-            try:
-                result = ray.get(ref)
-            except ray.exceptions.RayError as exc:  # the worker died on every try, or the task was lost
-                result = {"name": name, "status": "failed", "error": f"{type(exc).__name__}: {str(exc)[:300]}"}
-            done += 1
-            on_result(name, result)
-        elapsed = time.perf_counter() - t0
-        eta = elapsed / done * (total - done) if done else None
-        events(wire.progress(phase=phase, done=done, total=total, fraction=round(done / total, 4) if total else 1.0,
-                             elapsed_s=round(elapsed, 1), eta_s=None if eta is None else round(eta, 1)))
 
 
 class _Library:
@@ -500,14 +336,14 @@ def _run_locked(library: Path, out: Path, spec: dict, events: EventSink, should_
 
     t0 = time.time()
     assets = discover(library, out / ".work", blender)
-    started = _start_ray(address, num_cpus)
+    started = start_ray(address, num_cpus)
     try:
         cluster = cluster_info()
         lib = _Library(out, assets, spec, events, {"library": str(library), "settings": spec, "cluster": cluster,
                                                    "started": time.strftime("%Y-%m-%dT%H:%M:%S")})
         events(wire.phase(phase="measure", message=f"{len(assets)} assets on {cluster['nodes']} node(s),"
                                                    f" {cluster['CPU']:g} CPUs: measuring"))
-        _run_tasks(ray.remote(measure_asset), [(a.name, (asdict(a), spec), {"num_cpus": 1}) for a in assets],
+        run_tasks(ray.remote(measure_asset), [(a.name, (asdict(a), spec), {"num_cpus": 1}) for a in assets],
                    "measure", lib.measured, events, should_cancel)
         lib.info["measured_s"] = round(time.time() - t0, 1)
         lib.write_report()  # the first version: every verdict, before any training
@@ -551,4 +387,4 @@ def _train_worth(lib: _Library, cluster: dict, spec: dict, events: EventSink, sh
                                                  "in an earlier run (same mesh and settings): kept"))
     events(wire.phase(phase="train", message=f"training {len(jobs)} of {len(lib.rows)} assets "
                                              "(the ones worth compressing), largest savings first"))
-    _run_tasks(ray.remote(compress_asset), jobs, "train", lib.trained, events, should_cancel)
+    run_tasks(ray.remote(compress_asset), jobs, "train", lib.trained, events, should_cancel)

@@ -156,7 +156,8 @@ def _safe(name: str) -> str:
 
 def serve(frames: Path, stdin=None, stdout=None) -> int:
     """Answer requests until quit or end of input. Returns the exit code (0)."""
-    from ..rendering.scene_render import SceneRenderer, SceneSpec
+    from ..rendering.scene_render import SceneRenderer
+    from ..rendering.scene_spec import SceneSpec
 
     frames.mkdir(parents=True, exist_ok=True)
     sink = json_lines(stdout or sys.stdout)

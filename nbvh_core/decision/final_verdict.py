@@ -14,7 +14,7 @@ from .records import FinalVerdict
 SETTLE_TRIES = 24
 SETTLE_STEP = 2 ** 0.5
 #: A line between measured decimations (x2 apart) decides a verdict either way: on the CAD engine
-#: (bench/bench_shipped.py) the product's line put the decimation at the model's MSE at 1.14x the 310,580 B model
+#: (bench/decision/bench_shipped.py) the product's line put the decimation at the model's MSE at 1.14x the 310,580 B model
 #: and the benchmark's line at 0.88x; the error falls steeply between 45k and 64k triangles. So a model the line
 #: favours by less than this factor is checked by measuring the largest decimation smaller than its file (there:
 #: 55k triangles, 0.0060 against the model's 0.0055 in 349 KB with the look's bytes: the model stood).

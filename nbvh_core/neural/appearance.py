@@ -6,7 +6,7 @@ where on the surface it is, so it is a field over points, queried once per hit p
     point (N, 3) in [0, 1]^3 -> HashGrid features (L * F) ++ point -> MLP -> patch logits (P), residual (2)
     slot = patch_slot[patch];  uv = affine[patch] @ (point, 1) + tanh(residual) * fit_error[patch]
 
-Seams are handled by classification, not regression: the surface is cut into patches (`look.uv_patches`: one
+Seams are handled by classification, not regression: the surface is cut into patches (`uv_patches.uv_patches`: one
 per UV island and slot, curved islands cut further until an affine map of position fits their coordinates) and
 the head names the patch a hit lies on. A regression across a seam would blur two islands' coordinates into
 texels of neither; a wrong class lands on the neighbouring patch, whose map is continuous with this one unless a
@@ -14,7 +14,7 @@ seam runs between them. Planar-projected islands (Blender's Smart UV Project, bo
 affine, so there the coordinates are exact wherever the patch is right; curved maps (a sphere's
 equirectangular, a torus) leave a residual the network regresses (L1), bounded by the patch's fit error (so an
 exact patch stays exact whatever the network outputs) and far smaller than the coordinates.
-Measured on the generated assets (bench/bench_look.py): the full-coordinate regression this replaces held
+Measured on the generated assets (bench/look/bench_look.py): the full-coordinate regression this replaces held
 18-34% of hits within half a 512 px texel after 20-30 s; see docs/results.md for the patch head.
 Its training, on exact labels at traced hits, is `training/appearance_training.py`.
 
@@ -36,7 +36,7 @@ from .encodings import EncodingConfig, make_encoding
 @dataclass
 class AppearanceConfig:
     """The head's architecture. slots: the asset's material slots; patches: the classes it tells apart
-    (`look.uv_patches`; at most max_patches unless the islands alone are more); uv: whether it regresses
+    (`uv_patches.uv_patches`; at most max_patches unless the islands alone are more); uv: whether it regresses
     coordinates; levels x 2^log2_table rows of `features` floats at resolutions n_min..n_max; `hidden` layers of
     `width`. patch_tolerance: the affine fit a curved island is cut to (normalised UV units; 1/2048 = a quarter
     texel at 512 px). target: "coordinates" (slot and texture coordinates; the images stay in the file) or
@@ -88,7 +88,7 @@ class AppearanceConfig:
 
 class AppearanceHead(nn.Module):
     """points (N, 3) normalised -> patch logits (N, P) and coordinate residuals (N, 2); `predict` turns them into
-    slots and coordinates with the buffers `affine` (P, 2, 5) and `patch_slot` (P,) (`look.uv_patches`)."""
+    slots and coordinates with the buffers `affine` (P, 2, 5) and `patch_slot` (P,) (`uv_patches.uv_patches`)."""
 
     def __init__(self, cfg: AppearanceConfig, inference: bool = False):
         super().__init__()
@@ -127,7 +127,7 @@ class AppearanceHead(nn.Module):
                   ) -> torch.Tensor:
         """(N, 2) coordinates of each patch's affine map at points (N, 3), plus the raw residual (N, 2) squashed
         to the patch's fit error when given."""
-        from ..geometry.look import patch_basis
+        from ..geometry.uv_patches import patch_basis
 
         a = self.affine[patch]
         uv = torch.einsum("nij,nj->ni", a[:, :, :-1], patch_basis(points, self.cfg.patch_degree))
@@ -168,8 +168,8 @@ class AppearanceHead(nn.Module):
 
 def make_head(mesh: Mesh, base: AppearanceConfig | None = None) -> tuple[AppearanceHead, np.ndarray] | None:
     """The untrained head a mesh's look needs and its faces' patches (F,), or None (a plain look needs none):
-    `base`'s sizes with the look's slots, patches (`look.uv_patches`, their maps in the head's buffers) and uv."""
-    from ..geometry.look import uv_patches
+    `base`'s sizes with the look's slots, patches (`uv_patches.uv_patches`, their maps in the head's buffers) and uv."""
+    from ..geometry.uv_patches import uv_patches
 
     look = mesh.look
     if look is None or look.plain:
@@ -218,6 +218,6 @@ def finalize_head(head: AppearanceHead, table_bits: int, network_bits: int) -> N
 
 def map_width(degree: int) -> int:
     """Numbers per coordinate of a patch map: the basis (4, 10 or 20) and the fit error."""
-    from ..geometry.look import PATCH_BASIS_SIZE
+    from ..geometry.uv_patches import PATCH_BASIS_SIZE
 
     return PATCH_BASIS_SIZE[degree] + 1

@@ -58,7 +58,7 @@ class NetworkConfig:
 
     normal_loss: 'oriented' (default) - the L1 to the target normal as given (the mesh's winding, or facing the ray
     when the trainer labels so: TrainConfig.normal_loss 'facing'); 'unoriented' - the L1 to the nearer of +-target (the
-    surface's line only; measured worse than facing targets, bench/bench_table5.py).
+    surface's line only; measured worse than facing targets, bench/quality/bench_table5.py).
     """
 
     kind: str = "kmlp"

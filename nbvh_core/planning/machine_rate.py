@@ -22,7 +22,7 @@ from pathlib import Path
 #: x86_64 VM, fast path: 343k, 351k and 356k in three probes, 0.8 s each after the first's 2.9 s).
 REFERENCE_SAMPLES_PER_S = 350_000.0
 PROBE_STEPS = 150
-#: The predictor's budget term was fitted on 15-600 s trainings (bench/fit_budget.py): a faster machine's budget is
+#: The predictor's budget term was fitted on 15-600 s trainings (bench/fitting/fit_budget.py): a faster machine's budget is
 #: read as at most this many reference seconds, never extrapolated further.
 MAX_REFERENCE_BUDGET_S = 600.0
 

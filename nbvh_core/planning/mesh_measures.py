@@ -80,7 +80,7 @@ N_MAX_RANGE = (64, 1024)
 RESOLVED_ROUGHNESS = 0.01
 DETAIL_FACTOR = 2
 #: The finest level may touch at most TABLE_LOAD x T surface cells: beyond that its vertices collide in the T rows
-#: faster than they add detail. Measured (bench/bench_resolution.py; default preset, T=2^12, 1,500 steps, image
+#: faster than they add detail. Measured (bench/quality/bench_resolution.py; default preset, T=2^12, 1,500 steps, image
 #: MSE at N_max 32 / 64 / 128 / 256): bunny 0.00123 / 0.00120 / 0.00138 / 0.00171 (surface cells at 64: 3.1 T, at
 #: 128: 11 T), knot - / 0.00074 / 0.00079 / - (1.4 T, 5.2 T), gyroid 0.0095 / 0.0096 / 0.0114 / -, blob - / 0.00040 /
 #: 0.00059 / -, studs - / 0.0168 / 0.0172 / 0.0225, lattice - / 0.0545 / 0.0595 / 0.0596: every mesh measured, the

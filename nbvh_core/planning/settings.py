@@ -25,13 +25,13 @@ from ..storage.layout import payload_bytes
 
 
 NORMAL_LOSSES = ("facing", "oriented", "unoriented")
-#: Each network's normal targets, by measurement (bench/error_split.py, 1,000-1,200 equal steps, image MSE):
+#: Each network's normal targets, by measurement (bench/quality/error_split.py, 1,000-1,200 equal steps, image MSE):
 #: the MLP fails with facing targets where a surface is seen from both sides (terrain, HashGrid T=2^11, two seeds:
 #: 0.053 / 0.054 facing, half the pixels' normals > 18 degrees off; 0.0028 / 0.0033 as wound) and gains as wound on
 #: closed meshes at the default preset's 200 s (bunny 0.00039 vs 0.00049, spiky 0.00042 vs 0.00064, two sessions);
 #: KMLP, whose pair network sees the segment's two ends in order, keeps facing normals right on the terrain (1.7% off)
 #: and loses silhouettes as wound (III T=2^9: 0.0017 facing vs 0.0068 wound, IoU 0.986 vs 0.911; spiky 0.0017 vs
-#: 0.0048, bench/bench_table5.py).
+#: 0.0048, bench/quality/bench_table5.py).
 NORMAL_LOSS_BY_NETWORK = {"mlp": "oriented", "kmlp": "facing"}
 #: The paper's finest grid resolution (every model); the user presets choose theirs from the mesh.
 PAPER_N_MAX = 128
@@ -148,7 +148,7 @@ class Settings:
     appearance_share: float = knob(0.15, limits=(0.0, 0.9))
     appearance_log2_table: int = knob(AppearanceConfig.log2_table, limits=(4, 20))
     #: "coordinates": the head answers slot and texture coordinates, the images are kept in the file; "colour": it
-    #: learns the textured colour itself and no image is stored (appearance.py; bench/bench_look.py compares them).
+    #: learns the textured colour itself and no image is stored (appearance.py; bench/look/bench_look.py compares them).
     appearance_target: str = knob(AppearanceConfig.target, choices=TARGETS, flag="--appearance",
                                   help="textured assets: 'coordinates' (default: the head answers slot and texture "
                                        "coordinates, the images are kept) or 'colour' (it learns the textured "
@@ -250,7 +250,7 @@ PRESETS: dict[str, Settings] = {
     # in the bytes of 8 levels at 8 (bunny, 200 s: 0.000320 / 0.000334 in 91,172 B against 0.000376 in 93,156 B;
     # at 60 s 4-8% lower on the dragon, gyroid and knot, within 2% on the terrain and spiky). The grid's finest
     # resolution follows the mesh and the table (n_max None: `mesh_measures.choose_resolution`; N_max 64 beat the
-    # paper's 128 by 13-32% at T=2^12, bench/bench_resolution.py).
+    # paper's 128 by 13-32% at T=2^12, bench/quality/bench_resolution.py).
     "preview": Settings(encoding="hashgrid", network="mlp", nodes=1023, log2_table=10, levels=10, features=4,
                         hidden=2, k=4, table_bits=6, network_bits=8, n_max=None, steps=None, time_limit_s=60.0,
                         eval_views=8),

@@ -6,7 +6,7 @@
 * **Cheap predictor** (`mesh_features`, `predict_mse`): image MSE after training as a linear function in log
   space of the table size log2 T, properties of the mesh (how much its normals vary locally, triangle count) and
   the training budget (ln budget, and its product with log2 T: a larger table gains more from a longer budget),
-  fitted on 84 measurements at 15-600 s by bench/fit_budget.py, then shifted to the presets' present shape by its own
+  fitted on 84 measurements at 15-600 s by bench/fitting/fit_budget.py, then shifted to the presets' present shape by its own
   rows (`SizeFit.shape_shift`; bench/results/sizing_budget.md: leave-one-mesh-out errors); coefficients in
   sizing_fit.json.
 * **Choice** (`resolve`, `choose_table_and_nodes`): a byte budget or a quality target turned into sizes: the
@@ -36,7 +36,7 @@ from .machine_rate import reference_budget_s, work_ratio
 from .settings import PAPER_N_MAX, PRESETS, Settings, estimate_file_bytes
 
 FIT_PATH = Path(__file__).with_name("sizing_fit.json")
-#: Table sizes the chooser considers (log2 T): the range the predictor was fitted on (bench/fit_budget.py: the
+#: Table sizes the chooser considers (log2 T): the range the predictor was fitted on (bench/fitting/fit_budget.py: the
 #: default preset's method at 2^8..2^13).
 LOG2_RANGE = range(8, 14)
 #: BVH node counts the chooser considers (the node effect is fitted at these counts).
@@ -70,7 +70,7 @@ def mesh_resident_bytes(mesh: Mesh, tree=None) -> dict:
 @dataclass
 class SizeFit:
     """log(MSE) = coef . [1, log2 T, *features] for one method at one training budget; `features` names the
-    mesh measures used (a subset of FEATURE_NAMES, chosen by leave-one-mesh-out error in bench/fit_sizing.py).
+    mesh measures used (a subset of FEATURE_NAMES, chosen by leave-one-mesh-out error in bench/fitting/fit_sizing.py).
     residual_std: spread of the fit in log space (leave-one-mesh-out); margin: how many residual_stds below the
     target the chooser aims (a safety factor exp(margin * std))."""
 
@@ -82,14 +82,14 @@ class SizeFit:
     margin: float = 0.5
     meshes: list = field(default_factory=list)
     #: Node count: log MSE changes by nodes_coef per doubling of the node count relative to nodes_ref (fitted at a
-    #: fixed T, see bench/fit_sizing.py); 0 = not fitted (the node count stays at nodes_ref).
+    #: fixed T, see bench/fitting/fit_sizing.py); 0 = not fitted (the node count stays at nodes_ref).
     nodes_coef: float = 0.0
     nodes_ref: int = 2047
-    #: The training budget's effect (bench/fit_budget.py): log MSE changes by a L + c (log2 T - 10) L with
+    #: The training budget's effect (bench/fitting/fit_budget.py): log MSE changes by a L + c (log2 T - 10) L with
     #: L = ln(budget / train_s), [a, c] = budget_coef (a larger table gains more from a longer budget); [] = not
     #: fitted (predictions are for train_s seconds).
     budget_coef: list = field(default_factory=list)
-    #: ln of the presets' present shape's MSE over what the slopes predict (fitted on its own rows, bench/fit_budget.py:
+    #: ln of the presets' present shape's MSE over what the slopes predict (fitted on its own rows, bench/fitting/fit_budget.py:
     #: the slopes were measured on older shapes that need a larger table for the same MSE); added to every prediction.
     shape_shift: float = 0.0
     #: This machine's training seconds in the fit machine's (`machine_rate.work_ratio`; 1 as shipped): a budget is
@@ -131,7 +131,7 @@ def fit_size_model(rows: list[tuple[int, MeshFeatures, float]], method: str, tra
 
 
 def load_fit(path: Path = FIT_PATH, device: str | None = None) -> SizeFit | None:
-    """The shipped fit (bench/fit_sizing.py writes it); None when missing or unreadable. device: the training's
+    """The shipped fit (bench/fitting/fit_sizing.py writes it); None when missing or unreadable. device: the training's
     ('auto', 'cpu', 'cuda'): the fit then reads budgets as the work they buy there (`machine_rate.work_ratio`, a
     probe of a few seconds once per machine); None: as fitted."""
     try:
@@ -337,7 +337,7 @@ def plan_scene(meshes: list[Mesh], budget_bytes: float, settings: Settings, weig
     fit = fit or load_fit(device=settings.device)
     if fit is None:
         raise ValueError("a scene budget needs the size predictor (nbvh_core/planning/sizing_fit.json), which is missing; "
-                         "run bench/fit_sizing.py")
+                         "run bench/fitting/fit_sizing.py")
     weights = [1.0] * len(meshes) if weights is None else list(weights)
     if len(weights) != len(meshes):
         raise ValueError(f"{len(weights)} weights for {len(meshes)} meshes")

@@ -65,14 +65,14 @@ class TrainConfig:
     # 'uniform': every ray from `sample_rays`. 'loss': `leaf_ray_fraction` of each batch starts inside leaf boxes
     # drawn in proportion to the running per-leaf error (N-BVH's loss-proportional node resampling; the floor keeps
     # every leaf at >= leaf_floor x the mean weight). Measured worse than 'uniform' on all 6 benchmark meshes at 15 s
-    # (MSE 3.6x in geometric mean, bench/bench_leaf_sampling.py): off by default.
+    # (MSE 3.6x in geometric mean, bench/quality/bench_leaf_sampling.py): off by default.
     leaf_sampling: str = "uniform"
     leaf_ray_fraction: float = 0.5
     leaf_floor: float = 0.05
     # N-BVH's tree-cut splitting: start from an SAH cut with tree_cut_start x the final leaves and split the leaves
     # with the highest running error in tree_cut_rounds rounds spread evenly over the first tree_cut_until of the
     # budget (the reference splits every 40 of its first 3,000 of 10,000 iterations). Measured at 15 s on 6 meshes:
-    # MSE 1.12x in geometric mean (better only on the open sheet; bench/bench_leaf_sampling.py): off by default.
+    # MSE 1.12x in geometric mean (better only on the open sheet; bench/quality/bench_leaf_sampling.py): off by default.
     tree_cut: bool = False
     tree_cut_start: float = 0.5
     tree_cut_rounds: int = 10
