@@ -9,7 +9,7 @@ import time
 from typing import Callable
 
 from .alternative_curve import AlternativeCurve
-from .records import CheckDecision
+from .records import CheckAction, CheckDecision
 
 #: A check below this fraction of the target stops the training; the held-out evaluation after it confirms or not.
 #: The margin is for the check views' error against the held-out views' and the training still moving: at the end of
@@ -30,7 +30,7 @@ ROLLBACK_FACTOR = 1.15
 
 class CheckRule:
     """The target_reached callback of `training.train`: each call answers a `records.CheckDecision` (its action one of
-    `records.CHECK_ACTIONS`).
+    `records.CheckAction`).
 
     score(model) -> check MSE of the model as stored; target: the MSE level; max_log2: the largest table;
     budget_s: the training's budget (its clock: seconds since this rule was made, less the checks' own time); budget_slope(log2)
@@ -69,7 +69,7 @@ class CheckRule:
         MSE x (budget / now)^slope: the predictor's exponent at this size (the learning rate decays over the budget,
         so the slope between two checks mid-way underestimates the end: bench/results/need.csv), else two checks'."""
         points = [(d.seconds, d.mse) for d in self.decisions[self._first:]
-                  if d.log2_table == log2 and d.action != "roll back"]
+                  if d.log2_table == log2 and d.action != CheckAction.ROLL_BACK]
         t, m = max(points[-1][0], 1e-6), points[-1][1]
         if self.budget_slope is not None:
             slope = self.budget_slope(log2)
@@ -83,17 +83,17 @@ class CheckRule:
         return m * (max(self.budget_s, t) / t) ** slope
 
     def __call__(self, model) -> CheckDecision:
-        """Measure `model` now and decide: the check's record (its action one of CHECK_ACTIONS), also kept in
+        """Measure `model` now and decide: the check's record (its action a CheckAction), also kept in
         `decisions`."""
         d, shipped, form, best = self._measure(model)
         d.projected_mse = self.projected(d.log2_table)
         d.action, d.reason = self._decide(d)
-        if d.action == "stop: level met" and not shipped:
-            d.action, d.reason = "train on", f"{d.reason}; its final low-bit phase is still to run"
-        elif d.action != "stop: level met" and self._rolls_back(d, best):
+        if d.action == CheckAction.STOP_LEVEL_MET and not shipped:
+            d.action, d.reason = CheckAction.TRAIN_ON, f"{d.reason}; its final low-bit phase is still to run"
+        elif d.action != CheckAction.STOP_LEVEL_MET and self._rolls_back(d, best):
             d.projected_mse = d.alternative_bytes = None  # a projection from a state training leaves is moot
         self._note_best(d, form, best)
-        if d.action == "stop: keep the mesh":
+        if d.action == CheckAction.STOP_KEEP_MESH:
             self.keep_mesh = d
         return d
 
@@ -102,7 +102,7 @@ class CheckRule:
         best check of its form (ROLLBACK_FACTOR), else "finish". Nothing else is decided here: the final verdict
         weighs the finished model on the held-out views."""
         d, _, form, best = self._measure(model)
-        d.action, d.reason = "finish", "the budget is spent"
+        d.action, d.reason = CheckAction.FINISH, "the budget is spent"
         self._rolls_back(d, best)
         self._note_best(d, form, best)
         return d
@@ -115,7 +115,8 @@ class CheckRule:
         mse = self.score(model)
         self._measuring_s += time.perf_counter() - began
         log2 = model.cfg.encoding.log2_table
-        self.decisions.append(CheckDecision(seconds, log2, mse, None, self.bytes_at(log2), None, "train on", ""))
+        self.decisions.append(CheckDecision(seconds, log2, mse, None, self.bytes_at(log2), None, CheckAction.TRAIN_ON,
+                                            ""))
         shipped = self.shipped_form is None or self.shipped_form(model)
         form = tuple(self.state_form(model)) if self.state_form is not None else (log2, shipped)
         return self.decisions[-1], shipped, form, self._best.get(form)
@@ -124,17 +125,17 @@ class CheckRule:
         """Whether `d` reads more than ROLLBACK_FACTOR x its form's best check (then its action says so)."""
         if best is None or d.mse <= ROLLBACK_FACTOR * best:
             return False
-        d.action, d.reason = "roll back", (f"MSE {d.mse:.4g} > {ROLLBACK_FACTOR} x the best check's {best:.4g}: "
-                                           "back to that check's weights")
+        d.action = CheckAction.ROLL_BACK
+        d.reason = f"MSE {d.mse:.4g} > {ROLLBACK_FACTOR} x the best check's {best:.4g}: back to that check's weights"
         return True
 
     def _note_best(self, d: CheckDecision, form: tuple, best: float | None) -> None:
-        if d.action != "roll back":
+        if d.action != CheckAction.ROLL_BACK:
             self._best[form] = min(d.mse, best if best is not None else math.inf)
 
     def _decide(self, d: CheckDecision) -> tuple[str, str]:
         if d.mse <= EARLY_STOP_MARGIN * self.target:
-            return "stop: level met", f"MSE {d.mse:.4g} <= {EARLY_STOP_MARGIN} x the level {self.target:g}"
+            return CheckAction.STOP_LEVEL_MET, f"MSE {d.mse:.4g} <= {EARLY_STOP_MARGIN} x the level {self.target:g}"
         end = d.projected_mse if d.projected_mse is not None else d.mse
         alt = self.curve.bytes_at(end) if self.curve is not None else None
         d.alternative_bytes = None if alt is None else (alt if math.isfinite(alt) else None)
@@ -144,10 +145,10 @@ class CheckRule:
         beaten_by = self.curve.cheapest_meeting(end) if self.curve is not None else None
         if (beaten_by is not None and beaten_by.bytes < d.model_bytes and not self.force
                 and d.projected_mse is not None):  # a measured decimation, not the interpolated curve, decides
-            return ("stop: keep the mesh", f"the model ({d.model_bytes:,} B) stays above the alternative: "
+            return (CheckAction.STOP_KEEP_MESH, f"the model ({d.model_bytes:,} B) stays above the alternative: "
                     f"{beaten_by.triangles:,} triangles reach MSE {beaten_by.mse:.4g} in {beaten_by.bytes:,} B, "
                     f"the model is projected to {end:.4g}; growing would not get it under")
-        return "train on", ("projected to meet the level" if end <= self.target
+        return CheckAction.TRAIN_ON, ("projected to meet the level" if end <= self.target
                             else f"projected MSE {end:.4g} misses the level; no larger size pays")
 
     def _growth(self, d: CheckDecision, end: float) -> tuple[str, str] | None:
@@ -159,10 +160,10 @@ class CheckRule:
             return None  # too late to pay (GROW_MIN_REMAINING)
         grown_bytes = self.bytes_at(d.log2_table + 1)
         if self.grow_gain is None or self.curve is None:
-            return "grow", f"projected MSE {end:.4g} misses the level {self.target:g}"
+            return CheckAction.GROW, f"projected MSE {end:.4g} misses the level {self.target:g}"
         grown_mse = end * self.grow_gain(d.log2_table)
         alt = self.curve.bytes_at(grown_mse)
         if grown_bytes < alt or self.force:
-            return "grow", (f"projected MSE {end:.4g} misses the level; 2^{d.log2_table + 1} projected "
+            return CheckAction.GROW, (f"projected MSE {end:.4g} misses the level; 2^{d.log2_table + 1} projected "
                             f"{grown_mse:.4g} in {grown_bytes:,} B, under the alternative's {alt:,.0f} B")
         return None

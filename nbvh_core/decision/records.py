@@ -2,11 +2,30 @@
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
+from enum import Enum
 
 #: The kinds of step a run's account (`RunNote`) tells.
 NOTE_KINDS = ("plan", "resumed", "restart", "recovered", "growth", "search", "early stop")
-#: What a training check decided.
-CHECK_ACTIONS = ("train on", "grow", "roll back", "finish", "stop: level met", "stop: keep the mesh")
+
+
+class CheckAction(str, Enum):
+    """What a training check decided (a str: the report and the wire carry its value)."""
+
+    TRAIN_ON = "train on"
+    GROW = "grow"
+    ROLL_BACK = "roll back"
+    FINISH = "finish"
+    STOP_LEVEL_MET = "stop: level met"
+    STOP_KEEP_MESH = "stop: keep the mesh"
+
+    @property
+    def stops(self) -> bool:
+        """Whether the training ends here (the level met, or the mesh kept)."""
+        return self in (CheckAction.STOP_LEVEL_MET, CheckAction.STOP_KEEP_MESH)
+
+
+#: The values of CheckAction, in order.
+CHECK_ACTIONS = tuple(a.value for a in CheckAction)
 
 
 @dataclass(frozen=True)
@@ -36,7 +55,7 @@ class CheckDecision:
     check views, the model at its stored precision; projected_mse: at the end of the budget at this size (None
     before a projection is possible); model_bytes: the file as it would ship at this size (geometry, look,
     header); alternative_bytes: the alternative's bytes at the projected MSE (None: no alternative measured);
-    action: one of CHECK_ACTIONS; reason: one line."""
+    action: a CheckAction; reason: one line."""
 
     seconds: float
     log2_table: int
@@ -44,11 +63,17 @@ class CheckDecision:
     projected_mse: float | None
     model_bytes: int
     alternative_bytes: float | None
-    action: str
+    action: CheckAction
     reason: str
 
+    def __post_init__(self):
+        self.action = CheckAction(self.action)  # its value is accepted too; anything else is a ValueError
+
+    def __setattr__(self, name, value):  # a check's rule changes its action on the way: it stays a CheckAction
+        super().__setattr__(name, CheckAction(value) if name == "action" else value)
+
     def to_dict(self) -> dict:
-        return asdict(self)
+        return {**asdict(self), "action": self.action.value}
 
 
 @dataclass

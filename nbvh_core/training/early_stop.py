@@ -7,7 +7,7 @@ import time
 
 import torch
 
-from ..decision.records import CHECK_ACTIONS
+from ..decision.records import CHECK_ACTIONS, CheckAction
 from ..neural.model import NeuralBVH
 from ..protocol import events as wire
 from ..protocol.events import EventSink
@@ -48,12 +48,12 @@ class EarlyStop:
 
     def _act(self, model, opt, checkpoints, events, phases, step: int, fraction: float, elapsed: float) -> bool:
         decision = self.reached(model, fraction, elapsed, phases.ready_to_stop)
-        if decision == "roll back":
+        if decision is CheckAction.ROLL_BACK:
             self._roll_back(model, opt, phases, events, f"check at step {step}")
             return False
         if self.last_mse is not None:
             self.best.offer(model, opt, self.last_mse, state_form(model))
-        if decision == "grow":
+        if decision is CheckAction.GROW:
             grown = grow_table(model, opt, checkpoints)
             self.grew.append((step, round(elapsed, 1), grown))
             events(wire.phase(phase=phases.phase,
@@ -76,7 +76,7 @@ class EarlyStop:
             return
         answer = ask(model)
         self.last_mse = getattr(answer, "mse", None)
-        if getattr(answer, "action", answer) == "roll back":
+        if getattr(answer, "action", answer) == CheckAction.ROLL_BACK:
             self._roll_back(model, opt, phases, events, "the finished model")
 
     def _roll_back(self, model, opt, phases, events: EventSink, what: str) -> None:
@@ -101,15 +101,17 @@ class EarlyStop:
         answer = self.target_reached(model)
         self.last_mse = getattr(answer, "mse", None)
         answer = getattr(answer, "action", answer)
-        if answer == "roll back":
-            return answer
-        if answer == "grow":
-            return "grow" if fraction < self.GROW_UNTIL and model.encoding.can_grow() else False
-        if isinstance(answer, str):  # a check's action (decision.records.CHECK_ACTIONS)
-            if answer not in CHECK_ACTIONS:
-                raise ValueError(f"unknown check action {answer!r}; one of {', '.join(CHECK_ACTIONS)}")
-            return answer.startswith("stop")
-        return bool(answer)
+        if not isinstance(answer, str):
+            return bool(answer)
+        try:  # a check's action (decision.records.CheckAction, or its value)
+            action = CheckAction(answer)
+        except ValueError:
+            raise ValueError(f"unknown check action {answer!r}; one of {', '.join(CHECK_ACTIONS)}") from None
+        if action is CheckAction.ROLL_BACK:
+            return action
+        if action is CheckAction.GROW:
+            return action if fraction < self.GROW_UNTIL and model.encoding.can_grow() else False
+        return action.stops
 
 
 

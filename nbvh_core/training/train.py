@@ -287,7 +287,7 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
     """Train `model` in place on rays around `bvh`, labelled by `tracer`; freezes HashVQAD near the end.
     before_freeze(model) is called once just before the HashVQAD freeze (e.g. to score the soft model).
     checkpoint_extra: stored in every checkpoint under 'extra' (the caller's settings and mesh identity).
-    target_reached(model) -> bool, a check's action (`records.CHECK_ACTIONS`) or record (`CheckDecision`, as
+    target_reached(model) -> bool, a check's action (`records.CheckAction`) or record (`CheckDecision`, as
     `CheckRule` answers), asked every cfg.target_check_every_s seconds: True or "stop: ..." stops training early;
     "grow" doubles the table, "roll back" returns to the best check's state; see `EarlyStop` (and its `at_end`)."""
     check_config(cfg)
