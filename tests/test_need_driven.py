@@ -89,7 +89,7 @@ def test_node_counts_follow_the_mesh():
     counts = [max_nodes_for(t) for t in (1000, 5000, 20000, 100000)]
     assert counts == sorted(counts)
     mesh = icosphere(3)  # 1,280 triangles: 255 nodes (5 triangles per leaf), not the fit's 2,047
-    s, _ = resolve(preset("default").with_overrides(target_mse=0.0005), mesh)
+    s, _ = resolve(preset("default").with_overrides(target_mse=0.0005), mesh, fit=load_fit())
     assert s.nodes == 255 and mesh_features(mesh).triangles == 1280
 
 
@@ -493,7 +493,7 @@ def test_a_run_with_a_target_is_weighed_at_the_size_expected_to_meet_it(sample_m
     fit = load_fit()
     feats = mesh_features(mesh)
     expected = run.expected_log2_table
-    assert expected == expected_table(run.request, mesh)
+    assert expected == expected_table(run.request, mesh, feats, fit)
     # the smallest size whose median prediction meets the target, at most the planned (safety-factored) size
     assert fit.predict_log_mse(expected, feats, budget_s=s.time_limit_s) <= np.log(0.0005)
     assert expected == LOG2_RANGE[0] or fit.predict_log_mse(expected - 1, feats, budget_s=s.time_limit_s) > np.log(0.0005)

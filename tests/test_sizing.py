@@ -16,7 +16,7 @@ from nbvh_core.rendering.metrics import MetricConfig, view_sets
 from nbvh_core.app.alternatives import assess
 from nbvh_core.planning.mesh_measures import MeshFeatures, mesh_features
 from nbvh_core.planning.sizing import (LOG2_RANGE, QUALITY_LEVELS, SizeFit, choose_size, resolve, fit_size_model,
-                                       load_fit, predictor)
+                                       load_fit, predictor, predictor_inputs)
 from nbvh_core.decision.scene_budget import split_budget
 from nbvh_core.decision.size_search import search_size
 
@@ -55,7 +55,7 @@ def test_fit_recovers_a_known_law_and_choice_is_monotone():
         f = MeshFeatures(triangles=int(rng.integers(1000, 10 ** 6)), area=float(rng.uniform(0.5, 8)),
                          occupancy=float(rng.uniform(0.01, 0.3)), roughness=float(rng.uniform(0, 0.5)))
         for l2 in (8, 10, 12):
-            x = np.concatenate([[1.0, l2], f.vector()])
+            x = np.concatenate([[1.0, l2], predictor_inputs(f)])
             rows.append((l2, f, float(np.exp(x @ true))))
     fit = fit_size_model(rows, "default", 15.0, ridge=1e-9)
     assert np.allclose(fit.coef, true, atol=1e-3)
@@ -69,10 +69,10 @@ def test_shipped_fit_and_target_resolution(sample_meshes):
     assert fit is not None and len(fit.coef) == 2 + len(fit.features) and fit.residual_std > 0
     assert fit.coef[1] < 0  # a bigger table predicts a lower MSE
     mesh = sample_meshes["bunny"]
-    s, why = resolve(preset("default").with_overrides(target_mse=QUALITY_LEVELS["standard"]), mesh)
+    s, why = resolve(preset("default").with_overrides(target_mse=QUALITY_LEVELS["standard"]), mesh, fit=fit)
     assert s.log2_table in LOG2_RANGE and "predicted MSE" in why
-    loose, _ = resolve(preset("default").with_overrides(target_mse=0.05), mesh)
-    strict, _ = resolve(preset("default").with_overrides(target_mse=QUALITY_LEVELS["standard"] / 4), mesh)
+    loose, _ = resolve(preset("default").with_overrides(target_mse=0.05), mesh, fit=fit)
+    strict, _ = resolve(preset("default").with_overrides(target_mse=QUALITY_LEVELS["standard"] / 4), mesh, fit=fit)
     # A stricter target never gets a smaller file (T and the node count trade against each other).
     assert estimate_file_bytes(loose) <= estimate_file_bytes(s) <= estimate_file_bytes(strict)
 

@@ -35,7 +35,7 @@ from bench.meshes import named_mesh
 from bench.harness import RESULTS, ROOT, SMOKE, markdown_table, read_rows, write_markdown
 from nbvh_core.planning.settings import PRESETS
 from nbvh_core.planning.mesh_measures import mesh_features
-from nbvh_core.planning.sizing import FIT_PATH, SizeFit, load_fit
+from nbvh_core.planning.sizing import FIT_PATH, SizeFit, load_fit, predictor_inputs
 
 BASE_S = 15.0
 GRID_PART = "grid4"
@@ -78,7 +78,7 @@ def shape_shift(rows, residual) -> float:
 
 def _design(l2: int, feats, names, budget: float) -> np.ndarray:
     lb = math.log(budget / BASE_S)
-    return np.concatenate([[1.0, float(l2)], feats.vector(names), [lb, (l2 - 10) * lb]])
+    return np.concatenate([[1.0, float(l2)], predictor_inputs(feats, names), [lb, (l2 - 10) * lb]])
 
 
 def fit(rows, feats: dict, names, ridge: float = 1e-3) -> np.ndarray:

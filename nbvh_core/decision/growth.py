@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Callable
 
 #: The training starts this many table sizes below the planned one and grows while growing pays. The planned size
 #: aims above the level by the size fit's safety factor (1.14x, about a third of a size), so the start is one size
@@ -35,18 +34,27 @@ class GrowthPlan:
     grow_gains: dict = field(default_factory=dict, compare=False)
 
 
+def growth_sizes(planned_log2: int, largest_log2: int) -> range:
+    """The table sizes (log2 T) a growing training planned at 2^planned_log2 may train at: from GROW_START_BELOW
+    sizes below it (at least SMALLEST_START) to one above it, never past `largest_log2` (the predictor's largest)."""
+    return range(max(SMALLEST_START, planned_log2 - GROW_START_BELOW), min(planned_log2 + 1, largest_log2) + 1)
+
+
+def growth_clock(budget_s: float | None) -> float:
+    """The clock a growing training's checks read: its budget in seconds, or STEPS_ONLY_BUDGET_S for one in steps."""
+    return budget_s or STEPS_ONLY_BUDGET_S
+
+
 def plan_growth(planned_log2: int, largest_log2: int, budget_s: float | None, check_every_s: float,
-                budget_slope: Callable[[int], float] | None = None,
-                log_mse: Callable[[int, float], float] | None = None) -> GrowthPlan:
+                budget_slopes: dict | None = None, log_mse: dict | None = None) -> GrowthPlan:
     """The growing training for a run planned at table 2^planned_log2 (`largest_log2`: the predictor's largest
     size), a time budget of `budget_s` seconds (None: a run in steps) and checks every `check_every_s` seconds at
-    most (more often when the budget holds fewer than GROW_CHECKS of them). The size predictor, where there is one:
-    budget_slope(log2 T) -> d ln MSE / d ln time; log_mse(log2 T, budget_s) -> ln MSE at the end of the budget."""
-    budget = budget_s or STEPS_ONLY_BUDGET_S
-    start, top = max(SMALLEST_START, planned_log2 - GROW_START_BELOW), min(planned_log2 + 1, largest_log2)
-    sizes = range(start, top + 1)
-    return GrowthPlan(start_log2=start, max_log2=top, budget_s=budget,
+    most (more often when the budget holds fewer than GROW_CHECKS of them). The size predictor's word, where there is
+    one: budget_slopes {log2 T: d ln MSE / d ln time} over `growth_sizes`, log_mse {log2 T: ln MSE at the end of
+    the clock (`growth_clock`)} over those sizes and one above the largest."""
+    budget = growth_clock(budget_s)
+    sizes = growth_sizes(planned_log2, largest_log2)
+    return GrowthPlan(start_log2=sizes.start, max_log2=sizes.stop - 1, budget_s=budget,
                       check_every_s=min(check_every_s, budget / GROW_CHECKS),
-                      budget_slopes={l2: budget_slope(l2) for l2 in sizes} if budget_slope is not None else {},
-                      grow_gains=({l2: math.exp(log_mse(l2 + 1, budget) - log_mse(l2, budget)) for l2 in sizes}
-                                  if log_mse is not None else {}))
+                      budget_slopes={l2: budget_slopes[l2] for l2 in sizes} if budget_slopes else {},
+                      grow_gains=({l2: math.exp(log_mse[l2 + 1] - log_mse[l2]) for l2 in sizes} if log_mse else {}))

@@ -4,7 +4,6 @@ occupancy, roughness, triangle count) and the surface's detail by resolution for
 (`geometry.mesh.CROSS_CHUNK`)."""
 from __future__ import annotations
 
-import math
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -24,12 +23,6 @@ class MeshFeatures:
     area: float
     occupancy: float
     roughness: float
-
-    def vector(self, names: tuple | list = FEATURE_NAMES) -> np.ndarray:
-        """The predictor's inputs besides log2 T, by name (FEATURE_NAMES)."""
-        values = {"log_area": math.log(max(self.area, 1e-6)), "occupancy": self.occupancy,
-                  "roughness": self.roughness, "log10_triangles": math.log10(max(self.triangles, 1))}
-        return np.array([values[n] for n in names])
 
     def to_dict(self) -> dict:
         return asdict(self)

@@ -21,7 +21,7 @@ import dataclasses
 from dataclasses import dataclass, field
 
 from ..decision.config import DecisionConfig
-from ..decision.growth import SMALLEST_START, GrowthPlan, plan_growth
+from ..decision.growth import SMALLEST_START, STEPS_ONLY_BUDGET_S, GrowthPlan, plan_growth
 from ..decision.records import RunNote
 from ..geometry.mesh import Mesh
 from ..neural.appearance import AppearanceConfig
@@ -30,9 +30,8 @@ from ..neural.quantize import StorageConfig
 from ..rendering.metrics import MetricConfig
 from ..training.config import TrainConfig
 from .settings import Settings, estimate_file_bytes
-from .mesh_measures import GridMeasures, MeshFeatures, choose_resolution, grid_measures, mesh_features
-from .machine_rate import reference_budget_s
-from .sizing import LOG2_RANGE, SizeFit, expected_table, load_fit, resolve
+from .mesh_measures import GridMeasures, grid_measures
+from .sizing import LOG2_RANGE, forecast, size_request
 
 
 @dataclass(frozen=True)
@@ -118,66 +117,42 @@ def plan_run(settings: Settings, mesh: Mesh, resumed: bool = False) -> RunConfig
     keeps the budget asked). resumed: the sizes are the checkpoint's (fixed; the grid is not re-chosen). Raises
     ValueError (one line) for settings no run can use."""
     grid = grid_measures(mesh) if settings.n_max is None and not resumed else None
-    fit = load_fit(device=settings.device) if settings.target_mse is not None and not resumed else None
-    feats = mesh_features(mesh) if fit is not None else None  # measured once: the sizes, the expected size, the growth
-    # A resumed run trains the checkpoint's size: its target only decides (checks, final verdict), sizes nothing.
-    resolved, plan_note = resolve(dataclasses.replace(settings, target_mse=None) if resumed else settings, mesh, grid,
-                                  feats)
-    if resumed:
-        resolved = dataclasses.replace(resolved, target_mse=settings.target_mse)
-    share, budget = resolved.appearance_share, resolved.time_limit_s
-    look = LookConfig(AppearanceConfig(target=resolved.appearance_target, log2_table=resolved.appearance_log2_table),
-                      share, budget * share if mesh.look is not None and budget else None)
-    notes = (RunNote("plan", plan_note),)
-    if fit is not None and fit.work_ratio != 1.0 and resolved.time_limit_s:
-        notes += (RunNote("plan", f"this machine trains {fit.work_ratio:.3g}x as fast as the one the size predictor "
-                                  f"was fitted on: its {resolved.time_limit_s:g} s budget is read as "
-                                  f"{reference_budget_s(resolved.time_limit_s, fit.work_ratio):.0f} s of that "
-                                  f"machine's work"),)
-    run = _parts(resolved, look, grid, notes)
-    if resumed or resolved.target_mse is None:  # a fixed size: the run trains the one planned table
+    sized = size_request(settings, mesh, grid, resumed)
+    s = sized.settings
+    look_s = s.time_limit_s * s.appearance_share if mesh.look is not None and s.time_limit_s else None
+    look = LookConfig(AppearanceConfig(target=s.appearance_target, log2_table=s.appearance_log2_table),
+                      s.appearance_share, look_s)
+    # The one place the flat request becomes the parts (the training's budget less the look's share).
+    training = s.train_config()
+    if look_s is not None:
+        training = dataclasses.replace(training, time_limit_s=s.time_limit_s - look_s)
+    model, storage = s.model_config(), s.storage()
+    run = RunConfig(request=s, nodes=s.nodes, model=model, training=training, storage=storage,
+                    decision=DecisionConfig(target_mse=s.target_mse, mesh_layout=s.mesh_layout,
+                                            size_search=s.size_search, check_every_s=s.target_check_every_s,
+                                            force=s.force),
+                    metric=MetricConfig(s.eval_views, s.eval_resolution), look=look,
+                    file_bytes=estimate_file_bytes(s), grid=grid, notes=sized.notes)
+    if resumed or s.target_mse is None:  # a fixed size: the run trains the one planned table
         return run
-    growth = _growth(run, fit, feats) if run.decision.size_search == "grow" else None
-    searched = range(min(LOG2_RANGE[0], run.log2_table), max(LOG2_RANGE[-1], run.log2_table) + 1)
-    predicted = ({l2: fit.predict_log_mse(l2, feats, None, run.training.time_limit_s) for l2 in searched}
-                 if fit is not None else {})
-    return dataclasses.replace(run, expected_log2_table=expected_table(resolved, mesh, feats),
-                               sizes=_sizes(resolved, grid), growth=growth, predicted_log_mse=predicted)
+    sizes = _sizes(s, sized.resolutions)
+    fc = forecast(sized, range(min(LOG2_RANGE[0], run.log2_table), max(LOG2_RANGE[-1], run.log2_table) + 1),
+                  range(SMALLEST_START, LOG2_RANGE[-1] + 2),  # every start of a growth and the size above its largest
+                  run.nodes, training.time_limit_s, training.time_limit_s or STEPS_ONLY_BUDGET_S)
+    growth = (plan_growth(run.log2_table, LOG2_RANGE[-1], training.time_limit_s, run.decision.check_every_s,
+                          fc.budget_slopes, fc.growth_log_mse) if run.decision.size_search == "grow" else None)
+    return dataclasses.replace(run, expected_log2_table=sized.expected_log2_table, sizes=sizes, growth=growth,
+                               predicted_log_mse=fc.log_mse)
 
 
-def _growth(run: RunConfig, fit: SizeFit | None, feats: MeshFeatures | None) -> GrowthPlan:
-    """The growing training's plan, with the size predictor's slopes and growth gains for the mesh of `feats` (none
-    without a fit)."""
-    slope = log_mse = None
-    if fit is not None:
-        slope = fit.budget_slope if fit.budget_coef else None
-        log_mse = lambda l2, budget: fit.predict_log_mse(l2, feats, run.nodes, budget)  # noqa: E731
-    return plan_growth(run.log2_table, LOG2_RANGE[-1], run.training.time_limit_s, run.decision.check_every_s,
-                       slope, log_mse)
-
-
-def _sizes(s: Settings, grid: GridMeasures | None) -> dict:
+def _sizes(s: Settings, resolutions: dict) -> dict:
     """{(log2 T, grid re-chosen): SizePlan} for every size a run with a target may train: a growing training's
     start (from 2^SMALLEST_START) up to the predictor's largest size, with the planned grid resolution and, when the
-    grid follows the mesh, with the one chosen for each size (the retrain search's)."""
+    grid follows the mesh, with the one chosen for each size (`resolutions`: the retrain search's)."""
     sizes = {}
     for log2_table in range(SMALLEST_START, LOG2_RANGE[-1] + 1):
-        for regrid in (False, True) if grid is not None else (False,):
-            n_max = choose_resolution(grid, log2_table)[0] if regrid else s.n_max
+        for regrid in (False, True) if resolutions else (False,):
+            n_max = resolutions[log2_table] if regrid else s.n_max
             sized = dataclasses.replace(s, log2_table=log2_table, n_max=n_max)
             sizes[(log2_table, regrid)] = SizePlan(sized.model_config(), n_max, estimate_file_bytes(sized))
     return sizes
-
-
-def _parts(s: Settings, look: LookConfig, grid: GridMeasures | None, notes: tuple) -> RunConfig:
-    """The one place the flat request becomes the parts (the training's budget less the look's share)."""
-    training = s.train_config()
-    if look.budget_s is not None:
-        training = dataclasses.replace(training, time_limit_s=s.time_limit_s - look.budget_s)
-    return RunConfig(request=s, nodes=s.nodes, model=s.model_config(), training=training,
-                     storage=s.storage(),
-                     decision=DecisionConfig(target_mse=s.target_mse, mesh_layout=s.mesh_layout,
-                                             size_search=s.size_search, check_every_s=s.target_check_every_s,
-                                             force=s.force),
-                     metric=MetricConfig(s.eval_views, s.eval_resolution), look=look,
-                     file_bytes=estimate_file_bytes(s), grid=grid, notes=notes)

@@ -283,7 +283,8 @@ def estimate_file_bytes(s: Settings) -> int:
     """Bytes of a bare model's file with these settings: its tensors exactly, as the file format lays them out
     (`storage.layout.payload_bytes`: BVH, tables, index, network), plus the header's typical size; the real file
     differs by the header's few hundred bytes of metadata at most. An asset's look adds its own bytes."""
-    return payload_bytes(s.model_config(), s.storage(), s.nodes) + HEADER_BYTES
+    model, storage = s.model_config(), s.storage()
+    return payload_bytes(model, storage, s.nodes) + HEADER_BYTES
 
 
 def preset(name: str) -> Settings:

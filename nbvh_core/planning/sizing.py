@@ -34,6 +34,8 @@ from ..protocol.quality_levels import QUALITY_LEVELS  # noqa: F401  (re-exported
 from ..decision.scene_budget import split_budget
 from .machine_rate import reference_budget_s, work_ratio
 from .settings import PAPER_N_MAX, PRESETS, Settings, estimate_file_bytes
+from ..decision.growth import SMALLEST_START
+from ..decision.records import RunNote
 
 FIT_PATH = Path(__file__).with_name("sizing_fit.json")
 #: Table sizes the chooser considers (log2 T): the range the predictor was fitted on (bench/fitting/fit_budget.py: the
@@ -67,6 +69,13 @@ def mesh_resident_bytes(mesh: Mesh, tree=None) -> dict:
 
 
 # -------------------------------------------------------------------------------------------------- predictor
+def predictor_inputs(features: MeshFeatures, names: tuple | list = FEATURE_NAMES) -> np.ndarray:
+    """The size predictor's inputs besides log2 T, by name (FEATURE_NAMES), from a mesh's measures."""
+    values = {"log_area": math.log(max(features.area, 1e-6)), "occupancy": features.occupancy,
+              "roughness": features.roughness, "log10_triangles": math.log10(max(features.triangles, 1))}
+    return np.array([values[n] for n in names])
+
+
 @dataclass
 class SizeFit:
     """log(MSE) = coef . [1, log2 T, *features] for one method at one training budget; `features` names the
@@ -101,7 +110,7 @@ class SizeFit:
         """ln of the image MSE a model of table 2^log2_table on a mesh with `features` reaches after `budget_s`
         seconds of training here (None: the fit's own train_s; read in the fit machine's seconds through
         `work_ratio`) at `nodes` BVH nodes (None: nodes_ref)."""
-        x = np.concatenate([[1.0, float(log2_table)], features.vector(self.features)])
+        x = np.concatenate([[1.0, float(log2_table)], predictor_inputs(features, self.features)])
         out = float(np.dot(self.coef, x)) + self.shape_shift
         if nodes is not None and self.nodes_coef:
             out += self.nodes_coef * (math.log2(nodes + 1) - math.log2(self.nodes_ref + 1))
@@ -121,7 +130,7 @@ class SizeFit:
 def fit_size_model(rows: list[tuple[int, MeshFeatures, float]], method: str, train_s: float,
                    ridge: float = 1e-3, features: tuple | list = FEATURE_NAMES) -> SizeFit:
     """Least squares (slightly ridged) of log MSE on [1, log2 T, features] over (log2 T, features, mse) rows."""
-    x = np.array([np.concatenate([[1.0, float(l2)], f.vector(features)]) for l2, f, _ in rows])
+    x = np.array([np.concatenate([[1.0, float(l2)], predictor_inputs(f, features)]) for l2, f, _ in rows])
     y = np.log(np.array([m for _, _, m in rows]))
     a = x.T @ x + ridge * np.eye(x.shape[1])
     coef = np.linalg.solve(a, x.T @ y)
@@ -147,6 +156,15 @@ def predict_mse(fit: SizeFit, log2_table: int, features: MeshFeatures, nodes: in
                 budget_s: float | None = None) -> float:
     """exp(`SizeFit.predict_log_mse`)."""
     return math.exp(fit.predict_log_mse(log2_table, features, nodes, budget_s))
+
+
+def predictions(fit: SizeFit | None, features: MeshFeatures | None, sizes, nodes: int | None = None,
+                budget_s: float | None = None) -> dict:
+    """{log2 T: ln image MSE} the predictor expects at each of `sizes` (nodes None: the fitted count; budget_s None:
+    the fitted budget); empty without a fit."""
+    if fit is None or features is None:
+        return {}
+    return {l2: fit.predict_log_mse(l2, features, nodes, budget_s) for l2 in sizes}
 
 
 def predictor(fit: SizeFit | None, features: MeshFeatures | None, nodes: int | None = None,
@@ -189,76 +207,144 @@ def choose_table_and_nodes(fit: SizeFit, features: MeshFeatures, target_mse: flo
 
 
 
+@dataclass(frozen=True)
+class SizedRequest:
+    """A request with its sizes chosen (`size_request`): settings (sizes and grid resolution concrete), notes (why:
+    the choice, and how this machine's budget reads to the predictor), fit (the size predictor, read as this machine's work; None without a target or a shipped fit), features
+    (the mesh's measures the predictor reads; None without a fit) and, with a target, expected_log2_table (the table
+    the predictor expects to meet it, `expected_table`), and resolutions {log2 T: the grid's finest resolution for
+    the mesh at that table} over every size such a run may train, when the grid follows the mesh (`grid`)."""
+
+    settings: Settings
+    notes: tuple[RunNote, ...]
+    fit: SizeFit | None = None
+    features: MeshFeatures | None = None
+    expected_log2_table: int | None = None
+    resolutions: dict = field(default_factory=dict, compare=False)
+
+
+def size_request(s: Settings, mesh: Mesh, grid: GridMeasures | None = None, resumed: bool = False) -> SizedRequest:
+    """The one sizing of a run (`run_config.plan_run`): the size predictor loaded once (with a target), the mesh
+    measured once, the sizes chosen (`resolve`) and the table the predictor expects. resumed: the checkpoint's sizes
+    stand (its target only decides: checks and the final verdict)."""
+    fit = load_fit(device=s.device) if s.target_mse is not None and not resumed else None
+    feats = mesh_features(mesh) if fit is not None else None
+    chosen, why = resolve(dataclasses.replace(s, target_mse=None) if resumed else s, mesh, grid, feats, fit)
+    notes = (RunNote("plan", why),)
+    if resumed:
+        return SizedRequest(dataclasses.replace(chosen, target_mse=s.target_mse), notes)
+    if fit is not None and fit.work_ratio != 1.0 and chosen.time_limit_s:
+        notes += (RunNote("plan", f"this machine trains {fit.work_ratio:.3g}x as fast as the one the size predictor "
+                                  f"was fitted on: its {chosen.time_limit_s:g} s budget is read as "
+                                  f"{reference_budget_s(chosen.time_limit_s, fit.work_ratio):.0f} s of that "
+                                  f"machine's work"),)
+    resolutions = ({l2: choose_resolution(grid, l2)[0] for l2 in range(SMALLEST_START, LOG2_RANGE[-1] + 1)}
+                   if grid is not None and chosen.target_mse is not None else {})
+    return SizedRequest(chosen, notes, fit, feats, expected_table(chosen, mesh, feats, fit), resolutions)
+
+
+@dataclass(frozen=True)
+class Forecast:
+    """The size predictor's word on a planned run with a target (empty without a fit): log_mse {log2 T: ln MSE} at
+    the fitted node count and the training's budget (the retrain search's guide); growth_log_mse {log2 T: ln MSE} at
+    the run's node count on the growth's clock, and budget_slopes {log2 T: d ln MSE / d ln time} (None when the fit
+    has no budget term): what a growing training's checks read."""
+
+    log_mse: dict
+    growth_log_mse: dict
+    budget_slopes: dict | None
+
+
+def forecast(sized: SizedRequest, searched, reach, nodes: int, budget_s: float | None, clock_s: float) -> Forecast:
+    """`Forecast` of the run `sized` plans: `searched` and `reach` the table sizes of the search and the growth."""
+    fit, feats = sized.fit, sized.features
+    slopes = {l2: fit.budget_slope(l2) for l2 in reach} if fit is not None and fit.budget_coef else None
+    return Forecast(predictions(fit, feats, searched, None, budget_s), predictions(fit, feats, reach, nodes, clock_s),
+                    slopes)
+
+
 def resolve(s: Settings, mesh: Mesh | None = None, grid: GridMeasures | None = None,
-            features: MeshFeatures | None = None) -> tuple[Settings, str]:
+            features: MeshFeatures | None = None, fit: SizeFit | None = None) -> tuple[Settings, str]:
     """Turn a byte budget or a quality target into concrete sizes; returns (settings, why).
 
     Budget: the largest (T, nodes) of the grid T in 2^5..2^13, nodes in 255..8191 whose file fits the budget
-    (largest file first, ties to more nodes). Target (with the mesh): the method the size predictor was fitted
-    for (sizing_fit.json: HashGrid + MLP + consistent labels) at the smallest T whose predicted MSE meets the
-    target (`sizing.choose_table_and_nodes`); `compress_mesh` then measures and corrects (`decision.size_search`).
-    n_max None: the grid's finest resolution is chosen for the mesh and the chosen T (`choose_resolution`; `grid`:
-    its measures when the caller has them). features: `mesh_features(mesh)` when the caller has them.
+    (largest file first, ties to more nodes). Target (with the mesh and the size predictor `fit`): the method the
+    predictor was fitted for (sizing_fit.json: HashGrid + MLP + consistent labels) at the smallest T whose predicted
+    MSE meets the target (`choose_table_and_nodes`); `compress_mesh` then measures and corrects
+    (`decision.size_search`); without a fit, the preset sizes of the target's level. n_max None: the grid's finest
+    resolution is chosen for the mesh and the chosen T (`choose_resolution`; `grid`: its measures when the caller
+    has them). features: `mesh_features(mesh)` when the caller has them.
     """
-    if s.n_max is None:
-        if mesh is None:
-            s, grid_why = dataclasses.replace(s, n_max=PAPER_N_MAX), f"grid N_max {PAPER_N_MAX} (no mesh to measure)"
-        else:
-            chosen, why = resolve(dataclasses.replace(s, n_max=PAPER_N_MAX), mesh, None, features)  # sizes, then grid
-            n_max, grid_why = choose_resolution(grid or mesh, chosen.log2_table)
-            return dataclasses.replace(chosen, n_max=n_max), f"{why}; {grid_why}"
-        chosen, why = resolve(s, mesh, None, features)
-        return chosen, f"{why}; {grid_why}"
-    if s.budget_kb is not None:
-        budget = s.budget_kb * 1024
-        best = None
-        for log2 in range(LOG2_RANGE[-1], 4, -1):
-            for nodes in (8191, 4095, 2047, 1023, 511, 255):
-                cand = dataclasses.replace(s, log2_table=log2, nodes=nodes, budget_kb=None)
-                size = estimate_file_bytes(cand)
-                if size <= budget and (best is None or size > best[0]):
-                    best = (size, cand)
-        if best is None:
-            raise ValueError(f"a budget of {s.budget_kb:g} KB is too small for any model "
-                             f"(the smallest needs {estimate_file_bytes(dataclasses.replace(s, log2_table=5, nodes=255)) / 1024:.0f} KB)")
-        size, chosen = best
-        return chosen, (f"budget {s.budget_kb:g} KB: chose T=2^{chosen.log2_table}, {chosen.nodes} nodes "
-                        f"(estimated {size / 1024:.1f} KB), the largest grid point that fits")
-    if s.target_mse is not None:
-        if s.target_mse <= 0:
-            raise ValueError(f"target MSE must be > 0, got {s.target_mse:g}")
-        fit = load_fit(device=s.device)
-        if fit is None or mesh is None:
-            base = PRESETS["high" if s.target_mse < QUALITY_LEVELS["standard"]
-                           else "default" if s.target_mse < QUALITY_LEVELS["preview"] else "preview"]
-            chosen = dataclasses.replace(s, nodes=base.nodes, log2_table=base.log2_table)
-            return chosen, (f"target MSE {s.target_mse:g}: no size predictor available, used preset sizes "
-                            f"(T=2^{base.log2_table}, {base.nodes} nodes)")
-        feats = features or mesh_features(mesh)
-        fitted = PRESETS[fit.method]
-        base = dataclasses.replace(s, encoding=fitted.encoding, network=fitted.network, labels=fitted.labels)
-        l2, nodes, pred, reachable = choose_table_and_nodes(
-            fit, feats, s.target_mse,
-            lambda lt, n: estimate_file_bytes(dataclasses.replace(base, log2_table=lt, nodes=n)), s.time_limit_s)
-        chosen = dataclasses.replace(base, nodes=nodes, log2_table=l2)
-        why = (f"target MSE {s.target_mse:g}: predicted MSE {pred:.4g} at T=2^{l2}, {nodes} nodes, "
-               f"{s.time_limit_s or fit.train_s:g} s "
-               f"({fitted.encoding}+{fitted.network}; mesh area {feats.area:.2f}, occupancy {feats.occupancy:.3f}, "
-               f"roughness {feats.roughness:.3f}, {feats.triangles:,} triangles), the smallest file predicted to "
-               f"meet it with a {math.exp(fit.margin * fit.residual_std):.2f}x safety factor")
-        if not reachable:
-            why += "; the target is beyond every size the predictor knows: using the largest"
+    free_grid = s.n_max is None
+    sized = dataclasses.replace(s, n_max=PAPER_N_MAX) if free_grid else s
+    if sized.budget_kb is not None:
+        chosen, why = _for_budget(sized)
+    elif sized.target_mse is not None:
+        chosen, why = _for_target(sized, mesh, features, fit)
+    else:
+        chosen, why = sized, "fixed settings"
+    if not free_grid:
         return chosen, why
-    return s, "fixed settings"
+    if mesh is None:
+        return chosen, f"{why}; grid N_max {PAPER_N_MAX} (no mesh to measure)"
+    n_max, grid_why = choose_resolution(grid or mesh, chosen.log2_table)
+    return dataclasses.replace(chosen, n_max=n_max), f"{why}; {grid_why}"
 
 
-def expected_table(s: Settings, mesh: Mesh, features: MeshFeatures | None = None) -> int | None:
-    """log2 T of the smallest file the predictor expects to meet `s.target_mse` on `mesh` (its median prediction: no
-    safety factor; the node count as `resolve` chooses it; the largest size when none does): the model the verdict
-    before training weighs against the decimation measured at the target, since both then stand at the level (the
-    safety factor only says where a training starts). features: `mesh_features(mesh)` when the caller has them.
-    None without a target, a mesh or a fit."""
-    fit = load_fit(device=s.device)
+def _for_budget(s: Settings) -> tuple[Settings, str]:
+    """The largest grid point (T, nodes) whose file fits `s.budget_kb`."""
+    budget = s.budget_kb * 1024
+    best = None
+    for log2 in range(LOG2_RANGE[-1], 4, -1):
+        for nodes in (8191, 4095, 2047, 1023, 511, 255):
+            cand = dataclasses.replace(s, log2_table=log2, nodes=nodes, budget_kb=None)
+            size = estimate_file_bytes(cand)
+            if size <= budget and (best is None or size > best[0]):
+                best = (size, cand)
+    if best is None:
+        smallest = estimate_file_bytes(dataclasses.replace(s, log2_table=5, nodes=255))
+        raise ValueError(f"a budget of {s.budget_kb:g} KB is too small for any model (the smallest needs "
+                         f"{smallest / 1024:.0f} KB)")
+    size, chosen = best
+    return chosen, (f"budget {s.budget_kb:g} KB: chose T=2^{chosen.log2_table}, {chosen.nodes} nodes "
+                    f"(estimated {size / 1024:.1f} KB), the largest grid point that fits")
+
+
+def _for_target(s: Settings, mesh: Mesh | None, features: MeshFeatures | None,
+                fit: SizeFit | None) -> tuple[Settings, str]:
+    """The smallest file the predictor expects to meet `s.target_mse` (with its safety factor), or the preset sizes
+    of the target's level without a fit or a mesh."""
+    if s.target_mse <= 0:
+        raise ValueError(f"target MSE must be > 0, got {s.target_mse:g}")
+    if fit is None or mesh is None:
+        base = PRESETS["high" if s.target_mse < QUALITY_LEVELS["standard"]
+                       else "default" if s.target_mse < QUALITY_LEVELS["preview"] else "preview"]
+        chosen = dataclasses.replace(s, nodes=base.nodes, log2_table=base.log2_table)
+        return chosen, (f"target MSE {s.target_mse:g}: no size predictor available, used preset sizes "
+                        f"(T=2^{base.log2_table}, {base.nodes} nodes)")
+    feats = features or mesh_features(mesh)
+    fitted = PRESETS[fit.method]
+    base = dataclasses.replace(s, encoding=fitted.encoding, network=fitted.network, labels=fitted.labels)
+    l2, nodes, pred, reachable = choose_table_and_nodes(
+        fit, feats, s.target_mse,
+        lambda lt, n: estimate_file_bytes(dataclasses.replace(base, log2_table=lt, nodes=n)), s.time_limit_s)
+    chosen = dataclasses.replace(base, nodes=nodes, log2_table=l2)
+    why = (f"target MSE {s.target_mse:g}: predicted MSE {pred:.4g} at T=2^{l2}, {nodes} nodes, "
+           f"{s.time_limit_s or fit.train_s:g} s "
+           f"({fitted.encoding}+{fitted.network}; mesh area {feats.area:.2f}, occupancy {feats.occupancy:.3f}, "
+           f"roughness {feats.roughness:.3f}, {feats.triangles:,} triangles), the smallest file predicted to "
+           f"meet it with a {math.exp(fit.margin * fit.residual_std):.2f}x safety factor")
+    if not reachable:
+        why += "; the target is beyond every size the predictor knows: using the largest"
+    return chosen, why
+
+
+def expected_table(s: Settings, mesh: Mesh, features: MeshFeatures | None, fit: SizeFit | None) -> int | None:
+    """log2 T of the smallest file the predictor `fit` expects to meet `s.target_mse` on `mesh` (its median
+    prediction: no safety factor; the node count as `resolve` chooses it; the largest size when none does): the model
+    the verdict before training weighs against the decimation measured at the target, since both then stand at the
+    level (the safety factor only says where a training starts). features: `mesh_features(mesh)` when the caller has
+    them. None without a target, a mesh or a fit."""
     if s.target_mse is None or mesh is None or fit is None:
         return None
     size_of = lambda lt, n: estimate_file_bytes(dataclasses.replace(s, log2_table=lt, nodes=n))  # noqa: E731

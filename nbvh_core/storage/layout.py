@@ -48,6 +48,8 @@ def expected_tensors(cfg: ModelConfig, storage: StorageConfig, n_nodes: int,
     version = version or writer_version()
     enc = cfg.encoding
     L, T, F = enc.levels, enc.table_size, enc.features
+    table = table_shapes("features", L, T, F, storage.table_bits)
+    network = network_shapes(cfg)
     out: dict[str, tuple[tuple, str]] = {}
     if storage.node_bits == 8:
         out.update({"bvh.root": ((6,), "<f4"), "bvh.boxes": ((n_nodes, 6), "u1")})
@@ -57,13 +59,13 @@ def expected_tensors(cfg: ModelConfig, storage: StorageConfig, n_nodes: int,
             out.update({"bvh.left": ((n_nodes,), "<u2"), "bvh.leaf": ((n_nodes,), "<u2")})
     else:
         out["bvh"] = ((n_nodes,), "node")
-    out.update(table_shapes("features", L, T, F, storage.table_bits))
+    out.update(table)
     if enc.kind == "hashvqad":
         shape = ((sum(level_vertex_counts(enc, enc.index_size)),) if version >= REACHABLE_INDEX_SINCE
                  else (L, enc.index_size))
         out["index"] = (shape, f"packed{code_width(enc.candidates)}")
     fdt = "<f4" if storage.network_bits == 32 else "<f2"
-    for name, shape in network_shapes(cfg).items():
+    for name, shape in network.items():
         if storage.network_bits <= 8 and name.endswith("weight") and len(shape) == 2:
             out[f"network.{name}"] = (shape, "i1" if storage.network_bits == 8 else "packed4")
             out[f"network.{name}_scale"] = ((shape[0],), "<f2")
