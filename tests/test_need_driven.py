@@ -11,6 +11,7 @@ from nbvh_core.decision.config import DecisionConfig
 from nbvh_core.planning.settings import estimate_file_bytes, preset
 from nbvh_core.app.alternatives import DECIMATE_REFINE, alternatives, assess
 from nbvh_core.planning.mesh_measures import MeshFeatures, mesh_features
+from nbvh_core.training.hooks import CheckpointFiles, TrainingHooks
 from nbvh_core.planning.sizing import LOG2_RANGE, choose_table_and_nodes, load_fit, max_nodes_for, resolve
 
 
@@ -233,18 +234,18 @@ def test_a_training_started_again_after_a_divergence_starts_its_checks_over(monk
     assert rule(_model_at(10)).action == "train on"
     calls = []
 
-    def train(model, bvh, tracer, cfg, **kw):
+    def train(model, bvh, tracer, cfg, hooks, files):
         calls.append(cfg.lr)
         if len(calls) == 1:
             raise TrainingDiverged("loss jumped")
         now[0] = 60.0
-        return SimpleNamespace(decision=kw["target_reached"](_model_at(10)), recovered=[])
+        return SimpleNamespace(decision=hooks.target_reached(_model_at(10)), recovered=[])
 
     monkeypatch.setattr(trainings, "train", train)
     mesh = icosphere(2)
     run = plan_run(preset("tiny"), mesh)
-    _, tr, used, notes = trainings.train_with_restarts(mesh, build_bvh(mesh, 15), None, run, lambda e: None,
-                                                       lambda: False, None, target_reached=rule)
+    ctx = trainings.RunContext(mesh, build_bvh(mesh, 15), None, TrainingHooks(), CheckpointFiles())
+    _, tr, used, notes = trainings.train_with_restarts(ctx, run, target_reached=rule)
     assert calls == [run.training.lr, run.training.lr * 0.1] and notes[0].kind == "restart"
     # 2.0 > 1.15 x 0.5 at the first training's 50 s, but a new training: its clock at 10 s, its first check (no
     # projection: the old 0.5 would have read as no progress, inf), and both decisions on record
@@ -431,6 +432,38 @@ def test_a_final_verdict_the_line_gives_the_model_narrowly_is_measured():
     assert len(asked) == 2
 
 
+def test_a_mesh_ships_instead_of_a_model_with_a_look_only_when_it_looks_as_good():
+    """For an asset with a look the final verdict weighs colour beside geometry: a decimation that reaches the
+    model's geometry MSE in fewer bytes but reads worse colour does not ship, one that reaches both does; a point
+    whose colour was not measured cannot stand in; the record keeps the colour weighed and the message says why."""
+    from nbvh_core.decision.alternative_curve import AlternativeCurve, CurvePoint
+    from nbvh_core.decision.final_verdict import final_verdict
+
+    def curve(colours):
+        return AlternativeCurve([CurvePoint(2000, 0.002, 500, 500, colours[0]),
+                                 CurvePoint(4000, 0.0004, 1000, 1000, colours[1]),
+                                 CurvePoint(20000, 1e-5, 5000, None, colours[2])])
+
+    # geometry alone: the 4,000 B decimation reaches the 5,000 B model's 0.0005
+    assert final_verdict(5000, 0.0005, 0.001, curve([0.01, 0.004, 0.0])).shipped == "decimation"
+    # with the model's colour: its colour 0.004 is worse than the model's 0.003 -> the model ships, said so
+    v = final_verdict(5000, 0.0005, 0.001, curve([0.01, 0.004, 0.0]), model_colour_mse=0.003)
+    assert v.shipped == "model" and v.model_colour_mse == 0.003
+    assert "not its look" in v.message and "colour MSE 0.004" in v.message
+    # a decimation as good in colour ships, with its colour in the record
+    kept = final_verdict(5000, 0.0005, 0.001, curve([0.01, 0.002, 0.0]), model_colour_mse=0.003)
+    assert kept.shipped == "decimation" and kept.decimation["colour_mse"] == 0.002 and "colour MSE" in kept.message
+    # colour not measured on the alternative: it cannot stand in for a model whose colour was
+    assert final_verdict(5000, 0.0005, 0.001, curve([None, None, None]), model_colour_mse=0.003).shipped == "model"
+    # settling measures on until a decimation meets both (here the first measured meets geometry only)
+    asked = []
+    worse_colour = lambda n: asked.append(n) or CurvePoint(4500, 0.0004, n, n, 0.005)  # noqa: E731
+    settled = final_verdict(5000, 0.0005, 0.001, AlternativeCurve([CurvePoint(2000, 0.002, 500, 500, 0.01),
+                                                                   CurvePoint(20000, 1e-5, 5000, None, 0.0)]),
+                            measure=worse_colour, model_colour_mse=0.003)
+    assert settled.shipped == "model" and len(asked) >= 2
+
+
 def test_the_alternative_carries_the_assets_look_in_its_bytes():
     """A decimation weighed against a model with a look is counted with what it needs to carry that look: the same
     slot images the model stores, 16-bit texture coordinates per vertex, a slot id per triangle; the curve's points
@@ -518,7 +551,7 @@ def test_a_runs_initial_weights_are_its_seeds_whatever_ran_before(monkeypatch):
 
     starts = []
 
-    def train(model, bvh, tracer, cfg, **kw):
+    def train(model, bvh, tracer, cfg, hooks, files):
         starts.append([p.detach().clone() for p in model.parameters()])
         return SimpleNamespace(recovered=[])
 
@@ -528,7 +561,7 @@ def test_a_runs_initial_weights_are_its_seeds_whatever_ran_before(monkeypatch):
     for seed, noise in ((0, 10), (0, 1000), (1, 10)):
         torch.rand(noise)  # what ran before
         run = plan_run(preset("tiny").with_overrides(seed=seed), mesh)
-        trainings.train_with_restarts(mesh, bvh, None, run, lambda e: None, lambda: False, None)
+        trainings.train_with_restarts(trainings.RunContext(mesh, bvh, None, TrainingHooks(), CheckpointFiles()), run)
     assert all(torch.equal(a, b) for a, b in zip(starts[0], starts[1]))
     assert not all(torch.equal(a, b) for a, b in zip(starts[0], starts[2]))
 

@@ -17,6 +17,7 @@ from nbvh_core.neural.model import ModelConfig, NeuralBVH
 from nbvh_core.neural.networks import KMLP, MLP, NetworkConfig
 from nbvh_core.app.pipeline import compress_mesh, preset
 from nbvh_core.rendering.render import orbit_cameras, render_neural
+from nbvh_core.training.hooks import CheckpointFiles, TrainingHooks
 from nbvh_core.training.train import Cancelled, TrainConfig, TrainingDiverged, train
 
 SMALL = dict(levels=2, n_min=4, n_max=8, features=2, log2_table=4, index_factor=4, candidates=4)
@@ -255,10 +256,10 @@ def test_cancel_leaves_nothing_and_resume_continues_identically(blob_setup, tmp_
     first = fresh()
     calls = iter(range(100))
     with pytest.raises(Cancelled):
-        train(first, bvh, tracer, tc, should_cancel=lambda: next(calls) >= cancel_at, checkpoint_path=ck)
+        train(first, bvh, tracer, tc, TrainingHooks(should_cancel=lambda: next(calls) >= cancel_at), CheckpointFiles(ck))
     assert ck.exists() and not list(tmp_path.glob("*.partial"))
     resumed = fresh()
-    res = train(resumed, bvh, tracer, tc, resume_from=ck)
+    res = train(resumed, bvh, tracer, tc, files=CheckpointFiles(resume_from=ck))
     assert res.steps == 8
     for a, b in zip(straight.parameters(), resumed.parameters()):
         assert torch.allclose(a, b, atol=1e-6)
@@ -346,7 +347,7 @@ def test_a_late_divergence_goes_back_to_the_last_healthy_state_inside_the_budget
     model = NeuralBVH(bvh.nodes, preset("tiny").model_config(), mesh.transform)
     calls = _poison_steps(monkeypatch, lambda n: n == 200)
     events = []
-    res = train(model, bvh, tracer, cfg, events=events.append)
+    res = train(model, bvh, tracer, cfg, TrainingHooks(events=events.append))
     assert res.steps == 300 and calls[0] == 301  # the diverged step was dropped, not counted
     assert [(step, scale) for step, _, scale in res.recovered] == [(199, pytest.approx(0.1))]
     assert all(torch.isfinite(p).all() for p in model.parameters())
@@ -414,7 +415,7 @@ def test_a_checkpoint_after_a_recovery_resumes_at_the_lowered_learning_rate(blob
                               checkpoint_every=250)
     _poison_steps(monkeypatch, lambda n: n == 200)
     path = tmp_path / "run.ckpt"
-    train(NeuralBVH(bvh.nodes, preset("tiny").model_config(), mesh.transform), bvh, tracer, cfg, checkpoint_path=path)
+    train(NeuralBVH(bvh.nodes, preset("tiny").model_config(), mesh.transform), bvh, tracer, cfg, files=CheckpointFiles(path))
     assert read_checkpoint(path).header["lr_scale"] == pytest.approx(0.1)
     model = NeuralBVH(bvh.nodes, preset("tiny").model_config(), mesh.transform)
     opt = make_optimizer(model, cfg, kernels.plan(model, torch.device("cpu")))

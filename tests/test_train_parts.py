@@ -20,6 +20,7 @@ from nbvh_core.training.rays import label_samples, root_box, sample_rays
 from nbvh_core.training.checkpoints import Checkpoints
 from nbvh_core.training.early_stop import EarlyStop
 from nbvh_core.training.encoding_phases import EncodingPhases
+from nbvh_core.training.hooks import TrainingHooks
 from nbvh_core.training.train import DivergenceGuard, Schedule, TrainConfig, make_optimizer, make_step, train
 
 VQAD = dict(kind="hashvqad", log2_table=6, levels=2, features=4, index_factor=4, candidates=4)
@@ -167,7 +168,7 @@ def test_a_training_whose_finished_model_reads_far_worse_ends_on_the_best_check_
     said = []
     cfg = TrainConfig(steps=None, time_limit_s=1.0, rays_per_step=256, target_check_every_s=0.15, progress_every_s=0)
     model = _model(bvh)
-    train(model, bvh, tracer, cfg, events=said.append, target_reached=rule)
+    train(model, bvh, tracer, cfg, TrainingHooks(events=said.append, target_reached=rule))
     assert [d.action for d in rule.decisions][-1] == "roll back" and len(rule.decisions) >= 4
     assert all(d.action == "train on" for d in rule.decisions[:-1])
     assert all(torch.equal(p, b) for p, b in zip(model.parameters(), at_best))
@@ -401,7 +402,7 @@ def test_a_check_s_own_time_is_not_the_budget_s(blob):
     rule = CheckRule(slow_score, target=1e-9, max_log2=6, budget_s=1.0, bytes_at=lambda log2: 1000)
     cfg = TrainConfig(steps=None, time_limit_s=1.0, rays_per_step=256, target_check_every_s=0.2, progress_every_s=0)
     began = time.perf_counter()
-    tr = train(_model(bvh), bvh, tracer, cfg, target_reached=rule)
+    tr = train(_model(bvh), bvh, tracer, cfg, TrainingHooks(target_reached=rule))
     wall = time.perf_counter() - began
     assert len(asked) >= 3 and not tr.stopped_early
     assert tr.seconds < 1.2, tr.seconds

@@ -20,6 +20,7 @@ from nbvh_core.rendering.metrics import evaluate
 from nbvh_core.neural.model import NeuralBVH
 from nbvh_core.app.pipeline import preset
 from nbvh_core.geometry.bundled_samples import sample_path
+from nbvh_core.training.hooks import TrainingHooks
 from nbvh_core.training.train import train
 from bench.harness import RESULTS, write_markdown
 
@@ -43,7 +44,7 @@ def main() -> None:
             scores["soft"], _ = evaluate(m, tracer, args.views, s.eval_resolution)
             scores["temperature"] = m.encoding.temperature
 
-        res = train(model, bvh, tracer, s.train_config(), before_freeze=score_soft)
+        res = train(model, bvh, tracer, s.train_config(), TrainingHooks(before_freeze=score_soft))
         model.eval()
         frozen, _ = evaluate(model, tracer, args.views, s.eval_resolution)
         soft = scores["soft"]

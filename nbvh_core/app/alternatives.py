@@ -70,6 +70,7 @@ def decimation_entry(mesh: Mesh, count: int, checks, held_out, draco, decimator:
     entry["compact_mse"] = checks.score_mesh(decoded).mse
     if held_out is not None:
         entry["compact_mse_held_out"] = held_out.score_mesh(decoded).mse
+        _score_colour(entry, dec, held_out)
     if draco is not None:
         entry["draco11_bytes"] = len(draco.encode(dec.vertices, dec.faces, quantization_bits=11, compression_level=7))
     return entry
@@ -188,7 +189,17 @@ def whole_mesh_entry(mesh: Mesh, checks, held_out, tree=None) -> dict:
     entry["compact_mse"] = checks.score_mesh(decoded).mse
     if held_out is not None:
         entry["compact_mse_held_out"] = held_out.score_mesh(decoded).mse
+        _score_colour(entry, mesh, held_out)
     return entry
+
+
+def _score_colour(entry: dict, shipped: Mesh, held_out) -> None:
+    """For an asset with a look: the colour MSE of the mesh as it ships with its look (the .glb: the decimation,
+    its coordinates, slots and images) on the held-out views, what the final verdict weighs beside geometry."""
+    if shipped.look is not None:
+        colour = held_out.score_mesh(shipped).colour_mse
+        if colour is not None:
+            entry["colour_mse_held_out"] = colour
 
 
 def winning_decimation(mesh: Mesh, assessment: "Assessment", decimator: Decimator | None = None) -> Mesh | None:

@@ -34,8 +34,9 @@ from ..protocol.process import Cancelled, NotWorthCompressing
 from ..rendering.metrics import Quality
 from ..storage.fileformat import component_bytes, decode_nbvh, encode_nbvh, write_atomic
 from ..training.appearance_training import SurfaceLabels, train_head
+from ..training.hooks import CheckpointFiles, TrainingHooks
 from ..training.train import TrainResult
-from .trainings import SizeSearch, mesh_identity
+from .trainings import RunContext, SizeSearch, mesh_identity
 from .weighing import alternative_at_model, measure_decimation, shipped_materials, weigh
 @dataclass
 class CompressResult:
@@ -249,8 +250,9 @@ def _compress(mesh: Mesh, run: RunConfig, out_path, events: EventSink, should_ca
         raise Cancelled("cancelled before the BVH was built")
     bvh = _training_bvh(mesh, run.nodes, run.storage.node_bits, events, seconds, weighing.tree)
     weighing.tree = None  # the full tree (~100 B per triangle) is not needed past the cut
-    search = SizeSearch(mesh, bvh, tracer, run, events, should_cancel, checkpoint_path, resume_from,
-                         evaluate_quality, compare_float32, seconds, weighing)
+    ctx = RunContext(mesh, bvh, tracer, TrainingHooks(events, should_cancel),
+                     CheckpointFiles(checkpoint_path, resume_from=resume_from))
+    search = SizeSearch(ctx, run, evaluate_quality, compare_float32, seconds, weighing)
     chosen_log2 = search.search()
     model, tr, run_used, trained_notes, quality = search.trained[chosen_log2]
     target = run.decision.target_mse
@@ -267,6 +269,10 @@ def _compress(mesh: Mesh, run: RunConfig, out_path, events: EventSink, should_ca
     if look_info:
         metadata["appearance"] = look_info
     data = encode_nbvh(model, metadata, run_used.storage)
+    as_shipped = quality
+    if quality is not None and look_info:  # the file read back with its look: what a user sees, and what is weighed
+        events(wire.phase(phase="eval", message=f"the file as shipped: {weighing.held_out.name}"))
+        as_shipped, _ = weighing.held_out.score_model(decode_nbvh(data, "<the file as shipped>"), flip=True)
     verdict = None
     if quality is not None and weighing.curve_held_out is None and math.isfinite(quality.mse):
         # a fixed size measured nothing before training: weigh it now (forced, the verdict says what is given up)
@@ -274,14 +280,11 @@ def _compress(mesh: Mesh, run: RunConfig, out_path, events: EventSink, should_ca
         weighing.curve_held_out = alternative_at_model(mesh, weighing, assessment, len(data))
     if quality is not None and weighing.curve_held_out is not None:
         verdict = final_verdict(len(data), quality.mse, target, weighing.curve_held_out, run.decision.force,
-                                measure_decimation(mesh, weighing, assessment))
+                                measure_decimation(mesh, weighing, assessment),
+                                as_shipped.colour_mse if look_info else None)
         if verdict.shipped != "model":
             raise _keep_the_mesh(assessment, verdict, events, search.rule.decisions if search.rule else [],
                                  weighing.decimator)
-    as_shipped = quality
-    if quality is not None and look_info:  # the file read back with its look: what a user sees
-        events(wire.phase(phase="eval", message=f"the file as shipped: {weighing.held_out.name}"))
-        as_shipped, _ = weighing.held_out.score_model(decode_nbvh(data, "<the file as shipped>"), flip=True)
     decisions = {"checks": [d.to_dict() for d in search.rule.decisions] if search.rule else [],
                  "mse_check_views": search.check_views_mse, "mse_held_out_views": quality.mse if quality else None,
                  "final": verdict.to_dict() if verdict else None,

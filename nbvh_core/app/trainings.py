@@ -9,6 +9,7 @@ import dataclasses
 import hashlib
 import math
 import time
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch
@@ -17,6 +18,8 @@ from ..decision.checks import CheckRule
 from ..decision.growth import GrowthPlan
 from ..decision.records import RunNote
 from ..decision.size_search import search_size
+from ..geometry.bvh import BVH
+from ..geometry.exact import ExactTracer
 from ..geometry.mesh import Mesh
 from ..neural.model import NeuralBVH
 from ..planning.run_config import RunConfig
@@ -25,12 +28,25 @@ from ..protocol import events as wire
 from ..protocol.process import Cancelled, TrainingDiverged
 from ..rendering.metrics import Quality, ViewScorer
 from ..training.encoding_phases import grid_phase_pending, state_form
+from ..training.hooks import CheckpointFiles, TrainingHooks
 from ..training.train import TrainResult, train
 from .weighing import Weighing
 
 #: A training that diverged and could not go back (`training.recovery`) restarts from scratch at a 10x lower
 #: learning rate, at most this many times.
 DIVERGENCE_RETRIES = 2
+
+
+@dataclass(frozen=True)
+class RunContext:
+    """What every training of one run shares: the mesh, its training BVH and exact tracer, the hooks the trainings
+    call (events, cancel; `training.hooks`) and the checkpoint files (where they go, the one resumed)."""
+
+    mesh: Mesh
+    bvh: BVH
+    tracer: ExactTracer
+    hooks: TrainingHooks
+    files: CheckpointFiles
 
 
 class Trained(NamedTuple):
@@ -64,9 +80,9 @@ def stored_mse(scorer: ViewScorer, storage):
             return scorer.score_model(stored)[0].mse
     return score
 
-def train_with_restarts(mesh, bvh, tracer, run: RunConfig, events, should_cancel, checkpoint_path, resume_from=None,
-                         target_reached=None) -> tuple[NeuralBVH, TrainResult, RunConfig, tuple]:
-    """Train a fresh model (or resume `resume_from`). A divergence the training cannot recover from in place
+def train_with_restarts(ctx: RunContext, run: RunConfig,
+                        target_reached=None) -> tuple[NeuralBVH, TrainResult, RunConfig, tuple]:
+    """Train a fresh model (or resume the context's checkpoint), its checks `target_reached` (a CheckRule or None). A divergence the training cannot recover from in place
     (`training.recovery`: before its first healthy state, or a third time) restarts it from scratch at a 10x lower
     learning rate (at most DIVERGENCE_RETRIES times; the checks start over with it). Returns (model, TrainResult, the
     run as used, the notes of its restarts and recoveries)."""
@@ -75,12 +91,13 @@ def train_with_restarts(mesh, bvh, tracer, run: RunConfig, events, should_cancel
         if attempt and target_reached is not None:  # a CheckRule
             target_reached.start_over()
         torch.manual_seed(run.training.seed)  # the initial weights are the seed's, whatever this process ran before
-        model = NeuralBVH(bvh.nodes, run.model, mesh.transform)
+        model = NeuralBVH(ctx.bvh.nodes, run.model, ctx.mesh.transform)
         try:
-            extra = {"settings": run.request.to_dict(), "mesh": mesh_identity(mesh)}
-            tr = train(model, bvh, tracer, run.training, events=events, should_cancel=should_cancel,
-                       checkpoint_path=checkpoint_path, resume_from=resume_from if attempt == 0 else None,
-                       checkpoint_extra=extra, target_reached=target_reached)
+            files = dataclasses.replace(ctx.files, extra={"settings": run.request.to_dict(),
+                                                          "mesh": mesh_identity(ctx.mesh)},
+                                        resume_from=ctx.files.resume_from if attempt == 0 else None)
+            tr = train(model, ctx.bvh, ctx.tracer, run.training,
+                       dataclasses.replace(ctx.hooks, target_reached=target_reached), files)
             for step, seconds, scale in tr.recovered:
                 notes += (RunNote("recovered", f"training diverged at {seconds:g} s (step {step}) and went back to "
                                                f"its last healthy state at learning rate x{scale:g}"),)
@@ -90,7 +107,7 @@ def train_with_restarts(mesh, bvh, tracer, run: RunConfig, events, should_cancel
                 raise TrainingDiverged(f"{exc} (after {attempt} restarts at lower learning rates)") from None
             lr = run.training.lr
             notes += (RunNote("restart", f"training diverged at lr {lr:g} ({exc}), restarted at lr {lr * 0.1:g}"),)
-            events(wire.warning(message=f"training diverged ({exc}); restarting from scratch with the "
+            ctx.hooks.events(wire.warning(message=f"training diverged ({exc}); restarting from scratch with the "
                                         f"learning rate {lr:g} -> {lr * 0.1:g}"))
             run = run.with_training(lr=lr * 0.1)
     raise AssertionError("unreachable")
@@ -101,11 +118,12 @@ class SizeSearch:
     (`decision.size_search`, at most TARGET_TRAININGS). Each training is finalized to the stored precision and scored
     on the held-out views; `trained[log2 T]` keeps them all, `notes` the search's own account."""
 
-    def __init__(self, mesh, bvh, tracer, run: RunConfig, events, should_cancel, checkpoint_path, resume_from,
-                 evaluate_quality: bool, compare_float32: bool, seconds: dict, weighing: Weighing):
-        self.mesh, self.bvh, self.tracer, self.run = mesh, bvh, tracer, run
-        self.events, self.should_cancel = events, should_cancel
-        self.checkpoint_path, self.resume_from = checkpoint_path, resume_from
+    def __init__(self, ctx: RunContext, run: RunConfig, evaluate_quality: bool, compare_float32: bool, seconds: dict,
+                 weighing: Weighing):
+        self.ctx, self.run = ctx, run
+        self.mesh, self.bvh, self.tracer = ctx.mesh, ctx.bvh, ctx.tracer
+        self.events, self.should_cancel = ctx.hooks.events, ctx.hooks.should_cancel
+        self.resume_from = ctx.files.resume_from
         self.evaluate_quality, self.compare_float32, self.seconds = evaluate_quality, compare_float32, seconds
         self.weighing = weighing
         self.trained: dict[int, Trained] = {}
@@ -155,9 +173,7 @@ class SizeSearch:
         run_start = run.at_table(growth.start_log2, regrid=False).with_training(
             target_check_every_s=growth.check_every_s)
         self.rule = rule = self._rule(growth)
-        model, tr, run_used, notes = train_with_restarts(self.mesh, self.bvh, self.tracer, run_start, self.events,
-                                                          self.should_cancel, self.checkpoint_path, self.resume_from,
-                                                          rule)
+        model, tr, run_used, notes = train_with_restarts(self.ctx, run_start, rule)
         tr.checks = [(d.seconds, d.log2_table, d.mse) for d in rule.decisions]
         final = model.cfg.encoding.log2_table
         run_used = run_used.at_table(final, regrid=False).with_training(target_check_every_s=run.decision.check_every_s)
@@ -207,9 +223,7 @@ class SizeSearch:
         # a fixed size: the checks only stop the training once the level is met (no growth, no alternative)
         stop = (CheckRule(self.score_stored, target, log2_table, budget, self.bytes_at, shipped_form=self.shipped_form,
                           state_form=state_form) if target is not None and self.evaluate_quality else None)
-        model, tr, run_used, notes = train_with_restarts(self.mesh, self.bvh, self.tracer, run_try, self.events,
-                                                          self.should_cancel, self.checkpoint_path, self.resume_from,
-                                                          stop)
+        model, tr, run_used, notes = train_with_restarts(self.ctx, run_try, stop)
         if tr.stopped_early:
             notes += (RunNote("early stop", f"T=2^{log2_table}: training stopped after {tr.seconds:.0f} s of the "
                                             f"{budget:.0f} s budget, the target being met"),)

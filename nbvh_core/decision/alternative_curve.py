@@ -16,12 +16,22 @@ from dataclasses import dataclass
 @dataclass(frozen=True)
 class CurvePoint:
     """bytes: the compact mesh's exact bytes; mse: its measured MSE on this curve's views; triangles; requested:
-    the decimation count asked for (None: the whole mesh)."""
+    the decimation count asked for (None: the whole mesh); colour_mse: for an asset with a look, the colour MSE of
+    the mesh as it ships with its look on the held-out views (None: no look, or not measured)."""
 
     bytes: int
     mse: float
     triangles: int
     requested: int | None
+    colour_mse: float | None = None
+
+    def meets(self, mse: float, colour_mse: float | None = None) -> bool:
+        """Whether this mesh stands in for a model of geometry `mse` and, for an asset with a look, `colour_mse`: at
+        least as good on every measure the model has (a point whose colour was not measured cannot stand in for a
+        model whose colour was)."""
+        if self.mse > mse:
+            return False
+        return colour_mse is None or (self.colour_mse is not None and self.colour_mse <= colour_mse)
 
     @classmethod
     def from_entry(cls, entry: dict, held_out: bool = False, whole: bool = False) -> "CurvePoint":
@@ -29,8 +39,10 @@ class CurvePoint:
         the compact mesh and what it needs to carry the asset's look (`app.alternatives.look_carried_bytes`), its MSE on the
         check views or (held_out) the held-out views."""
         key = "compact_mse_held_out" if held_out else "compact_mse"
+        colour = entry.get("colour_mse_held_out") if held_out else None
         return cls(int(entry["compact_bytes"]) + int(entry.get("look_bytes", 0)), float(entry[key]),
-                   int(entry["triangles"]), None if whole else int(entry["requested_triangles"]))
+                   int(entry["triangles"]), None if whole else int(entry["requested_triangles"]),
+                   None if colour is None else float(colour))
 
 
 def _envelope(points: list[CurvePoint]) -> list[CurvePoint]:
@@ -88,10 +100,11 @@ class AlternativeCurve:
         """One more measured point (a decimation measured to settle a verdict)."""
         self.points = _envelope(self.points + [point])
 
-    def cheapest_meeting(self, mse: float) -> CurvePoint | None:
-        """The smallest measured point whose MSE is at most `mse` (what can be shipped instead), or None."""
-        return next((p for p in self.points if p.mse <= mse), None)
+    def cheapest_meeting(self, mse: float, colour_mse: float | None = None) -> CurvePoint | None:
+        """The smallest measured point that stands in for a model of `mse` (and, with a look, `colour_mse`:
+        `CurvePoint.meets`): what can be shipped instead, or None."""
+        return next((p for p in self.points if p.meets(mse, colour_mse)), None)
 
     def to_dict(self) -> list[dict]:
-        return [{"bytes": p.bytes, "mse": p.mse, "triangles": p.triangles, "requested": p.requested}
-                for p in self.points]
+        return [{"bytes": p.bytes, "mse": p.mse, "triangles": p.triangles, "requested": p.requested,
+                 "colour_mse": p.colour_mse} for p in self.points]

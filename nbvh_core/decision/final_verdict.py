@@ -1,5 +1,10 @@
 """The last decision of a run: after the held-out evaluation, the model as it ships (its file, every byte) against
-the alternative's curve at the model's own measured MSE (the same held-out views); by default the smaller ships."""
+the alternative's curve at the model's own measured MSE (the same held-out views); by default the smaller ships.
+
+Quality is the asset's look: a mesh stands in for the model only when it is at least as good on every measure the
+model has - geometry image MSE and, for an asset with a look, the colour MSE of the file as shipped against the
+mesh as it ships with its look (`CurvePoint.meets`), on the same held-out views. The curve's line (interpolation)
+is drawn on geometry; a mesh that meets it but not the model's colour is measured on, as one that misses it."""
 from __future__ import annotations
 
 import math
@@ -23,18 +28,18 @@ SETTLE_WINDOW = 1.5
 SETTLE_BEYOND_TRIES = 3
 
 
-def _settle(curve: AlternativeCurve, model_bytes: int, model_mse: float, measure) -> None:
+def _settle(curve: AlternativeCurve, model_bytes: int, model_mse: float, measure, colour: float | None = None) -> None:
     """Measure, rather than interpolate, where the curve's line is what decides: when the line is below the model
     but no measured decimation reaching its MSE is smaller, the decimation the line expects there (then 1.41x larger,
     until one settles it); when the line is above the model by less than SETTLE_WINDOW, the largest decimation
     smaller than the model's file (bytes grow with triangles), once."""
-    point = curve.cheapest_meeting(model_mse)
+    point = curve.cheapest_meeting(model_mse, colour)
     if measure is None or (point and point.bytes < model_bytes):
         return
     line = curve.bytes_at(model_mse)
     count = curve.triangles_at(model_mse)
     if not count and point is None:
-        _settle_beyond(curve, model_bytes, model_mse, measure)
+        _settle_beyond(curve, model_bytes, model_mse, measure, colour)
         return
     if not count or line >= SETTLE_WINDOW * model_bytes:
         return
@@ -44,14 +49,15 @@ def _settle(curve: AlternativeCurve, model_bytes: int, model_mse: float, measure
     for _ in range(SETTLE_TRIES):
         got = measure(count)
         curve.add(got)
-        if got.mse <= model_mse or got.bytes >= model_bytes:
+        if got.meets(model_mse, colour) or got.bytes >= model_bytes:
             return
         count = int(count * SETTLE_STEP) + 1
         if count >= max(p.triangles for p in curve.points):  # the whole mesh is the last measured point
             return
 
 
-def _settle_beyond(curve: AlternativeCurve, model_bytes: int, model_mse: float, measure) -> None:
+def _settle_beyond(curve: AlternativeCurve, model_bytes: int, model_mse: float, measure,
+                   colour: float | None = None) -> None:
     """The model reads lower MSE than every measured point (a heavy mesh whose plan stopped at its time share,
     before the decimations or the whole mesh reached that quality): measure the decimation whose compact bytes
     should about equal the model's file (bytes grow with triangles; from the largest decimation measured, 3% under),
@@ -69,7 +75,7 @@ def _settle_beyond(curve: AlternativeCurve, model_bytes: int, model_mse: float, 
             return
         last = measure(count)
         curve.add(last)
-        if last.mse <= model_mse or last.bytes >= model_bytes:
+        if last.meets(model_mse, colour) or last.bytes >= model_bytes:
             return
         count = int(count * model_bytes / max(last.bytes, 1) * 1.03) + 1
 
@@ -92,14 +98,17 @@ def _without_quality(model_bytes: int, model_mse: float, target: float | None, c
 
 
 def final_verdict(model_bytes: int, model_mse: float, target: float | None, curve: AlternativeCurve | None,
-                  force: bool = False, measure=None) -> FinalVerdict:
+                  force: bool = False, measure=None, model_colour_mse: float | None = None) -> FinalVerdict:
     """Weigh the shipped model (`model_bytes`, held-out `model_mse`) against `curve` (the alternative on the
     held-out views). A measured decimation (or the whole mesh) that reaches the model's MSE in fewer bytes ships
     instead, unless `force`; when the model also missed `target`, the mesh that ships is the smallest measured one
     that meets the target, where one does (the level asked for; else the one at the model's MSE). A missed level is
     said, and a model that misses it ships only while it is the better value at its own MSE.
     measure(triangles) -> CurvePoint: measures one more decimation on the same views (None: the curve as it is).
-    A non-finite `model_mse` never ships the model (`_without_quality`)."""
+    A non-finite `model_mse` never ships the model (`_without_quality`). model_colour_mse: for an asset with a look,
+    the file's colour MSE on the same views: a mesh stands in for the model only when it also reaches it (module
+    docstring)."""
+    colour = model_colour_mse
     if not math.isfinite(model_mse):
         return _without_quality(model_bytes, model_mse, target, curve, force)
     level_met = None if target is None else model_mse <= target
@@ -107,13 +116,13 @@ def final_verdict(model_bytes: int, model_mse: float, target: float | None, curv
         return FinalVerdict(model_bytes, model_mse, None, "model", None, level_met, force,
                             f"the model: {model_bytes:,} B at MSE {model_mse:.4g} (no alternative measured: forced, or no simplifier)")
     if not force:
-        _settle(curve, model_bytes, model_mse, measure)
+        _settle(curve, model_bytes, model_mse, measure, colour)
     alt = curve.bytes_at(model_mse)
     alt_bytes = alt if math.isfinite(alt) else None
-    beaten_by = curve.cheapest_meeting(model_mse)
+    beaten_by = curve.cheapest_meeting(model_mse, colour)
     beaten = beaten_by is not None and beaten_by.bytes < model_bytes
     level = "" if level_met is not False else f"; the level {target:g} was out of reach in the budget"
-    at_level = curve.cheapest_meeting(target) if level_met is False else None
+    at_level = curve.cheapest_meeting(target, colour) if level_met is False else None
     if at_level is not None:  # what reaching the level would take as a mesh, for the user to choose
         level += f" (a mesh of {at_level.triangles:,} triangles meets it: {at_level.bytes:,} B)"
     if beaten and not force:  # a mesh ships: the one at the level asked for when the model missed it
@@ -127,14 +136,21 @@ def final_verdict(model_bytes: int, model_mse: float, target: float | None, curv
             message = (f"kept as a mesh: {what} reaches MSE {ship.mse:.4g} in {ship.bytes:,} B as a compact mesh; the "
                        f"model needs {model_bytes:,} B for MSE {model_mse:.4g} ({model_bytes / ship.bytes:.2f}x the "
                        f"decimation){level}")
+        if colour is not None:
+            message += f" (colour MSE {ship.colour_mse:.4g}, the model's {colour:.4g})"
         return FinalVerdict(model_bytes, model_mse, alt_bytes, "decimation" if ship.requested else "mesh",
                             {"triangles": ship.triangles, "requested_triangles": ship.requested,
-                             "compact_bytes": ship.bytes, "mse": ship.mse},
-                            level_met, force, message, at_level=ship is at_level)
+                             "compact_bytes": ship.bytes, "mse": ship.mse, "colour_mse": ship.colour_mse},
+                            level_met, force, message, at_level=ship is at_level, model_colour_mse=colour)
     above = None
+    by_shape = curve.cheapest_meeting(model_mse) if colour is not None else None
     if beaten:  # forced: say what the user gives up
         versus = (f"a measured compact decimation to {beaten_by.triangles:,} triangles reaches MSE {beaten_by.mse:.4g} "
                   f"in {beaten_by.bytes:,} B, {model_bytes / beaten_by.bytes:.2f}x smaller than the model")
+    elif by_shape is not None and by_shape.bytes < model_bytes:  # its geometry, but not its look, in fewer bytes
+        seen = "its colour not measured" if by_shape.colour_mse is None else f"colour MSE {by_shape.colour_mse:.4g}"
+        versus = (f"a decimation to {by_shape.triangles:,} triangles reaches its geometry MSE in {by_shape.bytes:,} B "
+                  f"but not its look ({seen} against the model's {colour:.4g})")
     elif alt_bytes is None:
         missing = [p for p in curve.points if p.requested is not None and p.mse > model_mse]
         largest = max(missing, key=lambda p: p.bytes) if missing else None
@@ -151,6 +167,7 @@ def final_verdict(model_bytes: int, model_mse: float, target: float | None, curv
                   f"reaches this MSE in fewer bytes than the model"
                   + (f" (the smallest that does: {nearest:,} B)" if nearest else ""))
     forced = "; shipped because forced" if beaten else ""
+    look = "" if colour is None else f" (colour MSE {colour:.4g})"
     return FinalVerdict(model_bytes, model_mse, alt_bytes, "model", None, level_met, force,
-                        f"the model: {model_bytes:,} B at MSE {model_mse:.4g}; {versus}{level}{forced}",
-                        alternative_above=above)
+                        f"the model: {model_bytes:,} B at MSE {model_mse:.4g}{look}; {versus}{level}{forced}",
+                        alternative_above=above, model_colour_mse=colour)

@@ -98,6 +98,9 @@ class FinalVerdict:
     #: Where no measured point reaches the model's MSE: the bytes of the largest measured decimation that misses it
     #: (any decimation reaching it is larger: bytes grow with triangles), else None.
     alternative_above: int | None = None
+    #: For an asset with a look: the file's colour MSE on the held-out views, which a mesh had to reach too to ship
+    #: instead (`final_verdict`); None: geometry alone was weighed.
+    model_colour_mse: float | None = None
 
     @property
     def ratio(self) -> float | None:

@@ -22,9 +22,7 @@ from __future__ import annotations
 
 import gc
 import math
-import os
 import time
-from typing import Callable
 
 import numpy as np
 import torch
@@ -33,7 +31,7 @@ from .. import kernels
 from .ray_batches import Batches, LeafErrors, TreeCut  # noqa: F401  (LeafErrors: re-exported)
 from ..geometry.bvh import BVH
 from ..storage.checkpoint import CheckpointError
-from ..protocol.events import EventSink, null_sink
+from ..protocol.events import EventSink
 from ..protocol import events as wire
 from ..geometry.exact import ExactTracer
 from ..neural.model import NeuralBVH
@@ -41,6 +39,7 @@ from ..protocol.process import Cancelled, TrainingDiverged
 from .checkpoints import Checkpoints, checkpoint_state, load_checkpoint, resumed_at
 from .config import LEAF_SAMPLINGS, TrainConfig, TrainResult
 from .early_stop import EarlyStop
+from .hooks import CheckpointFiles, TrainingHooks
 from .encoding_phases import EncodingPhases, state_form
 from .loss_reads import LossBook, read_every
 from .recovery import Recovery
@@ -280,32 +279,28 @@ def _what_trains(model: NeuralBVH, cfg: TrainConfig, plan: kernels.KernelPlan) -
     return f"{model.cfg.encoding.kind}+{model.cfg.network.kind}, {cfg.labels} labels, {plan.describe()}"
 
 
-def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, events: EventSink = null_sink,
-          should_cancel: Callable[[], bool] = lambda: False, checkpoint_path: str | os.PathLike | None = None,
-          resume_from: str | os.PathLike | None = None, before_freeze: Callable[[NeuralBVH], None] | None = None,
-          checkpoint_extra: dict | None = None, target_reached: Callable[[NeuralBVH], object] | None = None) -> TrainResult:
-    """Train `model` in place on rays around `bvh`, labelled by `tracer`; freezes HashVQAD near the end.
-    before_freeze(model) is called once just before the HashVQAD freeze (e.g. to score the soft model).
-    checkpoint_extra: stored in every checkpoint under 'extra' (the caller's settings and mesh identity).
-    target_reached(model) -> bool, a check's action (`records.CheckAction`) or record (`CheckDecision`, as
-    `CheckRule` answers), asked every cfg.target_check_every_s seconds: True or "stop: ..." stops training early;
-    "grow" doubles the table, "roll back" returns to the best check's state; see `EarlyStop` (and its `at_end`)."""
+def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig,
+          hooks: TrainingHooks = TrainingHooks(), files: CheckpointFiles = CheckpointFiles()) -> TrainResult:
+    """Train `model` in place on rays around `bvh`, labelled by `tracer`; freezes HashVQAD near the end. hooks: what
+    the loop calls back, and when (`hooks.HOOK_SCHEDULE`: events, cancel, the target's checks, before the freeze);
+    files: where checkpoints go and the one it resumes (`hooks.CheckpointFiles`)."""
+    events = hooks.events
     check_config(cfg)
     device = pick_device(cfg.device)
     torch.manual_seed(cfg.seed)
     plan = kernels.plan(model.to(device), device)
     opt = make_optimizer(model, cfg, plan)
-    ck = load_checkpoint(resume_from, model, opt, device) if resume_from is not None else {}
+    ck = load_checkpoint(files.resume_from, model, opt, device) if files.resume_from is not None else {}
     step, elapsed_before, history = resumed_at(ck, events)
     batches, leaf_errors, cut = _training_data(model, bvh, tracer, cfg, ck, device, plan,
                                                np.random.default_rng(cfg.seed), events)
     schedule = Schedule(cfg, scale=ck.get("lr_scale", 1.0))  # a recovery before the checkpoint lowered the scale
     guard, progress = DivergenceGuard(cfg, step), Progress(events, cfg, elapsed_before)
     recovery = Recovery(guard, schedule, cfg.divergence_recoveries, events, state_form)
-    phases = EncodingPhases(model, cfg, events, _held_out_loss(model, batches, tracer, cfg, device), before_freeze,
-                            ck.get("qat_affine"))
-    checkpoints = Checkpoints(checkpoint_path, cfg, checkpoint_extra, elapsed_before)
-    early = EarlyStop(target_reached, cfg, elapsed_before)
+    phases = EncodingPhases(model, cfg, events, _held_out_loss(model, batches, tracer, cfg, device),
+                            hooks.before_freeze, ck.get("qat_affine"))
+    checkpoints = Checkpoints(files.path, cfg, files.extra, elapsed_before)
+    early = EarlyStop(hooks.target_reached, cfg, elapsed_before)
     train_step = make_step(model, device, plan)
     events(wire.phase(phase="train", message=_what_trains(model, cfg, plan)))
     losses = LossBook(read_every(cfg.loss_read_every, device), history, recovery, model, opt, phases)
@@ -324,7 +319,7 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig, eve
             t0 += early.spent_s  # a check measures: its time is not the budget's (nor the schedule's)
             if stopped_early:
                 break
-            if should_cancel():
+            if hooks.should_cancel():
                 checkpoints.save(state())
                 raise Cancelled(f"cancelled at step {step}")
             phase = phases.before_step(frac)
