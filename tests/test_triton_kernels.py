@@ -196,7 +196,7 @@ def test_the_ray_query_compiles_for_the_card_without_spilling(tmp_path):
     root = Path(__file__).resolve().parents[1]
     env = {k: v for k, v in os.environ.items() if k != "TRITON_INTERPRET"}
     env["NBVH_BENCH_RESULTS"] = str(tmp_path)
-    out = subprocess.run([sys.executable, "bench/speed/kernel_registers.py", "--cases", "1"], cwd=root, env=env,
+    out = subprocess.run([sys.executable, "-m", "bench.speed.kernel_registers", "--cases", "1"], cwd=root, env=env,
                          capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, out.stderr[-2000:]
     with open(tmp_path / "kernel_registers.csv") as f:
