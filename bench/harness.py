@@ -126,6 +126,21 @@ def read_rows(path: str | os.PathLike) -> list[dict]:
         return list(csv.DictReader(f))
 
 
+def measure_missing(path: str | os.PathLike, cases: list[tuple[tuple, tuple]], key_of, measure, report=None) -> None:
+    """Resume a benchmark: measure each case whose key no row of `path` has yet and append its row as it lands.
+    cases: [(key, measure's arguments)]; key_of(row) -> the key a row was measured for; report(rows): rewrites the
+    benchmark's tables and charts after each row (None: nothing)."""
+    done = {key_of(r) for r in read_rows(path)}
+    for key, args in cases:
+        if key in done:
+            continue
+        row = measure(*args)
+        append_rows(path, [row])
+        print(row, flush=True)
+        if report is not None:
+            report(read_rows(path))
+
+
 def num(row: dict, key: str) -> float:
     """A CSV cell as a float (nan when empty or missing)."""
     try:

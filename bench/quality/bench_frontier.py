@@ -18,8 +18,8 @@ import json
 import time
 
 from bench.meshes import named_mesh
-from bench.harness import (RESULTS, SMOKE, append_rows, markdown_table, product_scorer, read_rows,
-                     save_bytes_mse_chart, write_markdown)
+from bench.harness import (RESULTS, SMOKE, markdown_table, measure_missing, product_scorer, save_bytes_mse_chart,
+                           write_markdown)
 from nbvh_core.app.pipeline import compress_mesh, preset
 
 OUT = RESULTS / "frontier.csv"
@@ -102,16 +102,10 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=200.0)
     ap.add_argument("--variants", nargs="+", required=True, help="LABEL=field:value,... (Settings fields)")
     args = ap.parse_args()
-    done = {(r["mesh"], float(r["train_s"]), r["variant"]) for r in read_rows(OUT)}
-    for name in args.meshes:
-        for text in args.variants:
-            label, overrides = parse_variant(text)
-            if (name, args.seconds, label) in done:
-                continue
-            row = measure(name, args.seconds, label, overrides)
-            append_rows(OUT, [row])
-            print(row, flush=True)
-            report(read_rows(OUT))
+    variants = [parse_variant(text) for text in args.variants]
+    cases = [((name, args.seconds, label), (name, args.seconds, label, overrides))
+             for name in args.meshes for label, overrides in variants]
+    measure_missing(OUT, cases, lambda r: (r["mesh"], float(r["train_s"]), r["variant"]), measure, report)
 
 
 if __name__ == "__main__":

@@ -15,8 +15,8 @@ import argparse
 import time
 
 from bench.meshes import bench_mesh
-from bench.harness import (RESULTS, append_rows, markdown_table, product_scorer, read_rows,
-                     save_bytes_mse_chart, write_markdown)
+from bench.harness import (RESULTS, markdown_table, measure_missing, product_scorer, save_bytes_mse_chart,
+                           write_markdown)
 from nbvh_core.app.pipeline import compress_mesh, preset
 
 OUT = RESULTS / "table_bits.csv"
@@ -70,16 +70,11 @@ def main() -> None:
     ap.add_argument("--pairs", nargs="+", default=["8:11", "4:12", "8:12", "4:13"],
                     help="bits:log2 T of each model to train")
     args = ap.parse_args()
-    done = {(r["mesh"], float(r["train_s"]), int(r["table_bits"]), int(r["log2_table"])) for r in read_rows(OUT)}
-    for name in args.meshes:
-        for pair in args.pairs:
-            bits, log2_table = (int(x) for x in pair.split(":"))
-            if (name, args.seconds, bits, log2_table) in done:
-                continue
-            row = measure(name, args.seconds, bits, log2_table)
-            append_rows(OUT, [row])
-            print(row, flush=True)
-            report(read_rows(OUT))
+    pairs = [tuple(int(x) for x in pair.split(":")) for pair in args.pairs]
+    cases = [((name, args.seconds, bits, log2), (name, args.seconds, bits, log2))
+             for name in args.meshes for bits, log2 in pairs]
+    measure_missing(OUT, cases, lambda r: (r["mesh"], float(r["train_s"]), int(r["table_bits"]), int(r["log2_table"])),
+                    measure, report)
 
 
 if __name__ == "__main__":
