@@ -404,7 +404,7 @@ def test_a_run_that_recovers_says_so_and_does_not_start_over(blob_setup, monkeyp
 
 def test_a_checkpoint_after_a_recovery_resumes_at_the_lowered_learning_rate(blob_setup, monkeypatch, tmp_path):
     from nbvh_core.storage.checkpoint import read_checkpoint
-    from nbvh_core.training.checkpoints import load_checkpoint
+    from nbvh_core.storage.checkpoint import load_checkpoint
     from nbvh_core.training.train import make_optimizer
     from nbvh_core import kernels
 

@@ -158,7 +158,7 @@ def read_checkpoint_case(path: Path, mesh) -> str:
     from nbvh_core.geometry.bvh import build_bvh
     from nbvh_core.neural.model import NeuralBVH
     from nbvh_core.app.pipeline import resume_settings
-    from nbvh_core.training.checkpoints import load_checkpoint
+    from nbvh_core.storage.checkpoint import load_checkpoint
     from nbvh_core.training.train import make_optimizer
 
     settings = resume_settings(path, mesh)

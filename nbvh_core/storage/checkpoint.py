@@ -3,6 +3,7 @@ carries one JSON header, both validated before anything in them is used.
 
     write_checkpoint(path, state)      # atomically (outputs.write_atomic)
     read_checkpoint(path) -> Checkpoint(header, tensors)   # or CheckpointError, one line
+    load_checkpoint(path, model, opt, device) -> the rest of the state   # into a model and its optimizer
 
 Layout (safetensors, https://github.com/huggingface/safetensors: u64 header length, JSON header, tensor bytes):
 * tensors: `model.NAME` (the model's state_dict), `optimizer.I.KEY` (Adam's state of parameter I:
@@ -17,7 +18,7 @@ The reader trusts nothing: the file must be a regular file under MAX_BYTES; pick
 writes) are recognised by their first bytes and refused without being opened; the header's length, JSON, names,
 dtypes, shapes and offsets are checked against the file's size before a tensor is made, so allocations are
 bounded by the file's own size; every header field is typed and ranged. What a tensor must look like for a given
-model (shapes, dtypes) is checked where the model is known (`training.checkpoints.load_checkpoint`), and the settings by
+model (shapes, dtypes) is checked as it is loaded into one (`load_checkpoint`), and the settings by
 `settings.settings_from_dict`.
 """
 from __future__ import annotations
@@ -258,3 +259,64 @@ def _check_tensors(tensors: dict, where: str) -> None:
     for name, t in tensors.items():
         if name.startswith(("model.", "optimizer.")) and t.is_floating_point() and not torch.isfinite(t).all():
             raise CheckpointError(f"{where}: tensor {name!r} holds NaN or infinite values")
+
+
+# ------------------------------------------------------------------------------------- into a model
+def load_checkpoint(path: str | os.PathLike, model: torch.nn.Module, opt: torch.optim.Optimizer,
+                    device: torch.device) -> dict:
+    """Load a checkpoint's model (a NeuralBVH), optimizer moments and torch RNG state into `model` and `opt`, after
+    checking every tensor against what this model holds (names, shapes, dtypes); returns the rest for the other
+    parts of a training (`training.checkpoints` gathers them when it writes): step,
+    elapsed, history [(step, loss)], numpy_rng {chunk_state, index, leaf_weights}, leaf_errors, cut,
+    tree_cut_rounds_done, lr_scale, qat_affine. Raises CheckpointError (one line) for a file that does not fit."""
+    ck = read_checkpoint(path)
+    where = str(path)
+    codes = ck.get("model.encoding.codes")
+    if codes is not None and codes.numel() and model.encoding.learned_index:
+        model.encoding.freeze()  # the checkpoint is past the freeze: same structure before loading
+    model.load_state_dict(_matching(ck.tensors, "model.", model.state_dict(), where))
+    opt.load_state_dict(_optimizer_state(ck.tensors, opt, where))
+    torch.set_rng_state(ck.tensors["torch_rng"])
+    h = ck.header
+    rng = None if h["numpy_rng"] is None else dict(h["numpy_rng"], leaf_weights=_numpy(ck.get("leaf_weights")))
+    qat = ck.get("qat_offset"), ck.get("qat_scale")
+    return {"step": h["step"], "elapsed": float(h["elapsed"]),
+            "history": [(int(s), float(v)) for s, v in ck.tensors["history"].tolist()], "numpy_rng": rng,
+            "leaf_errors": ck.get("leaf_errors"), "cut": None if ck.get("cut") is None else ck.get("cut").tolist(),
+            "tree_cut_rounds_done": h["tree_cut_rounds_done"], "lr_scale": h["lr_scale"],
+            "qat_affine": None if qat[0] is None else (qat[0].numpy(), qat[1].numpy())}
+
+
+def _numpy(t: torch.Tensor | None) -> np.ndarray | None:
+    return None if t is None else t.numpy()
+
+
+def _matching(tensors: dict, prefix: str, expected: dict, where: str) -> dict:
+    """The checkpoint's tensors under `prefix`, refused unless they are exactly `expected`'s names, shapes, dtypes."""
+    got = {k[len(prefix):]: v for k, v in tensors.items() if k.startswith(prefix)}
+    if set(got) != set(expected):
+        odd = sorted(set(got) ^ set(expected))[:3]
+        raise CheckpointError(f"{where}: the checkpoint does not hold this model's tensors (differs in {odd})")
+    for name, want in expected.items():
+        if got[name].shape != want.shape or got[name].dtype != want.dtype:
+            raise CheckpointError(f"{where}: tensor {name!r} is {tuple(got[name].shape)} {got[name].dtype}, this "
+                                  f"model's is {tuple(want.shape)} {want.dtype}")
+    return got
+
+
+def _optimizer_state(tensors: dict, opt: torch.optim.Optimizer, where: str) -> dict:
+    """Adam's state_dict: the structure and hyperparameters of `opt` (this run's own: nothing of the file's but
+    numbers), the moments and step counts of the file, each checked against its parameter."""
+    own = opt.state_dict()
+    params = [p for g in opt.param_groups for p in g["params"]]
+    state = {}
+    for i, p in enumerate(params):
+        entry = {k.split(".")[-1]: v for k, v in tensors.items() if k.startswith(f"optimizer.{i}.")}
+        if not entry:
+            continue
+        want = {"step": torch.zeros((), dtype=torch.float32), "exp_avg": p.detach().cpu(),
+                "exp_avg_sq": p.detach().cpu()}
+        state[i] = _matching({f"{k}": v for k, v in entry.items()}, "", want, where)
+    if any(int(k.split(".")[1]) >= len(params) for k in tensors if k.startswith("optimizer.")):
+        raise CheckpointError(f"{where}: optimizer state for a parameter this model does not have")
+    return {"state": state, "param_groups": own["param_groups"]}

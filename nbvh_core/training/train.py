@@ -30,13 +30,13 @@ import torch
 from .. import kernels
 from .ray_batches import Batches, LeafErrors, TreeCut  # noqa: F401  (LeafErrors: re-exported)
 from ..geometry.bvh import BVH
-from ..storage.checkpoint import CheckpointError
+from ..storage.checkpoint import CheckpointError, load_checkpoint
 from ..protocol.events import EventSink
 from ..protocol import events as wire
 from ..geometry.exact import ExactTracer
 from ..neural.model import NeuralBVH
 from ..protocol.process import Cancelled, TrainingDiverged
-from .checkpoints import Checkpoints, checkpoint_state, load_checkpoint, resumed_at
+from .checkpoints import Checkpoints, checkpoint_state, resumed_at
 from .config import LEAF_SAMPLINGS, TrainConfig, TrainResult
 from .early_stop import EarlyStop
 from .hooks import CheckpointFiles, TrainingHooks
