@@ -32,13 +32,13 @@ class Plan:
     def __init__(self, quick: bool):
         self.quick = quick
         self.meshes = ("blob", "knot") if quick else BENCH_MESHES
-        self.train_s = 2.0 if quick else 15.0  # quick: a smoke run checks the parts run and stamp, not quality
+        self.train_s = 1.0 if quick else 15.0  # quick: a smoke run checks the parts run and stamp, not quality
         self.views, self.res = (4, 48) if quick else (Settings().eval_views, Settings().eval_resolution)
         # All sizes for III and the user preset (rate-distortion curves); the middle size for base, I, II.
         self.full_sizes_methods = ("III", "default") if not quick else ("default",)
         self.seed_meshes = ("knot",) if quick else ("bunny", "knot")
         self.seeds = (1,) if quick else (1, 2)
-        self.time_budgets = (1.0, 2.0) if quick else (5.0, 15.0, 45.0)
+        self.time_budgets = (0.5, 1.0) if quick else (5.0, 15.0, 45.0)
         self.time_meshes = ("blob",) if quick else ("bunny",)
         self.draco_bits = (8, 11) if quick else (7, 8, 9, 10, 11, 14)
         self.decimate_to = (1000,) if quick else (500, 1000, 2500, 10000, 40000)
