@@ -34,8 +34,9 @@ def installing() -> bool:
 
 
 class NBVH_OT_install_dependencies(bpy.types.Operator):
-    """Create a virtual environment with PyTorch (CPU build) and nbvh_core's dependencies for the background jobs,
-    in a background process (progress and Cancel in these preferences)"""
+    """Create a virtual environment with PyTorch (the CUDA build where an NVIDIA card is found, else the CPU build)
+    and nbvh_core's dependencies for the background jobs, in a background process (progress and Cancel in these
+    preferences)"""
 
     bl_idname = "nbvh.install_dependencies"
     bl_label = "Install Dependencies"

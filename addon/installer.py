@@ -1,6 +1,7 @@
-"""Installing the job Python's dependencies in the background: a virtual environment with PyTorch's CPU build and
-nbvh_core's pinned requirements, step by step in watched processes (progress, the pip line being worked on,
-cancel), so Blender's UI never waits on pip. No bpy and no torch here.
+"""Installing the job Python's dependencies in the background: a virtual environment with PyTorch (the CUDA build
+where an NVIDIA card is found, else the CPU build) and nbvh_core's pinned requirements, step by step in watched
+processes (progress, the pip line being worked on, cancel), so Blender's UI never waits on pip. No bpy and no torch
+here.
 
     inst = Installer(install_steps(venv_dir, base_python, requirements))
     inst.start(); ... inst.poll() (from a timer) ...; inst.cancel()
@@ -11,6 +12,7 @@ import os
 import platform
 import queue
 import re
+import shutil
 import subprocess
 import sys
 import threading
@@ -19,6 +21,24 @@ from pathlib import Path
 
 #: PyTorch's own index of CPU-only wheels (the PyPI wheel on Linux is the CUDA build, several GB).
 TORCH_CPU_INDEX = "https://download.pytorch.org/whl/cpu"
+#: PyTorch's index of CUDA wheels, for Windows (on Linux the PyPI wheel is the CUDA build and brings Triton). CUDA 13.0:
+#: the build a lent card's image runs (torch 2.11+cu130); its driver must be 580 or newer.
+TORCH_CUDA_INDEX = "https://download.pytorch.org/whl/cu130"
+
+
+def nvidia_card(run=subprocess.run) -> str | None:
+    """The first NVIDIA card as the driver lists it (`nvidia-smi -L`: 'GPU 0: NVIDIA ... (UUID: ...)'), or None
+    when there is no driver or no card. run: subprocess.run (a test's stand-in)."""
+    exe = shutil.which("nvidia-smi")
+    if exe is None:
+        return None
+    try:
+        out = run([exe, "-L"], capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    if out.returncode != 0:
+        return None
+    return next((ln.split(" (UUID")[0].strip() for ln in out.stdout.splitlines() if ln.startswith("GPU ")), None)
 
 
 def venv_python(venv_dir: str | Path, os_name: str = os.name) -> Path:
@@ -54,21 +74,34 @@ class Step:
 
 
 def install_steps(venv_dir: str | Path, base_python: str, requirements: Path, system: str | None = None,
-                  os_name: str = os.name) -> list[Step]:
-    """The commands, in order: create the environment (unless it exists), PyTorch (the CPU build from PyTorch's
-    index on Linux and Windows; macOS wheels on PyPI are CPU builds already), the other requirements, a check."""
+                  os_name: str = os.name, card: str | None | bool = True) -> list[Step]:
+    """The commands, in order: create the environment (unless it exists), PyTorch, the other requirements, a check.
+    PyTorch is the CUDA build where an NVIDIA card is found (Linux: PyPI's wheel, which brings Triton, so the card
+    runs the fused Triton kernels; Windows: PyTorch's CUDA index, without Triton: the card runs torch's own CUDA
+    kernels and the run's kernel plan says so), else the CPU build (PyTorch's CPU index on Linux and Windows; macOS
+    wheels on PyPI are CPU builds). card: the card found (True: look for one with `nvidia_card`; None: none)."""
     system = system or platform.system()
+    card = nvidia_card() if card is True and system in ("Linux", "Windows") else (card or None)
     py = str(venv_python(venv_dir, os_name))
     steps = []
     if not Path(py).exists():
         steps.append(Step("creating the virtual environment", [base_python, "-m", "venv", str(venv_dir)]))
     torch_cmd = [py, "-m", "pip", "install", "--progress-bar", "off", torch_requirement(requirements)]
-    if system in ("Linux", "Windows"):
+    if card and system == "Linux":
+        label = f"installing PyTorch (CUDA build with Triton, for {card})"
+    elif card and system == "Windows":
+        torch_cmd += ["--index-url", TORCH_CUDA_INDEX]
+        label = f"installing PyTorch (CUDA build, for {card}; no Triton on Windows: torch's CUDA kernels run)"
+    elif system in ("Linux", "Windows"):
         torch_cmd += ["--index-url", TORCH_CPU_INDEX]
-    steps.append(Step("installing PyTorch (CPU build)", torch_cmd))
+        label = "installing PyTorch (CPU build: no NVIDIA card found)"
+    else:
+        label = "installing PyTorch (CPU build)"
+    steps.append(Step(label, torch_cmd))
     steps.append(Step("installing nbvh_core's dependencies",
                       [py, "-m", "pip", "install", "--progress-bar", "off", "-r", str(requirements)]))
-    steps.append(Step("checking", [py, "-c", "import torch, numpy; print('torch', torch.__version__)"]))
+    steps.append(Step("checking", [py, "-c", "import torch, numpy; print('torch', torch.__version__, 'CUDA' if "
+                                             "torch.cuda.is_available() else 'CPU')"]))
     return steps
 
 

@@ -9,7 +9,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from addon.installer import TORCH_CPU_INDEX, Installer, Step, install_steps, venv_python  # noqa: E402
+from addon.installer import (TORCH_CPU_INDEX, TORCH_CUDA_INDEX, Installer, Step, install_steps,  # noqa: E402
+                             nvidia_card, venv_python)
 
 REQ = ROOT / "nbvh_core" / "requirements.txt"
 
@@ -17,18 +18,52 @@ REQ = ROOT / "nbvh_core" / "requirements.txt"
 def test_commands_pick_the_cpu_build_and_the_platform_paths(tmp_path):
     assert venv_python(tmp_path, "nt") == tmp_path / "Scripts" / "python.exe"
     assert venv_python(tmp_path, "posix") == tmp_path / "bin" / "python"
-    linux = install_steps(tmp_path / "v", "/usr/bin/python3", REQ, system="Linux", os_name="posix")
+    linux = install_steps(tmp_path / "v", "/usr/bin/python3", REQ, system="Linux", os_name="posix", card=None)
     assert [s.label for s in linux][0] == "creating the virtual environment"
     torch_step = next(s for s in linux if "PyTorch" in s.label)
     assert "torch==2.13.0" in torch_step.cmd and torch_step.cmd[-2:] == ["--index-url", TORCH_CPU_INDEX]
     assert torch_step.cmd[0] == str(tmp_path / "v" / "bin" / "python")
-    windows = install_steps(tmp_path / "w", "python.exe", REQ, system="Windows", os_name="nt")
+    windows = install_steps(tmp_path / "w", "python.exe", REQ, system="Windows", os_name="nt", card=None)
     assert next(s for s in windows if "PyTorch" in s.label).cmd[0] == str(tmp_path / "w" / "Scripts" / "python.exe")
     mac = install_steps(tmp_path / "m", "python3", REQ, system="Darwin", os_name="posix")
     assert "--index-url" not in next(s for s in mac if "PyTorch" in s.label).cmd  # PyPI's macOS wheels are CPU
     (tmp_path / "e" / "bin").mkdir(parents=True)
     (tmp_path / "e" / "bin" / "python").write_text("")
-    assert "creating" not in install_steps(tmp_path / "e", "python3", REQ, os_name="posix")[0].label  # it exists
+    assert "creating" not in install_steps(tmp_path / "e", "python3", REQ, os_name="posix", card=None)[0].label
+
+
+def test_a_card_gets_the_cuda_build_and_says_what_runs_on_it(tmp_path, monkeypatch):
+    """With an NVIDIA card: on Linux PyPI's wheel (the CUDA build, Triton with it), on Windows PyTorch's CUDA index
+    (no Triton there: the label says torch's CUDA kernels run); macOS has no CUDA build. The card comes from the
+    driver's own list (`nvidia-smi -L`); no driver or a failing one is no card."""
+    import subprocess
+    from types import SimpleNamespace
+
+    card = "GPU 0: NVIDIA H100 80GB HBM3"
+    linux = next(s for s in install_steps(tmp_path / "v", "python3", REQ, system="Linux", os_name="posix",
+                                          card=card) if "PyTorch" in s.label)
+    assert "--index-url" not in linux.cmd and "CUDA build with Triton" in linux.label and card in linux.label
+    windows = next(s for s in install_steps(tmp_path / "w", "python.exe", REQ, system="Windows", os_name="nt",
+                                            card=card) if "PyTorch" in s.label)
+    assert windows.cmd[-2:] == ["--index-url", TORCH_CUDA_INDEX] and "no Triton on Windows" in windows.label
+    mac = next(s for s in install_steps(tmp_path / "m", "python3", REQ, system="Darwin", os_name="posix", card=card)
+               if "PyTorch" in s.label)
+    assert "CUDA" not in mac.label
+    import addon.installer as installer
+
+    monkeypatch.setattr(installer.shutil, "which", lambda name: "/usr/bin/nvidia-smi")
+    listed = lambda *a, **k: SimpleNamespace(returncode=0, stdout=f"{card} (UUID: GPU-1234)\n")  # noqa: E731
+    assert nvidia_card(listed) == card
+    assert nvidia_card(lambda *a, **k: SimpleNamespace(returncode=9, stdout="")) is None
+
+    def broken(*a, **k):
+        raise subprocess.TimeoutExpired("nvidia-smi", 10)
+    assert nvidia_card(broken) is None
+    monkeypatch.setattr(installer.shutil, "which", lambda name: None)
+    assert nvidia_card(listed) is None
+    assert "CPU build: no NVIDIA card" in next(
+        s for s in install_steps(tmp_path / "n", "python3", REQ, system="Linux", os_name="posix") if "PyTorch" in s.label
+    ).label
 
 
 def _run(inst: Installer, timeout: float = 30.0) -> list[tuple[str, float, str]]:
