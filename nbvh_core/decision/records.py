@@ -66,10 +66,9 @@ class CheckDecision:
     action: CheckAction
     reason: str
 
-    def __post_init__(self):
-        self.action = CheckAction(self.action)  # its value is accepted too; anything else is a ValueError
-
-    def __setattr__(self, name, value):  # a check's rule changes its action on the way: it stays a CheckAction
+    # At __init__ and whenever a rule changes it, the action stays a CheckAction: its value is accepted, anything
+    # else is a ValueError.
+    def __setattr__(self, name, value):
         super().__setattr__(name, CheckAction(value) if name == "action" else value)
 
     def to_dict(self) -> dict:

@@ -21,7 +21,7 @@ import dataclasses
 from dataclasses import dataclass, field
 
 from ..decision.config import DecisionConfig
-from ..decision.growth import SMALLEST_START, STEPS_ONLY_BUDGET_S, GrowthPlan, plan_growth
+from ..decision.growth import SMALLEST_START, GrowthPlan, growth_clock, plan_growth
 from ..decision.records import RunNote
 from ..geometry.mesh import Mesh
 from ..neural.appearance import AppearanceConfig
@@ -138,7 +138,7 @@ def plan_run(settings: Settings, mesh: Mesh, resumed: bool = False) -> RunConfig
     sizes = _sizes(s, sized.resolutions)
     fc = forecast(sized, range(min(LOG2_RANGE[0], run.log2_table), max(LOG2_RANGE[-1], run.log2_table) + 1),
                   range(SMALLEST_START, LOG2_RANGE[-1] + 2),  # every start of a growth and the size above its largest
-                  run.nodes, training.time_limit_s, training.time_limit_s or STEPS_ONLY_BUDGET_S)
+                  run.nodes, training.time_limit_s, growth_clock(training.time_limit_s))
     growth = (plan_growth(run.log2_table, LOG2_RANGE[-1], training.time_limit_s, run.decision.check_every_s,
                           fc.budget_slopes, fc.growth_log_mse) if run.decision.size_search == "grow" else None)
     return dataclasses.replace(run, expected_log2_table=sized.expected_log2_table, sizes=sizes, growth=growth,

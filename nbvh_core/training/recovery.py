@@ -41,10 +41,9 @@ class Recovery:
                         elapsed: float, vouched: bool = True) -> bool:
         """losses: (step, loss) of each step since the last read, in order (`loss_reads.PendingLosses`); vouched: the
         last is this step's, computed on the model as it is now (only then may the state be kept). True: apply this
-        step. False: one diverged and the model
-        went back (skip the step; its gradients are not applied). Raises TrainingDiverged when no state of the
-        model's form is kept or no recovery is left. average: the weight average (`WeightAverage`), started over
-        after going back."""
+        step. False: one diverged and the model went back (skip the step; its gradients are not applied). Raises
+        TrainingDiverged when no state of the model's form is kept or no recovery is left. average: the weight
+        average (`WeightAverage`), started over after going back."""
         for step, loss in losses:
             try:
                 self.guard.observe(step, loss)
