@@ -393,7 +393,7 @@ def test_a_soft_step_computes_exactly_the_entries_its_batch_reads(sample_meshes,
     frac = torch.linspace(0.0, 1.0, 4)
     needed = mlp.entries_read(model, batch, frac)
     points = model.segment_points(batch.rays_o[batch.ray], batch.rays_d[batch.ray], batch.t_enter, batch.t_exit)
-    idx, _ = corner_indices(points.reshape(-1, 3), enc.scales, enc._vertex_table_size())
+    idx, _ = corner_indices(points.reshape(-1, 3), enc.scales, enc.vertex_table_size())
     flat = idx + torch.tensor(enc.code_starts()[:-1])[None, :, None]
     want = torch.zeros(sum(enc.reachable_entries()), dtype=torch.uint8)
     want[flat.reshape(-1)] = 1

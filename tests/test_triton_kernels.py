@@ -59,6 +59,50 @@ def test_the_grid_lookup_and_its_backward_match_the_reference(log2_table, featur
     assert torch.allclose(table.grad, enc.table.grad, atol=1e-5, rtol=0), (table.grad - enc.table.grad).abs().max()
 
 
+def _vqad(frozen: bool, quantized: bool = False):
+    """A small HashVQAD (coarse levels dense in the index, fine ones hashed) with random rows and logits."""
+    from nbvh_core.neural.encodings.hashvqad import HashVQAD
+
+    torch.manual_seed(2)
+    enc = HashVQAD(EncodingConfig(kind="hashvqad", log2_table=6, levels=4, features=8, index_factor=8,
+                                  candidates=4, n_min=4, n_max=48))
+    with torch.no_grad():
+        enc.table.uniform_(-1, 1)
+        enc.logits.normal_()
+    enc.temperature = 0.5
+    if frozen:
+        enc.freeze()
+    if quantized:
+        enc.quantize_(8)
+    return enc.to(DEVICE)
+
+
+@pytest.mark.parametrize("form", ["soft", "frozen", "frozen-stored"])
+def test_hashvqad_s_lookup_and_its_backward_match_the_reference(form, triton_here):
+    """HashVQAD through the Triton lookup: while soft, its soft row table read by vertex (the gradient reaching the
+    logits and the rows through torch); frozen, each vertex's row through its packed code inside the kernel (the
+    fine-tune's table gradient by atomics); stored, the rows as uint8 codes too."""
+    enc = _vqad(frozen=form != "soft", quantized=form == "frozen-stored")
+    dense = [vertex_resolution(s) ** 3 <= enc.cfg.index_size for s in enc.scales]
+    assert any(dense) and not all(dense)
+    assert kernels.encoding_kernel(enc, DEVICE) == ("triton u8" if form == "frozen-stored" else "triton f32")
+    points = torch.rand(300, 3, device=DEVICE) * 1.1 - 0.05
+    if form == "frozen-stored":
+        with torch.no_grad():
+            got, want = enc(points), enc.reference_forward(points)
+        assert torch.allclose(got, want, atol=1e-5, rtol=0), (got - want).abs().max()
+        return
+    got = enc(points)
+    grad = torch.randn_like(got)
+    params = [p for p in (enc.table, enc.logits) if p is not None]
+    got_grads = torch.autograd.grad(got, params, grad)
+    want = enc.reference_forward(points)
+    want_grads = torch.autograd.grad(want, params, grad)
+    assert torch.allclose(got, want, atol=1e-5, rtol=0), (got - want).abs().max()
+    for g, w in zip(got_grads, want_grads):
+        assert w.abs().max() > 0 and torch.allclose(g, w, atol=1e-5, rtol=0), (g - w).abs().max()
+
+
 @pytest.mark.parametrize("bits", [8, 6])
 def test_a_shipped_table_s_codes_are_read_as_they_are_held(bits, triton_here):
     """A table held as a file stores it (uint8 codes with per (level, feature) offset and scale; 6-bit codes are
@@ -101,14 +145,19 @@ def test_a_shape_the_mlp_kernel_does_not_take_is_refused_and_left_to_torch():
     assert "hidden widths [24, 24, 24, 24]" in kernel_plan.triton_network_gap(net)
 
 
-def _query_model(mesh, network: str, nodes: int, features: int, levels: int, k: int):
+def _query_model(mesh, network: str, nodes: int, features: int, levels: int, k: int, encoding: str = "hashgrid"):
     """A small model whose hit logit varies widely around its median, so that some rays hit and some miss."""
     torch.manual_seed(0)
-    cfg = ModelConfig(EncodingConfig(kind="hashgrid", log2_table=9, levels=levels, features=features),
+    grid = dict(kind="hashgrid", log2_table=9) if encoding == "hashgrid" else dict(
+        kind="hashvqad", log2_table=7, index_factor=16, candidates=4)
+    cfg = ModelConfig(EncodingConfig(levels=levels, features=features, **grid),
                       NetworkConfig(kind=network, k=k, hidden=2, width=32))
     model = NeuralBVH(build_bvh(mesh, nodes).nodes, cfg).eval().to(DEVICE)
     with torch.no_grad():
         model.encoding.table.normal_()
+        if encoding == "hashvqad":
+            model.encoding.logits.normal_()
+            model.encoding.freeze()
         last = [m for m in model.network.net if isinstance(m, torch.nn.Linear)][-1]
         last.weight[0] *= 30.0
         last.bias[0] = 0.0
@@ -126,13 +175,15 @@ def _rays(n: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
     return o.to(DEVICE), d.to(DEVICE)
 
 
-@pytest.mark.parametrize("network,nodes,features,levels,k,stored", [
-    ("mlp", 7, 16, 2, 4, False), ("kmlp", 7, 16, 2, 4, False),
-    ("mlp", 63, 4, 10, 4, True),  # the default preset's shape, held as its file stores it
-    ("kmlp", 255, 8, 3, 5, True)],
-    ids=["mlp", "kmlp", "default-shape-stored", "kmlp-deep-tree-stored"])
+@pytest.mark.parametrize("network,nodes,features,levels,k,stored,encoding", [
+    ("mlp", 7, 16, 2, 4, False, "hashgrid"), ("kmlp", 7, 16, 2, 4, False, "hashgrid"),
+    ("mlp", 63, 4, 10, 4, True, "hashgrid"),  # the default preset's shape, held as its file stores it
+    ("kmlp", 255, 8, 3, 5, True, "hashgrid"),
+    ("kmlp", 31, 4, 6, 4, False, "hashvqad"), ("mlp", 31, 8, 4, 4, True, "hashvqad")],
+    ids=["mlp", "kmlp", "default-shape-stored", "kmlp-deep-tree-stored", "hashvqad-kmlp", "hashvqad-mlp-stored"])
 def test_a_model_s_query_is_one_triton_kernel_matching_the_reference(network, nodes, features, levels, k, stored,
-                                                                     sample_meshes, triton_here, monkeypatch):
+                                                                     encoding, sample_meshes, triton_here,
+                                                                     monkeypatch):
     """The plan runs the whole query as the Triton ray-query kernel; its hits are identical, t within 1e-3 and
     normals within 1e-2 of the reference path's, and it evaluates the same segments (same order, stop at the first
     hit). Stored: the table as 6-bit codes, the network as int8 rows, the nodes in the 8-bit format. On a card the
@@ -143,7 +194,7 @@ def test_a_model_s_query_is_one_triton_kernel_matching_the_reference(network, no
 
     monkeypatch.setattr(ray_query, "PRECISION", "ieee")
 
-    model = _query_model(sample_meshes["blob"], network, nodes, features, levels, k)
+    model = _query_model(sample_meshes["blob"], network, nodes, features, levels, k, encoding)
     if stored:
         model.finalize_storage(StorageConfig(table_bits=6, network_bits=8, node_bits=8))
     p = kernels.plan(model, DEVICE)
@@ -158,6 +209,30 @@ def test_a_model_s_query_is_one_triton_kernel_matching_the_reference(network, no
     assert torch.allclose(got.normal[want.hit], want.normal[want.hit], atol=1e-2)
     assert torch.isinf(got.t[~got.hit]).all() and not got.normal[~got.hit].any()
     assert got.leaves_evaluated == want.leaves_evaluated > len(o)
+
+
+def test_the_appearance_head_s_query_runs_the_triton_lookup_and_layers(sample_meshes, triton_here):
+    """A hit's look on the card: the head's grid (8-bit codes, as a file holds it) through the Triton lookup and its
+    layers through the Triton MLP; the same patches and coordinates within 1e-4 as the reference path's."""
+    from nbvh_core.neural.appearance import AppearanceConfig, AppearanceHead, finalize_head
+
+    torch.manual_seed(3)
+    head = AppearanceHead(AppearanceConfig(slots=2, patches=6, uv=True, patch_degree=1))
+    with torch.no_grad():
+        head.encoding.table.uniform_(-1, 1)
+        head.affine.normal_()
+        head.patch_slot.copy_(torch.tensor([0, 0, 1, 1, 0, 1]))
+    finalize_head(head, table_bits=6, network_bits=8)
+    model = _query_model(sample_meshes["blob"], "mlp", 7, 16, 2, 4)
+    model.appearance = head.to(DEVICE)
+    assert kernels.plan(model, DEVICE).appearance == "triton u8 lookup, triton layers"
+    points = torch.rand(200, 3, device=DEVICE)
+    slot, uv = head.predict(points)
+    with kernels.using_path("reference"):
+        assert kernels.plan(model, DEVICE).appearance == "torch lookup, torch layers"
+        want_slot, want_uv = head.predict(points)
+    assert len(set(want_slot.tolist())) == 2 and (slot == want_slot).all()
+    assert abs(uv - want_uv).max() < 1e-4, abs(uv - want_uv).max()
 
 
 def test_a_ray_query_kernel_that_fails_leaves_the_stream_path_answering_and_says_why(sample_meshes, triton_here,
@@ -206,11 +281,11 @@ def test_the_ray_query_compiles_for_the_card_without_spilling(tmp_path):
 
 
 def test_what_the_triton_kernels_do_not_cover_runs_torch_and_the_plan_says_why(sample_meshes, triton_here):
-    cfg = ModelConfig(EncodingConfig(kind="hashvqad", log2_table=6, levels=2, features=8, index_factor=8,
+    cfg = ModelConfig(EncodingConfig(kind="hashvqad", log2_table=6, levels=2, features=6, index_factor=8,
                                      candidates=4), NetworkConfig(kind="kmlp", k=4, width=24))
     model = NeuralBVH(build_bvh(sample_meshes["blob"], 7).nodes, cfg).to(DEVICE)
     p = kernels.plan(model, DEVICE)
     assert p.encoding == "torch" and p.network == "torch" and p.train_step == "autograd"
-    assert "HashVQAD's index" in p.note and "hidden widths" in p.note
+    assert "rows of 6 float32 features" in p.note and "hidden widths" in p.note
     pts = torch.rand(50, 3, device=DEVICE)
     assert torch.equal(model.encoding(pts), model.encoding.reference_forward(pts))

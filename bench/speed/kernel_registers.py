@@ -5,7 +5,7 @@ is the one measure of that available where no card is lent (the speed itself nee
 
     .venv/bin/python -m bench.speed.kernel_registers            # bench/results/kernel_registers.{csv,md}
 
-Rows: kernel (ray query mlp | kmlp, table f32 | u8 codes), the default preset's shape (10 levels x 4 features,
+Rows: kernel (ray query mlp | kmlp, table f32 | u8 codes, a HashVQAD's index or none), the default preset's shape (10 levels x 4 features,
 k = 4, 2 hidden layers of 64), registers per thread, spill store bytes, local stack bytes, compile seconds.
 """
 from __future__ import annotations
@@ -37,23 +37,25 @@ class CardBuild:
 
 
 def _ray_query_signature(kind: str, codes: bool, levels: int, features: int, k: int, width: int,
-                         hidden: int) -> tuple[dict, dict]:
+                         hidden: int, index_bits: int) -> tuple[dict, dict]:
     from nbvh_core.kernels.triton import ray_query
 
     pointers = dict(o_ptr="*fp32", d_ptr="*fp32", inv_ptr="*fp32", n="i32", rec_f_ptr="*fp32", rec_i_ptr="*i32",
                     frac_ptr="*fp32", table_ptr="*u8" if codes else "*fp32", offset_ptr="*fp32", scale_ptr="*fp32",
-                    scales_ptr="*fp32", res_ptr="*i32", dense_ptr="*i32", w_in_ptr="*fp32", b_in_ptr="*fp32",
+                    scales_ptr="*fp32", res_ptr="*i32", dense_ptr="*i32", base_ptr="*i32", start_ptr="*i32",
+                    index_ptr="*u8" if index_bits else "*i32", w_in_ptr="*fp32", b_in_ptr="*fp32",
                     w_hid_ptr="*fp32", b_hid_ptr="*fp32", w_out_ptr="*fp32", b_out_ptr="*fp32", hit_ptr="*i8",
                     t_ptr="*fp32", normal_ptr="*fp32", segments_ptr="*i32")
     n_in = (2 if kind == "kmlp" else k) * levels * features
-    constants = dict(L=levels, T=2048, F=features, CODES=codes, K=k, K_PAD=-(-n_in // 32) * 32, W=width,
+    table_rows = 2048 // 16 if index_bits else 2048  # HashVQAD: H = 16 T, the index reaching T / 16 rows
+    constants = dict(L=levels, H=2048, T=table_rows, LISTED=False, F=features, BITS=index_bits, CODES=codes, K=k, K_PAD=-(-n_in // 32) * 32, W=width,
                      HIDDEN=hidden - 1, OUT_PAD=16, KMLP=kind == "kmlp", DEPTH=32, BR=ray_query.BLOCK_R,
                      PRECISION="tf32")
     return pointers, constants
 
 
 def build_ray_query(kind: str = "mlp", codes: bool = True, levels: int = 10, features: int = 4, k: int = 4,
-                    width: int = 64, hidden: int = 2) -> CardBuild:
+                    width: int = 64, hidden: int = 2, index_bits: int = 0) -> CardBuild:
     """Compile the ray-query kernel for `TARGET_SM` as `first_hits` launches it (BLOCK_R rays, WARPS warps, TF32)
     and read ptxas's report. Raises RuntimeError when ptxas fails."""
     import triton
@@ -62,7 +64,7 @@ def build_ray_query(kind: str = "mlp", codes: bool = True, levels: int = 10, fea
 
     from nbvh_core.kernels.triton import ray_query
 
-    pointers, constants = _ray_query_signature(kind, codes, levels, features, k, width, hidden)
+    pointers, constants = _ray_query_signature(kind, codes, levels, features, k, width, hidden, index_bits)
     signature = dict(pointers, **{name: "constexpr" for name in constants})
     names = list(signature)
     source = ASTSource(fn=ray_query._ray_query, signature=signature,
@@ -93,8 +95,9 @@ def _parse(report: str, seconds: float) -> CardBuild:
                      int(stack.group(1)) if stack else 0, round(seconds, 1))
 
 
-CASES = [("ray query mlp, u8 codes", "mlp", True), ("ray query mlp, f32 table", "mlp", False),
-         ("ray query kmlp, u8 codes", "kmlp", True), ("ray query kmlp, f32 table", "kmlp", False)]
+CASES = [("ray query mlp, u8 codes", "mlp", True, 0), ("ray query mlp, f32 table", "mlp", False, 0),
+         ("ray query kmlp, u8 codes", "kmlp", True, 0), ("ray query kmlp, f32 table", "kmlp", False, 0),
+         ("ray query mlp, u8 codes, HashVQAD 4-bit index", "mlp", True, 4)]
 
 
 def main() -> None:
@@ -103,8 +106,8 @@ def main() -> None:
     args = ap.parse_args()
     run = stamp()
     rows = []
-    for label, kind, codes in CASES[:args.cases]:
-        build = build_ray_query(kind, codes)
+    for label, kind, codes, index_bits in CASES[:args.cases]:
+        build = build_ray_query(kind, codes, index_bits=index_bits)
         row = {"kernel": label, "target": TARGET_SM, "registers": build.registers,
                "spill_store_bytes": build.spill_store_bytes, "stack_bytes": build.stack_bytes,
                "compile_s": build.compile_s}

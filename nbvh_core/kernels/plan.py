@@ -9,7 +9,7 @@ produced it.
 Stages: query (a model's first hits: one Triton kernel on a card, else the leaf stream and the network stage),
 traversal (leaf streams and training label lists), encoding (grid lookups outside the fused network),
 soft_table (HashVQAD's softmax row table while its index is soft), network (inference per segment), train_step
-(forward, loss and backward of one step), optimizer (Adam's update).
+(forward, loss and backward of one step), optimizer (Adam's update), appearance (the appearance head's query).
 """
 from __future__ import annotations
 
@@ -29,15 +29,17 @@ def triton_serves(device: torch.device | str) -> bool:
 
 
 def triton_encoding_gap(encoding) -> str | None:
-    """Why the Triton lookup does not cover `encoding` (None when it does): it reads a HashGrid's float32 rows or
-    uint8 codes."""
-    if encoding.learned_index:
-        return "HashVQAD's index (its rows are chosen per vertex)"
+    """Why the Triton lookup does not cover `encoding` (None when it does): it reads float32 rows or uint8 codes
+    of a power-of-two width, a HashGrid's or a HashVQAD's (its soft row table, or its rows through the frozen
+    index), hashed into powers of two."""
     if not encoding.grid_lookup:
         return "not a grid lookup"
     features = encoding.cfg.features
     if features & (features - 1) or (not encoding.quantized and encoding.table.dtype != torch.float32):
         return f"rows of {features} {str(encoding.table.dtype).replace('torch.', '')} features"
+    vertex_table = encoding.vertex_table_size()
+    if vertex_table & (vertex_table - 1):
+        return f"an index of {vertex_table} entries (a power of two is covered)"
     return None
 
 
@@ -119,6 +121,17 @@ def train_step_kernel(model, device: torch.device | str | None = None) -> str:
     return fused.replace(" f16 weights", "") if fused.startswith("fused") and trainable else "autograd"
 
 
+def appearance_kernel(model, device: torch.device | str | None = None) -> str | None:
+    """The appearance head's query (hit points -> patch and coordinates, or colour) on `device`: its grid lookup's
+    kernel (`encoding_kernel`) and its layers' (`mlp_kernel`), e.g. 'triton u8 lookup, triton layers' on a card;
+    None without a head."""
+    head = getattr(model, "appearance", None)
+    if head is None:
+        return None
+    device = model.device if device is None else device
+    return f"{encoding_kernel(head.encoding, device)} lookup, {mlp_kernel(head.network, device)} layers"
+
+
 def optimizer_kernel() -> str:
     """'fused Adam' (torch's one-kernel Adam over all parameters: 8 vs 84 ms per step for HashVQAD's 8.4M index
     logits on the 2-core CPU) on the fast path, 'Adam' (the default implementation) on the reference path."""
@@ -140,6 +153,7 @@ class KernelPlan:
     optimizer: str
     threads: int
     note: str = ""  # why the fused kernels do not serve this device, if they do not
+    appearance: str | None = None  # the appearance head's query, when the model has a head
 
     def describe(self) -> str:
         """One line for results, e.g. 'fast on cpu (2 threads): traversal fused, train step fused kmlp, ...'."""
@@ -147,6 +161,8 @@ class KernelPlan:
                   f"network {self.network}", f"encoding {self.encoding}"]
         if self.soft_table is not None:
             stages.append(f"soft table {self.soft_table}")
+        if self.appearance is not None:
+            stages.append(f"appearance {self.appearance}")
         stages.append(self.optimizer)
         head = f"{self.path} on {self.device} ({self.threads} threads)"
         return f"{head}: {', '.join(stages)}" + (f" [{self.note}]" if self.note else "")
@@ -175,4 +191,5 @@ def plan(model, device: torch.device | str | None = None) -> KernelPlan:
                       query=query_kernel(model, device),
                       encoding=encoding_kernel(enc, device), soft_table=soft_table_kernel(enc, device),
                       network=network_kernel(model, device), train_step=train_step_kernel(model, device),
-                      optimizer=optimizer_kernel(), threads=threads(), note=note)
+                      optimizer=optimizer_kernel(), threads=threads(), note=note,
+                      appearance=appearance_kernel(model, device))

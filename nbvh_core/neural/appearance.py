@@ -31,6 +31,7 @@ from torch import nn
 
 from ..geometry.mesh import Mesh
 from .encodings import EncodingConfig, make_encoding
+from .networks import run_layers
 
 
 @dataclass
@@ -111,7 +112,7 @@ class AppearanceHead(nn.Module):
         the colour target (None, sRGB colour (N, 3) in [0, 1])."""
         feats = self.encoding(points)
         x = torch.cat([feats, points * 2 - 1], dim=1)
-        out = self.network(x.to(self.network[0].weight.dtype)).float()
+        out = run_layers(self.network, x.to(self.network[0].weight.dtype)).float()  # on a card: one Triton kernel
         if self.cfg.target == "colour":
             return None, torch.sigmoid(out)
         c = self.cfg.classes

@@ -4,7 +4,8 @@ tests/test_triton_kernels.py). `kernels.plan` decides when they run (CUDA tensor
 it; anything they do not cover runs the torch path, and the plan's note says which and why.
 
 * `hashgrid` - the multiresolution hash-grid lookup fused per point (cell, hash or dense index, trilinear weights,
-  the 8-row weighted sum of every level) and its backward (atomic adds into the table's gradient).
+  the 8-row weighted sum of every level) and its backward (atomic adds into the table's gradient): a HashGrid's
+  rows, a HashVQAD's soft row table, or its rows through the frozen index's packed codes.
 * `mlp` - a whole MLP (Linear + ReLU layers, the last without) over rows of inputs through `tl.dot`, K-blocked,
   the activations kept on chip between layers.
 """

@@ -1,7 +1,8 @@
 """A model's whole ray query as one Triton kernel: per ray, front-to-back BVH traversal with its stack in
-registers, each leaf's segment points, the hash-grid lookup at the stored precision, the network through `tl.dot`,
-decode, stop at the first hit. The reference is `NeuralBVH.query` on the torch path (`traversal.LeafStream` +
-`NeuralBVH.forward` + `Network.decode`); tests/test_triton_kernels.py holds them equal under the interpreter.
+registers, each leaf's segment points, the hash-grid lookup at the stored precision (a HashVQAD's through its
+index), the network through `tl.dot`, decode, stop at the first hit. The reference is `NeuralBVH.query` on the
+torch path (`traversal.LeafStream` + `NeuralBVH.forward` + `Network.decode`); tests/test_triton_kernels.py holds
+them equal under the interpreter.
 
 Per program, BLOCK_R rays walk together in rounds: every ray with nodes left pops its stack (nearer child first,
 ties to the left, as `LeafStream`) until it reaches its next leaf; then the block's rays that reached one run the
@@ -22,7 +23,7 @@ import torch
 import triton
 import triton.language as tl
 
-from .hashgrid import _corner
+from .hashgrid import LevelGeometry, _corner_row, _level_starts
 from .mlp import PackedMLP
 
 #: Rays per program and warps per program. Compiled for sm_90a on the CPU and read with `ptxas -v` at the default
@@ -37,12 +38,12 @@ PRECISION = "tf32"
 
 @dataclass(frozen=True)
 class GridRows:
-    """The hash grid as the kernel reads it: `rows` (L, T, F) float32, or uint8 codes with (L, F) float32
-    `offset` and `scale` (value = offset + code * scale, a shipped file's rows); `geometry` from
-    `hashgrid.level_geometry` (scales, vertex resolutions, dense flags per level)."""
+    """The hash grid as the kernel reads it: `rows` (L, T, F) or (R, F) float32, or uint8 codes with (L, F)
+    float32 `offset` and `scale` (value = offset + code * scale, a shipped file's rows); `geometry` from
+    `hashgrid.level_geometry` (the levels, and a HashVQAD's frozen index)."""
 
     rows: torch.Tensor
-    geometry: tuple
+    geometry: LevelGeometry
     offset: torch.Tensor | None = None
     scale: torch.Tensor | None = None
 
@@ -136,9 +137,10 @@ def _next_leaf(rec_f_ptr, rec_i_ptr, stack, sp, slots, ox, oy, oz, ix, iy, iz):
 
 
 @triton.jit
-def _features(table_ptr, offset_ptr, scale_ptr, scales_ptr, res_ptr, dense_ptr, px, py, pz, col0, live,
-              L: tl.constexpr, T: tl.constexpr, F: tl.constexpr, CODES: tl.constexpr):
+def _features(grid_args, px, py, pz, col0, live, L: tl.constexpr, H: tl.constexpr, T: tl.constexpr,
+              LISTED: tl.constexpr, F: tl.constexpr, BITS: tl.constexpr, CODES: tl.constexpr):
     """Columns col0 .. col0 + 15 of each point's L*F features (level-major): (BLOCK_R, 16) float32, 0 past L*F."""
+    table_ptr, offset_ptr, scale_ptr, scales_ptr, res_ptr, dense_ptr, base_ptr, start_ptr, index_ptr = grid_args
     cols = col0 + tl.arange(0, 16)
     valid = cols < L * F
     level = tl.where(valid, cols // F, 0)
@@ -146,12 +148,15 @@ def _features(table_ptr, offset_ptr, scale_ptr, scales_ptr, res_ptr, dense_ptr, 
     scale = tl.load(scales_ptr + level)[None, :]
     res = tl.load(res_ptr + level)[None, :]
     dense = tl.load(dense_ptr + level)[None, :]
+    row_base, code_start = _level_starts(base_ptr, start_ptr, level, T, LISTED, BITS)
+    row_base = row_base[None, :]
+    code_start = code_start[None, :]
     mask = live[:, None] & valid[None, :]
     acc = tl.zeros((px.shape[0], 16), tl.float32)
     for c in tl.static_range(8):
-        idx, w = _corner(px[:, None], py[:, None], pz[:, None], scale, res, dense, T, c & 1, (c >> 1) & 1,
-                         (c >> 2) & 1)
-        at = (level[None, :] * T + idx).to(tl.int64) * F + feat[None, :]
+        at, w = _corner_row(px[:, None], py[:, None], pz[:, None], scale, res, dense, row_base, code_start,
+                            index_ptr, mask, H, T, BITS, c & 1, (c >> 1) & 1, (c >> 2) & 1)
+        at = at * F + feat[None, :]
         row = tl.load(table_ptr + at, mask=mask, other=0)
         if CODES:  # uint8 codes: offset + code * scale per (level, feature), as `HashGrid.float_rows`
             row = (tl.load(offset_ptr + level * F + feat)[None, :]
@@ -172,14 +177,12 @@ def _point(ox, oy, oz, dx, dy, dz, te, tx, frac):
 
 @triton.jit
 def _first_layer_part(grid_args, px, py, pz, live, w_in_ptr, w_col0, acc, K_PAD: tl.constexpr, W: tl.constexpr,
-                      L: tl.constexpr, T: tl.constexpr, F: tl.constexpr, CODES: tl.constexpr,
-                      PRECISION: tl.constexpr):
+                      L: tl.constexpr, H: tl.constexpr, T: tl.constexpr, LISTED: tl.constexpr, F: tl.constexpr,
+                      BITS: tl.constexpr, CODES: tl.constexpr, PRECISION: tl.constexpr):
     """acc + one point's features times the first layer's columns w_col0 .. w_col0 + L*F - 1: (BLOCK_R, W)."""
-    table_ptr, offset_ptr, scale_ptr, scales_ptr, res_ptr, dense_ptr = grid_args
     cols_w = tl.arange(0, W)
     for col0 in range(0, L * F, 16):  # a loop, not unrolled: unrolled, the loads of every tile were hoisted (spills)
-        feats = _features(table_ptr, offset_ptr, scale_ptr, scales_ptr, res_ptr, dense_ptr, px, py, pz, col0, live,
-                          L, T, F, CODES)
+        feats = _features(grid_args, px, py, pz, col0, live, L, H, T, LISTED, F, BITS, CODES)
         ks = col0 + tl.arange(0, 16)
         wk = tl.load(w_in_ptr + cols_w[None, :] * K_PAD + (w_col0 + ks)[:, None],
                      mask=(ks < L * F)[:, None], other=0.0)  # (16, W): W_in's columns, transposed
@@ -224,14 +227,15 @@ def _softplus(x):
 @triton.jit
 def _mlp_segment(ray_args, te, tx, live, frac_ptr, grid_args, w_in_ptr, layers, K: tl.constexpr,
                  K_PAD: tl.constexpr, W: tl.constexpr, HIDDEN: tl.constexpr, OUT_PAD: tl.constexpr,
-                 L: tl.constexpr, T: tl.constexpr, F: tl.constexpr, CODES: tl.constexpr, PRECISION: tl.constexpr):
+                 L: tl.constexpr, H: tl.constexpr, T: tl.constexpr, LISTED: tl.constexpr, F: tl.constexpr,
+                 BITS: tl.constexpr, CODES: tl.constexpr, PRECISION: tl.constexpr):
     """`MLP.decode(forward(...))` of each ray's segment: (hit, local t, normal x, y, z)."""
     ox, oy, oz, dx, dy, dz = ray_args
     acc = tl.zeros((te.shape[0], W), tl.float32)
     for k in range(K):
         px, py, pz = _point(ox, oy, oz, dx, dy, dz, te, tx, tl.load(frac_ptr + k))
-        acc = _first_layer_part(grid_args, px, py, pz, live, w_in_ptr, k * L * F, acc, K_PAD, W, L, T, F, CODES,
-                                PRECISION)
+        acc = _first_layer_part(grid_args, px, py, pz, live, w_in_ptr, k * L * F, acc, K_PAD, W, L, H, T, LISTED,
+                                F, BITS, CODES, PRECISION)
     y = _rest(acc, layers, W, HIDDEN, OUT_PAD, PRECISION)
     prob = 1.0 / (1.0 + tl.exp(-_column(y, 0)))
     local_t = 1.0 / (1.0 + tl.exp(-_column(y, 1)))
@@ -242,7 +246,8 @@ def _mlp_segment(ray_args, te, tx, live, frac_ptr, grid_args, w_in_ptr, layers, 
 @triton.jit
 def _kmlp_segment(ray_args, te, tx, live, frac_ptr, grid_args, w_in_ptr, layers, K: tl.constexpr,
                   K_PAD: tl.constexpr, W: tl.constexpr, HIDDEN: tl.constexpr, OUT_PAD: tl.constexpr,
-                  L: tl.constexpr, T: tl.constexpr, F: tl.constexpr, CODES: tl.constexpr, PRECISION: tl.constexpr):
+                  L: tl.constexpr, H: tl.constexpr, T: tl.constexpr, LISTED: tl.constexpr, F: tl.constexpr,
+                  BITS: tl.constexpr, CODES: tl.constexpr, PRECISION: tl.constexpr):
     """`KMLP.decode(forward(...))`: the pairs (point j, point j + 1) through the shared network, the first-hit
     distribution accumulated pair by pair (log q_j = log p_j + sum_{i<j} log(1 - p_i); the first argmax kept).
     Each pair looks its two points up afresh (inner points twice): carried between pairs, the first layer's half
@@ -259,8 +264,8 @@ def _kmlp_segment(ray_args, te, tx, live, frac_ptr, grid_args, w_in_ptr, layers,
         pre = tl.zeros((te.shape[0], W), tl.float32)
         for half in range(2):  # point j against the first L*F input columns, point j + 1 against the next
             px, py, pz = _point(ox, oy, oz, dx, dy, dz, te, tx, tl.load(frac_ptr + j + half))
-            pre = _first_layer_part(grid_args, px, py, pz, live, w_in_ptr, half * L * F, pre, K_PAD, W, L, T, F,
-                                    CODES, PRECISION)
+            pre = _first_layer_part(grid_args, px, py, pz, live, w_in_ptr, half * L * F, pre, K_PAD, W, L, H, T,
+                                    LISTED, F, BITS, CODES, PRECISION)
         y = _rest(pre, layers, W, HIDDEN, OUT_PAD, PRECISION)
         logit = _column(y, 0)
         log_q = -_softplus(-logit) + log_none
@@ -279,10 +284,11 @@ def _kmlp_segment(ray_args, te, tx, live, frac_ptr, grid_args, w_in_ptr, layers,
 
 @triton.jit
 def _ray_query(o_ptr, d_ptr, inv_ptr, n, rec_f_ptr, rec_i_ptr, frac_ptr,
-               table_ptr, offset_ptr, scale_ptr, scales_ptr, res_ptr, dense_ptr,
+               table_ptr, offset_ptr, scale_ptr, scales_ptr, res_ptr, dense_ptr, base_ptr, start_ptr, index_ptr,
                w_in_ptr, b_in_ptr, w_hid_ptr, b_hid_ptr, w_out_ptr, b_out_ptr,
                hit_ptr, t_ptr, normal_ptr, segments_ptr,
-               L: tl.constexpr, T: tl.constexpr, F: tl.constexpr, CODES: tl.constexpr, K: tl.constexpr,
+               L: tl.constexpr, H: tl.constexpr, T: tl.constexpr, LISTED: tl.constexpr, F: tl.constexpr,
+               BITS: tl.constexpr, CODES: tl.constexpr, K: tl.constexpr,
                K_PAD: tl.constexpr, W: tl.constexpr, HIDDEN: tl.constexpr, OUT_PAD: tl.constexpr,
                KMLP: tl.constexpr, DEPTH: tl.constexpr, BR: tl.constexpr, PRECISION: tl.constexpr):
     rows = tl.program_id(0) * BR + tl.arange(0, BR)
@@ -297,7 +303,7 @@ def _ray_query(o_ptr, d_ptr, inv_ptr, n, rec_f_ptr, rec_i_ptr, frac_ptr,
     iy = tl.load(inv_ptr + rows * 3 + 1, mask=live, other=1.0)
     iz = tl.load(inv_ptr + rows * 3 + 2, mask=live, other=1.0)
     ray_args = (ox, oy, oz, dx, dy, dz)
-    grid_args = (table_ptr, offset_ptr, scale_ptr, scales_ptr, res_ptr, dense_ptr)
+    grid_args = (table_ptr, offset_ptr, scale_ptr, scales_ptr, res_ptr, dense_ptr, base_ptr, start_ptr, index_ptr)
     layers = (b_in_ptr, w_hid_ptr, b_hid_ptr, w_out_ptr, b_out_ptr)
     slots = tl.arange(0, DEPTH)
     stack = tl.zeros((BR, DEPTH), tl.int32)  # slot 0: the root, node 0
@@ -313,12 +319,12 @@ def _ray_query(o_ptr, d_ptr, inv_ptr, n, rec_f_ptr, rec_i_ptr, frac_ptr,
         stack, sp, at_leaf, te, tx = _next_leaf(rec_f_ptr, rec_i_ptr, stack, sp, slots, ox, oy, oz, ix, iy, iz)
         if KMLP:
             is_hit, local_t, sx, sy, sz = _kmlp_segment(ray_args, te, tx, at_leaf, frac_ptr, grid_args, w_in_ptr,
-                                                        layers, K, K_PAD, W, HIDDEN, OUT_PAD, L, T, F, CODES,
-                                                        PRECISION)
+                                                        layers, K, K_PAD, W, HIDDEN, OUT_PAD, L, H, T, LISTED, F,
+                                                        BITS, CODES, PRECISION)
         else:
             is_hit, local_t, sx, sy, sz = _mlp_segment(ray_args, te, tx, at_leaf, frac_ptr, grid_args, w_in_ptr,
-                                                       layers, K, K_PAD, W, HIDDEN, OUT_PAD, L, T, F, CODES,
-                                                       PRECISION)
+                                                       layers, K, K_PAD, W, HIDDEN, OUT_PAD, L, H, T, LISTED, F,
+                                                       BITS, CODES, PRECISION)
         segments += at_leaf.to(tl.int32)
         new_hit = at_leaf & is_hit
         hit = hit | new_hit
@@ -362,15 +368,15 @@ def first_hits(rays_o: torch.Tensor, rays_d: torch.Tensor, records: torch.Tensor
     segments = torch.empty(n, dtype=torch.int32, device=dev)
     if n == 0:
         return FirstHits(hit.bool(), t, normal, segments)
-    levels, rows, features = grid.rows.shape
+    features = grid.rows.shape[-1]
     offset = grid.offset if grid.codes else t  # unread unless codes
     scale = grid.scale if grid.codes else t
     _ray_query[(triton.cdiv(n, BLOCK_R),)](
         rays_o, rays_d, inv_d, n, records, records.view(torch.int32), frac.contiguous().float(),
-        grid.rows.contiguous(), offset.contiguous().float(), scale.contiguous().float(), *grid.geometry,
+        grid.rows.contiguous(), offset.contiguous().float(), scale.contiguous().float(), *grid.geometry.pointers(),
         layers.w_in, layers.b_in, layers.w_hidden, layers.b_hidden, layers.w_out, layers.b_out,
         hit, t, normal, segments,
-        L=levels, T=rows, F=features, CODES=grid.codes, K=int(frac.numel()), K_PAD=layers.w_in.shape[1],
+        L=grid.geometry.levels, F=features, CODES=grid.codes, **grid.geometry.constants(), K=int(frac.numel()), K_PAD=layers.w_in.shape[1],
         W=layers.width, HIDDEN=layers.hidden, OUT_PAD=layers.w_out.shape[0], KMLP=kind == "kmlp",
         DEPTH=stack_depth(max_depth), BR=BLOCK_R, PRECISION=precision or PRECISION,
         num_warps=WARPS)

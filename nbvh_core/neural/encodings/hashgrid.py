@@ -137,16 +137,28 @@ class HashGrid(Encoding):
         geometry = self.triton_geometry(points.device)
         if self.quantized:
             return grid_encode_codes(points, self.qcodes, self.qoffset, self.qscale, geometry)
-        return grid_encode(points, self.table, geometry)
+        return grid_encode(points, self.triton_table(), geometry)
 
-    def triton_geometry(self, device: torch.device) -> tuple:
-        """The levels as the Triton kernels read them (`hashgrid.level_geometry`), built once per device."""
+    def triton_table(self) -> torch.Tensor:
+        """The float32 rows the Triton lookup reads (and its backward adds into): the table (L, T, F)."""
+        return self.table
+
+    def triton_geometry(self, device: torch.device):
+        """The levels as the Triton kernels read them (`hashgrid.LevelGeometry`), built once per device and form."""
+        key = (torch.device(device), *self._triton_form())
+        if self._triton_geometry is None or self._triton_geometry[0] != key:
+            self._triton_geometry = (key, self._level_geometry(torch.device(device)))
+        return self._triton_geometry[1]
+
+    def _triton_form(self) -> tuple:
+        """What the geometry depends on besides the device (a HashVQAD's index)."""
+        return ()
+
+    def _level_geometry(self, device: torch.device):
         from ...kernels.triton.hashgrid import level_geometry
 
-        if self._triton_geometry is None or self._triton_geometry[0].device != torch.device(device):
-            self._triton_geometry = level_geometry(self.scales, [vertex_resolution(s) for s in self.scales],
-                                                   self._vertex_table_size(), device)
-        return self._triton_geometry
+        return level_geometry(self.scales, [vertex_resolution(s) for s in self.scales], self.vertex_table_size(),
+                              device, rows=self.cfg.table_size)
 
     def triton_rows(self, device: torch.device):
         """What the Triton ray query reads (`ray_query.GridRows`): the uint8 codes with their affine when the table
@@ -156,7 +168,7 @@ class HashGrid(Encoding):
         geometry = self.triton_geometry(device)
         if self.quantized:
             return GridRows(self.qcodes, geometry, self.qoffset, self.qscale)
-        return GridRows(self.table.detach(), geometry)
+        return GridRows(self.triton_table().detach(), geometry)
 
     def _fused_forward(self, points: torch.Tensor) -> torch.Tensor:
         look = self.fused_lookup()
@@ -189,7 +201,7 @@ class HashGrid(Encoding):
     def grid_spec(self) -> GridSpec:
         """The constant level geometry the fused kernels read (built once)."""
         if self._spec is None:
-            self._spec = GridSpec(self.cfg, self._vertex_table_size())
+            self._spec = GridSpec(self.cfg, self.vertex_table_size())
         return self._spec
 
     def _fused_rows(self, needed: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor | None, int]:
@@ -208,7 +220,7 @@ class HashGrid(Encoding):
     def reference_forward(self, points: torch.Tensor) -> torch.Tensor:
         """The pure torch lookup (the reference the fused kernel is tested against)."""
         cfg = self.cfg
-        idx, w = corner_indices(points, self.scales, self._vertex_table_size())
+        idx, w = corner_indices(points, self.scales, self.vertex_table_size())
         rows = self.vertex_rows(idx)
         table = self.row_table()
         flat_rows = rows + self.level_row_offsets(table).to(rows.device)[None, :, None]
@@ -220,7 +232,8 @@ class HashGrid(Encoding):
         """(L,) int64: the first row of each level in `table` (L, R, F) viewed as (L * R, F)."""
         return torch.arange(self.cfg.levels, device=table.device) * table.shape[1]
 
-    def _vertex_table_size(self) -> int:
+    def vertex_table_size(self) -> int:
+        """H: the entries grid vertices index (dense or hashed mod H): T for a HashGrid."""
         return self.cfg.table_size
 
     def stored_bytes(self, table_bits: int = 32) -> dict[str, int]:

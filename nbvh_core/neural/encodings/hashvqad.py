@@ -29,7 +29,7 @@ from torch import nn
 
 from ... import kernels
 from ...kernels import bindings
-from .base import MASK32, PRIMES, EncodingConfig, code_width, level_vertex_counts
+from .base import MASK32, PRIMES, EncodingConfig, code_width, level_vertex_counts, vertex_resolution
 from .hashgrid import HashGrid, table_features_bytes
 
 
@@ -108,7 +108,8 @@ class HashVQAD(HashGrid):
     def frozen(self) -> bool:
         return self.codes.numel() > 0
 
-    def _vertex_table_size(self) -> int:
+    def vertex_table_size(self) -> int:
+        """H: the index's entries."""
         return self.cfg.index_size
 
     def reachable_entries(self) -> list[int]:
@@ -214,6 +215,27 @@ class HashVQAD(HashGrid):
         if self.frozen:  # vertex -> code -> candidate row, inside the kernel
             return self.table, self.codes, self.cfg.table_size
         return self.row_table(needed), None, 0
+
+    def triton_table(self) -> torch.Tensor:
+        """The rows the Triton lookup reads: the table (L, T, F) once frozen (its index inside the kernel), else
+        the soft row table (R, F) (differentiable in the logits and the table through torch)."""
+        return self.table if self.frozen else self.row_table()
+
+    def _triton_form(self) -> tuple:
+        return (self.frozen, id(self.codes), self.codes._version)  # the cached geometry holds the codes: ids stay unique
+
+    def _level_geometry(self, device: torch.device):
+        """Frozen: each level's T rows, vertices through the codes; soft: the soft table's reachable entries,
+        level after level (`code_starts`), read by vertex index."""
+        from ...kernels.triton.hashgrid import level_geometry
+
+        res = [vertex_resolution(s) for s in self.scales]
+        starts = self.code_starts()[:-1]
+        if self.frozen:
+            return level_geometry(self.scales, res, self.cfg.index_size, device, rows=self.cfg.table_size,
+                                  code_starts=starts, code_bits=self.code_bits(), index=self.codes)
+        return level_geometry(self.scales, res, self.cfg.index_size, device, rows=self.cfg.table_size,
+                              row_starts=starts)
 
     def vertex_rows(self, idx: torch.Tensor) -> torch.Tensor:
         if not self.frozen:
