@@ -361,11 +361,11 @@ def test_a_run_scores_the_file_as_shipped_with_its_look():
     resident = summary["model_resident_bytes"]
     assert resident["appearance"] > 0 and resident["textures"] == m.look.texture_bytes()
     # the final verdict weighed the look: the file's colour against each decimation's as it ships with its look
-    final = r.decisions["final"]
-    assert final["model_colour_mse"] == shipped.colour_mse and "colour MSE" in final["message"]
-    alternatives = r.assessment["alternatives"]  # the 224-triangle globe: the whole mesh is its alternative
-    measured = alternatives.get("decimations_tried", []) + [alternatives["mesh_compact"]]
-    assert all(0.0 <= e["colour_mse_held_out"] < 0.01 for e in measured if e["triangles"])
+    final = r.decisions.final
+    assert final.model_colour_mse == shipped.colour_mse and "colour MSE" in final.message
+    alternatives = r.assessment.alternatives  # the 224-triangle globe: the whole mesh is its alternative
+    measured = alternatives.decimations_tried + [alternatives.mesh_compact]
+    assert all(0.0 <= e.colour_mse_held_out < 0.01 for e in measured if e.triangles)
 
 
 def test_a_missing_or_unreadable_image_is_one_warning_and_its_slot_keeps_its_colour(tmp_path):

@@ -1,6 +1,7 @@
 """Model no more than a scene needs: the verdict against the compact mesh, the budget-aware predictor, node counts
 scaled to the mesh, the decimation found by bisection, and the checks that score what the evaluation scores."""
 import dataclasses
+import json
 
 import numpy as np
 import pytest
@@ -57,15 +58,14 @@ def test_the_decimation_is_the_smallest_tried_that_meets_and_is_bracketed(sample
 
     checks = ViewScorer(ExactTracer(mesh), mesh.transform, 4, 64)
     alt = alternatives(mesh, target, checks=checks)
-    dec, tried = alt["decimation"], alt["decimations_tried"]
-    assert dec["compact_mse"] <= target  # what ships is what is scored: the compact mesh, decoded
-    met = [t for t in tried if t["compact_mse"] <= target]
-    assert dec["requested_triangles"] == min(t["requested_triangles"] for t in met)
-    missed_below = [t for t in tried if t["compact_mse"] > target
-                    and t["requested_triangles"] < dec["requested_triangles"]]
+    dec, tried = alt.decimation, alt.decimations_tried
+    assert dec.compact_mse <= target  # what ships is what is scored: the compact mesh, decoded
+    met = [t for t in tried if t.compact_mse <= target]
+    assert dec.requested_triangles == min(t.requested_triangles for t in met)
+    missed_below = [t for t in tried if t.compact_mse > target and t.requested_triangles < dec.requested_triangles]
     assert missed_below, "the bisection needs a size that missed below the one kept"
     # The bracket around the kept size is within 2^(2 / 2^DECIMATE_REFINE) (x4 steps bisected in log space).
-    gap = dec["requested_triangles"] / max(t["requested_triangles"] for t in missed_below)
+    gap = dec.requested_triangles / max(t.requested_triangles for t in missed_below)
     assert gap <= 2 ** (2 / 2 ** DECIMATE_REFINE) * 1.02
     assert len(tried) > 2
 
@@ -334,21 +334,24 @@ def test_a_check_keeps_the_mesh_when_the_model_stays_above_a_measured_decimation
 def test_a_mesh_kept_after_training_began_carries_the_checks_that_led_there():
     """`decision.verdict.mesh_kept`: the assessment recommends the decimation the verdict names (the one measured
     for it), says the verdict's message, and keeps its record and the training's checks for the report."""
-    from nbvh_core.decision.records import Assessment, CheckDecision, FinalVerdict
+    from nbvh_core.decision.records import (Alternatives, Assessment, CheckDecision, FinalVerdict, MeshMeasure,
+                                            ShippedMesh)
     from nbvh_core.decision.verdict import mesh_kept
 
-    tried = [{"requested_triangles": 500, "triangles": 498}, {"requested_triangles": 900, "triangles": 897}]
+    tried = [MeshMeasure(498, 500), MeshMeasure(897, 900)]
     before = Assessment(model_bytes=9000, resident={}, worth_compressing=True, message="train",
-                        alternatives={"decimations_tried": tried, "decimation": tried[0]})
+                        alternatives=Alternatives(decimations_tried=tried, decimation=tried[0]))
     checks = [CheckDecision(20.0, 10, 0.002, 0.0011, 9000, 4000.0, "train on", "projected to meet the level"),
               CheckDecision(40.0, 10, 0.0019, 0.0012, 9000, 3900.0, "stop: keep the mesh", "above the curve")]
-    verdict = FinalVerdict(9000, 0.0019, 3900.0, "decimation", {"triangles": 897, "requested_triangles": 900,
-                                                                "compact_bytes": 3900, "mse": 0.0018},
+    verdict = FinalVerdict(9000, 0.0019, 3900.0, "decimation", ShippedMesh(897, 900, 3900, 0.0018),
                            False, False, "kept as a mesh: a decimation to 897 triangles")
     kept = mesh_kept(before, verdict, checks)
     assert (kept.worth_compressing, kept.recommendation, kept.message) == (False, "decimate", verdict.message)
-    assert kept.alternatives["decimation"] is tried[1] and before.alternatives["decimation"] is tried[0]
-    assert kept.final == verdict.to_dict() and [c["action"] for c in kept.checks] == ["train on", "stop: keep the mesh"]
+    assert kept.alternatives.decimation is tried[1] and before.alternatives.decimation is tried[0]
+    assert kept.final is verdict and [c.action for c in kept.checks] == ["train on", "stop: keep the mesh"]
+    report = json.loads(json.dumps(kept.to_dict()))  # the report's form, through JSON, reads back as the record
+    assert report["final"]["decimation"]["requested_triangles"] == 900 and report["checks"][1]["action"] == \
+        "stop: keep the mesh" and Assessment.from_dict(report) == kept
     whole = mesh_kept(before, None)
     assert whole.recommendation == "mesh" and whole.message == "train" and whole.checks == [] and whole.final is None
 
@@ -360,7 +363,7 @@ def test_the_final_verdict_ships_the_smaller_at_the_same_measured_mse():
     # a 9,000 B model at 0.0004: the 8,000 B decimation measured at 0.0005 does not reach it, 40,000 B does
     assert final_verdict(9000, 0.0004, 0.0005, curve).shipped == "model"
     lost = final_verdict(9000, 0.0005, 0.0005, curve)
-    assert lost.shipped == "decimation" and lost.decimation["compact_bytes"] == 8000 and lost.level_met
+    assert lost.shipped == "decimation" and lost.decimation.compact_bytes == 8000 and lost.level_met
     # 5,000 B at 0.0019: the interpolated curve says ~2,070 B but no measured point is both cheaper and as good:
     # the decimation the curve expects there is measured, and ships when it reaches the model's MSE
     from nbvh_core.decision.alternative_curve import CurvePoint
@@ -370,11 +373,11 @@ def test_the_final_verdict_ships_the_smaller_at_the_same_measured_mse():
     settled = final_verdict(5000, 0.0019, 0.0005, curve, measure=measure)
     assert len(asked) == 1 and 500 < asked[0] < 2000 and settled.shipped == "decimation"
     # the model lost at its own MSE and missed the level: the mesh that ships is the one at the level asked for
-    assert settled.decimation["compact_bytes"] == 8000 and settled.level_met is False
+    assert settled.decimation.compact_bytes == 8000 and settled.level_met is False
     assert "meets 0.0005" in settled.message and "2,100 B" in settled.message and settled.at_level
     # no measured mesh meets the level: the one at the model's MSE ships, and the miss is said
     short = final_verdict(5000, 0.0019, 0.0001, _curve([(500, 0.01), (2000, 0.0018), (8000, 0.0005)]))
-    assert short.shipped == "decimation" and short.decimation["compact_bytes"] == 2000 and "out of reach" in \
+    assert short.shipped == "decimation" and short.decimation.compact_bytes == 2000 and "out of reach" in \
         short.message and not short.at_level
     # the line says ~2,070 B but every decimation measured misses the model's MSE: measuring goes on (1.41x up)
     # until one outweighs the model's 5,000 B file; only then does the model ship, on measurements, not the line
@@ -400,7 +403,7 @@ def test_a_model_without_a_measured_quality_never_ships():
     curve = _curve([(500, 0.01), (2000, 0.002), (8000, 0.0005), (40000, 1e-5)])
     for force in (False, True):
         v = final_verdict(100, float("nan"), 0.0005, curve, force=force)
-        assert v.shipped == "decimation" and v.decimation["compact_bytes"] == 8000 and "nan" in v.message
+        assert v.shipped == "decimation" and v.decimation.compact_bytes == 8000 and "nan" in v.message
     assert final_verdict(100, float("inf"), 1e-7, curve).shipped == "mesh"  # no decimation meets it: the whole mesh
     with pytest.raises(ValueError, match="cannot ship"):
         final_verdict(100, float("nan"), 0.0005, None)
@@ -422,7 +425,7 @@ def test_a_final_verdict_the_line_gives_the_model_narrowly_is_measured():
     settled = final_verdict(5000, mse, LEVEL, _curve(points), measure=smaller)
     # the line's count there (~1,500) scaled to the model's bytes, a little under
     assert len(asked) == 1 and 1000 < asked[0] < 1300
-    assert settled.shipped == "decimation" and settled.decimation["compact_bytes"] == 4800
+    assert settled.shipped == "decimation" and settled.decimation.compact_bytes == 4800
     worse = lambda count: asked.append(count) or CurvePoint(4800, 0.0008, count, count)  # noqa: E731
     assert final_verdict(5000, mse, LEVEL, _curve(points), measure=worse).shipped == "model" and len(asked) == 2
     # the line well above the model (2x): decided by the line, nothing measured
@@ -452,7 +455,7 @@ def test_a_mesh_ships_instead_of_a_model_with_a_look_only_when_it_looks_as_good(
     assert "not its look" in v.message and "colour MSE 0.004" in v.message
     # a decimation as good in colour ships, with its colour in the record
     kept = final_verdict(5000, 0.0005, 0.001, curve([0.01, 0.002, 0.0]), model_colour_mse=0.003)
-    assert kept.shipped == "decimation" and kept.decimation["colour_mse"] == 0.002 and "colour MSE" in kept.message
+    assert kept.shipped == "decimation" and kept.decimation.colour_mse == 0.002 and "colour MSE" in kept.message
     # colour not measured on the alternative: it cannot stand in for a model whose colour was
     assert final_verdict(5000, 0.0005, 0.001, curve([None, None, None]), model_colour_mse=0.003).shipped == "model"
     # settling measures on until a decimation meets both (here the first measured meets geometry only)
@@ -473,6 +476,7 @@ def test_the_alternative_carries_the_assets_look_in_its_bytes():
     from meshes import icosphere
     from nbvh_core.neural.quantize import StorageConfig
     from nbvh_core.app.alternatives import look_carried_bytes
+    from nbvh_core.decision.records import Alternatives
     from nbvh_core.storage.layout import look_stored_bytes
 
     globe = demo_assets.globe(16, 8, texture=32)
@@ -482,10 +486,12 @@ def test_the_alternative_carries_the_assets_look_in_its_bytes():
     patchwork = demo_assets.patchwork(2, slots=4)  # four flat slots, no image: 2 bits per triangle
     assert look_carried_bytes(patchwork, 100, 160) == 160 * 2 // 8
     assert look_carried_bytes(icosphere(1), 100, 150) == 0
-    alt = {"decimations_tried": [{"triangles": 100, "requested_triangles": 100, "compact_bytes": 1000,
-                                  "look_bytes": 700, "compact_mse": 0.01}],
-           "mesh_compact": {"triangles": 400, "compact_bytes": 3000, "look_bytes": 900, "compact_mse": 0.0}}
+    alt = Alternatives.from_dict(
+        {"decimations_tried": [{"triangles": 100, "requested_triangles": 100, "compact_bytes": 1000,
+                                "look_bytes": 700, "compact_mse": 0.01}],
+         "mesh_compact": {"triangles": 400, "compact_bytes": 3000, "look_bytes": 900, "compact_mse": 0.0}})
     assert [p.bytes for p in AlternativeCurve.from_alternatives(alt).points] == [1700, 3900]
+    assert Alternatives.from_dict(alt.to_dict()) == alt  # the report's form reads back as the record
 
 
 def test_a_run_with_a_target_plans_every_size_it_may_train_once(sample_meshes):
@@ -580,9 +586,9 @@ def test_a_resumed_run_keeps_its_target_and_ends_with_the_final_verdict(tmp_path
     assert settings.target_mse == 0.05 and settings.log2_table == first.settings.log2_table
     try:
         result = compress_mesh(mesh, dataclasses.replace(settings, force=False), None, resume_from=ck)
-        final, log2 = result.decisions["final"], result.settings.log2_table
+        final, log2 = result.decisions.to_dict()["final"], result.settings.log2_table
     except NotWorthCompressing as kept:  # the final verdict kept the mesh: said with its record
-        final, log2 = kept.assessment.final, first.settings.log2_table
+        final, log2 = kept.assessment.to_dict()["final"], first.settings.log2_table
     assert final is not None and final["shipped"] in ("model", "decimation", "mesh") and final["message"]
     assert log2 == first.settings.log2_table  # the checkpoint's size, not a new search
 
@@ -627,9 +633,9 @@ def test_a_plan_past_its_share_of_the_budget_says_what_it_skipped_and_decides(mo
     try:
         res = compress_mesh(sample_meshes["blob"], settings_from_request({"time_limit_s": 2}), None,
                             events=events.append)
-        alt = res.assessment["alternatives"]
+        alt = res.assessment.alternatives.to_dict()  # as the report holds it
     except NotWorthCompressing as kept:
-        alt = kept.assessment.alternatives
+        alt = kept.assessment.alternatives.to_dict()  # as the report holds it
     warned = [e["message"] for e in events if e["event"] == "warning" and "not measured" in e["message"]]
     assert len(warned) == 1 and "decimations from 250 triangles up" in warned[0] and "take 0 s" in warned[0]
     assert "decimation" not in alt and alt["decimations_tried"] == [] and "compact_mse" not in alt["mesh_compact"]
@@ -656,7 +662,7 @@ def test_a_model_better_than_every_measured_point_is_checked_against_the_decimat
     assert stood.alternative_above == 4 * asked[1] and stood.ratio is None
     better = lambda count: CurvePoint(4 * count, 0.015, count, count)  # noqa: E731
     lost = final_verdict(100_000, 0.02, 0.0005, curve(), measure=better)
-    assert lost.shipped == "decimation" and lost.decimation["compact_bytes"] == 4 * first
+    assert lost.shipped == "decimation" and lost.decimation.compact_bytes == 4 * first
 
 
 def test_a_fixed_size_is_weighed_after_training_and_ships_by_the_same_rule(sample_meshes):
@@ -671,13 +677,13 @@ def test_a_fixed_size_is_weighed_after_training_and_ships_by_the_same_rule(sampl
     with pytest.raises(NotWorthCompressing) as kept:
         compress_mesh(mesh, preset("tiny"))
     a = kept.value.assessment
-    dec = a.alternatives["decimation"]
+    dec = a.alternatives.decimation
     assert a.recommendation == "decimate" and "kept as a mesh" in a.message
-    assert dec["compact_bytes"] < a.model_bytes and dec["compact_mse_held_out"] < 0.01
+    assert dec.compact_bytes < a.model_bytes and dec.compact_mse_held_out < 0.01
     forced = compress_mesh(mesh, preset("tiny").with_overrides(force=True))
-    final = forced.decisions["final"]
-    assert forced.quality.mse > 0.01 and final["shipped"] == "model" and final["forced"]
-    assert "decimation" in final["message"] and "smaller than the model" in final["message"], final["message"]
+    final = forced.decisions.final
+    assert forced.quality.mse > 0.01 and final.shipped == "model" and final.forced
+    assert "decimation" in final.message and "smaller than the model" in final.message, final.message
 
 
 def test_the_kept_decimation_is_rebuilt_from_the_run_s_own_chain(sample_meshes):
@@ -696,5 +702,5 @@ def test_the_kept_decimation_is_rebuilt_from_the_run_s_own_chain(sample_meshes):
     a, chain = kept.value.assessment, kept.value.decimator
     assert a.recommendation == "decimate" and chain is not None and chain.mesh is mesh
     reused, fresh = winning_decimation(mesh, a, chain), winning_decimation(mesh, a)
-    assert reused.n_triangles == a.alternatives["decimation"]["triangles"]
+    assert reused.n_triangles == a.alternatives.decimation.triangles
     assert np.array_equal(reused.faces, fresh.faces) and np.array_equal(reused.vertices, fresh.vertices)

@@ -74,7 +74,7 @@ def test_verdict_ends_the_run_unless_forced(tmp_path):
     events.clear()
     res = compress_mesh(icosphere(2), preset("tiny").with_overrides(force=True), tmp_path / "s.nbvh",
                         events=events.append, evaluate_quality=False)
-    assert res.assessment["worth_compressing"] is False
+    assert res.assessment.worth_compressing is False
     assert any(e["event"] == "warning" and "forced" in e["message"] for e in events)
     assert (tmp_path / "s.nbvh").exists()
 

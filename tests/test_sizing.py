@@ -87,7 +87,7 @@ def test_trivial_meshes_are_not_worth_compressing_and_detailed_ones_are(sample_m
     assert detailed.worth_compressing and detailed.recommendation == "neural"
     # The Draco size of the whole mesh is always shown, with its own bytes (here 211k triangles: larger than the
     # default model, which it no longer beats for storage alone).
-    draco = detailed.alternatives["draco11_bytes"]
+    draco = detailed.alternatives.draco11_bytes
     assert 0 < draco and f"{draco:,} B" in detailed.message and "Draco" in detailed.message
 
 
@@ -98,11 +98,11 @@ def test_decimation_that_meets_the_target_is_recommended_when_smaller(sample_mes
     mesh = sample_meshes["blob"]
     checks, held_out = view_sets(ExactTracer(mesh), mesh.transform, MetricConfig())
     verdict = assess(mesh, estimate_file_bytes(s), DecisionConfig(target_mse=0.01), checks, held_out)
-    dec = verdict.alternatives["decimation"]
-    assert dec["mse"] <= 0.01 and dec["triangles"] < sample_meshes["blob"].n_triangles
-    assert dec["resident_bytes"] < verdict.model_bytes
+    dec = verdict.alternatives.decimation
+    assert dec.mse <= 0.01 and dec.triangles < sample_meshes["blob"].n_triangles
+    assert dec.resident_bytes < verdict.model_bytes
     assert verdict.recommendation in ("mesh", "decimate") and not verdict.worth_compressing
-    assert verdict.alternatives["draco11_bytes"] > 0 and "Draco" in verdict.message
+    assert verdict.alternatives.draco11_bytes > 0 and "Draco" in verdict.message
 
 
 def _chooser(fit, features):

@@ -224,7 +224,7 @@ def main() -> None:
                        "equal_mse_decimation_resident_bytes": dec["resident"],
                        "ratio_resident_decimation_to_model": dec["resident"] / resident,
                        "ratio_resident_decimation_to_file": dec["resident"] / res.file_bytes,
-                       "draco11_bytes": res.assessment.get("alternatives", {}).get("draco11_bytes"),
+                       "draco11_bytes": res.assessment.alternatives.draco11_bytes,
                        "equal_mse_decimation_draco11_bytes": dec.get("draco"),
                        "compute_path": res.training.compute_path, "created": time.strftime("%Y-%m-%dT%H:%M:%S")}
                 append_row(path, {k: row[k] for k in FIELDS})

@@ -32,9 +32,9 @@ def one_run(mesh_name: str, target: float, seed: int, time_limit_s: float | None
         request["time_limit_s"] = time_limit_s
     settings = settings_from_request(request).with_overrides(force=True)
     res = compress_mesh(named_mesh(mesh_name), settings, None)
-    checks = res.decisions.get("checks") or []
+    checks = res.decisions.to_dict()["checks"]
     return {"mesh": mesh_name, "target": target, "seed": seed, "file_bytes": res.file_bytes,
-            "mse_held_out": res.quality.mse, "mse_check_views": res.decisions.get("mse_check_views"),
+            "mse_held_out": res.quality.mse, "mse_check_views": res.decisions.mse_check_views,
             "target_met": bool(res.target_met), "log2_table": res.settings.log2_table, "steps": res.training.steps,
             "train_s": round(res.training.seconds, 1), "checks": len(checks),
             "stopped_early": res.training.stopped_early,

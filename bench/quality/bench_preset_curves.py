@@ -34,12 +34,12 @@ def equal_mse_decimation(mesh, tracer, mse: float) -> dict:
     whole mesh's bytes when none does."""
     checks, held_out = view_sets(tracer, mesh.transform, MetricConfig(views=VIEWS, resolution=RESOLUTION))
     alt = alternatives(mesh, mse, checks, held_out)
-    dec = alt.get("decimation")
+    dec = alt.decimation
     if dec is None:
-        whole = alt["mesh_compact"]
-        return {"triangles": whole["triangles"], "compact_bytes": whole["compact_bytes"], "mse": math.nan}
-    return {"triangles": dec["triangles"], "compact_bytes": dec["compact_bytes"] + dec.get("look_bytes", 0),
-            "mse": dec["compact_mse_held_out"]}
+        whole = alt.mesh_compact
+        return {"triangles": whole.triangles, "compact_bytes": whole.compact_bytes, "mse": math.nan}
+    return {"triangles": dec.triangles, "compact_bytes": dec.compact_bytes + (dec.look_bytes or 0),
+            "mse": dec.compact_mse_held_out}
 
 
 def chart(rows: list[dict]) -> None:

@@ -63,16 +63,16 @@ def one_cell(method: str, case: str, time_limit: float) -> dict:
         settings = settings_for(method, condition, time_limit)
         with _late_divergence(condition == "divergence injected late", time_limit):
             res = compress_mesh(mesh, settings, None)
-        checks = (res.decisions or {}).get("checks") or []
+        checks = res.decisions.to_dict()["checks"]
         fired = sorted({n.kind for n in res.notes if n.kind not in ("plan", "search")}
                        | ({"roll back"} if any(c.get("action") == "roll back" for c in checks) else set()))
         row.update(ended="model", mse=res.quality.mse, iou=res.quality.silhouette_iou, bytes=res.file_bytes,
                    steps=res.training.steps, fired=" ".join(fired), said=res.why[:200])
     except NotWorthCompressing as kept:
         a = kept.assessment
-        dec = a.alternatives.get("decimation") or {}
-        row.update(ended=f"kept ({a.recommendation})", mse=dec.get("compact_mse_held_out", ""), iou="",
-                   bytes=dec.get("compact_bytes", a.compact_bytes), fired="", said=str(kept)[:200])
+        dec = a.alternatives.decimation
+        row.update(ended=f"kept ({a.recommendation})", mse=dec.compact_mse_held_out if dec else "", iou="",
+                   bytes=dec.compact_bytes if dec else a.compact_bytes, fired="", said=str(kept)[:200])
     except Exception as exc:  # a cell that fails is a row: the point of the matrix
         row.update(ended=f"error: {type(exc).__name__}", mse="", iou="", bytes="", fired="",
                    said=str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__)

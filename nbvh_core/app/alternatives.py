@@ -15,7 +15,7 @@ from __future__ import annotations
 import math
 
 from ..decision.config import DecisionConfig
-from ..decision.records import Assessment
+from ..decision.records import Alternatives, Assessment, MeshMeasure
 from ..decision.verdict import verdict_before_training
 from ..geometry.bvh import build_full_tree
 from ..geometry.decimation import CHAIN_LEVELS, Decimator, decimate, simplifier_missing
@@ -52,7 +52,8 @@ def look_carried_bytes(mesh: Mesh, n_vertices: int, n_triangles: int) -> int:
     return int(textures + uv + slots)
 
 
-def decimation_entry(mesh: Mesh, count: int, checks, held_out, draco, decimator: Decimator | None = None) -> dict:
+def decimation_entry(mesh: Mesh, count: int, checks, held_out, draco,
+                     decimator: Decimator | None = None) -> MeshMeasure:
     """One point of the alternative: the decimation to ~`count` triangles (`decimator`, the mesh's
     `geometry.decimation.Decimator`: one chain for every point; else one is made), plainly and as a compact mesh
     (exact bytes; the decoded compact mesh scored on the check views and, when given, the held-out views)."""
@@ -60,24 +61,23 @@ def decimation_entry(mesh: Mesh, count: int, checks, held_out, draco, decimator:
 
     dec = (decimator or Decimator(mesh))(count)
     if dec.n_triangles == 0:
-        return {"triangles": 0, "requested_triangles": count, "mse": math.inf, "compact_mse": math.inf}
+        return MeshMeasure(0, count, mse=math.inf, compact_mse=math.inf)
     tree = build_full_tree(dec)  # one tree for the resident count and the compact layout's clusters
-    entry = {"triangles": dec.n_triangles, "requested_triangles": count, "mse": checks.score_mesh(dec).mse,
-             "resident_bytes": mesh_resident_bytes(dec, tree)["total"]}
     nbytes, decoded = compact_mesh(dec, tree)
-    entry["compact_bytes"] = nbytes
-    entry["look_bytes"] = look_carried_bytes(mesh, dec.n_vertices, dec.n_triangles)
-    entry["compact_mse"] = checks.score_mesh(decoded).mse
+    entry = MeshMeasure(dec.n_triangles, count, mse=checks.score_mesh(dec).mse,
+                        resident_bytes=mesh_resident_bytes(dec, tree)["total"], compact_bytes=nbytes,
+                        look_bytes=look_carried_bytes(mesh, dec.n_vertices, dec.n_triangles),
+                        compact_mse=checks.score_mesh(decoded).mse)
     if held_out is not None:
-        entry["compact_mse_held_out"] = held_out.score_mesh(decoded).mse
-        _score_colour(entry, dec, held_out)
+        entry.compact_mse_held_out = held_out.score_mesh(decoded).mse
+        entry.colour_mse_held_out = _colour_mse(dec, held_out)
     if draco is not None:
-        entry["draco11_bytes"] = len(draco.encode(dec.vertices, dec.faces, quantization_bits=11, compression_level=7))
+        entry.draco11_bytes = len(draco.encode(dec.vertices, dec.faces, quantization_bits=11, compression_level=7))
     return entry
 
 
 def alternatives(mesh: Mesh, target_mse: float | None, checks=None, held_out=None, tree=None,
-                 decimator: Decimator | None = None, tick=None) -> dict:
+                 decimator: Decimator | None = None, tick=None) -> Alternatives:
     """What a user could ship instead, measured: Draco (11-bit, storage bytes) of the mesh, and decimations
     (`geometry.decimation.decimate`: meshoptimizer, the look kept) up to the smallest whose image MSE meets `target_mse` (see DECIMATE_COUNTS), each with its
     resident and compact-mesh bytes and the compact mesh's MSE, scored by the run's own metric: `checks` (a
@@ -86,50 +86,50 @@ def alternatives(mesh: Mesh, target_mse: float | None, checks=None, held_out=Non
     Missing optional packages give a note instead of numbers. With a target, `checks` is required. decimator:
     the mesh's `Decimator` (its chain serves later points too), else one is made. tick(message, planned): called
     before each measurement (`planned`: the most it may take in all; progress, and a Cancel point: it may raise)."""
-    out: dict = {}
+    out = Alternatives()
     try:
         import DracoPy
     except ImportError:
         DracoPy = None
-        out["note"] = "DracoPy not installed: no Draco sizes"
+        out.add_note("DracoPy not installed: no Draco sizes")
     if DracoPy is not None:
-        out["draco11_bytes"] = len(DracoPy.encode(mesh.vertices, mesh.faces, quantization_bits=11, compression_level=7))
+        out.draco11_bytes = len(DracoPy.encode(mesh.vertices, mesh.faces, quantization_bits=11, compression_level=7))
     if target_mse is None:
         return out
     missing = simplifier_missing()
     if missing:  # said, not silent: the verdict then weighs no decimation, and the report says why
-        out["note"] = (out.get("note", "") + "; " if "note" in out else "") + missing
-        out["no_alternative"] = missing
+        out.add_note(missing)
+        out.no_alternative = missing
         return out
-    out["metric"] = checks.name
-    tried: dict[int, dict] = {}
+    out.metric = checks.name
+    tried: dict[int, MeshMeasure] = {}
     decimator = decimator or Decimator(mesh)
 
     counts = [c for c in DECIMATE_COUNTS if c < mesh.n_triangles * DECIMATE_MAX_SHARE]
     planned = len(counts) + DECIMATE_REFINE + 3  # the ladder, the top, the refinements, one above, the whole mesh
 
-    def measure(count: int) -> dict:
+    def measure(count: int) -> MeshMeasure:
         if tick is not None:
             tick(f"decimation to {count:,} triangles", planned)
         tried[count] = decimation_entry(mesh, count, checks, held_out, DracoPy, decimator)
         return tried[count]
 
-    def meets(entry: dict) -> bool:  # on the check views and, when measured, the held-out views alike
-        return max(entry["compact_mse"], entry.get("compact_mse_held_out", 0.0)) <= target_mse
+    def meets(entry: MeshMeasure) -> bool:  # on the check views and, when measured, the held-out views alike
+        return entry.meets(target_mse)
 
     over = getattr(tick, "over_budget", lambda: False)
     met, skipped = _smallest_meeting(counts, int(mesh.n_triangles * DECIMATE_MAX_SHARE), measure, meets, over)
     if met is not None:
-        out["decimation"] = tried[met]
-    out["decimations_tried"] = [tried[c] for c in sorted(tried)]
+        out.decimation = tried[met]
+    out.decimations_tried = [tried[c] for c in sorted(tried)]
     if tick is not None:
         tick(f"the whole mesh ({mesh.n_triangles:,} triangles) as a compact mesh", planned)
     scored = not over()
     if not scored:
         skipped.append("the whole mesh's image error (its bytes are exact)")
-    out["mesh_compact"] = whole_mesh_entry(mesh, checks if scored else None, held_out if scored else None, tree)
+    out.mesh_compact = whole_mesh_entry(mesh, checks if scored else None, held_out if scored else None, tree)
     if skipped:
-        out["skipped"] = "past the plan's time budget, not measured: " + "; ".join(skipped)
+        out.skipped = "past the plan's time budget, not measured: " + "; ".join(skipped)
     return out
 
 
@@ -176,40 +176,38 @@ def _smallest_meeting(counts: list[int], top: int, measure, meets, over) -> tupl
     return met, skipped
 
 
-def whole_mesh_entry(mesh: Mesh, checks, held_out, tree=None) -> dict:
+def whole_mesh_entry(mesh: Mesh, checks, held_out, tree=None) -> MeshMeasure:
     """The whole mesh as a compact mesh: its exact bytes and the grid's own error on both view sets (without
     `checks`: the bytes alone)."""
     from ..geometry.compact_mesh import compact_mesh
 
     nbytes, decoded = compact_mesh(mesh, tree)
-    entry = {"triangles": mesh.n_triangles, "compact_bytes": nbytes,
-             "look_bytes": look_carried_bytes(mesh, mesh.n_vertices, mesh.n_triangles)}
+    entry = MeshMeasure(mesh.n_triangles, compact_bytes=nbytes,
+                        look_bytes=look_carried_bytes(mesh, mesh.n_vertices, mesh.n_triangles))
     if checks is None:
         return entry
-    entry["compact_mse"] = checks.score_mesh(decoded).mse
+    entry.compact_mse = checks.score_mesh(decoded).mse
     if held_out is not None:
-        entry["compact_mse_held_out"] = held_out.score_mesh(decoded).mse
-        _score_colour(entry, mesh, held_out)
+        entry.compact_mse_held_out = held_out.score_mesh(decoded).mse
+        entry.colour_mse_held_out = _colour_mse(mesh, held_out)
     return entry
 
 
-def _score_colour(entry: dict, shipped: Mesh, held_out) -> None:
+def _colour_mse(shipped: Mesh, held_out) -> float | None:
     """For an asset with a look: the colour MSE of the mesh as it ships with its look (the .glb: the decimation,
-    its coordinates, slots and images) on the held-out views, what the final verdict weighs beside geometry."""
-    if shipped.look is not None:
-        colour = held_out.score_mesh(shipped).colour_mse
-        if colour is not None:
-            entry["colour_mse_held_out"] = colour
+    its coordinates, slots and images) on the held-out views, what the final verdict weighs beside geometry; else
+    None."""
+    return held_out.score_mesh(shipped).colour_mse if shipped.look is not None else None
 
 
 def winning_decimation(mesh: Mesh, assessment: "Assessment", decimator: Decimator | None = None) -> Mesh | None:
     """The decimation the verdict recommends instead of a model (rebuilt exactly: the simplifier is deterministic
     and moves no vertex; from the run's `decimator` when given, whose chain already holds the levels above it), or
     None when the verdict is not 'decimate'."""
-    dec = assessment.alternatives.get("decimation")
-    if assessment.recommendation != "decimate" or not dec:
+    dec = assessment.alternatives.decimation
+    if assessment.recommendation != "decimate" or dec is None:
         return None
-    count = int(dec["requested_triangles"])
+    count = int(dec.requested_triangles)
     return decimator(count) if decimator is not None else decimate(mesh, count)
 
 
@@ -233,15 +231,11 @@ def assess(mesh: Mesh, model_bytes: int, decision: DecisionConfig, checks=None, 
     # The Draco size always (cheap: shows which tool wins for storage alone); decimations only with a target.
     alt = alternatives(mesh, decision.target_mse if checks is not None else None, checks, held_out, tree,
                        decimator, tick)
-    compact = alt["mesh_compact"]["compact_bytes"] if "mesh_compact" in alt else compact_bytes(mesh, tree)
-    dec = alt.get("decimation")
+    compact = alt.mesh_compact.compact_bytes if alt.mesh_compact is not None else compact_bytes(mesh, tree)
     # A mesh weighed against the model carries the asset's look too (the model's head and images are in `model`).
     whole_look = look_carried_bytes(mesh, mesh.n_vertices, mesh.n_triangles)
     resident, compact = resident + whole_look, compact + whole_look
-    if dec is not None and dec.get("look_bytes"):
-        dec = {**dec, "resident_bytes": dec["resident_bytes"] + dec["look_bytes"],
-               "compact_bytes": dec["compact_bytes"] + dec["look_bytes"]}
-    rec, msg = verdict_before_training(model, mesh.n_triangles, resident, compact, dec, alt.get("draco11_bytes"),
-                                       layout)
+    dec = alt.decimation.with_look() if alt.decimation is not None else None
+    rec, msg = verdict_before_training(model, mesh.n_triangles, resident, compact, dec, alt.draco11_bytes, layout)
     return Assessment(model_bytes=model, resident=resident_bytes, worth_compressing=rec == "neural", message=msg,
                       alternatives=alt, recommendation=rec, compact_bytes=compact, layout=layout)

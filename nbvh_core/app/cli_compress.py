@@ -96,10 +96,10 @@ def _write_alternative(mesh, assessment, stem: Path, mesh_path: Path, args, sink
             sink(wire.written(files=[str(path)], kind="decimation" if dec is not None else "mesh",
                               triangles=(dec or mesh).n_triangles))
         final = assessment.final
-        reached = ("reaches the model's measured quality" if final and not final.get("at_level")
+        reached = ("reaches the model's measured quality" if final and not final.at_level
                    else "meets the target")
         what = (f"the decimation that {reached} ({dec.n_triangles:,} triangles, MSE "
-                f"{assessment.alternatives['decimation']['compact_mse']:.4g})" if dec is not None else "the mesh")
+                f"{assessment.alternatives.decimation.compact_mse:.4g})" if dec is not None else "the mesh")
         print(f"kept as a mesh: wrote {what} to {path} ({len(data):,} B)", file=sys.stderr)
 
 
@@ -162,16 +162,16 @@ def _print_result(result, summary: dict, out: Path, paths: dict) -> None:
     q = result.quality
     print(f"\nwrote {out} ({fmt_bytes(result.file_bytes)}) and, beside it, "
           f"{', '.join(p.name for role, p in paths.items() if role != 'model')}")
-    final = (result.decisions or {}).get("final")
+    final, assessment = result.decisions.final, result.assessment
     if final:  # the strongest alternative first: the compact decimation at the model's own measured MSE
-        print(f"verdict: {final['message']}")
+        print(f"verdict: {final.message}")
     print("bytes: " + ", ".join(f"{k} {v:,}" for k, v in result.components.items()))
     resident = summary['mesh_resident_bytes']['total']
-    compact = result.assessment.get("compact_bytes")
+    compact = assessment.compact_bytes if assessment else None
     held = [f"as a compact mesh {compact:,} B ({compact / result.file_bytes:.2f}x the model)"] if compact else []
     held.append(f"as a ray tracer holds it {resident:,} B ({resident / result.file_bytes:.1f}x the model)")
     print("the whole mesh: " + "; ".join(held))
-    draco = result.assessment.get("alternatives", {}).get("draco11_bytes")
+    draco = assessment.alternatives.draco11_bytes if assessment else None
     if draco:
         print(f"the mesh as a Draco 11-bit file (storage and transfer only; decoded before tracing): {draco:,} B")
     if q:
@@ -186,5 +186,5 @@ def _print_result(result, summary: dict, out: Path, paths: dict) -> None:
     print(f"why: {result.why}")
     if result.target_met is not None:
         print(f"target {'met' if result.target_met else 'MISSED'}: MSE {q.mse:.5f} vs {result.settings.target_mse:g}")
-    if not result.assessment["worth_compressing"]:
-        print(f"note: {result.assessment['message']}")
+    if assessment and not assessment.worth_compressing:
+        print(f"note: {assessment.message}")

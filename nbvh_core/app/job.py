@@ -131,9 +131,9 @@ def _write_kept_mesh(mesh, assessment, model_path: Path, events, decimator=None)
         write_atomic(path, data)
         paths.append(str(path))
     if paths:
-        dec = assessment.alternatives.get("decimation") if assessment.recommendation == "decimate" else None
+        dec = assessment.alternatives.decimation if assessment.recommendation == "decimate" else None
         events(wire.written(files=paths, kind="decimation" if dec else "mesh",
-                            triangles=int(dec["triangles"]) if dec else mesh.n_triangles,
+                            triangles=int(dec.triangles) if dec else mesh.n_triangles,
                             bytes={Path(p).name: len(d) for p, d in zip(paths, files.values())}))
 
 

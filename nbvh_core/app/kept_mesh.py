@@ -30,11 +30,9 @@ def kept_mesh_files(mesh: Mesh, assessment: Assessment, dec: Mesh | None) -> dic
 def counted_compact_bytes(assessment: Assessment) -> int | None:
     """The compact mesh's bytes the verdict counted for what it keeps (without the look's bytes, which the .glb
     carries), or None when it keeps no mesh."""
-    if assessment.recommendation == "decimate":
-        return int(assessment.alternatives["decimation"]["compact_bytes"])
-    if assessment.recommendation == "mesh" and "mesh_compact" in assessment.alternatives:
-        return int(assessment.alternatives["mesh_compact"]["compact_bytes"])
-    return None
+    kept = {"decimate": assessment.alternatives.decimation,
+            "mesh": assessment.alternatives.mesh_compact}.get(assessment.recommendation)
+    return None if kept is None else int(kept.compact_bytes)
 
 
 def kept_quality(mesh: Mesh, dec: Mesh | None) -> dict | None:

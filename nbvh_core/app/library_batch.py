@@ -137,7 +137,7 @@ def measure_asset(asset: dict, spec: dict) -> dict:
         thumb = render_reference(tracer, orbit_cameras(1)[0], THUMBNAIL_PX, THUMBNAIL_PX).display
         out.update(status="measured" if a.worth_compressing or run.decision.force else "not_worth",
                    triangles=mesh.n_triangles,
-                   mesh_resident_bytes=a.resident["total"], draco_bytes=a.alternatives.get("draco11_bytes"),
+                   mesh_resident_bytes=a.resident["total"], draco_bytes=a.alternatives.draco11_bytes,
                    predicted_model_bytes=a.model_bytes, verdict=a.message, recommendation=a.recommendation,
                    key=settings_key(mesh_identity(mesh)["sha256"], spec), thumb=png_bytes(thumb),
                    compact_bytes=a.compact_bytes, texture_bytes=mesh.look.texture_bytes() if mesh.look else 0)
@@ -168,14 +168,15 @@ def compress_asset(asset: dict, spec: dict) -> dict:
         kernels.keep_freed_memory()
         mesh = load_asset(asset["path"], asset["name"])
         res = compress_mesh(mesh, settings_from_request(spec))
+        final = res.decisions.final
         bundle = make_bundle(res, mesh, View(orbit_cameras(1)[0], THUMBNAIL_PX, THUMBNAIL_PX),
                              ("model", "report", "preview"))
         out.update(status="done", bundle_files=bundle.files, summary=bundle.report, thumb=bundle.files["preview"],
                    model_bytes=res.file_bytes, model_resident_bytes=sum(res.model.resident_bytes().values()),
                    mse=res.quality.mse if res.quality else None, iou=res.quality.silhouette_iou if res.quality else None,
                    train_seconds=round(res.training.seconds, 2),
-                   alternative_bytes=_rounded((res.decisions.get("final") or {}).get("alternative_bytes")),
-                   verdict=(res.decisions.get("final") or {}).get("message"))
+                   alternative_bytes=_rounded(final.alternative_bytes) if final else None,
+                   verdict=final.message if final else None)
     except NotWorthCompressing as exc:  # a measurement during or after training kept the mesh
         a = exc.assessment
         out.update(status="not_worth", verdict=a.message, recommendation=a.recommendation,
@@ -199,7 +200,7 @@ def _decimation_fields(mesh, assessment, decimator=None) -> dict:
     if assessment.recommendation != "decimate":
         return {}
     files = kept_mesh_files(mesh, assessment, winning_decimation(mesh, assessment, decimator))
-    return {"decimation_triangles": assessment.alternatives["decimation"]["triangles"], "decimation_files": files,
+    return {"decimation_triangles": assessment.alternatives.decimation.triangles, "decimation_files": files,
             "decimation_compact_bytes": counted_compact_bytes(assessment)}
 
 

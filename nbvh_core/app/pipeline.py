@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from ..decision.final_verdict import final_verdict
-from ..decision.records import RunNote, why_of
+from ..decision.records import Assessment, RunDecisions, RunNote, why_of
 from ..decision.verdict import mesh_kept
 from ..geometry.bvh import NODE_DTYPE, build_bvh, cut_tree
 from ..geometry.exact import ExactTracer
@@ -53,11 +53,11 @@ class CompressResult:
     tracer: ExactTracer | None = None  # the mesh's exact tracer, for callers that render the reference too
     why: str = ""
     target_met: bool | None = None
-    assessment: dict = field(default_factory=dict)  # decision.records.Assessment: is the model smaller than the mesh?
+    assessment: Assessment | None = None  # is the model smaller than the mesh, and what was measured to say so
     data: bytes = b""  # the complete .nbvh file contents (written to `path` when one was given)
-    #: The decisions on measurements: every training check (decision.records.CheckDecision), the final verdict
-    #: (FinalVerdict: the model as shipped against the alternative at the same held-out MSE) and that curve.
-    decisions: dict = field(default_factory=dict)
+    #: The decisions on measurements: every training check, the final verdict (the model as shipped against the
+    #: alternative at the same held-out MSE) and that curve.
+    decisions: RunDecisions = field(default_factory=RunDecisions)
     #: The file as shipped, decoded from its bytes with its look, on the held-out views: colour MSE and FLIP beside
     #: the geometry's MSE (for a bare shape the file is the model `quality` scored, at its stored precision).
     quality_as_shipped: Quality | None = None
@@ -74,7 +74,9 @@ class CompressResult:
                 "training": {k: v for k, v in dataclasses.asdict(self.training).items() if k != "history"},
                 "settings": self.settings.to_dict(), "seconds": self.seconds, "why": self.why,
                 "notes": [n.to_dict() for n in self.notes],
-                "target_met": self.target_met, "assessment": self.assessment, "decisions": self.decisions,
+                "target_met": self.target_met,
+                "assessment": self.assessment.to_dict() if self.assessment is not None else None,
+                "decisions": self.decisions.to_dict(),
                 "memory": self.memory}
 
 
@@ -285,15 +287,14 @@ def _compress(mesh: Mesh, run: RunConfig, out_path, events: EventSink, should_ca
         if verdict.shipped != "model":
             raise _keep_the_mesh(assessment, verdict, events, search.rule.decisions if search.rule else [],
                                  weighing.decimator)
-    decisions = {"checks": [d.to_dict() for d in search.rule.decisions] if search.rule else [],
-                 "mse_check_views": search.check_views_mse, "mse_held_out_views": quality.mse if quality else None,
-                 "final": verdict.to_dict() if verdict else None,
-                 "alternative": weighing.curve_held_out.to_dict() if weighing.curve_held_out else None}
+    decisions = RunDecisions(list(search.rule.decisions) if search.rule else [], search.check_views_mse,
+                             quality.mse if quality else None, verdict,
+                             weighing.curve_held_out.to_dict() if weighing.curve_held_out else None)
     result = CompressResult(path=None, file_bytes=len(data), components=component_bytes(data), quality=quality,
                             training=tr, settings=run_used.request,
                             seconds={k: (v if k.startswith("mse") else round(v, 2)) for k, v in seconds.items()},
                             model=model, tracer=tracer, why=why_of(notes), target_met=metadata["target_met"],
-                            assessment=assessment.to_dict(), data=data, decisions=decisions,
+                            assessment=assessment, data=data, decisions=decisions,
                             quality_as_shipped=as_shipped, notes=notes, memory=memory_record(mesh))
     return _ship(out_path, result, metadata["quality"], events, should_cancel)
 

@@ -58,7 +58,8 @@ def report(result, mesh, extra: dict | None = None) -> dict:
     from ..planning.sizing import mesh_resident_bytes
 
     out = result.summary()
-    out["mesh_resident_bytes"] = result.assessment["resident"] if result.assessment else mesh_resident_bytes(mesh)
+    out["mesh_resident_bytes"] = (result.assessment.resident if result.assessment is not None
+                                  else mesh_resident_bytes(mesh))
     out["texture_bytes"] = mesh.look.texture_bytes() if mesh.look else 0
     out.update(extra or {})
     return out

@@ -102,8 +102,8 @@ def weigh(mesh: Mesh, run: RunConfig, tracer: ExactTracer, made=None, events: Ev
     decimator, tree = Decimator(mesh), build_full_tree(mesh)
     assessment = assess(mesh, model_bytes, run.decision, checks if measured else None, held_out, look_bytes,
                         decimator, tree, ticker)
-    if assessment.alternatives.get("skipped"):
-        events(wire.warning(message=f"{assessment.alternatives['skipped']} (the plan may take {ticker.budget_s:g} s: "
+    if assessment.alternatives.skipped:
+        events(wire.warning(message=f"{assessment.alternatives.skipped} (the plan may take {ticker.budget_s:g} s: "
                                     f"{PLAN_SHARE:.0%} of the {limit:g} s training budget, at least {PLAN_MIN_S:g} s)"))
     return assessment, Weighing(checks, held_out, AlternativeCurve.from_alternatives(assessment.alternatives),
                                 AlternativeCurve.from_alternatives(assessment.alternatives, held_out=True), look_bytes,
@@ -125,13 +125,13 @@ def alternative_at_model(mesh: Mesh, weighing: Weighing, assessment, model_bytes
     in the assessment's `no_alternative`) without the simplifier."""
     missing = alternatives.simplifier_missing()
     if missing:
-        assessment.alternatives["no_alternative"] = missing
+        assessment.alternatives.no_alternative = missing
         return None
     count = int(mesh.n_triangles * model_bytes / max(assessment.compact_bytes, 1) * 0.97)
     if count >= mesh.n_triangles * alternatives.DECIMATE_MAX_SHARE:
         whole = alternatives.whole_mesh_entry(mesh, weighing.checks, weighing.held_out, weighing.tree)
-        assessment.alternatives["mesh_compact"] = whole
-        return AlternativeCurve([CurvePoint.from_entry(whole, held_out=True, whole=True)])
+        assessment.alternatives.mesh_compact = whole
+        return AlternativeCurve([CurvePoint.from_entry(whole, held_out=True)])
     measure, points = measure_decimation(mesh, weighing, assessment), []
     for _ in range(AIM_TRIES):
         points.append(measure(max(count, 4)))
@@ -150,8 +150,8 @@ def measure_decimation(mesh: Mesh, weighing: Weighing, assessment):
         if count >= mesh.n_triangles * alternatives.DECIMATE_MAX_SHARE:  # no decimation: the whole mesh is the point
             return CurvePoint(2 ** 62, math.inf, 0, count)
         entry = alternatives.decimation_entry(mesh, count, weighing.checks, weighing.held_out, None, weighing.decimator)
-        if not entry["triangles"]:
+        if not entry.triangles:
             return CurvePoint(2 ** 62, math.inf, 0, count)
-        assessment.alternatives.setdefault("decimations_tried", []).append(entry)
+        assessment.alternatives.decimations_tried.append(entry)
         return CurvePoint.from_entry(entry, held_out=True)
     return measure

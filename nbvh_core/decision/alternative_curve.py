@@ -12,6 +12,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from .records import Alternatives, MeshMeasure
+
 
 @dataclass(frozen=True)
 class CurvePoint:
@@ -34,15 +36,14 @@ class CurvePoint:
         return colour_mse is None or (self.colour_mse is not None and self.colour_mse <= colour_mse)
 
     @classmethod
-    def from_entry(cls, entry: dict, held_out: bool = False, whole: bool = False) -> "CurvePoint":
-        """A measured decimation (`app.alternatives.decimation_entry`; whole: the whole mesh's entry) as a point: its bytes are
-        the compact mesh and what it needs to carry the asset's look (`app.alternatives.look_carried_bytes`), its MSE on the
-        check views or (held_out) the held-out views."""
-        key = "compact_mse_held_out" if held_out else "compact_mse"
-        colour = entry.get("colour_mse_held_out") if held_out else None
-        return cls(int(entry["compact_bytes"]) + int(entry.get("look_bytes", 0)), float(entry[key]),
-                   int(entry["triangles"]), None if whole else int(entry["requested_triangles"]),
-                   None if colour is None else float(colour))
+    def from_entry(cls, entry: MeshMeasure, held_out: bool = False) -> "CurvePoint":
+        """A measured decimation or the whole mesh (`app.alternatives.decimation_entry`, `whole_mesh_entry`) as a
+        point: its bytes are the compact mesh and what it needs to carry the asset's look
+        (`app.alternatives.look_carried_bytes`), its MSE on the check views or (held_out) the held-out views."""
+        mse = entry.compact_mse_held_out if held_out else entry.compact_mse
+        colour = entry.colour_mse_held_out if held_out else None
+        return cls(int(entry.compact_bytes) + int(entry.look_bytes or 0), float(mse), int(entry.triangles),
+                   entry.requested_triangles, None if colour is None else float(colour))
 
 
 def _envelope(points: list[CurvePoint]) -> list[CurvePoint]:
@@ -61,16 +62,15 @@ class AlternativeCurve:
         self.points = _envelope(points)
 
     @classmethod
-    def from_alternatives(cls, alt: dict, held_out: bool = False) -> "AlternativeCurve | None":
-        """The curve of `app.alternatives.alternatives`'s result on its check views, or (held_out) on the held-out views;
-        None when no decimation was measured."""
-        key = "compact_mse_held_out" if held_out else "compact_mse"
-        entries = list(alt.get("decimations_tried", []))
-        whole = alt.get("mesh_compact")
-        pts = [CurvePoint.from_entry(e, held_out) for e in entries if key in e and "compact_bytes" in e]
-        if whole and key in whole:
-            pts.append(CurvePoint.from_entry(whole, held_out, whole=True))
-        curve = cls(pts)
+    def from_alternatives(cls, alt: Alternatives, held_out: bool = False) -> "AlternativeCurve | None":
+        """The curve of `app.alternatives.alternatives`'s result on its check views, or (held_out) on the held-out
+        views; None when no decimation was measured."""
+        def measured(e: MeshMeasure | None) -> bool:
+            mse = None if e is None else e.compact_mse_held_out if held_out else e.compact_mse
+            return mse is not None and e.compact_bytes is not None
+
+        entries = [*alt.decimations_tried, alt.mesh_compact]
+        curve = cls([CurvePoint.from_entry(e, held_out) for e in entries if measured(e)])
         return curve if curve.points else None
 
     def bytes_at(self, mse: float) -> float:

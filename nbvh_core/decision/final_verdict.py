@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 
 from .alternative_curve import AlternativeCurve
-from .records import FinalVerdict
+from .records import FinalVerdict, ShippedMesh
 
 
 #: Decimations measured to settle a verdict the curve's interpolation leaves open: each 1.41x above the last, until
@@ -90,8 +90,7 @@ def _without_quality(model_bytes: int, model_mse: float, target: float | None, c
     ship = (curve.cheapest_meeting(target) if target is not None else None) or curve.points[-1]
     what = f"a decimation to {ship.triangles:,} triangles" if ship.requested is not None else "the whole mesh"
     return FinalVerdict(model_bytes, model_mse, None, "decimation" if ship.requested else "mesh",
-                        {"triangles": ship.triangles, "requested_triangles": ship.requested,
-                         "compact_bytes": ship.bytes, "mse": ship.mse}, False, force,
+                        ShippedMesh(ship.triangles, ship.requested, ship.bytes, ship.mse), False, force,
                         f"kept as a mesh: the model's held-out MSE is {model_mse} (no quality measured), so it cannot "
                         f"ship; {what} reaches MSE {ship.mse:.4g} in {ship.bytes:,} B as a compact mesh",
                         at_level=target is not None and ship.mse <= target)
@@ -139,8 +138,7 @@ def final_verdict(model_bytes: int, model_mse: float, target: float | None, curv
         if colour is not None:
             message += f" (colour MSE {ship.colour_mse:.4g}, the model's {colour:.4g})"
         return FinalVerdict(model_bytes, model_mse, alt_bytes, "decimation" if ship.requested else "mesh",
-                            {"triangles": ship.triangles, "requested_triangles": ship.requested,
-                             "compact_bytes": ship.bytes, "mse": ship.mse, "colour_mse": ship.colour_mse},
+                            ShippedMesh(ship.triangles, ship.requested, ship.bytes, ship.mse, ship.colour_mse),
                             level_met, force, message, at_level=ship is at_level, model_colour_mse=colour)
     above = None
     by_shape = curve.cheapest_meeting(model_mse) if colour is not None else None

@@ -1,7 +1,8 @@
 """The typed records of a run's decisions (what was decided, on which measurements), serialised into reports."""
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+import dataclasses
+from dataclasses import asdict, dataclass, field, fields
 from enum import Enum
 
 #: The kinds of step a run's account (`RunNote`) tells.
@@ -49,6 +50,17 @@ def why_of(notes) -> str:
     return "; ".join(n.text for n in notes)
 
 
+def _measured(record) -> dict:
+    """A record's fields that hold a measurement (None: not measured, left out of the report)."""
+    return {f.name: getattr(record, f.name) for f in fields(record) if getattr(record, f.name) is not None}
+
+
+def _known(cls, d: dict) -> dict:
+    """The keys of `d` that are fields of `cls` (a report written by a later version may hold more)."""
+    names = {f.name for f in fields(cls)}
+    return {k: v for k, v in d.items() if k in names}
+
+
 @dataclass
 class CheckDecision:
     """One training check. seconds since training began; log2_table: the table's size then; mse: measured on the
@@ -74,14 +86,124 @@ class CheckDecision:
     def to_dict(self) -> dict:
         return {**asdict(self), "action": self.action.value}
 
+    @classmethod
+    def from_dict(cls, d: dict) -> "CheckDecision":
+        return cls(**_known(cls, d))
+
+
+@dataclass
+class MeshMeasure:
+    """One mesh measured as the alternative to a model (`app.alternatives`): a decimation of the asset
+    (`requested_triangles`: the count asked for) or the whole mesh (`requested_triangles` None). Bytes are exact:
+    `compact_bytes` the compact ray-traceable mesh (geometry), `look_bytes` what it needs beside to carry the asset's
+    look, `resident_bytes` as a plain ray tracer holds it, `draco11_bytes` Draco's storage size. MSEs are the run's
+    metric: `mse` the decimation itself and `compact_mse` its compact mesh decoded, on the check views;
+    `compact_mse_held_out` and `colour_mse_held_out` (the mesh as it ships with its look) on the held-out views.
+    None: not measured (a decimation that came out empty has only its counts and infinite MSEs)."""
+
+    triangles: int
+    requested_triangles: int | None = None
+    mse: float | None = None
+    resident_bytes: int | None = None
+    compact_bytes: int | None = None
+    look_bytes: int | None = None
+    compact_mse: float | None = None
+    compact_mse_held_out: float | None = None
+    colour_mse_held_out: float | None = None
+    draco11_bytes: int | None = None
+
+    @property
+    def whole_mesh(self) -> bool:
+        return self.requested_triangles is None
+
+    def meets(self, target_mse: float) -> bool:
+        """Whether its compact mesh meets `target_mse` on the check views and, where measured, the held-out views."""
+        return max(self.compact_mse, self.compact_mse_held_out or 0.0) <= target_mse
+
+    def with_look(self) -> "MeshMeasure":
+        """The same measure with the look's bytes counted in its resident and compact bytes (how it is weighed
+        against a model, whose file carries the look)."""
+        def plus_look(nbytes: int | None) -> int | None:
+            return None if nbytes is None else nbytes + (self.look_bytes or 0)
+
+        return dataclasses.replace(self, resident_bytes=plus_look(self.resident_bytes),
+                                   compact_bytes=plus_look(self.compact_bytes))
+
+    def to_dict(self) -> dict:
+        return _measured(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "MeshMeasure":
+        return cls(**_known(cls, d))
+
+
+@dataclass
+class Alternatives:
+    """What a user could ship instead of a model, as measured (`app.alternatives.alternatives`): Draco's size of
+    the mesh (storage only), the decimations tried in triangle order and the smallest that met the target
+    (`decimation`), the whole mesh as a compact mesh, the metric's name, what was skipped past the plan's time share,
+    and why nothing could be measured (`no_alternative`: the simplifier missing) or a note."""
+
+    draco11_bytes: int | None = None
+    note: str | None = None
+    no_alternative: str | None = None
+    metric: str | None = None
+    decimation: MeshMeasure | None = None
+    decimations_tried: list[MeshMeasure] = field(default_factory=list)
+    mesh_compact: MeshMeasure | None = None
+    skipped: str | None = None
+
+    def add_note(self, text: str) -> None:
+        self.note = f"{self.note}; {text}" if self.note else text
+
+    def tried(self, requested_triangles: int) -> MeshMeasure | None:
+        """The decimation measured for `requested_triangles`, or None."""
+        return next((e for e in self.decimations_tried if e.requested_triangles == requested_triangles), None)
+
+    def to_dict(self) -> dict:
+        out = _measured(self)
+        for name in ("decimation", "mesh_compact"):
+            if name in out:
+                out[name] = out[name].to_dict()
+        out["decimations_tried"] = [e.to_dict() for e in self.decimations_tried]
+        return out
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Alternatives":
+        known = _known(cls, d)
+        for name in ("decimation", "mesh_compact"):
+            if known.get(name) is not None:
+                known[name] = MeshMeasure.from_dict(known[name])
+        known["decimations_tried"] = [MeshMeasure.from_dict(e) for e in known.get("decimations_tried", [])]
+        return cls(**known)
+
+
+@dataclass(frozen=True)
+class ShippedMesh:
+    """The mesh a final verdict ships instead of the model: its triangles, the decimation count asked for (None:
+    the whole mesh), its compact bytes with the look's, and its held-out MSE and colour MSE (None: not measured)."""
+
+    triangles: int
+    requested_triangles: int | None
+    compact_bytes: int
+    mse: float
+    colour_mse: float | None = None
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "ShippedMesh":
+        return cls(**_known(cls, d))
+
 
 @dataclass
 class FinalVerdict:
     """The model as shipped against the alternative at the same measured quality (held-out views).
     model_bytes: the .nbvh file; model_mse: its held-out MSE; alternative_bytes: the compact decimation's bytes
     that reach the model's MSE (interpolated on the measured curve; None: not measured); shipped: 'model' or
-    'decimation' or 'mesh'; decimation: the measured decimation shipped instead (its triangles, requested count,
-    compact bytes and held-out MSE) or None; level_met: the model met the target on the held-out views;
+    'decimation' or 'mesh'; decimation: the measured mesh shipped instead (`ShippedMesh`) or None; level_met: the
+    model met the target on the held-out views;
     forced: the user asked for the model whatever the verdict; message: one line for people; at_level: the mesh
     shipped was chosen at the target (the model missed it), not at the model's MSE; alternative_above: see below."""
 
@@ -89,7 +211,7 @@ class FinalVerdict:
     model_mse: float
     alternative_bytes: float | None
     shipped: str
-    decimation: dict | None
+    decimation: ShippedMesh | None
     level_met: bool | None
     forced: bool
     message: str
@@ -109,27 +231,65 @@ class FinalVerdict:
     def to_dict(self) -> dict:
         return {**asdict(self), "ratio": self.ratio}
 
+    @classmethod
+    def from_dict(cls, d: dict) -> "FinalVerdict":
+        """The record `to_dict` wrote (its derived `ratio` is computed again)."""
+        known = _known(cls, d)
+        if known.get("decimation") is not None:
+            known["decimation"] = ShippedMesh.from_dict(known["decimation"])
+        return cls(**known)
+
 
 @dataclass
 class Assessment:
     """model_bytes: the .nbvh size (exact payload + typical header); resident: `planning.sizing.mesh_resident_bytes(mesh)`;
     compact_bytes: the mesh in the compact ray-traceable layout; layout: the one the model was weighed against
-    (decision.config.MESH_LAYOUTS); alternatives: `app.alternatives.alternatives(...)` when measured; recommendation: what to use (decision.verdict.RECOMMENDATIONS: 'neural',
-    'mesh': the mesh as it is, 'decimate': the decimation in alternatives['decimation'])."""
+    (decision.config.MESH_LAYOUTS); alternatives: what was measured (`app.alternatives.alternatives`); recommendation:
+    what to use (decision.verdict.RECOMMENDATIONS: 'neural', 'mesh': the mesh as it is, 'decimate': the decimation
+    in `alternatives.decimation`)."""
 
     model_bytes: int
     resident: dict
     worth_compressing: bool
     message: str
-    alternatives: dict = field(default_factory=dict)
+    alternatives: Alternatives = field(default_factory=Alternatives)
     recommendation: str = "neural"
     #: The whole mesh as a compact ray-traceable mesh (`compact_mesh.encode_compact`), exact bytes.
     compact_bytes: int | None = None
     layout: str = "compact"
-    #: The decision that kept the mesh after training began (`decision.records.FinalVerdict` as a dict), or None.
-    final: dict | None = None
-    #: When a decision after training began kept the mesh: the training's checks until then (`CheckDecision` as dicts).
-    checks: list = field(default_factory=list)
+    #: The final verdict that kept the mesh after training began, or None.
+    final: FinalVerdict | None = None
+    #: When a decision after training began kept the mesh: the training's checks until then.
+    checks: list[CheckDecision] = field(default_factory=list)
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        return {**asdict(self), "alternatives": self.alternatives.to_dict(),
+                "final": self.final.to_dict() if self.final is not None else None,
+                "checks": [c.to_dict() for c in self.checks]}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Assessment":
+        """The record a report holds (`to_dict`) read back: the same measurements, typed."""
+        known = _known(cls, d)
+        known["alternatives"] = Alternatives.from_dict(known.get("alternatives") or {})
+        known["final"] = FinalVerdict.from_dict(known["final"]) if known.get("final") else None
+        known["checks"] = [CheckDecision.from_dict(c) for c in known.get("checks") or []]
+        return cls(**known)
+
+
+@dataclass
+class RunDecisions:
+    """The decisions on measurements of a run that trained: every training check (in order), the model's MSE on the
+    check views and on the held-out views, the final verdict (None: nothing was weighed after training) and the
+    alternative's curve on the held-out views it was weighed against (`AlternativeCurve.to_dict`)."""
+
+    checks: list[CheckDecision] = field(default_factory=list)
+    mse_check_views: float | None = None
+    mse_held_out_views: float | None = None
+    final: FinalVerdict | None = None
+    alternative: list[dict] | None = None
+
+    def to_dict(self) -> dict:
+        return {"checks": [c.to_dict() for c in self.checks], "mse_check_views": self.mse_check_views,
+                "mse_held_out_views": self.mse_held_out_views,
+                "final": self.final.to_dict() if self.final is not None else None, "alternative": self.alternative}

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 
-from .records import Assessment, FinalVerdict
+from .records import Assessment, FinalVerdict, MeshMeasure
 
 #: What the verdict recommends: train the model, keep the mesh as it is, or ship the measured decimation.
 RECOMMENDATIONS = ("neural", "mesh", "decimate")
@@ -17,12 +17,12 @@ def held_text(layout: str, plain: int, compact: int) -> str:
     return f"{a} ({b})" if layout == "compact" else f"{b} ({a})"
 
 
-def verdict_before_training(model: int, triangles: int, resident: int, compact: int, decimation: dict | None,
-                            draco: int | None, layout: str) -> tuple[str, str]:
+def verdict_before_training(model: int, triangles: int, resident: int, compact: int,
+                            decimation: MeshMeasure | None, draco: int | None, layout: str) -> tuple[str, str]:
     """(recommendation, one line for people) for a model file of `model` bytes against the whole mesh of
     `triangles` (`resident`: as a plain ray tracer holds it; `compact`: the compact ray-traceable mesh; both with
-    the asset's look) and `decimation` (None, or {'triangles', 'mse', 'resident_bytes', 'compact_bytes'}, look
-    included: the smallest measured one meeting the target), held in `layout` ('compact' or 'plain'). draco: the
+    the asset's look) and `decimation` (None, or the smallest measured one meeting the target, its bytes with the
+    look: `MeshMeasure.with_look`), held in `layout` ('compact' or 'plain'). draco: the
     whole mesh's Draco 11-bit bytes (storage only; said beside). 'mesh' when the whole mesh is no larger than the
     model and no larger than the decimation; 'decimate' when the decimation is no larger than the model; else
     'neural' (a decimation is offered even when the whole mesh is also smaller: it is the least a user ships)."""
@@ -32,20 +32,20 @@ def verdict_before_training(model: int, triangles: int, resident: int, compact: 
     draco_text = f"; Draco 11-bit of the mesh: {draco:,} B for storage" if draco is not None else ""
     whole = held(resident, compact)
     whole_text = held_text(layout, resident, compact)
-    dec_held = held(decimation["resident_bytes"], decimation["compact_bytes"]) if decimation is not None else None
+    dec_held = held(decimation.resident_bytes, decimation.compact_bytes) if decimation is not None else None
     if whole <= model and (dec_held is None or whole <= dec_held):
         return "mesh", (f"not worth compressing: the mesh ({triangles:,} triangles) is already no larger than this "
                         f"model (~{model:,} B): {whole_text}; keep the mesh, or ask for a smaller model "
                         f"(--budget-kb){draco_text}")
     if dec_held is not None and dec_held <= model:
-        return "decimate", (f"not worth compressing: a decimation to {decimation['triangles']:,} triangles meets the "
-                            f"target (MSE {decimation['mse']:.4g}) in "
-                            f"{held_text(layout, decimation['resident_bytes'], decimation['compact_bytes'])}, no more "
+        return "decimate", (f"not worth compressing: a decimation to {decimation.triangles:,} triangles meets the "
+                            f"target (MSE {decimation.mse:.4g}) in "
+                            f"{held_text(layout, decimation.resident_bytes, decimation.compact_bytes)}, no more "
                             f"than this model (~{model:,} B; the full mesh: {whole_text}){draco_text}")
     msg = f"model ~{model:,} B vs the mesh {whole_text}: {whole / model:.1f}x smaller"
     if decimation is not None:
-        msg += (f"; the smallest decimation meeting the target ({decimation['triangles']:,} triangles) holds "
-                f"{held_text(layout, decimation['resident_bytes'], decimation['compact_bytes'])}: "
+        msg += (f"; the smallest decimation meeting the target ({decimation.triangles:,} triangles) holds "
+                f"{held_text(layout, decimation.resident_bytes, decimation.compact_bytes)}: "
                 f"{dec_held / model:.2f}x the model")
     return "neural", msg + draco_text
 
@@ -55,14 +55,11 @@ def mesh_kept(assessment: Assessment, verdict: FinalVerdict | None, checks: list
     verdict's, `verdict`; None: the check kept the whole mesh): it recommends the measured decimation that verdict
     names (or the whole mesh) and carries the verdict's message and record, and the training's `checks`
     (`CheckDecision`s) that led there."""
-    alt = dict(assessment.alternatives)
+    alt = dataclasses.replace(assessment.alternatives)
     rec = "mesh"
-    if verdict is not None and verdict.decimation is not None and verdict.decimation["requested_triangles"]:
+    if verdict is not None and verdict.decimation is not None and verdict.decimation.requested_triangles:
         rec = "decimate"
-        alt["decimation"] = next((e for e in alt.get("decimations_tried", [])
-                                  if e["requested_triangles"] == verdict.decimation["requested_triangles"]),
-                                 alt.get("decimation"))
+        alt.decimation = alt.tried(verdict.decimation.requested_triangles) or alt.decimation
     return dataclasses.replace(assessment, worth_compressing=False, recommendation=rec,
                                message=verdict.message if verdict is not None else assessment.message,
-                               alternatives=alt, final=verdict.to_dict() if verdict is not None else None,
-                               checks=[d.to_dict() for d in checks])
+                               alternatives=alt, final=verdict, checks=list(checks))
