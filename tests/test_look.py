@@ -1,5 +1,6 @@
 """The asset's look: materials, slots and texture coordinates from loading to the file, the head, the renders."""
 import dataclasses
+import json
 
 import numpy as np
 import pytest
@@ -122,6 +123,35 @@ def test_an_image_read_from_a_jpeg_file_is_stored_as_its_own_bytes(tmp_path):
     assert look_stored_bytes(None, [mat], preset("default").storage())["textures"] == len(source)
     other = _photograph(64)[::-1].copy()
     assert encode_texture(other, source) != source
+
+
+def test_an_image_read_from_a_glb_is_stored_as_its_own_bytes(tmp_path):
+    """A GLB's texture keeps its file's bytes too (`gltf_images`): a kept mesh's .glb written from it carries the
+    source JPEG byte for byte, not a second generation of JPEG loss. A name two materials share keeps no bytes."""
+    import io
+
+    from PIL import Image
+
+    from nbvh_core.geometry.glb import encode_glb
+    from nbvh_core.geometry.gltf_images import material_images
+
+    buf = io.BytesIO()
+    Image.fromarray(_photograph(64)).save(buf, format="JPEG", quality=70)
+    jpeg = buf.getvalue()
+    globe = demo_assets.globe(16, 8, texture=16)
+    painted = globe.look.materials[0]
+    painted.image, painted.source = np.asarray(Image.open(io.BytesIO(jpeg)).convert("RGB")), jpeg
+    painted._stored = None
+    (tmp_path / "globe.glb").write_bytes(encode_glb(globe))
+    back = load_mesh(tmp_path / "globe.glb")
+    read = next(m for m in back.look.materials if m.name == painted.name)
+    assert read.source == jpeg and np.array_equal(read.image, painted.image)
+    assert jpeg in encode_glb(back)
+    twice = json.loads(json.dumps({"materials": [{"name": "a", "pbrMetallicRoughness": {"baseColorTexture": {
+        "index": 0}}}] * 2, "textures": [{"source": 0}], "images": [{"uri": "data:image/png;base64,AAAA"}]}))
+    assert material_images(json.dumps(twice).encode(), ".gltf") == {}
+    twice["materials"].pop()
+    assert material_images(json.dumps(twice).encode(), ".gltf") == {"a": b"\0\0\0"}
 
 
 def test_npz_members_round_trip(tmp_path):

@@ -300,6 +300,13 @@ def load_mesh(path: str | os.PathLike) -> Mesh:
     name = path.name.split(".")[0]
     if ext == ".obj" and path.suffix.lower() != ".gz":
         _read_mtl_images(path, data, look)
+    if ext in (".glb", ".gltf"):  # the images' own bytes, which trimesh does not keep (`gltf_images`)
+        from .gltf_images import material_images
+
+        files = material_images(data, ext, None if path.suffix.lower() == ".gz" else _confined_resolver(path))
+        for m in look.materials:
+            if m.image is not None and m.source is None:
+                m.source = files.get(m.name)
     return mesh_from_arrays(vertices, faces, name=name, look=look)
 
 
