@@ -9,17 +9,14 @@ from pathlib import Path
 import bpy
 import numpy as np
 
-from . import compress_session, previews
+from . import compress_session, previews, settings_fields
 from .job import most_trainings
 from .job_watcher import JobWatcher, job_python, notify
 
 
 def request_from_props(props) -> compress_session.Request:
     """Panel settings -> compress_session.Request (preset, or target quality, or byte budget; time limit; device)."""
-    overrides = {"time_limit_s": float(props.time_limit), "device": props.device.lower(), "steps": None,
-                 "appearance_target": props.look.lower(), "mesh_layout": props.mesh_layout.lower()}
-    if props.force:
-        overrides["force"] = True
+    overrides = {**settings_fields.request_fields(props), "steps": None}  # the core's declared settings
     preset = props.preset
     if props.mode == "TARGET":
         overrides["target_mse"] = compress_session.QUALITY_LEVELS[props.target.lower()]

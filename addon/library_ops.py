@@ -6,17 +6,14 @@ from pathlib import Path
 
 import bpy
 
-from . import compress_session, library
+from . import compress_session, library, settings_fields
 from .job_watcher import JobWatcher, job_python, notify
 
 
 def _library_settings(props) -> dict:
-    """The batch's settings from the panel: the preset or target (a byte budget applies per asset), time limit,
-    and *Train even if not worth it*."""
-    spec = {"preset": props.preset, "time_limit_s": float(props.time_limit), "device": props.device.lower(),
-            "mesh_layout": props.mesh_layout.lower()}
-    if props.force:
-        spec["force"] = True
+    """The batch's settings from the panel: the preset or target (a byte budget applies per asset) and the core's
+    declared panel settings (time limit, device, mesh layout, look, *Train even if not worth it*)."""
+    spec = {"preset": props.preset, **settings_fields.request_fields(props)}
     if props.mode == "TARGET":
         spec["target_mse"] = compress_session.QUALITY_LEVELS[props.target.lower()]
     elif props.mode == "BUDGET":

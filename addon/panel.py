@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import bpy
 
-from . import compress_ops, compress_session, install_ops, library_ops, report_ops
+from . import compress_ops, compress_session, install_ops, library_ops, report_ops, settings_fields
 
 PRESET_ITEMS = [("preview", "Preview", "Small and quick (about a minute)"),
                 ("default", "Default", "Balanced size and quality (a few minutes)"),
@@ -58,25 +58,8 @@ class NBVH_Props(bpy.types.PropertyGroup):
         (name.upper(), name.title(), f"image MSE <= {mse:g}") for name, mse in compress_session.QUALITY_LEVELS.items()],
         default=compress_session.DEFAULT_LEVEL.upper())
     budget_kb: bpy.props.IntProperty(name="Budget (KB)", default=400, min=16, max=100000)
-    mesh_layout: bpy.props.EnumProperty(name="Mesh layout", items=[
-        ("COMPACT", "Compact mesh", "The verdict weighs the model against the mesh (or a decimation meeting the level) "
-                                    "as a compact ray-traceable mesh, ~4 B per triangle: the strongest mesh"),
-        ("PLAIN", "Mesh as Blender holds it", "The verdict weighs the model against the mesh as a plain ray tracer "
-                                              "(Cycles, Embree) holds it, ~44 B per triangle")], default="COMPACT")
-    time_limit: bpy.props.IntProperty(name="Time limit (s)", default=200, min=5, max=24 * 3600)
-    device: bpy.props.EnumProperty(name="Device", items=[("AUTO", "Auto", "CUDA when available"),
-                                                         ("CPU", "CPU", ""), ("CUDA", "CUDA", "")], default="AUTO")
-    look: bpy.props.EnumProperty(name="Look", items=[
-        ("COORDINATES", "Slots + textures", "Each hit's material slot and texture coordinates: the images are kept "
-                                            "and sampled as Blender does"),
-        ("COLOUR", "Baked colour", "The model learns the textured colour itself; no image is kept")],
-        default="COORDINATES")
     output_dir: bpy.props.StringProperty(name="Folder", subtype="DIR_PATH",
                                          description="Where .nbvh files go (empty: //nbvh beside the .blend)")
-    force: bpy.props.BoolProperty(
-        name="Train even if not worth it",
-        description="Without this, an object whose mesh (or a decimation of it) is already smaller than the model "
-                    "would be gets its verdict in seconds and no training")
     show_image: bpy.props.BoolProperty(name="Show result in Image Editor", default=True,
                                        description="When a compression finishes, show its neural rendering in an "
                                                    "Image Editor (a new window when none is open)")
@@ -97,6 +80,12 @@ class NBVH_Props(bpy.types.PropertyGroup):
     library_summary: bpy.props.StringProperty()
     library_report_html: bpy.props.StringProperty(subtype="FILE_PATH")
     library_rows: bpy.props.CollectionProperty(type=NBVH_LibraryRow)
+
+
+# The settings the core declares for the panel (`settings_fields`: time limit, device, mesh layout, look, force...),
+# each a property named as the request's field, added before the class is registered.
+for _name, _kind, _kwargs in settings_fields.property_specs():
+    NBVH_Props.__annotations__[_name] = getattr(bpy.props, _kind)(**_kwargs)
 
 
 class NBVH_Preferences(bpy.types.AddonPreferences):
@@ -138,16 +127,12 @@ class NBVH_PT_panel(bpy.types.Panel):
             col.prop(props, "preset")
         elif props.mode == "TARGET":
             col.prop(props, "target")
+            col.label(text="one training: its table grows until the level is met", icon="INFO")
         else:
             col.prop(props, "budget_kb")
-        col.prop(props, "time_limit")
-        if props.mode == "TARGET":
-            col.label(text="one training: its table grows until the level is met", icon="INFO")
-        col.prop(props, "mesh_layout")
-        col.prop(props, "device")
-        col.prop(props, "look")
+        for name in settings_fields.panel_names():
+            col.prop(props, name)
         col.prop(props, "output_dir")
-        col.prop(props, "force")
         col.prop(props, "show_image")
         if props.running:
             box = layout.box()

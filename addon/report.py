@@ -60,6 +60,8 @@ def object_entry(name: str, blender_bytes: dict, job_report: dict, textures: dic
         "ratio_resident_to_nbvh": resident["total"] / nbvh,
         "mse": q.get("mse"), "silhouette_iou": q.get("silhouette_iou"), "depth_error": q.get("depth_error"),
         "eval_views": q.get("views"), "train_seconds": t.get("seconds"), "device": t.get("device"),
+        # The same file on a second held-out set, the lattice turned at random for this run (its seed recorded)
+        "turned_views": job_report.get("quality_turned_views"),
         "settings": job_report.get("settings"), "files": job_report.get("files", {}),
         # Before training: was the model going to be smaller than the mesh a ray tracer holds? (decision.verdict)
         "worth_compressing": assessment.get("worth_compressing", resident["total"] > nbvh),
@@ -72,6 +74,14 @@ def object_entry(name: str, blender_bytes: dict, job_report: dict, textures: dic
         "final_verdict": ((job_report.get("decisions") or {}).get("final") or {}).get("message", ""),
         "scene_split": job_report.get("scene_split"),
     }
+
+
+def _turned_text(turned: dict | None) -> str:
+    """'; on N views turned at random (seed S): MSE m, IoU i' for the report's quality row, or ''."""
+    if not turned or turned.get("mse") is None:
+        return ""
+    return (f"; on {turned.get('views')} views turned at random (seed {turned.get('turn_seed')}): MSE "
+            f"{turned['mse']:.5f}, IoU {turned.get('silhouette_iou', 0.0):.4f}")
 
 
 def build_report(entries: list[dict], kept_as_mesh: list[dict] | None = None,
@@ -146,7 +156,7 @@ def write_report(report: dict, out_dir: str | Path, stem: str = "nbvh_report") -
 <tr><th>textures ({len(e.get('textures') or {})} images, {e.get('materials', 0)} material slots)</th><td>{_kb(e.get('texture_bytes', 0))} as Blender holds them, {_kb(e.get('texture_bc7_bytes', 0))} in BC7 on a GPU (kept: the model carries geometry only)</td></tr>
 <tr><th>whole asset (mesh + textures -> model + textures)</th><td>{_kb(e.get('asset_bytes_before', 0))} -> {_kb(e.get('asset_bytes_after', 0))} ({(e.get('ratio_asset') or 0):.2f}x)</td></tr>
 <tr><th>ratio (Blender mesh / .nbvh, resident / .nbvh)</th><td>{e['ratio_blender_mesh_to_nbvh']:.1f}x, {e['ratio_resident_to_nbvh']:.1f}x</td></tr>
-<tr><th>quality</th><td>image MSE {mse}, silhouette IoU {iou} over {e['eval_views']} views</td></tr>
+<tr><th>quality</th><td>image MSE {mse}, silhouette IoU {iou} over {e['eval_views']} views{_turned_text(e.get('turned_views'))}</td></tr>
 <tr><th>training</th><td>{e['train_seconds']} s on {html.escape(str(e['device']))}</td></tr>
 <tr><th>verdict</th><td>{'worth compressing' if e['worth_compressing'] else '<strong>' + html.escape(e['assessment'] or 'not worth compressing') + '</strong>'}</td></tr>
 <tr><th>alternatives (measured)</th><td>{html.escape(_alternatives_text(e.get('alternatives') or {}))}</td></tr>

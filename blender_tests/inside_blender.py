@@ -133,7 +133,8 @@ def test_addon_installed_and_registered():
     name = install_addon()
     mod = importlib.import_module(name)
     ADDON["module"] = mod
-    for sub in ("compress_session", "compress_ops", "library_ops", "report_ops", "previews", "job", "export"):
+    for sub in ("compress_session", "compress_ops", "library_ops", "report_ops", "previews", "job", "export",
+                "settings_fields"):
         ADDON[sub] = importlib.import_module(f"{name}.{sub}")
     assert hasattr(bpy.types, "NBVH_PT_panel"), "panel not registered"
     assert bpy.types.NBVH_PT_panel.bl_category == "NBVH"
@@ -155,6 +156,14 @@ def test_the_panel_sizes_by_need_by_default():
     req = ADDON["compress_ops"].request_from_props(props)
     assert req.overrides["target_mse"] == ADDON["compress_session"].QUALITY_LEVELS[ADDON["compress_session"].DEFAULT_LEVEL]
     assert req.overrides["mesh_layout"] == "compact"
+    # The settings the core declares for the panel are its properties, with the core's defaults and bounds, and the
+    # request carries each under its field's name (addon/settings_schema.json).
+    for entry in ADDON["settings_fields"].load_schema():
+        assert entry["name"] in rna and rna[entry["name"]].name == entry["label"], entry["name"]
+        assert entry["name"] in req.overrides, entry["name"]
+    assert (rna["time_limit_s"].default, rna["time_limit_s"].hard_min) == (200.0, 5.0)
+    assert req.overrides["device"] == "auto" and req.overrides["appearance_target"] == "coordinates"
+    assert req.overrides["time_limit_s"] == 200.0 and req.overrides["force"] is False
 
 
 def test_compress_via_operator_loads_image_proxy_report():
@@ -163,7 +172,7 @@ def test_compress_via_operator_loads_image_proxy_report():
     props = bpy.context.scene.nbvh_props
     props.mode, props.preset = "PRESET", "preview"
     props.output_dir = str(Path(ARGS.work) / "panel_out")
-    props.time_limit = 8
+    props.time_limit_s = 8
     props.force = True  # the blob is 72 KB as a compact mesh, smaller than a preview model: trained anyway
     select("Blob")
     bpy.context.view_layer.objects.active = blob
@@ -243,7 +252,7 @@ def test_cancel_stops_running_job_and_leaves_nothing():
     props.output_dir = str(out)
     props.mode, props.preset = "PRESET", "default"
     props.mesh_layout = "PLAIN"  # as a compact mesh the smooth blob is smaller than this model: it would not train
-    props.time_limit = 600
+    props.time_limit_s = 600
     select("Blob")
     assert bpy.ops.nbvh.compress() == {"FINISHED"}
     session = ADDON["compress_ops"].WATCHER.work
@@ -491,7 +500,7 @@ def test_scene_budget_is_split_by_need_and_suzanne_is_not_worth_it():
     props = bpy.context.scene.nbvh_props
     props.mode = "BUDGET"
     props.budget_kb = 1500
-    props.time_limit = 5
+    props.time_limit_s = 5
     props.mesh_layout = "PLAIN"  # the smooth blob is smaller than any model as a compact mesh: weigh it plainly
     props.output_dir = str(Path(ARGS.work) / "scene_out")
     select("Blob", "Suzanne")
@@ -563,7 +572,7 @@ def test_compress_library_folder_with_a_blend_file():
     shutil.copy(ARGS.mesh, lib / "blob.npz")
     bpy.ops.wm.save_as_mainfile(filepath=str(lib / "props.blend"), copy=True)
     props = bpy.context.scene.nbvh_props
-    props.mode, props.preset, props.time_limit = "PRESET", "preview", 5
+    props.mode, props.preset, props.time_limit_s = "PRESET", "preview", 5
     props.output_dir = str(Path(ARGS.work) / "library_out")
     # weighed plainly: the blob (72 KB as a compact mesh) is then worth a preview model, Suzanne (968 triangles) not
     props.mesh_layout = "PLAIN"

@@ -52,7 +52,7 @@ def setup() -> None:
     space.region_3d.view_perspective = "CAMERA"
     bpy.context.preferences.view.show_splash = False
     props = bpy.context.scene.nbvh_props
-    props.preset, props.time_limit, props.force = args.preset, args.time_limit, True
+    props.preset, props.time_limit_s, props.force = args.preset, args.time_limit, True
     props.show_image = args.show_image  # off by default: a second window would cover the one photographed
     obj = bpy.data.objects[args.compress]
     for o in bpy.context.scene.objects:

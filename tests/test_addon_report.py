@@ -17,7 +17,8 @@ def test_report_totals_ratios_and_html(tmp_path):
     job = {"file_bytes": 1000, "components": {"header": 100, "bvh": 300, "features": 400, "network": 200},
            "mesh_resident_bytes": {"total": 50_000}, "quality": {"mse": 0.002, "silhouette_iou": 0.97, "views": 16},
            "training": {"seconds": 12.5, "device": "cpu"}, "files": {"preview": str(png), "reference": str(png)}}
-    a = object_entry("A", {"total": 20_000, "positions": 12_000}, job)
+    turned = {"mse": 0.0023, "silhouette_iou": 0.96, "views": 16, "turn_seed": 1234}
+    a = object_entry("A", {"total": 20_000, "positions": 12_000}, dict(job, quality_turned_views=turned))
     b = object_entry("B & <C>", {"total": 5_000, "positions": 3_000}, dict(job, file_bytes=500))
     rep = build_report([a, b])
     assert rep["totals"]["nbvh_bytes"] == 1500 and rep["totals"]["blender_mesh_bytes"] == 25_000
@@ -26,6 +27,7 @@ def test_report_totals_ratios_and_html(tmp_path):
     assert json.loads(js.read_text())["objects"][1]["name"] == "B & <C>"
     page = htm.read_text()
     assert "B &amp; &lt;C&gt;" in page and page.count("data:image/png;base64") == 4 and "MSE 0.00200" in page
+    assert page.count("views turned at random (seed 1234): MSE 0.00230, IoU 0.9600") == 1  # A's; B has none
 
 
 def test_textures_count_as_blender_holds_them_and_in_bc7():

@@ -177,6 +177,10 @@ def _print_result(result, summary: dict, out: Path, paths: dict) -> None:
     if q:
         print(f"quality ({q.views} {'held-out ' if q.held_out else ''}views, {q.resolution}px): MSE {q.mse:.5f}, "
               f"silhouette IoU {q.silhouette_iou:.4f}, depth error {q.depth_error:.5f} (unit box)")
+    turned = result.quality_turned
+    if turned is not None:
+        print(f"a second held-out set ({turned.views} views turned at random, seed {turned.turn_seed}): MSE "
+              f"{turned.mse:.5f}, silhouette IoU {turned.silhouette_iou:.4f}")
     s = result.quality_as_shipped
     if s is not None and s.colour_mse is not None:
         print(f"the file as shipped, its look included ({s.views} held-out views, {s.resolution}px): colour MSE "

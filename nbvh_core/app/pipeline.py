@@ -31,7 +31,7 @@ from ..planning.settings import PRESETS, Settings, estimate_file_bytes, preset  
 from ..protocol import events as wire
 from ..protocol.events import EventSink, null_sink
 from ..protocol.process import Cancelled, NotWorthCompressing
-from ..rendering.metrics import Quality
+from ..rendering.metrics import Quality, ViewScorer
 from ..storage.fileformat import component_bytes, decode_nbvh, encode_nbvh, write_atomic
 from ..training.appearance_training import SurfaceLabels, train_head
 from ..training.hooks import CheckpointFiles, TrainingHooks
@@ -61,6 +61,9 @@ class CompressResult:
     #: The file as shipped, decoded from its bytes with its look, on the held-out views: colour MSE and FLIP beside
     #: the geometry's MSE (for a bare shape the file is the model `quality` scored, at its stored precision).
     quality_as_shipped: Quality | None = None
+    #: The file on a second held-out view set, the lattice turned at random for this run (`Quality.turn_seed`): the
+    #: held-out MSE is not an accident of one set of views (the verdict weighs the fixed set, as the alternative's).
+    quality_turned: Quality | None = None
     #: The run's account in order (decision.records.RunNote): the plan, a resume, restarts, growth, the search.
     notes: list = field(default_factory=list)
     #: The process's peak resident memory so far (`peak_resident_bytes`) and per input triangle.
@@ -70,6 +73,7 @@ class CompressResult:
         return {"path": self.path, "file_bytes": self.file_bytes, "components": self.components,
                 "quality": self.quality.to_dict() if self.quality else None,
                 "quality_as_shipped": self.quality_as_shipped.brief() if self.quality_as_shipped else None,
+                "quality_turned_views": self.quality_turned.brief() if self.quality_turned else None,
                 "model_resident_bytes": self.model.resident_bytes() if self.model is not None else None,
                 "training": {k: v for k, v in dataclasses.asdict(self.training).items() if k != "history"},
                 "settings": self.settings.to_dict(), "seconds": self.seconds, "why": self.why,
@@ -239,6 +243,33 @@ def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = 
                      resume_from)
 
 
+def _score_the_file(model, data: bytes, has_look: bool, quality: Quality | None, weighing, tracer, events,
+                    seconds: dict) -> tuple[Quality | None, Quality | None]:
+    """(the file as shipped on the held-out views: read back with its look, FLIP beside, what a user sees and what is
+    weighed - for a bare shape the model `quality` scored; the same file on a second held-out set, the lattice
+    turned at random for this run, its seed recorded: `turned_views_seed`). None without a quality."""
+    if quality is None:
+        return None, None
+    start = time.perf_counter()
+    shipped, as_shipped = model, quality
+    if has_look:
+        events(wire.phase(phase="eval", message=f"the file as shipped: {weighing.held_out.name}"))
+        shipped = decode_nbvh(data, "<the file as shipped>")
+        as_shipped, _ = weighing.held_out.score_model(shipped, flip=True)
+    held = weighing.held_out
+    turned_views = ViewScorer(tracer, tracer.mesh.transform, held.n_views, held.resolution,
+                              turn_seed=turned_views_seed())
+    events(wire.phase(phase="eval", message=f"the file on {turned_views.name}"))
+    turned, _ = turned_views.score_model(shipped)
+    seconds["eval_as_shipped"] = time.perf_counter() - start
+    return as_shipped, turned
+
+
+def turned_views_seed() -> int:
+    """A fresh seed for a run's randomly turned held-out views (from the OS; recorded in the report)."""
+    return int(np.random.SeedSequence().entropy % (1 << 31))
+
+
 def _compress(mesh: Mesh, run: RunConfig, out_path, events: EventSink, should_cancel, evaluate_quality: bool,
               checkpoint_path, compare_float32: bool, resume_from) -> CompressResult:
     """compress_mesh's stages on the planned run: verdict, BVH, size search, look, file, final verdict, ship."""
@@ -271,10 +302,7 @@ def _compress(mesh: Mesh, run: RunConfig, out_path, events: EventSink, should_ca
     if look_info:
         metadata["appearance"] = look_info
     data = encode_nbvh(model, metadata, run_used.storage)
-    as_shipped = quality
-    if quality is not None and look_info:  # the file read back with its look: what a user sees, and what is weighed
-        events(wire.phase(phase="eval", message=f"the file as shipped: {weighing.held_out.name}"))
-        as_shipped, _ = weighing.held_out.score_model(decode_nbvh(data, "<the file as shipped>"), flip=True)
+    as_shipped, turned = _score_the_file(model, data, bool(look_info), quality, weighing, tracer, events, seconds)
     verdict = None
     if quality is not None and weighing.curve_held_out is None and math.isfinite(quality.mse):
         # a fixed size measured nothing before training: weigh it now (forced, the verdict says what is given up)
@@ -295,7 +323,8 @@ def _compress(mesh: Mesh, run: RunConfig, out_path, events: EventSink, should_ca
                             seconds={k: (v if k.startswith("mse") else round(v, 2)) for k, v in seconds.items()},
                             model=model, tracer=tracer, why=why_of(notes), target_met=metadata["target_met"],
                             assessment=assessment, data=data, decisions=decisions,
-                            quality_as_shipped=as_shipped, notes=notes, memory=memory_record(mesh))
+                            quality_as_shipped=as_shipped, quality_turned=turned, notes=notes,
+                            memory=memory_record(mesh))
     return _ship(out_path, result, metadata["quality"], events, should_cancel)
 
 

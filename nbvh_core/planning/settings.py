@@ -38,11 +38,16 @@ PAPER_N_MAX = 128
 
 
 def knob(default, *, help: str | None = None, choices: tuple | None = None, limits: tuple | None = None,
-         flag: str | None = None, group: str | None = None):
+         flag: str | None = None, group: str | None = None, panel: str | None = None, labels: dict | None = None,
+         panel_limits: tuple | None = None):
     """A Settings field with what is declared of it once: `help` (a field with help is a command-line option, as
     `flag` or --NAME; `group`: options of one group exclude each other), `choices` (the names or numbers it may
-    take) and `limits` ((lo, hi) a request or file may set); `app.cli_options` and `settings_from_dict` read them."""
-    meta = {"help": help, "choices": choices, "limits": limits, "flag": flag, "group": group}
+    take) and `limits` ((lo, hi) a request or file may set); `app.cli_options` and `settings_from_dict` read them.
+    `panel`: the add-on's label for it (a field with one is a setting of the add-on's panel and request:
+    `planning.panel_schema`), `labels` {choice: (menu label, description)} and `panel_limits` (narrower bounds the
+    panel offers)."""
+    meta = {"help": help, "choices": choices, "limits": limits, "flag": flag, "group": group, "panel": panel,
+            "labels": labels, "panel_limits": panel_limits}
     return dataclasses.field(default=default, metadata={k: v for k, v in meta.items() if v is not None})
 
 
@@ -88,7 +93,8 @@ class Settings:
     steps: int | None = knob(TrainConfig.steps, limits=(1, 1 << 40),
                              help="step budget (with no --time-limit: steps only)")
     time_limit_s: float | None = knob(TrainConfig.time_limit_s, limits=(0.0, 1e7), flag="--time-limit",
-                                      help="training wall-clock budget in seconds")
+                                      help="training wall-clock budget in seconds", panel="Time limit (s)",
+                                      panel_limits=(5.0, 24 * 3600.0))  # 0 means steps only: not the panel's
     rays_per_step: int = knob(TrainConfig.rays_per_step, limits=(1, 1 << 22), help="training rays per step")
     anneal_fraction: float = knob(TrainConfig.anneal_fraction, limits=(0.0, 1.0))
     #: HashVQAD: the last fraction of training run on the frozen (argmax) codes (TrainConfig.finetune_fraction).
@@ -103,7 +109,9 @@ class Settings:
                                                      "training (N-BVH's tree cut)")
     seed: int = knob(TrainConfig.seed, limits=(0, (1 << 63) - 1), help="the run's random seed")
     device: str = knob(TrainConfig.device, choices=DEVICES,
-                       help="where training runs (auto: the card when there is one)")
+                       help="where training runs (auto: the card when there is one)", panel="Device",
+                       labels={"auto": ("Auto", "The NVIDIA card when there is one, else the CPU"),
+                               "cpu": ("CPU", "The CPU's fused kernels"), "cuda": ("CUDA", "The NVIDIA card")})
     #: Storage (quantize.py): bits per feature value (32/16/8/4), per network weight (32/16/8/4), per node (32/8).
     table_bits: int = knob(StorageConfig.table_bits, choices=TABLE_BITS, limits=(4, 32),
                            help="bits per stored feature value (default 8: per level/feature affine codes; 6 or 4: "
@@ -125,7 +133,8 @@ class Settings:
     target_mse: float | None = knob(None, limits=(0.0, 10.0), group="size",
                                     help="size the model for this image MSE (checked after training)")
     #: Train even when the verdict is "not worth compressing" (otherwise the run ends with the verdict).
-    force: bool = knob(DecisionConfig.force, help="train even when the verdict is 'not worth compressing'")
+    force: bool = knob(DecisionConfig.force, help="train even when the verdict is 'not worth compressing'",
+                       panel="Train even if not worth it")
     #: Seconds between checkpoints when a checkpoint path is given (a kill loses at most this much training).
     checkpoint_every_s: float = knob(TrainConfig.checkpoint_every_s, limits=(0.0, 1e9), flag="--checkpoint-every",
                                      help="seconds between checkpoints (default 60)")
@@ -142,7 +151,13 @@ class Settings:
     #: mesh (`compact_mesh`, ~3.6-4.8 B per triangle), or "plain", as Embree or Cycles hold it (~44 B per triangle).
     mesh_layout: str = knob(DecisionConfig.mesh_layout, choices=MESH_LAYOUTS,
                             help="what the verdict weighs the model against: the mesh as a compact ray-traceable "
-                                 "mesh (default) or as a plain ray tracer holds it")
+                                 "mesh (default) or as a plain ray tracer holds it", panel="Mesh layout",
+                            labels={"compact": ("Compact mesh", "The verdict weighs the model against the mesh (or "
+                                                "a decimation meeting the level) as a compact ray-traceable mesh, "
+                                                "~4 B per triangle: the strongest mesh"),
+                                    "plain": ("Mesh as Blender holds it", "The verdict weighs the model against the "
+                                              "mesh as a plain ray tracer (Cycles, Embree) holds it, ~44 B per "
+                                              "triangle")})
     #: An asset with several material slots or a texture: the share of the time budget (or, without one, of the
     #: geometry's training time, added) the appearance head trains in (`appearance.py`), and its table size.
     appearance_share: float = knob(0.15, limits=(0.0, 0.9))
@@ -152,7 +167,12 @@ class Settings:
     appearance_target: str = knob(AppearanceConfig.target, choices=TARGETS, flag="--appearance",
                                   help="textured assets: 'coordinates' (default: the head answers slot and texture "
                                        "coordinates, the images are kept) or 'colour' (it learns the textured "
-                                       "colour, no image stored)")
+                                       "colour, no image stored)", panel="Look",
+                                  labels={"coordinates": ("Slots + textures", "Each hit's material slot and texture "
+                                                          "coordinates: the images are kept and sampled as Blender "
+                                                          "does"),
+                                          "colour": ("Baked colour", "The model learns the textured colour itself; "
+                                                     "no image is kept")})
 
     def model_config(self) -> ModelConfig:
         normal_loss = self.resolved_normal_loss()

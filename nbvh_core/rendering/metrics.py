@@ -17,7 +17,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from .render import orbit_cameras, render_neural, render_reference
+from .render import orbit_cameras, random_turn, render_neural, render_reference
 
 
 @dataclass
@@ -37,6 +37,8 @@ class Quality:
     colour_mse: float | None = None
     #: None unless asked (`flip=True`): FLIP costs about as much as rendering the views.
     flip: float | None = None
+    #: Scored on the held-out lattice turned at random by this seed (`render.random_turn`), else None.
+    turn_seed: int | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -59,10 +61,12 @@ def evaluate(model, tracer, n_views: int = 16, resolution: int = 256, keep_image
                              resolution, keep_images, reference, held_out)
 
 
-def reference_views(tracer, n_views: int, resolution: int, held_out: bool = False) -> list:
+def reference_views(tracer, n_views: int, resolution: int, held_out: bool = False,
+                    turn: tuple[float, float] | None = None) -> list:
     """The exact images of the metric's `n_views` orbit views at `resolution` px (RenderResult each), to score many
-    models or checkpoints of one training against without rendering them again."""
-    return [render_reference(tracer, cam, resolution, resolution) for cam in orbit_cameras(n_views, held_out=held_out)]
+    models or checkpoints of one training against without rendering them again (turn: `render.orbit_cameras`)."""
+    return [render_reference(tracer, cam, resolution, resolution)
+            for cam in orbit_cameras(n_views, held_out=held_out, turn=turn)]
 
 
 @dataclass(frozen=True)
@@ -86,20 +90,25 @@ class ViewScorer:
     the exact images rendered once. held_out: the turned view set no check used (the final evaluation's, and the
     alternative's at equal quality)."""
 
-    def __init__(self, tracer, transform, n_views: int, resolution: int, held_out: bool = False):
+    def __init__(self, tracer, transform, n_views: int, resolution: int, held_out: bool = False,
+                 turn_seed: int | None = None):
         self.tracer, self.transform = tracer, transform
-        self.n_views, self.resolution, self.held_out = n_views, resolution, held_out
+        self.n_views, self.resolution, self.held_out = n_views, resolution, held_out or turn_seed is not None
+        self.turn_seed = turn_seed
+        self.turn = random_turn(turn_seed) if turn_seed is not None else None
         self._reference = None
         self.reference_rays_per_s = 0.0
 
     @property
     def name(self) -> str:
+        if self.turn_seed is not None:
+            return f"{self.n_views} held-out views turned at random (seed {self.turn_seed}) at {self.resolution} px"
         return f"{self.n_views} {'held-out' if self.held_out else 'check'} views at {self.resolution} px"
 
     def reference(self) -> list:
         if self._reference is None:
             t = time.perf_counter()
-            self._reference = reference_views(self.tracer, self.n_views, self.resolution, self.held_out)
+            self._reference = reference_views(self.tracer, self.n_views, self.resolution, self.held_out, self.turn)
             rays = self.n_views * self.resolution * self.resolution
             self.reference_rays_per_s = rays / max(time.perf_counter() - t, 1e-9)  # Embree's speed, timed once
         return self._reference
@@ -108,8 +117,9 @@ class ViewScorer:
         """`render(camera, width, height) -> RenderResult` scored: (Quality, the first `keep_images` image pairs);
         flip: also FLIP of the displayed images."""
         q, images = evaluate_renderer(render, self.tracer, self.transform, self.n_views, self.resolution, keep_images,
-                                      self.reference(), self.held_out, flip)
+                                      self.reference(), self.held_out, flip, self.turn)
         q.reference_rays_per_s = self.reference_rays_per_s  # the cached images were timed when they were rendered
+        q.turn_seed = self.turn_seed
         return q, images
 
     def score_model(self, model, keep_images: int = 0, flip: bool = False) -> tuple[Quality, list]:
@@ -126,13 +136,14 @@ class ViewScorer:
 
 
 def evaluate_renderer(render, tracer, transform, n_views: int = 16, resolution: int = 256, keep_images: int = 0,
-                      reference=None, held_out: bool = False, flip: bool = False):
+                      reference=None, held_out: bool = False, flip: bool = False,
+                      turn: tuple[float, float] | None = None):
     """The same metric for any renderer: `render(camera, width, height) -> RenderResult` (a neural model, or
     Embree on a decimated / Draco-decoded mesh for the baselines) against `tracer`'s exact images (or
     `reference`, those images from `reference_views` with the same views and resolution).
     `transform` (mesh.Transform) converts the depth error to original units. flip: also score FLIP (Quality.flip).
     With `reference` given, its images were rendered earlier: Quality.reference_rays_per_s is then 0 (not timed
-    here; ViewScorer fills in the time it took once)."""
+    here; ViewScorer fills in the time it took once). turn: the lattice's turn (`render.orbit_cameras`)."""
     if reference is not None and (len(reference) != n_views or reference[0].image.shape != (resolution, resolution)):
         raise ValueError(f"reference views are {len(reference)} at {reference[0].image.shape}, not {n_views} at "
                          f"{resolution} px")
@@ -140,7 +151,7 @@ def evaluate_renderer(render, tracer, transform, n_views: int = 16, resolution: 
     depth_sum, depth_n = 0.0, 0
     per_view, images, colour, flips = [], [], [], []
     t_neural = t_ref = 0.0
-    for i, cam in enumerate(orbit_cameras(n_views, held_out=held_out)):
+    for i, cam in enumerate(orbit_cameras(n_views, held_out=held_out, turn=turn)):
         t = time.perf_counter()
         ref = reference[i] if reference is not None else render_reference(tracer, cam, resolution, resolution)
         t_ref += time.perf_counter() - t

@@ -59,9 +59,11 @@ HELD_OUT_TURN = (0.9, 0.5)
 
 
 def orbit_cameras(n_views: int, radius: float = ORBIT_RADIUS, fov_deg: float = 40.0,
-                  held_out: bool = False) -> list[Camera]:
+                  held_out: bool = False, turn: tuple[float, float] | None = None) -> list[Camera]:
     """`n_views` cameras evenly spread on a sphere of `radius` around the box centre, looking at it. held_out: the
-    same lattice turned by HELD_OUT_TURN, views that no training check used (the final evaluation's)."""
+    same lattice turned by HELD_OUT_TURN, views that no training check used (the final evaluation's); turn: (a, b)
+    radians, the lattice turned by these instead (a run's randomly turned set: `random_turn`)."""
+    turn = turn if turn is not None else HELD_OUT_TURN if held_out else None
     cams = []
     golden = np.pi * (3 - np.sqrt(5))
     for i in range(n_views):
@@ -69,8 +71,8 @@ def orbit_cameras(n_views: int, radius: float = ORBIT_RADIUS, fov_deg: float = 4
         r = np.sqrt(max(0.0, 1 - z * z))
         phi = golden * i
         direction = np.array([r * np.cos(phi), z, r * np.sin(phi)])
-        if held_out:
-            a, b = HELD_OUT_TURN
+        if turn is not None:
+            a, b = turn
             x, y, zz = direction
             x, zz = x * np.cos(a) - zz * np.sin(a), x * np.sin(a) + zz * np.cos(a)
             y, zz = y * np.cos(b) - zz * np.sin(b), y * np.sin(b) + zz * np.cos(b)
@@ -78,6 +80,12 @@ def orbit_cameras(n_views: int, radius: float = ORBIT_RADIUS, fov_deg: float = 4
         cams.append(Camera(position=CENTRE + radius * direction, target=CENTRE.copy(),
                            up=np.array([0.0, 1.0, 0.0]), fov_deg=fov_deg))
     return cams
+
+
+def random_turn(seed: int) -> tuple[float, float]:
+    """A turn of the view lattice drawn from `seed`: (a, b), each uniform in [0, 2 pi) radians."""
+    rng = np.random.default_rng(seed)
+    return float(rng.uniform(0.0, 2 * np.pi)), float(rng.uniform(0.0, 2 * np.pi))
 
 
 def light_position(radius: float = ORBIT_RADIUS) -> np.ndarray:
