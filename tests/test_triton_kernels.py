@@ -179,7 +179,7 @@ def _rays(n: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
     ("mlp", 7, 16, 2, 4, False, "hashgrid"), ("kmlp", 7, 16, 2, 4, False, "hashgrid"),
     ("mlp", 63, 4, 10, 4, True, "hashgrid"),  # the default preset's shape, held as its file stores it
     ("kmlp", 255, 8, 3, 5, True, "hashgrid"),
-    ("kmlp", 31, 4, 6, 4, False, "hashvqad"), ("mlp", 31, 8, 4, 4, True, "hashvqad")],
+    ("kmlp", 15, 4, 4, 3, False, "hashvqad"), ("mlp", 15, 8, 2, 4, True, "hashvqad")],
     ids=["mlp", "kmlp", "default-shape-stored", "kmlp-deep-tree-stored", "hashvqad-kmlp", "hashvqad-mlp-stored"])
 def test_a_model_s_query_is_one_triton_kernel_matching_the_reference(network, nodes, features, levels, k, stored,
                                                                      encoding, sample_meshes, triton_here,
