@@ -6,7 +6,8 @@ Per asset (real ones from `real_assets.py`, generated ones from `bench_meshes.py
 1. `nbvh compress FILE -o OUT/` with no options: the need-driven default (level standard, 200 s), every decision
    from measurements (the verdict, each training check against the alternative's curve, the final verdict).
 2. What it shipped is scored on 16 held-out views at 256 px (`rendering.metrics.ViewScorer`): the .nbvh as loaded
-   from its file, or the compact mesh NAME.compact.cmsh as decoded from its file.
+   from its file, or the compact mesh NAME.compact.cmsh as decoded from its file (image MSE, what the verdict
+   weighs), and FLIP of what people see: the .nbvh with its look, or NAME.glb with its materials and textures.
 3. The alternative is scored the same way: compact decimations at 1k, 1.4k, 2k ... triangles (x1.41 apart, up to
    90% of the mesh), one more at the count the curve's log-log line puts at the shipped MSE, and the whole mesh,
    each as a compact mesh with the bytes it needs to carry the asset's look (as the product counts them);
@@ -79,21 +80,31 @@ def settle(mesh, scorer, pts: list[tuple[int, float, int]], mse: float) -> list[
     return sorted(pts[:-1] + [curve_point(mesh, scorer, count)]) + pts[-1:]
 
 
-def shipped_score(mesh, out: Path, scorer) -> tuple[str, int, float]:
-    """(what shipped, its bytes, its MSE): the model file, else the compact mesh file, each read back."""
+def shipped_score(mesh, out: Path, scorer) -> tuple[str, int, float, float]:
+    """(what shipped, its bytes, its MSE, FLIP of what people see): the model file read back with its look, else the
+    compact mesh file read back (the MSE: geometry, as the verdict weighs it) and the .glb beside it (FLIP: the
+    mesh with its materials, coordinates and textures, as a user opens it)."""
     from nbvh_core.geometry.compact_mesh import decode_compact
-    from nbvh_core.geometry.mesh import Mesh
+    from nbvh_core.geometry.mesh import Mesh, load_mesh
     from nbvh_core.storage.fileformat import load_nbvh
 
     model = out / f"{mesh.name}.nbvh"
     if model.exists():
-        return "model", model.stat().st_size, scorer.score_model(load_nbvh(model))[0].mse
+        q = scorer.score_model(load_nbvh(model), flip=True)[0]
+        return "model", model.stat().st_size, q.mse, q.flip
     cmsh = out / f"{mesh.name}.compact.cmsh"
     dec = decode_compact(cmsh.read_bytes())
-    kind = "decimation" if (out / f"{mesh.name}.glb").exists() else "mesh"
+    glb = out / f"{mesh.name}.glb"
+    kind = "decimation" if glb.exists() else "mesh"
     held = Mesh(vertices=mesh.transform.to_normalised(dec.vertices).astype("float32"), faces=dec.faces,
                 transform=mesh.transform, name=mesh.name)
-    return kind, cmsh.stat().st_size, scorer.score_mesh(held).mse
+    shown = held
+    if glb.exists():  # the same triangles in original units, with the look: back into the source's frame
+        opened = load_mesh(glb)
+        shown = Mesh(vertices=mesh.transform.to_normalised(opened.transform.to_original(opened.vertices))
+                     .astype("float32"), faces=opened.faces, transform=mesh.transform, name=mesh.name,
+                     look=opened.look)
+    return kind, cmsh.stat().st_size, scorer.score_mesh(held).mse, scorer.score_mesh(shown, flip=True).flip
 
 
 def measure(name: str, args, work: Path, prior: dict | None = None) -> None:
@@ -119,7 +130,7 @@ def measure(name: str, args, work: Path, prior: dict | None = None) -> None:
         return
     mesh = load_mesh(path)
     scorer = ViewScorer(ExactTracer(mesh), mesh.transform, args.views, args.size, held_out=True)
-    kind, nbytes, mse = shipped_score(mesh, out, scorer)
+    kind, nbytes, mse, flip = shipped_score(mesh, out, scorer)
     # x sqrt(2) apart up to 90% of the mesh: the line from the last decimation to the whole mesh (whose MSE is only
     # the grid's) would flatter the alternative
     top = 0.9 * mesh.n_triangles
@@ -130,7 +141,7 @@ def measure(name: str, args, work: Path, prior: dict | None = None) -> None:
     level = QUALITY_LEVELS[DEFAULT_LEVEL]
     verdict = next((ln for ln in stderr.splitlines() if ln.startswith(("verdict:", "not worth", "kept as"))), "")
     row = {"asset": name, "triangles": mesh.n_triangles, "exit_code": returncode, "wall_s": round(wall, 1),
-           "shipped": kind, "shipped_bytes": nbytes, "mse": mse, "level": level, "met": mse <= level,
+           "shipped": kind, "shipped_bytes": nbytes, "mse": mse, "flip": flip, "level": level, "met": mse <= level,
            "alternative_bytes": round(alt) if alt != float("inf") else "", "ratio":
            round(alt / nbytes, 3) if alt != float("inf") else "", "views": args.views, "size": args.size,
            "curve": ";".join(f"{b}:{m:.6g}:{t}" for b, m, t in pts), "verdict": verdict[:300]}
@@ -142,7 +153,8 @@ def measure(name: str, args, work: Path, prior: dict | None = None) -> None:
 def report() -> None:
     rows = read_rows(CSV)
     table = [[r["asset"], f"{int(r['triangles']):,}", r["shipped"], f"{int(r['shipped_bytes']):,}",
-              f"{num(r, 'mse'):.5f}", "yes" if r["met"] == "True" else "no",
+              f"{num(r, 'mse'):.5f}", f"{num(r, 'flip'):.4f}" if r.get("flip") else "-",
+              "yes" if r["met"] == "True" else "no",
               f"{int(num(r, 'alternative_bytes')):,}" if r["alternative_bytes"] else "-",
               f"{num(r, 'ratio'):.2f}" if r["ratio"] else "-", r["wall_s"]] for r in rows]
     views = f"{rows[0]['views']} held-out views at {rows[0]['size']} px" if rows else ""
@@ -150,7 +162,7 @@ def report() -> None:
         f"# What the default ships ({views}, one metric for every contender)", "",
         "ratio = the compact decimation's bytes at the shipped MSE / the shipped bytes (< 1: shipped more than the "
         "alternative at equal quality).", "",
-        *markdown_table(["asset", "triangles", "shipped", "bytes", "MSE", "level met", "alternative at that MSE",
+        *markdown_table(["asset", "triangles", "shipped", "bytes", "MSE", "FLIP", "level met", "alternative at that MSE",
                          "ratio", "wall s"], table)])
 
 

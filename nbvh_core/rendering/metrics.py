@@ -127,12 +127,13 @@ class ViewScorer:
         decoded from the file's bytes is the file)."""
         return self.score(lambda cam, w, h: render_neural(model, cam, w, h), keep_images, flip)
 
-    def score_mesh(self, mesh) -> Quality:
-        """Another triangulation of the same mesh (a decimation, a decoded compact mesh), traced exactly."""
+    def score_mesh(self, mesh, flip: bool = False) -> Quality:
+        """Another triangulation of the same mesh (a decimation, a decoded compact mesh), traced exactly (with its
+        look when it has one); flip: also FLIP of the displayed images."""
         from ..geometry.exact import ExactTracer
 
         other = ExactTracer(mesh)
-        return self.score(lambda cam, w, h: render_reference(other, cam, w, h))[0]
+        return self.score(lambda cam, w, h: render_reference(other, cam, w, h), flip=flip)[0]
 
 
 def evaluate_renderer(render, tracer, transform, n_views: int = 16, resolution: int = 256, keep_images: int = 0,
