@@ -35,6 +35,9 @@ def property_specs(schema: list[dict] | None = None) -> list[tuple[str, str, dic
             spec = dict(common, default=cast(e["default"]))
             if "min" in e:
                 spec.update(min=cast(e["min"]), max=cast(e["max"]))
+            if kind == "FloatProperty" and all(float(spec[k]).is_integer() for k in ("default", "min", "max")
+                                               if k in spec):
+                spec["precision"] = 0  # declared in whole numbers (seconds): shown as "200", not "200.00"
             out.append((e["name"], kind, spec))
     return out
 

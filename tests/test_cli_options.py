@@ -56,6 +56,9 @@ def test_a_field_added_with_a_panel_label_is_on_the_add_on_s_panel_and_in_its_re
                                                     "default": 4, "min": 1, "max": 64})
     assert specs["shadow_kind"][1]["items"] == [("HARD", "Hard", ""), ("SOFT", "Soft", "area light")]
     assert panel_names(schema)[-2:] == ["shadow_rays", "shadow_kind"]
+    assert specs["time_limit_s"] == ("FloatProperty", {"name": "Time limit (s)", "description": "training wall-clock "
+                                                       "budget in seconds", "default": 200.0, "min": 5.0,
+                                                       "max": 86400.0, "precision": 0})
     panel = SimpleNamespace(**{n: kw["default"] for n, (_, kw) in specs.items()})
     panel.shadow_rays, panel.shadow_kind, panel.mesh_layout = 9, "SOFT", "PLAIN"
     request = request_fields(panel, schema)
