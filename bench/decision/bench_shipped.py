@@ -98,12 +98,12 @@ def shipped_score(mesh, out: Path, scorer) -> tuple[str, int, float, float]:
     kind = "decimation" if glb.exists() else "mesh"
     held = Mesh(vertices=mesh.transform.to_normalised(dec.vertices).astype("float32"), faces=dec.faces,
                 transform=mesh.transform, name=mesh.name)
-    shown = held
-    if glb.exists():  # the same triangles in original units, with the look: back into the source's frame
-        opened = load_mesh(glb)
-        shown = Mesh(vertices=mesh.transform.to_normalised(opened.transform.to_original(opened.vertices))
-                     .astype("float32"), faces=opened.faces, transform=mesh.transform, name=mesh.name,
-                     look=opened.look)
+    if not glb.exists():  # a bare mesh kept whole: the compact mesh is what people see too
+        q = scorer.score_mesh(held, flip=True)
+        return kind, cmsh.stat().st_size, q.mse, q.flip
+    opened = load_mesh(glb)  # the same triangles in original units, with the look: back into the source's frame
+    shown = Mesh(vertices=mesh.transform.to_normalised(opened.transform.to_original(opened.vertices))
+                 .astype("float32"), faces=opened.faces, transform=mesh.transform, name=mesh.name, look=opened.look)
     return kind, cmsh.stat().st_size, scorer.score_mesh(held).mse, scorer.score_mesh(shown, flip=True).flip
 
 

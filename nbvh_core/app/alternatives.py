@@ -114,11 +114,9 @@ def alternatives(mesh: Mesh, target_mse: float | None, checks=None, held_out=Non
         tried[count] = decimation_entry(mesh, count, checks, held_out, DracoPy, decimator)
         return tried[count]
 
-    def meets(entry: MeshMeasure) -> bool:  # on the check views and, when measured, the held-out views alike
-        return entry.meets(target_mse)
-
     over = getattr(tick, "over_budget", lambda: False)
-    met, skipped = _smallest_meeting(counts, int(mesh.n_triangles * DECIMATE_MAX_SHARE), measure, meets, over)
+    met, skipped = _smallest_meeting(counts, int(mesh.n_triangles * DECIMATE_MAX_SHARE), measure,
+                                     lambda entry: entry.meets(target_mse), over)
     if met is not None:
         out.decimation = tried[met]
     out.decimations_tried = [tried[c] for c in sorted(tried)]

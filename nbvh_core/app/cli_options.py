@@ -8,7 +8,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 
-from ..planning.settings import Settings
+from ..planning.settings import Settings, field_kind
 
 _TYPES = {"int": int, "float": float, "str": str}
 
@@ -51,7 +51,7 @@ def add_setting_options(parser: argparse.ArgumentParser, names: tuple[str, ...] 
 
 def _add_option(where, f: dataclasses.Field) -> None:
     meta, metavar = f.metadata, flag_of(f)[2:].upper().replace("-", "_")
-    kind = (f.type if isinstance(f.type, str) else f.type.__name__).split("|")[0].strip()  # 'int | None' -> 'int'
+    kind = field_kind(f)
     if kind == "bool":
         where.add_argument(flag_of(f), dest=f.name, action="store_true", default=None, help=meta["help"])
     else:

@@ -61,8 +61,17 @@ def _known(cls, d: dict) -> dict:
     return {k: v for k, v in d.items() if k in names}
 
 
+class _FromDict:
+    """A record read back from its report form (`to_dict`): the fields it knows, as they are. A record holding
+    other records overrides `from_dict` to read them too."""
+
+    @classmethod
+    def from_dict(cls, d: dict):
+        return cls(**_known(cls, d))
+
+
 @dataclass
-class CheckDecision:
+class CheckDecision(_FromDict):
     """One training check. seconds since training began; log2_table: the table's size then; mse: measured on the
     check views, the model at its stored precision; projected_mse: at the end of the budget at this size (None
     before a projection is possible); model_bytes: the file as it would ship at this size (geometry, look,
@@ -86,13 +95,9 @@ class CheckDecision:
     def to_dict(self) -> dict:
         return {**asdict(self), "action": self.action.value}
 
-    @classmethod
-    def from_dict(cls, d: dict) -> "CheckDecision":
-        return cls(**_known(cls, d))
-
 
 @dataclass
-class MeshMeasure:
+class MeshMeasure(_FromDict):
     """One mesh measured as the alternative to a model (`app.alternatives`): a decimation of the asset
     (`requested_triangles`: the count asked for) or the whole mesh (`requested_triangles` None). Bytes are exact:
     `compact_bytes` the compact ray-traceable mesh (geometry), `look_bytes` what it needs beside to carry the asset's
@@ -112,10 +117,6 @@ class MeshMeasure:
     colour_mse_held_out: float | None = None
     draco11_bytes: int | None = None
 
-    @property
-    def whole_mesh(self) -> bool:
-        return self.requested_triangles is None
-
     def meets(self, target_mse: float) -> bool:
         """Whether its compact mesh meets `target_mse` on the check views and, where measured, the held-out views."""
         return max(self.compact_mse, self.compact_mse_held_out or 0.0) <= target_mse
@@ -131,10 +132,6 @@ class MeshMeasure:
 
     def to_dict(self) -> dict:
         return _measured(self)
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "MeshMeasure":
-        return cls(**_known(cls, d))
 
 
 @dataclass
@@ -179,7 +176,7 @@ class Alternatives:
 
 
 @dataclass(frozen=True)
-class ShippedMesh:
+class ShippedMesh(_FromDict):
     """The mesh a final verdict ships instead of the model: its triangles, the decimation count asked for (None:
     the whole mesh), its compact bytes with the look's, and its held-out MSE and colour MSE (None: not measured)."""
 
@@ -191,10 +188,6 @@ class ShippedMesh:
 
     def to_dict(self) -> dict:
         return asdict(self)
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "ShippedMesh":
-        return cls(**_known(cls, d))
 
 
 @dataclass

@@ -60,7 +60,7 @@ def material_images(data: bytes, ext: str, resolver=None) -> dict[str, bytes]:
     try:
         doc, binary = _glb_chunks(data) if ext == ".glb" else (json.loads(data.decode("utf-8")), b"")
         materials, textures, images = doc.get("materials", []), doc.get("textures", []), doc.get("images", [])
-    except (ValueError, UnicodeDecodeError, AttributeError):
+    except (ValueError, UnicodeDecodeError, AttributeError, RecursionError):  # RecursionError: nesting too deep
         return {}
     names = [m.get("name") for m in materials if isinstance(m, dict)]
     out: dict[str, bytes] = {}

@@ -16,21 +16,16 @@ import json
 import sys
 from pathlib import Path
 
-from .settings import PRESETS, Settings
+from .settings import PRESETS, Settings, field_kind
 
 #: Where the add-on reads its schema (shipped inside the add-on by build_addon.py).
 SCHEMA_PATH = Path(__file__).resolve().parents[2] / "addon" / "settings_schema.json"
 
 
-def _kind(f: dataclasses.Field) -> str:
-    """'int' | 'float' | 'str' | 'bool' from the field's annotation ('float | None' -> 'float')."""
-    return (f.type if isinstance(f.type, str) else f.type.__name__).split("|")[0].strip()
-
-
 def panel_entry(f: dataclasses.Field, defaults: Settings) -> dict:
     """One field's entry (see the module docstring)."""
     meta = f.metadata
-    entry = {"name": f.name, "kind": _kind(f), "label": meta["panel"], "help": meta.get("help", ""),
+    entry = {"name": f.name, "kind": field_kind(f), "label": meta["panel"], "help": meta.get("help", ""),
              "default": getattr(defaults, f.name, f.default)}
     if "choices" in meta:
         labels = meta.get("labels") or {}

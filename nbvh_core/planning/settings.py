@@ -51,6 +51,11 @@ def knob(default, *, help: str | None = None, choices: tuple | None = None, limi
     return dataclasses.field(default=default, metadata={k: v for k, v in meta.items() if v is not None})
 
 
+def field_kind(f: dataclasses.Field) -> str:
+    """'int' | 'float' | 'str' | 'bool': a field's declared type without its None ('float | None' -> 'float')."""
+    return (f.type if isinstance(f.type, str) else f.type.__name__).split("|")[0].strip()
+
+
 @dataclass
 class Settings:
     """Everything one compression run needs. Sizes: `nodes` BVH nodes, `log2_table` = log2 T. The model's shape
@@ -232,15 +237,14 @@ def settings_from_dict(d, where: str = "settings") -> Settings:
 
     if not isinstance(d, dict):
         raise ValueError(f"{where}: settings must be an object")
-    kinds = {f.name: str(f.type) for f in dataclasses.fields(Settings)}
-    unknown = sorted(str(k)[:30] for k in d if k not in kinds)
+    declared = {f.name: f for f in dataclasses.fields(Settings)}
+    unknown = sorted(str(k)[:30] for k in d if k not in declared)
     if unknown:
         raise ValueError(f"{where}: unknown settings: {', '.join(unknown[:5])}")
     for name, value in d.items():
-        kind = kinds[name]
-        if value is None and "None" in kind:
+        if value is None and "None" in str(declared[name].type):
             continue
-        base = kind.split("|")[0].strip()
+        base = field_kind(declared[name])
         numeric = isinstance(value, (int, float)) and not isinstance(value, bool)
         ok = {"int": isinstance(value, int) and numeric, "float": numeric and math.isfinite(value),
               "str": isinstance(value, str) and len(value) <= 64, "bool": isinstance(value, bool)}[base]
