@@ -216,6 +216,32 @@ def test_each_training_condition_ends_with_a_model_whose_quality_is_a_number(con
     assert any(n.kind == "restart" for n in res.notes) == restarted, [n.to_dict() for n in res.notes]
 
 
+def test_a_rate_that_kills_the_default_network_restarts_lower_instead_of_shipping_a_constant(sample_meshes):
+    """The default shape on the blob at 100x its rate: an early spike kills the ReLUs and the loss then sits 3% below
+    the untrained one, which the rise and flat checks pass. The live-unit check restarts it at a 10x lower rate
+    (recorded 0.00125 after 150 steps; without the check it shipped 0.075, a constant's answer)."""
+    s = preset("default").with_overrides(force=True, steps=150, time_limit_s=None)
+    res = compress_mesh(sample_meshes["blob"], s.with_overrides(lr=s.lr * 100))
+    restarts = [n.text for n in res.notes if n.kind == "restart"]
+    assert restarts and "stopped learning" in restarts[0], [n.to_dict() for n in res.notes]
+    assert res.quality.mse < 0.0025, res.quality.mse
+
+
+def test_a_model_that_misses_the_surface_is_told_in_one_line(sample_meshes):
+    """HashVQAD after 20 steps on 1,000 pieces covers a fifth of the silhouette (recorded IoU 0.19): the run says so
+    in a warning note; a model that covers it (the tiny blob, 60 steps) has none."""
+    from nbvh_core.decision.final_verdict import POOR_SILHOUETTE_IOU
+    from nbvh_core.geometry.mesh import mesh_from_arrays
+
+    pieces = mesh_from_arrays(*_failure_classes().failure_mesh("1000 pieces"), name="pieces")
+    res = compress_mesh(pieces, preset("tiny").with_overrides(encoding="hashvqad", force=True, steps=20))
+    warned = [n.text for n in res.notes if n.kind == "warning"]
+    assert res.quality.silhouette_iou < POOR_SILHOUETTE_IOU and len(warned) == 1 and "\n" not in warned[0]
+    assert f"IoU {res.quality.silhouette_iou:.2f}" in warned[0] and "misses most of the surface" in res.why
+    fine = compress_mesh(sample_meshes["blob"], preset("tiny").with_overrides(force=True, steps=60))
+    assert fine.quality.silhouette_iou >= POOR_SILHOUETTE_IOU and not any(n.kind == "warning" for n in fine.notes)
+
+
 def test_a_turned_view_set_is_the_lattice_turned_by_its_seed():
     """The second held-out set (`render.random_turn`): reproducible from the seed a report records, another seed
     another set, and a rigid turn of the metric's lattice (the same spacing, the same distance from the centre)."""

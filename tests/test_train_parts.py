@@ -53,6 +53,32 @@ def test_schedule_fraction_is_the_first_budget_to_run_out_and_lr_decays():
     assert opt.param_groups[0]["lr"] == pytest.approx(1e-2)
 
 
+def test_the_alive_check_stops_a_dying_network_whose_loss_barely_fell():
+    """Losses as the blob's at lr 0.5 (1.89, a spike, then 1.84): with 2 of 32 last-layer units passing gradient it
+    raises at step 50; a network as sparse whose loss fell 60%, or a live one whose loss is flat, trains on."""
+    from nbvh_core.training.train import ALIVE_EVERY
+
+    def net(live_units: int) -> torch.nn.Module:
+        seq = torch.nn.Sequential(torch.nn.Linear(4, 32), torch.nn.ReLU(), torch.nn.Linear(32, 5))
+        grad = torch.zeros(5, 32)
+        grad[:, :live_units] = 0.1
+        seq[2].weight.grad = grad
+        return seq
+
+    def guard(losses: list[float]) -> DivergenceGuard:
+        g = DivergenceGuard(TrainConfig(), 0)
+        for step, loss in enumerate(losses):
+            g.observe(step, loss)
+        return g
+
+    spiked = [1.89, 39.5, 239.0, 14.4, 1.96] + [1.84] * (ALIVE_EVERY - 5)
+    with pytest.raises(TrainingDiverged, match="stopped learning"):
+        guard(spiked).check_alive(net(2), ALIVE_EVERY)
+    guard(spiked).check_alive(net(30), ALIVE_EVERY)  # alive: the flat check at the end judges it
+    guard([1.89] * 5 + [0.7] * (ALIVE_EVERY - 5)).check_alive(net(2), ALIVE_EVERY)  # sparse but learning
+    guard(spiked).check_alive(net(2), ALIVE_EVERY - 1)  # not yet due
+
+
 def test_divergence_guard_catches_each_failure_and_passes_a_falling_loss():
     cfg = TrainConfig()
     with pytest.raises(TrainingDiverged, match="became nan"):

@@ -119,6 +119,7 @@ def _worker_id() -> str:
 def measure_asset(asset: dict, spec: dict) -> dict:
     """Ray task: measure one asset and decide (see the module docstring). Never raises: a failure is a row."""
     from ..geometry.exact import ExactTracer
+    from ..geometry.texture_hold import hold_textures
     from ..neural.appearance import make_head
     from .trainings import mesh_identity
     from .weighing import weigh
@@ -132,7 +133,8 @@ def measure_asset(asset: dict, spec: dict) -> dict:
             raise ValueError(asset["error"])
         mesh = load_asset(asset["path"], asset["name"])
         run = plan_run(settings_from_request(spec), mesh)
-        tracer = ExactTracer(mesh)
+        tracer = ExactTracer(mesh)  # the source's look is the reference; both sides store the held one
+        mesh, _ = hold_textures(mesh, run.look.on_screen_px)
         a, weighing = weigh(mesh, run, tracer, make_head(mesh, run.look.head))  # the run's verdict, its look weighed
         thumb = render_reference(tracer, orbit_cameras(1)[0], THUMBNAIL_PX, THUMBNAIL_PX).display
         out.update(status="measured" if a.worth_compressing or run.decision.force else "not_worth",

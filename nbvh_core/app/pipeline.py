@@ -17,12 +17,13 @@ from typing import Callable
 import numpy as np
 import torch
 
-from ..decision.final_verdict import final_verdict
+from ..decision.final_verdict import final_verdict, missed_surface
 from ..decision.records import Assessment, RunDecisions, RunNote, why_of
 from ..decision.verdict import mesh_kept
 from ..geometry.bvh import NODE_DTYPE, build_bvh, cut_tree
 from ..geometry.exact import ExactTracer
 from ..geometry.mesh import Mesh
+from ..geometry.texture_hold import hold_textures
 from ..neural.appearance import finalize_head, make_head
 from ..neural.model import NeuralBVH
 from ..neural.quantize import StorageConfig, snap_nodes
@@ -276,6 +277,8 @@ def _compress(mesh: Mesh, run: RunConfig, out_path, events: EventSink, should_ca
     notes = list(run.notes) + ([RunNote("resumed", f"resumed from the checkpoint {resume_from}")] if resume_from else [])
     seconds: dict = {}
     tracer = ExactTracer(mesh)  # one Embree scene for the alternatives, the labels and the evaluation
+    mesh, held = hold_textures(mesh, run.look.on_screen_px)  # what both sides store; the source stays the reference
+    notes += [RunNote("look", held)] if held else []
     torch.manual_seed(run.training.seed)  # the head's initial weights too (a batch runs many assets in one process)
     head = make_head(mesh, run.look.head)
     assessment, weighing = _verdict(mesh, run, tracer, head, events, seconds, resume_from is not None, should_cancel)
@@ -296,6 +299,10 @@ def _compress(mesh: Mesh, run: RunConfig, out_path, events: EventSink, should_ca
         raise _keep_the_mesh(assessment, final_verdict(d.model_bytes, d.projected_mse, target, kept_on), events,
                              search.rule.decisions, weighing.decimator)
     notes += search.notes + list(trained_notes)
+    missed = quality and missed_surface(quality.silhouette_iou, quality.mse, target, tr.steps, tr.seconds)
+    if missed:
+        notes.append(RunNote("warning", missed))
+        events(wire.warning(message=missed))
     look_info = _appearance(model, mesh, tracer, run.look, run_used.storage, run_used.training.seed, head, tr, events,
                             should_cancel, seconds)
     metadata = _metadata(mesh, run_used, notes, assessment, tr, quality)

@@ -26,6 +26,19 @@ SETTLE_STEP = 2 ** 0.5
 SETTLE_WINDOW = 1.5
 #: Decimations measured at most to bound a model better than every measured point (`_settle_beyond`).
 SETTLE_BEYOND_TRIES = 3
+#: A model whose silhouette IoU on the held-out views is below this, and that misses its level or has none, is told
+#: to the user as missing the surface (HashVQAD+MLP at the failure matrix's 5 s: IoU 0 on 1,000 pieces after ~130
+#: steps, 0.71 after 609; bench/results/failures.md).
+POOR_SILHOUETTE_IOU = 0.5
+
+
+def missed_surface(silhouette_iou: float, mse: float, target: float | None, steps: int, seconds: float) -> str | None:
+    """One line for a model that misses most of the surface (silhouette IoU, unitless, on the held-out views below
+    POOR_SILHOUETTE_IOU, and image MSE above `target` or no target); None for any other."""
+    if not silhouette_iou < POOR_SILHOUETTE_IOU or (target is not None and mse <= target):
+        return None
+    return (f"the model misses most of the surface: silhouette IoU {silhouette_iou:.2f} on the held-out views after "
+            f"{steps} steps ({seconds:.0f} s of training); it needs a longer time limit, or a smaller model")
 
 
 def _settle(curve: AlternativeCurve, model_bytes: int, model_mse: float, measure, colour: float | None = None) -> None:

@@ -43,6 +43,8 @@ class LookConfig:
     head: AppearanceConfig
     share: float
     budget_s: float | None
+    #: the largest size on screen (pixels) the textures are held at (`geometry.texture_hold`; 0: as they are)
+    on_screen_px: int = 0
 
 
 @dataclass(frozen=True)
@@ -121,7 +123,7 @@ def plan_run(settings: Settings, mesh: Mesh, resumed: bool = False) -> RunConfig
     s = sized.settings
     look_s = s.time_limit_s * s.appearance_share if mesh.look is not None and s.time_limit_s else None
     look = LookConfig(AppearanceConfig(target=s.appearance_target, log2_table=s.appearance_log2_table),
-                      s.appearance_share, look_s)
+                      s.appearance_share, look_s, s.texture_on_screen_px)
     # The one place the flat request becomes the parts (the training's budget less the look's share).
     training = s.train_config()
     if look_s is not None:

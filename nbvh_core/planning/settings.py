@@ -179,6 +179,14 @@ class Settings:
                                           "colour": ("Baked colour", "The model learns the textured colour itself; "
                                                      "no image is kept")})
 
+    #: Textured assets: the largest size on screen (pixels across the asset) the textures are held at, for the
+    #: model and the kept mesh alike (`geometry.texture_hold`); 0 keeps every image as the asset holds it.
+    texture_on_screen_px: int = knob(2048, limits=(0, 65536),
+                                     help="textured assets: the largest size in pixels the asset is seen at; each "
+                                          "texture is held at what that size needs (a texel per pixel), for the "
+                                          "model and the kept mesh alike (default 2048; 0: keep the images as "
+                                          "they are)")
+
     def model_config(self) -> ModelConfig:
         normal_loss = self.resolved_normal_loss()
         return ModelConfig(EncodingConfig(kind=self.encoding, log2_table=self.log2_table, levels=self.levels,

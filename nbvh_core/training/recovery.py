@@ -51,6 +51,12 @@ class Recovery:
                 self._go_back(model, opt, average, step, elapsed, exc)
                 return False
         step = losses[-1][0]
+        if vouched:  # this step's gradients are set: a dead network is caught before its state could be kept
+            try:
+                self.guard.check_alive(model, step)
+            except TrainingDiverged as exc:
+                self._go_back(model, opt, average, step, elapsed, exc)
+                return False
         if vouched and fraction >= self.next_keep and self.guard.settled(step):
             self.kept.keep(model, opt, self.form(model))  # the last loss vouches for the model as it is now
             self.kept_at_s, self.next_keep = elapsed, fraction + KEEP_EVERY

@@ -104,11 +104,18 @@ class Schedule:
 
 #: Steps from which a loss that never fell 2% below its start ends the training as diverged, live or not.
 FLAT_JUDGED_STEPS = 500
+#: Steps between the checks that the network still learns (`live_unit_fraction`; one device read each).
+ALIVE_EVERY = 50
+#: Below this share of live units in the last hidden layer, with a loss that has not fallen below DEAD_LOSS_FALL x
+#: the untrained one, the network has stopped learning (`check_alive`; healthy runs of every preset: 0.31-1.0).
+MIN_LIVE_UNITS = 0.125
+DEAD_LOSS_FALL = 0.9
 
 
 class DivergenceGuard:
     """Raises TrainingDiverged for a non-finite loss, a loss above divergence_factor x its running mean after 50
-    steps, a running mean risen above rise_factor x the untrained model's loss, and (at the end, `finish`) a loss
+    steps, a running mean risen above rise_factor x the untrained model's loss, a network whose units have died
+    while its loss barely fell (`check_alive`, every ALIVE_EVERY steps), and (at the end, `finish`) a loss
     that never fell 2% below its start in FLAT_JUDGED_STEPS steps, or in 50+ in a network whose gradients stop at
     its output bias (a learning rate so high it killed the network early)."""
 
@@ -117,6 +124,7 @@ class DivergenceGuard:
         self.ema: float | None = None
         self.first: list[float] = []  # the first 5 losses; [0] is the untrained model's
         self.warm_from = start_step  # the running mean counts from here (the start, or the last going back)
+        self.next_alive_check = start_step + ALIVE_EVERY
 
     def settled(self, step: int) -> bool:
         """Whether the running mean has 50+ steps behind it (a state now is one to go back to)."""
@@ -140,6 +148,23 @@ class DivergenceGuard:
             raise TrainingDiverged(f"loss rose from {self.first[0]:.4g} to {self.ema:.4g} (running mean) by step "
                                    f"{step}: the learning rate {cfg.lr:g} is too high for this model")
 
+    def check_alive(self, model: NeuralBVH, step: int) -> None:
+        """Every ALIVE_EVERY steps, with this step's gradients set: raises TrainingDiverged when under MIN_LIVE_UNITS
+        of the last hidden layer's units pass gradient and the loss has not fallen 10% below the untrained model's
+        (a healthy one has fallen ~60% by step 50 on the blob). An early spike can kill the ReLUs; the all but dead
+        network then predicts about a constant at a loss a little below the untrained one, which neither the rise nor
+        the flat check sees (the blob at lr 0.5: losses 1.89, 39.5, 239, then 1.84 for the whole budget, shipped at
+        MSE 0.075; 2 of 32 units live at step 50, none at 100, where a healthy run has 30-32; failures.md)."""
+        if step < self.next_alive_check:
+            return
+        self.next_alive_check = step + ALIVE_EVERY
+        fell = self.ema is not None and bool(self.first) and self.ema < DEAD_LOSS_FALL * self.first[0]
+        live = live_unit_fraction(model)
+        if live < MIN_LIVE_UNITS and not fell:
+            raise TrainingDiverged(f"the network stopped learning by step {step} ({live:.0%} of its last layer's "
+                                   f"units pass gradient): the learning rate {self.cfg.lr:g} is too high for "
+                                   f"this model")
+
     def finish(self, model: NeuralBVH, step: int) -> None:
         for p in model.parameters():
             if not torch.isfinite(p).all():
@@ -155,6 +180,19 @@ class DivergenceGuard:
             # Dead ReLUs predict the prior and the loss stays at its start: such a model is useless; never saved.
             raise TrainingDiverged(f"the loss did not fall in {ran} steps ({start:.4g} -> {self.ema:.4g}): "
                                    f"the learning rate {self.cfg.lr:g} is too high for this model, or it cannot learn")
+
+
+def live_unit_fraction(model: torch.nn.Module) -> float:
+    """The share of the last hidden layer's units through which this step's gradient passed: columns of the network's
+    last linear weight with any non-zero gradient (0.0 with no gradient; 1.0 for a model without such a layer, whose
+    death `gradients_pass_output_bias` judges)."""
+    linears = [m for m in getattr(model, "network", model).modules() if isinstance(m, torch.nn.Linear)]
+    if not linears:
+        return 1.0 if gradients_pass_output_bias(model) else 0.0
+    grad = linears[-1].weight.grad
+    if grad is None:
+        return 0.0
+    return float((grad.detach() != 0).any(dim=0).float().mean())
 
 
 def gradients_pass_output_bias(model: torch.nn.Module) -> bool:
