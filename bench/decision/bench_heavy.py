@@ -46,13 +46,34 @@ def source(name: str, work: Path) -> Path:
     return asset_path(name)
 
 
-def run(path: Path, out: Path, time_limit: float | None) -> tuple[int, float, dict, str]:
-    """The CLI on `path`: (exit code, wall s, seconds per stage from the phase events, the verdict's line)."""
+def _rss(pid: int) -> int:
+    """The process's resident bytes now (Linux /proc; 0 where unreadable)."""
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            return next((int(ln.split()[1]) * 1024 for ln in f if ln.startswith("VmRSS:")), 0)
+    except OSError:
+        return 0
+
+
+def run(path: Path, out: Path, time_limit: float | None) -> tuple[int, float, dict, str, list]:
+    """The CLI on `path`: (exit code, wall s, seconds per stage from the phase events, the verdict's line, each phase
+    event's step in order as (phase: its message's first words, seconds, peak resident bytes, polled every 0.2 s))."""
+    import threading
+
     extra = ["--time-limit", str(time_limit)] if time_limit else []
     t0 = time.perf_counter()
     proc = subprocess.Popen([sys.executable, "-m", "nbvh_core", "compress", str(path), "-o", f"{out}/", "--overwrite",
                              "--events", *extra], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     stages, current, since = {}, "load", t0
+    steps = [["load", 0.0, 0]]  # the last is the step running; the poller raises its peak
+
+    def poll() -> None:
+        while proc.poll() is None:
+            steps[-1][2] = max(steps[-1][2], _rss(proc.pid))
+            time.sleep(0.2)
+
+    poller = threading.Thread(target=poll, daemon=True)
+    poller.start()
     for line in proc.stdout:
         try:
             ev = json.loads(line)
@@ -61,14 +82,18 @@ def run(path: Path, out: Path, time_limit: float | None) -> tuple[int, float, di
         if ev.get("event") == "phase":
             now = time.perf_counter()
             stages[current] = stages.get(current, 0.0) + now - since
+            steps[-1][1] = now - since
             current, since = ev["phase"], now
+            steps.append([f"{ev['phase']}: {' '.join(str(ev.get('message', '')).split()[:4])}", 0.0, 0])
     err = proc.stderr.read()
     code = proc.wait()
+    poller.join()
     wall = time.perf_counter() - t0
     stages[current] = stages.get(current, 0.0) + time.perf_counter() - since
+    steps[-1][1] = time.perf_counter() - since
     verdict = next((ln for ln in err.splitlines() if ln.startswith(("verdict:", "not worth", "kept as", "decided"))),
                    err.strip().splitlines()[-1] if err.strip() else "")
-    return code, wall, {k: round(v, 1) for k, v in stages.items()}, verdict
+    return code, wall, {k: round(v, 1) for k, v in stages.items()}, verdict, steps
 
 
 def measure(name: str, args, work: Path) -> None:
@@ -78,7 +103,7 @@ def measure(name: str, args, work: Path) -> None:
     triangles = load_mesh(path).n_triangles
     out = work / name
     out.mkdir(exist_ok=True)
-    code, wall, stages, verdict = run(path, out, args.time_limit)
+    code, wall, stages, verdict, steps = run(path, out, args.time_limit)
     if code not in (0, 4):
         print(f"{name}: exit {code}: {verdict}", file=sys.stderr)
         return
@@ -97,7 +122,8 @@ def measure(name: str, args, work: Path) -> None:
            "model_mse": final.get("model_mse", ""), "alternative_bytes": final.get("alternative_bytes") or "",
            "ratio": round(final["ratio"], 3) if final.get("ratio") else (
                f"> {final['alternative_above'] / final['model_bytes']:.2f}" if final.get("alternative_above") else ""),
-           "verdict": (final.get("message") or record.get("message") or verdict)[:300]}
+           "verdict": (final.get("message") or record.get("message") or verdict)[:300],
+           "steps": " | ".join(f"{k} {t:.1f} s {p / 2**30:.2f} GiB" for k, t, p in steps if t >= 0.5 or p > 2**30)}
     write_rows(CSV, [*(r for r in read_rows(CSV) if r["asset"] != name), row])
     print({k: row[k] for k in ("asset", "triangles", "wall_s", "plan_s", "bvh_s", "train_s", "peak_per_triangle",
                                "shipped", "ratio")}, flush=True)
@@ -118,7 +144,10 @@ def report() -> None:
         *markdown_table(["asset", "triangles", "wall s", "load s", "plan s", "bvh s", "train s", "rest s",
                          "peak GiB", "peak B/triangle", "shipped", "model bytes", "model MSE", "ratio", "commit"],
                         table), "", "What each run's final verdict said:", "",
-        *[f"- {r['asset']}: {r['verdict']}" for r in rows]])
+        *[f"- {r['asset']}: {r['verdict']}" for r in rows], "",
+        "Each phase of each run (its first words, seconds, peak resident memory polled every 0.2 s; steps under "
+        "0.5 s and 1 GiB left out):", "",
+        *[f"- {r['asset']}: {r.get('steps') or '-'}" for r in rows]])
 
 
 def main() -> None:

@@ -14,6 +14,8 @@ Per asset (real ones from `real_assets.py`, generated ones from `bench_meshes.py
    `alternative_bytes` is that curve's bytes at the shipped MSE, `ratio` = alternative_bytes / shipped_bytes
    (>= 1: nothing smaller was left on the table; < 1: the default shipped more than the alternative at equal
    quality).
+4. Steps 2 and 3 again on a second held-out set, the lattice turned at random (`--turn-seed`, else a fresh seed per
+   asset, recorded): `mse_turned` and `ratio_turned`, on views no decision of the run saw.
 
 Rows land in bench/results/shipped.csv as they finish; a rerun at the same commit resumes, and an asset measured at
 another commit is measured again, its row replaced. shipped.md has the table.
@@ -26,6 +28,8 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+import numpy as np
 
 from bench.meshes import MADE, bench_mesh
 from bench.harness import RESULTS, ROOT, SMOKE, commit_of, markdown_table, num, read_rows, write_markdown, write_rows
@@ -45,9 +49,9 @@ def source_file(name: str, work: Path) -> Path:
     return path
 
 
-def curve_point(mesh, scorer, count: int | None) -> tuple[int, float, int]:
-    """(bytes, MSE, triangles) of the compact decimation to ~`count` triangles (None: the whole mesh) scored by
-    `scorer`; its bytes count what it needs to carry the asset's look, as the product's verdicts count them
+def curve_point(mesh, scorers, count: int | None) -> tuple:
+    """(bytes, triangles, MSE on each of `scorers`...) of the compact decimation to ~`count` triangles (None: the
+    whole mesh); its bytes count what it needs to carry the asset's look, as the product's verdicts count them
     (`alternatives.look_carried_bytes`: 0 for a bare shape)."""
     from nbvh_core.geometry.compact_mesh import compact_mesh
     from nbvh_core.app.alternatives import look_carried_bytes
@@ -55,32 +59,32 @@ def curve_point(mesh, scorer, count: int | None) -> tuple[int, float, int]:
 
     nbytes, decoded = compact_mesh(mesh if count is None else decimate(mesh, count))
     carried = look_carried_bytes(mesh, decoded.n_vertices, decoded.n_triangles)
-    return nbytes + carried, scorer.score_mesh(decoded).mse, decoded.n_triangles
+    return (nbytes + carried, decoded.n_triangles, *(s.score_mesh(decoded).mse for s in scorers))
 
 
-def curve(mesh, scorer, counts) -> list[tuple[int, float, int]]:
+def curve(mesh, scorers, counts) -> list[tuple]:
     """`curve_point` of each decimation count and of the whole mesh (last)."""
-    return [curve_point(mesh, scorer, count) for count in counts] + [curve_point(mesh, scorer, None)]
+    return [curve_point(mesh, scorers, count) for count in counts] + [curve_point(mesh, scorers, None)]
 
 
-def alternative_curve(pts: list[tuple[int, float, int]]):
-    """The product's `AlternativeCurve` (envelope, log-log line) through (bytes, MSE, triangles) points."""
+def alternative_curve(pts: list[tuple], on: int = 0):
+    """The product's `AlternativeCurve` (envelope, log-log line) through the points' (bytes, MSE on scorer `on`)."""
     from nbvh_core.decision.alternative_curve import AlternativeCurve, CurvePoint
 
-    return AlternativeCurve([CurvePoint(b, m, t, t) for b, m, t in pts])
+    return AlternativeCurve([CurvePoint(p[0], p[2 + on], p[1], p[1]) for p in pts])
 
 
-def settle(mesh, scorer, pts: list[tuple[int, float, int]], mse: float) -> list[tuple[int, float, int]]:
-    """pts with one more decimation measured at the count the log-log line puts at `mse`, so the ratio rests on a
-    measurement near the shipped quality: on the CAD engine the line between 45k and 64k triangles put 0.00548 at
-    ~273 KB, where the product measured 0.0060 at 55k (the error falls steeply in that gap)."""
-    count = alternative_curve(pts[:-1]).triangles_at(mse)
-    if count is None or any(abs(t / count - 1) < 0.05 for _, _, t in pts):
+def settle(mesh, scorers, pts: list[tuple], mse: float, on: int = 0) -> list[tuple]:
+    """pts with one more decimation measured at the count the log-log line (on scorer `on`) puts at `mse`, so the
+    ratio rests on a measurement near the shipped quality: on the CAD engine the line between 45k and 64k triangles
+    put 0.00548 at ~273 KB, where the product measured 0.0060 at 55k (the error falls steeply in that gap)."""
+    count = alternative_curve(pts[:-1], on).triangles_at(mse)
+    if count is None or any(abs(p[1] / count - 1) < 0.05 for p in pts):
         return pts
-    return sorted(pts[:-1] + [curve_point(mesh, scorer, count)]) + pts[-1:]
+    return sorted(pts[:-1] + [curve_point(mesh, scorers, count)]) + pts[-1:]
 
 
-def shipped_score(mesh, out: Path, scorer) -> tuple[str, int, float, float]:
+def shipped_score(mesh, out: Path, scorer, flip: bool = True) -> tuple[str, int, float, float | None]:
     """(what shipped, its bytes, its MSE, FLIP of what people see): the model file read back with its look, else the
     compact mesh file read back (the MSE: geometry, as the verdict weighs it) and the .glb beside it (FLIP: the
     mesh with its materials, coordinates and textures, as a user opens it)."""
@@ -90,7 +94,7 @@ def shipped_score(mesh, out: Path, scorer) -> tuple[str, int, float, float]:
 
     model = out / f"{mesh.name}.nbvh"
     if model.exists():
-        q = scorer.score_model(load_nbvh(model), flip=True)[0]
+        q = scorer.score_model(load_nbvh(model), flip=flip)[0]
         return "model", model.stat().st_size, q.mse, q.flip
     cmsh = out / f"{mesh.name}.compact.cmsh"
     dec = decode_compact(cmsh.read_bytes())
@@ -99,12 +103,13 @@ def shipped_score(mesh, out: Path, scorer) -> tuple[str, int, float, float]:
     held = Mesh(vertices=mesh.transform.to_normalised(dec.vertices).astype("float32"), faces=dec.faces,
                 transform=mesh.transform, name=mesh.name)
     if not glb.exists():  # a bare mesh kept whole: the compact mesh is what people see too
-        q = scorer.score_mesh(held, flip=True)
+        q = scorer.score_mesh(held, flip=flip)
         return kind, cmsh.stat().st_size, q.mse, q.flip
     opened = load_mesh(glb)  # the same triangles in original units, with the look: back into the source's frame
     shown = Mesh(vertices=mesh.transform.to_normalised(opened.transform.to_original(opened.vertices))
                  .astype("float32"), faces=opened.faces, transform=mesh.transform, name=mesh.name, look=opened.look)
-    return kind, cmsh.stat().st_size, scorer.score_mesh(held).mse, scorer.score_mesh(shown, flip=True).flip
+    return (kind, cmsh.stat().st_size, scorer.score_mesh(held).mse,
+            scorer.score_mesh(shown, flip=True).flip if flip else None)
 
 
 def measure(name: str, args, work: Path, prior: dict | None = None) -> None:
@@ -129,22 +134,30 @@ def measure(name: str, args, work: Path, prior: dict | None = None) -> None:
         print(stderr[-2000:], file=sys.stderr)
         return
     mesh = load_mesh(path)
-    scorer = ViewScorer(ExactTracer(mesh), mesh.transform, args.views, args.size, held_out=True)
-    kind, nbytes, mse, flip = shipped_score(mesh, out, scorer)
+    # the metric's held-out lattice (what the product's verdict weighs) and a second one turned at random (the
+    # seed recorded): the figures must hold on views no decision saw
+    seed = args.turn_seed if args.turn_seed is not None else int(np.random.SeedSequence().entropy % (1 << 31))
+    tracer = ExactTracer(mesh)
+    scorers = (ViewScorer(tracer, mesh.transform, args.views, args.size, held_out=True),
+               ViewScorer(tracer, mesh.transform, args.views, args.size, turn_seed=seed))
+    kind, nbytes, mse, flip = shipped_score(mesh, out, scorers[0])
+    mse_turned = shipped_score(mesh, out, scorers[1], flip=False)[2]
     # x sqrt(2) apart up to 90% of the mesh: the line from the last decimation to the whole mesh (whose MSE is only
     # the grid's) would flatter the alternative
     top = 0.9 * mesh.n_triangles
     counts = sorted({int(1000 * 2 ** (k / 2)) for k in range(26) if 1000 * 2 ** (k / 2) < top} | {int(top)})
     counts = counts[:args.max_points]
-    pts = settle(mesh, scorer, curve(mesh, scorer, counts), mse)
-    alt = alternative_curve(pts).bytes_at(mse)
+    pts = settle(mesh, scorers, settle(mesh, scorers, curve(mesh, scorers, counts), mse), mse_turned, on=1)
+    alt, alt_turned = alternative_curve(pts).bytes_at(mse), alternative_curve(pts, on=1).bytes_at(mse_turned)
     level = QUALITY_LEVELS[DEFAULT_LEVEL]
     verdict = next((ln for ln in stderr.splitlines() if ln.startswith(("verdict:", "not worth", "kept as"))), "")
     row = {"asset": name, "triangles": mesh.n_triangles, "exit_code": returncode, "wall_s": round(wall, 1),
            "shipped": kind, "shipped_bytes": nbytes, "mse": mse, "flip": flip, "level": level, "met": mse <= level,
            "alternative_bytes": round(alt) if alt != float("inf") else "", "ratio":
            round(alt / nbytes, 3) if alt != float("inf") else "", "views": args.views, "size": args.size,
-           "curve": ";".join(f"{b}:{m:.6g}:{t}" for b, m, t in pts), "verdict": verdict[:300]}
+           "turn_seed": seed, "mse_turned": mse_turned, "ratio_turned":
+           round(alt_turned / nbytes, 3) if alt_turned != float("inf") else "",
+           "curve": ";".join(f"{b}:{m:.6g}:{t}" for b, t, m, _ in pts), "verdict": verdict[:300]}
     write_rows(CSV, [*(r for r in read_rows(CSV) if r["asset"] != name), row])  # one row per asset
     print({k: row[k] for k in ("asset", "shipped", "shipped_bytes", "mse", "alternative_bytes", "ratio", "wall_s")},
           flush=True)
@@ -156,14 +169,17 @@ def report() -> None:
               f"{num(r, 'mse'):.5f}", f"{num(r, 'flip'):.4f}" if r.get("flip") else "-",
               "yes" if r["met"] == "True" else "no",
               f"{int(num(r, 'alternative_bytes')):,}" if r["alternative_bytes"] else "-",
-              f"{num(r, 'ratio'):.2f}" if r["ratio"] else "-", r["wall_s"]] for r in rows]
+              f"{num(r, 'ratio'):.2f}" if r["ratio"] else "-",
+              f"{num(r, 'mse_turned'):.5f}" if r.get("mse_turned") else "-",
+              f"{num(r, 'ratio_turned'):.2f}" if r.get("ratio_turned") else "-", r["wall_s"]] for r in rows]
     views = f"{rows[0]['views']} held-out views at {rows[0]['size']} px" if rows else ""
     write_markdown(CSV.with_suffix(".md"), [
         f"# What the default ships ({views}, one metric for every contender)", "",
         "ratio = the compact decimation's bytes at the shipped MSE / the shipped bytes (< 1: shipped more than the "
-        "alternative at equal quality).", "",
+        "alternative at equal quality). turned: the same, every contender rescored on a second held-out set, the "
+        "lattice turned at random (its seed in the CSV's turn_seed): views no decision saw.", "",
         *markdown_table(["asset", "triangles", "shipped", "bytes", "MSE", "FLIP", "level met", "alternative at that MSE",
-                         "ratio", "wall s"], table)])
+                         "ratio", "MSE turned", "ratio turned", "wall s"], table)])
 
 
 def main() -> None:
@@ -173,6 +189,8 @@ def main() -> None:
     p.add_argument("--views", type=int, default=2 if SMOKE else 16)
     p.add_argument("--size", type=int, default=32 if SMOKE else 256)
     p.add_argument("--max-points", type=int, default=2 if SMOKE else 30)
+    p.add_argument("--turn-seed", type=int, default=None,
+                   help="the second held-out set's turn (default: a fresh seed per asset, recorded in its row)")
     p.add_argument("--rescore", action="store_true", help="score the outputs already in --work again (new curve), "
                    "without running compress; the CSV's rows are replaced")
     p.add_argument("--work", default=None, help="folder for the runs' outputs (default: a temporary one)")
