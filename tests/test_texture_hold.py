@@ -75,3 +75,13 @@ def test_the_model_the_kept_glb_and_the_count_carry_the_same_held_image():
     assert len(held_image) < len(m.look.materials[0].stored_image())
     glb = kept_mesh_files(m, a, dec)[GLB]
     assert held_image in glb  # the .glb carries the image the verdict counted, byte for byte
+
+
+def test_a_material_copied_with_another_image_stores_that_image():
+    """`dataclasses.replace(material, image=...)` must not carry the old image's cached bytes or linear copy."""
+    import dataclasses
+
+    m = demo_assets.globe(texture=64).look.materials[0]
+    small = m.stored_image()
+    bigger = dataclasses.replace(m, image=np.kron(m.image, np.ones((2, 2, 1), np.uint8)), source=None)
+    assert bigger.stored_image() != small and bigger.linear_image().shape[:2] == (128, 128)

@@ -29,7 +29,7 @@ def shipped_materials(mesh: Mesh, made) -> list:
     """The slots' materials as the file keeps them: without their images when the head `made` learns the colour."""
     materials = list(mesh.look.materials)
     if made is not None and made[0].cfg.target == "colour":  # the colour is learnt: the images are not kept
-        materials = [dataclasses.replace(m, image=None, _linear=None) for m in materials]
+        materials = [dataclasses.replace(m, image=None) for m in materials]
     return materials
 
 @dataclass

@@ -40,8 +40,10 @@ class Material:
     base_color: np.ndarray = field(default_factory=lambda: np.array([0.8, 0.8, 0.8, 1.0], np.float32))
     image: np.ndarray | None = None
     source: bytes | None = field(default=None, repr=False, compare=False)
-    _linear: np.ndarray | None = field(default=None, repr=False, compare=False)
-    _stored: bytes | None = field(default=None, repr=False, compare=False)
+    # caches of what the image decodes and stores to: not init fields, so a copy with another image
+    # (`dataclasses.replace`) starts without them rather than carrying the old image's
+    _linear: np.ndarray | None = field(default=None, init=False, repr=False, compare=False)
+    _stored: bytes | None = field(default=None, init=False, repr=False, compare=False)
 
     def linear_image(self) -> np.ndarray | None:
         """(H, W, 3) float32 linear RGB of the image (decoded once), or None."""
