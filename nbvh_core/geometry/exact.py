@@ -81,8 +81,9 @@ class ExactTracer:
                               RuntimeWarning, stacklevel=2)
             else:
                 self._scene = rtcore_scene.EmbreeScene()
-                TriangleMesh(scene=self._scene, vertices=mesh.vertices.astype(np.float32),
-                             indices=mesh.faces.astype(np.int32))
+                # the mesh's own arrays (already float32 / int32): Embree copies them into its buffers
+                TriangleMesh(scene=self._scene, vertices=mesh.vertices.astype(np.float32, copy=False),
+                             indices=mesh.faces.astype(np.int32, copy=False))
         if self._scene is None:
             self._init_fallback()
         self.backend = "embree" if self._scene is not None else "numpy"
