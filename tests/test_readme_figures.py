@@ -44,6 +44,8 @@ def test_the_results_table_is_shipped_csv_row_for_row():
         assert cells[5] == f"{float(row['flip']):.4f}", (cells, row["asset"])
         assert _int(cells[6]) == round(float(row["alternative_bytes"])), (cells, row["asset"])
         assert cells[7] == f"{float(row['wall_s']):.1f} s", (cells, row["asset"])
+        assert cells[8] == f"{float(row['mse_turned']):.5f}", (cells, row["asset"])  # the second held-out set
+        assert cells[9] == f"{float(row['ratio_turned']):.2f}", (cells, row["asset"])
 
 
 def test_the_heavy_assets_figures_are_heavy_csv():
