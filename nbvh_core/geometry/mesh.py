@@ -166,7 +166,7 @@ def mesh_from_arrays(vertices: np.ndarray, faces: np.ndarray, name: str = "mesh"
     if big > MAX_COORDINATE:
         raise MeshError(f"{name}: coordinates reach {big:.3g}; beyond +-{MAX_COORDINATE:g} areas and extents overflow "
                         "(rescale the mesh)")
-    f = f.astype(np.int64)
+    f = f.astype(np.int64, copy=False)  # a reader's int64 faces as they are: no second copy of a heavy mesh
     lo, hi = int(f.min()), int(f.max())
     if lo < 0 or hi >= len(v):
         n_bad = int(((f < 0) | (f >= len(v))).any(axis=1).sum())
@@ -179,7 +179,9 @@ def mesh_from_arrays(vertices: np.ndarray, faces: np.ndarray, name: str = "mesh"
         except LookError as exc:
             raise MeshError(str(exc)) from None
     repairs: list[str] = []
-    area2 = np.linalg.norm(face_cross(v, f), axis=1)
+    area2 = np.empty(len(f), np.float64)  # twice each area, chunk by chunk: no (F, 3) float64 cross kept
+    for a, b, c in face_cross_chunks(v, f):
+        area2[a:b] = np.linalg.norm(c, axis=1)
     extent = float((v.max(axis=0) - v.min(axis=0)).max())
     # Zero area relative to the mesh size: repeated indices, collinear or coincident corners.
     degenerate = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2]) | (area2 <= (1e-12 * extent) ** 2)
@@ -193,15 +195,18 @@ def mesh_from_arrays(vertices: np.ndarray, faces: np.ndarray, name: str = "mesh"
         f = f[~degenerate]
         look = look.subset(~degenerate) if look is not None else None
 
-    used = v[np.unique(f)]
-    box_lo, box_hi = used.min(axis=0), used.max(axis=0)
+    used = np.zeros(len(v), bool)  # a mask, not np.unique's sorted copy of every index (~50 B per triangle)
+    used[f.reshape(-1)] = True
+    box_lo, box_hi = v[used].min(axis=0), v[used].max(axis=0)
     scale = float((box_hi - box_lo).max())
     if not scale > 0:
         raise MeshError(f"{name}: the mesh has zero extent")
     # Centre the box at 0.5 so the longest side spans exactly [0, 1].
     offset = (box_lo + box_hi) / 2 - 0.5 * scale
     transform = Transform(scale, offset)
-    vn = np.clip(transform.to_normalised(v), 0.0, 1.0).astype(np.float32)
+    vn = v - offset  # Transform.to_normalised's arithmetic, in place: one float64 temporary, not three
+    vn /= scale
+    vn = np.clip(vn, 0.0, 1.0, out=vn).astype(np.float32)
     return Mesh(vertices=vn, faces=f.astype(np.int32), transform=transform, name=name, repairs=tuple(repairs),
                 look=None if look is None or _says_nothing(look) else look)
 
@@ -307,6 +312,7 @@ def load_mesh(path: str | os.PathLike) -> Mesh:
         for m in look.materials:
             if m.image is not None and m.source is None:
                 m.source = files.get(m.name)
+    del data, loaded, parts  # the file's bytes and the reader's objects are not needed past here (a heavy mesh)
     return mesh_from_arrays(vertices, faces, name=name, look=look)
 
 
@@ -358,12 +364,14 @@ def _joined(parts: list) -> tuple[np.ndarray, np.ndarray, Look]:
         uvs.append(np.asarray(uv, np.float32)[np.asarray(g.faces)] if uv is not None and len(uv) == len(g.vertices)
                    else None)
         vertices.append(np.asarray(g.vertices))
-        faces.append(np.asarray(g.faces) + base)
+        faces.append(np.asarray(g.faces) + base if base else np.asarray(g.faces))
         slots.append(np.full(len(g.faces), keys[key], np.int32))
         base += len(g.vertices)
-    corner_uvs = np.concatenate(uvs) if all(u is not None for u in uvs) else None
-    return (np.concatenate(vertices), np.concatenate(faces),
-            Look(np.concatenate(slots), corner_uvs, materials))
+    def joined(arrays: list) -> np.ndarray:  # one part: its arrays as read (a heavy scan is one part: no copies)
+        return arrays[0] if len(arrays) == 1 else np.concatenate(arrays)
+
+    corner_uvs = joined(uvs) if all(u is not None for u in uvs) else None
+    return joined(vertices), joined(faces), Look(joined(slots), corner_uvs, materials)
 
 
 def _material_of(material, index: int) -> Material:
