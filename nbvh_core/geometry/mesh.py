@@ -128,16 +128,9 @@ def face_cross(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return out
 
 
-def mesh_from_arrays(vertices: np.ndarray, faces: np.ndarray, name: str = "mesh", look: Look | None = None) -> Mesh:
-    """Validate raw arrays and normalise them into the unit box.
-
-    vertices: (V, 3) float, any units; faces: (F, 3) integer indices into vertices; look: per-face slots,
-    per-corner texture coordinates and materials aligned with `faces` (checked; `LookError` is a `MeshError`'s
-    sibling ValueError naming the problem), kept aligned when faces are dropped.
-    Raises `MeshError` for an empty mesh, NaN/inf coordinates, out-of-range indices or non-triangle faces.
-    Degenerate triangles (repeated index or zero area) are dropped with a `MeshWarning` that gives the count.
-    The input arrays are never modified.
-    """
+def _checked_arrays(vertices: np.ndarray, faces: np.ndarray, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """(V, 3) float64 vertices and (F, 3) int64 faces, or a `MeshError` naming the first problem (no copies
+    where the input already has those types)."""
     try:
         v = np.asarray(vertices, dtype=np.float64)
     except (TypeError, ValueError) as exc:
@@ -172,7 +165,20 @@ def mesh_from_arrays(vertices: np.ndarray, faces: np.ndarray, name: str = "mesh"
         n_bad = int(((f < 0) | (f >= len(v))).any(axis=1).sum())
         raise MeshError(f"{name}: {n_bad} faces index vertices out of range (indices span [{lo}, {hi}], "
                         f"but there are {len(v)} vertices)")
+    return v, f
 
+
+def mesh_from_arrays(vertices: np.ndarray, faces: np.ndarray, name: str = "mesh", look: Look | None = None) -> Mesh:
+    """Validate raw arrays and normalise them into the unit box.
+
+    vertices: (V, 3) float, any units; faces: (F, 3) integer indices into vertices; look: per-face slots,
+    per-corner texture coordinates and materials aligned with `faces` (checked; `LookError` is a `MeshError`'s
+    sibling ValueError naming the problem), kept aligned when faces are dropped.
+    Raises `MeshError` for an empty mesh, NaN/inf coordinates, out-of-range indices or non-triangle faces.
+    Degenerate triangles (repeated index or zero area) are dropped with a `MeshWarning` that gives the count.
+    The input arrays are never modified.
+    """
+    v, f = _checked_arrays(vertices, faces, name)
     if look is not None:
         try:
             look = check_look(look, len(f), name)
