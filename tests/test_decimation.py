@@ -41,6 +41,24 @@ def test_wedges_split_at_the_seam_only():
     assert len(wedge_vertex) == mesh.n_vertices + 11  # the seam column's 11 vertices are doubled, nothing else
 
 
+def test_a_bare_shape_s_wedges_are_the_sorted_rows_without_the_sort():
+    # The reference: every corner's welded position as a row, sorted (the path a look takes).
+    from nbvh_core.geometry.decimation import unique_rows
+
+    mesh = wavy_sheet(12)  # as a triangle soup (an STL's): three vertices per triangle, welded by position
+    soup = mesh.vertices[mesh.faces[::-1]].reshape(-1, 3)
+    bare = mesh_from_arrays(soup, np.arange(len(soup)).reshape(-1, 3))
+    bits = bare.vertices.view(np.int32)
+    _, first_vertex, position = unique_rows(bits)
+    unique, _, inverse = unique_rows(position.reshape(-1)[bare.faces].reshape(-1, 1))
+    wedge_vertex, corners, wedge_slot, wedge_uv = wedges(bare)
+    assert corners.dtype == np.uint32 and wedge_slot is None and wedge_uv is None
+    assert np.array_equal(wedge_vertex, first_vertex[unique[:, 0]])
+    assert np.array_equal(corners.astype(np.int64), inverse.reshape(-1, 3))
+    assert len(wedge_vertex) == mesh.n_vertices  # welded back to the sheet's vertices
+    assert np.array_equal(bare.vertices[wedge_vertex[corners]], bare.vertices[bare.faces])
+
+
 def test_decimation_keeps_seams_slots_and_coordinates():
     mesh = wavy_sheet()
     dec = decimate(mesh, 800)

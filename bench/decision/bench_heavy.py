@@ -66,6 +66,13 @@ def run(path: Path, out: Path, time_limit: float | None) -> tuple[int, float, di
                              "--events", *extra], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     stages, current, since = {}, "load", t0
     steps = [["load", 0.0, 0]]  # the last is the step running; the poller raises its peak
+    step_since = t0
+
+    def next_step(name: str, now: float) -> None:
+        nonlocal step_since
+        steps[-1][1] = now - step_since
+        steps.append([name, 0.0, 0])
+        step_since = now
 
     def poll() -> None:
         while proc.poll() is None:
@@ -82,15 +89,16 @@ def run(path: Path, out: Path, time_limit: float | None) -> tuple[int, float, di
         if ev.get("event") == "phase":
             now = time.perf_counter()
             stages[current] = stages.get(current, 0.0) + now - since
-            steps[-1][1] = now - since
             current, since = ev["phase"], now
-            steps.append([f"{ev['phase']}: {' '.join(str(ev.get('message', '')).split()[:4])}", 0.0, 0])
+            next_step(f"{ev['phase']}: {' '.join(str(ev.get('message', '')).split()[:4])}", now)
+        elif ev.get("event") == "progress" and ev.get("phase") == "plan" and ev.get("message"):
+            next_step(f"plan: {ev['message']}", time.perf_counter())  # each measurement of the plan
     err = proc.stderr.read()
     code = proc.wait()
     poller.join()
     wall = time.perf_counter() - t0
     stages[current] = stages.get(current, 0.0) + time.perf_counter() - since
-    steps[-1][1] = time.perf_counter() - since
+    steps[-1][1] = time.perf_counter() - step_since
     verdict = next((ln for ln in err.splitlines() if ln.startswith(("verdict:", "not worth", "kept as", "decided"))),
                    err.strip().splitlines()[-1] if err.strip() else "")
     return code, wall, {k: round(v, 1) for k, v in stages.items()}, verdict, steps

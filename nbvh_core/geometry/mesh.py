@@ -7,6 +7,7 @@ so distances, points and images can be reported in the user's units.
 """
 from __future__ import annotations
 
+import gc
 import io
 import os
 import warnings
@@ -318,7 +319,11 @@ def load_mesh(path: str | os.PathLike) -> Mesh:
         for m in look.materials:
             if m.image is not None and m.source is None:
                 m.source = files.get(m.name)
-    del data, loaded, parts  # the file's bytes and the reader's objects are not needed past here (a heavy mesh)
+    # The file's bytes and the reader's objects are not needed past here. trimesh's objects hold reference cycles
+    # (their caches point back at them), so only a collection frees them: without it the 10M-triangle lattice's
+    # load left 0.7 GiB of them resident into the plan (1.18 GiB after loading, 0.49 GiB after a collection).
+    del data, loaded, parts
+    gc.collect()
     return mesh_from_arrays(vertices, faces, name=name, look=look)
 
 
