@@ -154,3 +154,24 @@ def test_the_compiled_tree_builder_builds_the_numpy_tree_node_for_node(sample_me
             ref = build_full_tree(mesh, max_leaf_size=leaf)
         for field in ("lo", "hi", "left", "start", "count", "depth", "tri_order"):
             assert np.array_equal(getattr(fast, field), getattr(ref, field)), (mesh.name, leaf, field)
+
+
+def test_a_heavy_mesh_s_shared_tree_stops_at_four_triangles_with_the_same_nodes_above(monkeypatch, sample_meshes):
+    """From SHALLOW_TREE_TRIANGLES the run's tree stops at 4 triangles per leaf: the same nodes of more than 4 (each
+    the same range of the same triangles, in another order below), the same training cut; a third of the nodes."""
+    from nbvh_core.geometry import bvh
+
+    mesh = sample_meshes["bunny"]
+    monkeypatch.setattr(bvh, "SHALLOW_TREE_TRIANGLES", mesh.n_triangles)  # the bunny as a heavy mesh
+    shallow, full = bvh.shared_tree(mesh), build_full_tree(mesh)
+    assert shallow.count[shallow.left < 0].max() <= 4 and shallow.n_nodes < 0.4 * full.n_nodes
+
+    def above_four(tree):
+        big = tree.count > 4
+        return {(s, c, tuple(np.sort(tree.tri_order[s:s + c]).tolist()) if c > 1000 else None)
+                for s, c in zip(tree.start[big].tolist(), tree.count[big].tolist())}
+    assert above_four(shallow) == above_four(full)
+    a, b = cut_tree(shallow, 2047), cut_tree(full, 2047)
+    assert np.array_equal(a.nodes, b.nodes) and np.array_equal(a.tri_leaf, b.tri_leaf)
+    monkeypatch.setattr(bvh, "SHALLOW_TREE_TRIANGLES", mesh.n_triangles + 1)  # below it: one triangle per leaf
+    assert bvh.shared_tree(mesh).n_nodes == full.n_nodes

@@ -191,13 +191,14 @@ def _smallest_meeting(counts: list[int], top: int, measure, meets, over) -> tupl
 def whole_mesh_entry(mesh: Mesh, checks, held_out, tree=None) -> MeshMeasure:
     """The whole mesh as a compact mesh: its exact bytes and the grid's own error on both view sets (without
     `checks`: the bytes alone)."""
-    from ..geometry.compact_mesh import compact_mesh
+    from ..geometry.compact_mesh import compact_bytes, compact_mesh
 
+    if checks is None:  # the bytes alone: no decoded copy to score
+        return MeshMeasure(mesh.n_triangles, compact_bytes=compact_bytes(mesh, tree),
+                           look_bytes=look_carried_bytes(mesh, mesh.n_vertices, mesh.n_triangles))
     nbytes, decoded = compact_mesh(mesh, tree)
     entry = MeshMeasure(mesh.n_triangles, compact_bytes=nbytes,
                         look_bytes=look_carried_bytes(mesh, mesh.n_vertices, mesh.n_triangles))
-    if checks is None:
-        return entry
     entry.compact_mse = checks.score_mesh(decoded).mse
     if held_out is not None:
         entry.compact_mse_held_out = held_out.score_mesh(decoded).mse

@@ -20,7 +20,7 @@ import torch
 from ..decision.final_verdict import final_verdict, missed_surface
 from ..decision.records import Assessment, RunDecisions, RunNote, why_of
 from ..decision.verdict import mesh_kept
-from ..geometry.bvh import NODE_DTYPE, build_bvh, cut_tree
+from ..geometry.bvh import NODE_DTYPE, cut_tree, shared_tree
 from ..geometry.exact import ExactTracer
 from ..geometry.mesh import Mesh
 from ..geometry.texture_hold import hold_textures
@@ -168,7 +168,7 @@ def _training_bvh(mesh: Mesh, nodes: int, node_bits: int, events: EventSink, sec
     search retrains with another T only, never another node count."""
     t = time.perf_counter()
     events(wire.phase(phase="bvh", message=f"{mesh.n_triangles} triangles -> {nodes} nodes"))
-    bvh = build_bvh(mesh, nodes) if tree is None else cut_tree(tree, nodes)
+    bvh = cut_tree(shared_tree(mesh) if tree is None else tree, nodes)
     if node_bits == 8:
         bvh = dataclasses.replace(bvh, nodes=snap_nodes(bvh.nodes))
     seconds["bvh"] = time.perf_counter() - t

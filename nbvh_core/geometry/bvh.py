@@ -345,6 +345,20 @@ def layout_cut(tree: FullTree, cut_leaves: set, budget: int, max_nodes: int | No
                max_depth=int(depth_of.max()), budget=budget, full=tree, leaf_full=leaf_full_arr)
 
 
+#: From this many triangles the tree a run shares stops at 4 triangles per leaf (`shared_tree`): its cuts still find
+#: MAX_NODES leaves, and the 10M-triangle lattice's tree holds ~0.6n nodes instead of 2n - 1 (52 B each: 1.05 GiB
+#: at one triangle per leaf, held from the plan to the end of training).
+SHALLOW_TREE_TRIANGLES = 4 * MAX_NODES
+
+
+def shared_tree(mesh: Mesh) -> FullTree:
+    """The full tree one run shares: the plan's resident-BVH count (nodes of more than 4 triangles) and compact mesh
+    (clusters of at most 64), the training BVH's cut and its growth (at most MAX_NODES). One triangle per leaf below
+    SHALLOW_TREE_TRIANGLES, else at most 4: the same nodes down to 4 triangles; only the order of the triangles
+    inside a node of at most 4 differs (the 1M lattice's compact mesh: 4,015,493 B against 4,015,534 B)."""
+    return build_full_tree(mesh, max_leaf_size=1 if mesh.n_triangles < SHALLOW_TREE_TRIANGLES else 4)
+
+
 def build_bvh(mesh: Mesh, budget: int = DEFAULT_NODES, n_bins: int = 16) -> BVH:
     """Binned-SAH BVH over `mesh` with exactly `budget` nodes (32 B each); see `build_full_tree`, `cut_tree`."""
     return cut_tree(build_full_tree(mesh, max_leaf_size=1, n_bins=n_bins), budget)

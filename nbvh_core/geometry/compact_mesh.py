@@ -38,7 +38,7 @@ import numpy as np
 
 from .bvh import build_full_tree
 from .cluster_codec import EDGE_1, ESCAPE, RESTART, cluster_payloads
-from .mesh import Mesh, face_cross
+from .mesh import Mesh, face_cross_chunks
 
 MAGIC = b"CMS2"
 #: Triangles per cluster (at most 192 distinct vertices: the counts fit a byte).
@@ -338,5 +338,7 @@ def compact_mesh(mesh: Mesh, tree=None) -> tuple[int, Mesh]:
     # tests/test_compact_mesh.py), so they are taken from the encoder instead of decoding the bytes again.
     data, snapped = _encode(mesh, tree)
     # a sliver the grid collapsed to zero area is never hit (Embree skips it) and has no normal: left out
-    keep = np.linalg.norm(face_cross(snapped, mesh.faces), axis=1) > 0
+    keep = np.empty(mesh.n_triangles, bool)  # chunk by chunk: no (F, 3) float64 cross of a heavy mesh
+    for a, b, cross in face_cross_chunks(snapped, mesh.faces):
+        keep[a:b] = np.linalg.norm(cross, axis=1) > 0
     return len(data), Mesh(vertices=snapped, faces=mesh.faces[keep], transform=mesh.transform, name=mesh.name)
