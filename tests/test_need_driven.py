@@ -704,3 +704,35 @@ def test_the_kept_decimation_is_rebuilt_from_the_run_s_own_chain(sample_meshes):
     reused, fresh = winning_decimation(mesh, a, chain), winning_decimation(mesh, a)
     assert reused.n_triangles == a.alternatives.decimation.triangles
     assert np.array_equal(reused.faces, fresh.faces) and np.array_equal(reused.vertices, fresh.vertices)
+
+
+def test_the_plan_skips_a_measurement_predicted_to_pass_its_share(sample_meshes):
+    """Each decimation's time is predicted from the last one's seconds per triangle read (`pending_triangles`: its
+    source and the chain levels above it not made yet); one predicted to end past the plan's share is skipped and
+    said, the way a spent share skips it (the 10M lattice's 7M-triangle point took 53 s, started inside the share)."""
+    from nbvh_core.app.alternatives import _smallest_meeting
+    from nbvh_core.geometry.decimation import Decimator
+
+    dec = Decimator(sample_meshes["bunny"])  # 99,785 triangles: the chain's levels 1,000 ... 64,000 below it
+    assert dec.pending_triangles(250) == 1_000 + 4_000 + 16_000 + 64_000 + 99_785
+    dec.kept_corners(250)
+    assert dec.pending_triangles(250) == 0 and dec.pending_triangles(500) == 1_000
+    assert dec.pending_triangles(70_000) == 99_785  # above the last level: from the whole mesh
+
+    dec, measured = Decimator(sample_meshes["bunny"]), []
+    budget_s, spent, rate = 7.0, [0.0], 2e-5  # the share, the time spent, seconds per triangle read
+    work = lambda count: dec.pending_triangles(count) + count  # noqa: E731
+
+    def measure(count):
+        measured.append(count)
+        spent[0] += rate * work(count)
+        dec.kept_corners(count)  # its source and the levels above it made
+        return count
+
+    would_overrun = lambda count: spent[0] + rate * work(count) > budget_s  # noqa: E731
+    met, skipped = _smallest_meeting([1_000, 4_000, 16_000, 64_000], 69_849, measure, lambda c: c > 65_000,
+                                     would_overrun)
+    # 1,000 reads the chain (3.7 s), the next levels are made (5.4 s in all); the gap's point would read the
+    # whole mesh again (3.4 s more): past the share, skipped and said
+    assert measured == [1_000, 4_000, 16_000, 64_000] and met is None
+    assert skipped == ["the decimation to 69,849 triangles"]

@@ -13,6 +13,7 @@
 from __future__ import annotations
 
 import math
+import time
 
 from ..decision.config import DecisionConfig
 from ..decision.records import Alternatives, Assessment, MeshMeasure
@@ -109,15 +110,27 @@ def alternatives(mesh: Mesh, target_mse: float | None, checks=None, held_out=Non
     planned = len(counts) + DECIMATE_REFINE + 4  # the ladder, the top, the refinements, one above, the whole mesh,
     # Draco
 
+    over = getattr(tick, "over_budget", lambda seconds=0.0: False)
+    rate: list[float] = []  # the last measurement's seconds per triangle read (simplified, encoded, scored)
+
+    def work(count: int) -> int:
+        return decimator.pending_triangles(count) + count
+
     def measure(count: int) -> MeshMeasure:
         if tick is not None:
             tick(f"decimation to {count:,} triangles", planned)
+        triangles, t = work(count), time.perf_counter()
         tried[count] = decimation_entry(mesh, count, checks, held_out, DracoPy, decimator)
+        rate[:] = [(time.perf_counter() - t) / triangles]
         return tried[count]
 
-    over = getattr(tick, "over_budget", lambda: False)
+    def would_overrun(count: int) -> bool:
+        """Past the share, or past it by the end of this measurement, predicted at the last one's rate: one pass
+        over a heavy mesh can take longer than the whole share (the 10M lattice's 7M-triangle point: 53 s)."""
+        return over(rate[0] * work(count) if rate else 0.0)
+
     met, skipped = _smallest_meeting(counts, int(mesh.n_triangles * DECIMATE_MAX_SHARE), measure,
-                                     lambda entry: entry.meets(target_mse), over)
+                                     lambda entry: entry.meets(target_mse), would_overrun)
     if met is not None:
         out.decimation = tried[met]
     out.decimations_tried = [tried[c] for c in sorted(tried)]
@@ -129,14 +142,14 @@ def alternatives(mesh: Mesh, target_mse: float | None, checks=None, held_out=Non
     out.mesh_compact = whole_mesh_entry(mesh, checks if scored else None, held_out if scored else None, tree)
     # Draco's size is said beside the verdict (storage alone), never weighed: measured last, and only in the plan's
     # share (the 10M-triangle lattice's took 9.2 s and 1 GiB at its peak on 2 cores).
-    if DracoPy is not None and over():
+    if DracoPy is not None and over(rate[0] * mesh.n_triangles if rate else 0.0):
         skipped.append("Draco's size of the whole mesh (storage alone)")
     elif DracoPy is not None:
         if tick is not None:
             tick("Draco's size of the whole mesh", planned)
         out.draco11_bytes = _draco_bytes(mesh, DracoPy)
     if skipped:
-        out.skipped = "past the plan's time budget, not measured: " + "; ".join(skipped)
+        out.skipped = "past the plan's time budget (spent, or predicted to be), not measured: " + "; ".join(skipped)
     return out
 
 
@@ -148,27 +161,27 @@ def _draco_bytes(mesh: Mesh, DracoPy) -> int:
 def _smallest_meeting(counts: list[int], top: int, measure, meets, over) -> tuple[int | None, list[str]]:
     """The search over decimation counts: the ladder `counts` up to the first whose measurement meets the level (and
     the one above it), the gap up to `top` when none did, then DECIMATE_REFINE bisections. Past the plan's time
-    budget (`over()`) the optional points go first: the one above the level, the refinements, then the rest of the
+    budget (`over(count)`: spent, or would be by the end of that count's measurement) the optional points go first: the one above the level, the refinements, then the rest of the
     ladder; the run says what it skipped and decides on what it measured (the final verdict measures the
     decimation at the model's quality either way). Returns (the smallest count measured to meet, or None; what was
     skipped)."""
     skipped: list[str] = []
     missed, met = None, None
     for i, count in enumerate(counts):
-        if over():
+        if over(count):
             skipped.append(f"the decimations from {count:,} triangles up")
             break
         if meets(measure(count)):
             met = count
             if i + 1 < len(counts):
-                if over():
+                if over(counts[i + 1]):
                     skipped.append(f"the decimation to {counts[i + 1]:,} (one above the level)")
                 else:
                     measure(counts[i + 1])
             break
         missed = count
     if met is None and not skipped and counts and counts[-1] < top:  # the gap up to the whole mesh
-        if over():
+        if over(top):
             skipped.append(f"the decimation to {top:,} triangles")
         elif meets(measure(top)):
             missed, met = counts[-1], top
@@ -178,7 +191,7 @@ def _smallest_meeting(counts: list[int], top: int, measure, meets, over) -> tupl
             mid = int(round(math.sqrt(lo * met)))
             if mid in (lo, met):
                 break
-            if over():
+            if over(mid):
                 skipped.append(f"the refinement between {lo:,} and {met:,} triangles")
                 break
             if meets(measure(mid)):

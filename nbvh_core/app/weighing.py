@@ -60,14 +60,15 @@ PLAN_MIN_S = 30.0
 class PlanProgress:
     """tick(message, planned) for the plan's measurements (`alternatives.alternatives`): a progress event per step
     (fraction of the most steps it may take, elapsed and an ETA from the mean step so far) and a Cancel point.
-    over_budget(): the plan has spent its `budget_s` (None: no limit, a budget in steps)."""
+    over_budget(seconds): the plan has spent its `budget_s`, or would with `seconds` more (None: no limit, a budget in
+    steps)."""
 
     def __init__(self, events: EventSink, should_cancel: Callable[[], bool], budget_s: float | None = None):
         self.events, self.should_cancel, self.budget_s = events, should_cancel, budget_s
         self.t0, self.done = time.perf_counter(), 0
 
-    def over_budget(self) -> bool:
-        return self.budget_s is not None and time.perf_counter() - self.t0 > self.budget_s
+    def over_budget(self, seconds: float = 0.0) -> bool:
+        return self.budget_s is not None and time.perf_counter() - self.t0 + seconds > self.budget_s
 
     def __call__(self, message: str, planned: int) -> None:
         if self.should_cancel():

@@ -192,6 +192,16 @@ class Decimator:
             return None
         return next((lv for lv in CHAIN_LEVELS if triangles < lv < self.mesh.n_triangles), None)
 
+    def pending_triangles(self, triangles: int) -> int:
+        """About how many triangles the simplifier reads to make the decimation to `triangles` now: its source and
+        every chain level above it not made yet (0 for a level made). What a measurement's time is predicted from."""
+        if triangles in self._levels:
+            return 0
+        level = self.source_level(triangles)
+        if level is None:
+            return self.mesh.n_triangles
+        return level + self.pending_triangles(level)
+
     def kept_corners(self, triangles: int) -> np.ndarray:
         """(F', 3) int64 wedge corners of the decimation to `triangles` (F' <= triangles unless the simplifier
         stops early: `simplify_indices`)."""
