@@ -136,7 +136,7 @@ def alternatives(mesh: Mesh, target_mse: float | None, checks=None, held_out=Non
     out.decimations_tried = [tried[c] for c in sorted(tried)]
     if tick is not None:
         tick(f"the whole mesh ({mesh.n_triangles:,} triangles) as a compact mesh", planned)
-    scored = not over()
+    scored = not over(rate[0] * mesh.n_triangles if rate else 0.0)  # encoded, decoded, traced and scored twice
     if not scored:
         skipped.append("the whole mesh's image error (its bytes are exact)")
     out.mesh_compact = whole_mesh_entry(mesh, checks if scored else None, held_out if scored else None, tree)
