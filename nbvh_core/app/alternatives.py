@@ -79,11 +79,12 @@ def decimation_entry(mesh: Mesh, count: int, checks, held_out, draco,
 
 def alternatives(mesh: Mesh, target_mse: float | None, checks=None, held_out=None, tree=None,
                  decimator: Decimator | None = None, tick=None) -> Alternatives:
-    """What a user could ship instead, measured: Draco (11-bit, storage bytes) of the mesh, and decimations
-    (`geometry.decimation.decimate`: meshoptimizer, the look kept) up to the smallest whose image MSE meets `target_mse` (see DECIMATE_COUNTS), each with its
-    resident and compact-mesh bytes and the compact mesh's MSE, scored by the run's own metric: `checks` (a
-    rendering.metrics.ViewScorer: the training checks' views) and `held_out` (the final evaluation's). The whole
-    mesh as a compact mesh is scored too ('mesh_compact'; `tree`: its `bvh.build_full_tree` when the caller has one).
+    """What a user could ship instead, measured: decimations (`geometry.decimation.decimate`: meshoptimizer, the look
+    kept) up to the smallest whose image MSE meets `target_mse` (see DECIMATE_COUNTS), each with its resident and
+    compact-mesh bytes and the compact mesh's MSE, scored by the run's own metric: `checks` (a
+    rendering.metrics.ViewScorer: the training checks' views) and `held_out` (the final evaluation's); the whole
+    mesh as a compact mesh ('mesh_compact'; `tree`: its `bvh.shared_tree` when the caller has one), scored when
+    the plan's share allows; Draco (11-bit, storage bytes) of the mesh, last.
     Missing optional packages give a note instead of numbers. With a target, `checks` is required. decimator:
     the mesh's `Decimator` (its chain serves later points too), else one is made. tick(message, planned): called
     before each measurement (`planned`: the most it may take in all; progress, and a Cancel point: it may raise)."""
@@ -161,10 +162,10 @@ def _draco_bytes(mesh: Mesh, DracoPy) -> int:
 def _smallest_meeting(counts: list[int], top: int, measure, meets, over) -> tuple[int | None, list[str]]:
     """The search over decimation counts: the ladder `counts` up to the first whose measurement meets the level (and
     the one above it), the gap up to `top` when none did, then DECIMATE_REFINE bisections. Past the plan's time
-    budget (`over(count)`: spent, or would be by the end of that count's measurement) the optional points go first: the one above the level, the refinements, then the rest of the
-    ladder; the run says what it skipped and decides on what it measured (the final verdict measures the
-    decimation at the model's quality either way). Returns (the smallest count measured to meet, or None; what was
-    skipped)."""
+    budget (`over(count)`: spent, or would be by the end of that count's measurement) the optional points go first:
+    the one above the level, the refinements, then the rest of the ladder; the run says what it skipped and decides
+    on what it measured (the final verdict measures the decimation at the model's quality either way). Returns (the
+    smallest count measured to meet, or None; what was skipped)."""
     skipped: list[str] = []
     missed, met = None, None
     for i, count in enumerate(counts):
