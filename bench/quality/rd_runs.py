@@ -64,7 +64,7 @@ def failure_rays(mesh: Mesh, bvh, tracer: ExactTracer, n_dist: int, n_near: int,
     u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
     p = tri[pick, 0] + u[:, None] * (tri[pick, 1] - tri[pick, 0]) + v[:, None] * (tri[pick, 2] - tri[pick, 0])
     side = np.where(rng.random(n_near) < 0.5, -1.0, 1.0)
-    o_near = p + 0.003 * side[:, None] * tracer.normals[pick]
+    o_near = p + 0.003 * side[:, None] * tracer.normals(pick)
     d_near = rng.normal(size=(n_near, 3))
     d_near /= np.linalg.norm(d_near, axis=1, keepdims=True)
     o_all = np.concatenate([o, o_near]).astype(np.float32)

@@ -117,6 +117,10 @@ def payload_bound(triangles: np.ndarray) -> np.ndarray:
     return (3 * t * 48 + 7) // 8 + (t * 30 + 7) // 8 + 2
 
 
+#: Clusters the compiled encoder takes per call (each call's scratch: their payload bounds, ~1.4 MB at 64 triangles).
+CLUSTER_BLOCK = 1024
+
+
 def cluster_payloads(faces: np.ndarray, grid: np.ndarray, tri_sets: list[np.ndarray]):
     """Every cluster's payload: (payload bytes list, packed widths (C,) int64, vertex counts (C,) int64, grid boxes
     lo and hi (C, 3) int64). The compiled encoder where it builds (~1 us per triangle in Python: 65 s of a
@@ -129,16 +133,23 @@ def cluster_payloads(faces: np.ndarray, grid: np.ndarray, tri_sets: list[np.ndar
 
         counts = np.array([len(t) for t in tri_sets], np.int64)
         start = np.concatenate(([0], np.cumsum(counts))).astype(np.int64)
-        order = np.ascontiguousarray(np.concatenate(tri_sets).astype(np.int64))
-        out = np.zeros(int(payload_bound(counts).sum()), np.uint8)
-        offset, widths, n_verts = np.zeros(n + 1, np.int64), np.zeros(n, np.int64), np.zeros(n, np.int64)
+        order = np.ascontiguousarray(np.concatenate(tri_sets), np.int64)  # the tree's int64 order: no second copy
+        faces, grid = np.ascontiguousarray(faces, np.int32), np.ascontiguousarray(grid, np.int64)
+        payloads, widths, n_verts = [], np.zeros(n, np.int64), np.zeros(n, np.int64)
         lo, hi = np.zeros((n, 3), np.int64), np.zeros((n, 3), np.int64)
-        bindings.encode_clusters(faces=np.ascontiguousarray(faces, np.int32), grid=np.ascontiguousarray(grid, np.int64),
-                                 cluster_tris=order, t=len(order), cluster_start=start, c=n, out=out,
-                                 out_bytes=len(out), out_offset=offset, widths=widths, n_verts=n_verts, grid_lo=lo,
-                                 grid_hi=hi)
-        data = out.tobytes()
-        return [data[offset[k]:offset[k + 1]] for k in range(n)], widths, n_verts, lo, hi
+        # CLUSTER_BLOCK clusters at a time: the encoder writes each at its bound's offset (~22 B per triangle, 6x a
+        # payload), so the whole 10M-triangle lattice at once touched 0.5 GiB
+        for a in range(0, n, CLUSTER_BLOCK):
+            b = min(n, a + CLUSTER_BLOCK)
+            out = np.zeros(int(payload_bound(counts[a:b]).sum()), np.uint8)
+            offset = np.zeros(b - a + 1, np.int64)
+            bindings.encode_clusters(faces=faces, grid=grid, cluster_tris=order[start[a]:start[b]],
+                                     t=int(start[b] - start[a]), cluster_start=start[a:b + 1] - start[a], c=b - a,
+                                     out=out, out_bytes=len(out), out_offset=offset, widths=widths[a:b],
+                                     n_verts=n_verts[a:b], grid_lo=lo[a:b], grid_hi=hi[a:b])
+            data = out[:offset[-1]].tobytes()
+            payloads += [data[offset[k]:offset[k + 1]] for k in range(b - a)]
+        return payloads, widths, n_verts, lo, hi
     payloads, widths, n_verts = [], np.zeros(n, np.int64), np.zeros(n, np.int64)
     lo, hi = np.zeros((n, 3), np.int64), np.zeros((n, 3), np.int64)
     for k, tris in enumerate(tri_sets):

@@ -66,7 +66,6 @@ class ExactTracer:
 
     def __init__(self, mesh: Mesh, backend: str = "auto"):
         self.mesh = mesh
-        self.normals = mesh.face_normals()
         if backend not in ("auto", "embree", "numpy"):
             raise ValueError(f"unknown backend {backend!r}")
         self._scene = None
@@ -87,6 +86,11 @@ class ExactTracer:
         if self._scene is None:
             self._init_fallback()
         self.backend = "embree" if self._scene is not None else "numpy"
+
+    def normals(self, tri: np.ndarray) -> np.ndarray:
+        """(K, 3) float32 unit normals of triangles `tri` (K,) int: computed when asked, not held (12 B per
+        triangle: 115 MiB of a 10M-triangle mesh for the whole run)."""
+        return self.mesh.face_normals(tri)
 
     def _intersect(self, rays_o: np.ndarray, rays_d: np.ndarray, t_max: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Embree nearest hits within t_max: (tfar (N,) float32, primID (N,) int32, -1 on a miss); split over
@@ -126,7 +130,7 @@ class ExactTracer:
             t, tri = self._fallback_first(rays_o, rays_d, t_max_arr)
         normal = np.zeros((n, 3), np.float32)
         hit = tri >= 0
-        normal[hit] = self.normals[tri[hit]]
+        normal[hit] = self.normals(tri[hit])
         return FirstHits(t=t, tri=tri, normal=normal)
 
     # -- all hits ------------------------------------------------------------------------------------------

@@ -96,10 +96,12 @@ class Mesh:
         """(F, 3, 3) float32 corner positions."""
         return self.vertices[self.faces]
 
-    def face_normals(self) -> np.ndarray:
-        """(F, 3) float32 unit geometric normals, right-handed winding (v1 - v0) x (v2 - v0)."""
-        out = np.empty((self.n_triangles, 3), np.float32)
-        for a, b, n in face_cross_chunks(self.vertices, self.faces):
+    def face_normals(self, tri: np.ndarray | None = None) -> np.ndarray:
+        """(F, 3) float32 unit geometric normals, right-handed winding (v1 - v0) x (v2 - v0); with `tri` (K,) int
+        triangle ids, (K, 3): the same values for those triangles only."""
+        faces = self.faces if tri is None else self.faces[tri]
+        out = np.empty((len(faces), 3), np.float32)
+        for a, b, n in face_cross_chunks(self.vertices, faces):
             out[a:b] = n / np.linalg.norm(n, axis=1, keepdims=True)
         return out
 

@@ -242,7 +242,7 @@ def label_samples(bvh: BVH, tracer: ExactTracer, rays_o: np.ndarray, rays_d: np.
             inside = np.zeros(n_s, bool)
         hit = torch.from_numpy(inside)
         t_hit[hit] = torch.from_numpy(allh.t[idx_c[inside]])
-        normal[hit] = torch.from_numpy(tracer.normals[allh.tri[idx_c[inside]]])
+        normal[hit] = torch.from_numpy(tracer.normals(allh.tri[idx_c[inside]]))
     if normal_loss == "facing":  # what every renderer shades with; the two sides of a thin wall differ by the ray alone
         back = (normal * torch.from_numpy(rays_d)[ray]).sum(-1) > 0
         normal = torch.where(back[:, None], -normal, normal)
