@@ -126,7 +126,7 @@ def simplify_indices(positions: np.ndarray, corners: np.ndarray, triangles: int,
     """meshoptimizer's simplifier to at most `triangles` triangles.
 
     positions: (W, 3) float32; corners: (F, 3) int indices into positions; attributes: (W, A) float32 weighed by
-    weights (A,) float32, or None. Returns (F', 3) int64: F' <= triangles unless the simplifier stops early (every
+    weights (A,) float32, or None. Returns (F', 3) uint32: F' <= triangles unless the simplifier stops early (every
     remaining collapse would break a seam or a border; past PRUNE_ABOVE it may drop whole small parts instead)."""
     missing = simplifier_missing()
     if missing:
@@ -143,7 +143,7 @@ def simplify_indices(positions: np.ndarray, corners: np.ndarray, triangles: int,
         m = _simplify(meshoptimizer, pruned, idx, pos, target, attributes, weights, meshoptimizer.SIMPLIFY_PRUNE)
         if m > 0:  # never every part: a decimation of nothing is no alternative
             out, n = pruned, m
-    return out[:n].astype(np.int64).reshape(-1, 3)
+    return out[:n].reshape(-1, 3).copy()  # uint32, the simplifier's own: a heavy mesh's chain levels are held
 
 
 def _simplify(meshoptimizer, out, idx, pos, target, attributes, weights, options: int) -> int:
@@ -183,7 +183,10 @@ class Decimator:
     def _wedge_data(self) -> tuple:
         if self._wedges is None:
             wedge_vertex, corners, wedge_slot, wedge_uv = wedges(self.mesh)
-            self._wedges = (wedge_vertex, corners, wedge_slot, wedge_uv, self.mesh.vertices[wedge_vertex])
+            vertices = self.mesh.vertices
+            same = len(wedge_vertex) == len(vertices) and np.array_equal(wedge_vertex, np.arange(len(vertices)))
+            # a wedge per vertex, in order (a welded bare shape): the mesh's own positions, not a copy
+            self._wedges = (wedge_vertex, corners, wedge_slot, wedge_uv, vertices if same else vertices[wedge_vertex])
         return self._wedges
 
     def source_level(self, triangles: int) -> int | None:
@@ -203,7 +206,7 @@ class Decimator:
         return level + self.pending_triangles(level)
 
     def kept_corners(self, triangles: int) -> np.ndarray:
-        """(F', 3) int64 wedge corners of the decimation to `triangles` (F' <= triangles unless the simplifier
+        """(F', 3) uint32 wedge corners of the decimation to `triangles` (F' <= triangles unless the simplifier
         stops early: `simplify_indices`)."""
         if triangles in self._levels:  # a chain level made as another count's source
             return self._levels[triangles]
