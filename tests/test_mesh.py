@@ -134,7 +134,7 @@ def test_bundled_samples_have_their_character(sample_meshes):
 
 
 def test_the_normals_of_some_triangles_are_those_of_the_whole_mesh(sample_meshes):
-    """The tracer computes hit normals when asked (not held: 12 B per triangle); the same bits as the whole mesh's."""
+    """Normals of chosen triangles (the tracer's hits) are the same bits as the whole mesh's."""
     from nbvh_core.geometry.exact import ExactTracer
 
     mesh = sample_meshes["bunny"]

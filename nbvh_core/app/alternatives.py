@@ -137,13 +137,14 @@ def alternatives(mesh: Mesh, target_mse: float | None, checks=None, held_out=Non
     out.decimations_tried = [tried[c] for c in sorted(tried)]
     if tick is not None:
         tick(f"the whole mesh ({mesh.n_triangles:,} triangles) as a compact mesh", planned)
-    scored = not over(rate[0] * mesh.n_triangles if rate else 0.0)  # encoded, decoded, traced and scored twice
+    whole_s = rate[0] * mesh.n_triangles if rate else 0.0  # a measurement of the whole mesh, predicted
+    scored = not over(whole_s)  # encoded, decoded, traced and scored twice
     if not scored:
         skipped.append("the whole mesh's image error (its bytes are exact)")
     out.mesh_compact = whole_mesh_entry(mesh, checks if scored else None, held_out if scored else None, tree)
     # Draco's size is said beside the verdict (storage alone), never weighed: measured last, and only in the plan's
     # share (the 10M-triangle lattice's took 9.2 s and 1 GiB at its peak on 2 cores).
-    if DracoPy is not None and over(rate[0] * mesh.n_triangles if rate else 0.0):
+    if DracoPy is not None and over(whole_s):
         skipped.append("Draco's size of the whole mesh (storage alone)")
     elif DracoPy is not None:
         if tick is not None:

@@ -66,6 +66,9 @@ class ExactTracer:
 
     def __init__(self, mesh: Mesh, backend: str = "auto"):
         self.mesh = mesh
+        # held, not computed per hit: computing them when asked (12 B per triangle saved) made labelling ~20%
+        # slower (a 32-step chunk on the bunny: 95-103 ms against 79-80 ms)
+        self._normals = mesh.face_normals()
         if backend not in ("auto", "embree", "numpy"):
             raise ValueError(f"unknown backend {backend!r}")
         self._scene = None
@@ -88,9 +91,8 @@ class ExactTracer:
         self.backend = "embree" if self._scene is not None else "numpy"
 
     def normals(self, tri: np.ndarray) -> np.ndarray:
-        """(K, 3) float32 unit normals of triangles `tri` (K,) int: computed when asked, not held (12 B per
-        triangle: 115 MiB of a 10M-triangle mesh for the whole run)."""
-        return self.mesh.face_normals(tri)
+        """(K, 3) float32 unit normals of triangles `tri` (K,) int."""
+        return self._normals[tri]
 
     def _intersect(self, rays_o: np.ndarray, rays_d: np.ndarray, t_max: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Embree nearest hits within t_max: (tfar (N,) float32, primID (N,) int32, -1 on a miss); split over
