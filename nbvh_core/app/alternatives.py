@@ -18,7 +18,7 @@ import time
 from ..decision.config import DecisionConfig
 from ..decision.records import Alternatives, Assessment, MeshMeasure
 from ..decision.verdict import verdict_before_training
-from ..geometry.bvh import build_full_tree
+from ..geometry.bvh import FullTree, SharedTree, build_full_tree, tree_of
 from ..geometry.decimation import CHAIN_LEVELS, Decimator, decimate, simplifier_missing
 from ..geometry.mesh import Mesh
 from ..planning.sizing import mesh_resident_bytes
@@ -203,21 +203,21 @@ def _smallest_meeting(counts: list[int], top: int, measure, meets, over) -> tupl
     return met, skipped
 
 
-def whole_mesh_entry(mesh: Mesh, checks, held_out, tree=None) -> MeshMeasure:
+def whole_mesh_entry(mesh: Mesh, checks, held_out, tree: "FullTree | SharedTree | None" = None) -> MeshMeasure:
     """The whole mesh as a compact mesh: its exact bytes and the grid's own error on both view sets (without
-    `checks`: the bytes alone)."""
-    from ..geometry.compact_mesh import compact_bytes, compact_mesh
+    `checks`: the bytes alone). tree: the mesh's tree when the caller has one (a `bvh.SharedTree` is built only
+    after the scoring: the decoded copy, its tracer and the tree are never resident together)."""
+    from ..geometry.compact_mesh import compact_bytes, decoded_mesh
 
-    if checks is None:  # the bytes alone: no decoded copy to score
-        return MeshMeasure(mesh.n_triangles, compact_bytes=compact_bytes(mesh, tree),
-                           look_bytes=look_carried_bytes(mesh, mesh.n_vertices, mesh.n_triangles))
-    nbytes, decoded = compact_mesh(mesh, tree)
-    entry = MeshMeasure(mesh.n_triangles, compact_bytes=nbytes,
-                        look_bytes=look_carried_bytes(mesh, mesh.n_vertices, mesh.n_triangles))
-    entry.compact_mse = checks.score_mesh(decoded).mse
-    if held_out is not None:
-        entry.compact_mse_held_out = held_out.score_mesh(decoded).mse
-        entry.colour_mse_held_out = _colour_mse(mesh, held_out)
+    entry = MeshMeasure(mesh.n_triangles, look_bytes=look_carried_bytes(mesh, mesh.n_vertices, mesh.n_triangles))
+    if checks is not None:
+        decoded = decoded_mesh(mesh)
+        entry.compact_mse = checks.score_mesh(decoded).mse
+        if held_out is not None:
+            entry.compact_mse_held_out = held_out.score_mesh(decoded).mse
+            entry.colour_mse_held_out = _colour_mse(mesh, held_out)
+        del decoded
+    entry.compact_bytes = compact_bytes(mesh, tree_of(mesh, tree))
     return entry
 
 
@@ -253,13 +253,14 @@ def assess(mesh: Mesh, model_bytes: int, decision: DecisionConfig, checks=None, 
 
     layout = decision.mesh_layout
     model = model_bytes + look_bytes
-    tree = tree if tree is not None else build_full_tree(mesh)
-    resident_bytes = mesh_resident_bytes(mesh, tree)
-    resident = resident_bytes["total"]
+    tree = tree if tree is not None else SharedTree(mesh)  # built after the decimations (their memory peak)
     # The Draco size always (cheap: shows which tool wins for storage alone); decimations only with a target.
     alt = alternatives(mesh, decision.target_mse if checks is not None else None, checks, held_out, tree,
                        decimator, tick)
-    compact = alt.mesh_compact.compact_bytes if alt.mesh_compact is not None else compact_bytes(mesh, tree)
+    resident_bytes = mesh_resident_bytes(mesh, tree_of(mesh, tree))
+    resident = resident_bytes["total"]
+    compact = (alt.mesh_compact.compact_bytes if alt.mesh_compact is not None
+               else compact_bytes(mesh, tree_of(mesh, tree)))
     # A mesh weighed against the model carries the asset's look too (the model's head and images are in `model`).
     whole_look = look_carried_bytes(mesh, mesh.n_vertices, mesh.n_triangles)
     resident, compact = resident + whole_look, compact + whole_look

@@ -20,7 +20,7 @@ import torch
 from ..decision.final_verdict import final_verdict, missed_surface
 from ..decision.records import Assessment, RunDecisions, RunNote, why_of
 from ..decision.verdict import mesh_kept
-from ..geometry.bvh import NODE_DTYPE, cut_tree, shared_tree
+from ..geometry.bvh import NODE_DTYPE, SharedTree, cut_tree, shared_tree
 from ..geometry.exact import ExactTracer
 from ..geometry.mesh import Mesh
 from ..geometry.texture_hold import hold_textures
@@ -172,13 +172,14 @@ def _keep_the_mesh(assessment, verdict, events: EventSink, checks: list, decimat
     return NotWorthCompressing(kept, decimator)
 
 
-def _training_bvh(mesh: Mesh, nodes: int, node_bits: int, events: EventSink, seconds: dict, tree=None):
+def _training_bvh(mesh: Mesh, nodes: int, node_bits: int, events: EventSink, seconds: dict,
+                  tree: SharedTree | None = None):
     """The BVH the model is trained on: `nodes` nodes cut from the mesh's full tree (`tree`, the plan's, else
     built), snapped to 8-bit boxes when the file stores them so (node_bits 8: each contains its exact box). A size
     search retrains with another T only, never another node count."""
     t = time.perf_counter()
     events(wire.phase(phase="bvh", message=f"{mesh.n_triangles} triangles -> {nodes} nodes"))
-    bvh = cut_tree(shared_tree(mesh) if tree is None else tree, nodes)
+    bvh = cut_tree(tree.get() if tree is not None else shared_tree(mesh), nodes)
     if node_bits == 8:
         bvh = dataclasses.replace(bvh, nodes=snap_nodes(bvh.nodes))
     seconds["bvh"] = time.perf_counter() - t

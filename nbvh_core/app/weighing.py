@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 from ..decision.alternative_curve import AlternativeCurve, CurvePoint
 from ..decision.records import Assessment
-from ..geometry.bvh import FullTree, shared_tree
+from ..geometry.bvh import SharedTree
 from ..geometry.decimation import Decimator
 from ..geometry.exact import ExactTracer
 from ..geometry.mesh import Mesh
@@ -45,8 +45,9 @@ class Weighing:
     look_bytes: int = 0
     #: the mesh's decimation chain: the final verdict's extra points come from it, never from a fresh pass
     decimator: Decimator | None = None
-    #: the mesh's full tree (`bvh.shared_tree`), built once for the plan; the training's BVH is cut from it
-    tree: FullTree | None = None
+    #: the mesh's full tree (`bvh.SharedTree`), built once in the plan (after its decimations); the training's BVH is
+    #: cut from it
+    tree: SharedTree | None = None
 
 
 #: The share of the training's time budget the plan's measurements may take: past it the optional ones are skipped
@@ -100,7 +101,7 @@ def weigh(mesh: Mesh, run: RunConfig, tracer: ExactTracer, made=None, events: Ev
     measured = run.decision.target_mse is not None
     limit = run.training.time_limit_s
     ticker = PlanProgress(events, should_cancel, max(PLAN_SHARE * limit, PLAN_MIN_S) if limit else None)
-    decimator, tree = Decimator(mesh), shared_tree(mesh)
+    decimator, tree = Decimator(mesh), SharedTree(mesh)
     assessment = assess(mesh, model_bytes, run.decision, checks if measured else None, held_out, look_bytes,
                         decimator, tree, ticker)
     if assessment.alternatives.skipped:

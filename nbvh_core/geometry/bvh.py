@@ -131,13 +131,11 @@ def build_full_tree(mesh: Mesh, max_leaf_size: int = 1, n_bins: int = 16, median
     split at the median of their longest centroid axis."""
     from ..kernels import library
 
-    tri = mesh.triangles()
-    tri_lo, tri_hi = tri.min(axis=1), tri.max(axis=1)
-    del tri
-    centroid = ((tri_lo.astype(np.float64) + tri_hi) * 0.5)
+    tri_lo, tri_hi = triangle_boxes(mesh)
     n_tri = tri_lo.shape[0]
     if library.fast_enabled() and n_tri:  # kernels/native/tree_build.cpp: node for node the numpy build below
-        return _build_full_tree_native(tri_lo, tri_hi, centroid, max_leaf_size, n_bins, median_below)
+        return _build_full_tree_native(tri_lo, tri_hi, max_leaf_size, n_bins, median_below)
+    centroid = ((tri_lo.astype(np.float64) + tri_hi) * 0.5)
 
     lo_list = [tri_lo.min(axis=0, keepdims=True)]
     hi_list = [tri_hi.max(axis=0, keepdims=True)]
@@ -204,9 +202,21 @@ def build_full_tree(mesh: Mesh, max_leaf_size: int = 1, n_bins: int = 16, median
                     depth=np.concatenate(depth_list), tri_order=order)
 
 
-def _build_full_tree_native(tri_lo: np.ndarray, tri_hi: np.ndarray, centroid: np.ndarray, max_leaf_size: int,
-                            n_bins: int, median_below: int) -> FullTree:
-    """build_full_tree by the compiled builder (the same tree; ~20x faster than the level-wise numpy sorts)."""
+def triangle_boxes(mesh: Mesh, chunk: int = 1 << 20) -> tuple[np.ndarray, np.ndarray]:
+    """Each triangle's box: (lo, hi), each (F, 3) float32, a chunk of triangles at a time (the (F, 3, 3) corners of
+    a 10M-triangle mesh at once are 360 MB)."""
+    n = mesh.n_triangles
+    lo, hi = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)
+    for a in range(0, n, chunk):
+        tri = mesh.vertices[mesh.faces[a:a + chunk]]
+        lo[a:a + chunk], hi[a:a + chunk] = tri.min(axis=1), tri.max(axis=1)
+    return lo, hi
+
+
+def _build_full_tree_native(tri_lo: np.ndarray, tri_hi: np.ndarray, max_leaf_size: int, n_bins: int,
+                            median_below: int) -> FullTree:
+    """build_full_tree by the compiled builder (the same tree; ~20x faster than the level-wise numpy sorts). tri_lo,
+    tri_hi: (F, 3) float32 triangle boxes, used as the builder's scratch (left permuted with the triangle order)."""
     from ..kernels import bindings
 
     n = len(tri_lo)
@@ -215,14 +225,14 @@ def _build_full_tree_native(tri_lo: np.ndarray, tri_hi: np.ndarray, centroid: np
     left, start, count = np.empty(cap, np.int64), np.empty(cap, np.int64), np.empty(cap, np.int64)
     depth, order, used = np.empty(cap, np.int32), np.empty(n, np.int64), np.zeros(1, np.int64)
     bindings.build_full_tree(tri_lo=np.ascontiguousarray(tri_lo, np.float32),
-                             tri_hi=np.ascontiguousarray(tri_hi, np.float32), centroid=centroid, n=n,
-                             max_leaf_size=max_leaf_size, n_bins=n_bins, median_below=median_below, capacity=cap,
-                             node_lo=lo, node_hi=hi, left=left, start=start, count=count, depth=depth, order=order,
-                             n_nodes=used)
+                             tri_hi=np.ascontiguousarray(tri_hi, np.float32), n=n, max_leaf_size=max_leaf_size,
+                             n_bins=n_bins, median_below=median_below, capacity=cap, node_lo=lo, node_hi=hi,
+                             left=left, start=start, count=count, depth=depth, order=order, n_nodes=used)
     m = int(used[0])
-    if m < cap:  # leaves of several triangles: fewer rows than reserved (one leaf each: exactly 2n - 1, no copy)
-        lo, hi, left, start, count, depth = (a[:m].copy() for a in (lo, hi, left, start, count, depth))
-    return FullTree(lo=lo, hi=hi, left=left, start=start, count=count, depth=depth, tri_order=order)
+    # Leaves of several triangles use fewer rows than reserved: the rows used are kept as views. The pages past them
+    # were never written, so they take no memory; copying them out held both (~0.6 GB at 10M triangles).
+    return FullTree(lo=lo[:m], hi=hi[:m], left=left[:m], start=start[:m], count=count[:m], depth=depth[:m],
+                    tri_order=order)
 
 
 def _sah_priority(tree: FullTree, node: int) -> float:
@@ -357,6 +367,28 @@ def shared_tree(mesh: Mesh) -> FullTree:
     SHALLOW_TREE_TRIANGLES, else at most 4: the same nodes down to 4 triangles; only the order of the triangles
     inside a node of at most 4 differs (the 1M lattice's compact mesh: 4,015,493 B against 4,015,534 B)."""
     return build_full_tree(mesh, max_leaf_size=1 if mesh.n_triangles < SHALLOW_TREE_TRIANGLES else 4)
+
+
+class SharedTree:
+    """A run's one `shared_tree`, built when first asked for (`get`): the plan measures its decimations and scores the
+    whole mesh before it exists, so the tree (~40 B per triangle at 10M) is not resident during the decimation
+    chain's top pass, which sets the plan's memory peak (bench/results/heavy.md)."""
+
+    def __init__(self, mesh: Mesh):
+        self.mesh = mesh
+        self._tree: FullTree | None = None
+
+    def get(self) -> FullTree:
+        if self._tree is None:
+            self._tree = shared_tree(self.mesh)
+        return self._tree
+
+
+def tree_of(mesh: Mesh, tree: "FullTree | SharedTree | None") -> FullTree:
+    """`tree` as a FullTree: itself, a SharedTree's (built now when not yet), or for None a new `build_full_tree`."""
+    if isinstance(tree, SharedTree):
+        return tree.get()
+    return tree if tree is not None else build_full_tree(mesh)
 
 
 def build_bvh(mesh: Mesh, budget: int = DEFAULT_NODES, n_bins: int = 16) -> BVH:

@@ -348,8 +348,20 @@ def compact_mesh(mesh: Mesh, tree=None) -> tuple[int, Mesh]:
     # The layout's triangles are the mesh's on its vertices snapped to the grid (what decode_compact reads back:
     # tests/test_compact_mesh.py), so they are taken from the encoder instead of decoding the bytes again.
     data, snapped = _encode(mesh, tree)
+    return len(data), _on_vertices(mesh, snapped)
+
+
+def decoded_mesh(mesh: Mesh, grid_bits: int = GRID_BITS) -> Mesh:
+    """The triangles `mesh`'s compact layout holds, without encoding it: the mesh on its vertices snapped to the
+    layout's global grid, which no cluster or tree changes (compact_mesh's second part; a heavy mesh is scored
+    before its tree is built)."""
+    origin, step = _grid(mesh.vertices, grid_bits)
+    return _on_vertices(mesh, _snapped(mesh.vertices, origin, step)[1])
+
+
+def _on_vertices(mesh: Mesh, snapped: np.ndarray) -> Mesh:
     # a sliver the grid collapsed to zero area is never hit (Embree skips it) and has no normal: left out
     keep = np.empty(mesh.n_triangles, bool)  # chunk by chunk: no (F, 3) float64 cross of a heavy mesh
     for a, b, cross in face_cross_chunks(snapped, mesh.faces):
         keep[a:b] = np.linalg.norm(cross, axis=1) > 0
-    return len(data), Mesh(vertices=snapped, faces=mesh.faces[keep], transform=mesh.transform, name=mesh.name)
+    return Mesh(vertices=snapped, faces=mesh.faces[keep], transform=mesh.transform, name=mesh.name)

@@ -228,7 +228,9 @@ def size_request(s: Settings, mesh: Mesh, grid: GridMeasures | None = None, resu
     measured once, the sizes chosen (`resolve`) and the table the predictor expects. resumed: the checkpoint's sizes
     stand (its target only decides: checks and the final verdict)."""
     fit = load_fit(device=s.device) if s.target_mse is not None and not resumed else None
-    feats = mesh_features(mesh) if fit is not None else None
+    feats = None
+    if fit is not None:  # taken with the grid's measures when the plan has them: one pass over the mesh
+        feats = grid.features if grid is not None and grid.features is not None else mesh_features(mesh)
     chosen, why = resolve(dataclasses.replace(s, target_mse=None) if resumed else s, mesh, grid, feats, fit)
     notes = (RunNote("plan", why),)
     if resumed:

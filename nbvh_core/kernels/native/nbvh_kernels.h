@@ -148,9 +148,10 @@ void nbvh_encode_clusters(const int32_t* faces /* (?, 3) */, const int64_t* grid
                           int64_t* grid_lo /* (c, 3) */, int64_t* grid_hi /* (c, 3) */, int threads);
 
 // ---- tree_build.cpp: the full binned-SAH tree (geometry/bvh.py build_full_tree's numpy code, node for node) ----
-// Triangles' boxes and centroids in; the tree's arrays out (capacity >= 2n - 1 rows), n_nodes[0] the rows used.
-void nbvh_build_full_tree(const float* tri_lo /* (n, 3) */, const float* tri_hi /* (n, 3) */,
-                          const double* centroid /* (n, 3) */, int64_t n, int max_leaf_size, int n_bins,
+// Triangles' boxes in (centroids are their midpoints in float64; the arrays are scratch: left permuted as `order`);
+// the tree's arrays out (capacity >= 2n - 1 rows), n_nodes[0] the rows used.
+void nbvh_build_full_tree(float* tri_lo /* (n, 3) */, float* tri_hi /* (n, 3) */,
+                          int64_t n, int max_leaf_size, int n_bins,
                           int median_below, int64_t capacity, float* node_lo /* (capacity, 3) */,
                           float* node_hi /* (capacity, 3) */, int64_t* left /* (capacity) */,
                           int64_t* start /* (capacity) */, int64_t* count /* (capacity) */,
