@@ -619,6 +619,34 @@ def test_the_plan_reports_each_measurement_and_cancel_stops_it_between_two(sampl
     assert whole() and not [e for e in events if e["event"] == "phase" and e["phase"] == "bvh"]
 
 
+def test_the_bvh_build_reports_its_progress_and_cancel_stops_it(monkeypatch, sample_meshes):
+    """The run's full tree (~11 s at 10M triangles on 2 cores) reports progress of phase "bvh" with an ETA while it
+    builds, and Cancel stops the builder before its next level: here the blob's build, slowed (each call of the
+    builder, compiled or numpy, waits first), is cancelled at its first report, before any training."""
+    import time
+
+    import nbvh_core.geometry.tree_build as bvh
+    from nbvh_core.app.pipeline import compress_mesh
+    from nbvh_core.kernels import bindings
+    from nbvh_core.planning.settings import settings_from_request
+    from nbvh_core.protocol.process import Cancelled
+
+    monkeypatch.setattr(bvh, "WATCH_EVERY_S", 0.05)
+    compiled, levels = bindings.call, bvh.level_bins
+    monkeypatch.setattr(bindings, "build_full_tree", lambda **kw: (time.sleep(0.5), compiled("build_full_tree", **kw)),
+                        raising=False)
+    monkeypatch.setattr(bvh, "level_bins", lambda *a: (time.sleep(0.1), levels(*a))[1])
+    events: list = []
+    built = lambda: [e for e in events if e["event"] == "progress" and e.get("phase") == "bvh"]  # noqa: E731
+    with pytest.raises(Cancelled, match="building the BVH"):
+        compress_mesh(sample_meshes["blob"], settings_from_request({"time_limit_s": 200, "force": True}), None,
+                      events=events.append, should_cancel=lambda: bool(built()))
+    ticks = built()
+    assert len(ticks) == 1 and ticks[0]["message"] == f"the full tree of {sample_meshes['blob'].n_triangles:,} triangles"
+    assert 0 <= ticks[0]["fraction"] < 1 and "eta_s" in ticks[0]
+    assert not [e for e in events if e["event"] == "phase" and e["phase"] in ("bvh", "train")]
+
+
 def test_a_plan_past_its_share_of_the_budget_says_what_it_skipped_and_decides(monkeypatch, sample_meshes):
     """The plan may take weighing.PLAN_SHARE of the training budget; past it (here: none at all) the run measures
     no further decimation, says so in one warning, and still ends with an answer on what it measured."""

@@ -21,6 +21,7 @@ from ..decision.verdict import verdict_before_training
 from ..geometry.bvh import FullTree, SharedTree, build_full_tree, tree_of
 from ..geometry.decimation import CHAIN_LEVELS, Decimator, decimate, simplifier_missing
 from ..geometry.mesh import Mesh
+from ..protocol.memory import return_free_memory
 from ..planning.sizing import mesh_resident_bytes
 
 
@@ -122,6 +123,7 @@ def alternatives(mesh: Mesh, target_mse: float | None, checks=None, held_out=Non
             tick(f"decimation to {count:,} triangles", planned)
         triangles, t = work(count), time.perf_counter()
         tried[count] = decimation_entry(mesh, count, checks, held_out, DracoPy, decimator)
+        return_free_memory()  # what the measurement freed: the next one (or the tree) is not built on top of it
         rate[:] = [(time.perf_counter() - t) / triangles]
         return tried[count]
 
@@ -135,6 +137,7 @@ def alternatives(mesh: Mesh, target_mse: float | None, checks=None, held_out=Non
     if met is not None:
         out.decimation = tried[met]
     out.decimations_tried = [tried[c] for c in sorted(tried)]
+    decimator.drop_mesh_corners()  # rebuilt if a later point needs them; not resident with the whole mesh's tree
     if tick is not None:
         tick(f"the whole mesh ({mesh.n_triangles:,} triangles) as a compact mesh", planned)
     whole_s = rate[0] * mesh.n_triangles if rate else 0.0  # a measurement of the whole mesh, predicted
@@ -217,6 +220,7 @@ def whole_mesh_entry(mesh: Mesh, checks, held_out, tree: "FullTree | SharedTree 
             entry.compact_mse_held_out = held_out.score_mesh(decoded).mse
             entry.colour_mse_held_out = _colour_mse(mesh, held_out)
         del decoded
+        return_free_memory()
     entry.compact_bytes = compact_bytes(mesh, tree_of(mesh, tree))
     return entry
 

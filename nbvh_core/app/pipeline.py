@@ -29,6 +29,7 @@ from ..neural.model import NeuralBVH
 from ..neural.quantize import StorageConfig, snap_nodes
 from ..planning.run_config import LookConfig, RunConfig, plan_run
 from ..planning.settings import PRESETS, Settings, estimate_file_bytes, preset  # noqa: F401  (re-exported)
+from ..protocol.memory import peak_resident_bytes  # noqa: F401 - the report's peak, read here
 from ..protocol import events as wire
 from ..protocol.events import EventSink, null_sink
 from ..protocol.process import Cancelled, NotWorthCompressing
@@ -83,27 +84,6 @@ class CompressResult:
                 "assessment": self.assessment.to_dict() if self.assessment is not None else None,
                 "decisions": self.decisions.to_dict(),
                 "memory": self.memory}
-
-
-def peak_resident_bytes() -> int | None:
-    """The process's peak resident memory in bytes (its whole life: in a batch, the largest asset's so far), or
-    None where the platform does not say (Windows). On Linux its own address space's high-water mark (VmHWM):
-    getrusage's ru_maxrss also counts the parent's when the process was spawned by vfork and exec (Python's
-    subprocess does): a benchmark that had generated a 20M-triangle mesh before starting the run read 17.8 GB
-    where the run itself peaked 5.1 GB."""
-    try:
-        with open("/proc/self/status") as status:
-            for line in status:
-                if line.startswith("VmHWM:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    try:
-        import resource
-    except ImportError:
-        return None
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    return int(peak if platform.system() == "Darwin" else peak * 1024)  # macOS says bytes, Linux kilobytes
 
 
 def memory_record(mesh: Mesh) -> dict:

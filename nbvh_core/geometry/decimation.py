@@ -180,14 +180,23 @@ class Decimator:
         self._wedges: tuple | None = None
         self._levels: dict[int, np.ndarray] = {}
 
-    def _wedge_data(self) -> tuple:
-        if self._wedges is None:
+    def _wedge_data(self, corners: bool = False) -> tuple:
+        """(wedge_vertex, corners, wedge_slot, wedge_uv, positions); corners: the whole mesh's wedge corners are
+        needed (rebuilt after `drop_mesh_corners`)."""
+        if self._wedges is None or (corners and self._wedges[1] is None):
             wedge_vertex, corners, wedge_slot, wedge_uv = wedges(self.mesh)
             vertices = self.mesh.vertices
             same = len(wedge_vertex) == len(vertices) and np.array_equal(wedge_vertex, np.arange(len(vertices)))
             # a wedge per vertex, in order (a welded bare shape): the mesh's own positions, not a copy
             self._wedges = (wedge_vertex, corners, wedge_slot, wedge_uv, vertices if same else vertices[wedge_vertex])
         return self._wedges
+
+    def drop_mesh_corners(self) -> None:
+        """Let the whole mesh's wedge corners go (12 B per triangle): once the chain's top level is made only a count
+        above it reads them, and they are rebuilt for one. The plan drops them before the whole mesh's tree is built
+        (its memory peak on a heavy mesh, bench/results/heavy.md)."""
+        if self._wedges is not None:
+            self._wedges = self._wedges[:1] + (None,) + self._wedges[2:]
 
     def source_level(self, triangles: int) -> int | None:
         """The chain level a decimation to `triangles` is simplified from (None: the whole mesh)."""
@@ -210,8 +219,8 @@ class Decimator:
         stops early: `simplify_indices`)."""
         if triangles in self._levels:  # a chain level made as another count's source
             return self._levels[triangles]
-        wedge_vertex, corners, _, wedge_uv, positions = self._wedge_data()
         level = self.source_level(triangles)
+        wedge_vertex, corners, _, wedge_uv, positions = self._wedge_data(corners=level is None)
         if level is not None and level not in self._levels:
             self._levels[level] = self.kept_corners(level)
         source = corners if level is None else self._levels[level]

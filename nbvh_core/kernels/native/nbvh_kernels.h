@@ -149,13 +149,15 @@ void nbvh_encode_clusters(const int32_t* faces /* (?, 3) */, const int64_t* grid
 
 // ---- tree_build.cpp: the full binned-SAH tree (geometry/bvh.py build_full_tree's numpy code, node for node) ----
 // Triangles' boxes in (centroids are their midpoints in float64; the arrays are scratch: left permuted as `order`);
-// the tree's arrays out (capacity >= 2n - 1 rows), n_nodes[0] the rows used.
+// the tree's arrays out (capacity >= 2n - 1 rows), n_nodes[0] the rows used. control[0]: triangles split so far
+// (the build's progress, written as it goes); control[1] != 0 (set by another thread) stops it before its next
+// level, with n_nodes[0] = -1.
 void nbvh_build_full_tree(float* tri_lo /* (n, 3) */, float* tri_hi /* (n, 3) */,
                           int64_t n, int max_leaf_size, int n_bins,
                           int median_below, int64_t capacity, float* node_lo /* (capacity, 3) */,
                           float* node_hi /* (capacity, 3) */, int64_t* left /* (capacity) */,
                           int64_t* start /* (capacity) */, int64_t* count /* (capacity) */,
                           int32_t* depth /* (capacity) */, int64_t* order /* (n) */, int64_t* n_nodes /* (1) */,
-                          int threads);
+                          int64_t* control /* (2) */, int threads);
 
 }  // extern "C"

@@ -135,7 +135,7 @@ int64_t partition_rows(T* rows, int64_t n, const std::vector<char>& right, std::
 extern "C" void nbvh_build_full_tree(float* tri_lo, float* tri_hi, int64_t n, int max_leaf_size, int n_bins,
                                      int median_below, int64_t capacity, float* node_lo, float* node_hi,
                                      int64_t* left, int64_t* start, int64_t* count, int32_t* depth, int64_t* order,
-                                     int64_t* n_nodes, int threads) {
+                                     int64_t* n_nodes, int64_t* control, int threads) {
     // tri_lo/tri_hi are the caller's scratch: row k holds the box of triangle order[k] from here on
     for (int64_t i = 0; i < n; ++i) order[i] = i;
     for (int a = 0; a < 3; ++a) node_lo[a] = INFINITY, node_hi[a] = -INFINITY;
@@ -151,6 +151,10 @@ extern "C" void nbvh_build_full_tree(float* tri_lo, float* tri_hi, int64_t n, in
         for (int64_t id : active)
             if (count[id] > max_leaf_size) splitting.push_back(id);
         if (splitting.empty()) break;
+        if (__atomic_load_n(&control[1], __ATOMIC_RELAXED)) {  // stopped: no tree
+            *n_nodes = -1;
+            return;
+        }
         const int64_t m = (int64_t)splitting.size();
         if (total + 2 * m > capacity) break;  // never: a full tree has at most 2n - 1 nodes
 #pragma omp parallel num_threads(threads)
@@ -178,6 +182,7 @@ extern "C" void nbvh_build_full_tree(float* tri_lo, float* tri_hi, int64_t n, in
                             lo[a] = std::min(lo[a], tri_lo[3 * k + a]), hi[a] = std::max(hi[a], tri_hi[3 * k + a]);
                     left[ch] = -1, start[ch] = cs, count[ch] = cc, depth[ch] = level;
                 }
+                __atomic_fetch_add(&control[0], c, __ATOMIC_RELAXED);
             }
         }
         active.clear();
