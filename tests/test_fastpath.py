@@ -130,7 +130,7 @@ def test_training_follows_the_same_loss_curve_and_renders_the_same(blob_model):
             model = NeuralBVH(bvh.nodes, cfg, mesh.transform)
             res = train(model, bvh, tracer, TrainConfig(steps=40, rays_per_step=1024, lr=5e-3, seed=1))
             runs[path] = (model.eval(), np.array([loss for _, loss in res.history]), res.compute_path)
-    (m_r, loss_r, path_r), (m_f, loss_f, path_f) = runs["reference"], runs["fast"]
+    (_, loss_r, path_r), (m_f, loss_f, path_f) = runs["reference"], runs["fast"]
     assert path_r.startswith("reference") and path_f.startswith("fast")
     assert loss_f[-5:].mean() < 0.95 * loss_f[0]  # it trained (40 small steps: ~10% lower with facing targets)
     # Same data (same seed): only float rounding differs, so the curves stay together.

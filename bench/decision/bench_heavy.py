@@ -132,7 +132,8 @@ def measure(name: str, args, work: Path) -> None:
                f"> {final['alternative_above'] / final['model_bytes']:.2f}" if final.get("alternative_above") else ""),
            "verdict": (final.get("message") or record.get("message") or verdict)[:300],
            "steps": " | ".join(f"{k} {t:.1f} s {p / 2**30:.2f} GiB" for k, t, p in steps if t >= 0.5 or p > 2**30)}
-    write_rows(CSV, [*(r for r in read_rows(CSV) if r["asset"] != name), row])
+    rows = [*(r for r in read_rows(CSV) if r["asset"] != name), row]
+    write_rows(CSV, sorted(rows, key=lambda r: int(r["triangles"])))  # by size: the README reads them in order
     print({k: row[k] for k in ("asset", "triangles", "wall_s", "plan_s", "bvh_s", "train_s", "peak_per_triangle",
                                "shipped", "ratio")}, flush=True)
 

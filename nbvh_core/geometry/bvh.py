@@ -231,9 +231,9 @@ def shared_tree(mesh: Mesh, watch: TreeWatch | None = None) -> FullTree:
 
 
 class SharedTree:
-    """A run's one `shared_tree`, built when first asked for (`get`): the plan measures its decimations and scores the
-    whole mesh before it exists, so the tree (~40 B per triangle at 10M) is not resident during the decimation
-    chain's top pass, which sets the plan's memory peak (bench/results/heavy.md)."""
+    """A run's one `shared_tree`, built when first asked for (`get`): the plan asks right after the decimation
+    chain's top pass, so the tree (~40 B per triangle at 10M) and that pass's work (the plan's memory peak,
+    bench/results/heavy.md) are never resident together."""
 
     def __init__(self, mesh: Mesh, watch: TreeWatch | None = None):
         self.mesh, self.watch = mesh, watch  # watch: the build's progress and Cancel
