@@ -116,8 +116,9 @@ def measure(name: str, args, work: Path) -> None:
         print(f"{name}: exit {code}: {verdict}", file=sys.stderr)
         return
     os_peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024  # the largest child so far
-    report = out / f"{path.stem}.report.json"
-    record = json.loads((report if report.exists() else out / f"{path.stem}.verdict.json").read_text())
+    stem = Path(path.stem).stem if path.suffix == ".gz" else path.stem  # the CLI's name for NAME.ply.gz: NAME
+    report = out / f"{stem}.report.json"
+    record = json.loads((report if report.exists() else out / f"{stem}.verdict.json").read_text())
     final = (record.get("decisions") or {}).get("final") or record.get("final") or {}
     peak = (record.get("memory") or {}).get("peak_resident_bytes")
     shipped = final.get("shipped") or ("model" if report.exists() else record.get("recommendation"))
