@@ -125,12 +125,8 @@ def alternatives(mesh: Mesh, target_mse: float | None, checks=None, held_out=Non
         tried[count] = decimation_entry(mesh, count, checks, held_out, DracoPy, decimator)
         return_free_memory()  # what the measurement freed: the next one (or the tree) is not built on top of it
         rate[:] = [(time.perf_counter() - t) / triangles]
-        if len(tried) == 1 and isinstance(tree, SharedTree):
-            # The whole mesh's tree, which its compact bytes always need, right after the chain's top pass (that
-            # pass's memory is freed; they are never resident together) and inside the share, so that the points
-            # after it are predicted with its time spent (~11 s at 10M triangles on 2 cores).
-            decimator.drop_mesh_corners()
-            tree.get()
+        if len(tried) == 1:
+            _tree_after_top_pass(decimator, tree)
         return tried[count]
 
     def would_overrun(count: int) -> bool:
@@ -162,6 +158,16 @@ def alternatives(mesh: Mesh, target_mse: float | None, checks=None, held_out=Non
     if skipped:
         out.skipped = "past the plan's time budget (spent, or predicted to be), not measured: " + "; ".join(skipped)
     return out
+
+
+def _tree_after_top_pass(decimator: Decimator, tree) -> None:
+    """A `bvh.SharedTree` not built yet is built now, right after the decimation chain's top pass: that pass's memory
+    is freed (they are never resident together), and inside the plan's share, so that the points after it are
+    predicted with its time spent (~11 s at 10M triangles on 2 cores). The whole mesh's compact bytes always need
+    it; the whole mesh's wedge corners go first (12 B per triangle, rebuilt if a later point needs them)."""
+    if isinstance(tree, SharedTree):
+        decimator.drop_mesh_corners()
+        tree.get()
 
 
 def _draco_bytes(mesh: Mesh, DracoPy) -> int:
