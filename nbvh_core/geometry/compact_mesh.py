@@ -143,14 +143,17 @@ def _encode(mesh: Mesh, tree=None, grid_bits: int = GRID_BITS) -> tuple[bytes, n
     return header + nodes + b"".join(records) + b"".join(payloads), decoded
 
 
-def _snapped(vertices: np.ndarray, origin: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
-    """Each vertex's grid point (V, 3) int64 and its decoded position (V, 3) float32, the float64 work a chunk of
-    rows at a time (on the whole 10M-triangle lattice at once it peaked ~0.5 GiB over the mesh)."""
-    grid = np.empty(vertices.shape, np.int64)
+def _snapped(vertices: np.ndarray, origin: np.ndarray, step: float,
+             with_grid: bool = True) -> tuple[np.ndarray | None, np.ndarray]:
+    """Each vertex's grid point (V, 3) int64 (None without `with_grid`: a decoded copy alone needs none) and its
+    decoded position (V, 3) float32, the float64 work a chunk of rows at a time (on the whole 10M-triangle lattice
+    at once it peaked ~0.5 GiB over the mesh)."""
+    grid = np.empty(vertices.shape, np.int64) if with_grid else None
     decoded = np.empty(vertices.shape, np.float32)
     for a in range(0, len(vertices), CROSS_CHUNK):
         g = np.rint((vertices[a:a + CROSS_CHUNK].astype(np.float64) - origin) / np.float64(step))
-        grid[a:a + CROSS_CHUNK] = g
+        if grid is not None:
+            grid[a:a + CROSS_CHUNK] = g
         decoded[a:a + CROSS_CHUNK] = origin + g * np.float64(step)
     return grid, decoded
 
@@ -356,7 +359,7 @@ def decoded_mesh(mesh: Mesh, grid_bits: int = GRID_BITS) -> Mesh:
     layout's global grid, which no cluster or tree changes (compact_mesh's second part; a heavy mesh is scored
     before its tree is built)."""
     origin, step = _grid(mesh.vertices, grid_bits)
-    return _on_vertices(mesh, _snapped(mesh.vertices, origin, step)[1])
+    return _on_vertices(mesh, _snapped(mesh.vertices, origin, step, with_grid=False)[1])
 
 
 def _on_vertices(mesh: Mesh, snapped: np.ndarray) -> Mesh:

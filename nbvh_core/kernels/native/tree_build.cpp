@@ -126,7 +126,7 @@ int64_t partition_rows(T* rows, int64_t n, const std::vector<char>& right, std::
         T* to = right[i] ? &spill[ROW * spilt++] : rows + ROW * kept++;  // a left row moves down (kept <= i)
         for (int k = 0; k < ROW; ++k) to[k] = rows[ROW * i + k];
     }
-    std::memcpy(rows + ROW * kept, spill.data(), ROW * spilt * sizeof(T));
+    if (spilt) std::memcpy(rows + ROW * kept, spill.data(), ROW * spilt * sizeof(T));  // none: data() may be null
     return kept;
 }
 
