@@ -73,3 +73,46 @@ def test_empty_batch(sample_meshes):
     z = np.zeros((0, 3), np.float32)
     assert tracer.first_hit(z, z).t.shape == (0,)
     assert tracer.all_hits(z, z).offsets.tolist() == [0]
+
+
+@pytest.mark.parametrize("compact", [False, True])
+def test_the_shared_embree_scene_answers_as_embreex(sample_meshes, sample_bvhs, compact):
+    """The scene on the mesh's own arrays (embree_scene.py, traced by native/embree_rays.cpp) against embreex's:
+    the same triangles and distances, in both of its layouts."""
+    from embreex import rtcore_scene
+    from embreex.mesh_construction import TriangleMesh
+
+    from nbvh_core.geometry.embree_scene import EmbreeScene, embree_library
+
+    mesh = sample_meshes["gyroid"]
+    ours = EmbreeScene(embree_library(), mesh.vertices, mesh.faces, compact=compact)
+    theirs = rtcore_scene.EmbreeScene()
+    TriangleMesh(scene=theirs, vertices=mesh.vertices, indices=mesh.faces)
+    o, d = sample_rays(*root_box(sample_bvhs["gyroid"]), 4000, np.random.default_rng(4), RayConfig())
+    t_max = np.random.default_rng(5).uniform(0.2, 2.0, len(o)).astype(np.float32)
+    t, prim = ours.intersect(o, d, t_max)
+    ref = theirs.run(o, d, dists=t_max.copy(), query="INTERSECT", output=1)
+    hit = prim >= 0
+    assert 500 < hit.sum() < len(o)  # hits, misses, and hits cut by t_max
+    assert np.array_equal(prim, ref["primID"])
+    assert np.allclose(t[hit], ref["tfar"][hit], rtol=0, atol=1e-6)
+    assert (t[hit] <= t_max[hit]).all()
+
+
+def test_the_tracer_pads_a_vertex_array_that_lacks_the_spare_row(sample_meshes):
+    """Embree reads 4 bytes past the last shared vertex: a mesh's loaded vertices carry a spare row (no copy); an
+    array without one is copied into one that has it, and traces the same."""
+    import dataclasses
+
+    from nbvh_core.geometry.embree_scene import padded_vertices
+
+    mesh = sample_meshes["blob"]
+    assert padded_vertices(mesh.vertices) is mesh.vertices or np.shares_memory(padded_vertices(mesh.vertices),
+                                                                               mesh.vertices)
+    bare = dataclasses.replace(mesh, vertices=mesh.vertices.copy())  # exactly (V, 3): nothing after it
+    padded = padded_vertices(bare.vertices)
+    assert not np.shares_memory(padded, bare.vertices) and np.array_equal(padded, bare.vertices)
+    o = np.full((50, 3), 0.5, np.float32) + np.float32(2) * np.eye(3, dtype=np.float32)[np.arange(50) % 3]
+    d = (np.full((50, 3), 0.5, np.float32) - o).astype(np.float32)
+    a, b = ExactTracer(mesh).first_hit(o, d), ExactTracer(bare).first_hit(o, d)
+    assert a.hit.all() and np.array_equal(a.tri, b.tri) and np.array_equal(a.t, b.t)

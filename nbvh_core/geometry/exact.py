@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .embree_scene import open_scene
 from .mesh import Mesh
 
 #: Embree queries of at least this many rays are split over threads (embreex releases the GIL: 2 threads trace
@@ -34,6 +35,18 @@ def _threads() -> int:
 
 #: After a hit, the next all-hits query starts this far (normalised units) beyond it; closer hits merge.
 ALL_HITS_EPS = 1e-5
+
+
+class _EmbreexScene:
+    """embreex's scene, where `embree_scene.open_scene` cannot build one (no kernel library)."""
+
+    def __init__(self, scene):
+        self.scene = scene
+
+    def intersect(self, rays_o: np.ndarray, rays_d: np.ndarray, t_max: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        res = self.scene.run(rays_o, rays_d, dists=np.ascontiguousarray(t_max, np.float32), query="INTERSECT",
+                             output=1)
+        return res["tfar"], res["primID"]
 
 
 @dataclass
@@ -73,6 +86,8 @@ class ExactTracer:
             raise ValueError(f"unknown backend {backend!r}")
         self._scene = None
         if backend in ("auto", "embree"):
+            self._scene = open_scene(mesh.vertices, mesh.faces)  # shared buffers, compact (embree_scene.py)
+        if backend in ("auto", "embree") and self._scene is None:
             try:
                 from embreex import rtcore_scene
                 from embreex.mesh_construction import TriangleMesh
@@ -82,9 +97,9 @@ class ExactTracer:
                 warnings.warn(f"embreex unavailable ({exc}); exact ray queries use the slower numpy fallback",
                               RuntimeWarning, stacklevel=2)
             else:
-                self._scene = rtcore_scene.EmbreeScene()
+                self._scene = _EmbreexScene(rtcore_scene.EmbreeScene())
                 # the mesh's own arrays (already float32 / int32): Embree copies them into its buffers
-                TriangleMesh(scene=self._scene, vertices=mesh.vertices.astype(np.float32, copy=False),
+                TriangleMesh(scene=self._scene.scene, vertices=mesh.vertices.astype(np.float32, copy=False),
                              indices=mesh.faces.astype(np.int32, copy=False))
         if self._scene is None:
             self._init_fallback()
@@ -101,10 +116,11 @@ class ExactTracer:
         n = rays_o.shape[0]
         parts = _threads() if n >= PARALLEL_MIN_RAYS else 1
 
+        if not isinstance(self._scene, _EmbreexScene):
+            return self._scene.intersect(rays_o, rays_d, t_max)
+
         def run(a: int, b: int):
-            res = self._scene.run(rays_o[a:b], rays_d[a:b], dists=np.ascontiguousarray(t_max[a:b], np.float32),
-                                  query="INTERSECT", output=1)
-            return res["tfar"], res["primID"]
+            return self._scene.intersect(rays_o[a:b], rays_d[a:b], t_max[a:b])
 
         if parts == 1:
             return run(0, n)

@@ -215,8 +215,10 @@ def mesh_from_arrays(vertices: np.ndarray, faces: np.ndarray, name: str = "mesh"
     transform = Transform(scale, offset)
     vn = v - offset  # Transform.to_normalised's arithmetic, in place: one float64 temporary, not three
     vn /= scale
-    vn = np.clip(vn, 0.0, 1.0, out=vn).astype(np.float32)
-    return Mesh(vertices=vn, faces=f.astype(np.int32), transform=transform, name=name, repairs=tuple(repairs),
+    np.clip(vn, 0.0, 1.0, out=vn)
+    padded = np.zeros((len(vn) + 1, 3), np.float32)  # a spare row: Embree's shared buffer reads 4 B past the last
+    padded[:-1] = vn                                  # vertex (embree_scene.padded_vertices), no copy needed there
+    return Mesh(vertices=padded[:-1], faces=f.astype(np.int32), transform=transform, name=name, repairs=tuple(repairs),
                 look=None if look is None or _says_nothing(look) else look)
 
 

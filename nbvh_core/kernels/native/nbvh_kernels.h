@@ -160,4 +160,12 @@ void nbvh_build_full_tree(float* tri_lo /* (n, 3) */, float* tri_hi /* (n, 3) */
                           int32_t* depth /* (capacity) */, int64_t* order /* (n) */, int64_t* n_nodes /* (1) */,
                           int64_t* control /* (2) */, int threads);
 
+// ---- embree_rays.cpp: nearest hits in an Embree 4 scene the caller built (geometry/embree_scene.py) ----
+// intersect: the library's rtcIntersect1, scene: its committed RTCScene (both handles from that library). Per
+// ray: the nearest hit with 0 <= t <= t_max[i]; out_t the hit's t (t_max[i] on a miss), out_prim its triangle
+// (-1 on a miss).
+void nbvh_embree_first_hits(void* intersect, void* scene, const float* rays_o /* (n, 3) */,
+                            const float* rays_d /* (n, 3) */, const float* t_max /* (n) */, int64_t n,
+                            float* out_t /* (n) */, int32_t* out_prim /* (n) */, int threads);
+
 }  // extern "C"
