@@ -435,3 +435,29 @@ def test_a_check_s_own_time_is_not_the_budget_s(blob):
     assert wall >= 1.0 + 0.9 * 0.25 * len(asked), (wall, len(asked))
     gaps = [b.seconds - a.seconds for a, b in zip(rule.decisions, rule.decisions[1:])]
     assert max(gaps) < 0.2 + 0.15, gaps  # the interval between checks, not interval + the check's 0.25 s
+
+
+def test_checks_past_their_allowance_are_the_budget_s_time(blob):
+    """With `checks_outside_budget_s` spent, a check's time is the budget's. Checks of 0.5 s every 0.2 s of a 1 s
+    budget: with all of them outside the clock, 4-5 run inside the loop (2-2.5 s on top of the second); with 0.25 s
+    allowed, the budget is gone after the second check."""
+    import time
+
+    from nbvh_core.decision.checks import CheckRule
+
+    _, bvh, tracer, _ = blob
+    asked = []
+
+    def slow_score(model):
+        asked.append(time.perf_counter())
+        time.sleep(0.5)
+        return 1.0
+
+    rule = CheckRule(slow_score, target=1e-9, max_log2=6, budget_s=1.0, bytes_at=lambda log2: 1000)
+    cfg = TrainConfig(steps=None, time_limit_s=1.0, rays_per_step=256, target_check_every_s=0.2, progress_every_s=0,
+                      checks_outside_budget_s=0.25)
+    tr = train(_model(bvh), bvh, tracer, cfg, TrainingHooks(target_reached=rule))
+    in_loop = len(asked) - 1  # the last is asked once the budget is spent (`EarlyStop.at_end`)
+    assert 1 <= in_loop <= 2 and not tr.stopped_early, in_loop
+    assert tr.checks_s >= 0.9 * 0.5 * in_loop, tr.checks_s
+    assert asked[-1] - asked[0] < 2.0, asked  # all checks outside the clock: >= 0.9 + 4 x 0.5 s

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import time
 from pathlib import Path
 
 from ..protocol import events as wire
@@ -48,6 +49,7 @@ def cmd_compress(args: argparse.Namespace) -> int:
     from ..protocol.process import outcome
     from .result_bundle import bundle_paths
 
+    started_at = time.perf_counter()  # the run's wall counts its loading (run_wall)
     sink = json_lines(sys.stdout) if args.events else progress_bar(sys.stderr)
     try:
         mesh_path = resolve_mesh(args.mesh)
@@ -57,7 +59,7 @@ def cmd_compress(args: argparse.Namespace) -> int:
         inputs = [mesh_path] + ([Path(args.resume)] if args.resume else [])
         check_outputs(list(paths.values()), inputs, overwrite=args.overwrite)
         with OutputLock(out):
-            return _compress_locked(args, mesh, mesh_path, paths, sink)
+            return _compress_locked(args, mesh, mesh_path, paths, sink, started_at)
     except BaseException as exc:  # the event stream says how the run ended, whatever ended it
         if args.events:
             sink(wire.error(kind=outcome(exc).kind, message=str(exc)))
@@ -103,7 +105,7 @@ def _write_alternative(mesh, assessment, stem: Path, mesh_path: Path, args, sink
         print(f"kept as a mesh: wrote {what} to {path} ({len(data):,} B)", file=sys.stderr)
 
 
-def _compress_locked(args, mesh, mesh_path, paths, sink) -> int:
+def _compress_locked(args, mesh, mesh_path, paths, sink, started_at: float) -> int:
     from .cli_options import request_from_args
     from ..protocol.outputs import checkpoint_for
     from .pipeline import compress_mesh, resume_settings
@@ -132,7 +134,7 @@ def _compress_locked(args, mesh, mesh_path, paths, sink) -> int:
     checkpoint = Path(args.checkpoint) if args.checkpoint else default_ck
     try:
         result = compress_mesh(mesh, settings, None, events=sink, should_cancel=install_cancel_handlers(),
-                               checkpoint_path=checkpoint, resume_from=args.resume)
+                               checkpoint_path=checkpoint, resume_from=args.resume, started_at=started_at)
     except NotWorthCompressing as exc:
         _write_alternative(mesh, exc.assessment, stem, mesh_path, args, sink, exc.decimator)
         raise

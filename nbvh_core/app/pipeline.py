@@ -38,6 +38,7 @@ from ..storage.fileformat import component_bytes, decode_nbvh, encode_nbvh, writ
 from ..training.appearance_training import SurfaceLabels, train_head
 from ..training.hooks import CheckpointFiles, TrainingHooks
 from ..training.train import TrainResult
+from .run_wall import within_wall
 from .trainings import RunContext, SizeSearch, mesh_identity
 from .weighing import alternative_at_model, measure_decimation, shipped_materials, weigh
 @dataclass
@@ -221,7 +222,8 @@ def _appearance(model: NeuralBVH, mesh: Mesh, tracer: ExactTracer, look: LookCon
 def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = None,
                   events: EventSink = null_sink, should_cancel: Callable[[], bool] = lambda: False,
                   evaluate_quality: bool = True, checkpoint_path: str | Path | None = None,
-                  compare_float32: bool = False, resume_from: str | Path | None = None) -> CompressResult:
+                  compare_float32: bool = False, resume_from: str | Path | None = None,
+                  started_at: float | None = None) -> CompressResult:
     """Compress `mesh` as `settings` ask (planned once: `plan_run`); write `out_path` (atomically) when given.
     Raises `process.Cancelled`, `process.TrainingDiverged` (nothing written in either case). compare_float32: also
     score each training before its storage is quantized (`seconds['mse_float32']`, for benchmarks). resume_from: a
@@ -229,10 +231,12 @@ def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = 
     NotWorthCompressing, unless `settings.force`: before training when the verdict says so (seconds), at a training
     check that projects the model above the alternative's curve, or after the held-out evaluation when a measured
     decimation reaches the model's MSE in fewer bytes than its file (`decision.final_verdict`); the assessment then
-    names what to ship."""
+    names what to ship. started_at: time.perf_counter() at the run's start, when it began before this call (the
+    CLI's loading): the training ends within `run_wall.RUN_WALL_FACTOR` x the budget of it."""
+    started_at = time.perf_counter() if started_at is None else started_at
     run = plan_run(settings, mesh, resumed=resume_from is not None)
     return _compress(mesh, run, out_path, events, should_cancel, evaluate_quality, checkpoint_path, compare_float32,
-                     resume_from)
+                     resume_from, started_at)
 
 
 def _score_the_file(model, data: bytes, has_look: bool, quality: Quality | None, weighing, tracer, events,
@@ -263,7 +267,7 @@ def turned_views_seed() -> int:
 
 
 def _compress(mesh: Mesh, run: RunConfig, out_path, events: EventSink, should_cancel, evaluate_quality: bool,
-              checkpoint_path, compare_float32: bool, resume_from) -> CompressResult:
+              checkpoint_path, compare_float32: bool, resume_from, started_at: float) -> CompressResult:
     """compress_mesh's stages on the planned run: verdict, BVH, size search, look, file, final verdict, ship."""
     notes = list(run.notes) + ([RunNote("resumed", f"resumed from the checkpoint {resume_from}")] if resume_from else [])
     seconds: dict = {}
@@ -277,6 +281,10 @@ def _compress(mesh: Mesh, run: RunConfig, out_path, events: EventSink, should_ca
         raise Cancelled("cancelled before the BVH was built")
     bvh = _training_bvh(mesh, run.nodes, run.storage.node_bits, events, seconds, weighing.tree)
     weighing.tree = None  # the full tree (~100 B per triangle) is not needed past the cut
+    run, wall = within_wall(run, started_at) if resume_from is None else (run, None)
+    if wall is not None:
+        notes.append(wall)
+        events(wire.phase(phase="train", message=wall.text))
     ctx = RunContext(mesh, bvh, tracer, TrainingHooks(events, should_cancel),
                      CheckpointFiles(checkpoint_path, resume_from=resume_from))
     search = SizeSearch(ctx, run, evaluate_quality, compare_float32, seconds, weighing)

@@ -6,7 +6,8 @@ from dataclasses import asdict, dataclass, field, fields
 from enum import Enum
 
 #: The kinds of step a run's account (`RunNote`) tells.
-NOTE_KINDS = ("plan", "resumed", "restart", "recovered", "growth", "search", "early stop", "look", "warning")
+NOTE_KINDS = ("plan", "resumed", "restart", "recovered", "growth", "search", "early stop", "look", "warning",
+              "wall")
 
 
 class CheckAction(str, Enum):

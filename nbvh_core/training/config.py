@@ -90,6 +90,10 @@ class TrainConfig:
     # The check's own time is not training time: the budget's clock (and the learning rate's schedule) stops for it,
     # so a checked training takes as many steps as an unchecked one (the bunny's 11 checks had cost it 10%).
     target_check_every_s: float = 20.0
+    #: Seconds of checks the budget's clock may leave out (None: all of them). Past them a check's time is the
+    #: budget's, so a run ends within its wall (`app.run_wall`: 1.25x the budget; the 10M lattice's 12 checks had
+    #: taken it 31 s past its 200 s of training, bench/results/heavy.csv).
+    checks_outside_budget_s: float | None = None
     #: The weights training returns: from `average_from` of the budget on, a moving average of each step's
     #: weights with this decay per step (a uniform mean over its first 1 / (1 - decay) steps; 0 = the last step's).
     #: At the end's learning rate the network's last steps scatter around its optimum: on the bunny (default preset
@@ -125,3 +129,5 @@ class TrainResult:
     checks: list = field(default_factory=list)
     #: (step, seconds, learning rate scale after) of each divergence the training recovered from (`recovery`)
     recovered: list = field(default_factory=list)
+    #: wall seconds the target's checks took (those past `checks_outside_budget_s` were the budget's)
+    checks_s: float = 0.0

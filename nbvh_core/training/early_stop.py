@@ -39,12 +39,13 @@ class EarlyStop:
     def act(self, model: NeuralBVH, opt, checkpoints: "Checkpoints", events: EventSink, phases, step: int,
             fraction: float, elapsed: float) -> bool:
         """Ask (when due) and do what the answer says: grow the table, or return True to end training. `spent_s`:
-        the seconds this call took (the caller's budget clock stops for them)."""
-        began = time.perf_counter()
+        the seconds this call took when it asked (the caller's budget clock stops for them while the run's wall
+        allows, `TrainConfig.checks_outside_budget_s`)."""
+        began, last = time.perf_counter(), self.last_s
         try:
             return self._act(model, opt, checkpoints, events, phases, step, fraction, elapsed)
         finally:
-            self.spent_s = time.perf_counter() - began
+            self.spent_s = time.perf_counter() - began if self.last_s != last else 0.0  # 0 when none was asked
 
     def _act(self, model, opt, checkpoints, events, phases, step: int, fraction: float, elapsed: float) -> bool:
         decision = self.reached(model, fraction, elapsed, phases.ready_to_stop)

@@ -348,13 +348,16 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig,
                                      leaf_errors, cut, phases), lr_scale=schedule.scale)
 
     t0, stopped_early = time.perf_counter() - elapsed_before, False
+    checks_free, checks_s = math.inf if cfg.checks_outside_budget_s is None else cfg.checks_outside_budget_s, 0.0
     gc.freeze()  # what exists now (torch, the model, the data) lives on: full collections skip it (were ~8% of a step)
     try:
         while (frac := schedule.fraction(step, elapsed := time.perf_counter() - t0)) < 1.0:
             if early.due(frac, elapsed, phases.ready_to_stop):
                 losses.read(frac, elapsed)  # a check may roll back or grow the model: judge the steps before it
             stopped_early = early.act(model, opt, checkpoints, events, phases, step, frac, elapsed)
-            t0 += early.spent_s  # a check measures: its time is not the budget's (nor the schedule's)
+            outside = min(early.spent_s, checks_free)  # a check measures: not the budget's time while the wall allows
+            t0, checks_free, checks_s = t0 + outside, checks_free - outside, checks_s + early.spent_s
+            early.last_s += early.spent_s - outside  # the period between checks stays the steps' time
             if stopped_early:
                 break
             if hooks.should_cancel():
@@ -388,7 +391,8 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig,
                          samples_per_s=progress.samples_per_s(seconds),
                          final_loss=guard.ema if guard.ema is not None else float("nan"), device=str(device),
                          history=history, compute_path=plan.describe(), kernel_plan=plan.to_dict(),
-                         stopped_early=stopped_early, grew=early.grew, recovered=recovery.recovered)
+                         stopped_early=stopped_early, grew=early.grew, recovered=recovery.recovered,
+                         checks_s=round(checks_s, 2))
     progress.emit(phases.phase, step, 1.0, result.final_loss, seconds, 0.0)
     phases.finish(result)
     early.at_end(model, opt, phases, events, stopped_early)
