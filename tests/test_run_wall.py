@@ -10,7 +10,7 @@ from nbvh_core.planning.settings import preset
 
 @pytest.fixture(scope="module")
 def default_run(sample_meshes):
-    return plan_run(preset("default").with_overrides(time_limit_s=200.0), sample_meshes["blob"])
+    return plan_run(preset("default").with_overrides(time_limit_s=200.0, target_mse=0.0005), sample_meshes["blob"])
 
 
 def test_a_light_run_keeps_its_budget_and_the_margin_goes_to_its_checks(default_run):
@@ -24,6 +24,7 @@ def test_a_run_whose_plan_ate_the_margin_trains_shorter_and_says_so(default_run)
     assert run.training.time_limit_s == pytest.approx(RUN_WALL_FACTOR * 200 - 60)
     assert run.training.checks_outside_budget_s == 0.0
     assert note.kind == "wall" and "190 s of its 200 s" in note.text
+    assert run.growth.budget_s == pytest.approx(RUN_WALL_FACTOR * 200 - 60)  # the checks project to the new end
     assert default_run.training.time_limit_s == 200.0  # the planned run is not changed
 
 

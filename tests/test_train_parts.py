@@ -461,3 +461,26 @@ def test_checks_past_their_allowance_are_the_budget_s_time(blob):
     assert 1 <= in_loop <= 2 and not tr.stopped_early, in_loop
     assert tr.checks_s >= 0.9 * 0.5 * in_loop, tr.checks_s
     assert asked[-1] - asked[0] < 2.0, asked  # all checks outside the clock: >= 0.9 + 4 x 0.5 s
+
+
+def test_the_budget_clock_leaves_overhead_off_only_within_its_margin(monkeypatch):
+    """`BudgetClock`: setup and checks off the budget's clock within the margin, the budget's past it; once checks
+    are the budget's, the finished model's check is held back from it (as long as the last check). Without a
+    margin (None) nothing but steps is counted, as before the run's wall."""
+    from nbvh_core.training import budget_clock
+
+    now = [100.0]
+    monkeypatch.setattr(budget_clock.time, "perf_counter", lambda: now[0])
+    clock = budget_clock.BudgetClock(3.0, elapsed_before=0.0, started_at=98.0)  # 2 s of setup: off, 1 s margin left
+    assert clock.elapsed() == 0.0
+    now[0] = 110.0
+    assert clock.checked(0.0) == 0.0 and clock.tail_s == 0.0  # no check asked
+    now[0] = 112.5  # a 2.5 s check: 1 s off the clock, 1.5 s the budget's
+    assert clock.checked(2.5) == 1.5
+    assert clock.elapsed() == pytest.approx(11.5) and clock.planned() == pytest.approx(14.0)
+    assert clock.checks_s == 2.5
+    free = budget_clock.BudgetClock(None, elapsed_before=5.0, started_at=90.0)  # no wall: setup and checks off
+    assert free.elapsed() == pytest.approx(5.0)
+    now[0] = 120.0
+    free.checked(4.0)
+    assert free.elapsed() == pytest.approx(3.5 + 5.0) and free.tail_s == 0.0

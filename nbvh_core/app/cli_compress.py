@@ -49,7 +49,7 @@ def cmd_compress(args: argparse.Namespace) -> int:
     from ..protocol.process import outcome
     from .result_bundle import bundle_paths
 
-    started_at = time.perf_counter()  # the run's wall counts its loading (run_wall)
+    started_at = getattr(args, "started_at", None) or time.perf_counter()  # the run's wall counts its loading
     sink = json_lines(sys.stdout) if args.events else progress_bar(sys.stderr)
     try:
         mesh_path = resolve_mesh(args.mesh)

@@ -33,7 +33,8 @@ class CheckRule:
     `records.CheckAction`).
 
     score(model) -> check MSE of the model as stored; target: the MSE level; max_log2: the largest table;
-    budget_s: the training's budget (its clock: seconds since this rule was made, less the checks' own time); budget_slope(log2)
+    budget_s: the training's budget (its clock: seconds since this rule was made, less the checks' own time as far as
+    `checks_outside_s` allows, as the training's `checks_outside_budget_s`); budget_slope(log2)
     -> d ln MSE / d ln time at that size (the size predictor's; None: the slope through the last two checks);
     grow_gain(log2) -> the predicted MSE ratio of a table twice as large (< 1; None: growth is judged on the
     target alone); bytes_at(log2) -> the file's bytes at that size as it ships (geometry, look, header); curve: the
@@ -48,10 +49,11 @@ class CheckRule:
     def __init__(self, score: Callable, target: float, max_log2: int, budget_s: float,
                  bytes_at: Callable[[int], int], curve: AlternativeCurve | None = None, budget_slope=None,
                  grow_gain=None, force: bool = False, shipped_form: Callable | None = None,
-                 state_form: Callable | None = None):
+                 state_form: Callable | None = None, checks_outside_s: float | None = None):
         self.score, self.target, self.max_log2, self.budget_s = score, target, max_log2, budget_s
         self.bytes_at, self.curve, self.budget_slope, self.grow_gain = bytes_at, curve, budget_slope, grow_gain
         self.force, self.shipped_form, self.state_form = force, shipped_form, state_form
+        self.checks_outside_s = math.inf if checks_outside_s is None else checks_outside_s
         self.decisions: list[CheckDecision] = []
         self.start_over()
 
@@ -59,7 +61,8 @@ class CheckRule:
         """For a training started again from scratch (after a divergence): the clock and the best checks start over;
         the decisions so far stay on record."""
         self._start = time.perf_counter()
-        self._measuring_s = 0.0  # spent in score(): the training's clock stops for it (`training.train`)
+        self._measuring_s = 0.0  # spent in score() off the training's clock (`training.train`)
+        self._outside_left = self.checks_outside_s  # ...as far as the run's wall allows (`checks_outside_budget_s`)
         self._best: dict[tuple, float] = {}  # the best check's MSE of each form (`state_form`)
         self.keep_mesh: CheckDecision | None = None
         self._first = len(self.decisions)  # this training's first decision (projections read its checks only)
@@ -113,7 +116,8 @@ class CheckRule:
         began = time.perf_counter()
         seconds = round(began - self._start - self._measuring_s, 2)  # training time: the checks' own is not
         mse = self.score(model)
-        self._measuring_s += time.perf_counter() - began
+        outside = min(time.perf_counter() - began, self._outside_left)
+        self._measuring_s, self._outside_left = self._measuring_s + outside, self._outside_left - outside
         log2 = model.cfg.encoding.log2_table
         self.decisions.append(CheckDecision(seconds, log2, mse, None, self.bytes_at(log2), None, CheckAction.TRAIN_ON,
                                             ""))

@@ -36,6 +36,7 @@ from ..protocol import events as wire
 from ..geometry.exact import ExactTracer
 from ..neural.model import NeuralBVH
 from ..protocol.process import Cancelled, TrainingDiverged
+from .budget_clock import BudgetClock
 from .checkpoints import Checkpoints, checkpoint_state, resumed_at
 from .config import LEAF_SAMPLINGS, TrainConfig, TrainResult
 from .early_stop import EarlyStop
@@ -322,7 +323,7 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig,
     """Train `model` in place on rays around `bvh`, labelled by `tracer`; freezes HashVQAD near the end. hooks: what
     the loop calls back, and when (`hooks.HOOK_SCHEDULE`: events, cancel, the target's checks, before the freeze);
     files: where checkpoints go and the one it resumes (`hooks.CheckpointFiles`)."""
-    events = hooks.events
+    events, called_at = hooks.events, time.perf_counter()
     check_config(cfg)
     device = pick_device(cfg.device)
     torch.manual_seed(cfg.seed)
@@ -344,20 +345,17 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig,
     losses = LossBook(read_every(cfg.loss_read_every, device), history, recovery, model, opt, phases)
 
     def state() -> dict:  # what a checkpoint holds now
-        return dict(checkpoint_state(model, opt, step, time.perf_counter() - t0, losses.with_unread(), batches,
+        return dict(checkpoint_state(model, opt, step, clock.elapsed(), losses.with_unread(), batches,
                                      leaf_errors, cut, phases), lr_scale=schedule.scale)
 
-    t0, stopped_early = time.perf_counter() - elapsed_before, False
-    checks_free, checks_s = math.inf if cfg.checks_outside_budget_s is None else cfg.checks_outside_budget_s, 0.0
+    clock, stopped_early = BudgetClock(cfg.checks_outside_budget_s, elapsed_before, called_at), False
     gc.freeze()  # what exists now (torch, the model, the data) lives on: full collections skip it (were ~8% of a step)
     try:
-        while (frac := schedule.fraction(step, elapsed := time.perf_counter() - t0)) < 1.0:
+        while (frac := schedule.fraction(step, (elapsed := clock.elapsed()) + clock.tail_s)) < 1.0:
             if early.due(frac, elapsed, phases.ready_to_stop):
                 losses.read(frac, elapsed)  # a check may roll back or grow the model: judge the steps before it
             stopped_early = early.act(model, opt, checkpoints, events, phases, step, frac, elapsed)
-            outside = min(early.spent_s, checks_free)  # a check measures: not the budget's time while the wall allows
-            t0, checks_free, checks_s = t0 + outside, checks_free - outside, checks_s + early.spent_s
-            early.last_s += early.spent_s - outside  # the period between checks stays the steps' time
+            early.last_s += clock.checked(early.spent_s)  # a check measures: budget time only past the wall margin
             if stopped_early:
                 break
             if hooks.should_cancel():
@@ -378,21 +376,21 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig,
             if cut is not None:
                 cut.after_step(frac, batches, leaf_errors, phase)
             progress.samples += len(batch)
-            now = time.perf_counter() - t0
+            now = clock.elapsed()
             checkpoints.maybe_save(step, now, state)
             progress.maybe_emit(phase, step, frac, history[-1][1] if history else float("nan"), now)
-        losses.read(frac, time.perf_counter() - t0)  # the last steps' losses, judged as every other
+        losses.read(frac, clock.elapsed())  # the last steps' losses, judged as every other
     finally:
         batches.close()
         gc.unfreeze()
     guard.finish(model, step)
-    seconds = time.perf_counter() - t0
+    seconds = clock.elapsed()
     result = TrainResult(steps=step, seconds=seconds, samples=progress.samples,
                          samples_per_s=progress.samples_per_s(seconds),
                          final_loss=guard.ema if guard.ema is not None else float("nan"), device=str(device),
                          history=history, compute_path=plan.describe(), kernel_plan=plan.to_dict(),
                          stopped_early=stopped_early, grew=early.grew, recovered=recovery.recovered,
-                         checks_s=round(checks_s, 2))
+                         checks_s=round(clock.checks_s, 2))
     progress.emit(phases.phase, step, 1.0, result.final_loss, seconds, 0.0)
     phases.finish(result)
     early.at_end(model, opt, phases, events, stopped_early)
