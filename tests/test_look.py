@@ -465,3 +465,26 @@ def test_curved_maps_land_within_half_a_texel_of_a_512_px_texture():
         texels = np.abs(mapped - exact).max(1) * 512
         away = seam_distance(p, seam_edges(v, f, look.corner_uvs)) > 0.01
         assert (texels[away] < 0.5).mean() >= 0.95, (name, (texels[away] < 0.5).mean())
+
+
+def test_with_a_target_the_head_trains_first_and_every_check_weighs_the_model_s_colour():
+    """A run with a target and a time budget trains the appearance head before the geometry (it learns from the
+    mesh's surface), so each check scores the model with it: colour MSE beside the geometry's, against the
+    decimations' colour on the same check views."""
+    from nbvh_core.app.pipeline import compress_mesh
+    from nbvh_core.planning.settings import preset
+
+    m = demo_assets.globe(16, 8, texture=32)
+    said = []
+    s = preset("default").with_overrides(force=True, eval_views=4, eval_resolution=48, target_mse=1e-7,
+                                         time_limit_s=6.0, target_check_every_s=0.5)
+    r = compress_mesh(m, s, events=said.append)
+    phases = [e for e in said if e.get("event") == "phase"]
+    head_at = next(i for i, e in enumerate(phases) if e["phase"] == "appearance")
+    geometry_at = next(i for i, e in enumerate(phases) if e["phase"] == "train" and " labels, " in e["message"])
+    assert head_at < geometry_at
+    checks = [d for d in r.decisions.checks if d.action != "finish"]
+    assert checks and all(d.colour_mse is not None and 0.0 < d.colour_mse < 0.2 for d in checks), checks
+    alternatives = r.assessment.alternatives
+    assert all(e.colour_mse is not None for e in alternatives.decimations_tried + [alternatives.mesh_compact]
+               if e.triangles)

@@ -309,6 +309,29 @@ def test_the_alternative_curve_is_the_measured_envelope_interpolated_in_log_log(
     assert 1000 < curve.triangles_at(0.0015) < 4000 and 4000 < curve.triangles_at(0.0001) < 16000
 
 
+def test_a_check_keeps_the_mesh_only_where_it_also_reaches_the_model_s_colour(monkeypatch):
+    """For an asset with a look (the head trained before the geometry, the score a CheckScore), a decimation that
+    beats the model's geometry stands in for it only when its colour MSE is no worse than the model's: a torn
+    texture's decimation does not stop the training; one as good in colour does, and the line says both."""
+    from nbvh_core.decision.alternative_curve import AlternativeCurve, CurvePoint
+    from nbvh_core.decision.checks import CheckScore
+
+    now = [50.0]
+    curve = AlternativeCurve([CurvePoint(500, 0.01, 125, 125, colour_mse=0.02),
+                              CurvePoint(2000, 0.002, 500, 500, colour_mse=0.02),
+                              CurvePoint(40000, 1e-5, 10000, None, colour_mse=0.0001)])
+    kw = dict(target=0.001, budget_s=100.0, curve=curve, budget_slope=lambda log2: 0.0, grow_gain=lambda log2: 0.5,
+              bytes_at=lambda log2: 4000 * 2 ** (log2 - 10))
+    better_colour = _rule(monkeypatch, [CheckScore(0.004, 0.005)], now, **kw)
+    decided = better_colour(_model_at(10))
+    assert decided.action == "train on" and better_colour.keep_mesh is None and decided.colour_mse == 0.005
+    worse_colour = _rule(monkeypatch, [CheckScore(0.004, 0.05)], now, **kw)
+    assert worse_colour(_model_at(10)).action == "stop: keep the mesh"
+    assert "colour 0.02, the model's 0.05" in worse_colour.decisions[0].reason
+    bare = _rule(monkeypatch, [0.004], now, **kw)  # no colour said: geometry alone, as before
+    assert bare(_model_at(10)).action == "stop: keep the mesh" and bare.decisions[0].colour_mse is None
+
+
 def test_a_check_keeps_the_mesh_when_the_model_stays_above_a_measured_decimation(monkeypatch):
     """Above the curve at its projection and no growth that gets under it: stop, keep the mesh; --force trains on;
     growth only where the grown model is projected under the curve."""

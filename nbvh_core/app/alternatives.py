@@ -66,10 +66,12 @@ def decimation_entry(mesh: Mesh, count: int, checks, held_out, draco,
         return MeshMeasure(0, count, mse=math.inf, compact_mse=math.inf)
     tree = build_full_tree(dec)  # one tree for the resident count and the compact layout's clusters
     nbytes, decoded = compact_mesh(dec, tree)
-    entry = MeshMeasure(dec.n_triangles, count, mse=checks.score_mesh(dec).mse,
+    as_shipped = checks.score_mesh(dec)  # with its look, when it has one: the checks weigh its colour too
+    entry = MeshMeasure(dec.n_triangles, count, mse=as_shipped.mse,
                         resident_bytes=mesh_resident_bytes(dec, tree)["total"], compact_bytes=nbytes,
                         look_bytes=look_carried_bytes(mesh, dec.n_vertices, dec.n_triangles),
-                        compact_mse=checks.score_mesh(decoded).mse)
+                        compact_mse=checks.score_mesh(decoded).mse,
+                        colour_mse=as_shipped.colour_mse if dec.look is not None else None)
     if held_out is not None:
         entry.compact_mse_held_out = held_out.score_mesh(decoded).mse
         entry.colour_mse_held_out = _colour_mse(dec, held_out)
@@ -228,6 +230,7 @@ def whole_mesh_entry(mesh: Mesh, checks, held_out, tree: "FullTree | SharedTree 
     if checks is not None:
         decoded = decoded_mesh(mesh)
         entry.compact_mse = checks.score_mesh(decoded).mse
+        entry.colour_mse = checks.score_mesh(mesh).colour_mse if mesh.look is not None else None
         if held_out is not None:
             entry.compact_mse_held_out = held_out.score_mesh(decoded).mse
             entry.colour_mse_held_out = _colour_mse(mesh, held_out)

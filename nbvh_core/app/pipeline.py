@@ -37,7 +37,7 @@ from ..rendering.metrics import Quality, ViewScorer
 from ..storage.fileformat import component_bytes, decode_nbvh, encode_nbvh, write_atomic
 from ..training.appearance_training import SurfaceLabels, train_head
 from ..training.hooks import CheckpointFiles, TrainingHooks
-from ..training.train import TrainResult
+from ..training.train import TrainResult, pick_device
 from .run_wall import within_wall
 from .trainings import RunContext, SizeSearch, mesh_identity
 from .weighing import alternative_at_model, measure_decimation, shipped_materials, weigh
@@ -190,33 +190,57 @@ def _metadata(mesh: Mesh, run: RunConfig, notes: list, assessment, tr: TrainResu
 
 
 def _appearance(model: NeuralBVH, mesh: Mesh, tracer: ExactTracer, look: LookConfig, storage: StorageConfig,
-                seed: int, made, tr: TrainResult, events: EventSink, should_cancel, seconds: dict) -> dict:
-    """Give the model the mesh's materials and, when its look needs one, train the appearance head (`look.budget_s`,
-    or without a time budget `look.share` of the geometry's training time added; `seed`: the run's) and hold it as
-    the file stores it (`storage`). Returns what the file's metadata records of it ({} for a bare shape)."""
+                seed: int, made, tr: TrainResult | None, events: EventSink, should_cancel, seconds: dict,
+                trained: tuple | None = None) -> dict:
+    """Give the model the mesh's materials and, when its look needs one, the appearance head: `trained` (head,
+    metadata) when it was trained before the geometry (`_head_first`), else trained now (`look.budget_s`, or without
+    a time budget `look.share` of the geometry's training time `tr` added; `seed`: the run's). Returns what the
+    file's metadata records of it ({} for a bare shape)."""
     if mesh.look is None:
         return {}
     model.materials = shipped_materials(mesh, made)
     if made is None:
         return {"slots": mesh.look.n_slots, "head": None}
+    if trained is None:
+        budget = look.budget_s or max(1.0, tr.seconds * look.share / max(1 - look.share, 1e-6))
+        trained = _train_head(mesh, tracer, look, storage, seed, made, budget, model.device, events, should_cancel,
+                              seconds)
+    model.appearance = trained[0]
+    return trained[1]
+
+
+def _train_head(mesh: Mesh, tracer: ExactTracer, look: LookConfig, storage: StorageConfig, seed: int, made,
+                budget_s: float, device, events: EventSink, should_cancel, seconds: dict) -> tuple:
+    """The appearance head `made` trained on the mesh's exact surface labels for `budget_s` seconds and held as the
+    file stores it (`storage`): (the head, what the file's metadata records of it)."""
     head, face_patch = made
     cfg = head.cfg
-    budget = look.budget_s or max(1.0, tr.seconds * look.share / max(1 - look.share, 1e-6))
     events(wire.phase(phase="appearance", message=f"{cfg.slots} material slot(s), {cfg.patches} patch(es)"
-                                                  f"{', texture coordinates' if cfg.uv else ''}: {budget:.0f} s"))
+                                                  f"{', texture coordinates' if cfg.uv else ''}: {budget_s:.0f} s"))
     t = time.perf_counter()
-    head = head.to(model.device)
+    head = head.to(device)
     torch.manual_seed(seed)
     labels = SurfaceLabels(mesh, tracer, np.random.default_rng(seed + 1), face_patch, colour=cfg.target == "colour")
-    result = train_head(head, labels, budget, should_stop=should_cancel,
+    result = train_head(head, labels, budget_s, should_stop=should_cancel,
                         pool_size=1 << 19 if look.budget_s else 1 << 15)
     if should_cancel():
         raise Cancelled("cancelled while training the appearance head")
     finalize_head(head, storage.table_bits, storage.network_bits)
-    model.appearance = head
     seconds["appearance"] = time.perf_counter() - t
-    return {"slots": cfg.slots, "patches": cfg.patches, "head": {"steps": result.steps, "seconds": round(result.seconds, 2),
-                                         "final_loss": result.final_loss}}
+    return head, {"slots": cfg.slots, "patches": cfg.patches,
+                  "head": {"steps": result.steps, "seconds": round(result.seconds, 2), "final_loss": result.final_loss}}
+
+
+def _head_first(mesh: Mesh, tracer: ExactTracer, run: RunConfig, made, events: EventSink, should_cancel,
+                seconds: dict) -> tuple | None:
+    """For a run whose checks weigh the model against the mesh (a target, a time budget) and an asset whose look
+    needs a head: the head trained before the geometry - it learns from the mesh's surface, not the model's - so that
+    every check scores the model's colour beside its geometry, as the mesh's is (`trainings.stored_mse`). Returns
+    `_train_head`'s (head, metadata), or None: the head, if any, trains after the geometry."""
+    if made is None or mesh.look is None or not run.look.budget_s or run.decision.target_mse is None:
+        return None
+    return _train_head(mesh, tracer, run.look, run.storage, run.training.seed, made, run.look.budget_s,
+                       pick_device(run.training.device), events, should_cancel, seconds)
 
 
 def compress_mesh(mesh: Mesh, settings: Settings, out_path: str | Path | None = None,
@@ -281,12 +305,14 @@ def _compress(mesh: Mesh, run: RunConfig, out_path, events: EventSink, should_ca
         raise Cancelled("cancelled before the BVH was built")
     bvh = _training_bvh(mesh, run.nodes, run.storage.node_bits, events, seconds, weighing.tree)
     weighing.tree = None  # the full tree (~100 B per triangle) is not needed past the cut
-    run, wall = within_wall(run, started_at) if resume_from is None else (run, None)
+    run, wall = within_wall(run, started_at) if resume_from is None else (run, None)  # the look's time reserved
     if wall is not None:
         notes.append(wall)
         events(wire.phase(phase="train", message=wall.text))
+    look = _head_first(mesh, tracer, run, head, events, should_cancel, seconds) if resume_from is None else None
     ctx = RunContext(mesh, bvh, tracer, TrainingHooks(events, should_cancel),
-                     CheckpointFiles(checkpoint_path, resume_from=resume_from))
+                     CheckpointFiles(checkpoint_path, resume_from=resume_from),
+                     None if look is None else (look[0], shipped_materials(mesh, head)))
     search = SizeSearch(ctx, run, evaluate_quality, compare_float32, seconds, weighing)
     chosen_log2 = search.search()
     model, tr, run_used, trained_notes, quality = search.trained[chosen_log2]
@@ -295,15 +321,16 @@ def _compress(mesh: Mesh, run: RunConfig, out_path, events: EventSink, should_ca
         d = search.rule.keep_mesh
         # The mesh kept is chosen on the held-out views, as every keep is (the check views only decided to stop).
         kept_on = weighing.curve_held_out or weighing.curve
-        raise _keep_the_mesh(assessment, final_verdict(d.model_bytes, d.projected_mse, target, kept_on), events,
-                             search.rule.decisions, weighing.decimator)
+        raise _keep_the_mesh(assessment, final_verdict(d.model_bytes, d.projected_mse, target, kept_on,
+                                                       model_colour_mse=d.colour_mse),
+                             events, search.rule.decisions, weighing.decimator)
     notes += search.notes + list(trained_notes)
     missed = quality and missed_surface(quality.silhouette_iou, quality.mse, target, tr.steps, tr.seconds)
     if missed:
         notes.append(RunNote("warning", missed))
         events(wire.warning(message=missed))
     look_info = _appearance(model, mesh, tracer, run.look, run_used.storage, run_used.training.seed, head, tr, events,
-                            should_cancel, seconds)
+                            should_cancel, seconds, look)
     metadata = _metadata(mesh, run_used, notes, assessment, tr, quality)
     if look_info:
         metadata["appearance"] = look_info

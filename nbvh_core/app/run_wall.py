@@ -19,9 +19,9 @@ from ..planning.run_config import RunConfig
 #: The run's wall (from its start to the training's end) as a multiple of its time budget: the plan's 25% share on
 #: top of the training's budget.
 RUN_WALL_FACTOR = 1.25
-#: Seconds held back for what follows the training before its evaluation (the finished model made ready to store
-#: and score: ~1 s on the 10M lattice, which ended its training 1.0 s past its wall without this).
-END_RESERVE_S = 2.0
+#: The share of the budget held back for what follows the training before its evaluation (the finished model made
+#: ready to store and score: ~1 s on the 10M lattice, which ended its training 1.0 s past its wall without this).
+END_RESERVE = 0.01
 #: A shortened training keeps at least this share of its budget (a run whose plan overran on a slow machine still
 #: trains a model worth weighing; it then ends past its wall, and says so).
 MIN_TRAINING_SHARE = 0.5
@@ -44,7 +44,7 @@ def within_wall(run: RunConfig, started_at: float, now: float | None = None) -> 
     now = time.perf_counter() if now is None else now
     spent = now - started_at
     training_s = run.training.time_limit_s
-    left = RUN_WALL_FACTOR * budget - spent - (run.look.budget_s or 0.0) - END_RESERVE_S  # the geometry's wall
+    left = (RUN_WALL_FACTOR - END_RESERVE) * budget - spent - (run.look.budget_s or 0.0)  # the geometry's wall
     fitted = max(min(training_s, left), MIN_TRAINING_SHARE * training_s)
     training = dataclasses.replace(run.training, time_limit_s=fitted, checks_outside_budget_s=max(left - fitted, 0.0))
     note = None

@@ -14,7 +14,7 @@ from typing import NamedTuple
 
 import torch
 
-from ..decision.checks import CheckRule
+from ..decision.checks import CheckRule, CheckScore
 from ..decision.growth import GrowthPlan
 from ..decision.records import RunNote
 from ..decision.size_search import search_size
@@ -40,13 +40,16 @@ DIVERGENCE_RETRIES = 2
 @dataclass(frozen=True)
 class RunContext:
     """What every training of one run shares: the mesh, its training BVH and exact tracer, the hooks the trainings
-    call (events, cancel; `training.hooks`) and the checkpoint files (where they go, the one resumed)."""
+    call (events, cancel; `training.hooks`) and the checkpoint files (where they go, the one resumed); look: for an
+    asset whose appearance head was trained before the geometry, (the head as stored, the materials the file ships):
+    the checks score the model with it, its colour too."""
 
     mesh: Mesh
     bvh: BVH
     tracer: ExactTracer
     hooks: TrainingHooks
     files: CheckpointFiles
+    look: tuple | None = None
 
 
 class Trained(NamedTuple):
@@ -64,20 +67,24 @@ def mesh_identity(mesh: Mesh) -> dict:
     h.update(mesh.faces.tobytes())
     return {"triangles": mesh.n_triangles, "vertices": mesh.n_vertices, "sha256": h.hexdigest()}
 
-def stored_mse(scorer: ViewScorer, storage):
+def stored_mse(scorer: ViewScorer, storage, look: tuple | None = None):
     """score(model) for the training's checks: the image MSE of `model` as its file would hold it (a copy at its
     stored precision; the training's own model is left as it is): the float32 model read 4.7% (spiky sphere) to 18%
     (bunny, its table grown late) below the stored one. A low-bit table is scored at 8 bits until it trains through
     its own grid (`training.encoding_phases.grid_phase_pending`): that last phase recovers the rounding (6 bits: +3.1% over
     the float model after it, 1.24x rounded without it; `tests/test_quantize.py`), and growth decided on the rounded
-    score grew the bunny's table in both runs so scored (bench/results/target_runs.md)."""
-    def score(model) -> float:
+    score grew the bunny's table in both runs so scored (bench/results/target_runs.md). look: (the appearance head,
+    the materials) to score the model with: the answer is then a `CheckScore`, its colour MSE beside."""
+    def score(model) -> float | CheckScore:
         stored = copy.deepcopy(model)
         stored.eval()
         pending = grid_phase_pending(model, storage.table_bits)
         stored.finalize_storage(dataclasses.replace(storage, table_bits=8) if pending else storage)
+        if look is not None:
+            stored.appearance, stored.materials = look
         with torch.no_grad():
-            return scorer.score_model(stored)[0].mse
+            quality = scorer.score_model(stored)[0]
+        return quality.mse if look is None else CheckScore(quality.mse, quality.colour_mse)
     return score
 
 def train_with_restarts(ctx: RunContext, run: RunConfig,
@@ -130,7 +137,7 @@ class SizeSearch:
         self.notes: list[RunNote] = []
         self.rule: CheckRule | None = None  # the growing training's checks, once it ran
         self.check_views_mse: float | None = None  # the kept model on the check views (the report gives both)
-        self.score_stored = stored_mse(weighing.checks, run.storage)
+        self.score_stored = stored_mse(weighing.checks, run.storage, ctx.look)
         seconds.update(train=0.0, eval=0.0)
 
     def search(self) -> int:

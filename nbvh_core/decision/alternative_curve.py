@@ -19,7 +19,7 @@ from .records import Alternatives, MeshMeasure
 class CurvePoint:
     """bytes: the compact mesh's exact bytes; mse: its measured MSE on this curve's views; triangles; requested:
     the decimation count asked for (None: the whole mesh); colour_mse: for an asset with a look, the colour MSE of
-    the mesh as it ships with its look on the held-out views (None: no look, or not measured)."""
+    the mesh as it ships with its look on this curve's views (None: no look, or not measured)."""
 
     bytes: int
     mse: float
@@ -41,7 +41,7 @@ class CurvePoint:
         point: its bytes are the compact mesh and what it needs to carry the asset's look
         (`app.alternatives.look_carried_bytes`), its MSE on the check views or (held_out) the held-out views."""
         mse = entry.compact_mse_held_out if held_out else entry.compact_mse
-        colour = entry.colour_mse_held_out if held_out else None
+        colour = entry.colour_mse_held_out if held_out else entry.colour_mse
         return cls(int(entry.compact_bytes) + int(entry.look_bytes or 0), float(mse), int(entry.triangles),
                    entry.requested_triangles, None if colour is None else float(colour))
 

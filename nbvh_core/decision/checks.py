@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Callable
+from typing import Callable, NamedTuple
 
 from .alternative_curve import AlternativeCurve
 from .records import CheckAction, CheckDecision
@@ -28,11 +28,19 @@ GROW_MIN_REMAINING = 0.4
 ROLLBACK_FACTOR = 1.15
 
 
+class CheckScore(NamedTuple):
+    """What a check's score may answer for an asset with a look: the geometry's image MSE and the colour MSE."""
+
+    mse: float
+    colour_mse: float | None
+
+
 class CheckRule:
     """The target_reached callback of `training.train`: each call answers a `records.CheckDecision` (its action one of
     `records.CheckAction`).
 
-    score(model) -> check MSE of the model as stored; target: the MSE level; max_log2: the largest table;
+    score(model) -> check MSE of the model as stored, or a CheckScore (with its colour: a mesh then stands in for
+    the model only when it also reaches the model's colour MSE as it reads now); target: the MSE level; max_log2: the largest table;
     budget_s: the training's budget (its clock: seconds since this rule was made, less the checks' own time as far as
     `checks_outside_s` allows, as the training's `checks_outside_budget_s`); budget_slope(log2)
     -> d ln MSE / d ln time at that size (the size predictor's; None: the slope through the last two checks);
@@ -115,12 +123,13 @@ class CheckRule:
         and that form's best check."""
         began = time.perf_counter()
         seconds = round(began - self._start - self._measuring_s, 2)  # training time: the checks' own is not
-        mse = self.score(model)
+        score = self.score(model)
+        mse, colour = (score.mse, score.colour_mse) if isinstance(score, CheckScore) else (score, None)
         outside = min(time.perf_counter() - began, self._outside_left)
         self._measuring_s, self._outside_left = self._measuring_s + outside, self._outside_left - outside
         log2 = model.cfg.encoding.log2_table
         self.decisions.append(CheckDecision(seconds, log2, mse, None, self.bytes_at(log2), None, CheckAction.TRAIN_ON,
-                                            ""))
+                                            "", colour))
         shipped = self.shipped_form is None or self.shipped_form(model)
         form = tuple(self.state_form(model)) if self.state_form is not None else (log2, shipped)
         return self.decisions[-1], shipped, form, self._best.get(form)
@@ -146,11 +155,12 @@ class CheckRule:
         grow = self._growth(d, end)
         if grow is not None:
             return grow
-        beaten_by = self.curve.cheapest_meeting(end) if self.curve is not None else None
+        beaten_by = self.curve.cheapest_meeting(end, d.colour_mse) if self.curve is not None else None
         if (beaten_by is not None and beaten_by.bytes < d.model_bytes and not self.force
                 and d.projected_mse is not None):  # a measured decimation, not the interpolated curve, decides
             return (CheckAction.STOP_KEEP_MESH, f"the model ({d.model_bytes:,} B) stays above the alternative: "
-                    f"{beaten_by.triangles:,} triangles reach MSE {beaten_by.mse:.4g} in {beaten_by.bytes:,} B, "
+                    f"{beaten_by.triangles:,} triangles reach MSE {beaten_by.mse:.4g}{_colour(beaten_by, d)} in "
+                    f"{beaten_by.bytes:,} B, "
                     f"the model is projected to {end:.4g}; growing would not get it under")
         return CheckAction.TRAIN_ON, ("projected to meet the level" if end <= self.target
                             else f"projected MSE {end:.4g} misses the level; no larger size pays")
@@ -171,3 +181,8 @@ class CheckRule:
             return CheckAction.GROW, (f"projected MSE {end:.4g} misses the level; 2^{d.log2_table + 1} projected "
                             f"{grown_mse:.4g} in {grown_bytes:,} B, under the alternative's {alt:,.0f} B")
         return None
+
+
+def _colour(point, d: CheckDecision) -> str:
+    """The colour side of a keep, for the decision's line ('' for a bare shape)."""
+    return "" if d.colour_mse is None else f" (colour {point.colour_mse:.4g}, the model's {d.colour_mse:.4g})"

@@ -77,7 +77,8 @@ class CheckDecision(_FromDict):
     check views, the model at its stored precision; projected_mse: at the end of the budget at this size (None
     before a projection is possible); model_bytes: the file as it would ship at this size (geometry, look,
     header); alternative_bytes: the alternative's bytes at the projected MSE (None: no alternative measured);
-    action: a CheckAction; reason: one line."""
+    action: a CheckAction; reason: one line; colour_mse: for an asset whose head was trained before the geometry, the
+    model's colour MSE on the check views (a mesh stands in for it only when it also reaches it)."""
 
     seconds: float
     log2_table: int
@@ -87,6 +88,7 @@ class CheckDecision(_FromDict):
     alternative_bytes: float | None
     action: CheckAction
     reason: str
+    colour_mse: float | None = None
 
     # At __init__ and whenever a rule changes it, the action stays a CheckAction: its value is accepted, anything
     # else is a ValueError.
@@ -103,8 +105,8 @@ class MeshMeasure(_FromDict):
     (`requested_triangles`: the count asked for) or the whole mesh (`requested_triangles` None). Bytes are exact:
     `compact_bytes` the compact ray-traceable mesh (geometry), `look_bytes` what it needs beside to carry the asset's
     look, `resident_bytes` as a plain ray tracer holds it, `draco11_bytes` Draco's storage size. MSEs are the run's
-    metric: `mse` the decimation itself and `compact_mse` its compact mesh decoded, on the check views;
-    `compact_mse_held_out` and `colour_mse_held_out` (the mesh as it ships with its look) on the held-out views.
+    metric: `mse` the decimation itself, `colour_mse` it as it ships with its look and `compact_mse` its compact mesh
+    decoded, on the check views; `compact_mse_held_out` and `colour_mse_held_out` on the held-out views.
     None: not measured (a decimation that came out empty has only its counts and infinite MSEs)."""
 
     triangles: int
@@ -114,6 +116,7 @@ class MeshMeasure(_FromDict):
     compact_bytes: int | None = None
     look_bytes: int | None = None
     compact_mse: float | None = None
+    colour_mse: float | None = None
     compact_mse_held_out: float | None = None
     colour_mse_held_out: float | None = None
     draco11_bytes: int | None = None
