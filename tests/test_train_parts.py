@@ -410,9 +410,9 @@ def test_an_eight_bit_table_trained_with_the_weight_average_ends_on_its_grid(blo
     assert any(moved), "the network's weights are the last step's, not the average"
 
 
-def test_a_check_s_own_time_is_not_the_budget_s(blob):
-    """A slow check (0.25 s each) stops the training's clock: the budget's second of training is all steps, the
-    checks' time comes on top of it, and the check rule's clock reads training time too."""
+def _slow_checks(blob, check_s: float, **cfg):
+    """A 1 s training whose checks (every 0.2 s) take `check_s` each: (result, the check rule, when each check was
+    asked, the training's wall seconds)."""
     import time
 
     from nbvh_core.decision.checks import CheckRule
@@ -422,14 +422,21 @@ def test_a_check_s_own_time_is_not_the_budget_s(blob):
 
     def slow_score(model):
         asked.append(time.perf_counter())
-        time.sleep(0.25)
+        time.sleep(check_s)
         return 1.0
 
     rule = CheckRule(slow_score, target=1e-9, max_log2=6, budget_s=1.0, bytes_at=lambda log2: 1000)
-    cfg = TrainConfig(steps=None, time_limit_s=1.0, rays_per_step=256, target_check_every_s=0.2, progress_every_s=0)
     began = time.perf_counter()
-    tr = train(_model(bvh), bvh, tracer, cfg, TrainingHooks(target_reached=rule))
-    wall = time.perf_counter() - began
+    tr = train(_model(bvh), bvh, tracer, TrainConfig(steps=None, time_limit_s=1.0, rays_per_step=256,
+                                                     target_check_every_s=0.2, progress_every_s=0, **cfg),
+               TrainingHooks(target_reached=rule))
+    return tr, rule, asked, time.perf_counter() - began
+
+
+def test_a_check_s_own_time_is_not_the_budget_s(blob):
+    """A slow check (0.25 s each) stops the training's clock: the budget's second of training is all steps, the
+    checks' time comes on top of it, and the check rule's clock reads training time too."""
+    tr, rule, asked, wall = _slow_checks(blob, 0.25)
     assert len(asked) >= 3 and not tr.stopped_early
     assert tr.seconds < 1.2, tr.seconds
     assert wall >= 1.0 + 0.9 * 0.25 * len(asked), (wall, len(asked))
@@ -441,22 +448,7 @@ def test_checks_past_their_allowance_are_the_budget_s_time(blob):
     """With `checks_outside_budget_s` spent, a check's time is the budget's. Checks of 0.5 s every 0.2 s of a 1 s
     budget: with all of them outside the clock, 4-5 run inside the loop (2-2.5 s on top of the second); with 0.25 s
     allowed, the budget is gone after the second check."""
-    import time
-
-    from nbvh_core.decision.checks import CheckRule
-
-    _, bvh, tracer, _ = blob
-    asked = []
-
-    def slow_score(model):
-        asked.append(time.perf_counter())
-        time.sleep(0.5)
-        return 1.0
-
-    rule = CheckRule(slow_score, target=1e-9, max_log2=6, budget_s=1.0, bytes_at=lambda log2: 1000)
-    cfg = TrainConfig(steps=None, time_limit_s=1.0, rays_per_step=256, target_check_every_s=0.2, progress_every_s=0,
-                      checks_outside_budget_s=0.25)
-    tr = train(_model(bvh), bvh, tracer, cfg, TrainingHooks(target_reached=rule))
+    tr, _, asked, _ = _slow_checks(blob, 0.5, checks_outside_budget_s=0.25)
     in_loop = len(asked) - 1  # the last is asked once the budget is spent (`EarlyStop.at_end`)
     assert 1 <= in_loop <= 2 and not tr.stopped_early, in_loop
     assert tr.checks_s >= 0.9 * 0.5 * in_loop, tr.checks_s
