@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import json
 import sys
+import time
 import traceback
 from pathlib import Path
 
@@ -85,6 +86,7 @@ def run_job(request: dict, events, should_cancel) -> dict:
     """Run one request (see module docstring); returns the `result` event it emits."""
     if request.get("kind") == "batch":
         return run_batch_job(request, events, should_cancel)
+    started_at = time.perf_counter()  # the run's wall counts the mesh's loading (run_wall)
     from ..geometry.mesh_arrays import mesh_from_npz
     from ..protocol.outputs import OutputLock, check_outputs
     from .pipeline import resume_settings
@@ -114,7 +116,7 @@ def run_job(request: dict, events, should_cancel) -> dict:
     check_outputs([Path(p) for k, p in files.items() if not (k == "model" and request.get("model"))], inputs,
                   overwrite=True)
     with OutputLock(model_path):
-        return _run_locked(request, events, should_cancel, mesh, settings, scene_split, files, name)
+        return _run_locked(request, events, should_cancel, mesh, settings, scene_split, files, name, started_at)
 
 
 def _write_kept_mesh(mesh, assessment, model_path: Path, events, decimator=None) -> None:
@@ -137,7 +139,8 @@ def _write_kept_mesh(mesh, assessment, model_path: Path, events, decimator=None)
                             bytes={Path(p).name: len(d) for p, d in zip(paths, files.values())}))
 
 
-def _run_locked(request, events, should_cancel, mesh, settings, scene_split, files, name) -> dict:
+def _run_locked(request, events, should_cancel, mesh, settings, scene_split, files, name,
+                started_at: float | None = None) -> dict:
     from ..protocol.outputs import checkpoint_for
     from ..protocol.process import NotWorthCompressing
     from .pipeline import compress_mesh
@@ -156,7 +159,8 @@ def _run_locked(request, events, should_cancel, mesh, settings, scene_split, fil
     else:
         try:
             result = compress_mesh(mesh, settings, None, events=events, should_cancel=should_cancel,
-                                   checkpoint_path=checkpoint_for(model_path), resume_from=request.get("resume"))
+                                   checkpoint_path=checkpoint_for(model_path), resume_from=request.get("resume"),
+                                   started_at=started_at)
         except NotWorthCompressing as exc:  # the mesh wins: the same files as the CLI's, then the verdict ends it
             _write_kept_mesh(mesh, exc.assessment, model_path, events, exc.decimator)
             raise
