@@ -189,7 +189,7 @@ class SizeSearch:
         notes += (RunNote("growth", f"one training from T=2^{growth.start_log2} growing its table to meet "
                                     f"{run.decision.target_mse:g}: {trail}"),)
         if tr.stopped_early:
-            notes += (RunNote("early stop", f"stopped after {tr.seconds:.0f} s: {rule.decisions[-1].action}"),)
+            notes += (RunNote("early stop", f"stopped after {tr.seconds:.0f} s: {rule.decisions[-1].action.value}"),)
         self.seconds["train"] += time.perf_counter() - t
         if rule.keep_mesh is not None:  # nothing worth finishing: the verdict is the mesh
             self.trained[final] = Trained(model, tr, run_used, notes, None)
