@@ -71,7 +71,7 @@ def decimation_entry(mesh: Mesh, count: int, checks, held_out, draco,
                         resident_bytes=mesh_resident_bytes(dec, tree)["total"], compact_bytes=nbytes,
                         look_bytes=look_carried_bytes(mesh, dec.n_vertices, dec.n_triangles),
                         compact_mse=checks.score_mesh(decoded).mse,
-                        colour_mse=as_shipped.colour_mse if dec.look is not None else None)
+                        colour_mse=as_shipped.colour_mse)  # None for a bare shape
     if held_out is not None:
         entry.compact_mse_held_out = held_out.score_mesh(decoded).mse
         entry.colour_mse_held_out = _colour_mse(dec, held_out)
@@ -230,7 +230,7 @@ def whole_mesh_entry(mesh: Mesh, checks, held_out, tree: "FullTree | SharedTree 
     if checks is not None:
         decoded = decoded_mesh(mesh)
         entry.compact_mse = checks.score_mesh(decoded).mse
-        entry.colour_mse = checks.score_mesh(mesh).colour_mse if mesh.look is not None else None
+        entry.colour_mse = _colour_mse(mesh, checks)
         if held_out is not None:
             entry.compact_mse_held_out = held_out.score_mesh(decoded).mse
             entry.colour_mse_held_out = _colour_mse(mesh, held_out)
@@ -240,11 +240,11 @@ def whole_mesh_entry(mesh: Mesh, checks, held_out, tree: "FullTree | SharedTree 
     return entry
 
 
-def _colour_mse(shipped: Mesh, held_out) -> float | None:
+def _colour_mse(shipped: Mesh, views) -> float | None:
     """For an asset with a look: the colour MSE of the mesh as it ships with its look (the .glb: the decimation,
-    its coordinates, slots and images) on the held-out views, what the final verdict weighs beside geometry; else
-    None."""
-    return held_out.score_mesh(shipped).colour_mse if shipped.look is not None else None
+    its coordinates, slots and images) on `views` (the held-out views: what the final verdict weighs beside geometry;
+    the check views: what the checks weigh); else None (nothing rendered)."""
+    return views.score_mesh(shipped).colour_mse if shipped.look is not None else None
 
 
 def winning_decimation(mesh: Mesh, assessment: "Assessment", decimator: Decimator | None = None) -> Mesh | None:

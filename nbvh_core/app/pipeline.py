@@ -237,7 +237,7 @@ def _head_first(mesh: Mesh, tracer: ExactTracer, run: RunConfig, made, events: E
     needs a head: the head trained before the geometry - it learns from the mesh's surface, not the model's - so that
     every check scores the model's colour beside its geometry, as the mesh's is (`trainings.stored_mse`). Returns
     `_train_head`'s (head, metadata), or None: the head, if any, trains after the geometry."""
-    if made is None or mesh.look is None or not run.look.budget_s or run.decision.target_mse is None:
+    if made is None or not run.look.budget_s or run.decision.target_mse is None:
         return None
     return _train_head(mesh, tracer, run.look, run.storage, run.training.seed, made, run.look.budget_s,
                        pick_device(run.training.device), events, should_cancel, seconds)

@@ -113,11 +113,10 @@ class ExactTracer:
         """Embree nearest hits within t_max: (tfar (N,) float32, primID (N,) int32, -1 on a miss); split over
         threads for large batches (the same per-ray answers: rays are independent)."""
         global _pool
+        if not isinstance(self._scene, _EmbreexScene):  # the kernel library spreads the rays itself
+            return self._scene.intersect(rays_o, rays_d, t_max)
         n = rays_o.shape[0]
         parts = _threads() if n >= PARALLEL_MIN_RAYS else 1
-
-        if not isinstance(self._scene, _EmbreexScene):
-            return self._scene.intersect(rays_o, rays_d, t_max)
 
         def run(a: int, b: int):
             return self._scene.intersect(rays_o[a:b], rays_d[a:b], t_max[a:b])
