@@ -105,6 +105,10 @@ class Settings:
     #: HashVQAD: the last fraction of training run on the frozen (argmax) codes (TrainConfig.finetune_fraction).
     finetune_fraction: float = knob(TrainConfig.finetune_fraction, limits=(0.0, 1.0),
                                     help="HashVQAD: the last fraction of training on its frozen codes (default 0.1)")
+    #: Passes over each labelled chunk of training rays (TrainConfig.label_reuse); None: the device's own.
+    label_reuse: int | None = knob(None, limits=(1, 64),
+                                   help="passes over each chunk of labelled training rays, each in a new order "
+                                        "(default: 1; a card that trains faster than the host labels reuses more)")
     #: 'uniform' or 'loss' (N-BVH's loss-proportional resampling of leaves; see TrainConfig.leaf_sampling).
     leaf_sampling: str = knob(TrainConfig.leaf_sampling, choices=LEAF_SAMPLINGS,
                               help="'loss': half of each batch starts in leaves drawn by their running error "
@@ -218,7 +222,7 @@ class Settings:
                            target_check_every_s=self.target_check_every_s,
                            table_bits=self.table_bits if self.table_bits <= 8 else None,
                            network_bits=self.network_bits if self.network_bits < 8 else None,
-                           qat_fraction=self.qat_fraction)
+                           qat_fraction=self.qat_fraction, label_reuse=self.label_reuse)
 
     def with_overrides(self, **kw) -> "Settings":
         unknown = set(kw) - {f.name for f in dataclasses.fields(self)}

@@ -62,6 +62,9 @@ class TrainConfig:
     # distribution; per-call work is amortised: bunny, 4096 rays/step, 5.3 / 4.1 / 3.4 ms per step at 8 / 16 / 32,
     # 11.0 ms one step at a time before this and the label kernels' other changes).
     label_steps: int = 32
+    #: Passes over each labelled chunk, each in a new ray order: labelled rays per step drop by this factor (labels
+    #: are the host's work; a card trains faster than the host labels).
+    label_reuse: int | None = None
     # 'uniform': every ray from `sample_rays`. 'loss': `leaf_ray_fraction` of each batch starts inside leaf boxes
     # drawn in proportion to the running per-leaf error (N-BVH's loss-proportional node resampling; the floor keeps
     # every leaf at >= leaf_floor x the mean weight). Measured worse than 'uniform' on all 6 benchmark meshes at 15 s

@@ -8,7 +8,7 @@ import torch
 
 from ..geometry.bvh import BVH, refine_cut
 from ..geometry.exact import ExactTracer
-from .rays import (TrainingSamples, label_samples, root_box, sample_rays, sample_rays_in_leaves,
+from .rays import (TrainingSamples, label_samples, reorder_rays, root_box, sample_rays, sample_rays_in_leaves,
                       split_samples)
 from ..geometry.traversal import TorchBVH
 
@@ -45,8 +45,9 @@ class Batches:
 
     def __init__(self, bvh: BVH, tracer: ExactTracer, cfg, rng: np.random.Generator,
                  prefetch: bool = False, resume: dict | None = None, leaf_errors: LeafErrors | None = None,
-                 pin: bool = False):
+                 pin: bool = False, reuse: int = 1):
         self.bvh, self.tracer, self.cfg, self.rng = bvh, tracer, cfg, rng
+        self.reuse = max(1, int(reuse))  # passes over each labelled chunk (TrainConfig.label_reuse, resolved)
         self.pin = pin  # batches in page-locked memory (training on a card: its copies do not stall the host)
         self.lo, self.hi = root_box(bvh)
         self.tree = TorchBVH.from_bvh(bvh)
@@ -64,7 +65,7 @@ class Batches:
             w = self._weights_override
             if w is not None and (leaf_errors is None or w.shape != (bvh.n_leaves,) or not w.sum() > 0):
                 raise ValueError(f"the resumed leaf weights do not fit this BVH ({bvh.n_leaves} leaves)")
-            if not 0 <= skip <= max(1, cfg.label_steps):
+            if not 0 <= skip <= self.batches_per_chunk():
                 raise ValueError(f"the resumed batch index {skip - 1} is outside a labelling pass")
         self._queue = None
         if prefetch:
@@ -78,8 +79,13 @@ class Batches:
         for _ in range(skip):  # the resumed chunk's batches already trained on
             self.next()
 
+    def batches_per_chunk(self) -> int:
+        """Steps one labelled chunk serves: label_steps, times label_reuse passes over its rays."""
+        return max(1, self.cfg.label_steps) * self.reuse
+
     def _make(self):
-        """One chunk: [(batch, {'chunk_state', 'index'}), ...] for label_steps steps."""
+        """One chunk: [(batch, {'chunk_state', 'index'}), ...] for label_steps x label_reuse steps (every pass after
+        the first hands out the same labelled rays in a new order drawn from the generator)."""
         chunk_state = self.rng.bit_generator.state
         n_steps = max(1, self.cfg.label_steps)
         per = self.cfg.rays_per_step
@@ -90,8 +96,12 @@ class Batches:
         o, d = self._draw(per * n_steps, weights)
         chunk = label_samples(self.bvh, self.tracer, o, d, self.cfg.labels, tree=self.tree,
                               normal_loss=self.cfg.normal_loss)
+        parts = split_samples(chunk, per)
+        for _ in range(1, self.reuse):
+            order = torch.from_numpy(self.rng.permutation(len(o)))
+            parts += split_samples(reorder_rays(chunk, order), per)
         return [(part.pinned() if self.pin else part, {"chunk_state": chunk_state, "index": i, "leaf_weights": weights})
-                for i, part in enumerate(split_samples(chunk, per))]
+                for i, part in enumerate(parts)]
 
     def set_bvh(self, bvh: BVH) -> None:
         """Label with a refined cut from now on: the rest of the current labelling pass (labelled with the old cut)

@@ -272,6 +272,24 @@ def split_samples(samples: TrainingSamples, rays_per_part: int) -> list[Training
     return parts
 
 
+def reorder_rays(samples: TrainingSamples, order: torch.Tensor) -> TrainingSamples:
+    """The same labelled samples with the rays in `order` ((N,) int64, a permutation of the rays): each ray keeps
+    its samples in their front-to-back order, re-indexed to the ray's new position."""
+    n_rays = samples.rays_o.shape[0]
+    counts = torch.bincount(samples.ray, minlength=n_rays)
+    starts = torch.cumsum(counts, 0) - counts
+    new_counts = counts[order]
+    new_starts = torch.cumsum(new_counts, 0) - new_counts
+    total = int(new_counts.sum())
+    offset = torch.arange(total) - torch.repeat_interleave(new_starts, new_counts, output_size=total)
+    index = torch.repeat_interleave(starts[order], new_counts, output_size=total) + offset
+    ray = torch.repeat_interleave(torch.arange(n_rays), new_counts, output_size=total)
+    return TrainingSamples(rays_o=samples.rays_o[order], rays_d=samples.rays_d[order], ray=ray,
+                           leaf=samples.leaf[index], t_enter=samples.t_enter[index], t_exit=samples.t_exit[index],
+                           hit=samples.hit[index], t_hit=samples.t_hit[index], normal=samples.normal[index],
+                           rank=samples.rank[index], mode=samples.mode, stats=dict(samples.stats))
+
+
 def generate_training_samples(bvh: BVH, tracer: ExactTracer, n_rays: int, mode: str, seed: int = 0,
                               config: RayConfig = RayConfig(), normal_loss: str = "oriented") -> TrainingSamples:
     """Draw `n_rays` rays around the BVH root box and label them (see `sample_rays`, `label_samples`)."""

@@ -293,7 +293,8 @@ def _training_data(model, bvh, tracer, cfg, ck, device, plan, rng, events):
             raise CheckpointError(f"the checkpoint's leaf errors do not fit this BVH ({bvh.n_leaves} leaves)")
         leaf_errors.error = ck["leaf_errors"].clone()
     batches = Batches(bvh, tracer, cfg, rng, prefetch=prefetch, resume=ck.get("numpy_rng"),
-                      leaf_errors=leaf_errors if cfg.leaf_sampling == "loss" else None, pin=device.type == "cuda")
+                      leaf_errors=leaf_errors if cfg.leaf_sampling == "loss" else None, pin=device.type == "cuda",
+                      reuse=cfg.label_reuse or 1)
     return batches, leaf_errors, cut
 
 
