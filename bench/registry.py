@@ -42,8 +42,11 @@ B = Benchmark
 BENCHMARKS: tuple[Benchmark, ...] = (
     # ------------------------------------------------------------------------------------------------ speed
     B("bench_speed", "speed", "bunny", "60 s training, 150 steps; renders at 512 and 1000 px",
-      ("--quick", "--asset", "blob", "--train-s", "1", "--steps", "3"), ("speed.csv", "speed.md", "speed.png"),
+      ("--quick", "--asset", "blob", "--train-s", "1", "--steps", "3", "--batch-ladder", "256"),
+      ("speed.csv", "speed.md", "speed.png"),
       "README.md"),
+    B("bench_labels", "speed", "bunny, dragon", "5 labelling chunks per thread count",
+      ("--assets", "blob", "--threads", "1", "--chunks", "1"), ("labels.csv", "labels.md"), "docs/results_model.md"),
     B("bench_foundation", "speed", "the bench meshes", "BVH build, 200k traversal rays, training steps",
       ("--quick", "--rays", "2000", "--nodes", "64"), ("foundation.csv", "foundation.md")),
     B("bench_method_speed", "speed", "bunny", "150 steps per method, 512 px renders",
@@ -64,6 +67,9 @@ BENCHMARKS: tuple[Benchmark, ...] = (
     B("bench_frontier", "quality", "bunny", "200 s per variant",
       ("--meshes", "blob", "--seconds", "1", "--variants", "f4=features:4,log2_table:6"),
       ("frontier.csv", "frontier.md", "frontier.png"), "docs/results_model.md"),
+    B("bench_label_reuse", "quality", "bunny, spiky", "6,000 steps and 60 s per reuse",
+      ("--meshes", "blob", "--reuse", "1", "2", "--steps", "4", "--seconds", "1"),
+      ("label_reuse.csv", "label_reuse.md"), "docs/results_model.md"),
     B("bench_preset_curves", "quality", "bunny, spiky", "fractions of the default preset's 200 s",
       ("--meshes", "blob", "--budgets", "tiny=1"), ("preset_curves.csv", "preset_curves.md", "preset_curves.png"),
       "README.md"),
@@ -154,7 +160,9 @@ BENCHMARKS: tuple[Benchmark, ...] = (
     B("profile_soft_step", "profiling", "bunny", "repeats of one soft step", ("2",)),
 )
 #: The device check (bench/device_check.py): the one prepared script for a lent card, apart from the suites.
-DEVICE_CHECK = B("device_check", "", "bunny", "at most ~5 minutes on a card", ("--smoke", "--out", "{tmp}/gpu"),
+DEVICE_CHECK = B("device_check", "", "bunny; the need stage bunny, dragon, spiky, gyroid",
+                 "two calls on a card: ~5 minutes, then the need stage's ~6-9",
+                 ("--smoke", "--stages", "kernels", "speed", "labels", "bunny", "need", "--out", "{tmp}/gpu"),
                  ("gpu/summary.csv",), "README.md")
 
 

@@ -3,8 +3,9 @@ training it buys on this machine, measured by a probe once per machine and kept 
 import math
 
 import pytest
+import torch
 
-from nbvh_core.planning import machine_rate
+from nbvh_core.planning import machine_rate, probe
 from nbvh_core.planning.machine_rate import REFERENCE_SAMPLES_PER_S, reference_budget_s, rounded_ratio
 
 
@@ -34,8 +35,8 @@ def test_the_rate_is_probed_once_per_machine_and_cached(tmp_path, monkeypatch):
     monkeypatch.delenv("NBVH_WORK_RATIO", raising=False)
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
     probes = []
-    monkeypatch.setattr(machine_rate, "probe_samples_per_s",
-                        lambda device: probes.append(device) or 2.2 * REFERENCE_SAMPLES_PER_S)
+    monkeypatch.setattr(probe, "probe_samples_per_s",
+                        lambda device, batch: probes.append(device) or 2.2 * REFERENCE_SAMPLES_PER_S)
     assert machine_rate.work_ratio("cpu") == 2.0 and probes == ["cpu"]
     assert machine_rate.work_ratio("cpu") == 2.0 and probes == ["cpu"]  # from the cache
     assert (tmp_path / "nbvh" / "work_rate.json").exists()
@@ -44,7 +45,7 @@ def test_the_rate_is_probed_once_per_machine_and_cached(tmp_path, monkeypatch):
 
 
 def test_the_probe_measures_this_machine_s_training():
-    rate = machine_rate.probe_samples_per_s("cpu")
+    rate = probe.probe_samples_per_s("cpu", 2048)
     # the 2-core VM read 343k-356k leaf samples/s (REFERENCE_SAMPLES_PER_S); any machine trains at a positive rate
     assert 1e3 < rate < 1e9
 
@@ -59,3 +60,52 @@ def test_a_run_on_a_faster_machine_says_how_its_budget_is_read(sample_meshes, mo
     monkeypatch.setenv("NBVH_WORK_RATIO", "1")
     slower = plan_run(preset("default").with_overrides(target_mse=0.0005), sample_meshes["bunny"])
     assert slower.predicted_log_mse[11] > run.predicted_log_mse[11]
+
+
+def test_a_card_s_batch_is_the_smallest_that_reaches_most_of_its_best_rate():
+    from nbvh_core.planning.card_batch import pick_batch
+
+    # launch-bound small steps, a plateau from 32k rays: 32k (>= 70% of the best) rather than the largest
+    assert pick_batch({2048: 0.9e6, 8192: 3.4e6, 32768: 14e6, 131072: 19e6}) == 32768
+    assert pick_batch({2048: 20e6, 8192: 21e6, 32768: 22e6, 131072: 22e6}) == 2048
+    assert pick_batch({2048: 1e6, 8192: 2e6, 32768: 4e6, 131072: 8e6}) == 131072
+    assert pick_batch({}) == pick_batch({2048: 0.0}) == 2048
+
+
+def test_the_cpu_keeps_its_batch_and_a_card_probes_its_ladder_once(tmp_path, monkeypatch):
+    from nbvh_core.planning import card_batch
+
+    monkeypatch.delenv("NBVH_CARD_RAYS_PER_STEP", raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    probes = []
+    monkeypatch.setattr(card_batch, "probe_ladder",
+                        lambda device: probes.append(device) or {2048: 1e6, 8192: 4e6, 32768: 9e6, 131072: 10e6})
+    assert card_batch.rays_per_step("cpu") == 2048 and probes == []
+    monkeypatch.setattr("nbvh_core.training.train.pick_device", lambda name: torch.device("cuda"))
+    monkeypatch.setattr(probe, "machine_key", lambda device: f"a card|{device}")
+    assert card_batch.rays_per_step("auto") == 32768 and probes == ["cuda"]
+    assert card_batch.rays_per_step("cuda") == 32768 and probes == ["cuda"]  # from the cache
+    monkeypatch.setenv("NBVH_CARD_RAYS_PER_STEP", "8192")
+    assert card_batch.rays_per_step("cuda") == 8192
+
+
+def test_settings_leave_the_batch_to_the_device_unless_set(sample_meshes, monkeypatch):
+    from nbvh_core.planning import run_config
+    from nbvh_core.planning.settings import preset
+
+    s = preset("default").with_overrides(n_max=64)
+    assert s.rays_per_step is None and s.train_config().rays_per_step == 2048
+    assert run_config.plan_run(s, sample_meshes["blob"]).training.rays_per_step == 2048  # no card here
+    monkeypatch.setattr(run_config, "card_rays_per_step", lambda device: 32768)  # what a card's probe chose
+    assert run_config.plan_run(s, sample_meshes["blob"]).training.rays_per_step == 32768
+    fixed = s.with_overrides(rays_per_step=4096)
+    assert run_config.plan_run(fixed, sample_meshes["blob"]).training.rays_per_step == 4096
+
+
+def test_a_large_step_labels_in_fewer_steps_per_chunk():
+    from nbvh_core.training.config import TrainConfig
+    from nbvh_core.training.ray_batches import chunk_steps
+
+    assert chunk_steps(TrainConfig()) == 32 and chunk_steps(TrainConfig(rays_per_step=512)) == 32
+    assert chunk_steps(TrainConfig(rays_per_step=32768)) == 4 and chunk_steps(TrainConfig(rays_per_step=1 << 17)) == 4
+    assert chunk_steps(TrainConfig(rays_per_step=64, label_steps=3)) == 3

@@ -117,8 +117,9 @@ def test_every_default_of_the_request_is_the_default_of_the_part_that_uses_it():
             if part is AppearanceConfig and name == f.name or name not in request:
                 continue  # the head's own fields (its slots, patches) are the asset's, not the request's
             if (f.default is dataclasses.MISSING or name in ("normal_loss", "normal_weight", "normal_unit_weight")
-                    or part is TrainConfig and name in ("table_bits", "network_bits")):
-                continue  # None: the network's own, resolved in planning; TrainConfig's bits: None unless low-bit
+                    or part is TrainConfig and name in ("table_bits", "network_bits", "rays_per_step")):
+                continue  # None: the network's (the device's) own, resolved in planning; TrainConfig's bits: None
+                # unless low-bit
             assert request[name] == f.default, f"Settings.{name} = {request[name]!r}, {part.__name__}: {f.default!r}"
             compared += 1
     assert compared >= 30

@@ -30,6 +30,7 @@ from nbvh_core.geometry.exact import ExactTracer
 from nbvh_core.geometry.mesh import load_mesh
 from nbvh_core.neural.model import NeuralBVH
 from nbvh_core.app.pipeline import preset
+from nbvh_core.planning.card_batch import rays_per_step as card_rays_per_step
 from nbvh_core.rendering.render import orbit_cameras
 from nbvh_core.geometry.bundled_samples import sample_path
 from nbvh_core.training.train import train
@@ -53,15 +54,33 @@ def sync(device: torch.device) -> None:
         torch.cuda.synchronize()
 
 
-def train_throughput(bvh, tracer, s, mesh, device, steps: int) -> tuple[float, float, str]:
-    """The real training loop (`train.train`) for `steps` steps from a fresh model on the current path: leaf
-    samples/s, seconds, the path it recorded. Same seed, so both paths see the same rays."""
+def train_throughput(bvh, tracer, s, mesh, device, steps: int, rays_per_step: int | None = None) -> dict:
+    """The real training loop (`train.train`) for `steps` steps from a fresh model on the current path: a 'train'
+    row (leaf samples/s, seconds, the path it recorded, the batch, the share of batches a card's spare passes
+    served again). Same seed, so both paths see the same rays."""
     torch.manual_seed(0)
     m = NeuralBVH(bvh.nodes, s.model_config(), mesh.transform)
     cfg = s.train_config()
     cfg.steps, cfg.time_limit_s, cfg.device = steps, None, str(device)
+    cfg.rays_per_step = rays_per_step or card_rays_per_step(str(device))  # the product's batch on this device
     res = train(m, bvh, tracer, cfg)
-    return res.samples_per_s, res.seconds, res.compute_path
+    return {"what": "train", "path": res.compute_path, "size": "", "seconds": res.seconds, "items": steps,
+            "per_s": res.samples_per_s, "unit": "leaf samples/s", "rays_per_step": cfg.rays_per_step,
+            "reused_share": round(res.reused_batches / max(1, res.steps), 3)}
+
+
+def train_rows(bvh, tracer, s, mesh, device, args) -> list[dict]:
+    """Training rates: each path at the device's batch, then the fast path at each batch of --batch-ladder (what a
+    step's fixed cost leaves)."""
+    rows = []
+    for path in kernels.PATHS:
+        with kernels.using_path(path):
+            rows.append(train_throughput(bvh, tracer, s, mesh, device, args.steps))
+        print(rows[-1], flush=True)
+    for rays in args.batch_ladder:
+        rows.append(train_throughput(bvh, tracer, s, mesh, device, args.steps, rays))
+        print(rows[-1], flush=True)
+    return rows
 
 
 def render_time(model, o, d, device, repeat: int):
@@ -92,6 +111,8 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=150, help="training steps per path for the throughput")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--quick", action="store_true", help="smoke run: tiny budgets, 128x128 renders")
+    ap.add_argument("--batch-ladder", nargs="*", type=int, default=[],
+                    help="also the fast path's training rate at these rays per step (e.g. 2048 8192 32768 131072)")
     args = ap.parse_args()
     kernels.keep_freed_memory()  # as the CLI does: freed blocks stay in the heap (see the function)
     device = torch.device(args.device)
@@ -107,18 +128,13 @@ def main() -> None:
     model = NeuralBVH(bvh.nodes, s.model_config(), mesh.transform)
     tc = s.train_config()
     tc.steps, tc.time_limit_s, tc.device = None, args.train_s, args.device
+    tc.rays_per_step = card_rays_per_step(args.device)
     with kernels.using_path("fast"):
         tr = train(model, bvh, tracer, tc)
     model.eval()
     flops = model.flops_per_segment()
     per_seg = sum(flops.values())
-    rows = []
-    for path in kernels.PATHS:
-        with kernels.using_path(path):
-            sps, sec, used = train_throughput(bvh, tracer, s, mesh, device, args.steps)
-        rows.append({"what": "train", "path": used, "size": "", "seconds": sec, "items": args.steps,
-                     "per_s": sps, "unit": "leaf samples/s"})
-        print(rows[-1], flush=True)
+    rows = train_rows(bvh, tracer, s, mesh, device, args)
     cam = orbit_cameras(4)[1]
     for size in sizes:
         o_np, d_np = cam.rays(size, size)
@@ -150,7 +166,7 @@ def main() -> None:
             t = time.perf_counter()
             fh = tracer.first_hit(o_np, d_np)
             best = min(best, time.perf_counter() - t)
-        rows.append({"what": "render", "path": "Embree (embreex, CPU)", "size": size, "seconds": best,
+        rows.append({"what": "render", "path": f"Embree ({tracer.scene_kind}, CPU)", "size": size, "seconds": best,
                      "items": size * size, "per_s": size * size / best, "unit": "rays/s", "hits": int(fh.hit.sum())})
         print(rows[-1], flush=True)
     from nbvh_core.rendering.metrics import evaluate
@@ -170,7 +186,8 @@ def write(rows, args, mesh, s, tr, flops, peak, device, half_note: str = "") -> 
     suffix = "_quick" if args.quick else ""
     out = RESULTS
     out.mkdir(parents=True, exist_ok=True)
-    keys = ["what", "path", "size", "seconds", "items", "per_s", "unit", "segments", "segments_per_s", "gflops", "hits"]
+    keys = ["what", "path", "size", "seconds", "items", "per_s", "unit", "segments", "segments_per_s", "gflops", "hits",
+            "rays_per_step", "reused_share"]
     write_rows(out / f"speed{suffix}.csv", [{k: r.get(k, "") for k in keys} for r in rows])
     per_seg = sum(flops.values())
     limit = peak * 1e9 / per_seg
@@ -185,10 +202,11 @@ def write(rows, args, mesh, s, tr, flops, peak, device, half_note: str = "") -> 
              f"trained {tr.seconds:.0f} s on the fast path ({tr.steps} steps, {tr.samples_per_s:,.0f} samples/s).\n",
              f"## Training (the real loop, `train.train`, {args.steps} steps from a fresh model, same seed and rays on "
              "both paths)\n",
-             "| path | steps | seconds | leaf samples/s |", "|---|---|---|---|"]
+             "| path | rays/step | steps | seconds | leaf samples/s | batches served again |", "|---|---|---|---|---|---|"]
     for r in rows:
         if r["what"] == "train":
-            lines.append(f"| {r['path']} | {r['items']} | {r['seconds']:.1f} | {r['per_s']:,.0f} |")
+            lines.append(f"| {r['path']} | {r['rays_per_step']:,} | {r['items']} | {r['seconds']:.1f} | "
+                         f"{r['per_s']:,.0f} | {r['reused_share']:.0%} |")
     lines.append(f"\n**Fast / reference training speed: {fast_train['per_s'] / ref_train['per_s']:.1f}x** (same run).\n")
     lines += ["## Rendering (one orbit view, same model; best of 3, reference 1000x1000 once)\n",
               "| size | path | seconds | rays/s | segments | segments/s | GFLOP/s | % of limit |", "|---|---|---|---|---|---|---|---|"]

@@ -188,7 +188,9 @@ def _print_result(result, summary: dict, out: Path, paths: dict) -> None:
         print(f"the file as shipped, its look included ({s.views} held-out views, {s.resolution}px): colour MSE "
               f"{s.colour_mse:.5f}, FLIP {s.flip:.4f}")
     t = result.training
-    print(f"training: {t.steps} steps, {t.seconds:.1f} s, {t.samples_per_s:,.0f} samples/s on {t.device}")
+    reused = f"; {t.reused_batches:,} batches served again while the host labelled" if t.reused_batches else ""
+    batch = f" of {t.rays_per_step:,} rays" if t.rays_per_step else ""
+    print(f"training: {t.steps} steps{batch}, {t.seconds:.1f} s, {t.samples_per_s:,.0f} samples/s on {t.device}{reused}")
     print(f"why: {result.why}")
     if result.target_met is not None:
         print(f"target {'met' if result.target_met else 'MISSED'}: MSE {q.mse:.5f} vs {result.settings.target_mse:g}")

@@ -172,6 +172,7 @@ def _metadata(mesh: Mesh, run: RunConfig, notes: list, assessment, tr: TrainResu
     them typed), verdict, training, quality, provenance."""
     training = {"steps": tr.steps, "seconds": round(tr.seconds, 2), "samples": tr.samples,
                 "stopped_early": tr.stopped_early, "samples_per_s": round(tr.samples_per_s),
+                "rays_per_step": tr.rays_per_step, "label_reuse": tr.label_reuse, "reused_batches": tr.reused_batches,
                 # None when no step ran (a checkpoint resumed at its end): a file's header holds no NaN
                 "final_loss": tr.final_loss if math.isfinite(tr.final_loss) else None, "device": tr.device,
                 "compute_path": tr.compute_path,  # the kernel plan, exactly

@@ -105,6 +105,16 @@ class ExactTracer:
             self._init_fallback()
         self.backend = "embree" if self._scene is not None else "numpy"
 
+    @property
+    def scene_kind(self) -> str:
+        """Which scene answers (for results): 'embree compact' / 'embree' (the kernel library's, on the mesh's
+        arrays), 'embreex' (the fallback that copies them) or 'numpy'."""
+        if isinstance(self._scene, _EmbreexScene):
+            return "embreex"
+        if self._scene is None:
+            return "numpy"
+        return "embree compact" if getattr(self._scene, "compact", False) else "embree"
+
     def normals(self, tri: np.ndarray) -> np.ndarray:
         """(K, 3) float32 unit normals of triangles `tri` (K,) int."""
         return self._normals[tri]

@@ -181,8 +181,8 @@ def plan(model, device: torch.device | str | None = None) -> KernelPlan:
         gaps = [f"encoding: {g}" for g in [triton_encoding_gap(enc)] if g]
         gaps += [f"network: {g}" for g in [triton_network_gap(model.network.net)] if g]
         gaps += [f"ray query: {g}" for g in [getattr(model, "triton_query_failure", None)] if g]
-        note = ("Triton kernels on the card (the ray query one kernel); torch for training's traversal and the"
-                " training step's autograd"
+        note = ("Triton kernels on the card (the ray query one kernel); the host's fused kernels label training"
+                " rays; torch's autograd for the training step's layers"
                 + (f"; torch where not covered ({'; '.join(gaps)})" if gaps else ""))
     traversal = traversal_kernel(device)
     if traversal == "fused" and model.compact_nodes is not None:

@@ -29,6 +29,7 @@ from ..neural.model import ModelConfig
 from ..neural.quantize import StorageConfig
 from ..rendering.metrics import MetricConfig
 from ..training.config import TrainConfig
+from .card_batch import rays_per_step as card_rays_per_step
 from .settings import Settings, estimate_file_bytes
 from .mesh_measures import GridMeasures, grid_measures
 from .sizing import LOG2_RANGE, forecast, size_request
@@ -126,6 +127,8 @@ def plan_run(settings: Settings, mesh: Mesh, resumed: bool = False) -> RunConfig
                       s.appearance_share, look_s, s.texture_on_screen_px)
     # The one place the flat request becomes the parts (the training's budget less the look's share).
     training = s.train_config()
+    if s.rays_per_step is None:  # the device's own: a card takes larger steps (card_batch)
+        training = dataclasses.replace(training, rays_per_step=card_rays_per_step(s.device))
     if look_s is not None:
         training = dataclasses.replace(training, time_limit_s=s.time_limit_s - look_s)
     model, storage = s.model_config(), s.storage()

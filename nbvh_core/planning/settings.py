@@ -100,7 +100,10 @@ class Settings:
     time_limit_s: float | None = knob(TrainConfig.time_limit_s, limits=(0.0, 1e7), flag="--time-limit",
                                       help="training wall-clock budget in seconds", panel="Time limit (s)",
                                       panel_limits=(5.0, 24 * 3600.0))  # 0 means steps only: not the panel's
-    rays_per_step: int = knob(TrainConfig.rays_per_step, limits=(1, 1 << 22), help="training rays per step")
+    #: None: the device's own (`card_batch.rays_per_step`: 2,048 on the CPU, a card's from its probe).
+    rays_per_step: int | None = knob(None, limits=(1, 1 << 22),
+                                     help="training rays per step (default: 2048 on the CPU; on a card the batch its "
+                                          "probe measured to keep it busy)")
     anneal_fraction: float = knob(TrainConfig.anneal_fraction, limits=(0.0, 1.0))
     #: HashVQAD: the last fraction of training run on the frozen (argmax) codes (TrainConfig.finetune_fraction).
     finetune_fraction: float = knob(TrainConfig.finetune_fraction, limits=(0.0, 1.0),
@@ -215,7 +218,8 @@ class Settings:
 
     def train_config(self) -> TrainConfig:
         return TrainConfig(labels=self.labels, lr=self.lr, steps=self.steps, time_limit_s=self.time_limit_s,
-                           rays_per_step=self.rays_per_step, seed=self.seed, device=self.device,
+                           rays_per_step=self.rays_per_step or TrainConfig.rays_per_step, seed=self.seed,
+                           device=self.device,
                            anneal_fraction=self.anneal_fraction, finetune_fraction=self.finetune_fraction,
                            normal_loss=self.resolved_normal_loss(), leaf_sampling=self.leaf_sampling,
                            tree_cut=self.tree_cut, checkpoint_every_s=self.checkpoint_every_s,

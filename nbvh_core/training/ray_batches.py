@@ -33,21 +33,41 @@ class LeafErrors:
         return np.maximum(e, self.floor * e.mean())
 
 
+#: A labelling chunk's rays, at most (and at least 4 steps): the CPU's 32 steps of 2,048; a card's large steps label
+#: in fewer of them, so that pinned chunks stay tens of MB.
+LABEL_CHUNK_RAYS = 1 << 16
+
+
+def chunk_steps(cfg) -> int:
+    """Steps one labelling pass covers: cfg.label_steps, fewer for steps above 2,048 rays (LABEL_CHUNK_RAYS)."""
+    return max(1, min(cfg.label_steps, max(4, LABEL_CHUNK_RAYS // max(1, cfg.rays_per_step))))
+
+
 class Batches:
     """Fresh labelled rays for every step, from one seeded generator.
 
-    Rays for `cfg.label_steps` steps are drawn and labelled together (one chunk) and split by ray into per-step
+    Rays for `chunk_steps(cfg)` steps are drawn and labelled together (one chunk) and split by ray into per-step
     batches. With `prefetch`, a background thread makes the next chunks while the current step trains (Embree,
     numpy and the kernels release the GIL), in the same order from the same generator, so the batches are the ones
     a synchronous run would see. `rng_state()` says where the last batch handed out came from (the generator's
     state before its chunk and its index in the chunk): what a checkpoint stores to resume exactly.
+
+    `reuse` hands every chunk out that many times, each pass in a new ray order (deterministic). `spare_passes`
+    (prefetch only: a card) streams a pool instead of waiting: when the next chunk is not labelled yet, the last
+    one is handed out again in a new batch order, at most `spare_passes` more times, so the card trains at its pace
+    while the host labels at its own (which batches reuse depends on timing; `reused` counts them).
     """
 
     def __init__(self, bvh: BVH, tracer: ExactTracer, cfg, rng: np.random.Generator,
                  prefetch: bool = False, resume: dict | None = None, leaf_errors: LeafErrors | None = None,
-                 pin: bool = False, reuse: int = 1):
+                 pin: bool = False, reuse: int = 1, spare_passes: int = 0):
         self.bvh, self.tracer, self.cfg, self.rng = bvh, tracer, cfg, rng
         self.reuse = max(1, int(reuse))  # passes over each labelled chunk (TrainConfig.label_reuse, resolved)
+        self.spare_passes = 0  # set after a resumed chunk's batches are skipped (below)
+        self.reused = 0  # batches handed out again while the next chunk was being labelled
+        self._last: list | None = None  # the last chunk taken from the labelling thread, and its passes so far
+        self._last_passes = 0
+        self._order_rng = np.random.default_rng(cfg.seed + 104729)  # spare passes' batch orders
         self.pin = pin  # batches in page-locked memory (training on a card: its copies do not stall the host)
         self.lo, self.hi = root_box(bvh)
         self.tree = TorchBVH.from_bvh(bvh)
@@ -78,16 +98,17 @@ class Batches:
             self._thread.start()
         for _ in range(skip):  # the resumed chunk's batches already trained on
             self.next()
+        self.spare_passes = max(0, int(spare_passes)) if prefetch else 0
 
     def batches_per_chunk(self) -> int:
         """Steps one labelled chunk serves: label_steps, times label_reuse passes over its rays."""
-        return max(1, self.cfg.label_steps) * self.reuse
+        return chunk_steps(self.cfg) * self.reuse
 
     def _make(self):
         """One chunk: [(batch, {'chunk_state', 'index'}), ...] for label_steps x label_reuse steps (every pass after
         the first hands out the same labelled rays in a new order drawn from the generator)."""
         chunk_state = self.rng.bit_generator.state
-        n_steps = max(1, self.cfg.label_steps)
+        n_steps = chunk_steps(self.cfg)
         per = self.cfg.rays_per_step
         weights = None
         if self.leaf_errors is not None:
@@ -156,12 +177,30 @@ class Batches:
 
     def next(self) -> TrainingSamples:
         if not self._pending:
-            chunk = self._queue.get() if self._queue is not None else self._make()
-            if isinstance(chunk[0], Exception):
-                raise chunk[0]
-            self._pending = list(chunk)
+            self._pending = self._next_chunk()
         batch, self._state = self._pending.pop(0)
         return batch
+
+    def _next_chunk(self) -> list:
+        """The next chunk's batches: made here, or taken from the labelling thread; with spare passes left, the last
+        chunk again (in a new batch order) rather than waiting for the thread."""
+        if self._queue is None:
+            return list(self._make())
+        import queue
+
+        if self._last is not None and self._last_passes <= self.spare_passes:
+            try:
+                chunk = self._queue.get_nowait()
+            except queue.Empty:
+                self._last_passes += 1
+                self.reused += len(self._last)
+                return [self._last[i] for i in self._order_rng.permutation(len(self._last))]
+        else:
+            chunk = self._queue.get()
+        if isinstance(chunk[0], Exception):
+            raise chunk[0]
+        self._last, self._last_passes = list(chunk), 1
+        return list(chunk)
 
     def rng_state(self) -> dict:
         return self._state

@@ -294,8 +294,16 @@ def _training_data(model, bvh, tracer, cfg, ck, device, plan, rng, events):
         leaf_errors.error = ck["leaf_errors"].clone()
     batches = Batches(bvh, tracer, cfg, rng, prefetch=prefetch, resume=ck.get("numpy_rng"),
                       leaf_errors=leaf_errors if cfg.leaf_sampling == "loss" else None, pin=device.type == "cuda",
-                      reuse=cfg.label_reuse or 1)
+                      reuse=cfg.label_reuse or 1, spare_passes=spare_label_passes(cfg, prefetch))
     return batches, leaf_errors, cut
+
+
+def spare_label_passes(cfg: TrainConfig, prefetch: bool) -> int:
+    """How many more times a chunk of labels may serve while the next is labelled (TrainConfig.spare_label_passes):
+    only where labels are made ahead of the steps (a card's prefetch); 7 unless set."""
+    if not prefetch:
+        return 0
+    return 7 if cfg.spare_label_passes is None else cfg.spare_label_passes
 
 
 def check_config(cfg: TrainConfig) -> None:
@@ -391,7 +399,8 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig,
                          final_loss=guard.ema if guard.ema is not None else float("nan"), device=str(device),
                          history=history, compute_path=plan.describe(), kernel_plan=plan.to_dict(),
                          stopped_early=stopped_early, grew=early.grew, recovered=recovery.recovered,
-                         checks_s=round(clock.checks_s, 2))
+                         checks_s=round(clock.checks_s, 2), label_reuse=batches.reuse,
+                         reused_batches=batches.reused, rays_per_step=cfg.rays_per_step)
     progress.emit(phases.phase, step, 1.0, result.final_loss, seconds, 0.0)
     phases.finish(result)
     early.at_end(model, opt, phases, events, stopped_early)

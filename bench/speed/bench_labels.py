@@ -1,0 +1,114 @@
+"""What exact training labels cost on the host, by thread count: the exact tracer's first hits on random rays and
+the training's whole labelling (rays drawn, first hits, the leaves each ray enters, all hits inside them), against
+the samples per second a training step consumes. A card trains only as fast as the host labels, unless it reuses
+labels (`Settings.label_reuse`, a card's spare passes): this says how far apart the two rates are on a machine.
+
+    .venv/bin/python -m bench.speed.bench_labels [--assets bunny dragon] [--threads 1 2 4 8 16] [--chunks 5]
+
+Per asset: the exact tracer's build seconds and the resident memory it added (VmRSS before and after), then per
+thread count (the kernels' OpenMP threads, `torch.set_num_threads`; Embree's queries through embreex use up to 8)
+the median over `--chunks` labelling chunks of the default preset's size (2,048 rays x 32 steps): the draw's and
+the labels' seconds, first-hit rays/s, label samples/s (drawn and labelled). Writes bench/results/labels.csv and
+labels.md (the device check writes its own under bench/results/gpu/).
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import time
+
+import numpy as np
+import torch
+
+from bench.harness import RESULTS, SMOKE, markdown_table, write_markdown, write_rows
+from bench.meshes import named_mesh
+from nbvh_core.app.pipeline import preset
+from nbvh_core.geometry.bvh import build_bvh
+from nbvh_core.geometry.exact import ExactTracer
+from nbvh_core.training.ray_batches import Batches
+from nbvh_core.training.rays import label_samples
+
+OUT = RESULTS / ("labels_smoke.csv" if SMOKE else "labels.csv")
+
+
+def resident_bytes() -> int:
+    """This process's resident memory now (VmRSS), 0 where /proc is missing."""
+    try:
+        for line in open("/proc/self/status"):
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return 0
+
+
+def label_rows(name: str, thread_counts: list[int], chunks: int) -> list[dict]:
+    """One row per thread count for asset `name` (see the module docstring)."""
+    mesh = named_mesh(name)
+    s = preset("default")
+    cfg = s.train_config()
+    bvh = build_bvh(mesh, s.nodes)
+    before, t0 = resident_bytes(), time.perf_counter()
+    tracer = ExactTracer(mesh)
+    tracer.first_hit(np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32) / np.sqrt(3.0))  # builds lazily
+    build_s, tracer_bytes = time.perf_counter() - t0, resident_bytes() - before
+    batches = Batches(bvh, tracer, cfg, np.random.default_rng(0))
+    n_rays = cfg.rays_per_step * cfg.label_steps
+    rows = []
+    for n in thread_counts:
+        torch.set_num_threads(n)
+        draw, first, label, samples = [], [], [], []
+        for _ in range(chunks + 1):  # the first chunk warms caches and is not counted
+            t = time.perf_counter()
+            o, d = batches._draw(n_rays)
+            t_drawn = time.perf_counter()
+            tracer.first_hit(o, d)
+            t_first = time.perf_counter()
+            got = label_samples(bvh, tracer, o, d, cfg.labels, tree=batches.tree, normal_loss=cfg.normal_loss)
+            t_end = time.perf_counter()
+            draw.append(t_drawn - t)
+            first.append(t_first - t_drawn)
+            label.append(t_end - t_first)
+            samples.append(len(got))
+        draw_s, first_s, label_s = (statistics.median(x[1:]) for x in (draw, first, label))
+        per_chunk = statistics.median(samples[1:])
+        rows.append({"asset": name, "triangles": mesh.n_triangles, "threads": n, "host_cpus": os.cpu_count(),
+                     "tracer": tracer.scene_kind, "tracer_build_s": round(build_s, 3), "tracer_bytes": tracer_bytes,
+                     "rays_per_chunk": n_rays, "samples_per_chunk": per_chunk, "draw_s": round(draw_s, 4),
+                     "first_hit_rays_per_s": round(n_rays / first_s), "label_s": round(label_s, 4),
+                     "label_samples_per_s": round(per_chunk / (draw_s + label_s))})
+        print(rows[-1], flush=True)
+    batches.close()
+    return rows
+
+
+def report(rows: list[dict]) -> None:
+    table = [[r["asset"], f"{int(r['triangles']):,}", r["threads"], r["tracer"],
+              f"{int(r['tracer_bytes']) / 2**20:,.0f} MiB", f"{float(r['tracer_build_s']):.2f}",
+              f"{float(r['draw_s']) * 1000:.1f}", f"{float(r['label_s']) * 1000:.1f}",
+              f"{int(r['first_hit_rays_per_s']):,}", f"{int(r['label_samples_per_s']):,}"] for r in rows]
+    write_markdown(OUT.with_suffix(".md"), [
+        "# What labels cost on the host (bench/speed/bench_labels.py)\n",
+        "Per chunk of the default preset (2,048 rays x 32 steps), median of the chunks: the draw, the labels "
+        "(first hits, the leaves each ray enters, all hits inside them), first-hit rays/s of the exact tracer alone, "
+        "and label samples/s (drawn and labelled). The tracer's memory is the resident memory its build added.\n",
+        *markdown_table(["asset", "triangles", "threads", "tracer", "tracer memory", "build s", "draw ms",
+                         "labels ms", "first-hit rays/s", "label samples/s"], table)])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--assets", nargs="+", default=["blob"] if SMOKE else ["bunny", "dragon"])
+    cpus = os.cpu_count() or 1
+    ap.add_argument("--threads", nargs="+", type=int,
+                    default=[1] if SMOKE else [n for n in (1, 2, 4, 8, 16, 32, 64) if n <= cpus])
+    ap.add_argument("--chunks", type=int, default=1 if SMOKE else 5)
+    args = ap.parse_args()
+    rows = [r for name in args.assets for r in label_rows(name, args.threads, args.chunks)]
+    write_rows(OUT, rows)
+    report(rows)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,121 @@
+"""Labelled rays served more than once: a fixed reuse (each chunk in new ray orders, deterministic) and a card's
+spare passes (the last chunk again while the host labels the next, never waiting while passes are left)."""
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+import torch
+
+from nbvh_core.geometry.bvh import build_bvh
+from nbvh_core.geometry.exact import ExactTracer
+from nbvh_core.neural.encodings import EncodingConfig
+from nbvh_core.neural.model import ModelConfig, NeuralBVH
+from nbvh_core.neural.networks import NetworkConfig
+from nbvh_core.training.ray_batches import Batches
+from nbvh_core.training.rays import generate_training_samples, label_samples, reorder_rays
+from nbvh_core.training.train import TrainConfig, spare_label_passes, train
+
+
+@pytest.fixture(scope="module")
+def blob(sample_meshes):
+    mesh = sample_meshes["blob"]
+    return mesh, build_bvh(mesh, 31), ExactTracer(mesh)
+
+
+class CountingTracer:
+    """The tracer, counting first-hit calls; after `open_calls` of them each call waits for `gate`."""
+
+    def __init__(self, tracer: ExactTracer, open_calls: int = 1 << 30):
+        self.tracer, self.calls, self.open_calls, self.gate = tracer, 0, open_calls, threading.Event()
+
+    def first_hit(self, o, d):
+        self.calls += 1
+        if self.calls > self.open_calls:
+            assert self.gate.wait(30), "the test never opened the gate"
+        return self.tracer.first_hit(o, d)
+
+    def __getattr__(self, name):
+        return getattr(self.tracer, name)
+
+
+def _rays(batch) -> set:
+    return {tuple(r) for r in batch.rays_o.numpy().round(6)}
+
+
+def test_reordered_rays_are_what_labelling_them_in_that_order_gives(blob):
+    _, bvh, tracer = blob
+    s = generate_training_samples(bvh, tracer, 700, "consistent", seed=4)
+    order = torch.from_numpy(np.random.default_rng(1).permutation(700))
+    got = reorder_rays(s, order)
+    want = label_samples(bvh, tracer, s.rays_o.numpy()[order.numpy()], s.rays_d.numpy()[order.numpy()],
+                         "consistent")
+    for name in ("rays_o", "rays_d", "ray", "leaf", "t_enter", "t_exit", "hit", "t_hit", "normal", "rank"):
+        assert torch.equal(getattr(got, name), getattr(want, name)), name
+
+
+def test_a_fixed_reuse_serves_each_chunk_again_in_new_orders_and_labels_half_as_often(blob):
+    _, bvh, tracer = blob
+    counting = CountingTracer(tracer)
+    cfg = TrainConfig(rays_per_step=64, label_steps=3)
+    b = Batches(bvh, counting, cfg, np.random.default_rng(0), reuse=2)
+    assert b.batches_per_chunk() == 6
+    batches = [b.next() for _ in range(12)]
+    assert counting.calls == 2  # two chunks for 12 steps, where reuse 1 labels four
+    first, second = batches[:3], batches[3:6]
+    assert set().union(*map(_rays, first)) == set().union(*map(_rays, second))
+    assert _rays(first[0]) != _rays(second[0])  # a new ray order, not the same batches again
+    assert sum(map(len, first)) == sum(map(len, second))
+    assert set().union(*map(_rays, batches[6:9])).isdisjoint(set().union(*map(_rays, first)))
+    again = Batches(bvh, tracer, cfg, np.random.default_rng(0), reuse=2)
+    assert all(torch.equal(again.next().rays_o, x.rays_o) for x in batches)  # deterministic
+
+
+def test_spare_passes_serve_the_last_chunk_while_the_next_is_labelled_then_wait(blob):
+    _, bvh, tracer = blob
+    gated = CountingTracer(tracer, open_calls=1)  # the first chunk labels, the second waits for the gate
+    cfg = TrainConfig(rays_per_step=64, label_steps=2)
+    b = Batches(bvh, gated, cfg, np.random.default_rng(0), prefetch=True, spare_passes=2)
+    try:
+        first = [b.next() for _ in range(2)]
+        spare = [b.next() for _ in range(4)]  # two spare passes, never waiting for the gated labels
+        assert b.reused == 4
+        assert {id(x) for x in spare} == {id(x) for x in first}
+        done = threading.Event()
+        got = []
+        waiter = threading.Thread(target=lambda: (got.append(b.next()), done.set()), daemon=True)
+        waiter.start()
+        assert not done.wait(0.3)  # passes spent: it waits for fresh labels
+        gated.gate.set()
+        assert done.wait(30)
+        assert id(got[0]) not in {id(x) for x in first}
+        assert not _rays(got[0]) & _rays(first[0])
+    finally:
+        gated.gate.set()
+        b.close()
+
+
+def test_without_prefetch_or_spare_passes_nothing_is_served_twice(blob):
+    _, bvh, tracer = blob
+    cfg = TrainConfig(rays_per_step=64, label_steps=2)
+    assert spare_label_passes(cfg, prefetch=False) == 0 and spare_label_passes(cfg, prefetch=True) == 7
+    b = Batches(bvh, tracer, cfg, np.random.default_rng(0), prefetch=True, spare_passes=0)
+    try:
+        seen = [_rays(b.next()) for _ in range(6)]
+        assert b.reused == 0
+        assert all(a.isdisjoint(c) for i, a in enumerate(seen) for c in seen[i + 1:])
+    finally:
+        b.close()
+
+
+def test_a_training_records_its_reuse(blob):
+    mesh, bvh, tracer = blob
+    torch.manual_seed(0)
+    model = NeuralBVH(bvh.nodes, ModelConfig(EncodingConfig(kind="hashgrid", log2_table=6, levels=2, features=4),
+                                             NetworkConfig(kind="mlp", k=4)))
+    counting = CountingTracer(tracer)
+    res = train(model, bvh, counting, TrainConfig(steps=8, rays_per_step=64, label_steps=2, label_reuse=2,
+                                                  device="cpu"))
+    assert (res.steps, res.label_reuse, res.reused_batches) == (8, 2, 0)
+    assert counting.calls == 2  # two chunks of 2 steps x 2 passes (reuse 1 labels four)
