@@ -55,7 +55,8 @@ class Batches:
     `reuse` hands every chunk out that many times, each pass in a new ray order (deterministic). `spare_passes`
     (prefetch only: a card) streams a pool instead of waiting: when the next chunk is not labelled yet, the last
     one is handed out again in a new batch order, at most `spare_passes` more times, so the card trains at its pace
-    while the host labels at its own (which batches reuse depends on timing; `reused` counts them).
+    while the host labels at its own (which batches reuse depends on timing; `reused` counts them; a checkpoint
+    resumes after the chunk position its last batch came from, as in a run without spare passes).
     """
 
     def __init__(self, bvh: BVH, tracer: ExactTracer, cfg, rng: np.random.Generator,
