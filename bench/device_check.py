@@ -10,16 +10,17 @@ Stages (call 1: kernels, speed, bunny, labels, within 300 s; call 2: need, withi
 2. speed: `bench_speed.py --device cuda` (the Triton path - the ray query one kernel - against torch on the card,
    Embree on the host's cores: renders at 512 and 1000 px with the share of rays that decide as the reference,
    training samples/s, and the training's rate at 2^11 to 2^17 rays per step) and the same on the host's CPU;
-3. labels: `bench_labels.py` on the host at 1 to all threads: what exact labels cost against what the card trains;
+3. labels: `bench_labels.py` on the host at 1 to all threads: what exact labels cost against what the card trains,
+   and how the CPU's own training scales with its cores;
 4. bunny: the bunny at level standard on the card (`nbvh compress bunny --quality standard --device cuda`): wall
    seconds, whether the level was met, bytes;
 5. need: the need-driven default (`bench_shipped.py`: level standard, 200 s, as a user runs it) on the bunny, the
    202k dragon, spiky and the gyroid on the card, beside the CPU's rows of bench/results/shipped.csv.
 
 Writes bench/results/gpu/: summary.csv (one row per figure: figure, value, device, commit, machine, command; the
-figures render_1mp_ms, render_hit_agreement, train_samples_per_s, train_samples_per_s_at_N, label_samples_per_s_N_threads,
-bunny_standard_wall_s, kernel_tests_passed, need_ASSET_{shipped,bytes,mse,ratio} for the card and the CPU), and each
-stage's own files (speed*.{csv,md}, labels.{csv,md}, shipped.{csv,md}, logs). A figure whose step failed is written
+figures render_1mp_ms, render_hit_agreement, render_vs_embree_host, train_samples_per_s, train_samples_per_s_at_N,
+label_samples_per_s_N_threads, cpu_train_samples_per_s_N_threads, bunny_standard_wall_s, kernel_tests_passed and
+need_ASSET_{shipped,shipped_bytes,mse,ratio,wall_s} for the card and the CPU), and each stage's own files (speed*.{csv,md}, labels.{csv,md}, shipped.{csv,md}, logs). A figure whose step failed is written
 empty with the reason; a stage that would start past --budget-s is skipped and says so.
 """
 from __future__ import annotations
@@ -136,6 +137,8 @@ def stage_labels(c: Check) -> None:
         c.figure(f"label_samples_per_s_{r['threads']}_threads", r["label_samples_per_s"],
                  f"{r['asset']}; first-hit rays/s {r['first_hit_rays_per_s']}; draw {r['draw_s']} s and labels "
                  f"{r['label_s']} s per {r['rays_per_chunk']} rays", device="host")
+        c.figure(f"cpu_train_samples_per_s_{r['threads']}_threads", r.get("cpu_train_samples_per_s", ""),
+                 f"{r['asset']}; the default preset's training on the host's CPU", device="host")
 
 
 def stage_bunny(c: Check) -> None:

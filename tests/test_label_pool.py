@@ -119,3 +119,23 @@ def test_a_training_records_its_reuse(blob):
                                                   device="cpu"))
     assert (res.steps, res.label_reuse, res.reused_batches) == (8, 2, 0)
     assert counting.calls == 2  # two chunks of 2 steps x 2 passes (reuse 1 labels four)
+
+
+def test_a_card_s_host_draws_in_more_parts_deterministically(blob):
+    _, bvh, tracer = blob
+    cfg = TrainConfig(rays_per_step=64, label_steps=2)
+    two = Batches(bvh, tracer, cfg, np.random.default_rng(0))
+    five = Batches(bvh, tracer, cfg, np.random.default_rng(0), draw_parts=5)
+    again = Batches(bvh, tracer, cfg, np.random.default_rng(0), draw_parts=5)
+    try:
+        o2, _ = two._draw(1001)
+        o5, d5 = five._draw(1001)
+        o5b, d5b = again._draw(1001)
+        assert o5.shape == d5.shape == (1001, 3) and np.allclose(np.linalg.norm(d5, axis=1), 1.0, atol=1e-5)
+        assert np.array_equal(o5, o5b) and np.array_equal(d5, d5b)
+        assert not np.array_equal(o2, o5)  # another seed per part: a card's rays are its own
+        lo, hi = two.lo, two.hi
+        assert (o5.min(0) < lo).any() and (o5.max(0) > hi).any()  # the outside rays are there too
+    finally:
+        for b in (two, five, again):
+            b.close()

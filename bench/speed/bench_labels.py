@@ -7,9 +7,11 @@ labels (`Settings.label_reuse`, a card's spare passes): this says how far apart 
 
 Per asset: the exact tracer's build seconds and the resident memory it added (VmRSS before and after), then per
 thread count (the kernels' OpenMP threads, `torch.set_num_threads`; Embree's queries through embreex use up to 8)
-the median over `--chunks` labelling chunks of the default preset's size (2,048 rays x 32 steps): the draw's and
-the labels' seconds, first-hit rays/s, label samples/s (drawn and labelled). Writes bench/results/labels.csv and
-labels.md (the device check writes its own under bench/results/gpu/).
+the median over `--chunks` labelling chunks of the default preset's size (2,048 rays x 32 steps): the draw's (in as
+many parts as threads, at least 2, as a card's host draws) and the labels' seconds, first-hit rays/s, label
+samples/s (drawn and labelled); then the default preset's training on the host's CPU at that many threads
+(`--train-steps`): how a many-core CPU scales. Writes bench/results/labels.csv and labels.md (the device check
+writes its own under bench/results/gpu/).
 """
 from __future__ import annotations
 
@@ -28,7 +30,9 @@ from nbvh_core.geometry.bvh import build_bvh
 from nbvh_core.geometry.exact import ExactTracer
 from nbvh_core.protocol.memory import return_free_memory
 from nbvh_core.training.ray_batches import Batches
+from nbvh_core.neural.model import NeuralBVH
 from nbvh_core.training.rays import label_samples
+from nbvh_core.training.train import train
 
 OUT = RESULTS / ("labels_smoke.csv" if SMOKE else "labels.csv")
 
@@ -44,7 +48,37 @@ def resident_bytes() -> int:
     return 0
 
 
-def label_rows(name: str, thread_counts: list[int], chunks: int) -> list[dict]:
+def chunk_costs(bvh, tracer, cfg, threads: int, chunks: int) -> dict:
+    """Median seconds of the draw, the first hits and the labels over `chunks` chunks at `threads` threads (the
+    first, which warms caches, not counted), and the samples per chunk."""
+    torch.set_num_threads(threads)
+    batches = Batches(bvh, tracer, cfg, np.random.default_rng(0), draw_parts=max(2, threads))  # as a card's host
+    n_rays = cfg.rays_per_step * cfg.label_steps
+    times: dict[str, list] = {"draw": [], "first": [], "label": [], "samples": []}
+    for _ in range(chunks + 1):
+        t = time.perf_counter()
+        o, d = batches._draw(n_rays)
+        t_drawn = time.perf_counter()
+        tracer.first_hit(o, d)
+        t_first = time.perf_counter()
+        got = label_samples(bvh, tracer, o, d, cfg.labels, tree=batches.tree, normal_loss=cfg.normal_loss)
+        for key, value in (("draw", t_drawn - t), ("first", t_first - t_drawn),
+                           ("label", time.perf_counter() - t_first), ("samples", len(got))):
+            times[key].append(value)
+    batches.close()
+    return {k: statistics.median(v[1:]) for k, v in times.items()} | {"draw_parts": batches.draw_parts}
+
+
+def train_rate(mesh, bvh, tracer, s, threads: int, steps: int) -> float:
+    """The default preset's training on the CPU at `threads` threads: leaf samples/s over `steps` steps."""
+    torch.set_num_threads(threads)
+    torch.manual_seed(0)
+    cfg = s.train_config()
+    cfg.steps, cfg.time_limit_s, cfg.device = steps, None, "cpu"
+    return train(NeuralBVH(bvh.nodes, s.model_config(), mesh.transform), bvh, tracer, cfg).samples_per_s
+
+
+def label_rows(name: str, thread_counts: list[int], chunks: int, train_steps: int) -> list[dict]:
     """One row per thread count for asset `name` (see the module docstring)."""
     mesh = named_mesh(name)
     s = preset("default")
@@ -55,33 +89,19 @@ def label_rows(name: str, thread_counts: list[int], chunks: int) -> list[dict]:
     tracer = ExactTracer(mesh)
     tracer.first_hit(np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32) / np.sqrt(3.0))  # builds lazily
     build_s, tracer_bytes = time.perf_counter() - t0, resident_bytes() - before
-    batches = Batches(bvh, tracer, cfg, np.random.default_rng(0))
     n_rays = cfg.rays_per_step * cfg.label_steps
     rows = []
     for n in thread_counts:
-        torch.set_num_threads(n)
-        draw, first, label, samples = [], [], [], []
-        for _ in range(chunks + 1):  # the first chunk warms caches and is not counted
-            t = time.perf_counter()
-            o, d = batches._draw(n_rays)
-            t_drawn = time.perf_counter()
-            tracer.first_hit(o, d)
-            t_first = time.perf_counter()
-            got = label_samples(bvh, tracer, o, d, cfg.labels, tree=batches.tree, normal_loss=cfg.normal_loss)
-            t_end = time.perf_counter()
-            draw.append(t_drawn - t)
-            first.append(t_first - t_drawn)
-            label.append(t_end - t_first)
-            samples.append(len(got))
-        draw_s, first_s, label_s = (statistics.median(x[1:]) for x in (draw, first, label))
-        per_chunk = statistics.median(samples[1:])
-        rows.append({"asset": name, "triangles": mesh.n_triangles, "threads": n, "host_cpus": os.cpu_count(),
-                     "tracer": tracer.scene_kind, "tracer_build_s": round(build_s, 3), "tracer_bytes": tracer_bytes,
-                     "rays_per_chunk": n_rays, "samples_per_chunk": per_chunk, "draw_s": round(draw_s, 4),
-                     "first_hit_rays_per_s": round(n_rays / first_s), "label_s": round(label_s, 4),
-                     "label_samples_per_s": round(per_chunk / (draw_s + label_s))})
+        c = chunk_costs(bvh, tracer, cfg, n, chunks)
+        rows.append({"asset": name, "triangles": mesh.n_triangles, "threads": n, "draw_parts": c["draw_parts"],
+                     "host_cpus": os.cpu_count(), "tracer": tracer.scene_kind, "tracer_build_s": round(build_s, 3),
+                     "tracer_bytes": tracer_bytes, "rays_per_chunk": n_rays, "samples_per_chunk": c["samples"],
+                     "draw_s": round(c["draw"], 4), "first_hit_rays_per_s": round(n_rays / c["first"]),
+                     "label_s": round(c["label"], 4),
+                     "label_samples_per_s": round(c["samples"] / (c["draw"] + c["label"])),
+                     "cpu_train_samples_per_s": round(train_rate(mesh, bvh, tracer, s, n, train_steps))
+                     if train_steps else ""})
         print(rows[-1], flush=True)
-    batches.close()
     return rows
 
 
@@ -89,14 +109,17 @@ def report(rows: list[dict]) -> None:
     table = [[r["asset"], f"{int(r['triangles']):,}", r["threads"], r["tracer"],
               f"{int(r['tracer_bytes']) / 2**20:,.0f} MiB", f"{float(r['tracer_build_s']):.2f}",
               f"{float(r['draw_s']) * 1000:.1f}", f"{float(r['label_s']) * 1000:.1f}",
-              f"{int(r['first_hit_rays_per_s']):,}", f"{int(r['label_samples_per_s']):,}"] for r in rows]
+              f"{int(r['first_hit_rays_per_s']):,}", f"{int(r['label_samples_per_s']):,}",
+              f"{int(float(r['cpu_train_samples_per_s'])):,}" if r.get("cpu_train_samples_per_s") else ""]
+             for r in rows]
     write_markdown(OUT.with_suffix(".md"), [
         "# What labels cost on the host (bench/speed/bench_labels.py)\n",
         "Per chunk of the default preset (2,048 rays x 32 steps), median of the chunks: the draw, the labels "
         "(first hits, the leaves each ray enters, all hits inside them), first-hit rays/s of the exact tracer alone, "
-        "and label samples/s (drawn and labelled). The tracer's memory is the resident memory its build added.\n",
+        "and label samples/s (drawn and labelled). The tracer's memory is the resident memory its build added. "
+        "CPU training: the default preset's whole step on this host's CPU at that many threads (labels included).\n",
         *markdown_table(["asset", "triangles", "threads", "tracer", "tracer memory", "build s", "draw ms",
-                         "labels ms", "first-hit rays/s", "label samples/s"], table)])
+                         "labels ms", "first-hit rays/s", "label samples/s", "CPU training samples/s"], table)])
 
 
 def main() -> None:
@@ -106,8 +129,10 @@ def main() -> None:
     ap.add_argument("--threads", nargs="+", type=int,
                     default=[1] if SMOKE else [n for n in (1, 2, 4, 8, 16, 32, 64) if n <= cpus])
     ap.add_argument("--chunks", type=int, default=1 if SMOKE else 5)
+    ap.add_argument("--train-steps", type=int, default=3 if SMOKE else 100,
+                    help="steps of CPU training per thread count (0: none)")
     args = ap.parse_args()
-    rows = [r for name in args.assets for r in label_rows(name, args.threads, args.chunks)]
+    rows = [r for name in args.assets for r in label_rows(name, args.threads, args.chunks, args.train_steps)]
     write_rows(OUT, rows)
     report(rows)
 

@@ -61,8 +61,9 @@ class Batches:
 
     def __init__(self, bvh: BVH, tracer: ExactTracer, cfg, rng: np.random.Generator,
                  prefetch: bool = False, resume: dict | None = None, leaf_errors: LeafErrors | None = None,
-                 pin: bool = False, reuse: int = 1, spare_passes: int = 0):
+                 pin: bool = False, reuse: int = 1, spare_passes: int = 0, draw_parts: int = 2):
         self.bvh, self.tracer, self.cfg, self.rng = bvh, tracer, cfg, rng
+        self.draw_parts = max(1, int(draw_parts))  # uniform rays drawn in this many parts at once (see _draw_uniform)
         self.reuse = max(1, int(reuse))  # passes over each labelled chunk (TrainConfig.label_reuse, resolved)
         self.spare_passes = 0  # set after a resumed chunk's batches are skipped (below)
         self.reused = 0  # batches handed out again while the next chunk was being labelled
@@ -102,12 +103,12 @@ class Batches:
         self.spare_passes = max(0, int(spare_passes)) if prefetch else 0
 
     def batches_per_chunk(self) -> int:
-        """Steps one labelled chunk serves: label_steps, times label_reuse passes over its rays."""
+        """Steps one labelled chunk serves: `chunk_steps`, times `reuse` passes over its rays."""
         return chunk_steps(self.cfg) * self.reuse
 
     def _make(self):
-        """One chunk: [(batch, {'chunk_state', 'index'}), ...] for label_steps x label_reuse steps (every pass after
-        the first hands out the same labelled rays in a new order drawn from the generator)."""
+        """One chunk: [(batch, {'chunk_state', 'index'}), ...] for chunk_steps x reuse steps (every pass after the
+        first hands out the same labelled rays in a new order drawn from the generator)."""
         chunk_state = self.rng.bit_generator.state
         n_steps = chunk_steps(self.cfg)
         per = self.cfg.rays_per_step
@@ -146,18 +147,22 @@ class Batches:
         return self._draw_uniform(n)
 
     def _draw_uniform(self, n: int) -> tuple[np.ndarray, np.ndarray]:
-        """n rays of `sample_rays` in two halves drawn by two threads (numpy's generators and ufuncs release the
-        GIL), each from a generator seeded by the main one: deterministic, and resumable from its state."""
-        seeds = self.rng.integers(0, 2 ** 63, size=2)
-        sizes = (n // 2, n - n // 2)
+        """n rays of `sample_rays` in `draw_parts` parts drawn by as many threads (numpy's generators and ufuncs
+        release the GIL), each from a generator seeded by the main one: deterministic for a number of parts, and
+        resumable from its state. Two on the CPU, whatever its cores (a seed's rays are the same everywhere); a card's
+        host draws in as many parts as it has threads (at two, 26 ms of a 65,536-ray chunk's ~120 ms of labels on
+        the bunny: bench/results/labels.md)."""
+        k = self.draw_parts
+        seeds = self.rng.integers(0, 2 ** 63, size=k)
+        sizes = [n * (i + 1) // k - n * i // k for i in range(k)]  # at two: n // 2, then the rest
         if self._pool is None:
             from concurrent.futures import ThreadPoolExecutor
 
-            self._pool = ThreadPoolExecutor(max_workers=2, thread_name_prefix="nbvh-rays")
-        halves = list(self._pool.map(
+            self._pool = ThreadPoolExecutor(max_workers=k, thread_name_prefix="nbvh-rays")
+        parts = list(self._pool.map(
             lambda i: sample_rays(self.lo, self.hi, sizes[i], np.random.default_rng(seeds[i]), self.cfg.ray_config),
-            range(2)))
-        return np.concatenate([h[0] for h in halves]), np.concatenate([h[1] for h in halves])
+            range(k)))
+        return np.concatenate([h[0] for h in parts]), np.concatenate([h[1] for h in parts])
 
     def _produce(self) -> None:
         import queue

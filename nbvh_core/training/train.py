@@ -294,7 +294,8 @@ def _training_data(model, bvh, tracer, cfg, ck, device, plan, rng, events):
         leaf_errors.error = ck["leaf_errors"].clone()
     batches = Batches(bvh, tracer, cfg, rng, prefetch=prefetch, resume=ck.get("numpy_rng"),
                       leaf_errors=leaf_errors if cfg.leaf_sampling == "loss" else None, pin=device.type == "cuda",
-                      reuse=cfg.label_reuse or 1, spare_passes=spare_label_passes(cfg, prefetch))
+                      reuse=cfg.label_reuse or 1, spare_passes=spare_label_passes(cfg, prefetch),
+                      draw_parts=max(2, kernels.threads()) if device.type == "cuda" else 2)
     return batches, leaf_errors, cut
 
 
