@@ -139,3 +139,28 @@ def test_a_card_s_host_draws_in_more_parts_deterministically(blob):
     finally:
         for b in (two, five, again):
             b.close()
+
+
+class SlowTracer(CountingTracer):
+    """Labels that take `delay_s` a chunk: a host far slower than the steps it feeds."""
+
+    def __init__(self, tracer: ExactTracer, delay_s: float):
+        super().__init__(tracer)
+        self.delay_s = delay_s
+
+    def first_hit(self, o, d):
+        threading.Event().wait(self.delay_s)
+        return super().first_hit(o, d)
+
+
+def test_a_training_fed_ahead_serves_spare_passes_instead_of_waiting(blob):
+    mesh, bvh, tracer = blob
+    torch.manual_seed(0)
+    model = NeuralBVH(bvh.nodes, ModelConfig(EncodingConfig(kind="hashgrid", log2_table=6, levels=2, features=4),
+                                             NetworkConfig(kind="mlp", k=4)))
+    slow = SlowTracer(tracer, 0.4)  # a chunk of 2 steps every 0.4 s, against a few ms per step
+    res = train(model, bvh, slow, TrainConfig(steps=24, rays_per_step=64, label_steps=2, device="cpu",
+                                              prefetch=True, spare_label_passes=3))
+    assert res.steps == 24 and np.isfinite(res.final_loss)
+    assert res.reused_batches > 0  # the loop took the last chunk again rather than wait for the slow labels
+    assert res.reused_batches <= 3 * 2 * slow.calls  # at most 3 more passes of each 2-step chunk
