@@ -1,9 +1,13 @@
 """The one prepared check for a lent card (H100 / H200), run in every session that has one, in two calls:
 
-    .venv/bin/python -m bench.device_check --prepare       # here, before: the real assets into .device_assets/
-    .venv/bin/python -m bench.device_check                 # call 1 on the card (~5 min; device tool timeout 420 s)
-    .venv/bin/python -m bench.device_check --stages need   # call 2 on the card (~6-9 min; timeout 580 s)
+    .venv/bin/python -m bench.device_check --prepare       # here, after the last commit: .device_assets/
+    bash scripts/device_check.sh                           # call 1 on the card (~5 min)
+    bash scripts/device_check.sh --stages need             # call 2 on the card (~6-9 min)
     .venv/bin/python -m bench.device_check --smoke         # anywhere: the same steps at toy sizes on the CPU
+
+With the device tool: run(command="bash scripts/device_check.sh", carry=[".device_assets"], timeout_s=420), then
+the same with "--stages need" and timeout_s=590. The script installs the carried packages into the card's Python,
+builds the fused CPU kernels, runs this check and packs bench/results/gpu/ into $OUT/gpu_results.tgz.
 
 Stages (call 1: kernels, speed, bunny, labels, within 300 s; call 2: need, within 560 s):
 1. kernels: tests/test_triton_kernels.py on CUDA tensors (no interpreter);
@@ -180,20 +184,38 @@ def stage_need(c: Check) -> None:
                 c.figure(f"need_{asset}_{field}", r.get(field, ""), "", device=device)
 
 
+#: What the card's machine lacks of nbvh_core's requirements, for its Python (3.12 with torch, numpy, scipy, pillow,
+#: safetensors): wheels where PyPI has them, meshoptimizer's source (built there: its image has a compiler).
+DEVICE_PYTHON = "3.12"
+DEVICE_WHEELS = ("embreex==4.4.0.post1", "trimesh==5.2.0", "DracoPy==2.2.0", "flip-evaluator==1.7")
+DEVICE_SOURCES = ("meshoptimizer==0.2.30a0",)
+
+
 def prepare() -> None:
-    """Fetch the real assets the need stage reads into .device_assets/ (ignored by git; the device tool carries
-    it): the card's machine reaches no registry."""
+    """Fetch what the card's machine cannot (it reaches no registry) into .device_assets/, which git ignores and the
+    device tool carries: the packages its Python lacks (wheels/), the real assets the need stage reads
+    (real_assets/), and the commit the copy is of (commit: its git folder may be another's)."""
+    wheels = DEVICE_ASSETS / "wheels"
+    wheels.mkdir(parents=True, exist_ok=True)
+    download = [sys.executable, "-m", "pip", "download", "-q", "--no-deps", "--dest", str(wheels)]
+    platforms = [a for p in ("manylinux2014_x86_64", "manylinux_2_28_x86_64", "linux_x86_64") for a in ("--platform", p)]
+    for spec in DEVICE_WHEELS:
+        subprocess.run([*download, "--python-version", DEVICE_PYTHON, *platforms, "--only-binary=:all:", spec],
+                       check=True)
+    for spec in DEVICE_SOURCES:
+        subprocess.run([*download, "--no-binary", spec.split("=")[0], spec], check=True)
+    from bench.harness import commit_of
+
+    (DEVICE_ASSETS / "commit").write_text(commit_of(ROOT))
     os.environ["NBVH_ASSET_CACHE"] = str(DEVICE_ASSETS / "real_assets")
     from bench.real_assets import REAL_ASSETS, asset_path
 
-    for name in NEED_ASSETS:
-        if name in REAL_ASSETS:
-            path = asset_path(name)
-            keep = {path.resolve()}
-            for other in (DEVICE_ASSETS / "real_assets").rglob("*"):  # the package's other files stay behind
-                if other.is_file() and other.resolve() not in keep:
-                    other.unlink()
-            print(name, path, path.stat().st_size, "bytes")
+    keep = {asset_path(name).resolve() for name in NEED_ASSETS if name in REAL_ASSETS}
+    for other in (DEVICE_ASSETS / "real_assets").rglob("*"):  # the packages' other files stay behind
+        if other.is_file() and other.resolve() not in keep:
+            other.unlink()
+    for path in sorted(keep):
+        print(path, path.stat().st_size, "bytes")
 
 
 def main() -> None:
@@ -203,7 +225,8 @@ def main() -> None:
     ap.add_argument("--stages", nargs="+", choices=STAGES, default=list(FIRST_CALL))
     ap.add_argument("--budget-s", type=float, default=None,
                     help="stages that would start past this are skipped (default: 300 s, the need stage alone 560 s)")
-    ap.add_argument("--prepare", action="store_true", help="only fetch the real assets into .device_assets/")
+    ap.add_argument("--prepare", action="store_true",
+                    help="only fetch what the card's machine cannot into .device_assets/ (packages, assets, commit)")
     ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "gpu"))
     args = ap.parse_args()
     if args.prepare:

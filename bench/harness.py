@@ -59,6 +59,8 @@ def commit_of(root: Path) -> str:
         out = subprocess.run(["git", *args], cwd=root, capture_output=True, text=True)
         return out.stdout.strip() if out.returncode == 0 else ""
 
+    if os.environ.get("NBVH_COMMIT"):  # a copy whose git folder is not the tree's (a lent card's: device_check.sh)
+        return os.environ["NBVH_COMMIT"]
     commit = git("rev-parse", "--short", "HEAD") or "unknown"
     if git("status", "--porcelain", "--untracked-files=no", "--", ".", ":(exclude)bench/results"):
         commit += "-dirty"

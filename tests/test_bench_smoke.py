@@ -97,3 +97,8 @@ def test_the_stamp_says_dirty_for_changed_code_not_for_the_benchmarks_own_result
     assert commit_of(tmp_path) == clean
     (tmp_path / "code.py").write_text("x = 2\n")
     assert commit_of(tmp_path) == clean + "-dirty"
+    os.environ["NBVH_COMMIT"] = "abc1234"  # a lent card's copy: the commit --prepare recorded, not its git folder's
+    try:
+        assert commit_of(tmp_path) == "abc1234"
+    finally:
+        del os.environ["NBVH_COMMIT"]
