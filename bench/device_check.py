@@ -158,7 +158,7 @@ def stage_bunny(c: Check) -> None:
 
 def stage_need(c: Check) -> None:
     """The need-driven default on the four assets on the card, beside the CPU's rows of shipped.csv."""
-    assets = ["bunny"] if c.smoke else list(NEED_ASSETS)
+    assets = ["blob"] if c.smoke else list(NEED_ASSETS)
     extra = ["--time-limit", "1"] if c.smoke else []
     env = {**c.env, "NBVH_BENCH_SMOKE": "1"} if c.smoke else c.env
     logs = {}

@@ -164,3 +164,37 @@ def test_a_training_fed_ahead_serves_spare_passes_instead_of_waiting(blob):
     assert res.steps == 24 and np.isfinite(res.final_loss)
     assert res.reused_batches > 0  # the loop took the last chunk again rather than wait for the slow labels
     assert res.reused_batches <= 3 * 2 * slow.calls  # at most 3 more passes of each 2-step chunk
+
+
+def test_a_card_s_training_shape_runs_on_the_cpu(blob):
+    """What a card's run does that the CPU's does not (labels made ahead, spare passes, the loss read every 16
+    steps, large steps labelled in chunks of at most 2^16 rays), together, on the CPU."""
+    mesh, bvh, tracer = blob
+
+    def run(**card):
+        torch.manual_seed(0)
+        model = NeuralBVH(bvh.nodes, ModelConfig(EncodingConfig(kind="hashgrid", log2_table=8, levels=4, features=4),
+                                                 NetworkConfig(kind="mlp", k=4)))
+        return train(model, bvh, tracer, TrainConfig(steps=60, rays_per_step=8192, device="cpu", seed=1, **card))
+
+    res, plain = run(prefetch=True, loss_read_every=16), run()
+    assert (res.steps, res.rays_per_step) == (60, 8192)
+    first, last = res.history[0][1], res.history[-1][1]
+    assert np.isfinite(last) and last < 0.95 * first  # it learns (1.90 -> 1.71 recorded)
+    assert res.samples > 60 * 4000  # 8,192 rays a step, each entering a leaf or more
+    if res.reused_batches == 0:  # the labels kept up: the very steps a plain run takes
+        assert res.history == plain.history
+    else:
+        assert last < 1.1 * plain.history[-1][1]
+
+
+def test_the_file_records_the_batch_and_the_reuse_a_run_trained_with(sample_meshes, tmp_path):
+    from nbvh_core.app.pipeline import compress_mesh
+    from nbvh_core.planning.settings import preset
+    from nbvh_core.storage.fileformat import read_info
+
+    s = preset("tiny").with_overrides(rays_per_step=1024, label_reuse=2, steps=12, force=True)
+    res = compress_mesh(sample_meshes["blob"], s, tmp_path / "b.nbvh", evaluate_quality=False)
+    assert (res.training.rays_per_step, res.training.label_reuse) == (1024, 2)
+    training = read_info(tmp_path / "b.nbvh").metadata["training"]
+    assert (training["rays_per_step"], training["label_reuse"], training["reused_batches"]) == (1024, 2, 0)
