@@ -70,6 +70,15 @@ def embree_library() -> ctypes.CDLL | None:
     return lib
 
 
+def _byte_bounds(a: np.ndarray) -> tuple[int, int]:
+    """(first, one past the last) byte address of `a`: numpy 1's np.byte_bounds, numpy 2's array_utils (a lent
+    card's Python has numpy 2.5)."""
+    bounds = getattr(np, "byte_bounds", None)
+    if bounds is None:
+        from numpy.lib.array_utils import byte_bounds as bounds
+    return bounds(a)
+
+
 def padded_vertices(vertices: np.ndarray) -> np.ndarray:
     """`vertices` (V, 3) float32 when 4 readable bytes follow its last row (Embree reads each vertex with one
     16-byte load, so a shared vertex buffer must have them: `mesh.mesh_from_arrays` allocates a spare row), else
@@ -77,7 +86,7 @@ def padded_vertices(vertices: np.ndarray) -> np.ndarray:
     v = np.ascontiguousarray(vertices, dtype=np.float32)
     base = v.base if isinstance(v.base, np.ndarray) else None
     if base is not None and base.flags.c_contiguous and v.size:
-        (lo, hi), (v_lo, v_hi) = np.byte_bounds(base), np.byte_bounds(v)
+        (lo, hi), (v_lo, v_hi) = _byte_bounds(base), _byte_bounds(v)
         if lo <= v_lo and v_hi + 4 <= hi:
             return v
     padded = np.zeros((v.shape[0] + 1, 3), np.float32)
