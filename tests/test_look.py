@@ -383,8 +383,9 @@ def test_a_run_scores_the_file_as_shipped_with_its_look():
     assert shipped is not None and shipped.held_out and shipped.views == 4 and shipped.resolution == 48
     # the file decodes to the model the run scored: the same geometry, the same grey MSE
     assert abs(shipped.mse - geometry.mse) <= 1e-6 + 1e-3 * geometry.mse
-    # a tiny model: coarse, but coloured (recorded: colour MSE 0.0431-0.0434, FLIP 0.267-0.268 in two runs)
-    assert 0.034 < shipped.colour_mse < 0.052 and 0.21 < shipped.flip < 0.33, (shipped.colour_mse, shipped.flip)
+    # a tiny model: coarse, but coloured; its head trains 200 steps in a run in steps, whatever the machine
+    # (recorded: colour MSE 0.0489, FLIP 0.295 in two runs; 100 steps read 0.080 and 0.405)
+    assert 0.042 < shipped.colour_mse < 0.057 and 0.25 < shipped.flip < 0.34, (shipped.colour_mse, shipped.flip)
     assert geometry.colour_mse is None  # scored before the head was attached
     summary = r.summary()
     assert summary["quality_as_shipped"]["flip"] == shipped.flip and "per_view_mse" not in summary["quality_as_shipped"]
