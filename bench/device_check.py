@@ -42,7 +42,7 @@ from bench.harness import ROOT, append_rows, read_rows, stamp
 
 STAGES = ("kernels", "speed", "labels", "bunny", "need")
 FIRST_CALL = ("kernels", "speed", "bunny", "labels")
-#: The need-driven default's assets on the card (issue 57), and where the real ones travel to the card's machine.
+#: The need-driven default's assets on the card, and where the real ones travel to the card's machine.
 NEED_ASSETS = ("bunny", "dragon", "spiky", "gyroid")
 DEVICE_ASSETS = ROOT / ".device_assets"
 LADDER = ("2048", "8192", "32768", "131072")

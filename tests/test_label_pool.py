@@ -15,7 +15,7 @@ from nbvh_core.neural.model import ModelConfig, NeuralBVH
 from nbvh_core.neural.networks import NetworkConfig
 from nbvh_core.training.ray_batches import Batches
 from nbvh_core.training.rays import generate_training_samples, label_samples, reorder_rays
-from nbvh_core.training.train import TrainConfig, spare_label_passes, train
+from nbvh_core.training.train import TrainConfig, train
 
 
 @pytest.fixture(scope="module")
@@ -99,7 +99,8 @@ def test_spare_passes_serve_the_last_chunk_while_the_next_is_labelled_then_wait(
 def test_without_prefetch_or_spare_passes_nothing_is_served_twice(blob):
     _, bvh, tracer = blob
     cfg = TrainConfig(rays_per_step=64, label_steps=2)
-    assert spare_label_passes(cfg, prefetch=False) == 0 and spare_label_passes(cfg, prefetch=True) == 7
+    unfed = Batches(bvh, tracer, cfg, np.random.default_rng(0), spare_passes=cfg.spare_label_passes)
+    assert cfg.spare_label_passes == 7 and unfed.spare_passes == 0  # spare passes only where labels come ahead
     b = Batches(bvh, tracer, cfg, np.random.default_rng(0), prefetch=True, spare_passes=0)
     try:
         seen = [_rays(b.next()) for _ in range(6)]

@@ -234,7 +234,7 @@ def _train_head(mesh: Mesh, tracer: ExactTracer, look: LookConfig, storage: Stor
     labels = SurfaceLabels(mesh, tracer, np.random.default_rng(seed + 1), face_patch, colour=cfg.target == "colour")
     result = train_head(head, labels, budget_s, should_stop=should_cancel,
                         pool_size=1 << 19 if look.budget_s else 1 << 15,
-                        **({"max_steps": max_steps, "min_steps": 0} if max_steps else {}))
+                        **({"max_steps": max_steps} if max_steps else {}))
     if should_cancel():
         raise Cancelled("cancelled while training the appearance head")
     finalize_head(head, storage.table_bits, storage.network_bits)

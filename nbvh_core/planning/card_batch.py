@@ -45,7 +45,7 @@ def rays_per_step(device: str = "auto") -> int:
     if pinned:
         return int(pinned)
     entry = probe.cached_probe(probe.machine_key(resolved) + "|batch",
-                         lambda: {"rays_per_step": pick_batch(rates := probe_ladder(resolved)),
-                                  "rates": {str(n): r for n, r in rates.items()}},
-                         lambda e: isinstance(e.get("rays_per_step"), int) and e["rays_per_step"] > 0)
+                               lambda: {"rays_per_step": pick_batch(rates := probe_ladder(resolved)),
+                                        "rates": {str(n): r for n, r in rates.items()}},
+                               lambda e: isinstance(e.get("rays_per_step"), int) and e["rays_per_step"] > 0)
     return int(entry["rays_per_step"])

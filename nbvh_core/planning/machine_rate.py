@@ -3,11 +3,11 @@ predictor was fitted on (`sizing_fit.json`, measured on a 2-core CPU). The predi
 training budget in that machine's seconds: a machine that trains twice as fast gets the predictions of a budget
 twice as long (`SizeFit.work_ratio`).
 
-The rate is the default preset's training on the bundled blob for `probe.PROBE_STEPS` steps (labels, encoding, network,
-Adam: the whole step, as a run trains), in leaf samples per second, measured once per machine and device and kept
-in the user's cache (`work_ratio`); $NBVH_WORK_RATIO overrides it (a number; the tests pin it to 1). The ratio reads
-1 within (1/sqrt(2), sqrt(2)) and is rounded to a power of sqrt(2) outside: run-to-run noise of the probe (4% in
-three probes here) never moves a prediction, a 16-core desktop or a card does.
+The rate is the default preset's training on the bundled blob for `probe.PROBE_STEPS` steps at the device's batch
+(labels, encoding, network, Adam: the whole step, as a run trains), in leaf samples per second, measured once per
+machine and device and kept in the user's cache (`work_ratio`); $NBVH_WORK_RATIO overrides it (a number; the tests
+pin it to 1). The ratio reads 1 within (1/sqrt(2), sqrt(2)) and is rounded to a power of sqrt(2) outside: run-to-run
+noise of the probe (4% in three probes here) never moves a prediction, a 16-core desktop or a card does.
 """
 from __future__ import annotations
 
@@ -42,9 +42,9 @@ def work_ratio(device: str = "auto") -> float:
     from ..training.train import pick_device
 
     device = str(pick_device(device))
-    batch = card_rays_per_step(device)
-    entry = probe.cached_probe(probe.machine_key(device),
-                               lambda: {"samples_per_s": probe.probe_samples_per_s(device, batch)},
+    entry = probe.cached_probe(probe.machine_key(device),  # the batch (a card's own probe) only when measuring
+                               lambda: {"samples_per_s": probe.probe_samples_per_s(device,
+                                                                                   card_rays_per_step(device))},
                                lambda e: isinstance(e.get("samples_per_s"), (int, float)))
     return rounded_ratio(float(entry["samples_per_s"]))
 

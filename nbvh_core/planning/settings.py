@@ -108,10 +108,10 @@ class Settings:
     #: HashVQAD: the last fraction of training run on the frozen (argmax) codes (TrainConfig.finetune_fraction).
     finetune_fraction: float = knob(TrainConfig.finetune_fraction, limits=(0.0, 1.0),
                                     help="HashVQAD: the last fraction of training on its frozen codes (default 0.1)")
-    #: Passes over each labelled chunk of training rays (TrainConfig.label_reuse); None: the device's own.
-    label_reuse: int | None = knob(None, limits=(1, 64),
-                                   help="passes over each chunk of labelled training rays, each in a new order "
-                                        "(default: 1; a card that trains faster than the host labels reuses more)")
+    #: Passes over each labelled chunk of training rays (TrainConfig.label_reuse).
+    label_reuse: int = knob(TrainConfig.label_reuse, limits=(1, 64),
+                            help="passes over each chunk of labelled training rays, each in a new order (default 1: "
+                                 "fresh rays; a card serves a chunk again only while the next is not labelled)")
     #: 'uniform' or 'loss' (N-BVH's loss-proportional resampling of leaves; see TrainConfig.leaf_sampling).
     leaf_sampling: str = knob(TrainConfig.leaf_sampling, choices=LEAF_SAMPLINGS,
                               help="'loss': half of each batch starts in leaves drawn by their running error "

@@ -64,11 +64,11 @@ class TrainConfig:
     label_steps: int = 32
     #: Passes over each labelled chunk, each in a new ray order: labelled rays per step drop by this factor (labels
     #: are the host's work; a card trains faster than the host labels).
-    label_reuse: int | None = None
+    label_reuse: int = 1
     #: A card streams a pool of labels: when the host has not labelled the next chunk yet, the last one is handed
     #: out again, at most this many more times (`Batches.spare_passes`), so the card does not wait for the host.
-    #: None: 7 where labels are made ahead (a card), 0 elsewhere. The CPU labels between its own steps.
-    spare_label_passes: int | None = None
+    #: Only where labels are made ahead (`prefetch`: a card); the CPU labels between its own steps.
+    spare_label_passes: int = 7
     # 'uniform': every ray from `sample_rays`. 'loss': `leaf_ray_fraction` of each batch starts inside leaf boxes
     # drawn in proportion to the running per-leaf error (N-BVH's loss-proportional node resampling; the floor keeps
     # every leaf at >= leaf_floor x the mean weight). Measured worse than 'uniform' on all 6 benchmark meshes at 15 s
@@ -138,7 +138,7 @@ class TrainResult:
     recovered: list = field(default_factory=list)
     #: wall seconds the target's checks took (those past `checks_outside_budget_s` were the budget's)
     checks_s: float = 0.0
-    #: Passes over every labelled chunk (TrainConfig.label_reuse, resolved), and the batches handed out again while
+    #: Passes over every labelled chunk (TrainConfig.label_reuse), and the batches handed out again while
     #: the host labelled the next chunk (a card's spare passes)
     label_reuse: int = 1
     reused_batches: int = 0

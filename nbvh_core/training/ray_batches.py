@@ -64,7 +64,7 @@ class Batches:
                  pin: bool = False, reuse: int = 1, spare_passes: int = 0, draw_parts: int = 2):
         self.bvh, self.tracer, self.cfg, self.rng = bvh, tracer, cfg, rng
         self.draw_parts = max(1, int(draw_parts))  # uniform rays drawn in this many parts at once (see _draw_uniform)
-        self.reuse = max(1, int(reuse))  # passes over each labelled chunk (TrainConfig.label_reuse, resolved)
+        self.reuse = max(1, int(reuse))  # passes over each labelled chunk (TrainConfig.label_reuse)
         self.spare_passes = 0  # set after a resumed chunk's batches are skipped (below)
         self.reused = 0  # batches handed out again while the next chunk was being labelled
         self._last: list | None = None  # the last chunk taken from the labelling thread, and its passes so far

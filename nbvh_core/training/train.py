@@ -294,17 +294,9 @@ def _training_data(model, bvh, tracer, cfg, ck, device, plan, rng, events):
         leaf_errors.error = ck["leaf_errors"].clone()
     batches = Batches(bvh, tracer, cfg, rng, prefetch=prefetch, resume=ck.get("numpy_rng"),
                       leaf_errors=leaf_errors if cfg.leaf_sampling == "loss" else None, pin=device.type == "cuda",
-                      reuse=cfg.label_reuse or 1, spare_passes=spare_label_passes(cfg, prefetch),
+                      reuse=cfg.label_reuse, spare_passes=cfg.spare_label_passes,
                       draw_parts=max(2, kernels.threads()) if device.type == "cuda" else 2)
     return batches, leaf_errors, cut
-
-
-def spare_label_passes(cfg: TrainConfig, prefetch: bool) -> int:
-    """How many more times a chunk of labels may serve while the next is labelled (TrainConfig.spare_label_passes):
-    only where labels are made ahead of the steps (a card's prefetch); 7 unless set."""
-    if not prefetch:
-        return 0
-    return 7 if cfg.spare_label_passes is None else cfg.spare_label_passes
 
 
 def check_config(cfg: TrainConfig) -> None:
