@@ -13,7 +13,8 @@ Stages (call 1: kernels, speed, bunny, labels, within 300 s; call 2: need, withi
 1. kernels: tests/test_triton_kernels.py on CUDA tensors (no interpreter);
 2. speed: `bench_speed.py --device cuda` (the Triton path - the ray query one kernel - against torch on the card,
    Embree on the host's cores: renders at 512 and 1000 px with the share of rays that decide as the reference,
-   training samples/s, and the training's rate at 2^11 to 2^17 rays per step) and the same on the host's CPU;
+   training samples/s with the Triton MLP's layers and with torch's, and the training's rate at 2^11 to 2^17 rays
+   per step) and the same on the host's CPU;
 3. labels: `bench_labels.py` on the host at 1 to all threads: what exact labels cost against what the card trains,
    and how the CPU's own training scales with its cores;
 4. bunny: the bunny at level standard on the card (`nbvh compress bunny --quality standard --device cuda`): wall
@@ -23,6 +24,7 @@ Stages (call 1: kernels, speed, bunny, labels, within 300 s; call 2: need, withi
 
 Writes bench/results/gpu/: summary.csv (one row per figure: figure, value, device, commit, machine, command; the
 figures render_1mp_ms, render_hit_agreement, render_vs_embree_host, train_samples_per_s, train_samples_per_s_at_N,
+train_samples_per_s_torch_layers (the same steps with torch's layers instead of the Triton MLP's),
 label_samples_per_s_N_threads, cpu_train_samples_per_s_N_threads, bunny_standard_wall_s, kernel_tests_passed and
 need_ASSET_{shipped,shipped_bytes,mse,ratio,wall_s} for the card and the CPU), and each stage's own files (speed*.{csv,md}, labels.{csv,md}, shipped.{csv,md}, logs). A figure whose step failed is written
 empty with the reason; a stage that would start past --budget-s is skipped and says so.
@@ -124,8 +126,11 @@ def stage_speed(c: Check) -> None:
              f"{train[0]['path']}; batches served again: {train[0].get('reused_share', '')}" if train
              else "no training row")
     for r in train[1:]:
-        c.figure(f"train_samples_per_s_at_{r['rays_per_step']}", round(float(r["per_s"])),
-                 f"rays per step {r['rays_per_step']}; batches served again: {r.get('reused_share', '')}")
+        torch_layers = r.get("layers") == "torch" and train[0].get("layers") == "triton"
+        c.figure("train_samples_per_s_torch_layers" if torch_layers else f"train_samples_per_s_at_{r['rays_per_step']}",
+                 round(float(r["per_s"])), f"rays per step {r['rays_per_step']}; "
+                 + ("the layers torch's (cuBLAS under autograd), not the Triton MLP's; " if torch_layers else "")
+                 + f"batches served again: {r.get('reused_share', '')}")
 
 
 def stage_labels(c: Check) -> None:

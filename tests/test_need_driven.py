@@ -119,57 +119,100 @@ def _model_at(log2: int):
     return SimpleNamespace(cfg=SimpleNamespace(encoding=SimpleNamespace(log2_table=log2)))
 
 
-def _rule(monkeypatch, mses, now, **kw):
-    """A CheckRule over scripted check MSEs and a clock the test sets (now[0], seconds)."""
+def _rule(mses, **kw):
+    """A CheckRule over scripted check MSEs."""
     import nbvh_core.decision.checks as checks
 
-    monkeypatch.setattr(checks.time, "perf_counter", lambda: now[0])
     values = list(mses)
     kw.setdefault("bytes_at", lambda log2: 1000 * 2 ** (log2 - 10))
-    return checks.CheckRule(lambda model: values.pop(0), kw.pop("target", 1.0), kw.pop("max_log2", 12),
-                            kw.pop("budget_s", 100.0), **kw)
+    return checks.CheckRule(lambda model: values.pop(0), kw.pop("target", 1.0), kw.pop("max_log2", 12), **kw)
 
 
-def test_growth_follows_the_projection_to_the_end_of_the_budget(monkeypatch):
-    """With the predictor's budget exponent one check decides: MSE x (budget / now)^slope against the target; the
+def _at(step: float, end: float = 100.0):
+    """A training at `step` of a budget that ends at step `end`, a step a second."""
+    from nbvh_core.decision.records import TrainingPoint
+
+    return TrainingPoint(int(step), float(step), step / end, end)
+
+
+def test_growth_follows_the_projection_to_the_end_of_the_budget():
+    """With the predictor's budget exponent one check decides: MSE x (steps at the end / steps now)^slope against the
+    target; the
     early stop is below EARLY_STOP_MARGIN x the target; nothing grows at the top size; without an exponent two
     checks at a size give the power law, and a check without progress grows."""
     now = [0.0]
-    # slope -0.5: at 25 s of 100 s an MSE falls by (100 / 25)^-0.5 = 0.5 by the end
-    decide = _rule(monkeypatch, [1.9, 2.1, 0.5, 3.0], now, budget_slope=lambda log2: -0.5)
+    # slope -0.5: at step 25 of 100 an MSE falls by (100 / 25)^-0.5 = 0.5 by the end
+    decide = _rule([1.9, 2.1, 0.5, 3.0], budget_slope=lambda log2: -0.5)
     now[0] = 25.0
-    assert decide(_model_at(10)).action == "train on"  # 0.95 at the end: met
-    assert decide(_model_at(10)).action == "grow"  # 1.05 at the end: missed
-    assert decide(_model_at(11)).action == "stop: level met"  # below 0.9 x the target now
-    assert decide(_model_at(12)).action == "train on"  # the top size: nothing to grow to
+    assert decide(_model_at(10), _at(now[0])).action == "train on"  # 0.95 at the end: met
+    assert decide(_model_at(10), _at(now[0])).action == "grow"  # 1.05 at the end: missed
+    assert decide(_model_at(11), _at(now[0])).action == "stop: level met"  # below 0.9 x the target now
+    assert decide(_model_at(12), _at(now[0])).action == "train on"  # the top size: nothing to grow to
     assert [d.log2_table for d in decide.decisions] == [10, 10, 11, 12]
     assert [d.action for d in decide.decisions] == ["train on", "grow", "stop: level met", "train on"]
 
     now[0] = 0.0
-    two_point = _rule(monkeypatch, [4.0, 2.0, 2.0, 2.2], now)
+    two_point = _rule([4.0, 2.0, 2.0, 2.2])
     now[0] = 10.0
-    assert two_point(_model_at(10)).action == "train on"  # one check: no law yet
+    assert two_point(_model_at(10), _at(now[0])).action == "train on"  # one check: no law yet
     now[0] = 20.0
-    assert two_point(_model_at(10)).action == "train on"  # 4 -> 2 from 10 s to 20 s: slope -1, 0.4 at 100 s
+    assert two_point(_model_at(10), _at(now[0])).action == "train on"  # 4 -> 2 from step 10 to 20: slope -1, 0.4 at 100
     now[0] = 30.0
-    assert two_point(_model_at(11)).action == "train on"  # the first check at the grown size
+    assert two_point(_model_at(11), _at(now[0])).action == "train on"  # the first check at the grown size
     now[0] = 40.0
-    assert two_point(_model_at(11)).action == "grow"  # worse than before: no progress at this size
+    assert two_point(_model_at(11), _at(now[0])).action == "grow"  # worse than before: no progress at this size
 
 
-def test_a_met_level_waits_for_the_form_the_model_ships_in(monkeypatch):
+def test_the_projection_runs_in_steps_to_where_the_budget_ends():
+    """A check projects along the training's work, not its seconds: a training that spent its first 10 s of 200
+    compiling (no steps) and now takes 10 steps a second ends near step 1,900, 19x the 100 done (0.229x the MSE at
+    slope -0.5), where 200 s / 20 s would read 0.316x. Between the two the decision differs: the level (0.3) is
+    projected met in steps, missed in seconds. The record keeps the step and the end projected to."""
+    from nbvh_core.decision.records import TrainingPoint
+    from nbvh_core.training.budget_clock import BudgetEnd
+
+    end = BudgetEnd(steps=None, time_limit_s=200.0)
+    for step, elapsed in ((0, 0.0), (1, 9.5), (16, 11.0), (17, 11.1)):
+        end.note(step, elapsed)
+    steps_at_end = end.at_check(100, 19.4)  # 84 steps in 8.4 s since the warm-up: 10 steps/s
+    assert steps_at_end == pytest.approx(100 + 10 * (200 - 19.4))
+    decide = _rule([1.0], target=0.3, budget_slope=lambda log2: -0.5, max_log2=12)  # in seconds it would grow
+    d = decide(_model_at(10), TrainingPoint(100, 19.4, 0.097, steps_at_end))
+    assert d.projected_mse == pytest.approx((steps_at_end / 100) ** -0.5) and d.projected_mse < 0.3 < (200 / 19.4) ** -0.5
+    assert (d.action, d.step, d.steps_at_end) == ("train on", 100, pytest.approx(steps_at_end, abs=0.1))
+
+
+def test_the_budget_ends_at_a_step_budget_s_step_or_the_steady_rate_s():
+    """`BudgetEnd`: a step budget ends at its steps; a time budget at the rate since the last check (a grown table's
+    slower steps), before the first check since WARM_STEPS into the training (a resumed one's own start); both set:
+    the first to run out; no step yet: where it is."""
+    from nbvh_core.training.budget_clock import WARM_STEPS, BudgetEnd
+
+    assert BudgetEnd(steps=500, time_limit_s=None).at_check(100, 10.0) == 500.0
+    assert BudgetEnd(steps=None, time_limit_s=100.0).at_check(0, 5.0) == 0.0
+    end = BudgetEnd(steps=None, time_limit_s=100.0, step0=1000, elapsed0=50.0)  # resumed at step 1,000, 50 s
+    end.note(1000 + WARM_STEPS - 1, 52.0)
+    end.note(1000 + WARM_STEPS, 60.0)  # the warm-up: 16 steps in 10 s
+    assert end.at_check(1000 + WARM_STEPS + 100, 70.0) == pytest.approx(1116 + 10 * 30)  # 100 steps in 10 s since
+    assert end.at_check(1116 + 25, 80.0) == pytest.approx(1141 + 2.5 * 20)  # a grown table: 25 steps in 10 s
+    both = BudgetEnd(steps=600, time_limit_s=100.0)
+    both.note(WARM_STEPS, 1.0)
+    assert both.at_check(WARM_STEPS + 90, 10.0) == 600.0  # 10 steps/s would reach 1,006 in the time left
+
+
+def test_a_met_level_waits_for_the_form_the_model_ships_in():
     """A low-bit table not yet on its grid: the met level is recorded and training goes on (the phase that makes the
     score hold is still to run); once the model is in its shipped form the same reading stops it."""
     now = [10.0]
     on_grid = [False]
-    decide = _rule(monkeypatch, [0.5, 0.5], now, shipped_form=lambda model: on_grid[0])
-    assert decide(_model_at(10)).action == "train on"
+    decide = _rule([0.5, 0.5], shipped_form=lambda model: on_grid[0])
+    assert decide(_model_at(10), _at(now[0])).action == "train on"
     assert "low-bit phase is still to run" in decide.decisions[-1].reason
     on_grid[0] = True
-    assert decide(_model_at(10)).action == "stop: level met"
+    assert decide(_model_at(10), _at(now[0])).action == "stop: level met"
 
 
-def test_a_check_far_worse_than_the_best_of_its_form_rolls_back(monkeypatch):
+def test_a_check_far_worse_than_the_best_of_its_form_rolls_back():
     """Above ROLLBACK_FACTOR x the best check of the same size and form: "roll back", with no projection, and the
     best stays; just under it: trained on; a new form (the low-bit table on its grid) starts the record over."""
     from nbvh_core.decision.checks import ROLLBACK_FACTOR
@@ -177,49 +220,49 @@ def test_a_check_far_worse_than_the_best_of_its_form_rolls_back(monkeypatch):
     now = [10.0]
     on_grid = [False]
     best = 2.0
-    decide = _rule(monkeypatch, [best, best * ROLLBACK_FACTOR * 1.01, best * ROLLBACK_FACTOR * 0.99,
-                                 best * ROLLBACK_FACTOR * 1.01, 3.0, 3.0 * ROLLBACK_FACTOR * 1.01], now, target=0.1,
+    decide = _rule([best, best * ROLLBACK_FACTOR * 1.01, best * ROLLBACK_FACTOR * 0.99,
+                                 best * ROLLBACK_FACTOR * 1.01, 3.0, 3.0 * ROLLBACK_FACTOR * 1.01], target=0.1,
                    budget_slope=lambda log2: -0.5, max_log2=10, shipped_form=lambda model: on_grid[0])
-    assert decide(_model_at(10)).action == "train on"
-    rolled = decide(_model_at(10))
+    assert decide(_model_at(10), _at(now[0])).action == "train on"
+    rolled = decide(_model_at(10), _at(now[0]))
     assert rolled.action == "roll back" and rolled.projected_mse is None and "best check's 2" in rolled.reason
-    assert decide(_model_at(10)).action == "train on"  # 1.14x: within the checks' spread
-    assert decide(_model_at(10)).action == "roll back"  # measured against the best (2.0), not the last (2.27)
+    assert decide(_model_at(10), _at(now[0])).action == "train on"  # 1.14x: within the checks' spread
+    assert decide(_model_at(10), _at(now[0])).action == "roll back"  # measured against the best (2.0), not the last (2.27)
     on_grid[0] = True
-    assert decide(_model_at(10)).action == "train on"  # 3.0, 1.5x the best before: the first check on the grid
-    assert decide(_model_at(10)).action == "roll back"  # against the grid's best
+    assert decide(_model_at(10), _at(now[0])).action == "train on"  # 3.0, 1.5x the best before: the first check on the grid
+    assert decide(_model_at(10), _at(now[0])).action == "roll back"  # against the grid's best
 
 
-def test_the_rule_keys_its_best_checks_by_the_training_s_state_form(monkeypatch):
+def test_the_rule_keys_its_best_checks_by_the_training_s_state_form():
     """An 8-bit table is in its shipped form all along, but its snap onto the grid (the last 5%) is a new form of its
     parameters for the training (`training.encoding_phases.state_form`): a check after the snap is not rolled back against a
     state from before it, which the training could not restore; without state_form it would be."""
     for state_form, after_snap in ((lambda model: (10, snapped[0], True), "train on"), (None, "roll back")):
         now, snapped = [0.0], [False]
-        decide = _rule(monkeypatch, [1.0, 1.3], now, target=0.1, max_log2=10, budget_slope=lambda log2: -0.5,
+        decide = _rule([1.0, 1.3], target=0.1, max_log2=10, budget_slope=lambda log2: -0.5,
                        state_form=state_form)
         now[0] = 10.0
-        assert decide(_model_at(10)).action == "train on"
+        assert decide(_model_at(10), _at(now[0])).action == "train on"
         snapped[0], now[0] = True, 20.0
-        assert decide(_model_at(10)).action == after_snap
+        assert decide(_model_at(10), _at(now[0])).action == after_snap
 
 
-def test_the_finished_model_is_measured_once_more_and_rolls_back_only_when_far_worse(monkeypatch):
+def test_the_finished_model_is_measured_once_more_and_rolls_back_only_when_far_worse():
     """At the end of the budget the rule decides nothing but "finish" or "roll back" (no growth, no keeping the
     mesh, whatever the alternative's curve says): the final verdict weighs the finished model."""
     now = [0.0]
-    decide = _rule(monkeypatch, [2.0, 2.1, 3.0], now, target=0.1, budget_slope=lambda log2: -0.5, max_log2=12)
+    decide = _rule([2.0, 2.1, 3.0], target=0.1, budget_slope=lambda log2: -0.5, max_log2=12)
     now[0] = 10.0
-    assert decide(_model_at(10)).action == "grow"  # far from the level, growth pays (no curve)
+    assert decide(_model_at(10), _at(now[0])).action == "grow"  # far from the level, growth pays (no curve)
     now[0] = 100.0
-    end = decide.at_end(_model_at(10))
+    end = decide.at_end(_model_at(10), _at(now[0]))
     assert (end.action, end.reason) == ("finish", "the budget is spent") and decide.keep_mesh is None
-    assert decide.at_end(_model_at(10)).action == "roll back"  # 3.0 > 1.15 x 2.0
+    assert decide.at_end(_model_at(10), _at(now[0])).action == "roll back"  # 3.0 > 1.15 x 2.0
 
 
 def test_a_training_started_again_after_a_divergence_starts_its_checks_over(monkeypatch):
-    """A divergence restarts the training from scratch (`trainings.train_with_restarts`): the rule's clock and best
-    checks start over with it (the new training's early checks are not rolled back against the old one's best, nor
+    """A divergence restarts the training from scratch (`trainings.train_with_restarts`): the rule's best checks
+    start over with it (the new training's early checks are not rolled back against the old one's best, nor
     projected with its checks), and the first training's decisions stay on record."""
     from types import SimpleNamespace
 
@@ -229,17 +272,17 @@ def test_a_training_started_again_after_a_divergence_starts_its_checks_over(monk
     from nbvh_core.protocol.process import TrainingDiverged
 
     now = [0.0]
-    rule = _rule(monkeypatch, [0.5, 2.0], now, target=0.1, max_log2=10)
+    rule = _rule([0.5, 2.0], target=0.1, max_log2=10)
     now[0] = 50.0
-    assert rule(_model_at(10)).action == "train on"
+    assert rule(_model_at(10), _at(now[0])).action == "train on"
     calls = []
 
     def train(model, bvh, tracer, cfg, hooks, files):
         calls.append(cfg.lr)
         if len(calls) == 1:
             raise TrainingDiverged("loss jumped")
-        now[0] = 60.0
-        return SimpleNamespace(decision=hooks.target_reached(_model_at(10)), recovered=[])
+        now[0] = 10.0  # the new training's own point
+        return SimpleNamespace(decision=hooks.target_reached(_model_at(10), _at(now[0])), recovered=[])
 
     monkeypatch.setattr(trainings, "train", train)
     mesh = icosphere(2)
@@ -247,7 +290,7 @@ def test_a_training_started_again_after_a_divergence_starts_its_checks_over(monk
     ctx = trainings.RunContext(mesh, build_bvh(mesh, 15), None, TrainingHooks(), CheckpointFiles())
     _, tr, used, notes = trainings.train_with_restarts(ctx, run, target_reached=rule)
     assert calls == [run.training.lr, run.training.lr * 0.1] and notes[0].kind == "restart"
-    # 2.0 > 1.15 x 0.5 at the first training's 50 s, but a new training: its clock at 10 s, its first check (no
+    # 2.0 > 1.15 x 0.5 at the first training's 50 s, but a new training: at its 10 s, its first check (no
     # projection: the old 0.5 would have read as no progress, inf), and both decisions on record
     assert (tr.decision.action, tr.decision.seconds, tr.decision.projected_mse) == ("train on", 10.0, None)
     assert len(rule.decisions) == 2
@@ -309,7 +352,7 @@ def test_the_alternative_curve_is_the_measured_envelope_interpolated_in_log_log(
     assert 1000 < curve.triangles_at(0.0015) < 4000 and 4000 < curve.triangles_at(0.0001) < 16000
 
 
-def test_a_check_keeps_the_mesh_only_where_it_also_reaches_the_model_s_colour(monkeypatch):
+def test_a_check_keeps_the_mesh_only_where_it_also_reaches_the_model_s_colour():
     """For an asset with a look (the head trained before the geometry, the score a CheckScore), a decimation that
     beats the model's geometry stands in for it only when its colour MSE is no worse than the model's: a torn
     texture's decimation does not stop the training; one as good in colour does, and the line says both."""
@@ -320,38 +363,38 @@ def test_a_check_keeps_the_mesh_only_where_it_also_reaches_the_model_s_colour(mo
     curve = AlternativeCurve([CurvePoint(500, 0.01, 125, 125, colour_mse=0.02),
                               CurvePoint(2000, 0.002, 500, 500, colour_mse=0.02),
                               CurvePoint(40000, 1e-5, 10000, None, colour_mse=0.0001)])
-    kw = dict(target=0.001, budget_s=100.0, curve=curve, budget_slope=lambda log2: 0.0, grow_gain=lambda log2: 0.5,
+    kw = dict(target=0.001, curve=curve, budget_slope=lambda log2: 0.0, grow_gain=lambda log2: 0.5,
               bytes_at=lambda log2: 4000 * 2 ** (log2 - 10))
-    better_colour = _rule(monkeypatch, [CheckScore(0.004, 0.005)], now, **kw)
-    decided = better_colour(_model_at(10))
+    better_colour = _rule([CheckScore(0.004, 0.005)], **kw)
+    decided = better_colour(_model_at(10), _at(now[0]))
     assert decided.action == "train on" and better_colour.keep_mesh is None and decided.colour_mse == 0.005
-    worse_colour = _rule(monkeypatch, [CheckScore(0.004, 0.05)], now, **kw)
-    assert worse_colour(_model_at(10)).action == "stop: keep the mesh"
+    worse_colour = _rule([CheckScore(0.004, 0.05)], **kw)
+    assert worse_colour(_model_at(10), _at(now[0])).action == "stop: keep the mesh"
     assert "colour 0.02, the model's 0.05" in worse_colour.decisions[0].reason
-    bare = _rule(monkeypatch, [0.004], now, **kw)  # no colour said: geometry alone, as before
-    assert bare(_model_at(10)).action == "stop: keep the mesh" and bare.decisions[0].colour_mse is None
+    bare = _rule([0.004], **kw)  # no colour said: geometry alone, as before
+    assert bare(_model_at(10), _at(now[0])).action == "stop: keep the mesh" and bare.decisions[0].colour_mse is None
 
 
-def test_a_check_keeps_the_mesh_when_the_model_stays_above_a_measured_decimation(monkeypatch):
+def test_a_check_keeps_the_mesh_when_the_model_stays_above_a_measured_decimation():
     """Above the curve at its projection and no growth that gets under it: stop, keep the mesh; --force trains on;
     growth only where the grown model is projected under the curve."""
     now = [50.0]
     curve = _curve([(500, 0.01), (2000, 0.002), (8000, 0.0005), (40000, 1e-5)])
     halve = lambda log2: 0.5  # noqa: E731  (the predictor: a table twice as large halves the MSE)
-    kw = dict(target=0.001, budget_s=100.0, curve=curve, budget_slope=lambda log2: 0.0, grow_gain=halve)
+    kw = dict(target=0.001, curve=curve, budget_slope=lambda log2: 0.0, grow_gain=halve)
     # a 4,000 B model projected at 0.004: 2,000 B of decimation reach 0.002; the grown model (8,000 B at 0.002)
     # would still be above the curve (2,000 B): keep the mesh
-    keep = _rule(monkeypatch, [0.004], now, bytes_at=lambda log2: 4000 * 2 ** (log2 - 10), **kw)
-    assert keep(_model_at(10)).action == "stop: keep the mesh" and keep.keep_mesh is keep.decisions[0]
+    keep = _rule([0.004], bytes_at=lambda log2: 4000 * 2 ** (log2 - 10), **kw)
+    assert keep(_model_at(10), _at(now[0])).action == "stop: keep the mesh" and keep.keep_mesh is keep.decisions[0]
     assert keep.decisions[0].action == "stop: keep the mesh" and "2,000 B" in keep.decisions[0].reason
-    forced = _rule(monkeypatch, [0.004], now, bytes_at=lambda log2: 4000 * 2 ** (log2 - 10), force=True, **kw)
-    assert forced(_model_at(10)).action == "grow" and forced.keep_mesh is None
+    forced = _rule([0.004], bytes_at=lambda log2: 4000 * 2 ** (log2 - 10), force=True, **kw)
+    assert forced(_model_at(10), _at(now[0])).action == "grow" and forced.keep_mesh is None
     # a cheap model (200 B at 0.004) grows: 400 B at a projected 0.002 is under the curve's 2,000 B
-    cheap = _rule(monkeypatch, [0.004], now, bytes_at=lambda log2: 200 * 2 ** (log2 - 10), **kw)
-    assert cheap(_model_at(10)).action == "grow" and "under the alternative" in cheap.decisions[0].reason
+    cheap = _rule([0.004], bytes_at=lambda log2: 200 * 2 ** (log2 - 10), **kw)
+    assert cheap(_model_at(10), _at(now[0])).action == "grow" and "under the alternative" in cheap.decisions[0].reason
     # under the curve but the level out of reach at the top size: train on (the best value), never keep the mesh
-    top = _rule(monkeypatch, [0.004], now, bytes_at=lambda log2: 200, max_log2=10, **kw)
-    assert top(_model_at(10)).action == "train on" and top.decisions[0].action == "train on"
+    top = _rule([0.004], bytes_at=lambda log2: 200, max_log2=10, **kw)
+    assert top(_model_at(10), _at(now[0])).action == "train on" and top.decisions[0].action == "train on"
 
 
 def test_a_mesh_kept_after_training_began_carries_the_checks_that_led_there():

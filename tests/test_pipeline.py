@@ -110,7 +110,7 @@ def test_training_stops_once_the_target_is_met(sample_meshes):
     bvh = build_bvh(sample_meshes["blob"], 63)
     checks = []
     tr = train(NeuralBVH(bvh.nodes, s.model_config()), bvh, ExactTracer(sample_meshes["blob"]), s.train_config(),
-               TrainingHooks(target_reached=lambda m: checks.append(1) or False))
+               TrainingHooks(target_reached=lambda m, at: checks.append(1) or False))
     assert len(checks) >= 3 and not tr.stopped_early and tr.steps == 300
     # Without a target the budget is used in full.
     res = compress_mesh(sample_meshes["blob"], preset("tiny").with_overrides(force=True, steps=60),

@@ -124,13 +124,14 @@ def test_divergence_guard_catches_each_failure_and_passes_a_falling_loss():
 
 def test_early_stop_asks_only_after_ten_percent_every_period_and_when_ready():
     asked = []
-    stop = EarlyStop(lambda m: asked.append(1) or True, TrainConfig(target_check_every_s=5.0), 0.0)
-    assert not stop.reached(None, 0.05, 100.0, True)  # before 10% of the budget
-    assert not stop.reached(None, 0.5, 100.0, False)  # the encoding is not final yet (soft HashVQAD)
-    assert not stop.reached(None, 0.5, 3.0, True)  # less than a period since the last check
-    assert stop.reached(None, 0.5, 6.0, True) and asked == [1]
-    assert not stop.reached(None, 0.6, 8.0, True) and asked == [1]
-    assert not EarlyStop(None, TrainConfig(), 0.0).reached(None, 0.9, 100.0, True)
+    stop = EarlyStop(lambda m, at: asked.append(at) or True, TrainConfig(target_check_every_s=5.0), 0.0)
+    assert not stop.reached(None, 50, 0.05, 100.0, True)  # before 10% of the budget
+    assert not stop.reached(None, 50, 0.5, 100.0, False)  # the encoding is not final yet (soft HashVQAD)
+    assert not stop.reached(None, 50, 0.5, 3.0, True)  # less than a period since the last check
+    assert stop.reached(None, 50, 0.5, 6.0, True) and len(asked) == 1
+    assert (asked[0].step, asked[0].seconds, asked[0].fraction) == (50, 6.0, 0.5)  # where the training stands
+    assert not stop.reached(None, 50, 0.6, 8.0, True) and len(asked) == 1
+    assert not EarlyStop(None, TrainConfig(), 0.0).reached(None, 50, 0.9, 100.0, True)
 
 
 def test_a_check_far_worse_than_the_best_sends_training_back_to_the_best_check_s_state(blob):
@@ -144,7 +145,7 @@ def test_a_check_far_worse_than_the_best_sends_training_back_to_the_best_check_s
     opt = torch.optim.Adam(model.parameters(), lr=1e-2)
     answers = iter([SimpleNamespace(action="train on", mse=1.0), SimpleNamespace(action="train on", mse=1.1),
                     SimpleNamespace(action="roll back", mse=2.0)])
-    stop = EarlyStop(lambda m: next(answers), TrainConfig(target_check_every_s=1.0), 0.0)
+    stop = EarlyStop(lambda m, at: next(answers), TrainConfig(target_check_every_s=1.0), 0.0)
     restarted, said = [], []
     phases = SimpleNamespace(qat_on=False, phase="train", ready_to_stop=True,
                              average=SimpleNamespace(restart=lambda: restarted.append(1)))
@@ -186,11 +187,11 @@ def test_a_training_whose_finished_model_reads_far_worse_ends_on_the_best_check_
         return mse
 
     class Scripted(CheckRule):
-        def at_end(self, model):
+        def at_end(self, model, at):
             self.score = lambda m: 0.9
-            return super().at_end(model)
+            return super().at_end(model, at)
 
-    rule = Scripted(score, target=1e-9, max_log2=6, budget_s=1.0, bytes_at=lambda log2: 1000)
+    rule = Scripted(score, target=1e-9, max_log2=6, bytes_at=lambda log2: 1000)
     said = []
     cfg = TrainConfig(steps=None, time_limit_s=1.0, rays_per_step=256, target_check_every_s=0.15, progress_every_s=0)
     model = _model(bvh)
@@ -297,7 +298,7 @@ def test_kernel_plan_decides_each_stage_and_follows_the_model(blob):
 
     if triton_missing() is None:  # the card's Triton kernels: the network's layers and the lookup; traversal torch
         assert c.device == "cuda" and c.traversal == "torch" and c.network.startswith("triton")
-        assert c.train_step == "autograd" and "Triton kernels on the card" in c.note
+        assert c.train_step == "autograd, triton layers" and "Triton kernels on the card" in c.note
     else:
         assert c.device == "cuda" and c.traversal == c.network == "torch" and "Triton" in c.note
     assert p.describe().startswith("fast on cpu") and "train step fused kmlp" in p.describe()
@@ -425,7 +426,7 @@ def _slow_checks(blob, check_s: float, **cfg):
         time.sleep(check_s)
         return 1.0
 
-    rule = CheckRule(slow_score, target=1e-9, max_log2=6, budget_s=1.0, bytes_at=lambda log2: 1000)
+    rule = CheckRule(slow_score, target=1e-9, max_log2=6, bytes_at=lambda log2: 1000)
     began = time.perf_counter()
     tr = train(_model(bvh), bvh, tracer, TrainConfig(steps=None, time_limit_s=1.0, rays_per_step=256,
                                                      target_check_every_s=0.2, progress_every_s=0, **cfg),
@@ -442,6 +443,10 @@ def test_a_check_s_own_time_is_not_the_budget_s(blob):
     assert wall >= 1.0 + 0.9 * 0.25 * len(asked), (wall, len(asked))
     gaps = [b.seconds - a.seconds for a, b in zip(rule.decisions, rule.decisions[1:])]
     assert max(gaps) < 0.2 + 0.15, gaps  # the interval between checks, not interval + the check's 0.25 s
+    # the checks project to the step the budget ends at: the steady rate's, near the steps the training took
+    steps = [d.step for d in rule.decisions]
+    assert steps == sorted(set(steps)) and all(d.steps_at_end >= d.step for d in rule.decisions)
+    assert 0.33 < tr.steps / rule.decisions[-2].steps_at_end < 3.0, (tr.steps, rule.decisions[-2].steps_at_end)
 
 
 def test_checks_past_their_allowance_are_the_budget_s_time(blob):

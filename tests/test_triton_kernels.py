@@ -136,6 +136,66 @@ def test_the_mlp_kernel_matches_torch_s_layers(kind, n_in, width, weights):
     assert got.shape == want.shape and torch.allclose(got, want, atol=tol, rtol=0), (got - want).abs().max()
 
 
+@pytest.mark.parametrize("kind,n_in,width,hidden", [("kmlp", 128, 64, 4), ("mlp", 100, 32, 3), ("mlp", 40, 16, 1)],
+                         ids=["kmlp-default-width", "mlp-padded-input", "one-hidden-layer"])
+def test_the_mlp_training_kernels_give_torch_s_outputs_and_gradients(kind, n_in, width, hidden):
+    """The training pass (`mlp_train_forward`: the forward kernel storing activations, the backward kernel, one matmul
+    per layer for the weights) against torch's autograd over the same layers: output and every gradient (the input's
+    and each weight's and bias's) within 1e-5 of the largest (float32 here; TF32 on a card: 5e-3)."""
+    from nbvh_core.kernels.triton.mlp import mlp_train_forward
+
+    torch.manual_seed(2)
+    net = _mlp(n_in, NetworkConfig(kind=kind, width=width, hidden=hidden)).to(DEVICE)
+    x = torch.randn(77, n_in, device=DEVICE, requires_grad=True)  # not a multiple of the 32-row tile
+    grad = torch.randn(77, 5, device=DEVICE)
+    got = mlp_train_forward(x, net)
+    got_grads = torch.autograd.grad(got, [x, *net.parameters()], grad)
+    want = net(x)
+    want_grads = torch.autograd.grad(want, [x, *net.parameters()], grad)
+    rel = 1e-5 if DEVICE == "cpu" else 5e-3
+    assert torch.allclose(got, want, atol=rel * want.abs().max().item(), rtol=0), (got - want).abs().max()
+    for name, g, w in zip(["x", *(n for n, _ in net.named_parameters())], got_grads, want_grads):
+        assert g.shape == w.shape and torch.allclose(g, w, atol=rel * w.abs().max().item(), rtol=0), \
+            (name, float((g - w).abs().max()), float(w.abs().max()))
+
+
+@pytest.mark.parametrize("network", ["mlp", "kmlp"])
+def test_a_training_step_on_the_card_runs_its_layers_in_triton_with_autograd_s_gradients(network, sample_meshes,
+                                                                                         triton_here, monkeypatch):
+    """The plan's training step on a card: torch's autograd over the stages, the layers' forward and backward the
+    Triton MLP's; loss and every parameter's gradient (the table's through the lookup's backward included) as
+    NBVH_CARD_TRAINING_LAYERS=torch (cuBLAS layers) gives them."""
+    from nbvh_core.geometry.exact import ExactTracer
+    from nbvh_core.training.rays import label_samples, root_box, sample_rays
+    from nbvh_core.training.train import samples_loss
+    import numpy as np
+
+    mesh = sample_meshes["blob"]
+    bvh = build_bvh(mesh, 15)
+    torch.manual_seed(0)
+    model = NeuralBVH(bvh.nodes, ModelConfig(EncodingConfig(kind="hashgrid", log2_table=8, levels=2, features=8),
+                                             NetworkConfig(kind=network, k=4, hidden=2, width=32))).to(DEVICE)
+    o, d = sample_rays(*root_box(bvh), 200, np.random.default_rng(3))
+    batch = label_samples(bvh, ExactTracer(mesh), o, d, "consistent")
+
+    def step() -> tuple[float, dict]:
+        model.zero_grad(set_to_none=True)
+        loss, _ = samples_loss(model, batch, torch.device(DEVICE))
+        loss.backward()
+        return float(loss), {n: p.grad.clone() for n, p in model.named_parameters()}
+
+    assert kernels.plan(model, DEVICE).train_step == "autograd, triton layers"
+    got_loss, got = step()
+    monkeypatch.setenv(kernel_plan.TRAINING_LAYERS_ENV, "torch")
+    assert kernels.plan(model, DEVICE).train_step == "autograd"
+    want_loss, want = step()
+    rel = 1e-5 if DEVICE == "cpu" else 5e-3
+    assert got_loss == pytest.approx(want_loss, rel=rel)
+    for name, g in got.items():
+        scale = float(want[name].abs().max().clamp_min(1e-8))
+        assert torch.allclose(g, want[name], atol=rel * scale, rtol=0), (name, float((g - want[name]).abs().max()))
+
+
 def test_a_shape_the_mlp_kernel_does_not_take_is_refused_and_left_to_torch():
     from nbvh_core.kernels.triton.mlp import pack_mlp
 

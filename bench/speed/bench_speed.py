@@ -15,6 +15,7 @@ Writes bench/results/speed.md, speed.csv, speed.png (or speed_quick.* with --qui
 from __future__ import annotations
 
 import argparse
+import os
 import platform
 import time
 from pathlib import Path
@@ -28,6 +29,7 @@ from nbvh_core import kernels
 from nbvh_core.geometry.bvh import build_bvh
 from nbvh_core.geometry.exact import ExactTracer
 from nbvh_core.geometry.mesh import load_mesh
+from nbvh_core.kernels.plan import TRAINING_LAYERS_ENV
 from nbvh_core.neural.model import NeuralBVH
 from nbvh_core.app.pipeline import preset
 from nbvh_core.planning.card_batch import rays_per_step as card_rays_per_step
@@ -66,7 +68,8 @@ def train_throughput(bvh, tracer, s, mesh, device, steps: int, rays_per_step: in
     res = train(m, bvh, tracer, cfg)
     return {"what": "train", "path": res.compute_path, "size": "", "seconds": res.seconds, "items": steps,
             "per_s": res.samples_per_s, "unit": "leaf samples/s", "rays_per_step": cfg.rays_per_step,
-            "reused_share": round(res.reused_batches / max(1, res.steps), 3)}
+            "reused_share": round(res.reused_batches / max(1, res.steps), 3),
+            "layers": kernels.training_layers_kernel(m.network.net, device)}
 
 
 def train_rows(bvh, tracer, s, mesh, device, args) -> list[dict]:
@@ -79,6 +82,13 @@ def train_rows(bvh, tracer, s, mesh, device, args) -> list[dict]:
         print(rows[-1], flush=True)
     for rays in args.batch_ladder:
         rows.append(train_throughput(bvh, tracer, s, mesh, device, args.steps, rays))
+        print(rows[-1], flush=True)
+    if rows[0]["layers"] == "triton":  # the same steps with torch's layers (cuBLAS under autograd), for the choice
+        os.environ[TRAINING_LAYERS_ENV] = "torch"
+        try:
+            rows.append(train_throughput(bvh, tracer, s, mesh, device, args.steps))
+        finally:
+            del os.environ[TRAINING_LAYERS_ENV]
         print(rows[-1], flush=True)
     return rows
 
@@ -187,7 +197,7 @@ def write(rows, args, mesh, s, tr, flops, peak, device, half_note: str = "") -> 
     out = RESULTS
     out.mkdir(parents=True, exist_ok=True)
     keys = ["what", "path", "size", "seconds", "items", "per_s", "unit", "segments", "segments_per_s", "gflops", "hits",
-            "rays_per_step", "reused_share"]
+            "rays_per_step", "reused_share", "layers"]
     write_rows(out / f"speed{suffix}.csv", [{k: r.get(k, "") for k in keys} for r in rows])
     per_seg = sum(flops.values())
     limit = peak * 1e9 / per_seg

@@ -5,8 +5,9 @@ is the one measure of that available where no card is lent (the speed itself nee
 
     .venv/bin/python -m bench.speed.kernel_registers            # bench/results/kernel_registers.{csv,md}
 
-Rows: kernel (ray query mlp | kmlp, table f32 | u8 codes, a HashVQAD's index or none), the default preset's shape (10 levels x 4 features,
-k = 4, 2 hidden layers of 64), registers per thread, spill store bytes, local stack bytes, compile seconds.
+Rows: kernel (ray query mlp | kmlp, table f32 | u8 codes, a HashVQAD's index or none; the MLP's training forward and
+backward), the default preset's shape (10 levels x 4 features, k = 4, 2 hidden layers of 64), registers per thread,
+spill store bytes, local stack bytes, compile seconds.
 """
 from __future__ import annotations
 
@@ -58,20 +59,45 @@ def build_ray_query(kind: str = "mlp", codes: bool = True, levels: int = 10, fea
                     width: int = 64, hidden: int = 2, index_bits: int = 0) -> CardBuild:
     """Compile the ray-query kernel for `TARGET_SM` as `first_hits` launches it (BLOCK_R rays, WARPS warps, TF32)
     and read ptxas's report. Raises RuntimeError when ptxas fails."""
+    from nbvh_core.kernels.triton import ray_query
+
+    pointers, constants = _ray_query_signature(kind, codes, levels, features, k, width, hidden, index_bits)
+    return _compile(ray_query._ray_query, pointers, constants, ray_query.WARPS)
+
+
+def build_mlp_training(backward: bool, kind: str = "mlp", levels: int = 10, features: int = 4, k: int = 4,
+                       width: int = 64, hidden: int = 2) -> CardBuild:
+    """Compile the MLP's training forward (storing activations) or its backward kernel for `TARGET_SM` at the
+    default preset's shape, as `mlp_train_forward` launches them (Triton's default 4 warps)."""
+    from nbvh_core.kernels.triton import mlp
+
+    n_in = (2 if kind == "kmlp" else k) * levels * features
+    shape = dict(K_PAD=-(-n_in // mlp.BLOCK_K) * mlp.BLOCK_K, W=width, HIDDEN=hidden - 1, OUT_PAD=16, BM=mlp.BLOCK_M,
+                 BK=mlp.BLOCK_K)
+    if backward:
+        pointers = dict(dy_ptr="*fp32", acts_ptr="*fp32", w_in_ptr="*fp32", w_hid_ptr="*fp32", w_out_ptr="*fp32",
+                        dz_ptr="*fp32", dx_ptr="*fp32", m="i32", n_in="i32", n_out="i32")
+        return _compile(mlp._mlp_backward, pointers, shape, 4)
+    pointers = dict(x_ptr="*fp32", w_in_ptr="*fp32", b_in_ptr="*fp32", w_hid_ptr="*fp32", b_hid_ptr="*fp32",
+                    w_out_ptr="*fp32", b_out_ptr="*fp32", out_ptr="*fp32", acts_ptr="*fp32", m="i32", n_in="i32",
+                    K_PAD=None, W=None, HIDDEN=None, OUT_PAD=None, n_out="i32", BM=None, BK=None, SAVE=None)
+    return _compile(mlp._mlp_forward, pointers, dict(shape, SAVE=True), 4)
+
+
+def _compile(fn, pointers: dict, constants: dict, warps: int) -> CardBuild:
+    """`fn` compiled for TARGET_SM with `pointers` (argument types, in the kernel's order; None: a constant) and
+    `constants`, assembled by ptxas -v: its report. Raises RuntimeError when ptxas fails."""
     import triton
     from triton.backends.compiler import GPUTarget
     from triton.compiler import ASTSource
 
-    from nbvh_core.kernels.triton import ray_query
-
-    pointers, constants = _ray_query_signature(kind, codes, levels, features, k, width, hidden, index_bits)
-    signature = dict(pointers, **{name: "constexpr" for name in constants})
+    signature = {name: kind or "constexpr" for name, kind in pointers.items()}
+    signature.update({name: "constexpr" for name in constants if name not in signature})
     names = list(signature)
-    source = ASTSource(fn=ray_query._ray_query, signature=signature,
+    source = ASTSource(fn=fn, signature=signature,
                        constexprs={(names.index(name),): value for name, value in constants.items()})
     start = time.perf_counter()
-    compiled = triton.compile(source, target=GPUTarget("cuda", TARGET_ARCH, 32),
-                              options={"num_warps": ray_query.WARPS})
+    compiled = triton.compile(source, target=GPUTarget("cuda", TARGET_ARCH, 32), options={"num_warps": warps})
     seconds = time.perf_counter() - start
     ptxas = os.path.join(os.path.dirname(triton.__file__), "backends", "nvidia", "bin", "ptxas")
     with tempfile.TemporaryDirectory() as tmp:
@@ -95,9 +121,15 @@ def _parse(report: str, seconds: float) -> CardBuild:
                      int(stack.group(1)) if stack else 0, round(seconds, 1))
 
 
-CASES = [("ray query mlp, u8 codes", "mlp", True, 0), ("ray query mlp, f32 table", "mlp", False, 0),
-         ("ray query kmlp, u8 codes", "kmlp", True, 0), ("ray query kmlp, f32 table", "kmlp", False, 0),
-         ("ray query mlp, u8 codes, HashVQAD 4-bit index", "mlp", True, 4)]
+CASES = [("ray query mlp, u8 codes", lambda: build_ray_query("mlp", True)),
+         ("ray query mlp, f32 table", lambda: build_ray_query("mlp", False)),
+         ("ray query kmlp, u8 codes", lambda: build_ray_query("kmlp", True)),
+         ("ray query kmlp, f32 table", lambda: build_ray_query("kmlp", False)),
+         ("ray query mlp, u8 codes, HashVQAD 4-bit index", lambda: build_ray_query("mlp", True, index_bits=4)),
+         ("mlp training forward (activations stored)", lambda: build_mlp_training(False, "mlp")),
+         ("mlp training backward", lambda: build_mlp_training(True, "mlp")),
+         ("kmlp training forward (activations stored)", lambda: build_mlp_training(False, "kmlp")),
+         ("kmlp training backward", lambda: build_mlp_training(True, "kmlp"))]
 
 
 def main() -> None:
@@ -106,8 +138,8 @@ def main() -> None:
     args = ap.parse_args()
     run = stamp()
     rows = []
-    for label, kind, codes, index_bits in CASES[:args.cases]:
-        build = build_ray_query(kind, codes, index_bits=index_bits)
+    for label, build_case in CASES[:args.cases]:
+        build = build_case()
         row = {"kernel": label, "target": TARGET_SM, "registers": build.registers,
                "spill_store_bytes": build.spill_store_bytes, "stack_bytes": build.stack_bytes,
                "compile_s": build.compile_s}

@@ -52,5 +52,4 @@ def within_wall(run: RunConfig, started_at: float, now: float | None = None) -> 
         note = RunNote("wall", f"the training gets {fitted:.0f} s of its {training_s:g} s, its checks included: "
                                f"loading, the plan and the BVH took {spent:.0f} s of the run's "
                                f"{RUN_WALL_FACTOR * budget:.0f} s ({RUN_WALL_FACTOR:g}x its budget)")
-    growth = run.growth and dataclasses.replace(run.growth, budget_s=fitted)  # the checks' projections end there
-    return dataclasses.replace(run, training=training, growth=growth), note
+    return dataclasses.replace(run, training=training), note  # the checks project to its end (`BudgetEnd`)

@@ -169,9 +169,8 @@ class SizeSearch:
         run = self.run
         slope = growth.budget_slopes.__getitem__ if growth.budget_slopes else None
         gain = growth.grow_gains.__getitem__ if growth.grow_gains else None
-        return CheckRule(self.score_stored, run.decision.target_mse, growth.max_log2, growth.budget_s, self.bytes_at,
-                         self.weighing.curve, slope, gain, run.decision.force, self.shipped_form, state_form,
-                         checks_outside_s=run.training.checks_outside_budget_s)
+        return CheckRule(self.score_stored, run.decision.target_mse, growth.max_log2, self.bytes_at,
+                         self.weighing.curve, slope, gain, run.decision.force, self.shipped_form, state_form)
 
     def grow(self) -> int:
         """One training that starts below the planned T and grows its table while the checks say growing pays
@@ -229,8 +228,8 @@ class SizeSearch:
         run_try = self.run if log2_table == self.run.log2_table else self.run.at_table(log2_table)
         target, budget = run_try.decision.target_mse, run_try.training.time_limit_s or 0.0
         # a fixed size: the checks only stop the training once the level is met (no growth, no alternative)
-        stop = (CheckRule(self.score_stored, target, log2_table, budget, self.bytes_at, shipped_form=self.shipped_form,
-                          state_form=state_form, checks_outside_s=run_try.training.checks_outside_budget_s)
+        stop = (CheckRule(self.score_stored, target, log2_table, self.bytes_at, shipped_form=self.shipped_form,
+                          state_form=state_form)
                 if target is not None and self.evaluate_quality else None)
         model, tr, run_used, notes = train_with_restarts(self.ctx, run_try, stop)
         if tr.stopped_early:

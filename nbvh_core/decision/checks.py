@@ -5,11 +5,10 @@ views), weighed as it will ship (`bytes_at`), and recorded (`records.CheckDecisi
 from __future__ import annotations
 
 import math
-import time
 from typing import Callable, NamedTuple
 
 from .alternative_curve import AlternativeCurve
-from .records import CheckAction, CheckDecision
+from .records import CheckAction, CheckDecision, TrainingPoint
 
 #: A check below this fraction of the target stops the training; the held-out evaluation after it confirms or not.
 #: The margin is for the check views' error against the held-out views' and the training still moving: at the end of
@@ -36,14 +35,13 @@ class CheckScore(NamedTuple):
 
 
 class CheckRule:
-    """The target_reached callback of `training.train`: each call answers a `records.CheckDecision` (its action one of
-    `records.CheckAction`).
+    """The target_reached callback of `training.train`: each call, rule(model, at) with `at` the training's
+    `records.TrainingPoint`, answers a `records.CheckDecision` (its action one of `records.CheckAction`).
 
     score(model) -> check MSE of the model as stored, or a CheckScore (with its colour: a mesh then stands in for
-    the model only when it also reaches the model's colour MSE as it reads now); target: the MSE level; max_log2: the largest table;
-    budget_s: the training's budget (its clock: seconds since this rule was made, less the checks' own time as far as
-    `checks_outside_s` allows, as the training's `checks_outside_budget_s`); budget_slope(log2)
-    -> d ln MSE / d ln time at that size (the size predictor's; None: the slope through the last two checks);
+    the model only when it also reaches the model's colour MSE as it reads now); target: the MSE level; max_log2: the
+    largest table; budget_slope(log2) -> d ln MSE / d ln work at that size (the size predictor's, fitted as seconds
+    of one machine's steady pace, so the same exponent in steps; None: the slope through the last two checks);
     grow_gain(log2) -> the predicted MSE ratio of a table twice as large (< 1; None: growth is judged on the
     target alone); bytes_at(log2) -> the file's bytes at that size as it ships (geometry, look, header); curve: the
     alternative on the check views (None: no alternative measured); force: train on even above the curve;
@@ -54,51 +52,49 @@ class CheckRule:
     (`training.encoding_phases.state_form`; None: table size and shipped form). After training, `decisions` holds every check
     and `keep_mesh` the decision that stopped it for the mesh."""
 
-    def __init__(self, score: Callable, target: float, max_log2: int, budget_s: float,
-                 bytes_at: Callable[[int], int], curve: AlternativeCurve | None = None, budget_slope=None,
-                 grow_gain=None, force: bool = False, shipped_form: Callable | None = None,
-                 state_form: Callable | None = None, checks_outside_s: float | None = None):
-        self.score, self.target, self.max_log2, self.budget_s = score, target, max_log2, budget_s
+    def __init__(self, score: Callable, target: float, max_log2: int, bytes_at: Callable[[int], int],
+                 curve: AlternativeCurve | None = None, budget_slope=None, grow_gain=None, force: bool = False,
+                 shipped_form: Callable | None = None, state_form: Callable | None = None):
+        self.score, self.target, self.max_log2 = score, target, max_log2
         self.bytes_at, self.curve, self.budget_slope, self.grow_gain = bytes_at, curve, budget_slope, grow_gain
         self.force, self.shipped_form, self.state_form = force, shipped_form, state_form
-        self.checks_outside_s = math.inf if checks_outside_s is None else checks_outside_s
         self.decisions: list[CheckDecision] = []
         self.start_over()
 
     def start_over(self) -> None:
-        """For a training started again from scratch (after a divergence): the clock and the best checks start over;
-        the decisions so far stay on record."""
-        self._start = time.perf_counter()
-        self._measuring_s = 0.0  # spent in score() off the training's clock (`training.train`)
-        self._outside_left = self.checks_outside_s  # ...as far as the run's wall allows (`checks_outside_budget_s`)
+        """For a training started again from scratch (after a divergence): the best checks start over; the decisions
+        so far stay on record."""
         self._best: dict[tuple, float] = {}  # the best check's MSE of each form (`state_form`)
         self.keep_mesh: CheckDecision | None = None
         self._first = len(self.decisions)  # this training's first decision (projections read its checks only)
 
-    def projected(self, log2: int) -> float | None:
-        """The MSE at the end of the budget from this size's checks; None: not enough checks yet. The projection is
-        MSE x (budget / now)^slope: the predictor's exponent at this size (the learning rate decays over the budget,
-        so the slope between two checks mid-way underestimates the end: bench/results/need.csv), else two checks'."""
-        points = [(d.seconds, d.mse) for d in self.decisions[self._first:]
+    def projected(self, log2: int, steps_at_end: float) -> float | None:
+        """The MSE at the budget's end (`steps_at_end`) from this size's checks; None: not enough checks yet. The
+        projection is in work: MSE x (steps at the end / steps now)^slope, the predictor's exponent at this size (the
+        learning rate decays over the budget, so the slope between two checks mid-way underestimates the end:
+        bench/results/need.csv), else two checks'. In seconds it read a card's kernel compilation as its pace."""
+        points = [(d.step, d.mse) for d in self.decisions[self._first:]
                   if d.log2_table == log2 and d.action != CheckAction.ROLL_BACK]
-        t, m = max(points[-1][0], 1e-6), points[-1][1]
+        s, m = max(points[-1][0], 1), points[-1][1]
         if self.budget_slope is not None:
             slope = self.budget_slope(log2)
         elif len(points) < 2:
             return None
         else:
-            t1, m1 = points[-2]
+            s1, m1 = points[-2]
             if m >= m1:  # no progress at this size
                 return math.inf
-            slope = math.log(m / m1) / math.log(t / max(t1, 1e-6))
-        return m * (max(self.budget_s, t) / t) ** slope
+            if s <= s1:
+                return None  # no steps between the two checks: no law
+            slope = math.log(m / m1) / math.log(s / max(s1, 1))
+        return m * (max(steps_at_end, s) / s) ** slope
 
-    def __call__(self, model) -> CheckDecision:
-        """Measure `model` now and decide: the check's record (its action a CheckAction), also kept in
-        `decisions`."""
-        d, shipped, form, best = self._measure(model)
-        d.projected_mse = self.projected(d.log2_table)
-        d.action, d.reason = self._decide(d)
+    def __call__(self, model, at: TrainingPoint) -> CheckDecision:
+        """Measure `model` now, at the training's point `at`, and decide: the check's record (its action a
+        CheckAction), also kept in `decisions`."""
+        d, shipped, form, best = self._measure(model, at)
+        d.projected_mse = self.projected(d.log2_table, at.steps_at_end)
+        d.action, d.reason = self._decide(d, at)
         if d.action == CheckAction.STOP_LEVEL_MET and not shipped:
             d.action, d.reason = CheckAction.TRAIN_ON, f"{d.reason}; its final low-bit phase is still to run"
         elif d.action != CheckAction.STOP_LEVEL_MET and self._rolls_back(d, best):
@@ -108,28 +104,25 @@ class CheckRule:
             self.keep_mesh = d
         return d
 
-    def at_end(self, model) -> CheckDecision:
+    def at_end(self, model, at: TrainingPoint) -> CheckDecision:
         """The finished model (its budget spent) measured once more: "roll back" when it reads far worse than the
         best check of its form (ROLLBACK_FACTOR), else "finish". Nothing else is decided here: the final verdict
         weighs the finished model on the held-out views."""
-        d, _, form, best = self._measure(model)
+        d, _, form, best = self._measure(model, at)
         d.action, d.reason = CheckAction.FINISH, "the budget is spent"
         self._rolls_back(d, best)
         self._note_best(d, form, best)
         return d
 
-    def _measure(self, model) -> tuple[CheckDecision, bool, tuple, float | None]:
-        """A new record of `model`'s check MSE now; whether the model is in its shipped form; its form (`state_form`)
-        and that form's best check."""
-        began = time.perf_counter()
-        seconds = round(began - self._start - self._measuring_s, 2)  # training time: the checks' own is not
+    def _measure(self, model, at: TrainingPoint) -> tuple[CheckDecision, bool, tuple, float | None]:
+        """A new record of `model`'s check MSE at `at`; whether the model is in its shipped form; its form
+        (`state_form`) and that form's best check."""
         score = self.score(model)
         mse, colour = (score.mse, score.colour_mse) if isinstance(score, CheckScore) else (score, None)
-        outside = min(time.perf_counter() - began, self._outside_left)
-        self._measuring_s, self._outside_left = self._measuring_s + outside, self._outside_left - outside
         log2 = model.cfg.encoding.log2_table
-        self.decisions.append(CheckDecision(seconds, log2, mse, None, self.bytes_at(log2), None, CheckAction.TRAIN_ON,
-                                            "", colour))
+        self.decisions.append(CheckDecision(round(at.seconds, 2), log2, mse, None, self.bytes_at(log2), None,
+                                            CheckAction.TRAIN_ON, "", colour, step=at.step,
+                                            steps_at_end=round(at.steps_at_end, 1)))
         shipped = self.shipped_form is None or self.shipped_form(model)
         form = tuple(self.state_form(model)) if self.state_form is not None else (log2, shipped)
         return self.decisions[-1], shipped, form, self._best.get(form)
@@ -146,13 +139,13 @@ class CheckRule:
         if d.action != CheckAction.ROLL_BACK:
             self._best[form] = min(d.mse, best if best is not None else math.inf)
 
-    def _decide(self, d: CheckDecision) -> tuple[str, str]:
+    def _decide(self, d: CheckDecision, at: TrainingPoint) -> tuple[str, str]:
         if d.mse <= EARLY_STOP_MARGIN * self.target:
             return CheckAction.STOP_LEVEL_MET, f"MSE {d.mse:.4g} <= {EARLY_STOP_MARGIN} x the level {self.target:g}"
         end = d.projected_mse if d.projected_mse is not None else d.mse
         alt = self.curve.bytes_at(end) if self.curve is not None else None
         d.alternative_bytes = None if alt is None else (alt if math.isfinite(alt) else None)
-        grow = self._growth(d, end)
+        grow = self._growth(d, end, at.fraction)
         if grow is not None:
             return grow
         beaten_by = self.curve.cheapest_meeting(end, d.colour_mse) if self.curve is not None else None
@@ -165,12 +158,13 @@ class CheckRule:
         return CheckAction.TRAIN_ON, ("projected to meet the level" if end <= self.target
                             else f"projected MSE {end:.4g} misses the level; no larger size pays")
 
-    def _growth(self, d: CheckDecision, end: float) -> tuple[str, str] | None:
+    def _growth(self, d: CheckDecision, end: float, fraction: float) -> tuple[str, str] | None:
         """("grow", why) when the projection misses the level at this size and a table twice as large is projected
-        under the alternative's curve (its MSE gain per added byte beats the curve's); else None."""
+        under the alternative's curve (its MSE gain per added byte beats the curve's); else None. fraction: of the
+        budget spent."""
         if d.projected_mse is None or end <= self.target or d.log2_table >= self.max_log2:
             return None
-        if d.seconds > (1.0 - GROW_MIN_REMAINING) * self.budget_s:
+        if fraction > 1.0 - GROW_MIN_REMAINING:
             return None  # too late to pay (GROW_MIN_REMAINING)
         grown_bytes = self.bytes_at(d.log2_table + 1)
         if self.grow_gain is None or self.curve is None:

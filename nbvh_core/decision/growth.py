@@ -21,14 +21,13 @@ STEPS_ONLY_BUDGET_S = 200.0
 @dataclass(frozen=True)
 class GrowthPlan:
     """start_log2: the table the training starts at; max_log2: the largest it may grow to (one size above the
-    planned one, never past the sizes the predictor knows); budget_s: the training's clock, seconds; check_every_s:
-    seconds between its checks; the size predictor's word on each size the training may reach (empty without a
+    planned one, never past the sizes the predictor knows); check_every_s: seconds between its checks (the checks
+    project to where the training's own budget ends, `records.TrainingPoint`); the size predictor's word on each size the training may reach (empty without a
     fit): budget_slopes {log2 T: d ln MSE / d ln training time}, grow_gains {log2 T: predicted MSE ratio of a
     table twice as large (< 1)}."""
 
     start_log2: int
     max_log2: int
-    budget_s: float
     check_every_s: float
     budget_slopes: dict = field(default_factory=dict, compare=False)
     grow_gains: dict = field(default_factory=dict, compare=False)
@@ -41,7 +40,8 @@ def growth_sizes(planned_log2: int, largest_log2: int) -> range:
 
 
 def growth_clock(budget_s: float | None) -> float:
-    """The clock a growing training's checks read: its budget in seconds, or STEPS_ONLY_BUDGET_S for one in steps."""
+    """The clock a growing training's checks are spaced on: its budget in seconds, or STEPS_ONLY_BUDGET_S for one in
+    steps."""
     return budget_s or STEPS_ONLY_BUDGET_S
 
 
@@ -54,7 +54,7 @@ def plan_growth(planned_log2: int, largest_log2: int, budget_s: float | None, ch
     the clock (`growth_clock`)} over those sizes and one above the largest."""
     budget = growth_clock(budget_s)
     sizes = growth_sizes(planned_log2, largest_log2)
-    return GrowthPlan(start_log2=sizes.start, max_log2=sizes.stop - 1, budget_s=budget,
+    return GrowthPlan(start_log2=sizes.start, max_log2=sizes.stop - 1,
                       check_every_s=min(check_every_s, budget / GROW_CHECKS),
                       budget_slopes={l2: budget_slopes[l2] for l2 in sizes} if budget_slopes else {},
                       grow_gains=({l2: math.exp(log_mse[l2 + 1] - log_mse[l2]) for l2 in sizes} if log_mse else {}))

@@ -71,14 +71,30 @@ class _FromDict:
         return cls(**_known(cls, d))
 
 
+@dataclass(frozen=True)
+class TrainingPoint:
+    """Where a training stands when it is checked, in work and in seconds (what the loop passes its check hook).
+    step: optimizer steps so far; seconds: the budget's seconds spent (a check's own time off the clock as far as the
+    run's wall allows); fraction: of the budget, in [0, 1] (steps or seconds, whichever runs out first);
+    steps_at_end: the step the budget ends at (a step budget's own; for a time budget, this step plus the steady
+    step rate times the seconds left: the rate of the steps since the last check, so a card's first seconds of
+    kernel compilation do not count as its pace)."""
+
+    step: int
+    seconds: float
+    fraction: float
+    steps_at_end: float
+
+
 @dataclass
 class CheckDecision(_FromDict):
-    """One training check. seconds since training began; log2_table: the table's size then; mse: measured on the
-    check views, the model at its stored precision; projected_mse: at the end of the budget at this size (None
-    before a projection is possible); model_bytes: the file as it would ship at this size (geometry, look,
-    header); alternative_bytes: the alternative's bytes at the projected MSE (None: no alternative measured);
+    """One training check. seconds since training began (the budget's clock); log2_table: the table's size then;
+    mse: measured on the check views, the model at its stored precision; projected_mse: at the end of the budget at
+    this size (None before a projection is possible); model_bytes: the file as it would ship at this size (geometry,
+    look, header); alternative_bytes: the alternative's bytes at the projected MSE (None: no alternative measured);
     action: a CheckAction; reason: one line; colour_mse: for an asset whose head was trained before the geometry, the
-    model's colour MSE on the check views (a mesh stands in for it only when it also reaches it)."""
+    model's colour MSE on the check views (a mesh stands in for it only when it also reaches it); step: the
+    training's step then; steps_at_end: the step the budget was expected to end at (the projection runs to it)."""
 
     seconds: float
     log2_table: int
@@ -89,6 +105,8 @@ class CheckDecision(_FromDict):
     action: CheckAction
     reason: str
     colour_mse: float | None = None
+    step: int | None = None
+    steps_at_end: float | None = None
 
     # At __init__ and whenever a rule changes it, the action stays a CheckAction: its value is accepted, anything
     # else is a ValueError.

@@ -13,6 +13,7 @@ soft_table (HashVQAD's softmax row table while its index is soft), network (infe
 """
 from __future__ import annotations
 
+import os
 from dataclasses import asdict, dataclass
 
 import torch
@@ -52,9 +53,21 @@ def triton_network_gap(net) -> str | None:
 
 
 def mlp_kernel(net, device: torch.device | str) -> str:
-    """A network's layers at inference (no autograd) on `device`: 'triton' or 'torch' (training's layers are torch's
-    own: cuBLAS on a card, with autograd)."""
+    """A network's layers at inference (no autograd) on `device`: 'triton' or 'torch'."""
     return "triton" if triton_serves(device) and triton_network_gap(net) is None else TORCH
+
+
+#: $NBVH_CARD_TRAINING_LAYERS=torch trains a card's layers with torch's autograd (cuBLAS per layer) instead of the
+#: Triton MLP's forward and backward: the device check measures both.
+TRAINING_LAYERS_ENV = "NBVH_CARD_TRAINING_LAYERS"
+
+
+def training_layers_kernel(net, device: torch.device | str) -> str:
+    """A network's layers in training (autograd) on `device`: 'triton' (`kernels.triton.mlp.mlp_train_forward`, where
+    the inference kernel serves, its weights float32) or 'torch'."""
+    trainable = all(p.dtype == torch.float32 for p in net.parameters())
+    wanted = os.environ.get(TRAINING_LAYERS_ENV, "triton") != TORCH
+    return "triton" if wanted and trainable and mlp_kernel(net, device) == "triton" else TORCH
 
 
 def query_kernel(model, device: torch.device | str | None = None) -> str:
@@ -114,11 +127,16 @@ def network_kernel(model, device: torch.device | str | None = None) -> str:
 
 
 def train_step_kernel(model, device: torch.device | str | None = None) -> str:
-    """One training step: 'fused mlp' | 'fused kmlp' (forward, loss and backward in one kernel call) or
+    """One training step: 'fused mlp' | 'fused kmlp' (forward, loss and backward in one kernel call), 'autograd,
+    triton layers' (on a card: torch's autograd over the stages, the layers' forward and backward Triton's) or
     'autograd' (torch autograd over the encoding's and the soft table's stages)."""
     fused = network_kernel(model, device)
     trainable = not model.encoding.quantized and next(model.network.parameters()).dtype == torch.float32
-    return fused.replace(" f16 weights", "") if fused.startswith("fused") and trainable else "autograd"
+    if fused.startswith("fused") and trainable:
+        return fused.replace(" f16 weights", "")
+    device = model.device if device is None else device
+    return ("autograd, triton layers" if trainable and training_layers_kernel(model.network.net, device) == "triton"
+            else "autograd")
 
 
 def appearance_kernel(model, device: torch.device | str | None = None) -> str | None:
@@ -181,8 +199,9 @@ def plan(model, device: torch.device | str | None = None) -> KernelPlan:
         gaps = [f"encoding: {g}" for g in [triton_encoding_gap(enc)] if g]
         gaps += [f"network: {g}" for g in [triton_network_gap(model.network.net)] if g]
         gaps += [f"ray query: {g}" for g in [getattr(model, "triton_query_failure", None)] if g]
+        layers = training_layers_kernel(model.network.net, device)
         note = ("Triton kernels on the card (the ray query one kernel); the host's fused kernels label training"
-                " rays; torch's autograd for the training step's layers"
+                f" rays; the training step's layers {'Triton' if layers == 'triton' else 'torch'}'s under autograd"
                 + (f"; torch where not covered ({'; '.join(gaps)})" if gaps else ""))
     traversal = traversal_kernel(device)
     if traversal == "fused" and model.compact_nodes is not None:

@@ -106,9 +106,14 @@ def run_layers(net: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
     """`net(x)` for weights held in any form (a finalized model keeps its network as stored: float16, or int8 rows
     with scales): each Linear runs in x's dtype (a transient cast of its weights on this reference path; the fused
     kernels read float16 weights as they are). At inference on a card the layers run as one Triton kernel
-    (`kernels.triton.mlp`, the weights packed once per change of the network)."""
-    if not torch.is_grad_enabled() and x.dim() >= 2 and kernels.mlp_kernel(net, x.device) == "triton":
+    (`kernels.triton.mlp`, the weights packed once per change of the network); in training, its forward and
+    backward kernels (`kernels.training_layers_kernel`)."""
+    if x.dim() >= 2 and not torch.is_grad_enabled() and kernels.mlp_kernel(net, x.device) == "triton":
         return _triton_layers(net, x)
+    if x.dim() >= 2 and torch.is_grad_enabled() and kernels.training_layers_kernel(net, x.device) == "triton":
+        from ..kernels.triton.mlp import mlp_train_forward
+
+        return mlp_train_forward(x.reshape(-1, x.shape[-1]), net).reshape(*x.shape[:-1], -1).to(x.dtype)
     for m in net:
         if isinstance(m, nn.Linear):
             x = F.linear(x, linear_weight(m, x.dtype), m.bias.to(x.dtype))

@@ -1,4 +1,5 @@
-"""The training's budget clock: the seconds its budget (`TrainConfig.time_limit_s`) is spent by.
+"""The training's budget clock: the seconds its budget (`TrainConfig.time_limit_s`) is spent by; and where the budget
+ends in steps (`BudgetEnd`), which the checks project to.
 
 Steps are always the budget's time. The training's other time - its setup before the first step and its checks -
 is left off the clock while the run's wall allows (`TrainConfig.checks_outside_budget_s`, set by `app.run_wall`;
@@ -50,3 +51,42 @@ class BudgetClock:
         if off < seconds:  # checks are the budget's now: so is the finished model's, about as long
             self.tail_s = seconds
         return seconds - off
+
+
+#: Steps a training takes before its pace is read: its first steps compile a card's kernels and wait for the first
+#: labels, seconds no later step repeats.
+WARM_STEPS = 16
+
+
+class BudgetEnd:
+    """The step a training's budget ends at, as its checks project to (`records.TrainingPoint.steps_at_end`): a step
+    budget's own; a time budget's is this step plus the steady step rate times the seconds left (the lesser when both
+    are set). The steady rate is the steps' since the last check (before the first: since WARM_STEPS into the
+    training), so it follows a grown table's slower steps and leaves out the first steps' warm-up. step0, elapsed0:
+    where the training started (a resumed one's step and seconds)."""
+
+    def __init__(self, steps: int | None, time_limit_s: float | None, step0: int = 0, elapsed0: float = 0.0):
+        self.steps, self.time_limit_s = steps, time_limit_s
+        self.start = (step0, elapsed0)
+        self.window: tuple[int, float] | None = None  # where the steady rate is read from
+
+    def note(self, step: int, elapsed: float) -> None:
+        """Each step of the loop: the steady rate's window opens WARM_STEPS into the training."""
+        if self.window is None and step >= self.start[0] + WARM_STEPS:
+            self.window = (step, elapsed)
+
+    def at_check(self, step: int, elapsed: float) -> float:
+        """The step the budget ends at, read at a check at `step`, `elapsed` budget seconds; the window restarts."""
+        end = math.inf if self.steps is None else float(self.steps)
+        if self.time_limit_s is not None:
+            end = min(end, step + self.rate(step, elapsed) * max(self.time_limit_s - elapsed, 0.0))
+        self.window = (step, elapsed)
+        return max(end, float(step))
+
+    def rate(self, step: int, elapsed: float) -> float:
+        """Steps per budget second: the window's, else since the training started; 0 before any step."""
+        for s0, t0 in (self.window or self.start, self.start):
+            if step > s0 and elapsed > t0:
+                return (step - s0) / (elapsed - t0)
+        return 0.0
+

@@ -7,11 +7,12 @@ import time
 
 import torch
 
-from ..decision.records import CHECK_ACTIONS, CheckAction
+from ..decision.records import CHECK_ACTIONS, CheckAction, TrainingPoint
 from ..neural.model import NeuralBVH
 from ..protocol import events as wire
 from ..protocol.events import EventSink
 from .best_weights import BestWeights
+from .budget_clock import BudgetEnd
 from .checkpoints import Checkpoints
 from .config import TrainConfig
 from .encoding_phases import EncodingPhases, state_form
@@ -19,7 +20,7 @@ from .encoding_phases import EncodingPhases, state_form
 
 
 class EarlyStop:
-    """Asks target_reached(model) every cfg.target_check_every_s once 10% of the budget has passed (and the
+    """Asks target_reached(model, at) (`at`: the training's `records.TrainingPoint`) every cfg.target_check_every_s once 10% of the budget has passed (and the
     encoding is in its final form): True ends training (see TrainConfig.target_check_every_s); "grow" asks for a
     table twice as large (`grow_table`), honoured while the model can still be trained at its new size (before
     GROW_UNTIL of the budget, a HashGrid not yet quantized); "roll back" returns to the best check's state
@@ -29,8 +30,9 @@ class EarlyStop:
     #: No growth after this fraction of the budget: the larger table would get too little training to pay.
     GROW_UNTIL = 0.8
 
-    def __init__(self, target_reached, cfg: TrainConfig, last_s: float):
+    def __init__(self, target_reached, cfg: TrainConfig, last_s: float, step0: int = 0):
         self.target_reached, self.cfg, self.last_s = target_reached, cfg, last_s
+        self.end = BudgetEnd(cfg.steps, cfg.time_limit_s, step0, last_s)
         self.grew: list[tuple[int, float, int]] = []  # (step, seconds, new log2 T) of each growth
         self.spent_s = 0.0  # the last act()'s own seconds
         self.best = BestWeights()
@@ -42,13 +44,14 @@ class EarlyStop:
         the seconds this call took when it asked (the caller's budget clock stops for them while the run's wall
         allows, `TrainConfig.checks_outside_budget_s`)."""
         began, last = time.perf_counter(), self.last_s
+        self.end.note(step, elapsed)
         try:
             return self._act(model, opt, checkpoints, events, phases, step, fraction, elapsed)
         finally:
             self.spent_s = time.perf_counter() - began if self.last_s != last else 0.0  # 0 when none was asked
 
     def _act(self, model, opt, checkpoints, events, phases, step: int, fraction: float, elapsed: float) -> bool:
-        decision = self.reached(model, fraction, elapsed, phases.ready_to_stop)
+        decision = self.reached(model, step, fraction, elapsed, phases.ready_to_stop)
         if decision is CheckAction.ROLL_BACK:
             self._roll_back(model, opt, phases, events, f"check at step {step}")
             return False
@@ -65,8 +68,10 @@ class EarlyStop:
                               message=f"target reached at step {step} ({elapsed:.0f} s): training stops"))
         return bool(decision)
 
-    def at_end(self, model: NeuralBVH, opt, phases: EncodingPhases, events: EventSink, stopped_early: bool) -> None:
-        """When the budget is spent (not after an early stop): a callback with an `at_end(model)` method
+    def at_end(self, model: NeuralBVH, opt, phases: EncodingPhases, events: EventSink, stopped_early: bool,
+               step: int, seconds: float) -> None:
+        """When the budget is spent (not after an early stop), at `step` and `seconds`: a callback with an
+        `at_end(model, at)` method
         (`CheckRule.at_end`) measures the finished model once more, and its "roll back" puts the best check's state
         in its place (after the weight average; the result's loss and seconds are the finished model's). The
         finished state can read far worse than the last check: the bunny's seed 9 (target 0.0004) ended at 1.31x and
@@ -75,7 +80,7 @@ class EarlyStop:
         ask = getattr(self.target_reached, "at_end", None)
         if ask is None or self.best.mse is None or stopped_early:
             return
-        answer = ask(model)
+        answer = ask(model, TrainingPoint(step, seconds, 1.0, float(step)))
         self.last_mse = getattr(answer, "mse", None)
         if getattr(answer, "action", answer) == CheckAction.ROLL_BACK:
             self._roll_back(model, opt, phases, events, "the finished model")
@@ -92,14 +97,14 @@ class EarlyStop:
         return (self.target_reached is not None and fraction >= 0.1 and ready
                 and elapsed - self.last_s >= self.cfg.target_check_every_s)
 
-    def reached(self, model: NeuralBVH, fraction: float, elapsed: float, ready: bool) -> bool | str:
+    def reached(self, model: NeuralBVH, step: int, fraction: float, elapsed: float, ready: bool) -> bool | str:
         """False (no check due, or train on), "grow" (honoured only while growth can pay), "roll back", or True
         (stop)."""
         self.last_mse = None
         if not self.due(fraction, elapsed, ready):
             return False
         self.last_s = elapsed
-        answer = self.target_reached(model)
+        answer = self.target_reached(model, TrainingPoint(step, elapsed, fraction, self.end.at_check(step, elapsed)))
         self.last_mse = getattr(answer, "mse", None)
         answer = getattr(answer, "action", answer)
         if not isinstance(answer, str):

@@ -10,6 +10,7 @@ import os
 from dataclasses import dataclass
 from typing import Callable
 
+from ..decision.records import TrainingPoint
 from ..protocol.events import EventSink, null_sink
 
 
@@ -30,14 +31,15 @@ HOOK_SCHEDULE = {
 
 @dataclass(frozen=True)
 class TrainingHooks:
-    """events: the training's event sink; should_cancel() -> bool; target_reached(model) -> bool, a check's action
+    """events: the training's event sink; should_cancel() -> bool; target_reached(model, at) -> bool, a check's action
     (`records.CheckAction`) or record (`CheckDecision`, as `CheckRule` answers): True or a stop ends training early,
-    "grow" doubles the table, "roll back" returns to the best check's state; before_freeze(model): e.g. to score the
-    soft model. When each runs: HOOK_SCHEDULE."""
+    "grow" doubles the table, "roll back" returns to the best check's state (`at`: the training's
+    `records.TrainingPoint`, its step, seconds, budget fraction and the step its budget ends at); before_freeze(model):
+    e.g. to score the soft model. When each runs: HOOK_SCHEDULE."""
 
     events: EventSink = null_sink
     should_cancel: Callable[[], bool] = never
-    target_reached: Callable[[object], object] | None = None
+    target_reached: Callable[[object, TrainingPoint], object] | None = None
     before_freeze: Callable[[object], None] | None = None
 
 

@@ -207,7 +207,7 @@ def make_step(model: NeuralBVH, device: torch.device, plan: kernels.KernelPlan):
     """The training step the plan chose, hiding fused vs autograd: step(batch, want_raw) -> (loss, parts) with every
     parameter's .grad set (parts['raw']: the network's raw outputs when want_raw); loss: a float (the fused CPU
     step) or a 0-d tensor on the training device, read to the host later (`loss_reads`)."""
-    if plan.train_step != "autograd":  # forward, loss and backward in one kernel call (neural/fused_mlp.py)
+    if plan.train_step.startswith("fused"):  # forward, loss and backward in one kernel call (neural/fused_mlp.py)
         from ..neural import fused_mlp
 
         return lambda batch, want_raw: fused_mlp.train_step(model, batch, want_raw=want_raw)
@@ -341,7 +341,7 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig,
     phases = EncodingPhases(model, cfg, events, _held_out_loss(model, batches, tracer, cfg, device),
                             hooks.before_freeze, ck.get("qat_affine"))
     checkpoints = Checkpoints(files.path, cfg, files.extra, elapsed_before)
-    early = EarlyStop(hooks.target_reached, cfg, elapsed_before)
+    early = EarlyStop(hooks.target_reached, cfg, elapsed_before, step)
     train_step = make_step(model, device, plan)
     events(wire.phase(phase="train", message=_what_trains(model, cfg, plan)))
     losses = LossBook(read_every(cfg.loss_read_every, device), history, recovery, model, opt, phases)
@@ -396,5 +396,5 @@ def train(model: NeuralBVH, bvh: BVH, tracer: ExactTracer, cfg: TrainConfig,
                          reused_batches=batches.reused, rays_per_step=cfg.rays_per_step)
     progress.emit(phases.phase, step, 1.0, result.final_loss, seconds, 0.0)
     phases.finish(result)
-    early.at_end(model, opt, phases, events, stopped_early)
+    early.at_end(model, opt, phases, events, stopped_early, step, seconds)
     return result

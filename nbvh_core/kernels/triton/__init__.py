@@ -7,7 +7,8 @@ it; anything they do not cover runs the torch path, and the plan's note says whi
   the 8-row weighted sum of every level) and its backward (atomic adds into the table's gradient): a HashGrid's
   rows, a HashVQAD's soft row table, or its rows through the frozen index's packed codes.
 * `mlp` - a whole MLP (Linear + ReLU layers, the last without) over rows of inputs through `tl.dot`, K-blocked,
-  the activations kept on chip between layers.
+  the activations kept on chip between layers; in training the same kernel stores them, and a backward kernel takes
+  the gradient back through every layer (the weights' gradients one matmul per layer).
 """
 from __future__ import annotations
 

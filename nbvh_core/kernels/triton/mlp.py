@@ -8,6 +8,12 @@ BLOCK_K, the hidden layers' weights stacked (H-1, W, W), the output layer's (OUT
 
     packed = pack_mlp(sequential)                  # from an nn.Sequential of Linear/ReLU, float32 weights
     out = mlp_forward(x, packed)                   # x (M, n_in) float32 -> (M, n_out) float32
+    out = mlp_train_forward(x, sequential)         # the same, differentiable (training)
+
+Training (`mlp_train_forward`, tiny-cuda-nn's split): the forward kernel also stores each layer's activations; the
+backward kernel takes the output's gradient back through every layer on chip (ReLU masks from the stored
+activations), storing each layer's pre-activation gradient and the input's; the weights' gradients are then one
+matmul per layer over all rows (cuBLAS on a card: a (W, M) x (M, W) product is what it does best), the biases' a sum.
 """
 from __future__ import annotations
 
@@ -53,34 +59,39 @@ def pack_mlp(net: torch.nn.Sequential, weight=None) -> PackedMLP:
     two >= 16): the caller falls back to torch and says so."""
     weight = weight or (lambda m: m.weight.detach().float())
     linears = [m for m in net if isinstance(m, torch.nn.Linear)]
-    if len(linears) < 2:
+    return pack_layers([weight(m) for m in linears], [m.bias for m in linears])
+
+
+def pack_layers(weights: list[torch.Tensor], biases: list[torch.Tensor]) -> PackedMLP:
+    """Layers' (out, in) weights and (out,) biases, first to last, laid out for the kernel (`pack_mlp`)."""
+    if len(weights) < 2:
         raise ValueError("the Triton MLP needs at least one hidden layer")
-    width = linears[0].out_features
-    if width < MIN_TILE or width & (width - 1) or any(m.out_features != width for m in linears[:-1]):
+    width = weights[0].shape[0]
+    if width < MIN_TILE or width & (width - 1) or any(w.shape[0] != width for w in weights[:-1]):
         raise ValueError(f"the Triton MLP takes hidden widths that are one power of two >= {MIN_TILE}, not {width}")
-    dev = linears[0].weight.device
-    first = weight(linears[0]).detach().float()
+    weights = [w.detach().float() for w in weights]
+    biases = [b.detach().float() for b in biases]
+    first, dev = weights[0], weights[0].device
     w_in = torch.zeros(width, _round_up(first.shape[1], BLOCK_K), device=dev)
     w_in[:, :first.shape[1]] = first
-    mids = linears[1:-1]
-    w_hidden = (torch.stack([weight(m).detach().float() for m in mids]) if mids
-                else torch.zeros(0, width, width, device=dev))
-    b_hidden = (torch.stack([m.bias.detach().float() for m in mids]) if mids else torch.zeros(0, width, device=dev))
-    last = linears[-1]
-    out_pad = _round_up(max(last.out_features, MIN_TILE), MIN_TILE)
+    mids = range(1, len(weights) - 1)
+    w_hidden = torch.stack([weights[i] for i in mids]) if mids else torch.zeros(0, width, width, device=dev)
+    b_hidden = torch.stack([biases[i] for i in mids]) if mids else torch.zeros(0, width, device=dev)
+    n_out = weights[-1].shape[0]
+    out_pad = _round_up(max(n_out, MIN_TILE), MIN_TILE)
     w_out = torch.zeros(out_pad, width, device=dev)
-    w_out[:last.out_features] = weight(last).detach().float()
+    w_out[:n_out] = weights[-1]
     b_out = torch.zeros(out_pad, device=dev)
-    b_out[:last.out_features] = last.bias.detach().float()
-    return PackedMLP(w_in.contiguous(), linears[0].bias.detach().float().contiguous(), w_hidden.contiguous(),
-                     b_hidden.contiguous(), w_out.contiguous(), b_out.contiguous(), first.shape[1],
-                     last.out_features)
+    b_out[:n_out] = biases[-1]
+    return PackedMLP(w_in.contiguous(), biases[0].contiguous(), w_hidden.contiguous(), b_hidden.contiguous(),
+                     w_out.contiguous(), b_out.contiguous(), first.shape[1], n_out)
 
 
 @triton.jit
-def _mlp_forward(x_ptr, w_in_ptr, b_in_ptr, w_hid_ptr, b_hid_ptr, w_out_ptr, b_out_ptr, out_ptr, m, n_in,
+def _mlp_forward(x_ptr, w_in_ptr, b_in_ptr, w_hid_ptr, b_hid_ptr, w_out_ptr, b_out_ptr, out_ptr, acts_ptr, m, n_in,
                  K_PAD: tl.constexpr, W: tl.constexpr, HIDDEN: tl.constexpr, OUT_PAD: tl.constexpr, n_out,
-                 BM: tl.constexpr, BK: tl.constexpr):
+                 BM: tl.constexpr, BK: tl.constexpr, SAVE: tl.constexpr):
+    # SAVE: every layer's activations to acts (HIDDEN + 1, m, W) for the backward
     rows = tl.program_id(0) * BM + tl.arange(0, BM)
     live = rows < m
     cols_w = tl.arange(0, W)
@@ -92,9 +103,14 @@ def _mlp_forward(x_ptr, w_in_ptr, b_in_ptr, w_hid_ptr, b_hid_ptr, w_out_ptr, b_o
         wk = tl.load(w_in_ptr + cols_w[None, :] * K_PAD + ks[:, None])  # (BK, W): W_in transposed
         acc += tl.dot(xk, wk)
     h = tl.maximum(acc + tl.load(b_in_ptr + cols_w)[None, :], 0.0)
+    at = rows[:, None].to(tl.int64) * W + cols_w[None, :]
+    if SAVE:
+        tl.store(acts_ptr + at, h, mask=live[:, None])
     for layer in tl.static_range(HIDDEN):
         w = tl.load(w_hid_ptr + layer * W * W + cols_w[None, :] * W + cols_w[:, None])  # (W_in, W_out)
         h = tl.maximum(tl.dot(h, w) + tl.load(b_hid_ptr + layer * W + cols_w)[None, :], 0.0)
+        if SAVE:
+            tl.store(acts_ptr + (layer + 1) * m * W + at, h, mask=live[:, None])
     cols_o = tl.arange(0, OUT_PAD)
     w = tl.load(w_out_ptr + cols_o[None, :] * W + cols_w[:, None])  # (W, OUT_PAD)
     y = tl.dot(h, w) + tl.load(b_out_ptr + cols_o)[None, :]
@@ -108,8 +124,85 @@ def mlp_forward(x: torch.Tensor, packed: PackedMLP) -> torch.Tensor:
     x = x.contiguous().float()
     m = x.shape[0]
     out = torch.empty(m, packed.n_out, device=x.device)
-    _mlp_forward[(triton.cdiv(m, BLOCK_M),)](
-        x, packed.w_in, packed.b_in, packed.w_hidden, packed.b_hidden, packed.w_out, packed.b_out, out, m,
-        packed.n_in, K_PAD=packed.w_in.shape[1], W=packed.width, HIDDEN=packed.hidden, OUT_PAD=packed.w_out.shape[0],
-        n_out=packed.n_out, BM=BLOCK_M, BK=BLOCK_K)
+    _launch_forward(x, packed, out, None)
     return out
+
+
+def _launch_forward(x: torch.Tensor, packed: PackedMLP, out: torch.Tensor, acts: torch.Tensor | None) -> None:
+    m = x.shape[0]
+    _mlp_forward[(triton.cdiv(m, BLOCK_M),)](
+        x, packed.w_in, packed.b_in, packed.w_hidden, packed.b_hidden, packed.w_out, packed.b_out, out,
+        out if acts is None else acts, m, packed.n_in, K_PAD=packed.w_in.shape[1], W=packed.width,
+        HIDDEN=packed.hidden, OUT_PAD=packed.w_out.shape[0], n_out=packed.n_out, BM=BLOCK_M, BK=BLOCK_K,
+        SAVE=acts is not None)
+
+
+@triton.jit
+def _mlp_backward(dy_ptr, acts_ptr, w_in_ptr, w_hid_ptr, w_out_ptr, dz_ptr, dx_ptr, m, n_in, n_out,
+                  K_PAD: tl.constexpr, W: tl.constexpr, HIDDEN: tl.constexpr, OUT_PAD: tl.constexpr,
+                  BM: tl.constexpr, BK: tl.constexpr):
+    # dy (m, n_out) -> dz (HIDDEN + 1, m, W): each layer's pre-activation gradient; dx (m, n_in): the input's
+    rows = tl.program_id(0) * BM + tl.arange(0, BM)
+    live = rows < m
+    cols_w = tl.arange(0, W)
+    cols_o = tl.arange(0, OUT_PAD)
+    dy = tl.load(dy_ptr + rows[:, None].to(tl.int64) * n_out + cols_o[None, :],
+                 mask=live[:, None] & (cols_o[None, :] < n_out), other=0.0)
+    g = tl.dot(dy, tl.load(w_out_ptr + cols_o[:, None] * W + cols_w[None, :]))  # (BM, OUT_PAD) @ (OUT_PAD, W)
+    at = rows[:, None].to(tl.int64) * W + cols_w[None, :]
+    for i in tl.static_range(HIDDEN):
+        layer = HIDDEN - i  # the activations after hidden layer `layer` (0: after the first)
+        h = tl.load(acts_ptr + layer * m * W + at, mask=live[:, None], other=0.0)
+        dz = tl.where(h > 0.0, g, 0.0)
+        tl.store(dz_ptr + layer * m * W + at, dz, mask=live[:, None])
+        w = tl.load(w_hid_ptr + (layer - 1) * W * W + cols_w[:, None] * W + cols_w[None, :])  # (W_out, W_in)
+        g = tl.dot(dz, w)
+    h = tl.load(acts_ptr + at, mask=live[:, None], other=0.0)
+    dz = tl.where(h > 0.0, g, 0.0)
+    tl.store(dz_ptr + at, dz, mask=live[:, None])
+    for k0 in tl.static_range(0, K_PAD, BK):  # the input's gradient, K-blocked: dz (BM, W) @ W_in (W, BK)
+        ks = k0 + tl.arange(0, BK)
+        dx = tl.dot(dz, tl.load(w_in_ptr + cols_w[:, None] * K_PAD + ks[None, :]))
+        tl.store(dx_ptr + rows[:, None].to(tl.int64) * n_in + ks[None, :], dx,
+                 mask=live[:, None] & (ks[None, :] < n_in))
+
+
+class _TrainMLP(torch.autograd.Function):
+    """x and every Linear's (weight, bias), float32 -> the network's output; gradients for all of them."""
+
+    @staticmethod
+    def forward(ctx, x, *params):
+        packed = pack_layers(params[0::2], params[1::2])
+        m, width = x.shape[0], packed.width
+        out = torch.empty(m, packed.n_out, device=x.device)
+        acts = torch.empty(packed.hidden + 1, m, width, device=x.device)
+        _launch_forward(x, packed, out, acts)
+        ctx.save_for_backward(x, acts)
+        ctx.packed = packed
+        return out
+
+    @staticmethod
+    def backward(ctx, dy):
+        x, acts = ctx.saved_tensors
+        p = ctx.packed
+        dy = dy.contiguous().float()
+        m = x.shape[0]
+        dz, dx = torch.empty_like(acts), torch.empty(m, p.n_in, device=x.device)
+        _mlp_backward[(triton.cdiv(m, BLOCK_M),)](
+            dy, acts, p.w_in, p.w_hidden, p.w_out, dz, dx, m, p.n_in, p.n_out, K_PAD=p.w_in.shape[1], W=p.width,
+            HIDDEN=p.hidden, OUT_PAD=p.w_out.shape[0], BM=BLOCK_M, BK=BLOCK_K)
+        grads = [dz[0].T @ x, dz[0].sum(0)]  # the first layer
+        if p.hidden:
+            hidden_w = torch.bmm(dz[1:].transpose(1, 2), acts[:-1])  # (H, W_out, W_in), one batched matmul
+            for layer in range(p.hidden):
+                grads += [hidden_w[layer], dz[layer + 1].sum(0)]
+        grads += [dy.T @ acts[-1], dy.sum(0)]
+        return (dx, *grads)
+
+
+def mlp_train_forward(x: torch.Tensor, net: torch.nn.Sequential) -> torch.Tensor:
+    """x (M, n_in) float32 -> (M, n_out) float32 through `net` (Linear/ReLU, float32 weights; a shape `pack_mlp`
+    takes), differentiable in x and every parameter: the forward and the activations' backward one kernel each, the
+    weights' gradients one matmul per layer (module docstring). On a card tl.dot multiplies in TF32."""
+    params = [t for lin in net if isinstance(lin, torch.nn.Linear) for t in (lin.weight, lin.bias)]
+    return _TrainMLP.apply(x.contiguous().float(), *params)
