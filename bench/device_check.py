@@ -25,7 +25,8 @@ Stages (call 1: kernels, speed, bunny, labels, within 300 s; call 2: need, withi
 Writes bench/results/gpu/: summary.csv (one row per figure: figure, value, device, commit, machine, command; the
 figures render_1mp_ms, render_hit_agreement, render_vs_embree_host, train_samples_per_s, train_samples_per_s_at_N,
 train_samples_per_s_torch_layers (the same steps with torch's layers instead of the Triton MLP's),
-label_samples_per_s_N_threads, cpu_train_samples_per_s_N_threads, bunny_standard_wall_s, kernel_tests_passed and
+label_samples_per_s_N_threads, label_stream_samples_per_s_N_threads, cpu_train_samples_per_s_N_threads,
+bunny_standard_wall_s, kernel_tests_passed and
 need_ASSET_{shipped,shipped_bytes,mse,ratio,wall_s} for the card and the CPU), and each stage's own files (speed*.{csv,md}, labels.{csv,md}, shipped.{csv,md}, logs). A figure whose step failed is written
 empty with the reason; a stage that would start past --budget-s is skipped and says so.
 """
@@ -146,6 +147,9 @@ def stage_labels(c: Check) -> None:
         c.figure(f"label_samples_per_s_{r['threads']}_threads", r["label_samples_per_s"],
                  f"{r['asset']}; first-hit rays/s {r['first_hit_rays_per_s']}; draw {r['draw_s']} s and labels "
                  f"{r['label_s']} s per {r['rays_per_chunk']} rays", device="host")
+        c.figure(f"label_stream_samples_per_s_{r['threads']}_threads", r.get("streamed_samples_per_s", ""),
+                 f"{r['asset']}; streamed to the training by {r.get('label_workers', '')} labelling threads (one: "
+                 f"{r.get('streamed_1_worker_samples_per_s', '')})", device="host")
         c.figure(f"cpu_train_samples_per_s_{r['threads']}_threads", r.get("cpu_train_samples_per_s", ""),
                  f"{r['asset']}; the default preset's training on the host's CPU", device="host")
 

@@ -13,7 +13,7 @@ from nbvh_core.geometry.exact import ExactTracer
 from nbvh_core.neural.encodings import EncodingConfig
 from nbvh_core.neural.model import ModelConfig, NeuralBVH
 from nbvh_core.neural.networks import NetworkConfig
-from nbvh_core.training.ray_batches import Batches
+from nbvh_core.training.ray_batches import Batches, label_workers
 from nbvh_core.training.rays import generate_training_samples, label_samples, reorder_rays
 from nbvh_core.training.train import TrainConfig, train
 
@@ -199,3 +199,40 @@ def test_the_file_records_the_batch_and_the_reuse_a_run_trained_with(sample_mesh
     assert (res.training.rays_per_step, res.training.label_reuse) == (1024, 2)
     training = read_info(tmp_path / "b.nbvh").metadata["training"]
     assert (training["rays_per_step"], training["label_reuse"], training["reused_batches"]) == (1024, 2, 0)
+
+
+def test_several_labelling_threads_hand_out_the_batches_one_does_in_order(blob):
+    """A card's host labels several chunks at once (`label_workers`): the generator's turns are taken one thread at a
+    time and the chunks handed on in the order drawn, so three workers serve the very batches (and checkpoint
+    states) a synchronous run does; a label that fails in any of them reaches the training, and closing stops all."""
+    _, bvh, tracer = blob
+    cfg = TrainConfig(rays_per_step=64, label_steps=2)
+    plain = Batches(bvh, tracer, cfg, np.random.default_rng(5))
+    three = Batches(bvh, tracer, cfg, np.random.default_rng(5), prefetch=True, label_workers=3)
+    try:
+        assert len(three._threads) == 3
+        for _ in range(14):  # seven chunks: every worker has labelled two
+            a, b = plain.next(), three.next()
+            assert torch.equal(a.rays_o, b.rays_o) and torch.equal(a.hit, b.hit) and torch.equal(a.t_hit, b.t_hit)
+            assert plain.rng_state()["index"] == three.rng_state()["index"]
+            assert plain.rng_state()["chunk_state"] == three.rng_state()["chunk_state"]
+    finally:
+        plain.close()
+        three.close()
+    assert not any(t.is_alive() for t in three._threads)
+
+    class Failing(CountingTracer):
+        def first_hit(self, o, d):
+            super().first_hit(o, d)
+            if self.calls == 3:
+                raise RuntimeError("the tracer failed")
+            return self.tracer.first_hit(o, d)
+
+    failing = Batches(bvh, Failing(tracer), cfg, np.random.default_rng(5), prefetch=True, label_workers=2)
+    try:
+        with pytest.raises(RuntimeError, match="the tracer failed"):
+            for _ in range(20):
+                failing.next()
+    finally:
+        failing.close()
+    assert [label_workers(n) for n in (1, 2, 4, 7, 8, 16)] == [1, 1, 1, 1, 2, 4]

@@ -9,8 +9,9 @@ Per asset: the exact tracer's build seconds and the resident memory it added (Vm
 thread count (the kernels' OpenMP threads, `torch.set_num_threads`; Embree's queries through embreex use up to 8)
 the median over `--chunks` labelling chunks of the default preset's size (2,048 rays x 32 steps): the draw's (in as
 many parts as threads, at least 2, as a card's host draws) and the labels' seconds, first-hit rays/s, label
-samples/s (drawn and labelled); then the default preset's training on the host's CPU at that many threads
-(`--train-steps`): how a many-core CPU scales. Writes bench/results/labels.csv and labels.md (the device check
+samples/s (drawn and labelled); the same streamed as a card's training takes them (`Batches` labelling ahead, pinned
+where there is a card), by one labelling thread and by the card's count for that many cores (`label_workers`); then
+the default preset's training on the host's CPU at that many threads (`--train-steps`): how a many-core CPU scales. Writes bench/results/labels.csv and labels.md (the device check
 writes its own under bench/results/gpu/).
 """
 from __future__ import annotations
@@ -29,7 +30,7 @@ from nbvh_core.app.pipeline import preset
 from nbvh_core.geometry.bvh import build_bvh
 from nbvh_core.geometry.exact import ExactTracer
 from nbvh_core.protocol.memory import return_free_memory
-from nbvh_core.training.ray_batches import Batches
+from nbvh_core.training.ray_batches import Batches, chunk_steps, label_workers
 from nbvh_core.neural.model import NeuralBVH
 from nbvh_core.training.rays import label_samples
 from nbvh_core.training.train import train
@@ -69,6 +70,23 @@ def chunk_costs(bvh, tracer, cfg, threads: int, chunks: int) -> dict:
     return {k: statistics.median(v[1:]) for k, v in times.items()} | {"draw_parts": batches.draw_parts}
 
 
+def stream_rate(bvh, tracer, cfg, threads: int, workers: int, chunks: int) -> float:
+    """Label samples/s as a card's training takes them at `threads` threads: `workers` labelling threads ahead of a
+    consumer that takes each batch at once, over `chunks` chunks after the first."""
+    torch.set_num_threads(threads)
+    batches = Batches(bvh, tracer, cfg, np.random.default_rng(0), prefetch=True, pin=torch.cuda.is_available(),
+                      draw_parts=max(2, threads), label_workers=workers)
+    try:
+        for _ in range(chunk_steps(cfg)):  # the first chunk: its wait is the pool's start, not its pace
+            batches.next()
+        t, samples = time.perf_counter(), 0
+        for _ in range(chunk_steps(cfg) * chunks):
+            samples += len(batches.next())
+        return samples / (time.perf_counter() - t)
+    finally:
+        batches.close()
+
+
 def train_rate(mesh, bvh, tracer, s, threads: int, steps: int) -> float:
     """The default preset's training on the CPU at `threads` threads: leaf samples/s over `steps` steps."""
     torch.set_num_threads(threads)
@@ -93,12 +111,16 @@ def label_rows(name: str, thread_counts: list[int], chunks: int, train_steps: in
     rows = []
     for n in thread_counts:
         c = chunk_costs(bvh, tracer, cfg, n, chunks)
+        workers = label_workers(n)
         rows.append({"asset": name, "triangles": mesh.n_triangles, "threads": n, "draw_parts": c["draw_parts"],
                      "host_cpus": os.cpu_count(), "tracer": tracer.scene_kind, "tracer_build_s": round(build_s, 3),
                      "tracer_bytes": tracer_bytes, "rays_per_chunk": n_rays, "samples_per_chunk": c["samples"],
                      "draw_s": round(c["draw"], 4), "first_hit_rays_per_s": round(n_rays / c["first"]),
                      "label_s": round(c["label"], 4),
                      "label_samples_per_s": round(c["samples"] / (c["draw"] + c["label"])),
+                     "streamed_1_worker_samples_per_s": round(stream_rate(bvh, tracer, cfg, n, 1, chunks)),
+                     "label_workers": workers,
+                     "streamed_samples_per_s": round(stream_rate(bvh, tracer, cfg, n, workers, chunks)),
                      "cpu_train_samples_per_s": round(train_rate(mesh, bvh, tracer, s, n, train_steps))
                      if train_steps else ""})
         print(rows[-1], flush=True)
@@ -110,16 +132,21 @@ def report(rows: list[dict]) -> None:
               f"{int(r['tracer_bytes']) / 2**20:,.0f} MiB", f"{float(r['tracer_build_s']):.2f}",
               f"{float(r['draw_s']) * 1000:.1f}", f"{float(r['label_s']) * 1000:.1f}",
               f"{int(r['first_hit_rays_per_s']):,}", f"{int(r['label_samples_per_s']):,}",
+              f"{int(r['streamed_1_worker_samples_per_s']):,}",
+              f"{int(r['streamed_samples_per_s']):,} ({r['label_workers']})",
               f"{int(float(r['cpu_train_samples_per_s'])):,}" if r.get("cpu_train_samples_per_s") else ""]
              for r in rows]
     write_markdown(OUT.with_suffix(".md"), [
         "# What labels cost on the host (bench/speed/bench_labels.py)\n",
         "Per chunk of the default preset (2,048 rays x 32 steps), median of the chunks: the draw, the labels "
         "(first hits, the leaves each ray enters, all hits inside them), first-hit rays/s of the exact tracer alone, "
-        "and label samples/s (drawn and labelled). The tracer's memory is the resident memory its build added. "
+        "and label samples/s (drawn and labelled); streamed: as a card's training takes them, by one labelling thread "
+        "and by the card's count of them at that many cores (in brackets). The tracer's memory is the resident memory "
+        "its build added. "
         "CPU training: the default preset's whole step on this host's CPU at that many threads (labels included).\n",
         *markdown_table(["asset", "triangles", "threads", "tracer", "tracer memory", "build s", "draw ms",
-                         "labels ms", "first-hit rays/s", "label samples/s", "CPU training samples/s"], table)])
+                         "labels ms", "first-hit rays/s", "label samples/s", "streamed, 1 thread",
+                         "streamed (threads)", "CPU training samples/s"], table)])
 
 
 def main() -> None:

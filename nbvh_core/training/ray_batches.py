@@ -38,6 +38,18 @@ class LeafErrors:
 LABEL_CHUNK_RAYS = 1 << 16
 
 
+#: A card's host runs one labelling thread per this many cores: one labelling pass keeps ~1.4 of two cores busy (its
+#: numpy glue is serial: 404k vs 579k label samples/s at 1 and 2 threads, bench/results/labels.md), so a many-core
+#: host labels several chunks at once. Two workers on the 2-core VM streamed 0-12% more; a 16-core host's figure is
+#: the device check's (labels stage: 1 worker against this count).
+CORES_PER_LABEL_WORKER = 4
+
+
+def label_workers(threads: int) -> int:
+    """Labelling threads for a card's host of `threads` cores (`Batches(label_workers=...)`)."""
+    return max(1, threads // CORES_PER_LABEL_WORKER)
+
+
 def chunk_steps(cfg) -> int:
     """Steps one labelling pass covers: cfg.label_steps, fewer for steps above 2,048 rays (LABEL_CHUNK_RAYS)."""
     return max(1, min(cfg.label_steps, max(4, LABEL_CHUNK_RAYS // max(1, cfg.rays_per_step))))
@@ -47,10 +59,11 @@ class Batches:
     """Fresh labelled rays for every step, from one seeded generator.
 
     Rays for `chunk_steps(cfg)` steps are drawn and labelled together (one chunk) and split by ray into per-step
-    batches. With `prefetch`, a background thread makes the next chunks while the current step trains (Embree,
-    numpy and the kernels release the GIL), in the same order from the same generator, so the batches are the ones
-    a synchronous run would see. `rng_state()` says where the last batch handed out came from (the generator's
-    state before its chunk and its index in the chunk): what a checkpoint stores to resume exactly.
+    batches. With `prefetch`, `label_workers` background threads make the next chunks while the current step trains
+    (Embree, numpy and the kernels release the GIL): each draws its chunk's rays from the one generator in turn,
+    labels them beside the others, and hands the chunk on in the order it was drawn, so the batches are the ones a
+    synchronous run would see, however many label. `rng_state()` says where the last batch handed out came from
+    (the generator's state before its chunk and its index in the chunk): what a checkpoint stores to resume exactly.
 
     `reuse` hands every chunk out that many times, each pass in a new ray order (deterministic). `spare_passes`
     (prefetch only: a card) streams a pool instead of waiting: when the next chunk is not labelled yet, the last
@@ -61,7 +74,8 @@ class Batches:
 
     def __init__(self, bvh: BVH, tracer: ExactTracer, cfg, rng: np.random.Generator,
                  prefetch: bool = False, resume: dict | None = None, leaf_errors: LeafErrors | None = None,
-                 pin: bool = False, reuse: int = 1, spare_passes: int = 0, draw_parts: int = 2):
+                 pin: bool = False, reuse: int = 1, spare_passes: int = 0, draw_parts: int = 2,
+                 label_workers: int = 1):
         self.bvh, self.tracer, self.cfg, self.rng = bvh, tracer, cfg, rng
         self.draw_parts = max(1, int(draw_parts))  # uniform rays drawn in this many parts at once (see _draw_uniform)
         self.reuse = max(1, int(reuse))  # passes over each labelled chunk (TrainConfig.label_reuse)
@@ -91,13 +105,7 @@ class Batches:
                 raise ValueError(f"the resumed batch index {skip - 1} is outside a labelling pass")
         self._queue = None
         if prefetch:
-            import queue
-            import threading
-
-            self._queue = queue.Queue(maxsize=2)
-            self._stop = threading.Event()
-            self._thread = threading.Thread(target=self._produce, daemon=True)
-            self._thread.start()
+            self._start_workers(max(1, int(label_workers)))
         for _ in range(skip):  # the resumed chunk's batches already trained on
             self.next()
         self.spare_passes = max(0, int(spare_passes)) if prefetch else 0
@@ -109,20 +117,29 @@ class Batches:
     def _make(self):
         """One chunk: [(batch, {'chunk_state', 'index'}), ...] for chunk_steps x reuse steps (every pass after the
         first hands out the same labelled rays in a new order drawn from the generator)."""
+        return self._label(self._draw_chunk())
+
+    def _draw_chunk(self) -> tuple:
+        """What the generator decides for one chunk, in its order: (its state before, the leaf weights, rays o and
+        d, the ray orders of the passes after the first)."""
         chunk_state = self.rng.bit_generator.state
-        n_steps = chunk_steps(self.cfg)
-        per = self.cfg.rays_per_step
         weights = None
         if self.leaf_errors is not None:
             weights = self._weights_override if self._weights_override is not None else self.leaf_errors.weights()
             self._weights_override = None
-        o, d = self._draw(per * n_steps, weights)
+        o, d = self._draw(self.cfg.rays_per_step * chunk_steps(self.cfg), weights)
+        orders = [self.rng.permutation(len(o)) for _ in range(1, self.reuse)]
+        return chunk_state, weights, o, d, orders
+
+    def _label(self, drawn: tuple) -> list:
+        """A drawn chunk (`_draw_chunk`) labelled and split into its batches (`_make`)."""
+        chunk_state, weights, o, d, orders = drawn
+        per = self.cfg.rays_per_step
         chunk = label_samples(self.bvh, self.tracer, o, d, self.cfg.labels, tree=self.tree,
                               normal_loss=self.cfg.normal_loss)
         parts = split_samples(chunk, per)
-        for _ in range(1, self.reuse):
-            order = torch.from_numpy(self.rng.permutation(len(o)))
-            parts += split_samples(reorder_rays(chunk, order), per)
+        for order in orders:
+            parts += split_samples(reorder_rays(chunk, torch.from_numpy(order)), per)
         return [(part.pinned() if self.pin else part, {"chunk_state": chunk_state, "index": i, "leaf_weights": weights})
                 for i, part in enumerate(parts)]
 
@@ -164,20 +181,48 @@ class Batches:
             range(k)))
         return np.concatenate([h[0] for h in parts]), np.concatenate([h[1] for h in parts])
 
+    def _start_workers(self, n: int) -> None:
+        import queue
+        import threading
+
+        self._queue = queue.Queue(maxsize=2)
+        self._stop = threading.Event()
+        self._draw_lock = threading.Lock()
+        self._turn = threading.Condition()
+        self._drawn = self._handed = 0  # chunks drawn, and handed on, so far
+        self._threads = [threading.Thread(target=self._produce, daemon=True, name=f"nbvh-labels-{i}")
+                         for i in range(n)]
+        for t in self._threads:
+            t.start()
+
     def _produce(self) -> None:
+        """A labelling thread: draw a chunk (the generator's turn is one thread's at a time), label it, and hand it
+        on after every chunk drawn before it."""
         import queue
 
         while not self._stop.is_set():
+            with self._draw_lock:
+                seq, self._drawn = self._drawn, self._drawn + 1
+                try:
+                    drawn = self._draw_chunk()
+                except Exception as exc:  # handed to the consumer, raised there
+                    drawn = exc
             try:
-                item = self._make()
-            except Exception as exc:  # handed to the consumer, raised there
+                item = (drawn, None) if isinstance(drawn, Exception) else self._label(drawn)
+            except Exception as exc:
                 item = (exc, None)
+            with self._turn:
+                while self._handed != seq and not self._stop.is_set():
+                    self._turn.wait(0.1)
             while not self._stop.is_set():
                 try:
                     self._queue.put(item, timeout=0.1)
                     break
                 except queue.Full:
                     continue
+            with self._turn:
+                self._handed += 1
+                self._turn.notify_all()
             if isinstance(item[0], Exception):
                 return
 
@@ -216,7 +261,8 @@ class Batches:
             self._pool.shutdown(wait=False)
         if self._queue is not None:
             self._stop.set()
-            self._thread.join(timeout=5)
+            for t in self._threads:
+                t.join(timeout=5)
 
 
 def check_cut(tree, cut: list, max_leaves: int) -> None:

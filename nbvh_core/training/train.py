@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from .. import kernels
-from .ray_batches import Batches, LeafErrors, TreeCut  # noqa: F401  (LeafErrors: re-exported)
+from .ray_batches import Batches, LeafErrors, TreeCut, label_workers  # noqa: F401  (LeafErrors: re-exported)
 from ..geometry.bvh import BVH
 from ..storage.checkpoint import CheckpointError, load_checkpoint
 from ..protocol.events import EventSink
@@ -295,7 +295,8 @@ def _training_data(model, bvh, tracer, cfg, ck, device, plan, rng, events):
     batches = Batches(bvh, tracer, cfg, rng, prefetch=prefetch, resume=ck.get("numpy_rng"),
                       leaf_errors=leaf_errors if cfg.leaf_sampling == "loss" else None, pin=device.type == "cuda",
                       reuse=cfg.label_reuse, spare_passes=cfg.spare_label_passes,
-                      draw_parts=max(2, kernels.threads()) if device.type == "cuda" else 2)
+                      draw_parts=max(2, kernels.threads()) if device.type == "cuda" else 2,
+                      label_workers=label_workers(kernels.threads()) if device.type == "cuda" else 1)
     return batches, leaf_errors, cut
 
 
