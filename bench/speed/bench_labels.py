@@ -146,7 +146,7 @@ def report(rows: list[dict]) -> None:
         "CPU training: the default preset's whole step on this host's CPU at that many threads (labels included).\n",
         *markdown_table(["asset", "triangles", "threads", "tracer", "tracer memory", "build s", "draw ms",
                          "labels ms", "first-hit rays/s", "label samples/s", "streamed, 1 thread",
-                         "streamed (threads)", "CPU training samples/s"], table)])
+                         "streamed (labelling threads)", "CPU training samples/s"], table)])
 
 
 def main() -> None:
