@@ -118,14 +118,15 @@ def test_a_shipped_table_s_codes_are_read_as_they_are_held(bits, triton_here):
     assert torch.allclose(got, want, atol=1e-5, rtol=0), (got - want).abs().max()
 
 
-@pytest.mark.parametrize("kind,n_in,width,weights", [("kmlp", 128, 64, "f32"), ("mlp", 512, 64, "f32"),
-                                                     ("mlp", 100, 32, "f16"), ("kmlp", 40, 16, "f32")])
-def test_the_mlp_kernel_matches_torch_s_layers(kind, n_in, width, weights):
+@pytest.mark.parametrize("kind,n_in,width,weights,n_out", [("kmlp", 128, 64, "f32", 5), ("mlp", 512, 64, "f32", 5),
+                                                           ("mlp", 100, 32, "f16", 5), ("kmlp", 40, 16, "f32", 5),
+                                                           ("mlp", 24, 32, "f32", 40)])
+def test_the_mlp_kernel_matches_torch_s_layers(kind, n_in, width, weights, n_out):
     from nbvh_core.kernels.triton.mlp import mlp_forward, pack_mlp
     from nbvh_core.neural.networks import linear_weight
 
     torch.manual_seed(1)
-    net = _mlp(n_in, NetworkConfig(kind=kind, width=width)).to(DEVICE)
+    net = _mlp(n_in, NetworkConfig(kind=kind, width=width), n_out).to(DEVICE)  # 40: an appearance head's outputs
     if weights == "f16":  # held as a file stores it: the kernel reads the same float16 values, cast once
         net = net.half()
     x = torch.randn(77, n_in, device=DEVICE)  # not a multiple of the 32-row tile
@@ -136,18 +137,19 @@ def test_the_mlp_kernel_matches_torch_s_layers(kind, n_in, width, weights):
     assert got.shape == want.shape and torch.allclose(got, want, atol=tol, rtol=0), (got - want).abs().max()
 
 
-@pytest.mark.parametrize("kind,n_in,width,hidden", [("kmlp", 128, 64, 4), ("mlp", 100, 32, 3), ("mlp", 40, 16, 1)],
-                         ids=["kmlp-default-width", "mlp-padded-input", "one-hidden-layer"])
-def test_the_mlp_training_kernels_give_torch_s_outputs_and_gradients(kind, n_in, width, hidden):
+@pytest.mark.parametrize("kind,n_in,width,hidden,n_out", [("kmlp", 128, 64, 4, 5), ("mlp", 100, 32, 3, 5),
+                                                            ("mlp", 40, 16, 1, 5), ("mlp", 24, 32, 2, 40)],
+                         ids=["kmlp-default-width", "mlp-padded-input", "one-hidden-layer", "head-40-outputs"])
+def test_the_mlp_training_kernels_give_torch_s_outputs_and_gradients(kind, n_in, width, hidden, n_out):
     """The training pass (`mlp_train_forward`: the forward kernel storing activations, the backward kernel, one matmul
     per layer for the weights) against torch's autograd over the same layers: output and every gradient (the input's
     and each weight's and bias's) within 1e-5 of the largest (float32 here; TF32 on a card: 5e-3)."""
     from nbvh_core.kernels.triton.mlp import mlp_train_forward
 
     torch.manual_seed(2)
-    net = _mlp(n_in, NetworkConfig(kind=kind, width=width, hidden=hidden)).to(DEVICE)
+    net = _mlp(n_in, NetworkConfig(kind=kind, width=width, hidden=hidden), n_out).to(DEVICE)
     x = torch.randn(77, n_in, device=DEVICE, requires_grad=True)  # not a multiple of the 32-row tile
-    grad = torch.randn(77, 5, device=DEVICE)
+    grad = torch.randn(77, n_out, device=DEVICE)  # 40: an appearance head's patches, padded to 64 columns
     got = mlp_train_forward(x, net)
     got_grads = torch.autograd.grad(got, [x, *net.parameters()], grad)
     want = net(x)

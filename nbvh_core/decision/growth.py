@@ -22,8 +22,8 @@ STEPS_ONLY_BUDGET_S = 200.0
 class GrowthPlan:
     """start_log2: the table the training starts at; max_log2: the largest it may grow to (one size above the
     planned one, never past the sizes the predictor knows); check_every_s: seconds between its checks (the checks
-    project to where the training's own budget ends, `records.TrainingPoint`); the size predictor's word on each size the training may reach (empty without a
-    fit): budget_slopes {log2 T: d ln MSE / d ln training time}, grow_gains {log2 T: predicted MSE ratio of a
+    project to where the training's own budget ends, `records.TrainingPoint`); the size predictor's word on each
+    size the training may reach (empty without a fit): budget_slopes {log2 T: d ln MSE / d ln training time}, grow_gains {log2 T: predicted MSE ratio of a
     table twice as large (< 1)}."""
 
     start_log2: int

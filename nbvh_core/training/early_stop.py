@@ -20,8 +20,9 @@ from .encoding_phases import EncodingPhases, state_form
 
 
 class EarlyStop:
-    """Asks target_reached(model, at) (`at`: the training's `records.TrainingPoint`) every cfg.target_check_every_s once 10% of the budget has passed (and the
-    encoding is in its final form): True ends training (see TrainConfig.target_check_every_s); "grow" asks for a
+    """Asks target_reached(model, at) (`at`: the training's `records.TrainingPoint`) every
+    cfg.target_check_every_s once 10% of the budget has passed (and the encoding is in its final form): True ends
+    training (see TrainConfig.target_check_every_s); "grow" asks for a
     table twice as large (`grow_table`), honoured while the model can still be trained at its new size (before
     GROW_UNTIL of the budget, a HashGrid not yet quantized); "roll back" returns to the best check's state
     (`best_weights`). An answer that is a check record (`records.CheckDecision`) also offers its MSE, so the best

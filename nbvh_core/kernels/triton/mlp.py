@@ -3,8 +3,9 @@
 `neural.networks.run_layers` (torch's Linear + ReLU).
 
 Layout the kernel reads (`pack_mlp`, once per model): the first layer's weight (W, K) with K padded to a multiple of
-BLOCK_K, the hidden layers' weights stacked (H-1, W, W), the output layer's (OUT_PAD, W) with its rows padded to 16
-(tl.dot's smallest tile), every bias float32. The network's own outputs are the first n_out columns.
+BLOCK_K, the hidden layers' weights stacked (H-1, W, W), the output layer's (OUT_PAD, W) with its rows padded to a
+power of two >= 16 (tl.dot's smallest tile; tl.arange's spans), every bias float32. The network's own outputs are
+the first n_out columns.
 
     packed = pack_mlp(sequential)                  # from an nn.Sequential of Linear/ReLU, float32 weights
     out = mlp_forward(x, packed)                   # x (M, n_in) float32 -> (M, n_out) float32
@@ -78,7 +79,7 @@ def pack_layers(weights: list[torch.Tensor], biases: list[torch.Tensor]) -> Pack
     w_hidden = torch.stack([weights[i] for i in mids]) if mids else torch.zeros(0, width, width, device=dev)
     b_hidden = torch.stack([biases[i] for i in mids]) if mids else torch.zeros(0, width, device=dev)
     n_out = weights[-1].shape[0]
-    out_pad = _round_up(max(n_out, MIN_TILE), MIN_TILE)
+    out_pad = max(MIN_TILE, 1 << (n_out - 1).bit_length())  # tl.arange spans powers of two (an appearance head's 40)
     w_out = torch.zeros(out_pad, width, device=dev)
     w_out[:n_out] = weights[-1]
     b_out = torch.zeros(out_pad, device=dev)
