@@ -117,7 +117,7 @@ class ExactTracer:
 
     def normals(self, tri: np.ndarray) -> np.ndarray:
         """(K, 3) float32 unit normals of triangles `tri` (K,) int."""
-        return self._normals[tri]
+        return np.take(self._normals, tri, axis=0)  # a third of fancy indexing's time for 60k rows
 
     def _intersect(self, rays_o: np.ndarray, rays_d: np.ndarray, t_max: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Embree nearest hits within t_max: (tfar (N,) float32, primID (N,) int32, -1 on a miss); split over
@@ -178,6 +178,8 @@ class ExactTracer:
         tris = []
         live = np.arange(n)
         t_base = np.zeros(n, np.float64)  # distance already travelled by each live ray
+        # Restarts go just beyond a hit: a step of ALL_HITS_EPS in space, scaled by |d| (per ray, once).
+        restart = ALL_HITS_EPS / np.linalg.norm(rays_d, axis=1)
         truncated = 0
         if first is not None and max_hits > 0:
             live = live[(first.tri >= 0) & (first.t.astype(np.float64) <= t_max_arr)]
@@ -185,7 +187,7 @@ class ExactTracer:
             rays_.append(live)
             ts.append(t_hit)
             tris.append(first.tri[live])
-            t_base[live] = t_hit + ALL_HITS_EPS / np.linalg.norm(rays_d[live], axis=1)
+            t_base[live] = t_hit + restart[live]
             max_hits -= 1
         for _ in range(max_hits):
             if live.size == 0:
@@ -198,11 +200,10 @@ class ExactTracer:
             rays_.append(live)
             ts.append(t_hit)
             tris.append(prim[hit].astype(np.int64))
-            # Restart just beyond the hit; scale the step with |d| so it is ALL_HITS_EPS in space.
-            t_base[live] = t_hit + ALL_HITS_EPS / np.linalg.norm(rays_d[live], axis=1)
+            t_base[live] = t_hit + restart[live]
         else:
             truncated = int(live.size)
-        return _pack_hits(n, rays_, ts, tris, truncated)
+        return _pack_rounds(n, rays_, ts, tris, truncated)
 
     # -- fallback ------------------------------------------------------------------------------------------
     def _init_fallback(self) -> None:
@@ -270,6 +271,23 @@ class ExactTracer:
         truncated = int(np.unique(ray[rank >= max_hits]).size)
         keep = rank < max_hits
         return _pack_hits(n, [ray[keep]], [t[keep]], [tri[keep]], truncated)
+
+
+def _pack_rounds(n: int, rays: list, ts: list, tris: list, truncated: int) -> AllHits:
+    """The hits of Embree's rounds (round k: each live ray's k-th hit, rays ascending) packed by ray, nearest first,
+    without a sort: a ray live in round k was live in every round before it, so its k-th hit goes to offsets[ray] + k
+    (`_pack_hits`' lexsort was a tenth of a training chunk's labels on the bunny)."""
+    counts = np.zeros(n, np.int64)
+    for ray in rays:
+        counts[ray] += 1  # a ray is live at most once per round: no repeated index
+    offsets = np.zeros(n + 1, np.int64)
+    np.cumsum(counts, out=offsets[1:])
+    total = int(offsets[-1])
+    ray_out, t_out, tri_out = np.empty(total, np.int64), np.empty(total, np.float32), np.empty(total, np.int64)
+    for k, (ray, t, tri) in enumerate(zip(rays, ts, tris)):
+        at = offsets[ray] + k
+        ray_out[at], t_out[at], tri_out[at] = ray, t, tri
+    return AllHits(ray=ray_out, t=t_out, tri=tri_out, offsets=offsets, truncated=truncated)
 
 
 def _pack_hits(n: int, rays: list, ts: list, tris: list, truncated: int) -> AllHits:
