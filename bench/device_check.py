@@ -25,6 +25,7 @@ Stages (call 1: kernels, speed, bunny, labels, within 300 s; call 2: need, withi
 Writes bench/results/gpu/: summary.csv (one row per figure: figure, value, device, commit, machine, command; the
 figures render_1mp_ms, render_hit_agreement, render_vs_embree_host, train_samples_per_s, train_samples_per_s_at_N,
 train_samples_per_s_torch_layers (the same steps with torch's layers instead of the Triton MLP's),
+train_host_syncs_per_step (torch's sync debug mode over 64 steps on the card),
 label_samples_per_s_N_threads, label_stream_samples_per_s_N_threads, cpu_train_samples_per_s_N_threads,
 bunny_standard_wall_s, kernel_tests_passed and
 need_ASSET_{shipped,shipped_bytes,mse,ratio,wall_s} for the card and the CPU), and each stage's own files (speed*.{csv,md}, labels.{csv,md}, shipped.{csv,md}, logs). A figure whose step failed is written
@@ -122,6 +123,9 @@ def stage_speed(c: Check) -> None:
     if fast and embree:
         c.figure("render_vs_embree_host", round(float(embree[0]["seconds"]) / float(fast[0]["seconds"]), 3),
                  f"Embree's seconds over the card's on the same rays ({embree[0]['path']})")
+    for r in (r for r in rows if r["what"] == "syncs"):
+        c.figure("train_host_syncs_per_step", r["per_s"], f"torch's sync debug mode over {r['items']} steps; most "
+                                                          f"at {r.get('sync_sites') or 'none'}")
     train = [r for r in rows if r["what"] == "train" and "reference" not in r["path"]]
     c.figure("train_samples_per_s", round(float(train[0]["per_s"])) if train else "",
              f"{train[0]['path']}; batches served again: {train[0].get('reused_share', '')}" if train

@@ -102,3 +102,36 @@ def test_the_stamp_says_dirty_for_changed_code_not_for_the_benchmarks_own_result
         assert commit_of(tmp_path) == "abc1234"
     finally:
         del os.environ["NBVH_COMMIT"]
+
+
+def test_the_card_s_host_syncs_are_counted_per_step_with_their_lines(monkeypatch, sample_meshes):
+    """bench_speed's sync count (run on a card only): every 'synchronizing' warning torch's debug mode raises during
+    the training is counted, with the line that asked; the mode is set back after. Here the mode and the training are
+    stand-ins: the CPU build of torch has no sync debug mode."""
+    import warnings
+    from types import SimpleNamespace
+
+    import torch
+
+    import bench.speed.bench_speed as bench_speed
+    from nbvh_core.app.pipeline import preset
+    from nbvh_core.geometry.bvh import build_bvh
+
+    modes = []
+    monkeypatch.setattr(torch.cuda, "set_sync_debug_mode", modes.append)
+    monkeypatch.setattr(bench_speed, "card_rays_per_step", lambda device: 8192)
+
+    def train(model, bvh, tracer, cfg):
+        for step in range(cfg.steps):
+            if step % 16 == 0:
+                warnings.warn_explicit("called a synchronizing CUDA operation", UserWarning, "loss_reads.py", 48)
+            warnings.warn_explicit("something else", UserWarning, "train.py", 1)
+        return SimpleNamespace(compute_path="fast on cuda", seconds=1.0)
+
+    monkeypatch.setattr(bench_speed, "train", train)
+    mesh = sample_meshes["blob"]
+    s = preset("tiny")
+    row = bench_speed.host_syncs(build_bvh(mesh, s.nodes), None, s, mesh, torch.device("cpu"), 64)
+    assert modes == ["warn", "default"]
+    assert (row["what"], row["per_s"], row["sync_sites"], row["rays_per_step"]) == ("syncs", 4 / 64, "loss_reads.py:48",
+                                                                                    8192)

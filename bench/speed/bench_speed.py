@@ -72,6 +72,37 @@ def train_throughput(bvh, tracer, s, mesh, device, steps: int, rays_per_step: in
             "layers": kernels.training_layers_kernel(m.network.net, device)}
 
 
+def host_syncs(bvh, tracer, s, mesh, device, steps: int) -> dict:
+    """A card's training for `steps` steps under torch's sync debug mode: the operations that made the host wait for
+    the card (a 'syncs' row: per step, and the first few call sites). Apart from the throughput runs: the mode's
+    warnings cost time. The loop reads its loss every 16 steps and checks its units every 50: ~0.08 per step."""
+    import warnings
+
+    torch.manual_seed(0)
+    m = NeuralBVH(bvh.nodes, s.model_config(), mesh.transform)
+    cfg = s.train_config()
+    cfg.steps, cfg.time_limit_s, cfg.device = steps, None, str(device)
+    cfg.rays_per_step = card_rays_per_step(str(device))
+    sites: list[str] = []
+
+    def note(message, category, filename, lineno, file=None, line=None):
+        if "synchroniz" in str(message):  # torch names the Python line that asked
+            sites.append(f"{Path(filename).name}:{lineno}")
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+        warnings.showwarning = note
+        torch.cuda.set_sync_debug_mode("warn")
+        try:
+            res = train(m, bvh, tracer, cfg)
+        finally:
+            torch.cuda.set_sync_debug_mode("default")
+    common = sorted(set(sites), key=sites.count, reverse=True)[:3]
+    return {"what": "syncs", "path": res.compute_path, "size": "", "seconds": res.seconds, "items": steps,
+            "per_s": round(len(sites) / max(1, steps), 4), "unit": "host syncs per step",
+            "rays_per_step": cfg.rays_per_step, "sync_sites": "; ".join(common)}
+
+
 def train_rows(bvh, tracer, s, mesh, device, args) -> list[dict]:
     """Training rates: each path at the device's batch, then the fast path at each batch of --batch-ladder (what a
     step's fixed cost leaves)."""
@@ -82,6 +113,13 @@ def train_rows(bvh, tracer, s, mesh, device, args) -> list[dict]:
         print(rows[-1], flush=True)
     for rays in args.batch_ladder:
         rows.append(train_throughput(bvh, tracer, s, mesh, device, args.steps, rays))
+        print(rows[-1], flush=True)
+    if device.type == "cuda":
+        try:  # a count, not a figure the rest depends on: its failure is its row's
+            rows.append(host_syncs(bvh, tracer, s, mesh, device, 64))
+        except Exception as exc:
+            rows.append({"what": "syncs", "path": "", "size": "", "seconds": "", "items": 64, "per_s": "",
+                         "unit": "host syncs per step", "sync_sites": f"not counted: {exc}"[:200]})
         print(rows[-1], flush=True)
     if rows[0]["layers"] == "triton":  # the same steps with torch's layers (cuBLAS under autograd), for the choice
         os.environ[TRAINING_LAYERS_ENV] = "torch"
@@ -197,7 +235,7 @@ def write(rows, args, mesh, s, tr, flops, peak, device, half_note: str = "") -> 
     out = RESULTS
     out.mkdir(parents=True, exist_ok=True)
     keys = ["what", "path", "size", "seconds", "items", "per_s", "unit", "segments", "segments_per_s", "gflops", "hits",
-            "rays_per_step", "reused_share", "layers"]
+            "rays_per_step", "reused_share", "layers", "sync_sites"]
     write_rows(out / f"speed{suffix}.csv", [{k: r.get(k, "") for k in keys} for r in rows])
     per_seg = sum(flops.values())
     limit = peak * 1e9 / per_seg
@@ -218,6 +256,8 @@ def write(rows, args, mesh, s, tr, flops, peak, device, half_note: str = "") -> 
             lines.append(f"| {r['path']} | {r['rays_per_step']:,} | {r['items']} | {r['seconds']:.1f} | "
                          f"{r['per_s']:,.0f} | {r['reused_share']:.0%} |")
     lines.append(f"\n**Fast / reference training speed: {fast_train['per_s'] / ref_train['per_s']:.1f}x** (same run).\n")
+    lines += [f"Host syncs per step on the card (torch's sync debug mode, {r['items']} steps): {r['per_s']} "
+              f"(most at {r['sync_sites'] or 'none'}).\n" for r in rows if r["what"] == "syncs"]
     lines += ["## Rendering (one orbit view, same model; best of 3, reference 1000x1000 once)\n",
               "| size | path | seconds | rays/s | segments | segments/s | GFLOP/s | % of limit |", "|---|---|---|---|---|---|---|---|"]
     for r in rows:
