@@ -11,8 +11,8 @@ the median over `--chunks` labelling chunks of the default preset's size (2,048 
 many parts as threads, at least 2, as a card's host draws) and the labels' seconds, first-hit rays/s, label
 samples/s (drawn and labelled); the same streamed as a card's training takes them (`Batches` labelling ahead, pinned
 where there is a card), by one labelling thread and by the card's count for that many cores (`label_workers`); then
-the default preset's training on the host's CPU at that many threads (`--train-steps`): how a many-core CPU scales. Writes bench/results/labels.csv and labels.md (the device check
-writes its own under bench/results/gpu/).
+the default preset's training on the host's CPU at that many threads (`--train-steps`): how a many-core CPU scales.
+Writes bench/results/labels.csv and labels.md (the device check writes its own under bench/results/gpu/).
 """
 from __future__ import annotations
 

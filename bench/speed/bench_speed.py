@@ -56,15 +56,22 @@ def sync(device: torch.device) -> None:
         torch.cuda.synchronize()
 
 
-def train_throughput(bvh, tracer, s, mesh, device, steps: int, rays_per_step: int | None = None) -> dict:
-    """The real training loop (`train.train`) for `steps` steps from a fresh model on the current path: a 'train'
-    row (leaf samples/s, seconds, the path it recorded, the batch, the share of batches a card's spare passes
-    served again). Same seed, so both paths see the same rays."""
+def fresh_training(bvh, s, mesh, device, steps: int, rays_per_step: int | None = None) -> tuple:
+    """A fresh model of preset `s` (seed 0) and its training config for `steps` steps on `device`, at
+    `rays_per_step` (None: the product's batch on this device)."""
     torch.manual_seed(0)
     m = NeuralBVH(bvh.nodes, s.model_config(), mesh.transform)
     cfg = s.train_config()
     cfg.steps, cfg.time_limit_s, cfg.device = steps, None, str(device)
-    cfg.rays_per_step = rays_per_step or card_rays_per_step(str(device))  # the product's batch on this device
+    cfg.rays_per_step = rays_per_step or card_rays_per_step(str(device))
+    return m, cfg
+
+
+def train_throughput(bvh, tracer, s, mesh, device, steps: int, rays_per_step: int | None = None) -> dict:
+    """The real training loop (`train.train`) for `steps` steps from a fresh model on the current path: a 'train'
+    row (leaf samples/s, seconds, the path it recorded, the batch, the share of batches a card's spare passes
+    served again). Same seed, so both paths see the same rays."""
+    m, cfg = fresh_training(bvh, s, mesh, device, steps, rays_per_step)
     res = train(m, bvh, tracer, cfg)
     return {"what": "train", "path": res.compute_path, "size": "", "seconds": res.seconds, "items": steps,
             "per_s": res.samples_per_s, "unit": "leaf samples/s", "rays_per_step": cfg.rays_per_step,
@@ -78,11 +85,7 @@ def host_syncs(bvh, tracer, s, mesh, device, steps: int) -> dict:
     warnings cost time. The loop reads its loss every 16 steps and checks its units every 50: ~0.08 per step."""
     import warnings
 
-    torch.manual_seed(0)
-    m = NeuralBVH(bvh.nodes, s.model_config(), mesh.transform)
-    cfg = s.train_config()
-    cfg.steps, cfg.time_limit_s, cfg.device = steps, None, str(device)
-    cfg.rays_per_step = card_rays_per_step(str(device))
+    m, cfg = fresh_training(bvh, s, mesh, device, steps)
     sites: list[str] = []
 
     def note(message, category, filename, lineno, file=None, line=None):
