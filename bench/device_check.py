@@ -10,13 +10,13 @@ the same with "--stages need" and timeout_s=590. The script installs the carried
 builds the fused CPU kernels, runs this check and packs bench/results/gpu/ into $OUT/gpu_results.tgz.
 
 Stages (call 1: kernels, speed, bunny, labels, within 300 s; call 2: need, within 560 s):
-1. kernels: tests/test_triton_kernels.py on CUDA tensors (no interpreter);
+1. kernels: tests/test_triton_kernels.py and test_card_labels.py on CUDA tensors (no interpreter);
 2. speed: `bench_speed.py --device cuda` (the Triton path - the ray query one kernel - against torch on the card,
    Embree on the host's cores: renders at 512 and 1000 px with the share of rays that decide as the reference,
    training samples/s with the Triton MLP's layers and with torch's, and the training's rate at 2^11 to 2^17 rays
    per step) and the same on the host's CPU;
-3. labels: `bench_labels.py` on the host at 1 to all threads: what exact labels cost against what the card trains,
-   and how the CPU's own training scales with its cores;
+3. labels: `bench_labels.py` at 1 to all threads: what exact labels cost on the host and on the card against what
+   the card trains, and how the CPU's own training scales with its cores;
 4. bunny: the bunny at level standard on the card (`nbvh compress bunny --quality standard --device cuda`): wall
    seconds, whether the level was met, bytes;
 5. need: the need-driven default (`bench_shipped.py`: level standard, 200 s, as a user runs it) on the bunny, the
@@ -25,6 +25,8 @@ Stages (call 1: kernels, speed, bunny, labels, within 300 s; call 2: need, withi
 Writes bench/results/gpu/: summary.csv (one row per figure: figure, value, device, commit, machine, command; the
 figures render_1mp_ms, render_hit_agreement, render_vs_embree_host, train_samples_per_s, train_samples_per_s_at_N,
 train_samples_per_s_torch_layers (the same steps with torch's layers instead of the Triton MLP's),
+train_samples_per_s_host_labels (the same steps labelled on the host instead of the card),
+card_label_samples_per_s_N_threads (labels made on the card, the rays drawn by N host threads),
 train_host_syncs_per_step (torch's sync debug mode over 64 steps on the card),
 label_samples_per_s_N_threads, label_stream_samples_per_s_N_threads, cpu_train_samples_per_s_N_threads,
 bunny_standard_wall_s, kernel_tests_passed and
@@ -94,7 +96,8 @@ class Check:
 def stage_kernels(c: Check) -> None:
     """The kernels against the reference, on the card's tensors (the interpreter's in a smoke run)."""
     env = {**c.env, "TRITON_INTERPRET": "1" if c.smoke else "0"}
-    code, log, _ = c.run(["-m", "pytest", "tests/test_triton_kernels.py", "-q", "-p", "no:cacheprovider"]
+    code, log, _ = c.run(["-m", "pytest", "tests/test_triton_kernels.py", "tests/test_card_labels.py", "-q", "-p",
+                          "no:cacheprovider"]
                          + (["-k", "grid_lookup"] if c.smoke else []), 240, env)
     c.figure("kernel_tests_passed", int(code == 0), _last_line(log))
 
@@ -132,9 +135,12 @@ def stage_speed(c: Check) -> None:
              else "no training row")
     for r in train[1:]:
         torch_layers = r.get("layers") == "torch" and train[0].get("layers") == "triton"
-        c.figure("train_samples_per_s_torch_layers" if torch_layers else f"train_samples_per_s_at_{r['rays_per_step']}",
-                 round(float(r["per_s"])), f"rays per step {r['rays_per_step']}; "
+        host_labels = r.get("labels") == "host" and train[0].get("labels") == "card"
+        name = ("train_samples_per_s_torch_layers" if torch_layers else "train_samples_per_s_host_labels"
+                if host_labels else f"train_samples_per_s_at_{r['rays_per_step']}")
+        c.figure(name, round(float(r["per_s"])), f"rays per step {r['rays_per_step']}; "
                  + ("the layers torch's (cuBLAS under autograd), not the Triton MLP's; " if torch_layers else "")
+                 + ("labels made on the host (Embree), not the card; " if host_labels else "")
                  + f"batches served again: {r.get('reused_share', '')}")
 
 
@@ -154,6 +160,10 @@ def stage_labels(c: Check) -> None:
         c.figure(f"label_stream_samples_per_s_{r['threads']}_threads", r.get("streamed_samples_per_s", ""),
                  f"{r['asset']}; streamed to the training by {r.get('label_workers', '')} labelling threads (one: "
                  f"{r.get('streamed_1_worker_samples_per_s', '')})", device="host")
+        if r.get("card_label_samples_per_s"):
+            c.figure(f"card_label_samples_per_s_{r['threads']}_threads", r["card_label_samples_per_s"],
+                     f"{r['asset']}; labelled on the card, drawn by {r['threads']} host threads; first-hit rays/s "
+                     f"{r.get('card_first_hit_rays_per_s', '')}; streamed {r.get('card_streamed_samples_per_s', '')}")
         c.figure(f"cpu_train_samples_per_s_{r['threads']}_threads", r.get("cpu_train_samples_per_s", ""),
                  f"{r['asset']}; the default preset's training on the host's CPU", device="host")
 

@@ -135,3 +135,20 @@ def test_the_card_s_host_syncs_are_counted_per_step_with_their_lines(monkeypatch
     assert modes == ["warn", "default"]
     assert (row["what"], row["per_s"], row["sync_sites"], row["rays_per_step"]) == ("syncs", 4 / 64, "loss_reads.py:48",
                                                                                     8192)
+
+
+def test_bench_labels_measures_labels_made_on_the_card(sample_meshes):
+    """bench_labels' card columns (measured on a card only) at a toy chunk, the CPU standing in for the card under
+    Triton's interpreter: every rate positive, the tracer's bytes its tables'."""
+    pytest.importorskip("triton")
+    import bench.speed.bench_labels as bench_labels
+    from nbvh_core.geometry.bvh import build_bvh
+    from nbvh_core.geometry.exact import ExactTracer
+    from nbvh_core.training.config import TrainConfig
+
+    mesh = sample_meshes["blob"]
+    bvh = build_bvh(mesh, 31)
+    cfg = TrainConfig(steps=4, rays_per_step=32, label_steps=2, seed=0)
+    row = bench_labels.card_costs(bvh, ExactTracer(mesh), cfg, 1, 1, device="cpu")
+    assert row["card_label_samples_per_s"] > 0 and row["card_first_hit_rays_per_s"] > 0
+    assert row["card_streamed_samples_per_s"] > 0 and row["card_tracer_bytes"] > 36 * mesh.n_triangles

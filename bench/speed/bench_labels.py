@@ -12,6 +12,8 @@ many parts as threads, at least 2, as a card's host draws) and the labels' secon
 samples/s (drawn and labelled); the same streamed as a card's training takes them (`Batches` labelling ahead, pinned
 where there is a card), by one labelling thread and by the card's count for that many cores (`label_workers`); then
 the default preset's training on the host's CPU at that many threads (`--train-steps`): how a many-core CPU scales.
+On a card, the same chunks drawn by that many threads and labelled on the card (`training/card_labels.py`): label
+samples/s, the card tracer's first-hit rays/s and the samples/s streamed to a training.
 Writes bench/results/labels.csv and labels.md (the device check writes its own under bench/results/gpu/).
 """
 from __future__ import annotations
@@ -87,6 +89,62 @@ def stream_rate(bvh, tracer, cfg, threads: int, workers: int, chunks: int) -> fl
         batches.close()
 
 
+def card_costs(bvh, tracer, cfg, threads: int, chunks: int, device: str | None = None) -> dict:
+    """On a card: label samples/s of chunks drawn by `threads` host threads and labelled on the card (median over
+    `chunks` after the first, which compiles the kernels), the card tracer's first-hit rays/s, and the samples/s
+    streamed to a training (one labelling thread ahead, as the training runs it); {} without a card. device: 'cpu' runs the same under
+    Triton's interpreter (its test)."""
+    from nbvh_core.training.card_labels import CardLabels
+
+    device = device or ("cuda" if torch.cuda.is_available() else None)
+    if device is None:
+        return {}
+
+    def sync():
+        if device == "cuda":
+            torch.cuda.synchronize()
+
+    torch.set_num_threads(threads)
+    card = CardLabels(tracer.on_card(device, getattr(bvh, "full", None)))
+    batches = Batches(bvh, tracer, cfg, np.random.default_rng(0), draw_parts=max(2, threads))
+    n_rays = cfg.rays_per_step * chunk_steps(cfg)
+    rates, first = [], []
+    for _ in range(chunks + 1):
+        o, d = batches._draw(n_rays)
+        sync()
+        t = time.perf_counter()
+        got = card.label(bvh, o, d, cfg.labels, normal_loss=cfg.normal_loss)
+        sync()
+        label_s = time.perf_counter() - t
+        o_card, d_card = torch.from_numpy(o).to(device), torch.from_numpy(d).to(device)
+        zeros = torch.zeros(n_rays, device=device)
+        sync()
+        t = time.perf_counter()
+        card.tracer.nearest(o_card, d_card, zeros, zeros + float("inf"))
+        sync()
+        first.append(n_rays / (time.perf_counter() - t))
+        rates.append((len(got), label_s))
+    batches.close()
+    draw = chunk_costs(bvh, tracer, cfg, threads, 1)["draw"]
+    label_s = statistics.median(s for _, s in rates[1:])
+    samples = statistics.median(n for n, _ in rates[1:])
+    stream = Batches(bvh, tracer, cfg, np.random.default_rng(0), prefetch=True, draw_parts=max(2, threads),
+                     card_labels=card)  # one labelling thread, as a training on the card runs it
+    try:
+        for _ in range(chunk_steps(cfg)):
+            stream.next()
+        t, streamed = time.perf_counter(), 0
+        for _ in range(chunk_steps(cfg) * chunks):
+            streamed += len(stream.next())
+        sync()
+        streamed_rate = streamed / (time.perf_counter() - t)
+    finally:
+        stream.close()
+    return {"card_label_s": round(label_s, 5), "card_label_samples_per_s": round(samples / (draw + label_s)),
+            "card_first_hit_rays_per_s": round(statistics.median(first[1:])),
+            "card_streamed_samples_per_s": round(streamed_rate), "card_tracer_bytes": card.tracer.resident_bytes}
+
+
 def train_rate(mesh, bvh, tracer, s, threads: int, steps: int) -> float:
     """The default preset's training on the CPU at `threads` threads: leaf samples/s over `steps` steps."""
     torch.set_num_threads(threads)
@@ -122,7 +180,7 @@ def label_rows(name: str, thread_counts: list[int], chunks: int, train_steps: in
                      "label_workers": workers,
                      "streamed_samples_per_s": round(stream_rate(bvh, tracer, cfg, n, workers, chunks)),
                      "cpu_train_samples_per_s": round(train_rate(mesh, bvh, tracer, s, n, train_steps))
-                     if train_steps else ""})
+                     if train_steps else "", **card_costs(bvh, tracer, cfg, n, chunks)})
         print(rows[-1], flush=True)
     return rows
 
@@ -136,6 +194,10 @@ def report(rows: list[dict]) -> None:
               f"{int(r['streamed_samples_per_s']):,} ({r['label_workers']})",
               f"{int(float(r['cpu_train_samples_per_s'])):,}" if r.get("cpu_train_samples_per_s") else ""]
              for r in rows]
+    card = any(r.get("card_label_samples_per_s") for r in rows)
+    if card:  # made on a card
+        for line, r in zip(table, rows):
+            line.append(f"{int(r['card_label_samples_per_s']):,} ({int(r['card_streamed_samples_per_s']):,})")
     write_markdown(OUT.with_suffix(".md"), [
         "# What labels cost on the host (bench/speed/bench_labels.py)\n",
         "Per chunk of the default preset (2,048 rays x 32 steps), median of the chunks: the draw, the labels "
@@ -146,7 +208,8 @@ def report(rows: list[dict]) -> None:
         "CPU training: the default preset's whole step on this host's CPU at that many threads (labels included).\n",
         *markdown_table(["asset", "triangles", "threads", "tracer", "tracer memory", "build s", "draw ms",
                          "labels ms", "first-hit rays/s", "label samples/s", "streamed, 1 thread",
-                         "streamed (labelling threads)", "CPU training samples/s"], table)])
+                         "streamed (labelling threads)", "CPU training samples/s"]
+                        + (["on the card (streamed)"] if card else []), table)])
 
 
 def main() -> None:

@@ -29,7 +29,7 @@ from nbvh_core import kernels
 from nbvh_core.geometry.bvh import build_bvh
 from nbvh_core.geometry.exact import ExactTracer
 from nbvh_core.geometry.mesh import load_mesh
-from nbvh_core.kernels.plan import TRAINING_LAYERS_ENV
+from nbvh_core.kernels.plan import CARD_LABELS_ENV, TRAINING_LAYERS_ENV
 from nbvh_core.neural.model import NeuralBVH
 from nbvh_core.app.pipeline import preset
 from nbvh_core.planning.card_batch import rays_per_step as card_rays_per_step
@@ -76,7 +76,7 @@ def train_throughput(bvh, tracer, s, mesh, device, steps: int, rays_per_step: in
     return {"what": "train", "path": res.compute_path, "size": "", "seconds": res.seconds, "items": steps,
             "per_s": res.samples_per_s, "unit": "leaf samples/s", "rays_per_step": cfg.rays_per_step,
             "reused_share": round(res.reused_batches / max(1, res.steps), 3),
-            "layers": kernels.training_layers_kernel(m.network.net, device)}
+            "layers": kernels.training_layers_kernel(m.network.net, device), "labels": kernels.label_kernel(device)}
 
 
 def host_syncs(bvh, tracer, s, mesh, device, steps: int) -> dict:
@@ -124,13 +124,17 @@ def train_rows(bvh, tracer, s, mesh, device, args) -> list[dict]:
             rows.append({"what": "syncs", "path": "", "size": "", "seconds": "", "items": 64, "per_s": "",
                          "unit": "host syncs per step", "sync_sites": f"not counted: {exc}"[:200]})
         print(rows[-1], flush=True)
-    if rows[0]["layers"] == "triton":  # the same steps with torch's layers (cuBLAS under autograd), for the choice
-        os.environ[TRAINING_LAYERS_ENV] = "torch"
-        try:
-            rows.append(train_throughput(bvh, tracer, s, mesh, device, args.steps))
-        finally:
-            del os.environ[TRAINING_LAYERS_ENV]
-        print(rows[-1], flush=True)
+    # the same steps with one of the card's choices undone, for the choice: torch's layers (cuBLAS under autograd)
+    # instead of the Triton MLP's; labels made on the host instead of the card
+    for undone, env, value in ((rows[0]["layers"] == "triton", TRAINING_LAYERS_ENV, "torch"),
+                               (rows[0]["labels"] == "card", CARD_LABELS_ENV, "host")):
+        if undone:
+            os.environ[env] = value
+            try:
+                rows.append(train_throughput(bvh, tracer, s, mesh, device, args.steps))
+            finally:
+                del os.environ[env]
+            print(rows[-1], flush=True)
     return rows
 
 

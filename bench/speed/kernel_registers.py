@@ -6,7 +6,7 @@ is the one measure of that available where no card is lent (the speed itself nee
     .venv/bin/python -m bench.speed.kernel_registers            # bench/results/kernel_registers.{csv,md}
 
 Rows: kernel (ray query mlp | kmlp, table f32 | u8 codes, a HashVQAD's index or none; the MLP's training forward and
-backward), the default preset's shape (10 levels x 4 features, k = 4, 2 hidden layers of 64), registers per thread,
+backward; the training labels' mesh trace and leaf lists), the default preset's shape (10 levels x 4 features, k = 4, 2 hidden layers of 64), registers per thread,
 spill store bytes, local stack bytes, compile seconds.
 """
 from __future__ import annotations
@@ -84,6 +84,23 @@ def build_mlp_training(backward: bool, kind: str = "mlp", levels: int = 10, feat
     return _compile(mlp._mlp_forward, pointers, dict(shape, SAVE=True), 4)
 
 
+def build_label_kernel(kind: str, depth: int = 64) -> CardBuild:
+    """Compile a training-label kernel for `TARGET_SM` as the card launches it: 'mesh trace' (the nearest triangle
+    hit; a stack of `depth` slots: a mesh tree of up to depth - 2 levels) or 'leaf lists' (the write pass)."""
+    from nbvh_core.kernels.triton import leaf_lists, mesh_trace
+
+    if kind == "mesh trace":
+        pointers = dict(o_ptr="*fp32", d_ptr="*fp32", inv_ptr="*fp32", tmin_ptr="*fp32", tmax_ptr="*fp32", n="i32",
+                        rec_f_ptr="*fp32", rec_i_ptr="*i32", tri_ptr="*fp32", id_ptr="*i32", t_ptr="*fp32",
+                        out_ptr="*i32")
+        return _compile(mesh_trace._nearest_hits, pointers, dict(DEPTH=depth, BR=mesh_trace.BLOCK_R),
+                        mesh_trace.WARPS)
+    pointers = dict(o_ptr="*fp32", inv_ptr="*fp32", tmax_ptr="*fp32", n="i32", rec_f_ptr="*fp32", rec_i_ptr="*i32",
+                    count_ptr="*i64", offset_ptr="*i64", node_ptr="*i64", te_ptr="*fp32", tx_ptr="*fp32")
+    return _compile(leaf_lists._leaf_walk, pointers, dict(WRITE=True, DEPTH=depth, BR=leaf_lists.BLOCK_R),
+                    leaf_lists.WARPS)
+
+
 def _compile(fn, pointers: dict, constants: dict, warps: int) -> CardBuild:
     """`fn` compiled for TARGET_SM with `pointers` (argument types, in the kernel's order; None: a constant) and
     `constants`, assembled by ptxas -v: its report. Raises RuntimeError when ptxas fails."""
@@ -129,7 +146,9 @@ CASES = [("ray query mlp, u8 codes", lambda: build_ray_query("mlp", True)),
          ("mlp training forward (activations stored)", lambda: build_mlp_training(False, "mlp")),
          ("mlp training backward", lambda: build_mlp_training(True, "mlp")),
          ("kmlp training forward (activations stored)", lambda: build_mlp_training(False, "kmlp")),
-         ("kmlp training backward", lambda: build_mlp_training(True, "kmlp"))]
+         ("kmlp training backward", lambda: build_mlp_training(True, "kmlp")),
+         ("labels: mesh trace, 64-slot stack", lambda: build_label_kernel("mesh trace", 64)),
+         ("labels: leaf lists, 32-slot stack", lambda: build_label_kernel("leaf lists", 32))]
 
 
 def main() -> None:

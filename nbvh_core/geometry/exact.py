@@ -105,6 +105,19 @@ class ExactTracer:
             self._init_fallback()
         self.backend = "embree" if self._scene is not None else "numpy"
 
+    def on_card(self, device: "torch.device | str", tree=None):
+        """This mesh's `card_tracer.CardTracer` on `device`, made once (a run's trainings share it). tree: the run's
+        full tree over this mesh (`bvh.full`), so that the card's tree costs no second build."""
+        import torch
+
+        from .card_tracer import CardTracer
+
+        card = getattr(self, "_card", None)
+        if card is None or card.device != torch.device(device):
+            fits = tree is not None and len(tree.tri_order) == self.mesh.n_triangles
+            card = self._card = CardTracer(self.mesh, device, tree if fits else None)
+        return card
+
     @property
     def scene_kind(self) -> str:
         """Which scene answers (for results): 'embree compact' / 'embree' (the kernel library's, on the mesh's

@@ -166,8 +166,11 @@ def leaves_along_rays(tree: TorchBVH, rays_o: torch.Tensor, rays_d: torch.Tensor
     rays_o, rays_d: (N, 3) float32 on tree.device (directions need not be unit length; t is in units of
     |rays_d|); t_max: (N,) float32 or None. Leaves with t_enter > t_max are left out.
     """
-    if kernels.traversal_kernel(rays_o.device) == "fused":
+    kind = kernels.leaf_list_kernel(rays_o.device)
+    if kind == "fused":
         return _leaves_along_rays_fast(tree, rays_o, rays_d, t_max)
+    if kind == "triton":
+        return _leaves_along_rays_triton(tree, rays_o, rays_d, t_max)
     n = rays_o.shape[0]
     dev = rays_o.device
     inv_d = _inverse(rays_d)
@@ -226,6 +229,29 @@ def _leaves_along_rays_fast(tree: TorchBVH, rays_o: torch.Tensor, rays_d: torch.
     offsets = torch.zeros(n + 1, dtype=torch.int64)
     offsets[1:] = torch.cumsum(counts, 0)
     ray = torch.repeat_interleave(torch.arange(n), counts)
+    return LeafHits(ray=ray, leaf=tree.leaf[node], node=node, t_enter=t_enter, t_exit=t_exit, offsets=offsets)
+
+
+def _leaves_along_rays_triton(tree: TorchBVH, rays_o: torch.Tensor, rays_d: torch.Tensor,
+                              t_max: torch.Tensor | None) -> LeafHits:
+    """`leaves_along_rays` on a card: the Triton walk counts, then writes each ray's leaves; sorted front to back
+    by (ray, t_enter, t_exit, node) as the reference (stable sorts, the last key first)."""
+    from ..kernels.triton.leaf_lists import leaf_counts, leaf_lists
+
+    n = rays_o.shape[0]
+    o = rays_o.to(torch.float32).contiguous()
+    inv = _inverse(rays_d.to(torch.float32)).contiguous()
+    tm = (torch.full((n,), torch.inf, device=o.device) if t_max is None else t_max.to(torch.float32).contiguous())
+    records = tree.records.contiguous()
+    counts = leaf_counts(o, inv, tm, records, tree.max_depth)
+    offsets = torch.zeros(n + 1, dtype=torch.int64, device=o.device)
+    offsets[1:] = torch.cumsum(counts, 0)
+    node, t_enter, t_exit = leaf_lists(o, inv, tm, records, tree.max_depth, offsets)
+    ray = torch.repeat_interleave(torch.arange(n, device=o.device), counts, output_size=node.shape[0])
+    order = torch.argsort(node, stable=True)
+    for key in (t_exit, t_enter, ray):
+        order = order[torch.argsort(key[order], stable=True)]
+    node, t_enter, t_exit = node[order], t_enter[order], t_exit[order]
     return LeafHits(ray=ray, leaf=tree.leaf[node], node=node, t_enter=t_enter, t_exit=t_exit, offsets=offsets)
 
 

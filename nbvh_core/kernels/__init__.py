@@ -19,15 +19,16 @@ The kernels:
   backward into the rows and the logits.
 
 The card's twins are Triton kernels (`triton/`: a model's whole ray query in one kernel, the hash-grid lookup and
-its backward, a whole MLP per kernel and its training's forward and backward),
-tested on the CPU by Triton's interpreter; `plan.py` picks them for CUDA tensors.
+its backward, a whole MLP per kernel and its training's forward and backward, the training labels' leaf lists and
+exact mesh hits), tested on the CPU by Triton's interpreter; `plan.py` picks them for CUDA tensors.
 """
 from .library import (HEADER, PATHS, abi_hash, build, current_path, describe, fast_enabled, keep_freed_memory,
                       library_path, load, set_path, threads, using_path)
-from .plan import (KernelPlan, encoding_kernel, mlp_kernel, network_kernel, optimizer_kernel, plan, query_kernel,
-                   soft_table_kernel, train_step_kernel, training_layers_kernel, traversal_kernel, triton_serves)
+from .plan import (KernelPlan, encoding_kernel, label_kernel, leaf_list_kernel, mlp_kernel, network_kernel,
+                   optimizer_kernel, plan, query_kernel, soft_table_kernel, train_step_kernel, training_layers_kernel,
+                   traversal_kernel, triton_serves)
 
 __all__ = ["HEADER", "PATHS", "abi_hash", "build", "current_path", "describe", "fast_enabled",
            "keep_freed_memory", "library_path", "load", "set_path", "threads", "using_path", "KernelPlan",
            "encoding_kernel", "network_kernel", "optimizer_kernel", "plan", "query_kernel", "soft_table_kernel", "train_step_kernel",
-           "traversal_kernel", "mlp_kernel", "training_layers_kernel", "triton_serves"]
+           "traversal_kernel", "label_kernel", "leaf_list_kernel", "mlp_kernel", "training_layers_kernel", "triton_serves"]

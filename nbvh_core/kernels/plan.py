@@ -7,9 +7,10 @@ probes for methods. The call sites ask the stage functions below; `plan(model, d
 produced it.
 
 Stages: query (a model's first hits: one Triton kernel on a card, else the leaf stream and the network stage),
-traversal (leaf streams and training label lists), encoding (grid lookups outside the fused network),
-soft_table (HashVQAD's softmax row table while its index is soft), network (inference per segment), train_step
-(forward, loss and backward of one step), optimizer (Adam's update), appearance (the appearance head's query).
+traversal (leaf streams), leaf lists and labels (a training's rays: on the card or the host), encoding (grid lookups
+outside the fused network), soft_table (HashVQAD's softmax row table while its index is soft), network (inference
+per segment), train_step (forward, loss and backward of one step), optimizer (Adam's update), appearance (the
+appearance head's query).
 """
 from __future__ import annotations
 
@@ -84,6 +85,26 @@ def query_kernel(model, device: torch.device | str | None = None) -> str:
 def traversal_kernel(device: torch.device | str) -> str:
     """'fused' (per-ray stack loops in C++) or 'torch' (all rays one pop at a time with tensor ops)."""
     return "fused" if fast_enabled(device) else TORCH
+
+
+def leaf_list_kernel(device: torch.device | str) -> str:
+    """Every leaf each ray enters (`traversal.leaves_along_rays`: training labels' segments): 'fused' (C++ on the CPU),
+    'triton' (`triton/leaf_lists.py` on a card) or 'torch'."""
+    if triton_serves(device):
+        return "triton"
+    return traversal_kernel(device)
+
+
+#: $NBVH_CARD_LABELS=host labels a card's training rays on the host (Embree and the fused C++ kernels) instead of on
+#: the card: the device check measures both.
+CARD_LABELS_ENV = "NBVH_CARD_LABELS"
+
+
+def label_kernel(device: torch.device | str) -> str:
+    """Where a training on `device` labels its rays: 'card' (the leaves entered and the mesh's exact hits by Triton
+    kernels on the card, `training/card_labels.py`) or 'host' (Embree and the fused kernels, `training/rays.py`)."""
+    wanted = os.environ.get(CARD_LABELS_ENV, "card") != "host"
+    return "card" if wanted and triton_serves(device) else "host"
 
 
 def encoding_kernel(encoding, device: torch.device | str) -> str:
@@ -172,10 +193,12 @@ class KernelPlan:
     threads: int
     note: str = ""  # why the fused kernels do not serve this device, if they do not
     appearance: str | None = None  # the appearance head's query, when the model has a head
+    labels: str = "host"  # where training rays are labelled: 'host' | 'card'
 
     def describe(self) -> str:
         """One line for results, e.g. 'fast on cpu (2 threads): traversal fused, train step fused kmlp, ...'."""
-        stages = [f"query {self.query}", f"traversal {self.traversal}", f"train step {self.train_step}",
+        stages = [f"query {self.query}", f"traversal {self.traversal}", f"labels on the {self.labels}",
+                  f"train step {self.train_step}",
                   f"network {self.network}", f"encoding {self.encoding}"]
         if self.soft_table is not None:
             stages.append(f"soft table {self.soft_table}")
@@ -200,8 +223,10 @@ def plan(model, device: torch.device | str | None = None) -> KernelPlan:
         gaps += [f"network: {g}" for g in [triton_network_gap(model.network.net)] if g]
         gaps += [f"ray query: {g}" for g in [getattr(model, "triton_query_failure", None)] if g]
         layers = training_layers_kernel(model.network.net, device)
-        note = ("Triton kernels on the card (the ray query one kernel); the host's fused kernels label training"
-                f" rays; the training step's layers {'Triton' if layers == 'triton' else 'torch'}'s under autograd"
+        labeller = ("Triton kernels label training rays on the card" if label_kernel(device) == "card"
+                    else "the host's fused kernels label training rays")
+        note = ("Triton kernels on the card (the ray query one kernel); " + labeller +
+                f"; the training step's layers {'Triton' if layers == 'triton' else 'torch'}'s under autograd"
                 + (f"; torch where not covered ({'; '.join(gaps)})" if gaps else ""))
     traversal = traversal_kernel(device)
     if traversal == "fused" and model.compact_nodes is not None:
@@ -211,4 +236,4 @@ def plan(model, device: torch.device | str | None = None) -> KernelPlan:
                       encoding=encoding_kernel(enc, device), soft_table=soft_table_kernel(enc, device),
                       network=network_kernel(model, device), train_step=train_step_kernel(model, device),
                       optimizer=optimizer_kernel(), threads=threads(), note=note,
-                      appearance=appearance_kernel(model, device))
+                      appearance=appearance_kernel(model, device), labels=label_kernel(device))

@@ -65,6 +65,7 @@ class Batches:
     synchronous run would see, however many label. `rng_state()` says where the last batch handed out came from
     (the generator's state before its chunk and its index in the chunk): what a checkpoint stores to resume exactly.
 
+    `card_labels` labels on the card (the rays are still drawn here, from the same generator).
     `reuse` hands every chunk out that many times, each pass in a new ray order (deterministic). `spare_passes`
     (prefetch only: a card) streams a pool instead of waiting: when the next chunk is not labelled yet, the last
     one is handed out again in a new batch order, at most `spare_passes` more times, so the card trains at its pace
@@ -75,8 +76,9 @@ class Batches:
     def __init__(self, bvh: BVH, tracer: ExactTracer, cfg, rng: np.random.Generator,
                  prefetch: bool = False, resume: dict | None = None, leaf_errors: LeafErrors | None = None,
                  pin: bool = False, reuse: int = 1, spare_passes: int = 0, draw_parts: int = 2,
-                 label_workers: int = 1):
+                 label_workers: int = 1, card_labels=None):
         self.bvh, self.tracer, self.cfg, self.rng = bvh, tracer, cfg, rng
+        self.card_labels = card_labels  # a `card_labels.CardLabels`: labels made on the card, not the host
         self.draw_parts = max(1, int(draw_parts))  # uniform rays drawn in this many parts at once (see _draw_uniform)
         self.reuse = max(1, int(reuse))  # passes over each labelled chunk (TrainConfig.label_reuse)
         self.spare_passes = 0  # set after a resumed chunk's batches are skipped (below)
@@ -135,12 +137,16 @@ class Batches:
         """A drawn chunk (`_draw_chunk`) labelled and split into its batches (`_make`)."""
         chunk_state, weights, o, d, orders = drawn
         per = self.cfg.rays_per_step
-        chunk = label_samples(self.bvh, self.tracer, o, d, self.cfg.labels, tree=self.tree,
-                              normal_loss=self.cfg.normal_loss)
+        if self.card_labels is not None:
+            chunk = self.card_labels.label(self.bvh, o, d, self.cfg.labels, normal_loss=self.cfg.normal_loss)
+        else:
+            chunk = label_samples(self.bvh, self.tracer, o, d, self.cfg.labels, tree=self.tree,
+                                  normal_loss=self.cfg.normal_loss)
         parts = split_samples(chunk, per)
         for order in orders:
             parts += split_samples(reorder_rays(chunk, torch.from_numpy(order)), per)
-        return [(part.pinned() if self.pin else part, {"chunk_state": chunk_state, "index": i, "leaf_weights": weights})
+        pin = self.pin and chunk.ray.device.type == "cpu"  # labels made on the card are there already
+        return [(part.pinned() if pin else part, {"chunk_state": chunk_state, "index": i, "leaf_weights": weights})
                 for i, part in enumerate(parts)]
 
     def set_bvh(self, bvh: BVH) -> None:

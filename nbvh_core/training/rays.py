@@ -259,7 +259,8 @@ def split_samples(samples: TrainingSamples, rays_per_part: int) -> list[Training
     each part is what `label_samples` returns for its rays alone (ray indices re-based, per-part counts)."""
     n_rays = samples.rays_o.shape[0]
     bounds = list(range(0, n_rays, rays_per_part)) + [n_rays]
-    cuts = torch.searchsorted(samples.ray, torch.tensor(bounds, dtype=samples.ray.dtype)).tolist()
+    cuts = torch.searchsorted(samples.ray, torch.tensor(bounds, dtype=samples.ray.dtype,
+                                                        device=samples.ray.device)).tolist()
     parts = []
     for (r0, r1), (s0, s1) in zip(zip(bounds[:-1], bounds[1:]), zip(cuts[:-1], cuts[1:])):
         hit = samples.hit[s0:s1]
@@ -276,14 +277,16 @@ def reorder_rays(samples: TrainingSamples, order: torch.Tensor) -> TrainingSampl
     """The same labelled samples with the rays in `order` ((N,) int64, a permutation of the rays): each ray keeps
     its samples in their front-to-back order, re-indexed to the ray's new position."""
     n_rays = samples.rays_o.shape[0]
+    order = order.to(samples.ray.device)
     counts = torch.bincount(samples.ray, minlength=n_rays)
     starts = torch.cumsum(counts, 0) - counts
     new_counts = counts[order]
     new_starts = torch.cumsum(new_counts, 0) - new_counts
     total = int(new_counts.sum())
-    offset = torch.arange(total) - torch.repeat_interleave(new_starts, new_counts, output_size=total)
+    dev = samples.ray.device
+    offset = torch.arange(total, device=dev) - torch.repeat_interleave(new_starts, new_counts, output_size=total)
     index = torch.repeat_interleave(starts[order], new_counts, output_size=total) + offset
-    ray = torch.repeat_interleave(torch.arange(n_rays), new_counts, output_size=total)
+    ray = torch.repeat_interleave(torch.arange(n_rays, device=dev), new_counts, output_size=total)
     return TrainingSamples(rays_o=samples.rays_o[order], rays_d=samples.rays_d[order], ray=ray,
                            leaf=samples.leaf[index], t_enter=samples.t_enter[index], t_exit=samples.t_exit[index],
                            hit=samples.hit[index], t_hit=samples.t_hit[index], normal=samples.normal[index],

@@ -28,6 +28,7 @@ import numpy as np
 import torch
 
 from .. import kernels
+from .card_labels import card_labels_for
 from .ray_batches import Batches, LeafErrors, TreeCut, label_workers  # noqa: F401  (LeafErrors: re-exported)
 from ..geometry.bvh import BVH
 from ..storage.checkpoint import CheckpointError, load_checkpoint
@@ -292,11 +293,14 @@ def _training_data(model, bvh, tracer, cfg, ck, device, plan, rng, events):
         if ck["leaf_errors"].shape != leaf_errors.error.shape or ck["leaf_errors"].dtype != leaf_errors.error.dtype:
             raise CheckpointError(f"the checkpoint's leaf errors do not fit this BVH ({bvh.n_leaves} leaves)")
         leaf_errors.error = ck["leaf_errors"].clone()
+    card_labels = card_labels_for(tracer, bvh, device)
+    # the host's labels take several threads on a many-core card host; the card's, one thread that draws and launches
+    workers = label_workers(kernels.threads()) if device.type == "cuda" and card_labels is None else 1
     batches = Batches(bvh, tracer, cfg, rng, prefetch=prefetch, resume=ck.get("numpy_rng"),
                       leaf_errors=leaf_errors if cfg.leaf_sampling == "loss" else None, pin=device.type == "cuda",
                       reuse=cfg.label_reuse, spare_passes=cfg.spare_label_passes,
                       draw_parts=max(2, kernels.threads()) if device.type == "cuda" else 2,
-                      label_workers=label_workers(kernels.threads()) if device.type == "cuda" else 1)
+                      label_workers=workers, card_labels=card_labels)
     return batches, leaf_errors, cut
 
 
@@ -312,8 +316,8 @@ def check_config(cfg: TrainConfig) -> None:
 def _note_leaf_errors(leaf_errors: LeafErrors | None, model: NeuralBVH, batch: TrainingSamples, parts: dict) -> None:
     """Loss-proportional leaf sampling: the step's per-sample errors into the running per-leaf error."""
     if leaf_errors is not None:
-        leaf_errors.update(batch.leaf, model.network.sample_errors(parts["raw"].cpu(), batch.hit, batch.local_t,
-                                                                   batch.normal))
+        leaf_errors.update(batch.leaf.cpu(), model.network.sample_errors(  # held on the CPU (labels may be on the card)
+            parts["raw"].cpu(), batch.hit.cpu(), batch.local_t.cpu(), batch.normal.cpu()))
 
 
 def _what_trains(model: NeuralBVH, cfg: TrainConfig, plan: kernels.KernelPlan) -> str:

@@ -6,6 +6,9 @@ it; anything they do not cover runs the torch path, and the plan's note says whi
 * `hashgrid` - the multiresolution hash-grid lookup fused per point (cell, hash or dense index, trilinear weights,
   the 8-row weighted sum of every level) and its backward (atomic adds into the table's gradient): a HashGrid's
   rows, a HashVQAD's soft row table, or its rows through the frozen index's packed codes.
+* `bvh_walk` - the slab test, the register-tile stacks and the ray query's pop-to-the-next-leaf step.
+* `leaf_lists` - every leaf of the model's tree a ray enters (the training labels' segments), counted, then written.
+* `mesh_trace` - the nearest triangle hit in a t range through the mesh's own tree (the labels' exact hits).
 * `mlp` - a whole MLP (Linear + ReLU layers, the last without) over rows of inputs through `tl.dot`, K-blocked,
   the activations kept on chip between layers; in training the same kernel stores them, and a backward kernel takes
   the gradient back through every layer (the weights' gradients one matmul per layer).
@@ -29,6 +32,16 @@ def triton_missing() -> str | None:
 def interpreted() -> bool:
     """True when Triton runs its kernels in its CPU interpreter (tests), where they take CPU tensors."""
     return os.environ.get("TRITON_INTERPRET") == "1"
+
+
+#: Rays per program under the interpreter: it runs programs one after another and pays per operation, not per row
+#: (the mesh tracer on 512 rays: 18 s at 32 rows per program, 2 s at 512 on the 2-core CPU).
+INTERPRETED_ROWS = 256
+
+
+def rows_per_program(card: int) -> int:
+    """A kernel's rows per program: `card` on a card, INTERPRETED_ROWS under the interpreter (the same answers)."""
+    return INTERPRETED_ROWS if interpreted() else card
 
 
 def serves(device: torch.device | str) -> bool:

@@ -23,6 +23,7 @@ import torch
 import triton
 import triton.language as tl
 
+from .bvh_walk import _box, _next_leaf
 from .hashgrid import LevelGeometry, _corner_row, _level_starts
 from .mlp import PackedMLP
 
@@ -62,79 +63,6 @@ class FirstHits:
     t: torch.Tensor
     normal: torch.Tensor
     segments: torch.Tensor
-
-
-@triton.jit
-def _fmin(a, b):
-    """C's fmin: a NaN operand yields the other."""
-    return tl.where(a != a, b, tl.where(b != b, a, tl.minimum(a, b)))
-
-
-@triton.jit
-def _fmax(a, b):
-    return tl.where(a != a, b, tl.where(b != b, a, tl.maximum(a, b)))
-
-
-@triton.jit
-def _slab(o, inv, lo, hi):
-    """One axis of the slab test (`traversal.ray_box`): (near, far), a NaN (ray on the slab's plane) as -inf/+inf."""
-    t0 = (lo - o) * inv
-    t1 = (hi - o) * inv
-    near = _fmin(t0, t1)
-    far = _fmax(t0, t1)
-    return tl.where(near != near, float("-inf"), near), tl.where(far != far, float("inf"), far)
-
-
-@triton.jit
-def _box(rec_f_ptr, node, live, ox, oy, oz, ix, iy, iz):
-    """Slab test of each ray against node `node`'s box (record columns 0-5): entered, t_enter (>= 0), t_exit."""
-    base = node.to(tl.int64) * 8
-    nx, fx = _slab(ox, ix, tl.load(rec_f_ptr + base + 0, mask=live, other=0.0),
-                   tl.load(rec_f_ptr + base + 3, mask=live, other=0.0))
-    ny, fy = _slab(oy, iy, tl.load(rec_f_ptr + base + 1, mask=live, other=0.0),
-                   tl.load(rec_f_ptr + base + 4, mask=live, other=0.0))
-    nz, fz = _slab(oz, iz, tl.load(rec_f_ptr + base + 2, mask=live, other=0.0),
-                   tl.load(rec_f_ptr + base + 5, mask=live, other=0.0))
-    t_enter = tl.maximum(tl.maximum(tl.maximum(nx, ny), nz), 0.0)
-    t_exit = tl.minimum(tl.minimum(fx, fy), fz)
-    return t_enter <= t_exit, t_enter, t_exit
-
-
-@triton.jit
-def _push(stack, sp, slots, node, push):
-    """Push `node` on the stacks of the rays where `push`: (stack, sp) after."""
-    put = (slots[None, :] == sp[:, None]) & push[:, None]
-    return tl.where(put, node[:, None], stack), sp + push.to(tl.int32)
-
-
-@triton.jit
-def _next_leaf(rec_f_ptr, rec_i_ptr, stack, sp, slots, ox, oy, oz, ix, iy, iz):
-    """Every ray with nodes left pops until its next leaf (`traversal.LeafStream.next`'s order): (stack, sp, at_leaf,
-    t_enter, t_exit) of the leaf's box for the rays `at_leaf`."""
-    at_leaf = sp < 0
-    seg_te = tl.zeros(sp.shape, tl.float32)
-    seg_tx = tl.zeros(sp.shape, tl.float32)
-    searching = sp > 0
-    while tl.max(searching.to(tl.int32), axis=0) > 0:
-        sp = sp - searching.to(tl.int32)
-        node = tl.sum(tl.where((slots[None, :] == sp[:, None]) & searching[:, None], stack, 0), axis=1)
-        left = tl.load(rec_i_ptr + node.to(tl.int64) * 8 + 6, mask=searching, other=0)
-        ordinal = tl.load(rec_i_ptr + node.to(tl.int64) * 8 + 7, mask=searching, other=-1)
-        found = searching & (left == 0) & (ordinal >= 0)  # a padding leaf (ordinal < 0) is skipped
-        _, te, tx = _box(rec_f_ptr, node, found, ox, oy, oz, ix, iy, iz)
-        seg_te = tl.where(found, te, seg_te)
-        seg_tx = tl.where(found, tx, seg_tx)
-        at_leaf = at_leaf | found
-        inner = searching & (left != 0)
-        hit_l, te_l, _ = _box(rec_f_ptr, left, inner, ox, oy, oz, ix, iy, iz)
-        hit_r, te_r, _ = _box(rec_f_ptr, left + 1, inner, ox, oy, oz, ix, iy, iz)
-        right_first = te_r < te_l
-        near = tl.where(right_first, left + 1, left)
-        far = tl.where(right_first, left, left + 1)
-        stack, sp = _push(stack, sp, slots, far, inner & tl.where(right_first, hit_l, hit_r))
-        stack, sp = _push(stack, sp, slots, near, inner & tl.where(right_first, hit_r, hit_l))
-        searching = (sp > 0) & ~at_leaf
-    return stack, sp, at_leaf, seg_te, seg_tx
 
 
 @triton.jit
