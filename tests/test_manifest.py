@@ -1,5 +1,5 @@
 """Blender 5.0's own extension tool (shipped inside the bpy module, `bl_pkg/cli/blender_ext.py`) accepts the
-add-on's manifest and the built zip (issue 13: it refused the manifest's 66-character `files` permission)."""
+add-on's manifest and the built zip (it refuses a `files` permission's text of 66 characters)."""
 from __future__ import annotations
 
 import subprocess

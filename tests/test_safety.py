@@ -1,4 +1,4 @@
-"""Nothing lost, nothing crafted gets in: one test per defect found by probing (issue 14), and the reader's fuzz test.
+"""Nothing lost, nothing crafted gets in: one test per defect found by probing the product, and the reader's fuzz test.
 
 Each crafted file has a *valid* checksum (`craft` recomputes it), so it reaches the header and structure checks.
 """
