@@ -33,8 +33,10 @@ def _leaf_walk(o_ptr, inv_ptr, tmax_ptr, n, rec_f_ptr, rec_i_ptr, count_ptr, off
     iz = tl.load(inv_ptr + rows * 3 + 2, mask=live, other=1.0)
     t_max = tl.load(tmax_ptr + rows, mask=live, other=0.0)
     at = tl.zeros((BR,), tl.int64)
+    room = tl.zeros((BR,), tl.int64)
     if WRITE:
         at = tl.load(offset_ptr + rows, mask=live, other=0)
+        room = tl.load(offset_ptr + rows + 1, mask=live, other=0) - at
     slots = tl.arange(0, DEPTH)
     stack = tl.zeros((BR, DEPTH), tl.int32)  # slot 0: the root, node 0
     sp = live.to(tl.int32)
@@ -47,10 +49,11 @@ def _leaf_walk(o_ptr, inv_ptr, tmax_ptr, n, rec_f_ptr, rec_i_ptr, count_ptr, off
         left = tl.load(rec_i_ptr + node.to(tl.int64) * 8 + 6, mask=visit, other=0)
         ordinal = tl.load(rec_i_ptr + node.to(tl.int64) * 8 + 7, mask=visit, other=-1)
         leaf = visit & (left == 0) & (ordinal >= 0)  # a padding leaf (ordinal < 0) is never listed
-        if WRITE:
-            tl.store(node_ptr + at + found, node.to(tl.int64), mask=leaf)
-            tl.store(te_ptr + at + found, te, mask=leaf)
-            tl.store(tx_ptr + at + found, tx, mask=leaf)
+        if WRITE:  # never past the ray's counted room, whatever the second walk finds
+            put = leaf & (found < room)
+            tl.store(node_ptr + at + found, node.to(tl.int64), mask=put)
+            tl.store(te_ptr + at + found, te, mask=put)
+            tl.store(tx_ptr + at + found, tx, mask=put)
         found += leaf.to(tl.int32)
         inner = visit & (left != 0)
         stack, sp = _push(stack, sp, slots, left + 1, inner)
