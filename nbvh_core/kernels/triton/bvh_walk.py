@@ -11,6 +11,13 @@ import triton.language as tl
 
 
 @triton.jit
+def _xyz(ptr, rows, live, other):
+    """Rows `rows` of an (N, 3) float32 array: x, y, z as (BLOCK,) each, `other` where not `live`."""
+    return (tl.load(ptr + rows * 3 + 0, mask=live, other=other), tl.load(ptr + rows * 3 + 1, mask=live, other=other),
+            tl.load(ptr + rows * 3 + 2, mask=live, other=other))
+
+
+@triton.jit
 def _fmin(a, b):
     """C's fmin: a NaN operand yields the other."""
     return tl.where(a != a, b, tl.where(b != b, a, tl.minimum(a, b)))

@@ -17,7 +17,7 @@ import triton
 import triton.language as tl
 
 from . import rows_per_program
-from .bvh_walk import _box, _pop, _push
+from .bvh_walk import _box, _pop, _push, _xyz
 
 #: Rays per program on a card (`rows_per_program`), warps per program. Not yet timed on a card.
 BLOCK_R, WARPS = 32, 4
@@ -64,15 +64,9 @@ def _nearest_hits(o_ptr, d_ptr, inv_ptr, tmin_ptr, tmax_ptr, n, rec_f_ptr, rec_i
                   DEPTH: tl.constexpr, BR: tl.constexpr):
     rows = tl.program_id(0) * BR + tl.arange(0, BR)
     live = rows < n
-    ox = tl.load(o_ptr + rows * 3 + 0, mask=live, other=0.0)
-    oy = tl.load(o_ptr + rows * 3 + 1, mask=live, other=0.0)
-    oz = tl.load(o_ptr + rows * 3 + 2, mask=live, other=0.0)
-    dx = tl.load(d_ptr + rows * 3 + 0, mask=live, other=0.0)
-    dy = tl.load(d_ptr + rows * 3 + 1, mask=live, other=0.0)
-    dz = tl.load(d_ptr + rows * 3 + 2, mask=live, other=0.0)
-    ix = tl.load(inv_ptr + rows * 3 + 0, mask=live, other=1.0)
-    iy = tl.load(inv_ptr + rows * 3 + 1, mask=live, other=1.0)
-    iz = tl.load(inv_ptr + rows * 3 + 2, mask=live, other=1.0)
+    ox, oy, oz = _xyz(o_ptr, rows, live, 0.0)
+    dx, dy, dz = _xyz(d_ptr, rows, live, 0.0)
+    ix, iy, iz = _xyz(inv_ptr, rows, live, 1.0)
     t_min = tl.load(tmin_ptr + rows, mask=live, other=0.0)
     best = tl.load(tmax_ptr + rows, mask=live, other=0.0)
     best_tri = tl.full((BR,), -1, tl.int32)

@@ -23,7 +23,7 @@ import torch
 import triton
 import triton.language as tl
 
-from .bvh_walk import _box, _next_leaf
+from .bvh_walk import _box, _next_leaf, _xyz
 from .hashgrid import LevelGeometry, _corner_row, _level_starts
 from .mlp import PackedMLP
 
@@ -222,15 +222,9 @@ def _ray_query(o_ptr, d_ptr, inv_ptr, n, rec_f_ptr, rec_i_ptr, frac_ptr,
                KMLP: tl.constexpr, DEPTH: tl.constexpr, BR: tl.constexpr, PRECISION: tl.constexpr):
     rows = tl.program_id(0) * BR + tl.arange(0, BR)
     live = rows < n
-    ox = tl.load(o_ptr + rows * 3 + 0, mask=live, other=0.0)
-    oy = tl.load(o_ptr + rows * 3 + 1, mask=live, other=0.0)
-    oz = tl.load(o_ptr + rows * 3 + 2, mask=live, other=0.0)
-    dx = tl.load(d_ptr + rows * 3 + 0, mask=live, other=0.0)
-    dy = tl.load(d_ptr + rows * 3 + 1, mask=live, other=0.0)
-    dz = tl.load(d_ptr + rows * 3 + 2, mask=live, other=0.0)
-    ix = tl.load(inv_ptr + rows * 3 + 0, mask=live, other=1.0)
-    iy = tl.load(inv_ptr + rows * 3 + 1, mask=live, other=1.0)
-    iz = tl.load(inv_ptr + rows * 3 + 2, mask=live, other=1.0)
+    ox, oy, oz = _xyz(o_ptr, rows, live, 0.0)
+    dx, dy, dz = _xyz(d_ptr, rows, live, 0.0)
+    ix, iy, iz = _xyz(inv_ptr, rows, live, 1.0)
     ray_args = (ox, oy, oz, dx, dy, dz)
     grid_args = (table_ptr, offset_ptr, scale_ptr, scales_ptr, res_ptr, dense_ptr, base_ptr, start_ptr, index_ptr)
     layers = (b_in_ptr, w_hid_ptr, b_hid_ptr, w_out_ptr, b_out_ptr)
