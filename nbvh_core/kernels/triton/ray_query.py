@@ -30,8 +30,8 @@ from .mlp import PackedMLP
 #: Rays per program and warps per program. Compiled for sm_90a on the CPU and read with `ptxas -v` at the default
 #: preset's shape (bench/speed/kernel_registers.py): 32 rays on 8 warps with TF32 products spill nothing (MLP 224
 #: registers, KMLP 254, the MLP through a HashVQAD's index 235; the KMLP over a training table's float32 rows spills
-#: 96 B); on 4 warps the KMLP spills 64 B; float32 ('ieee') or 'tf32x3' products spill 0.6-0.9 KB. Not yet timed on
-#: a card.
+#: 96-116 B as the code around it moves); on 4 warps the KMLP spills 64 B; float32 ('ieee') or 'tf32x3' products
+#: spill 0.6-0.9 KB. Not yet timed on a card.
 BLOCK_R, WARPS = 32, 8
 #: tl.dot's input precision on a card: 'tf32' (~1e-3 relative: a logit that close to its threshold may decide
 #: otherwise than in float32) or 'ieee' (float32; agreement tests on a card). The interpreter multiplies in float32.
