@@ -141,6 +141,8 @@ def test_bench_labels_measures_labels_made_on_the_card(sample_meshes):
     """bench_labels' card columns (measured on a card only) at a toy chunk, the CPU standing in for the card under
     Triton's interpreter: every rate positive, the tracer's bytes its tables'."""
     pytest.importorskip("triton")
+    import torch
+
     import bench.speed.bench_labels as bench_labels
     from nbvh_core.geometry.bvh import build_bvh
     from nbvh_core.geometry.exact import ExactTracer
@@ -149,6 +151,10 @@ def test_bench_labels_measures_labels_made_on_the_card(sample_meshes):
     mesh = sample_meshes["blob"]
     bvh = build_bvh(mesh, 31)
     cfg = TrainConfig(steps=4, rays_per_step=32, label_steps=2, seed=0)
-    row = bench_labels.card_costs(bvh, ExactTracer(mesh), cfg, 1, 1, device="cpu")
+    threads = torch.get_num_threads()
+    try:
+        row = bench_labels.card_costs(bvh, ExactTracer(mesh), cfg, 1, 1, device="cpu")
+    finally:
+        torch.set_num_threads(threads)  # the benchmark sets its own: the tests after this one keep theirs
     assert row["card_label_samples_per_s"] > 0 and row["card_first_hit_rays_per_s"] > 0
     assert row["card_streamed_samples_per_s"] > 0 and row["card_tracer_bytes"] > 36 * mesh.n_triangles
