@@ -92,8 +92,8 @@ def stream_rate(bvh, tracer, cfg, threads: int, workers: int, chunks: int) -> fl
 def card_costs(bvh, tracer, cfg, threads: int, chunks: int, device: str | None = None) -> dict:
     """On a card: label samples/s of chunks drawn by `threads` host threads and labelled on the card (median over
     `chunks` after the first, which compiles the kernels), the card tracer's first-hit rays/s, and the samples/s
-    streamed to a training (one labelling thread ahead, as the training runs it); {} without a card. device: 'cpu' runs the same under
-    Triton's interpreter (its test)."""
+    streamed to a training (one labelling thread ahead, as the training runs it); {} without a card. device: 'cpu'
+    runs the same under Triton's interpreter (its test)."""
     from nbvh_core.training.card_labels import CardLabels
 
     device = device or ("cuda" if torch.cuda.is_available() else None)
@@ -108,26 +108,24 @@ def card_costs(bvh, tracer, cfg, threads: int, chunks: int, device: str | None =
     card = CardLabels(tracer.on_card(device, getattr(bvh, "full", None)))
     batches = Batches(bvh, tracer, cfg, np.random.default_rng(0), draw_parts=max(2, threads))
     n_rays = cfg.rays_per_step * chunk_steps(cfg)
-    rates, first = [], []
-    for _ in range(chunks + 1):
+    times: dict[str, list] = {"draw": [], "label": [], "samples": [], "first": []}
+    for _ in range(chunks + 1):  # the first compiles the kernels: not counted
+        t_start = time.perf_counter()
         o, d = batches._draw(n_rays)
-        sync()
-        t = time.perf_counter()
+        t_drawn = time.perf_counter()
         got = card.label(bvh, o, d, cfg.labels, normal_loss=cfg.normal_loss)
         sync()
-        label_s = time.perf_counter() - t
+        t_labelled = time.perf_counter()
         o_card, d_card = torch.from_numpy(o).to(device), torch.from_numpy(d).to(device)
-        zeros = torch.zeros(n_rays, device=device)
         sync()
-        t = time.perf_counter()
-        card.tracer.nearest(o_card, d_card, zeros, zeros + float("inf"))
+        t_first = time.perf_counter()
+        card.tracer.nearest(o_card, d_card)
         sync()
-        first.append(n_rays / (time.perf_counter() - t))
-        rates.append((len(got), label_s))
+        for key, value in (("draw", t_drawn - t_start), ("label", t_labelled - t_drawn), ("samples", len(got)),
+                           ("first", n_rays / (time.perf_counter() - t_first))):
+            times[key].append(value)
     batches.close()
-    draw = chunk_costs(bvh, tracer, cfg, threads, 1)["draw"]
-    label_s = statistics.median(s for _, s in rates[1:])
-    samples = statistics.median(n for n, _ in rates[1:])
+    draw, label_s, samples = (statistics.median(times[k][1:]) for k in ("draw", "label", "samples"))
     stream = Batches(bvh, tracer, cfg, np.random.default_rng(0), prefetch=True, draw_parts=max(2, threads),
                      card_labels=card)  # one labelling thread, as a training on the card runs it
     try:
@@ -141,7 +139,7 @@ def card_costs(bvh, tracer, cfg, threads: int, chunks: int, device: str | None =
     finally:
         stream.close()
     return {"card_label_s": round(label_s, 5), "card_label_samples_per_s": round(samples / (draw + label_s)),
-            "card_first_hit_rays_per_s": round(statistics.median(first[1:])),
+            "card_first_hit_rays_per_s": round(statistics.median(times["first"][1:])),
             "card_streamed_samples_per_s": round(streamed_rate), "card_tracer_bytes": card.tracer.resident_bytes}
 
 

@@ -76,22 +76,24 @@ class CardTracer:
         """Bytes this tracer holds on its device (the tree, the triangles, their ids and normals)."""
         return sum(t.numel() * t.element_size() for t in (self.records, self.triangles, self.tri_ids, self.normals))
 
-    def nearest(self, rays_o: torch.Tensor, rays_d: torch.Tensor, t_min: torch.Tensor,
-                t_max: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Nearest hit with max(t_min, 0) <= t <= t_max. rays_o, rays_d: (N, 3) float32 on the tracer's device;
-        t_min, t_max: (N,) float32. Returns t (N,) float32 (inf on a miss) and tri (N,) int64 (-1 on a miss)."""
+    def nearest(self, rays_o: torch.Tensor, rays_d: torch.Tensor, t_min: torch.Tensor | None = None,
+                t_max: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Nearest hit with max(t_min, 0) <= t <= t_max (None: 0 and inf, the whole ray). rays_o, rays_d: (N, 3)
+        float32 on the tracer's device; t_min, t_max: (N,) float32. Returns t (N,) float32 (inf on a miss) and tri
+        (N,) int64 (-1 on a miss)."""
         from ..kernels.triton.mesh_trace import nearest_hits
 
-        t, tri = nearest_hits(rays_o, rays_d, t_min.clamp_min(0.0), t_max, self.records, self.max_depth,
-                              self.triangles, self.tri_ids)
+        zeros = torch.zeros(rays_o.shape[0], dtype=torch.float32, device=rays_o.device)
+        t_min = zeros if t_min is None else t_min.clamp_min(0.0)
+        t_max = zeros + float("inf") if t_max is None else t_max
+        t, tri = nearest_hits(rays_o, rays_d, t_min, t_max, self.records, self.max_depth, self.triangles,
+                              self.tri_ids)
         return t, tri.long()
 
     def first_hit(self, rays_o: torch.Tensor, rays_d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Nearest hit along the whole ray: t (N,) float32 (inf on a miss), tri (N,) int64 (-1), normal (N, 3)
         float32 (0 on a miss), as `ExactTracer.first_hit`'s fields."""
-        n = rays_o.shape[0]
-        zeros = torch.zeros(n, dtype=torch.float32, device=rays_o.device)
-        t, tri = self.nearest(rays_o, rays_d, zeros, torch.full_like(zeros, float("inf")))
+        t, tri = self.nearest(rays_o, rays_d)
         return t, tri, self.normals_of(tri)
 
     def normals_of(self, tri: torch.Tensor) -> torch.Tensor:

@@ -104,6 +104,7 @@ class ExactTracer:
         if self._scene is None:
             self._init_fallback()
         self.backend = "embree" if self._scene is not None else "numpy"
+        self._card = None  # the mesh's tracer on a card (`on_card`), made when first asked for
 
     def on_card(self, device: "torch.device | str", tree=None):
         """This mesh's `card_tracer.CardTracer` on `device`, made once (a run's trainings share it). tree: the run's
@@ -112,7 +113,7 @@ class ExactTracer:
 
         from .card_tracer import CardTracer
 
-        card = getattr(self, "_card", None)
+        card = self._card
         if card is None or card.device != torch.device(device):
             fits = tree is not None and len(tree.tri_order) == self.mesh.n_triangles
             card = self._card = CardTracer(self.mesh, device, tree if fits else None)

@@ -18,7 +18,7 @@ from ..geometry.bvh import BVH
 from ..geometry.card_tracer import CardTracer
 from ..geometry.exact import ExactTracer
 from ..geometry.traversal import TorchBVH, leaves_along_rays
-from .rays import LABEL_MODES, SEGMENT_EPS, TrainingSamples
+from .rays import LABEL_MODES, SEGMENT_EPS, TrainingSamples, finish_labels
 
 
 class CardLabels:
@@ -26,13 +26,13 @@ class CardLabels:
 
     def __init__(self, tracer: CardTracer):
         self.tracer = tracer
-        self.device = tracer.device
         self._cut: tuple | None = None  # (bvh, its tree on the card, its tri_leaf on the card)
 
     def _on_card(self, bvh: BVH) -> tuple[TorchBVH, torch.Tensor]:
         if self._cut is None or self._cut[0] is not bvh:
-            tri_leaf = torch.from_numpy(np.asarray(bvh.tri_leaf, np.int64)).to(self.device)
-            self._cut = (bvh, TorchBVH.from_bvh(bvh, self.device), tri_leaf)
+            device = self.tracer.device
+            tri_leaf = torch.from_numpy(np.asarray(bvh.tri_leaf, np.int64)).to(device)
+            self._cut = (bvh, TorchBVH.from_bvh(bvh, device), tri_leaf)
         return self._cut[1], self._cut[2]
 
     def label(self, bvh: BVH, rays_o: np.ndarray, rays_d: np.ndarray, mode: str,
@@ -42,11 +42,10 @@ class CardLabels:
         if mode not in LABEL_MODES:
             raise ValueError(f"label mode must be one of {LABEL_MODES}, got {mode!r}")
         tree, tri_leaf = self._on_card(bvh)
-        o = torch.as_tensor(np.ascontiguousarray(rays_o, np.float32)).to(self.device)
-        d = torch.as_tensor(np.ascontiguousarray(rays_d, np.float32)).to(self.device)
+        o = torch.as_tensor(np.ascontiguousarray(rays_o, np.float32)).to(self.tracer.device)
+        d = torch.as_tensor(np.ascontiguousarray(rays_d, np.float32)).to(self.tracer.device)
         n = o.shape[0]
-        zeros = torch.zeros(n, dtype=torch.float32, device=self.device)
-        t_first, tri_first = self.tracer.nearest(o, d, zeros, torch.full_like(zeros, float("inf")))
+        t_first, tri_first = self.tracer.nearest(o, d)
         lh = leaves_along_rays(tree, o, d, t_first + SEGMENT_EPS)
         ray, leaf = lh.ray, lh.leaf
         if mode == "ownership":
@@ -59,10 +58,7 @@ class CardLabels:
             hit = tri >= 0
             t_hit = torch.where(hit, t_seg, lh.t_exit)
         normal = torch.where(hit[:, None], self.tracer.normals_of(tri), 0.0)
-        if normal_loss == "facing":  # as the host's labels: the normal faces the ray
-            back = (normal * d[ray]).sum(-1) > 0
-            normal = torch.where(back[:, None], -normal, normal)
-        t_hit = torch.minimum(torch.maximum(t_hit, lh.t_enter), lh.t_exit)
+        normal, t_hit = finish_labels(normal, t_hit, d, ray, lh.t_enter, lh.t_exit, normal_loss)
         rays_hit, samples_hit = torch.stack(((tri_first >= 0).sum(), hit.sum())).tolist()  # one read per chunk
         stats = {"rays": n, "rays_hit": rays_hit}
         if mode == "ownership":

@@ -243,15 +243,22 @@ def label_samples(bvh: BVH, tracer: ExactTracer, rays_o: np.ndarray, rays_d: np.
         hit = torch.from_numpy(inside)
         t_hit[hit] = torch.from_numpy(allh.t[idx_c[inside]])
         normal[hit] = torch.from_numpy(tracer.normals(allh.tri[idx_c[inside]]))
-    if normal_loss == "facing":  # what every renderer shades with; the two sides of a thin wall differ by the ray alone
-        back = (normal * torch.from_numpy(rays_d)[ray]).sum(-1) > 0
-        normal = torch.where(back[:, None], -normal, normal)
-    # Clamp into the segment: the network predicts a position inside [t_enter, t_exit].
-    t_hit = torch.minimum(torch.maximum(t_hit, lh.t_enter), lh.t_exit)
+    normal, t_hit = finish_labels(normal, t_hit, torch.from_numpy(rays_d), ray, lh.t_enter, lh.t_exit, normal_loss)
     stats.update(samples=n_s, samples_hit=int(hit.sum()))
     return TrainingSamples(rays_o=torch.from_numpy(rays_o), rays_d=torch.from_numpy(rays_d), ray=ray, leaf=leaf,
                            t_enter=lh.t_enter, t_exit=lh.t_exit, hit=hit, t_hit=t_hit, normal=normal,
                            rank=lh.rank(), mode=mode, stats=stats)
+
+
+def finish_labels(normal: torch.Tensor, t_hit: torch.Tensor, rays_d: torch.Tensor, ray: torch.Tensor,
+                  t_enter: torch.Tensor, t_exit: torch.Tensor, normal_loss: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """The last step of every labelling (host or card): 'facing' turns each sample's normal (S, 3) to face its ray
+    (rays_d (N, 3), ray (S,) int64); t_hit (S,) is clamped into [t_enter, t_exit] (the network predicts a position
+    inside)."""
+    if normal_loss == "facing":  # what every renderer shades with; the two sides of a thin wall differ by the ray alone
+        back = (normal * rays_d[ray]).sum(-1) > 0
+        normal = torch.where(back[:, None], -normal, normal)
+    return normal, torch.minimum(torch.maximum(t_hit, t_enter), t_exit)
 
 
 def split_samples(samples: TrainingSamples, rays_per_part: int) -> list[TrainingSamples]:

@@ -10,6 +10,12 @@ import triton
 import triton.language as tl
 
 
+def stack_depth(max_depth: int) -> int:
+    """Stack slots for a tree of `max_depth`: a pop pushes at most two, so depth + 2 (as `LeafStream`), rounded up to a
+    power of two (a register tile's width)."""
+    return triton.next_power_of_2(max_depth + 2)
+
+
 @triton.jit
 def _xyz(ptr, rows, live, other):
     """Rows `rows` of an (N, 3) float32 array: x, y, z as (BLOCK,) each, `other` where not `live`."""

@@ -14,7 +14,7 @@ import triton
 import triton.language as tl
 
 from . import rows_per_program
-from .bvh_walk import _box, _pop, _push, _xyz
+from .bvh_walk import _box, _pop, _push, _xyz, stack_depth
 
 #: Rays per program on a card (`rows_per_program`), warps per program. Not yet timed on a card.
 BLOCK_R, WARPS = 32, 4
@@ -56,11 +56,6 @@ def _leaf_walk(o_ptr, inv_ptr, tmax_ptr, n, rec_f_ptr, rec_i_ptr, count_ptr, off
         stack, sp = _push(stack, sp, slots, left, inner)
     if not WRITE:
         tl.store(count_ptr + rows, found.to(tl.int64), mask=live)
-
-
-def stack_depth(max_depth: int) -> int:
-    """Stack slots for a tree of `max_depth` (a pop pushes two): depth + 2, rounded up to a power of two."""
-    return triton.next_power_of_2(max_depth + 2)
 
 
 def leaf_counts(rays_o: torch.Tensor, inv_d: torch.Tensor, t_max: torch.Tensor, records: torch.Tensor,

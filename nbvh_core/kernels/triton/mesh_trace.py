@@ -17,7 +17,7 @@ import triton
 import triton.language as tl
 
 from . import rows_per_program
-from .bvh_walk import _box, _pop, _push, _xyz
+from .bvh_walk import _box, _pop, _push, _xyz, stack_depth
 
 #: Rays per program on a card (`rows_per_program`), warps per program. Not yet timed on a card.
 BLOCK_R, WARPS = 32, 4
@@ -96,11 +96,6 @@ def _nearest_hits(o_ptr, d_ptr, inv_ptr, tmin_ptr, tmax_ptr, n, rec_f_ptr, rec_i
         stack, sp = _push(stack, sp, slots, near, tl.where(right_first, hit_r, hit_l))
     tl.store(t_ptr + rows, tl.where(best_tri >= 0, best, float("inf")), mask=live)
     tl.store(out_ptr + rows, best_tri, mask=live)
-
-
-def stack_depth(max_depth: int) -> int:
-    """Stack slots for a tree of `max_depth`: a pop pushes at most two, so depth + 2, rounded up to a power of two."""
-    return triton.next_power_of_2(max_depth + 2)
 
 
 def nearest_hits(rays_o: torch.Tensor, rays_d: torch.Tensor, t_min: torch.Tensor, t_max: torch.Tensor,

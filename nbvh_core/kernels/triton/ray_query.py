@@ -23,7 +23,7 @@ import torch
 import triton
 import triton.language as tl
 
-from .bvh_walk import _box, _next_leaf, _xyz
+from .bvh_walk import _box, _next_leaf, _xyz, stack_depth
 from .hashgrid import LevelGeometry, _corner_row, _level_starts
 from .mlp import PackedMLP
 
@@ -262,11 +262,6 @@ def _ray_query(o_ptr, d_ptr, inv_ptr, n, rec_f_ptr, rec_i_ptr, frac_ptr,
     tl.store(normal_ptr + rows * 3 + 1, ny, mask=live)
     tl.store(normal_ptr + rows * 3 + 2, nz, mask=live)
     tl.store(segments_ptr + rows, segments, mask=live)
-
-
-def stack_depth(max_depth: int) -> int:
-    """Stack slots for a tree of `max_depth` (as `LeafStream`: depth + 2), rounded up to a power of two."""
-    return triton.next_power_of_2(max_depth + 2)
 
 
 def first_hits(rays_o: torch.Tensor, rays_d: torch.Tensor, records: torch.Tensor, max_depth: int,
